@@ -1,0 +1,79 @@
+// sdb_gather.wgsl: one global direction's contribution to every lightmap texel (seed
+// section 4, Figures 5 and 6). Each texel projects its sample point x into the
+// illumination map, reads the k x k neighbourhood around it, keeps the samples that lie
+// in front of x along d and above x's normal plane, and takes the nearest along d; with
+// none left the environment's radiance in direction d (the same for every texel, so the
+// CPU evaluates it once per direction) is used. The estimator of E/pi is the seed's
+// Eq. 2 without the albedo: 4 * L_i(x, d) * max(<d, n>, 0), unbiased for uniformly
+// distributed d over the sphere.
+//
+// Departures from the seed: the "in front of x" test (the seed's Figure 5 checks only the
+// normal plane, which lets a sample behind x along d win when x faces d obliquely), small
+// epsilons relative to the scene size, and accumulation into two half accumulators (even
+// and odd steps) so the bake can estimate its own error.
+//
+// Accumulation is always a running blend, acc = acc (1 - b) + c b, with b from the CPU:
+// for `average` mode b = w_i / W_i (a running weighted mean whose weights ramp up, see
+// sdb.rs), for `leaky` mode the fixed blend. The running form keeps values at the scale
+// of one estimate, so f32 sums lose no precision over many thousand directions.
+
+struct GatherParams {
+    env: vec4<f32>,   // rgb: environment radiance arriving along -d (seen looking along +d); w: blend b
+    eps: vec4<f32>,   // x: normal-plane epsilon, y: along-d epsilon (normalised scene units); z, w: unused
+    misc: vec4<u32>,  // x: neighbourhood radius r (k = 2r+1), y: unused, z: parity (0 even, 1 odd), w: texel count N
+}
+
+@group(0) @binding(0) var<uniform> view: View;
+@group(0) @binding(1) var<uniform> params: GatherParams;
+@group(0) @binding(2) var illum: texture_2d<f32>;
+@group(0) @binding(3) var<storage, read> texels: array<TexelGeom>;
+@group(0) @binding(4) var<storage, read_write> acc: array<vec4<f32>>;  // 2N: even then odd
+
+@compute @workgroup_size(64)
+fn gather(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let i = invocation_index(wid, nwg, lid);
+    let n_texels = params.misc.w;
+    if i >= n_texels {
+        return;
+    }
+    let x = texels[i].position.xyz;
+    let n = texels[i].normal.xyz;
+    let d = view.dir.xyz;
+    let weight = dot(n, d);
+    var contribution = vec3<f32>(0.0);
+    if weight > 0.0 {
+        let tx = dot(x, d);
+        let centre = vec2<i32>(floor(project_to_map(view, x)));
+        let size = i32(view.extent.z);
+        let r = i32(params.misc.x);
+        var best_t = EMPTY_T;
+        var best = params.env.rgb;
+        for (var dy = -r; dy <= r; dy++) {
+            for (var dx = -r; dx <= r; dx++) {
+                let px = centre + vec2<i32>(dx, dy);
+                if any(px < vec2<i32>(0)) || any(px >= vec2<i32>(size)) {
+                    continue;
+                }
+                let s = textureLoad(illum, px, 0);
+                if s.a >= 0.5 * EMPTY_T || s.a >= best_t {
+                    continue;
+                }
+                let p = map_sample_position(view, px, s.a);
+                if s.a - tx > params.eps.y && dot(p - x, n) > params.eps.x {
+                    best_t = s.a;
+                    best = s.rgb;
+                }
+            }
+        }
+        contribution = 4.0 * best * weight;
+    }
+    // Every direction blends, including the ones facing away from the texel, whose
+    // estimator value is zero.
+    let slot = params.misc.z * n_texels + i;
+    let b = params.env.w;
+    acc[slot] = vec4<f32>(acc[slot].rgb * (1.0 - b) + contribution * b, 0.0);
+}

@@ -1,0 +1,427 @@
+//! Headless wgpu context shared by the GPU techniques.
+//!
+//! What: one [`GpuContext`] (instance, adapter, device, queue) per bake, plus helpers for
+//! buffers, one-shot readback and shader modules built from `shaders/` (see [`shaders`]).
+//!
+//! Adapter choice: a discrete GPU, else an integrated one, else a virtual one, else a CPU
+//! adapter (Mesa's lavapipe on a machine with no GPU, logged as a warning because it is
+//! one to two orders of magnitude slower). `LIGHTMAPD_ADAPTER` forces a choice: `gpu`
+//! (best hardware adapter), `cpu` (a software one), or any other text, matched as a
+//! case-insensitive substring of the adapter name ("llvmpipe", "RTX", ...). wgpu's own
+//! `WGPU_BACKEND` still selects which backends are enumerated. No adapter at all is an
+//! error that says what to install.
+//!
+//! Features and limits are checked once, up front, against [`Requirements`], with an
+//! error that names the missing capability; the device is then created with the
+//! adapter's own limits (so large lightmaps and maps work where the hardware allows).
+//!
+//! Errors: shader modules are created inside an error scope, so a naga diagnostic becomes
+//! a [`GpuError::Shader`] instead of wgpu's default panic. Any other uncaptured device
+//! error (a validation error in a pass) is recorded rather than panicking, and
+//! [`GpuContext::take_error`] turns it into an error for the bake step that caused it.
+//!
+//! Precision and randomness are the techniques' business; see their module docs and
+//! `shaders/common.wgsl`.
+//!
+//! Readback ([`GpuContext::read_buffer`]) blocks on the device and is meant for
+//! snapshots only, never once per step.
+
+pub mod shaders;
+
+use std::sync::{Arc, Mutex};
+
+use bytemuck::Pod;
+use wgpu::util::DeviceExt;
+
+/// Environment variable that forces the adapter choice.
+pub const ADAPTER_ENV: &str = "LIGHTMAPD_ADAPTER";
+
+/// What to install when there is no adapter at all.
+pub const INSTALL_HINT: &str = "no GPU adapter found: install a Vulkan driver. On a machine \
+without a GPU, Mesa's software rasteriser works: `apt-get install mesa-vulkan-drivers libvulkan1` \
+(Debian/Ubuntu) or `dnf install mesa-vulkan-drivers vulkan-loader` (Fedora)";
+
+/// Errors from the GPU layer.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error("{INSTALL_HINT}")]
+    NoAdapter,
+    #[error("{ADAPTER_ENV}={wanted:?} matches no adapter; available: {available}")]
+    AdapterNotFound { wanted: String, available: String },
+    #[error("adapter {adapter:?} lacks what lightmapd needs: {missing}")]
+    Unsupported { adapter: String, missing: String },
+    #[error("could not create a device on {adapter:?}: {source}")]
+    RequestDevice { adapter: String, source: wgpu::RequestDeviceError },
+    #[error("shader {name} failed to compile:\n{message}")]
+    Shader { name: String, message: String },
+    #[error("GPU error during {during}: {message}")]
+    Device { during: String, message: String },
+    #[error("reading back {label}: {message}")]
+    Readback { label: String, message: String },
+}
+
+/// Capabilities a technique needs, checked before any work.
+#[derive(Debug, Clone)]
+pub struct Requirements {
+    /// Optional wgpu features.
+    pub features: wgpu::Features,
+    /// Minimum limits; only the fields that differ from the WebGPU defaults matter.
+    pub limits: wgpu::Limits,
+}
+
+impl Default for Requirements {
+    /// The WebGPU defaults: compute shaders, 8192^2 textures, 128 MiB storage bindings,
+    /// 8 storage buffers per stage. Every pass in `shaders/` fits in these.
+    fn default() -> Self {
+        Requirements { features: wgpu::Features::empty(), limits: wgpu::Limits::default() }
+    }
+}
+
+/// How the adapter was chosen (from [`ADAPTER_ENV`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum AdapterPreference {
+    /// Best available: discrete, integrated, virtual, then CPU.
+    Auto,
+    /// Hardware only (discrete, integrated or virtual).
+    Gpu,
+    /// Software only.
+    Cpu,
+    /// Case-insensitive substring of the adapter name.
+    Name(String),
+}
+
+impl AdapterPreference {
+    /// Read [`ADAPTER_ENV`]; unset or empty means [`AdapterPreference::Auto`].
+    pub fn from_env() -> Self {
+        match std::env::var(ADAPTER_ENV) {
+            Ok(v) => Self::parse(&v),
+            Err(_) => Self::Auto,
+        }
+    }
+
+    pub fn parse(v: &str) -> Self {
+        let v = v.trim();
+        match v.to_ascii_lowercase().as_str() {
+            "" | "auto" => Self::Auto,
+            "gpu" => Self::Gpu,
+            "cpu" => Self::Cpu,
+            _ => Self::Name(v.to_string()),
+        }
+    }
+
+    fn wanted(&self) -> String {
+        match self {
+            Self::Auto => "auto".into(),
+            Self::Gpu => "gpu".into(),
+            Self::Cpu => "cpu".into(),
+            Self::Name(n) => n.clone(),
+        }
+    }
+}
+
+/// Lower is better.
+fn device_type_rank(t: wgpu::DeviceType) -> u32 {
+    match t {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Cpu => 3,
+        wgpu::DeviceType::Other => 4,
+    }
+}
+
+fn is_hardware(t: wgpu::DeviceType) -> bool {
+    matches!(
+        t,
+        wgpu::DeviceType::DiscreteGpu
+            | wgpu::DeviceType::IntegratedGpu
+            | wgpu::DeviceType::VirtualGpu
+    )
+}
+
+/// Which of `infos` to use, by preference; `None` when nothing matches. Pure, so the
+/// policy is unit-tested without adapters. Ties keep enumeration order (wgpu lists Vulkan
+/// first, which is the backend tested here).
+pub fn choose_adapter(infos: &[wgpu::AdapterInfo], pref: &AdapterPreference) -> Option<usize> {
+    let candidates = infos.iter().enumerate().filter(|(_, i)| match pref {
+        AdapterPreference::Auto => true,
+        AdapterPreference::Gpu => is_hardware(i.device_type),
+        AdapterPreference::Cpu => i.device_type == wgpu::DeviceType::Cpu,
+        AdapterPreference::Name(n) => i.name.to_lowercase().contains(&n.to_lowercase()),
+    });
+    candidates.min_by_key(|(idx, i)| (device_type_rank(i.device_type), *idx)).map(|(idx, _)| idx)
+}
+
+/// Features and limits the adapter lacks, as readable text; empty when it has them all.
+pub fn missing_capabilities(
+    features: wgpu::Features,
+    limits: &wgpu::Limits,
+    downlevel: &wgpu::DownlevelCapabilities,
+    req: &Requirements,
+) -> Vec<String> {
+    let mut missing = Vec::new();
+    let lacking = req.features - features;
+    if !lacking.is_empty() {
+        missing.push(format!("features {lacking:?}"));
+    }
+    req.limits.check_limits_with_fail_fn(limits, false, |name, want, have| {
+        missing.push(format!("limit {name}: need {want}, adapter has {have}"));
+    });
+    if !downlevel.flags.contains(wgpu::DownlevelFlags::COMPUTE_SHADERS) {
+        missing.push("compute shaders".into());
+    }
+    if !downlevel.flags.contains(wgpu::DownlevelFlags::FRAGMENT_STORAGE) {
+        missing.push("storage buffers in fragment shaders".into());
+    }
+    missing
+}
+
+/// A headless device and queue.
+pub struct GpuContext {
+    pub adapter: wgpu::Adapter,
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub info: wgpu::AdapterInfo,
+    /// Device limits as granted (the adapter's own).
+    pub limits: wgpu::Limits,
+    /// First uncaptured device error since the last [`GpuContext::take_error`].
+    errors: Arc<Mutex<Option<String>>>,
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuContext")
+            .field("adapter", &self.info.name)
+            .field("backend", &self.info.backend)
+            .field("device_type", &self.info.device_type)
+            .finish()
+    }
+}
+
+impl GpuContext {
+    /// A context chosen by [`ADAPTER_ENV`], meeting `req`.
+    pub fn new(req: &Requirements) -> Result<Self, GpuError> {
+        Self::with_preference(&AdapterPreference::from_env(), req)
+    }
+
+    /// A context on the adapter `pref` picks, meeting `req`.
+    pub fn with_preference(pref: &AdapterPreference, req: &Requirements) -> Result<Self, GpuError> {
+        // from_env: WGPU_BACKEND and friends still apply.
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        if adapters.is_empty() {
+            return Err(GpuError::NoAdapter);
+        }
+        let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
+        let Some(idx) = choose_adapter(&infos, pref) else {
+            let available = infos
+                .iter()
+                .map(|i| format!("{:?} ({:?}, {:?})", i.name, i.device_type, i.backend))
+                .collect::<Vec<_>>()
+                .join(", ");
+            return Err(GpuError::AdapterNotFound { wanted: pref.wanted(), available });
+        };
+        let adapter = adapters.into_iter().nth(idx).expect("index from choose_adapter");
+        let info = infos[idx].clone();
+        let missing = missing_capabilities(
+            adapter.features(),
+            &adapter.limits(),
+            &adapter.get_downlevel_capabilities(),
+            req,
+        );
+        if !missing.is_empty() {
+            return Err(GpuError::Unsupported { adapter: info.name.clone(), missing: missing.join("; ") });
+        }
+        if is_hardware(info.device_type) {
+            tracing::info!(adapter = %info.name, backend = ?info.backend, kind = ?info.device_type, "using GPU adapter");
+        } else {
+            tracing::warn!(
+                adapter = %info.name, backend = ?info.backend, kind = ?info.device_type,
+                "no hardware GPU adapter{}: using a software (CPU) adapter; bakes will be much slower",
+                if *pref == AdapterPreference::Auto { "" } else { " (forced by LIGHTMAPD_ADAPTER)" }
+            );
+        }
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("lightmapd device"),
+            required_features: req.features,
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|source| GpuError::RequestDevice { adapter: info.name.clone(), source })?;
+        let errors: Arc<Mutex<Option<String>>> = Arc::new(Mutex::new(None));
+        let sink = errors.clone();
+        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+            tracing::error!("uncaptured GPU error: {e}");
+            let mut slot = sink.lock().unwrap_or_else(|p| p.into_inner());
+            if slot.is_none() {
+                *slot = Some(e.to_string());
+            }
+        }));
+        Ok(GpuContext { adapter, device, queue, info, limits, errors })
+    }
+
+    /// True for a software adapter (lavapipe, WARP, ...).
+    pub fn is_software(&self) -> bool {
+        !is_hardware(self.info.device_type)
+    }
+
+    /// The first device error recorded since the last call, as an error for `during`.
+    pub fn take_error(&self, during: &str) -> Result<(), GpuError> {
+        let mut slot = self.errors.lock().unwrap_or_else(|p| p.into_inner());
+        match slot.take() {
+            Some(message) => Err(GpuError::Device { during: during.to_string(), message }),
+            None => Ok(()),
+        }
+    }
+
+    /// Compile a pass shader (common prelude + pass) inside a validation error scope.
+    pub fn shader(&self, pass: &shaders::PassShader) -> Result<wgpu::ShaderModule, GpuError> {
+        let source = pass.composed();
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = self.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(pass.name),
+            source: wgpu::ShaderSource::Wgsl(source.into()),
+        });
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Shader { name: pass.name.to_string(), message: e.to_string() });
+        }
+        Ok(module)
+    }
+
+    /// A buffer holding `data`.
+    pub fn buffer_init<T: Pod>(&self, label: &str, data: &[T], usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        // wgpu rejects zero-sized mapped-at-creation buffers in some paths; a 16-byte
+        // minimum also keeps empty scenes' bindings valid.
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        if bytes.len() < 16 {
+            let mut padded = [0u8; 16];
+            padded[..bytes.len()].copy_from_slice(bytes);
+            return self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: &padded,
+                usage,
+            });
+        }
+        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: bytes, usage })
+    }
+
+    /// A zero-filled buffer of `size` bytes (at least 16).
+    pub fn buffer_zeroed(&self, label: &str, size: u64, usage: wgpu::BufferUsages) -> wgpu::Buffer {
+        // wgpu zero-initialises new buffers (a WebGPU guarantee).
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: size.max(16).next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT),
+            usage,
+            mapped_at_creation: false,
+        })
+    }
+
+    /// A uniform buffer holding `value`, writable later with [`wgpu::Queue::write_buffer`].
+    pub fn uniform<T: Pod>(&self, label: &str, value: &T) -> wgpu::Buffer {
+        self.buffer_init(
+            label,
+            std::slice::from_ref(value),
+            wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        )
+    }
+
+    /// Copy `count` elements of `T` from the start of `buffer` (which needs COPY_SRC) to
+    /// the host. Submits, then blocks until the GPU is done: snapshot time only.
+    pub fn read_buffer<T: Pod>(&self, label: &str, buffer: &wgpu::Buffer, count: usize) -> Result<Vec<T>, GpuError> {
+        let size = (count * std::mem::size_of::<T>()) as u64;
+        if size == 0 {
+            return Ok(Vec::new());
+        }
+        let staging_label = format!("{label} readback");
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(&staging_label),
+            size: size.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT),
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(&staging_label) });
+        encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT));
+        self.queue.submit([encoder.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.slice(..).map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        let err = |message: String| GpuError::Readback { label: label.to_string(), message };
+        self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| err(e.to_string()))?;
+        rx.recv().map_err(|e| err(e.to_string()))?.map_err(|e| err(e.to_string()))?;
+        let out = {
+            let view = staging.slice(..).get_mapped_range().map_err(|e| err(e.to_string()))?;
+            bytemuck::pod_collect_to_vec::<u8, T>(&view[..size as usize])
+        };
+        staging.unmap();
+        self.take_error(label)?;
+        Ok(out)
+    }
+
+    /// Block until all submitted work is done (benchmarks, tests).
+    pub fn wait_idle(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device { during: "wait".into(), message: e.to_string() })?;
+        Ok(())
+    }
+}
+
+/// Workgroup counts for a 64-wide 1D kernel over `n` items, laid out in 2D because one
+/// dimension is capped at 65535 workgroups (`invocation_index` in common.wgsl undoes it).
+pub fn dispatch_size_64(n: u32) -> (u32, u32) {
+    let groups = n.div_ceil(64).max(1);
+    if groups <= 65535 {
+        (groups, 1)
+    } else {
+        let y = groups.div_ceil(65535);
+        (groups.div_ceil(y), y)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn info(name: &str, t: wgpu::DeviceType) -> wgpu::AdapterInfo {
+        wgpu::AdapterInfo { name: name.into(), ..wgpu::AdapterInfo::new(t, wgpu::Backend::Vulkan) }
+    }
+
+    #[test]
+    fn adapter_policy() {
+        use wgpu::DeviceType::*;
+        let list = [info("llvmpipe (LLVM 15)", Cpu), info("Intel UHD", IntegratedGpu), info("NVIDIA RTX", DiscreteGpu)];
+        assert_eq!(choose_adapter(&list, &AdapterPreference::Auto), Some(2));
+        assert_eq!(choose_adapter(&list, &AdapterPreference::Gpu), Some(2));
+        assert_eq!(choose_adapter(&list, &AdapterPreference::Cpu), Some(0));
+        assert_eq!(choose_adapter(&list, &AdapterPreference::parse("uhd")), Some(1));
+        assert_eq!(choose_adapter(&list, &AdapterPreference::parse("radeon")), None);
+        let cpu_only = [info("llvmpipe", Cpu)];
+        assert_eq!(choose_adapter(&cpu_only, &AdapterPreference::Auto), Some(0));
+        assert_eq!(choose_adapter(&cpu_only, &AdapterPreference::Gpu), None);
+        assert_eq!(AdapterPreference::parse(" CPU "), AdapterPreference::Cpu);
+        assert_eq!(AdapterPreference::parse(""), AdapterPreference::Auto);
+    }
+
+    #[test]
+    fn missing_capabilities_are_named() {
+        let req = Requirements::default();
+        let mut small = wgpu::Limits::default();
+        small.max_texture_dimension_2d = 2048;
+        let down = wgpu::DownlevelCapabilities::default();
+        let missing = missing_capabilities(wgpu::Features::empty(), &small, &down, &req);
+        assert!(missing.iter().any(|m| m.contains("max_texture_dimension_2d")), "{missing:?}");
+        let ok = missing_capabilities(wgpu::Features::empty(), &wgpu::Limits::default(), &down, &req);
+        assert!(ok.is_empty(), "{ok:?}");
+    }
+
+    #[test]
+    fn dispatch_covers_all_items() {
+        for n in [1u32, 63, 64, 65, 65535 * 64, 65535 * 64 + 1, 4096 * 4096] {
+            let (x, y) = dispatch_size_64(n);
+            assert!(x <= 65535 && y <= 65535);
+            assert!(x as u64 * y as u64 * 64 >= n as u64, "n={n}");
+        }
+    }
+}

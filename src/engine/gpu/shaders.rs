@@ -1,0 +1,106 @@
+//! WGSL sources, compiled into the binary.
+//!
+//! Every pass lives in its own file under `shaders/`; helpers and layouts that several
+//! passes share live in `shaders/common.wgsl`, which is concatenated in front of each pass
+//! (WGSL has no include directive). [`ALL`] lists every pass so that the validation test
+//! (below, no GPU needed) cannot forget one.
+
+/// Shared helpers: PCG hash, view layout, per-texel and per-triangle structs.
+pub const COMMON: &str = include_str!("../../../shaders/common.wgsl");
+
+/// One WGSL pass file.
+#[derive(Debug, Clone, Copy)]
+pub struct PassShader {
+    /// File name under `shaders/`, also the label of the shader module.
+    pub name: &'static str,
+    /// The pass source, without the common prelude.
+    pub source: &'static str,
+}
+
+impl PassShader {
+    /// The full source handed to the compiler: common prelude, then the pass.
+    pub fn composed(&self) -> String {
+        let mut s = String::with_capacity(COMMON.len() + self.source.len() + 64);
+        s.push_str(COMMON);
+        s.push_str("\n// ---- ");
+        s.push_str(self.name);
+        s.push_str(" ----\n");
+        s.push_str(self.source);
+        s
+    }
+}
+
+macro_rules! pass {
+    ($name:literal) => {
+        PassShader { name: $name, source: include_str!(concat!("../../../shaders/", $name)) }
+    };
+}
+
+/// `sdb`: outgoing radiance of every lightmap pixel from the running estimate.
+pub const SDB_RESOLVE: PassShader = pass!("sdb_resolve.wgsl");
+/// `sdb`: the illumination map (stochastic depth) and the shadow maps (nearest depth).
+pub const SDB_ILLUMINATION: PassShader = pass!("sdb_illumination.wgsl");
+/// `sdb`: gather one direction into the lightmap accumulators.
+pub const SDB_GATHER: PassShader = pass!("sdb_gather.wgsl");
+/// `sdb`: direct light from the sun and directional lights through a shadow map.
+pub const SDB_DIRECT: PassShader = pass!("sdb_direct.wgsl");
+
+/// Every pass shader in the crate.
+pub const ALL: &[PassShader] = &[SDB_RESOLVE, SDB_ILLUMINATION, SDB_GATHER, SDB_DIRECT];
+
+/// Parse and validate a composed WGSL source with naga alone, no device. Returns the
+/// diagnostic text on failure. The same checks run again inside wgpu at
+/// `create_shader_module`; doing them here lets a unit test catch a broken shader on a
+/// machine with no adapter at all.
+pub fn validate_wgsl(name: &str, source: &str) -> Result<naga::Module, String> {
+    let module = naga::front::wgsl::parse_str(source)
+        .map_err(|e| e.emit_to_string_with_path(source, name))?;
+    // Default capabilities: only what every WebGPU implementation has, which is all the
+    // shaders may assume (the device is created with no optional shader features).
+    let mut validator =
+        naga::valid::Validator::new(naga::valid::ValidationFlags::all(), Default::default());
+    validator
+        .validate(&module)
+        .map_err(|e| e.emit_to_string_with_path(source, name))?;
+    Ok(module)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_wgsl_pass_parses_and_validates_without_a_device() {
+        let mut failures = Vec::new();
+        for pass in ALL {
+            if let Err(e) = validate_wgsl(pass.name, &pass.composed()) {
+                failures.push(e);
+            }
+        }
+        assert!(failures.is_empty(), "WGSL validation failed:\n{}", failures.join("\n"));
+    }
+
+    #[test]
+    fn every_shader_file_is_listed() {
+        // A new file in shaders/ that is not in ALL would escape the validation test.
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/shaders");
+        let mut on_disk: Vec<String> = std::fs::read_dir(dir)
+            .expect("shaders/ exists")
+            .filter_map(|e| e.ok()?.file_name().into_string().ok())
+            .filter(|n| n.ends_with(".wgsl") && n != "common.wgsl")
+            .collect();
+        on_disk.sort();
+        let mut listed: Vec<String> = ALL.iter().map(|p| p.name.to_string()).collect();
+        listed.sort();
+        assert_eq!(on_disk, listed);
+    }
+
+    #[test]
+    fn validation_rejects_a_broken_shader() {
+        // The validator must actually catch errors: a type mismatch naga parses but
+        // rejects, and a syntax error.
+        let bad = format!("{COMMON}\nfn f() -> f32 {{ return pcg(1u); }}");
+        assert!(validate_wgsl("bad.wgsl", &bad).is_err());
+        assert!(validate_wgsl("bad2.wgsl", "fn f( {").is_err());
+    }
+}

@@ -1,0 +1,3 @@
+//! Bake techniques.
+
+pub mod sdb;
