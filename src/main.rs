@@ -82,6 +82,9 @@ struct BakeArgs {
     /// Extra layers: validity, direct, indirect (comma separated).
     #[arg(long, value_delimiter = ',', value_parser = OutputLayer::parse)]
     outputs: Vec<OutputLayer>,
+    /// Also write a tone-mapped PNG preview here.
+    #[arg(long)]
+    preview: Option<PathBuf>,
     /// Technique parameters as a JSON object, e.g. '{"samples_per_step": 8}'.
     #[arg(long)]
     params: Option<String>,
@@ -123,7 +126,23 @@ fn main() -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if e.use_stderr() => {
+            // Bad options get one line, like every other bad input; clap's usage hints
+            // and the "--help" tip are left out.
+            let text = e.to_string();
+            let line: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("For more information"))
+                .filter(|l| !l.is_empty())
+                .collect();
+            eprintln!("{}", line.join(" "));
+            return ExitCode::from(2);
+        }
+        Err(e) => e.exit(), // --help and --version
+    };
     let result = match cli.command {
         Command::Bake(args) => bake(args),
         Command::Example { name: Example::CornellBox, output } => write_atomically(&output, &scene::build::cornell_box().to_glb())
@@ -209,6 +228,9 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
     bar.finish_and_clear();
     write_atomically(&args.output, &result.exr)
         .map_err(|e| Failure { code: 1, message: format!("cannot write {}: {e}", args.output.display()) })?;
+    if let Some(p) = &args.preview {
+        write_atomically(p, &result.preview_png).map_err(|e| Failure { code: 1, message: format!("cannot write {}: {e}", p.display()) })?;
+    }
     let s = &result.summary;
     let err = s.error.relative.map(|e| format!("{:.2}%", e * 100.0)).unwrap_or_else(|| "n/a".into());
     eprintln!(

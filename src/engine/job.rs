@@ -55,6 +55,8 @@ pub struct BakeSummary {
 
 pub struct BakeResult {
     pub exr: Vec<u8>,
+    /// Tone-mapped PNG of the dilated lightmap.
+    pub preview_png: Vec<u8>,
     pub estimate: Estimate,
     pub atlas: Arc<Atlas>,
     pub summary: BakeSummary,
@@ -87,6 +89,8 @@ pub fn bake(
         relative_error: outcome.estimate.error.relative,
         seed: request.seed,
     };
+    let preview = crate::engine::post::dilate(&atlas, &outcome.estimate.total, DEFAULT_RINGS);
+    let preview_png = output::encode_preview_png(atlas.width, atlas.height, &preview).map_err(EngineError::Internal)?;
     let exr = output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)?;
     let summary = BakeSummary {
         technique: request.technique.clone(),
@@ -96,5 +100,5 @@ pub fn bake(
         stopped_by: outcome.stopped_by,
         error: outcome.estimate.error,
     };
-    Ok(BakeResult { exr, estimate: outcome.estimate, atlas, summary })
+    Ok(BakeResult { exr, preview_png, estimate: outcome.estimate, atlas, summary })
 }

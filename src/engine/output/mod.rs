@@ -131,3 +131,22 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
         let _ = std::fs::remove_file(&tmp);
     })
 }
+
+/// A tone-mapped PNG of a full lightmap image (for previews and dashboards): exposure so
+/// the 99th-percentile luminance maps to 0.9 before the sRGB curve, clamped.
+pub fn encode_preview_png(width: u32, height: u32, rgb: &[Vec3]) -> Result<Vec<u8>, String> {
+    let mut lum: Vec<f32> = rgb.iter().map(|v| v.dot(crate::engine::accumulate::LUMINANCE)).filter(|l| *l > 0.0).collect();
+    lum.sort_by(f32::total_cmp);
+    let white = lum.get(lum.len().saturating_sub(1) * 99 / 100).copied().unwrap_or(1.0).max(1e-12);
+    let exposure = 0.9 / white;
+    let encode = |c: f32| {
+        let c = (c * exposure).clamp(0.0, 1.0);
+        let s = if c <= 0.003_130_8 { 12.92 * c } else { 1.055 * c.powf(1.0 / 2.4) - 0.055 };
+        (s * 255.0 + 0.5) as u8
+    };
+    let bytes: Vec<u8> = rgb.iter().flat_map(|v| [encode(v.x), encode(v.y), encode(v.z)]).collect();
+    let img = image::RgbImage::from_raw(width, height, bytes).ok_or("preview: image size does not match")?;
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).map_err(|e| format!("encoding PNG: {e}"))?;
+    Ok(out.into_inner())
+}
