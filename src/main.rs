@@ -18,7 +18,11 @@ use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
 use lightmapd::engine::technique::TECHNIQUES;
 
 #[derive(Parser)]
-#[command(name = "lightmapd", version, about = "Bakes lightmaps from glTF scenes")]
+#[command(
+    name = "lightmapd",
+    version,
+    about = "Bakes lightmaps from glTF scenes"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -27,7 +31,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Bake a lightmap from a .glb or .gltf scene into an EXR file.
-    Bake(BakeArgs),
+    Bake(Box<BakeArgs>),
     /// Write a bundled example scene as .glb.
     Example {
         #[arg(value_enum, default_value = "cornell-box")]
@@ -94,7 +98,9 @@ fn parse_floats(s: &str, n: usize, what: &str) -> Result<Vec<f32>, String> {
     let v: Result<Vec<f32>, _> = s.split(',').map(|x| x.trim().parse::<f32>()).collect();
     match v {
         Ok(v) if v.len() == n && v.iter().all(|x| x.is_finite()) => Ok(v),
-        _ => Err(format!("expected {what} as {n} comma-separated finite numbers, got {s:?}")),
+        _ => Err(format!(
+            "expected {what} as {n} comma-separated finite numbers, got {s:?}"
+        )),
     }
 }
 
@@ -108,7 +114,11 @@ fn parse_sun(s: &str) -> Result<Sun, String> {
     if direction.length() < 1e-6 {
         return Err("sun direction must not be zero".into());
     }
-    Ok(Sun { direction: direction.normalize(), angular_diameter: v[3].to_radians(), radiance: Vec3::new(v[4], v[5], v[6]) })
+    Ok(Sun {
+        direction: direction.normalize(),
+        angular_diameter: v[3].to_radians(),
+        radiance: Vec3::new(v[4], v[5], v[6]),
+    })
 }
 
 /// A failure and the exit code it earns.
@@ -118,12 +128,17 @@ struct Failure {
 }
 
 fn bad_input(message: impl Into<String>) -> Failure {
-    Failure { code: 2, message: message.into() }
+    Failure {
+        code: 2,
+        message: message.into(),
+    }
 }
 
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
         .with_writer(std::io::stderr)
         .init();
     let cli = match Cli::try_parse() {
@@ -144,9 +159,16 @@ fn main() -> ExitCode {
         Err(e) => e.exit(), // --help and --version
     };
     let result = match cli.command {
-        Command::Bake(args) => bake(args),
-        Command::Example { name: Example::CornellBox, output } => write_atomically(&output, &scene::build::cornell_box().to_glb())
-            .map_err(|e| Failure { code: 1, message: format!("cannot write {}: {e}", output.display()) }),
+        Command::Bake(args) => bake(*args),
+        Command::Example {
+            name: Example::CornellBox,
+            output,
+        } => {
+            write_atomically(&output, &scene::build::cornell_box().to_glb()).map_err(|e| Failure {
+                code: 1,
+                message: format!("cannot write {}: {e}", output.display()),
+            })
+        }
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -159,16 +181,26 @@ fn main() -> ExitCode {
 
 fn bake(args: BakeArgs) -> Result<(), Failure> {
     if !TECHNIQUES.contains(&args.technique.as_str()) {
-        return Err(bad_input(format!("unknown technique {:?}; available: {}", args.technique, TECHNIQUES.join(", "))));
+        return Err(bad_input(format!(
+            "unknown technique {:?}; available: {}",
+            args.technique,
+            TECHNIQUES.join(", ")
+        )));
     }
     let params = match &args.params {
-        Some(p) => serde_json::from_str(p).map_err(|e| bad_input(format!("--params is not JSON: {e}")))?,
+        Some(p) => {
+            serde_json::from_str(p).map_err(|e| bad_input(format!("--params is not JSON: {e}")))?
+        }
         None => serde_json::Value::Null,
     };
     let stop = if args.steps.is_none() && args.seconds.is_none() && args.target_error.is_none() {
         BakeRequest::default().stop
     } else {
-        StopCriteria { steps: args.steps, seconds: args.seconds, target_error: args.target_error }
+        StopCriteria {
+            steps: args.steps,
+            seconds: args.seconds,
+            target_error: args.target_error,
+        }
     };
     let request = BakeRequest {
         technique: args.technique.clone(),
@@ -189,14 +221,22 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         seed: args.seed,
     };
 
-    let (scene, report) =
-        scene::import_file(&args.scene).map_err(|e| bad_input(format!("{}: {e}", args.scene.display())))?;
+    let (scene, report) = scene::import_file(&args.scene)
+        .map_err(|e| bad_input(format!("{}: {e}", args.scene.display())))?;
     for w in &report.warnings {
         eprintln!("warning: {w}");
     }
-    tracing::info!(triangles = report.triangles, lights = report.lights, "scene imported");
+    tracing::info!(
+        triangles = report.triangles,
+        lights = report.lights,
+        "scene imported"
+    );
 
-    let bar = if std::io::stderr().is_terminal() { ProgressBar::new(0) } else { ProgressBar::hidden() };
+    let bar = if std::io::stderr().is_terminal() {
+        ProgressBar::new(0)
+    } else {
+        ProgressBar::hidden()
+    };
     bar.set_style(
         ProgressStyle::with_template("{spinner} {elapsed_precise} [{wide_bar}] step {pos} {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
@@ -216,23 +256,42 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         ControlFlow::Continue(())
     };
     let mut on_atlas = |a: &lightmapd::engine::atlas::AtlasReport| {
-        tracing::info!(texels = a.valid_texels, overlapping = a.overlapping_texels, "texel set built");
+        tracing::info!(
+            texels = a.valid_texels,
+            overlapping = a.overlapping_texels,
+            "texel set built"
+        );
         if a.overlapping_texels > 0 {
-            eprintln!("warning: {} lightmap texels are covered by more than one triangle (overlapping UV charts)", a.overlapping_texels);
+            eprintln!(
+                "warning: {} lightmap texels are covered by more than one triangle (overlapping UV charts)",
+                a.overlapping_texels
+            );
         }
     };
-    let result = job::bake(Arc::new(scene), &request, &mut observer, &mut on_atlas).map_err(|e| Failure {
-        code: if e.is_bad_input() { 2 } else { 1 },
-        message: e.to_string(),
-    })?;
+    let result =
+        job::bake(Arc::new(scene), &request, &mut observer, &mut on_atlas).map_err(|e| {
+            Failure {
+                code: if e.is_bad_input() { 2 } else { 1 },
+                message: e.to_string(),
+            }
+        })?;
     bar.finish_and_clear();
-    write_atomically(&args.output, &result.exr)
-        .map_err(|e| Failure { code: 1, message: format!("cannot write {}: {e}", args.output.display()) })?;
+    write_atomically(&args.output, &result.exr).map_err(|e| Failure {
+        code: 1,
+        message: format!("cannot write {}: {e}", args.output.display()),
+    })?;
     if let Some(p) = &args.preview {
-        write_atomically(p, &result.preview_png).map_err(|e| Failure { code: 1, message: format!("cannot write {}: {e}", p.display()) })?;
+        write_atomically(p, &result.preview_png).map_err(|e| Failure {
+            code: 1,
+            message: format!("cannot write {}: {e}", p.display()),
+        })?;
     }
     let s = &result.summary;
-    let err = s.error.relative.map(|e| format!("{:.2}%", e * 100.0)).unwrap_or_else(|| "n/a".into());
+    let err = s
+        .error
+        .relative
+        .map(|e| format!("{:.2}%", e * 100.0))
+        .unwrap_or_else(|| "n/a".into());
     eprintln!(
         "baked {} ({}x{}, {} texels) with {}: {} steps in {:.1} s, estimated error {} (stopped by {:?}) -> {}",
         args.scene.display(),

@@ -16,7 +16,14 @@ use serde_json::json;
 fn closed_cube(rho: f32, le: f32) {
     let mut b = SceneBuilder::new();
     let m = b.material(MaterialDesc::emissive("wall", [rho; 3], [le; 3]));
-    for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
+    for n in [
+        Vec3::X,
+        Vec3::NEG_X,
+        Vec3::Y,
+        Vec3::NEG_Y,
+        Vec3::Z,
+        Vec3::NEG_Z,
+    ] {
         // Face at -n facing inward (+n direction into the cube).
         b.square(&format!("face {n}"), -n, 2.0, n, m);
     }
@@ -24,11 +31,28 @@ fn closed_cube(rho: f32, le: f32) {
     // ~1200 texels × 64 paths. Paths have on average 1/(1−ρ) vertices, each adding Le: the
     // per-path standard deviation is Le·√ρ/(1−ρ), e.g. 9.5 Le for ρ = 0.9; the mean over
     // all texels is then known to about 0.4 %, and the 5-σ bound is derived from the data.
-    let (atlas, est) = bake(scene, 48, Lighting::default(), "path", json!({"samples_per_step": 4}), 16);
+    let (atlas, est) = bake(
+        scene,
+        48,
+        Lighting::default(),
+        "path",
+        json!({"samples_per_step": 4}),
+        16,
+    );
     let expected = Vec3::splat(le / (1.0 - rho));
-    let (_, se, n) = assert_unbiased(&atlas, &est, |_| true, |_| expected, 0.0, &format!("closed cube rho={rho}"));
+    let (_, se, n) = assert_unbiased(
+        &atlas,
+        &est,
+        |_| true,
+        |_| expected,
+        0.0,
+        &format!("closed cube rho={rho}"),
+    );
     assert!(n > 1000);
-    assert!(se < 0.02, "too few samples to test anything: standard error {se}");
+    assert!(
+        se < 0.02,
+        "too few samples to test anything: standard error {se}"
+    );
     // Texel by texel, with no exceptions: no texel may be wildly off (leaks at edges).
     let se_t = est.texel_error.as_ref().unwrap();
     let worst = atlas
@@ -37,8 +61,13 @@ fn closed_cube(rho: f32, le: f32) {
         .enumerate()
         .map(|(k, _)| ((lum(est.total[k]) - lum(expected)) / lum(expected)).abs())
         .fold(0.0f64, f64::max);
-    let typical = (se_t.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / se_t.len() as f64).sqrt() / lum(expected);
-    assert!(worst < 8.0 * typical + 0.05, "worst texel off by {worst}, typical standard error {typical}");
+    let typical = (se_t.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / se_t.len() as f64)
+        .sqrt()
+        / lum(expected);
+    assert!(
+        worst < 8.0 * typical + 0.05,
+        "worst texel off by {worst}, typical standard error {typical}"
+    );
 }
 
 #[test]
@@ -52,7 +81,13 @@ fn closed_cube_albedo_point_nine() {
 }
 
 fn upper_sky(l: f32) -> Lighting {
-    Lighting { sky: Some(Sky { radiance: Vec3::splat(l), hemisphere: Hemisphere::Upper }), sun: None }
+    Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::splat(l),
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: None,
+    }
 }
 
 #[test]
@@ -63,7 +98,14 @@ fn plane_under_uniform_sky_reads_the_sky_radiance() {
     let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
     b.square("ground", Vec3::ZERO, 10.0, Vec3::Y, m);
     let l = 1.7;
-    let (atlas, est) = bake(import(&b), 32, upper_sky(l), "path", json!({"samples_per_step": 2}), 4);
+    let (atlas, est) = bake(
+        import(&b),
+        32,
+        upper_sky(l),
+        "path",
+        json!({"samples_per_step": 2}),
+        4,
+    );
     assert!(atlas.texels.len() > 500);
     for v in &est.total {
         assert!((*v - Vec3::splat(l)).abs().max_element() < 1e-5 * l, "{v}");
@@ -92,8 +134,17 @@ fn black_sphere_over_black_plane() {
     let offset = scene.origin_offset.as_vec3();
     let l = 1.0f32;
     // The plane's chart is centred at u = v = 0.25: a texel centre for W = 98 (texel 24).
-    let (atlas, est) = bake(scene, 98, upper_sky(l), "path", json!({"samples_per_step": 16}), 8);
-    let on_plane = |t: &lightmapd::engine::atlas::Texel| t.geo_normal.y > 0.99 && (t.position.y + offset.y).abs() < 1e-3;
+    let (atlas, est) = bake(
+        scene,
+        98,
+        upper_sky(l),
+        "path",
+        json!({"samples_per_step": 16}),
+        8,
+    );
+    let on_plane = |t: &lightmapd::engine::atlas::Texel| {
+        t.geo_normal.y > 0.99 && (t.position.y + offset.y).abs() < 1e-3
+    };
     let expected = |t: &lightmapd::engine::atlas::Texel| {
         let p = t.position + offset;
         let s = ((p.x as f64).powi(2) + (p.z as f64).powi(2)).sqrt();
@@ -127,7 +178,10 @@ fn black_sphere_over_black_plane() {
     assert!((want - 0.75).abs() < 1e-3);
     let got = lum(est.total[k]);
     let se = (0.75f64 * 0.25 / (16.0 * 8.0)).sqrt();
-    assert!((got - want).abs() < 5.0 * se, "centre texel {got}, expected {want} ± {se}");
+    assert!(
+        (got - want).abs() < 5.0 * se,
+        "centre texel {got}, expected {want} ± {se}"
+    );
 }
 
 /// Form factor from a differential area to a parallel rectangle [0, a] × [0, b] at
@@ -163,7 +217,14 @@ fn parallel_squares_form_factor() {
     let offset = scene.origin_offset.as_vec3();
     // Two charts side by side: the receiver's chart centre is at u = v = 0.25, which is
     // a texel centre for W = 62 (texel 15), so one texel sits exactly on the axis.
-    let (atlas, est) = bake(scene, 62, Lighting::default(), "path", json!({"samples_per_step": 16}), 64);
+    let (atlas, est) = bake(
+        scene,
+        62,
+        Lighting::default(),
+        "path",
+        json!({"samples_per_step": 16}),
+        64,
+    );
     let on_receiver = |t: &lightmapd::engine::atlas::Texel| t.geo_normal.y > 0.99;
     let expected = |t: &lightmapd::engine::atlas::Texel| {
         let p = t.position + offset;
@@ -174,12 +235,18 @@ fn parallel_squares_form_factor() {
     let k = atlas.pixel_texel[15 * 62 + 15] as usize;
     let t = &atlas.texels[k];
     let p = t.position + offset;
-    assert!(p.x.abs() < 1e-5 && p.z.abs() < 1e-5, "texel 15,15 is at the centre: {p}");
+    assert!(
+        p.x.abs() < 1e-5 && p.z.abs() < 1e-5,
+        "texel 15,15 is at the centre: {p}"
+    );
     let got = lum(est.total[k]);
     let se = est.texel_error.as_ref().unwrap()[k] as f64;
     // With light sampling the centre texel's noise is small; 5 estimated standard errors
     // plus 1e-3 for the estimate of the error being itself noisy (one difference).
-    assert!((got - 0.23946).abs() < 5.0 * se + 1e-3, "centre texel {got}, expected 0.23946 (se {se})");
+    assert!(
+        (got - 0.23946).abs() < 5.0 * se + 1e-3,
+        "centre texel {got}, expected 0.23946 (se {se})"
+    );
     // The emitter's own texels face the black receiver and nothing else: zero.
     for (k, t) in atlas.texels.iter().enumerate() {
         if t.geo_normal.y < -0.99 {
@@ -195,7 +262,21 @@ fn same_seed_same_lightmap() {
     b.square("ground", Vec3::ZERO, 4.0, Vec3::Y, m);
     b.sphere("ball", Vec3::new(0.0, 1.5, 0.0), 1.0, 16, 8, m);
     let scene = import(&b);
-    let (_, a) = bake(scene.clone(), 24, upper_sky(1.0), "path", json!({"samples_per_step": 1}), 2);
-    let (_, c) = bake(scene, 24, upper_sky(1.0), "path", json!({"samples_per_step": 1}), 2);
+    let (_, a) = bake(
+        scene.clone(),
+        24,
+        upper_sky(1.0),
+        "path",
+        json!({"samples_per_step": 1}),
+        2,
+    );
+    let (_, c) = bake(
+        scene,
+        24,
+        upper_sky(1.0),
+        "path",
+        json!({"samples_per_step": 1}),
+        2,
+    );
     assert_eq!(a.total, c.total);
 }

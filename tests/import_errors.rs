@@ -22,7 +22,9 @@ fn err_of(json: &Value, bin: &[u8]) -> String {
 
 /// Accessor index of `attribute` in mesh 0, primitive 0.
 fn accessor(json: &Value, attribute: &str) -> usize {
-    json["meshes"][0]["primitives"][0]["attributes"][attribute].as_u64().unwrap() as usize
+    json["meshes"][0]["primitives"][0]["attributes"][attribute]
+        .as_u64()
+        .unwrap() as usize
 }
 
 /// Byte offset of accessor `a`'s data in the binary buffer.
@@ -70,15 +72,23 @@ fn missing_external_buffer() {
     let path = dir.join("scene.gltf");
     std::fs::write(&path, serde_json::to_vec(&json).unwrap()).unwrap();
     let e = import_file(&path).unwrap_err().to_string();
-    assert!(e.starts_with("buffer 0: uri: cannot read external file \"scene.bin\""), "{e}");
+    assert!(
+        e.starts_with("buffer 0: uri: cannot read external file \"scene.bin\""),
+        "{e}"
+    );
     // The same file sent without a folder (as the service receives it) says so.
-    let e = import_slice(&std::fs::read(&path).unwrap(), None).unwrap_err().to_string();
+    let e = import_slice(&std::fs::read(&path).unwrap(), None)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("cannot be resolved here"), "{e}");
     // Paths must stay inside the scene's folder.
     json["buffers"][0]["uri"] = json!("../../etc/passwd");
     std::fs::write(&path, serde_json::to_vec(&json).unwrap()).unwrap();
     let e = import_file(&path).unwrap_err().to_string();
-    assert!(e.contains("must be a relative path inside the scene's folder"), "{e}");
+    assert!(
+        e.contains("must be a relative path inside the scene's folder"),
+        "{e}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -102,7 +112,12 @@ fn accessor_out_of_bounds() {
     let a = accessor(&json, "POSITION");
     json["accessors"][a]["count"] = json!(1000);
     let e = err_of(&json, &bin);
-    assert!(e.starts_with(&format!("mesh 0 \"Floor\", primitive 0: accessor {a} (POSITION): out of bounds: 1000 elements")), "{e}");
+    assert!(
+        e.starts_with(&format!(
+            "mesh 0 \"Floor\", primitive 0: accessor {a} (POSITION): out of bounds: 1000 elements"
+        )),
+        "{e}"
+    );
 }
 
 #[test]
@@ -112,7 +127,10 @@ fn buffer_view_outside_buffer() {
     let view = json["accessors"][a]["bufferView"].as_u64().unwrap() as usize;
     json["bufferViews"][view]["byteOffset"] = json!(bin.len() - 8);
     let e = err_of(&json, &bin);
-    assert!(e.contains(&format!("accessor {a} (NORMAL)")) && e.contains("lies outside buffer 0"), "{e}");
+    assert!(
+        e.contains(&format!("accessor {a} (NORMAL)")) && e.contains("lies outside buffer 0"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -123,7 +141,12 @@ fn nan_and_infinite_positions() {
         let off = data_offset(&json, a) + 12 * 2 + 4; // vertex 2, y
         bin[off..off + 4].copy_from_slice(&bad.to_le_bytes());
         let e = err_of(&json, &bin);
-        assert!(e.starts_with(&format!("mesh 0 \"Floor\", primitive 0: accessor {a} (POSITION): element 2 is not finite")), "{e}");
+        assert!(
+            e.starts_with(&format!(
+                "mesh 0 \"Floor\", primitive 0: accessor {a} (POSITION): element 2 is not finite"
+            )),
+            "{e}"
+        );
     }
 }
 
@@ -134,7 +157,12 @@ fn nan_lightmap_uv() {
     let off = data_offset(&json, a) + 8; // vertex 1, u
     bin[off..off + 4].copy_from_slice(&f32::NAN.to_le_bytes());
     let e = err_of(&json, &bin);
-    assert!(e.contains(&format!("accessor {a} (TEXCOORD_1): element 1 is not finite")), "{e}");
+    assert!(
+        e.contains(&format!(
+            "accessor {a} (TEXCOORD_1): element 1 is not finite"
+        )),
+        "{e}"
+    );
 }
 
 #[test]
@@ -144,15 +172,27 @@ fn lightmap_uv_outside_unit_square() {
     let off = data_offset(&json, a) + 8 * 3 + 4; // vertex 3, v
     bin[off..off + 4].copy_from_slice(&1.25f32.to_le_bytes());
     let e = err_of(&json, &bin);
-    assert!(e.contains(&format!("accessor {a} (TEXCOORD_1): lightmap UV")) && e.contains("of vertex 3 is outside [0, 1]"), "{e}");
+    assert!(
+        e.contains(&format!("accessor {a} (TEXCOORD_1): lightmap UV"))
+            && e.contains("of vertex 3 is outside [0, 1]"),
+        "{e}"
+    );
 }
 
 #[test]
 fn no_lightmap_uvs() {
     let (mut json, bin) = quad_scene().to_gltf();
-    json["meshes"][0]["primitives"][0]["attributes"].as_object_mut().unwrap().remove("TEXCOORD_1");
+    json["meshes"][0]["primitives"][0]["attributes"]
+        .as_object_mut()
+        .unwrap()
+        .remove("TEXCOORD_1");
     let e = err_of(&json, &bin);
-    assert!(e.starts_with("the scene has no lightmap UVs: mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1"), "{e}");
+    assert!(
+        e.starts_with(
+            "the scene has no lightmap UVs: mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1"
+        ),
+        "{e}"
+    );
 }
 
 #[test]
@@ -167,19 +207,29 @@ fn no_triangles() {
     let a = accessor(&json, "POSITION");
     let off = data_offset(&json, a);
     for v in 0..4 {
-        bin[off + 12 * v..off + 12 * v + 12].copy_from_slice(bytemuck::cast_slice(&[1.0f32, 2.0, 3.0]));
+        bin[off + 12 * v..off + 12 * v + 12]
+            .copy_from_slice(bytemuck::cast_slice(&[1.0f32, 2.0, 3.0]));
     }
     let e = err_of(&json, &bin);
-    assert_eq!(e, "the scene has no triangles to bake (all 2 triangles are degenerate)");
+    assert_eq!(
+        e,
+        "the scene has no triangles to bake (all 2 triangles are degenerate)"
+    );
 }
 
 #[test]
 fn degenerate_triangles_are_dropped_and_counted() {
     let (mut json, mut bin) = quad_scene().to_gltf();
     // Append a third triangle (0, 0, 1): zero area.
-    let idx = json["meshes"][0]["primitives"][0]["indices"].as_u64().unwrap() as usize;
+    let idx = json["meshes"][0]["primitives"][0]["indices"]
+        .as_u64()
+        .unwrap() as usize;
     let view = json["accessors"][idx]["bufferView"].as_u64().unwrap() as usize;
-    assert_eq!(json["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize + 24, bin.len(), "indices are last");
+    assert_eq!(
+        json["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize + 24,
+        bin.len(),
+        "indices are last"
+    );
     bin.extend_from_slice(bytemuck::cast_slice(&[0u32, 0, 1]));
     json["bufferViews"][view]["byteLength"] = json!(36);
     json["accessors"][idx]["count"] = json!(9);
@@ -196,7 +246,10 @@ fn index_past_the_vertices() {
     let n = bin.len();
     bin[n - 4..].copy_from_slice(&7u32.to_le_bytes());
     let e = err_of(&json, &bin);
-    assert!(e.contains("(indices): index 7 at position 5 is past the 4 vertices"), "{e}");
+    assert!(
+        e.contains("(indices): index 7 at position 5 is past the 4 vertices"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -207,7 +260,12 @@ fn non_triangle_modes_are_named_in_a_warning() {
     lines["mode"] = json!(1);
     json["meshes"][0]["primitives"] = json!([prim, lines]);
     let (_, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
-    assert_eq!(report.warnings, vec!["mesh 0 \"Floor\", primitive 1: mode Lines is not TRIANGLES and is skipped".to_string()]);
+    assert_eq!(
+        report.warnings,
+        vec![
+            "mesh 0 \"Floor\", primitive 1: mode Lines is not TRIANGLES and is skipped".to_string()
+        ]
+    );
 }
 
 #[test]
@@ -216,7 +274,11 @@ fn mirrored_node_keeps_front_faces_in_front() {
     json["nodes"][0]["scale"] = json!([-1.0, 1.0, 1.0]);
     let (scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
     for t in &scene.triangles {
-        assert!((t.geometric_normal() - Vec3::Y).length() < 1e-6, "{}", t.geometric_normal());
+        assert!(
+            (t.geometric_normal() - Vec3::Y).length() < 1e-6,
+            "{}",
+            t.geometric_normal()
+        );
         assert!((t.n[0] - Vec3::Y).length() < 1e-6);
     }
 }
@@ -226,7 +288,10 @@ fn node_hierarchy_transforms_compose() {
     let (mut json, bin) = quad_scene().to_gltf();
     // Parent translates by (10, 0, 0) and scales by 2; child is the quad, moved up 1.
     json["nodes"][0]["translation"] = json!([0.0, 1.0, 0.0]);
-    json["nodes"].as_array_mut().unwrap().push(json!({"children": [0], "translation": [10.0, 0.0, 0.0], "scale": [2.0, 2.0, 2.0]}));
+    json["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(json!({"children": [0], "translation": [10.0, 0.0, 0.0], "scale": [2.0, 2.0, 2.0]}));
     json["scenes"][0]["nodes"] = json!([1]);
     let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
     // World y = 2 * 1 = 2, x in 10 + 2 * [-1, 1].
@@ -255,5 +320,9 @@ fn emissive_strength_and_lights_are_read() {
     assert!((l.intensity - Vec3::new(8.0, 4.0, 2.0)).length() < 1e-5);
     assert!((l.direction - Vec3::NEG_Y).length() < 1e-5);
     let m = scene.materials.iter().find(|m| m.name == "lamp").unwrap();
-    assert!((m.emissive - Vec3::new(40.0, 20.0, 10.0)).length() < 1e-4, "{}", m.emissive);
+    assert!(
+        (m.emissive - Vec3::new(40.0, 20.0, 10.0)).length() < 1e-4,
+        "{}",
+        m.emissive
+    );
 }

@@ -69,7 +69,12 @@ impl Snapshot {
             _ => None,
         };
         let count = total.len().max(1) as f64;
-        let rms_luminance = (total.iter().map(|v| (v.dot(LUMINANCE) as f64).powi(2)).sum::<f64>() / count).sqrt() as f32;
+        let rms_luminance = (total
+            .iter()
+            .map(|v| (v.dot(LUMINANCE) as f64).powi(2))
+            .sum::<f64>()
+            / count)
+            .sqrt() as f32;
         let (texel_error, relative) = if na > 0 && nb > 0 {
             let k = ((na * nb) as f64).sqrt() / (na + nb) as f64;
             let errs: Vec<f32> = self
@@ -80,12 +85,25 @@ impl Snapshot {
                 .map(|(a, b)| (((*a - *b).dot(LUMINANCE)) as f64 * k).abs() as f32)
                 .collect();
             let rms_err = (errs.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / count).sqrt();
-            let rel = if rms_luminance > 0.0 { (rms_err / rms_luminance as f64) as f32 } else { 0.0 };
+            let rel = if rms_luminance > 0.0 {
+                (rms_err / rms_luminance as f64) as f32
+            } else {
+                0.0
+            };
             (Some(errs), Some(rel))
         } else {
             (None, None)
         };
-        Estimate { steps: na + nb, total, direct, texel_error, error: ErrorSummary { relative, rms_luminance } }
+        Estimate {
+            steps: na + nb,
+            total,
+            direct,
+            texel_error,
+            error: ErrorSummary {
+                relative,
+                rms_luminance,
+            },
+        }
     }
 }
 
@@ -131,10 +149,16 @@ impl HalfAccumulator {
             HalfEstimate {
                 steps: self.steps[h],
                 total: self.sums[h].iter().map(|s| *s / n).collect(),
-                direct: self.direct.as_ref().map(|d| d[h].iter().map(|s| *s / n).collect()),
+                direct: self
+                    .direct
+                    .as_ref()
+                    .map(|d| d[h].iter().map(|s| *s / n).collect()),
             }
         };
-        Snapshot { even: half(0), odd: half(1) }
+        Snapshot {
+            even: half(0),
+            odd: half(1),
+        }
     }
 }
 
@@ -171,7 +195,10 @@ mod tests {
         let est = acc.snapshot().estimate();
         let rel = est.error.relative.unwrap();
         let truth = (1.0f32 / 3.0 / 64.0).sqrt();
-        assert!((rel / truth - 1.0).abs() < 0.06, "estimated {rel}, true {truth}");
+        assert!(
+            (rel / truth - 1.0).abs() < 0.06,
+            "estimated {rel}, true {truth}"
+        );
     }
 
     #[test]

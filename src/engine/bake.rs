@@ -28,20 +28,28 @@ pub struct StopCriteria {
 impl StopCriteria {
     pub fn validate(&self) -> Result<(), EngineError> {
         if self.steps.is_none() && self.seconds.is_none() && self.target_error.is_none() {
-            return Err(EngineError::BadInput("stop: give at least one of steps, seconds, target_error".into()));
+            return Err(EngineError::BadInput(
+                "stop: give at least one of steps, seconds, target_error".into(),
+            ));
         }
         if self.steps == Some(0) {
-            return Err(EngineError::BadInput("stop.steps must be at least 1".into()));
+            return Err(EngineError::BadInput(
+                "stop.steps must be at least 1".into(),
+            ));
         }
         if let Some(s) = self.seconds
             && !(s.is_finite() && s > 0.0)
         {
-            return Err(EngineError::BadInput(format!("stop.seconds must be a positive number, got {s}")));
+            return Err(EngineError::BadInput(format!(
+                "stop.seconds must be a positive number, got {s}"
+            )));
         }
         if let Some(e) = self.target_error
             && !(e.is_finite() && e > 0.0)
         {
-            return Err(EngineError::BadInput(format!("stop.target_error must be a positive number, got {e}")));
+            return Err(EngineError::BadInput(format!(
+                "stop.target_error must be a positive number, got {e}"
+            )));
         }
         Ok(())
     }
@@ -57,8 +65,15 @@ pub enum StopReason {
 }
 
 pub enum BakeEvent<'a> {
-    Progress { steps: u64, elapsed: Duration, stop: &'a StopCriteria },
-    Snapshot { estimate: &'a Estimate, elapsed: Duration },
+    Progress {
+        steps: u64,
+        elapsed: Duration,
+        stop: &'a StopCriteria,
+    },
+    Snapshot {
+        estimate: &'a Estimate,
+        elapsed: Duration,
+    },
 }
 
 /// Receives progress and snapshots; returning `Break` cancels the bake (the last
@@ -87,10 +102,17 @@ pub struct BakeLoop {
 
 impl BakeLoop {
     pub fn new(stop: StopCriteria) -> Self {
-        BakeLoop { stop, snapshot_interval: Duration::from_secs(5) }
+        BakeLoop {
+            stop,
+            snapshot_interval: Duration::from_secs(5),
+        }
     }
 
-    pub fn run(&self, technique: &mut dyn Technique, observer: &mut dyn BakeObserver) -> Result<BakeOutcome, EngineError> {
+    pub fn run(
+        &self,
+        technique: &mut dyn Technique,
+        observer: &mut dyn BakeObserver,
+    ) -> Result<BakeOutcome, EngineError> {
         self.stop.validate()?;
         let start = Instant::now();
         let mut last_snapshot = start;
@@ -99,10 +121,20 @@ impl BakeLoop {
             technique.step()?;
             let steps = technique.steps_done();
             let elapsed = start.elapsed();
-            let cancelled = observer.event(BakeEvent::Progress { steps, elapsed, stop: &self.stop }).is_break();
+            let cancelled = observer
+                .event(BakeEvent::Progress {
+                    steps,
+                    elapsed,
+                    stop: &self.stop,
+                })
+                .is_break();
             let by_steps = self.stop.steps.is_some_and(|n| steps >= n);
-            let by_time = self.stop.seconds.is_some_and(|s| elapsed.as_secs_f64() >= s);
-            let scheduled = steps >= next_doubling || last_snapshot.elapsed() >= self.snapshot_interval;
+            let by_time = self
+                .stop
+                .seconds
+                .is_some_and(|s| elapsed.as_secs_f64() >= s);
+            let scheduled =
+                steps >= next_doubling || last_snapshot.elapsed() >= self.snapshot_interval;
             if !(cancelled || by_steps || by_time || scheduled) {
                 continue;
             }
@@ -115,7 +147,13 @@ impl BakeLoop {
                 (Some(target), Some(err)) => err <= target,
                 _ => false,
             };
-            let cancelled = cancelled || observer.event(BakeEvent::Snapshot { estimate: &estimate, elapsed }).is_break();
+            let cancelled = cancelled
+                || observer
+                    .event(BakeEvent::Snapshot {
+                        estimate: &estimate,
+                        elapsed,
+                    })
+                    .is_break();
             let stopped_by = if cancelled {
                 StopReason::Cancelled
             } else if by_error {
@@ -127,7 +165,11 @@ impl BakeLoop {
             } else {
                 continue;
             };
-            return Ok(BakeOutcome { estimate, elapsed, stopped_by });
+            return Ok(BakeOutcome {
+                estimate,
+                elapsed,
+                stopped_by,
+            });
         }
     }
 }

@@ -35,7 +35,11 @@ impl Default for BakeRequest {
             technique: "path".into(),
             resolution: 256,
             lighting: Lighting::default(),
-            stop: StopCriteria { steps: Some(4096), seconds: Some(120.0), target_error: Some(0.02) },
+            stop: StopCriteria {
+                steps: Some(4096),
+                seconds: Some(120.0),
+                target_error: Some(0.02),
+            },
             params: Value::Null,
             outputs: Vec::new(),
             seed: 0,
@@ -72,15 +76,27 @@ pub fn bake(
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
     let atlas = Arc::new(
-        Atlas::build(&scene, request.resolution, request.resolution).map_err(|e| EngineError::BadInput(e.to_string()))?,
+        Atlas::build(&scene, request.resolution, request.resolution)
+            .map_err(|e| EngineError::BadInput(e.to_string()))?,
     );
     let report = atlas.report();
     on_atlas(&report);
-    let want_direct = request.outputs.iter().any(|o| matches!(o, OutputLayer::Direct | OutputLayer::Indirect));
-    let inputs = BakeInputs { scene, atlas: atlas.clone(), lighting: request.lighting, seed: request.seed, want_direct };
+    let want_direct = request
+        .outputs
+        .iter()
+        .any(|o| matches!(o, OutputLayer::Direct | OutputLayer::Indirect));
+    let inputs = BakeInputs {
+        scene,
+        atlas: atlas.clone(),
+        lighting: request.lighting,
+        seed: request.seed,
+        want_direct,
+    };
     let mut tech = technique::create(&request.technique, inputs, &request.params)?;
     let outcome = BakeLoop::new(request.stop).run(tech.as_mut(), observer)?;
-    let channels = output::lightmap_channels(&atlas, &outcome.estimate, &request.outputs, DEFAULT_RINGS).map_err(EngineError::Internal)?;
+    let channels =
+        output::lightmap_channels(&atlas, &outcome.estimate, &request.outputs, DEFAULT_RINGS)
+            .map_err(EngineError::Internal)?;
     let meta = ExrMetadata {
         technique: request.technique.clone(),
         params: tech.params(),
@@ -90,8 +106,10 @@ pub fn bake(
         seed: request.seed,
     };
     let preview = crate::engine::post::dilate(&atlas, &outcome.estimate.total, DEFAULT_RINGS);
-    let preview_png = output::encode_preview_png(atlas.width, atlas.height, &preview).map_err(EngineError::Internal)?;
-    let exr = output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)?;
+    let preview_png = output::encode_preview_png(atlas.width, atlas.height, &preview)
+        .map_err(EngineError::Internal)?;
+    let exr = output::encode_exr(atlas.width, atlas.height, channels, &meta)
+        .map_err(EngineError::Internal)?;
     let summary = BakeSummary {
         technique: request.technique.clone(),
         atlas: report,
@@ -100,5 +118,11 @@ pub fn bake(
         stopped_by: outcome.stopped_by,
         error: outcome.estimate.error,
     };
-    Ok(BakeResult { exr, preview_png, estimate: outcome.estimate, atlas, summary })
+    Ok(BakeResult {
+        exr,
+        preview_png,
+        estimate: outcome.estimate,
+        atlas,
+        summary,
+    })
 }

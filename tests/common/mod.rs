@@ -13,14 +13,29 @@ use lightmapd::engine::scene::{Lighting, Scene, import_slice};
 use lightmapd::engine::technique::{self, BakeInputs};
 
 pub fn import(builder: &SceneBuilder) -> Scene {
-    import_slice(&builder.to_glb(), None).expect("test scene imports").0
+    import_slice(&builder.to_glb(), None)
+        .expect("test scene imports")
+        .0
 }
 
 /// Bakes `steps` steps of `technique` and returns the atlas and the estimate.
-pub fn bake(scene: Scene, resolution: u32, lighting: Lighting, technique: &str, params: serde_json::Value, steps: u64) -> (Arc<Atlas>, Estimate) {
+pub fn bake(
+    scene: Scene,
+    resolution: u32,
+    lighting: Lighting,
+    technique: &str,
+    params: serde_json::Value,
+    steps: u64,
+) -> (Arc<Atlas>, Estimate) {
     let scene = Arc::new(scene);
     let atlas = Arc::new(Atlas::build(&scene, resolution, resolution).expect("atlas"));
-    let inputs = BakeInputs { scene, atlas: atlas.clone(), lighting, seed: 1, want_direct: true };
+    let inputs = BakeInputs {
+        scene,
+        atlas: atlas.clone(),
+        lighting,
+        seed: 1,
+        want_direct: true,
+    };
     let mut tech = technique::create(technique, inputs, &params).expect("technique prepares");
     for _ in 0..steps {
         tech.step().expect("step");
@@ -62,7 +77,9 @@ pub fn assert_unbiased(
     assert!(n > 0, "{what}: no texel selected");
     let mean_dev = dev / norm;
     let mean_se = var.sqrt() / norm;
-    eprintln!("{what}: {n} texels, mean relative deviation {mean_dev:+.5} (standard error {mean_se:.5}, model bias allowance {model_bias})");
+    eprintln!(
+        "{what}: {n} texels, mean relative deviation {mean_dev:+.5} (standard error {mean_se:.5}, model bias allowance {model_bias})"
+    );
     assert!(
         mean_dev.abs() <= 5.0 * mean_se + model_bias,
         "{what}: mean relative deviation {mean_dev:+.5} exceeds 5 standard errors ({mean_se:.5}) + {model_bias}"

@@ -89,13 +89,18 @@ pub struct AtlasReport {
 pub enum AtlasError {
     #[error("lightmap resolution {0}x{1} is out of range (1 to {MAX_RESOLUTION} per side)")]
     Resolution(u32, u32),
-    #[error("no texel centre of the {0}x{1} lightmap falls on any triangle: raise the resolution or check TEXCOORD_1")]
+    #[error(
+        "no texel centre of the {0}x{1} lightmap falls on any triangle: raise the resolution or check TEXCOORD_1"
+    )]
     Empty(u32, u32),
 }
 
 /// Texel centre of pixel (i, j) in UV space.
 pub fn texel_centre_uv(i: u32, j: u32, width: u32, height: u32) -> Vec2 {
-    Vec2::new((i as f32 + 0.5) / width as f32, (j as f32 + 0.5) / height as f32)
+    Vec2::new(
+        (i as f32 + 0.5) / width as f32,
+        (j as f32 + 0.5) / height as f32,
+    )
 }
 
 struct Claim {
@@ -167,7 +172,10 @@ impl Atlas {
                     if claims[pix].is_some() {
                         overlapping[pix] = true;
                     } else {
-                        claims[pix] = Some(Claim { triangle: ti as u32, bary: Vec3::from_array(bary) });
+                        claims[pix] = Some(Claim {
+                            triangle: ti as u32,
+                            bary: Vec3::from_array(bary),
+                        });
                     }
                 }
             }
@@ -255,7 +263,11 @@ fn closest_point(p: Vec2, q: &[Vec2; 3]) -> Vec2 {
     for k in 0..3 {
         let (a, b) = (q[k], q[(k + 1) % 3]);
         let ab = b - a;
-        let t = if ab.length_squared() > 0.0 { ((p - a).dot(ab) / ab.length_squared()).clamp(0.0, 1.0) } else { 0.0 };
+        let t = if ab.length_squared() > 0.0 {
+            ((p - a).dot(ab) / ab.length_squared()).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         let c = a + ab * t;
         let d = c.distance_squared(p);
         if d < best_d {
@@ -266,7 +278,13 @@ fn closest_point(p: Vec2, q: &[Vec2; 3]) -> Vec2 {
     best
 }
 
-fn gutter_links(scene: &Scene, pixel_texel: &[u32], texels: &[Texel], width: u32, height: u32) -> Vec<GutterLink> {
+fn gutter_links(
+    scene: &Scene,
+    pixel_texel: &[u32],
+    texels: &[Texel],
+    width: u32,
+    height: u32,
+) -> Vec<GutterLink> {
     let (w, h) = (width as i64, height as i64);
     let size = Vec2::new(width as f32, height as f32);
     let mut linked = vec![false; pixel_texel.len()];
@@ -280,8 +298,14 @@ fn gutter_links(scene: &Scene, pixel_texel: &[u32], texels: &[Texel], width: u32
         }
         let lo = q[0].min(q[1]).min(q[2]);
         let hi = q[0].max(q[1]).max(q[2]);
-        let (i0, j0) = ((lo.x - 1.0).floor().max(0.0) as i64, (lo.y - 1.0).floor().max(0.0) as i64);
-        let (i1, j1) = ((hi.x + 1.0).ceil().min(w as f32 - 1.0) as i64, (hi.y + 1.0).ceil().min(h as f32 - 1.0) as i64);
+        let (i0, j0) = (
+            (lo.x - 1.0).floor().max(0.0) as i64,
+            (lo.y - 1.0).floor().max(0.0) as i64,
+        );
+        let (i1, j1) = (
+            (hi.x + 1.0).ceil().min(w as f32 - 1.0) as i64,
+            (hi.y + 1.0).ceil().min(h as f32 - 1.0) as i64,
+        );
         for j in j0..=j1 {
             for i in i0..=i1 {
                 let pix = (j * w + i) as usize;
@@ -302,7 +326,10 @@ fn gutter_links(scene: &Scene, pixel_texel: &[u32], texels: &[Texel], width: u32
                             continue;
                         }
                         let t = pixel_texel[(nj * w + ni) as usize];
-                        if t == NO_TEXEL || scene.triangles[texels[t as usize].triangle as usize].mesh != tri.mesh {
+                        if t == NO_TEXEL
+                            || scene.triangles[texels[t as usize].triangle as usize].mesh
+                                != tri.mesh
+                        {
                             continue;
                         }
                         let d = Vec2::new(ni as f32 + 0.5, nj as f32 + 0.5).distance_squared(c);
@@ -313,7 +340,10 @@ fn gutter_links(scene: &Scene, pixel_texel: &[u32], texels: &[Texel], width: u32
                 }
                 if let Some((_, t)) = best {
                     linked[pix] = true;
-                    links.push(GutterLink { pixel: pix as u32, texel: t });
+                    links.push(GutterLink {
+                        pixel: pix as u32,
+                        texel: t,
+                    });
                 }
             }
         }
@@ -355,8 +385,16 @@ mod tests {
         for t in &atlas.texels {
             let (i, j) = (t.pixel % 8, t.pixel / 8);
             let uv = texel_centre_uv(i, j, 8, 8);
-            assert!((t.position.x - (1.0 - 2.0 * uv.x)).abs() < 1e-5, "{:?} {uv}", t.position);
-            assert!((t.position.z - (1.0 - 2.0 * uv.y)).abs() < 1e-5, "{:?} {uv}", t.position);
+            assert!(
+                (t.position.x - (1.0 - 2.0 * uv.x)).abs() < 1e-5,
+                "{:?} {uv}",
+                t.position
+            );
+            assert!(
+                (t.position.z - (1.0 - 2.0 * uv.y)).abs() < 1e-5,
+                "{:?} {uv}",
+                t.position
+            );
             assert!(t.position.y > 0.0 && t.position.y < 1e-3);
             assert_eq!(t.geo_normal, Vec3::Y);
             assert!((t.albedo - Vec3::splat(0.5)).abs().max_element() < 1e-6);
@@ -372,7 +410,10 @@ mod tests {
         assert_eq!(atlas.overlapping_texels, 0);
         // Every border pixel whose square touches the chart links to a valid texel.
         for l in &atlas.links {
-            assert_ne!(atlas.pixel_texel[atlas.texels[l.texel as usize].pixel as usize], NO_TEXEL);
+            assert_ne!(
+                atlas.pixel_texel[atlas.texels[l.texel as usize].pixel as usize],
+                NO_TEXEL
+            );
             assert_eq!(atlas.pixel_texel[l.pixel as usize], NO_TEXEL);
         }
         assert!(atlas.links.len() >= 4 * 16, "{} links", atlas.links.len());
@@ -386,9 +427,14 @@ mod tests {
         let (json, bin) = b.to_gltf();
         let mut json = json;
         // Two nodes with the same mesh: coplanar duplicates on the same chart.
-        json["nodes"].as_array_mut().unwrap().push(serde_json::json!({"mesh": 0}));
+        json["nodes"]
+            .as_array_mut()
+            .unwrap()
+            .push(serde_json::json!({"mesh": 0}));
         json["scenes"][0]["nodes"] = serde_json::json!([0, 1]);
-        let scene = import_slice(&crate::engine::scene::build::write_glb(&json, &bin), None).unwrap().0;
+        let scene = import_slice(&crate::engine::scene::build::write_glb(&json, &bin), None)
+            .unwrap()
+            .0;
         let atlas = Atlas::build(&scene, 8, 8).unwrap();
         assert_eq!(atlas.overlapping_texels as usize, atlas.texels.len());
     }
@@ -396,7 +442,13 @@ mod tests {
     #[test]
     fn bad_resolution_is_an_error() {
         let scene = one_quad(0.0);
-        assert!(matches!(Atlas::build(&scene, 0, 8), Err(AtlasError::Resolution(0, 8))));
-        assert!(matches!(Atlas::build(&scene, 8, MAX_RESOLUTION + 1), Err(AtlasError::Resolution(..))));
+        assert!(matches!(
+            Atlas::build(&scene, 0, 8),
+            Err(AtlasError::Resolution(0, 8))
+        ));
+        assert!(matches!(
+            Atlas::build(&scene, 8, MAX_RESOLUTION + 1),
+            Err(AtlasError::Resolution(..))
+        ));
     }
 }

@@ -26,11 +26,19 @@ pub struct MaterialDesc {
 
 impl MaterialDesc {
     pub fn diffuse(name: &str, albedo: [f32; 3]) -> Self {
-        MaterialDesc { name: name.into(), base_color: [albedo[0], albedo[1], albedo[2], 1.0], emission: [0.0; 3], double_sided: false }
+        MaterialDesc {
+            name: name.into(),
+            base_color: [albedo[0], albedo[1], albedo[2], 1.0],
+            emission: [0.0; 3],
+            double_sided: false,
+        }
     }
 
     pub fn emissive(name: &str, albedo: [f32; 3], emission: [f32; 3]) -> Self {
-        MaterialDesc { emission, ..Self::diffuse(name, albedo) }
+        MaterialDesc {
+            emission,
+            ..Self::diffuse(name, albedo)
+        }
     }
 
     pub fn two_sided(mut self) -> Self {
@@ -53,9 +61,24 @@ pub struct MeshDesc {
 
 #[derive(Clone, Debug)]
 pub enum LightDesc {
-    Point { position: Vec3, color: [f32; 3], intensity: f32 },
-    Directional { direction: Vec3, color: [f32; 3], intensity: f32 },
-    Spot { position: Vec3, direction: Vec3, color: [f32; 3], intensity: f32, inner: f32, outer: f32 },
+    Point {
+        position: Vec3,
+        color: [f32; 3],
+        intensity: f32,
+    },
+    Directional {
+        direction: Vec3,
+        color: [f32; 3],
+        intensity: f32,
+    },
+    Spot {
+        position: Vec3,
+        direction: Vec3,
+        color: [f32; 3],
+        intensity: f32,
+        inner: f32,
+        outer: f32,
+    },
 }
 
 #[derive(Clone, Debug, Default)]
@@ -84,7 +107,12 @@ impl SceneBuilder {
             name: name.into(),
             positions: vec![corner, corner + u, corner + u + v, corner + v],
             normals: vec![n; 4],
-            chart_uv: vec![Vec2::new(0.0, 1.0), Vec2::new(1.0, 1.0), Vec2::new(1.0, 0.0), Vec2::new(0.0, 0.0)],
+            chart_uv: vec![
+                Vec2::new(0.0, 1.0),
+                Vec2::new(1.0, 1.0),
+                Vec2::new(1.0, 0.0),
+                Vec2::new(0.0, 0.0),
+            ],
             indices: vec![0, 1, 2, 0, 2, 3],
             material,
         });
@@ -93,7 +121,14 @@ impl SceneBuilder {
 
     /// An axis-aligned square of side `size` centred at `centre`, facing `normal`
     /// (one of ±X, ±Y, ±Z).
-    pub fn square(&mut self, name: &str, centre: Vec3, size: f32, normal: Vec3, material: usize) -> usize {
+    pub fn square(
+        &mut self,
+        name: &str,
+        centre: Vec3,
+        size: f32,
+        normal: Vec3,
+        material: usize,
+    ) -> usize {
         let (u, v) = tangent_frame(normal);
         let corner = centre - 0.5 * size * (u + v);
         self.quad(name, corner, u * size, v * size, material)
@@ -104,7 +139,15 @@ impl SceneBuilder {
     /// `segments`-gon on it has the area of the true circle: the silhouette then blocks
     /// the same solid angle to first order (the inscribed polygon would be visibly
     /// smaller in analytic tests).
-    pub fn sphere(&mut self, name: &str, centre: Vec3, radius: f32, segments: u32, rings: u32, material: usize) -> usize {
+    pub fn sphere(
+        &mut self,
+        name: &str,
+        centre: Vec3,
+        radius: f32,
+        segments: u32,
+        rings: u32,
+        material: usize,
+    ) -> usize {
         let n = segments as f32;
         let r = radius * (std::f32::consts::TAU / (n * (std::f32::consts::TAU / n).sin())).sqrt();
         let mut positions = Vec::new();
@@ -114,10 +157,17 @@ impl SceneBuilder {
             let theta = std::f32::consts::PI * j as f32 / rings as f32;
             for i in 0..=segments {
                 let phi = std::f32::consts::TAU * i as f32 / segments as f32;
-                let n = Vec3::new(theta.sin() * phi.cos(), theta.cos(), -theta.sin() * phi.sin());
+                let n = Vec3::new(
+                    theta.sin() * phi.cos(),
+                    theta.cos(),
+                    -theta.sin() * phi.sin(),
+                );
                 positions.push(centre + r * n);
                 normals.push(n);
-                chart_uv.push(Vec2::new(i as f32 / segments as f32, j as f32 / rings as f32));
+                chart_uv.push(Vec2::new(
+                    i as f32 / segments as f32,
+                    j as f32 / rings as f32,
+                ));
             }
         }
         let mut indices = Vec::new();
@@ -134,7 +184,14 @@ impl SceneBuilder {
                 }
             }
         }
-        self.meshes.push(MeshDesc { name: name.into(), positions, normals, chart_uv, indices, material });
+        self.meshes.push(MeshDesc {
+            name: name.into(),
+            positions,
+            normals,
+            chart_uv,
+            indices,
+            material,
+        });
         self.meshes.len() - 1
     }
 
@@ -144,16 +201,46 @@ impl SceneBuilder {
         let q = Quat::from_rotation_y(yaw);
         let c = base + Vec3::Y * half.y;
         let faces = [
-            ("top", Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
+            (
+                "top",
+                Vec3::Y,
+                half.y,
+                Vec3::X * half.x,
+                Vec3::NEG_Z * half.z,
+            ),
             ("front", Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
-            ("back", Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
-            ("left", Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
-            ("right", Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
+            (
+                "back",
+                Vec3::NEG_Z,
+                half.z,
+                Vec3::NEG_X * half.x,
+                Vec3::Y * half.y,
+            ),
+            (
+                "left",
+                Vec3::NEG_X,
+                half.x,
+                Vec3::Z * half.z,
+                Vec3::Y * half.y,
+            ),
+            (
+                "right",
+                Vec3::X,
+                half.x,
+                Vec3::NEG_Z * half.z,
+                Vec3::Y * half.y,
+            ),
         ];
         for (face, n, d, u, v) in faces {
             let (n, u, v) = (q * n, q * u, q * v);
             let centre = c + n * d;
-            self.quad(&format!("{name} {face}"), centre - u - v, 2.0 * u, 2.0 * v, material);
+            self.quad(
+                &format!("{name} {face}"),
+                centre - u - v,
+                2.0 * u,
+                2.0 * v,
+                material,
+            );
         }
     }
 
@@ -176,7 +263,7 @@ impl SceneBuilder {
         let mut views = Vec::new();
         let mut accessors = Vec::new();
         let mut push = |bytes: &[u8], target: u32, acc: Value| -> usize {
-            while bin.len() % 4 != 0 {
+            while !bin.len().is_multiple_of(4) {
                 bin.push(0);
             }
             views.push(json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": bytes.len(), "target": target}));
@@ -199,11 +286,27 @@ impl SceneBuilder {
                 34962,
                 json!({"componentType": 5126, "count": m.positions.len(), "type": "VEC3", "min": lo.to_array(), "max": hi.to_array()}),
             );
-            let nrm = push(bytemuck::cast_slice(&m.normals), 34962, json!({"componentType": 5126, "count": m.normals.len(), "type": "VEC3"}));
-            let uv0 = push(bytemuck::cast_slice(&m.chart_uv), 34962, json!({"componentType": 5126, "count": m.chart_uv.len(), "type": "VEC2"}));
+            let nrm = push(
+                bytemuck::cast_slice(&m.normals),
+                34962,
+                json!({"componentType": 5126, "count": m.normals.len(), "type": "VEC3"}),
+            );
+            let uv0 = push(
+                bytemuck::cast_slice(&m.chart_uv),
+                34962,
+                json!({"componentType": 5126, "count": m.chart_uv.len(), "type": "VEC2"}),
+            );
             let lm: Vec<Vec2> = m.chart_uv.iter().map(|uv| self.atlas_uv(mi, *uv)).collect();
-            let uv1 = push(bytemuck::cast_slice(&lm), 34962, json!({"componentType": 5126, "count": lm.len(), "type": "VEC2"}));
-            let idx = push(bytemuck::cast_slice(&m.indices), 34963, json!({"componentType": 5125, "count": m.indices.len(), "type": "SCALAR"}));
+            let uv1 = push(
+                bytemuck::cast_slice(&lm),
+                34962,
+                json!({"componentType": 5126, "count": lm.len(), "type": "VEC2"}),
+            );
+            let idx = push(
+                bytemuck::cast_slice(&m.indices),
+                34963,
+                json!({"componentType": 5125, "count": m.indices.len(), "type": "SCALAR"}),
+            );
             meshes.push(json!({
                 "name": m.name,
                 "primitives": [{
@@ -218,14 +321,30 @@ impl SceneBuilder {
         let mut lights = Vec::new();
         for l in &self.lights {
             let (light, node) = match l {
-                LightDesc::Point { position, color, intensity } => {
-                    (json!({"type": "point", "color": color, "intensity": intensity}), json!({"translation": position.to_array()}))
-                }
-                LightDesc::Directional { direction, color, intensity } => (
+                LightDesc::Point {
+                    position,
+                    color,
+                    intensity,
+                } => (
+                    json!({"type": "point", "color": color, "intensity": intensity}),
+                    json!({"translation": position.to_array()}),
+                ),
+                LightDesc::Directional {
+                    direction,
+                    color,
+                    intensity,
+                } => (
                     json!({"type": "directional", "color": color, "intensity": intensity}),
                     json!({"rotation": rotation_to(*direction).to_array()}),
                 ),
-                LightDesc::Spot { position, direction, color, intensity, inner, outer } => (
+                LightDesc::Spot {
+                    position,
+                    direction,
+                    color,
+                    intensity,
+                    inner,
+                    outer,
+                } => (
                     json!({"type": "spot", "color": color, "intensity": intensity,
                            "spot": {"innerConeAngle": inner, "outerConeAngle": outer}}),
                     json!({"translation": position.to_array(), "rotation": rotation_to(*direction).to_array()}),
@@ -299,11 +418,11 @@ fn tangent_frame(normal: Vec3) -> (Vec3, Vec3) {
 /// chunk padded with zeros (glTF 2.0 §4.4).
 pub fn write_glb(json: &Value, bin: &[u8]) -> Vec<u8> {
     let mut js = serde_json::to_vec(json).expect("serialising a JSON value cannot fail");
-    while js.len() % 4 != 0 {
+    while !js.len().is_multiple_of(4) {
         js.push(b' ');
     }
     let mut b = bin.to_vec();
-    while b.len() % 4 != 0 {
+    while !b.len().is_multiple_of(4) {
         b.push(0);
     }
     let total = 12 + 8 + js.len() + if b.is_empty() { 0 } else { 8 + b.len() };
@@ -330,16 +449,68 @@ pub fn cornell_box() -> SceneBuilder {
     let white = s.material(MaterialDesc::diffuse("white", [0.725, 0.71, 0.68]));
     let red = s.material(MaterialDesc::diffuse("red", [0.63, 0.065, 0.05]));
     let green = s.material(MaterialDesc::diffuse("green", [0.14, 0.45, 0.091]));
-    let light = s.material(MaterialDesc::emissive("light", [0.78, 0.78, 0.78], [17.0, 12.0, 4.0]));
+    let light = s.material(MaterialDesc::emissive(
+        "light",
+        [0.78, 0.78, 0.78],
+        [17.0, 12.0, 4.0],
+    ));
     let (w, h) = (2.0f32, 2.0f32);
-    s.quad("floor", Vec3::new(-1.0, 0.0, 1.0), Vec3::X * w, Vec3::NEG_Z * w, white);
-    s.quad("ceiling", Vec3::new(-1.0, h, -1.0), Vec3::X * w, Vec3::Z * w, white);
-    s.quad("back wall", Vec3::new(-1.0, 0.0, -1.0), Vec3::X * w, Vec3::Y * h, white);
-    s.quad("left wall", Vec3::new(-1.0, 0.0, 1.0), Vec3::NEG_Z * w, Vec3::Y * h, red);
-    s.quad("right wall", Vec3::new(1.0, 0.0, -1.0), Vec3::Z * w, Vec3::Y * h, green);
-    s.quad("light", Vec3::new(-0.25, h - 0.005, -0.2), Vec3::X * 0.5, Vec3::Z * 0.4, light);
-    s.block("short block", Vec3::new(0.33, 0.0, 0.3), Vec3::new(0.3, 0.3, 0.3), -0.29, white);
-    s.block("tall block", Vec3::new(-0.35, 0.0, -0.3), Vec3::new(0.3, 0.6, 0.3), 0.29, white);
+    s.quad(
+        "floor",
+        Vec3::new(-1.0, 0.0, 1.0),
+        Vec3::X * w,
+        Vec3::NEG_Z * w,
+        white,
+    );
+    s.quad(
+        "ceiling",
+        Vec3::new(-1.0, h, -1.0),
+        Vec3::X * w,
+        Vec3::Z * w,
+        white,
+    );
+    s.quad(
+        "back wall",
+        Vec3::new(-1.0, 0.0, -1.0),
+        Vec3::X * w,
+        Vec3::Y * h,
+        white,
+    );
+    s.quad(
+        "left wall",
+        Vec3::new(-1.0, 0.0, 1.0),
+        Vec3::NEG_Z * w,
+        Vec3::Y * h,
+        red,
+    );
+    s.quad(
+        "right wall",
+        Vec3::new(1.0, 0.0, -1.0),
+        Vec3::Z * w,
+        Vec3::Y * h,
+        green,
+    );
+    s.quad(
+        "light",
+        Vec3::new(-0.25, h - 0.005, -0.2),
+        Vec3::X * 0.5,
+        Vec3::Z * 0.4,
+        light,
+    );
+    s.block(
+        "short block",
+        Vec3::new(0.33, 0.0, 0.3),
+        Vec3::new(0.3, 0.3, 0.3),
+        -0.29,
+        white,
+    );
+    s.block(
+        "tall block",
+        Vec3::new(-0.35, 0.0, -0.3),
+        Vec3::new(0.3, 0.6, 0.3),
+        0.29,
+        white,
+    );
     s
 }
 
@@ -351,7 +522,10 @@ mod tests {
     fn glb_header_and_chunks_are_aligned() {
         let glb = cornell_box().to_glb();
         assert_eq!(&glb[0..4], b"glTF");
-        assert_eq!(u32::from_le_bytes(glb[8..12].try_into().unwrap()) as usize, glb.len());
+        assert_eq!(
+            u32::from_le_bytes(glb[8..12].try_into().unwrap()) as usize,
+            glb.len()
+        );
         let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
         assert_eq!(json_len % 4, 0);
         assert_eq!(&glb[20 + json_len + 4..20 + json_len + 8], b"BIN\0");
@@ -359,7 +533,14 @@ mod tests {
 
     #[test]
     fn tangent_frame_is_right_handed() {
-        for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
+        for n in [
+            Vec3::X,
+            Vec3::NEG_X,
+            Vec3::Y,
+            Vec3::NEG_Y,
+            Vec3::Z,
+            Vec3::NEG_Z,
+        ] {
             let (u, v) = tangent_frame(n);
             assert!((u.cross(v) - n).length() < 1e-6, "{n}");
         }
@@ -374,7 +555,8 @@ mod tests {
             assert!(lo_a.min_element() > 0.0 && hi_a.max_element() < 1.0);
             for b in a + 1..n {
                 let (lo_b, hi_b) = (s.atlas_uv(b, Vec2::ZERO), s.atlas_uv(b, Vec2::ONE));
-                let disjoint = hi_a.x < lo_b.x || hi_b.x < lo_a.x || hi_a.y < lo_b.y || hi_b.y < lo_a.y;
+                let disjoint =
+                    hi_a.x < lo_b.x || hi_b.x < lo_a.x || hi_a.y < lo_b.y || hi_b.y < lo_a.y;
                 assert!(disjoint, "charts {a} and {b} overlap");
             }
         }

@@ -16,7 +16,11 @@ impl std::fmt::Display for PrimitiveRef {
         if self.mesh_name.is_empty() {
             write!(f, "mesh {}, primitive {}", self.mesh, self.primitive)
         } else {
-            write!(f, "mesh {} \"{}\", primitive {}", self.mesh, self.mesh_name, self.primitive)
+            write!(
+                f,
+                "mesh {} \"{}\", primitive {}",
+                self.mesh, self.mesh_name, self.primitive
+            )
         }
     }
 }
@@ -24,7 +28,10 @@ impl std::fmt::Display for PrimitiveRef {
 #[derive(Debug, Error)]
 pub enum ImportError {
     #[error("cannot read {path}: {source}")]
-    Io { path: String, source: std::io::Error },
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
     #[error("not a glTF 2.0 file: {0}")]
     NotGltf(String),
     #[error("invalid glTF: {0}")]
@@ -34,7 +41,12 @@ pub enum ImportError {
     #[error("image {image}: {problem}")]
     Image { image: usize, problem: String },
     #[error("{at}: accessor {accessor} ({attribute}): {problem}")]
-    Accessor { at: PrimitiveRef, accessor: usize, attribute: String, problem: String },
+    Accessor {
+        at: PrimitiveRef,
+        accessor: usize,
+        attribute: String,
+        problem: String,
+    },
     #[error("{at}: {problem}")]
     Primitive { at: PrimitiveRef, problem: String },
     #[error("{0}")]

@@ -26,7 +26,10 @@ use gltf::mesh::Mode;
 use serde::Serialize;
 
 use super::error::{ImportError, PrimitiveRef};
-use super::{Bounds, LightKind, Material, MeshInfo, PunctualLight, Scene, Texture, TextureRef, Triangle, Wrap};
+use super::{
+    Bounds, LightKind, Material, MeshInfo, PunctualLight, Scene, Texture, TextureRef, Triangle,
+    Wrap,
+};
 
 /// What import found, for the CLI summary and the service's scene report.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -51,13 +54,19 @@ pub struct ImportReport {
 
 /// Imports a `.glb` or `.gltf` file; relative URIs resolve against its folder.
 pub fn import_file(path: &Path) -> Result<(Scene, ImportReport), ImportError> {
-    let bytes = std::fs::read(path).map_err(|source| ImportError::Io { path: path.display().to_string(), source })?;
+    let bytes = std::fs::read(path).map_err(|source| ImportError::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
     import_slice(&bytes, path.parent())
 }
 
 /// Imports glTF from memory. `base_dir` resolves relative URIs; `None` allows only
 /// embedded data (GLB binary chunk and data URIs), which is what the service wants.
-pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, ImportReport), ImportError> {
+pub fn import_slice(
+    bytes: &[u8],
+    base_dir: Option<&Path>,
+) -> Result<(Scene, ImportReport), ImportError> {
     let gltf = parse(bytes)?;
     let buffers = load_buffers(&gltf, base_dir)?;
     let mut report = ImportReport::default();
@@ -65,8 +74,13 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
     let materials = load_materials(&gltf)?;
 
     for ext in gltf.extensions_required() {
-        if !matches!(ext, "KHR_lights_punctual" | "KHR_materials_emissive_strength") {
-            report.warnings.push(format!("required extension {ext} is not supported and is ignored"));
+        if !matches!(
+            ext,
+            "KHR_lights_punctual" | "KHR_materials_emissive_strength"
+        ) {
+            report.warnings.push(format!(
+                "required extension {ext} is not supported and is ignored"
+            ));
         }
     }
 
@@ -76,7 +90,10 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         lights: Vec::new(),
         meshes: gltf
             .meshes()
-            .map(|m| MeshInfo { name: m.name().unwrap_or("").to_string(), index: m.index() })
+            .map(|m| MeshInfo {
+                name: m.name().unwrap_or("").to_string(),
+                index: m.index(),
+            })
             .collect(),
         report: &mut report,
         materials_len: materials.len() - 1,
@@ -91,7 +108,13 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
     for node in roots {
         ctx.visit(&node, DMat4::IDENTITY, &mut seen_nodes)?;
     }
-    let Flatten { mut triangles, mut lights, meshes, missing_lightmap_uvs, .. } = ctx;
+    let Flatten {
+        mut triangles,
+        mut lights,
+        meshes,
+        missing_lightmap_uvs,
+        ..
+    } = ctx;
 
     if !missing_lightmap_uvs.is_empty() {
         return Err(ImportError::NoLightmapUvs(format!(
@@ -101,7 +124,10 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
     }
     if triangles.is_empty() {
         let why = if report.degenerate_triangles > 0 {
-            format!(" (all {} triangles are degenerate)", report.degenerate_triangles)
+            format!(
+                " (all {} triangles are degenerate)",
+                report.degenerate_triangles
+            )
         } else {
             String::new()
         };
@@ -124,7 +150,14 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         .map(|t| {
             let p = t.world.map(|w| (w - offset).as_vec3());
             p.iter().for_each(|q| bounds.grow(*q));
-            Triangle { p, n: t.n, uv: t.uv, lm: t.lm, material: t.material, mesh: t.mesh }
+            Triangle {
+                p,
+                n: t.n,
+                uv: t.uv,
+                lm: t.lm,
+                material: t.material,
+                mesh: t.mesh,
+            }
         })
         .collect();
     for l in &mut lights {
@@ -138,7 +171,11 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
     report.lights = lights.len();
     report.emissive_triangles = tris
         .iter()
-        .filter(|t| materials.get(t.material as usize).is_some_and(|m| m.emissive != Vec3::ZERO))
+        .filter(|t| {
+            materials
+                .get(t.material as usize)
+                .is_some_and(|m| m.emissive != Vec3::ZERO)
+        })
         .count();
     report.bounds_min = dmin.to_array();
     report.bounds_max = dmax.to_array();
@@ -163,11 +200,18 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
     let looks_binary = bytes.starts_with(b"glTF");
     let looks_json = bytes.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'{');
     if !looks_binary && !looks_json {
-        return Err(ImportError::NotGltf("neither a GLB header (\"glTF\" magic) nor a JSON document".into()));
+        return Err(ImportError::NotGltf(
+            "neither a GLB header (\"glTF\" magic) nor a JSON document".into(),
+        ));
     }
     gltf::Gltf::from_slice(bytes).map_err(|e| match e {
         gltf::Error::Validation(errors) => ImportError::Invalid(
-            errors.iter().take(5).map(|(path, err)| format!("{}: {}", path, err)).collect::<Vec<_>>().join("; "),
+            errors
+                .iter()
+                .take(5)
+                .map(|(path, err)| format!("{}: {}", path, err))
+                .collect::<Vec<_>>()
+                .join("; "),
         ),
         gltf::Error::Binary(b) => ImportError::NotGltf(format!("broken GLB container: {b:?}")),
         gltf::Error::Deserialize(d) => ImportError::NotGltf(format!("JSON: {d}")),
@@ -177,21 +221,34 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
 
 fn resolve_uri(uri: &str, base_dir: Option<&Path>, what: &str) -> Result<Vec<u8>, String> {
     if let Some(rest) = uri.strip_prefix("data:") {
-        let (_, payload) = rest.split_once(";base64,").ok_or_else(|| format!("{what}: data URI is not base64"))?;
+        let (_, payload) = rest
+            .split_once(";base64,")
+            .ok_or_else(|| format!("{what}: data URI is not base64"))?;
         return base64::engine::general_purpose::STANDARD
             .decode(payload)
             .map_err(|e| format!("{what}: bad base64 in data URI: {e}"));
     }
     if uri.contains("://") {
-        return Err(format!("{what}: URI scheme of {uri:?} is not supported (only relative paths and data URIs)"));
+        return Err(format!(
+            "{what}: URI scheme of {uri:?} is not supported (only relative paths and data URIs)"
+        ));
     }
-    let base = base_dir.ok_or_else(|| format!("{what}: external file {uri:?} cannot be resolved here (upload it with the scene)"))?;
+    let base = base_dir.ok_or_else(|| {
+        format!("{what}: external file {uri:?} cannot be resolved here (upload it with the scene)")
+    })?;
     let decoded = percent_decode(uri);
     let rel = PathBuf::from(&decoded);
-    if rel.is_absolute() || rel.components().any(|c| matches!(c, std::path::Component::ParentDir)) {
-        return Err(format!("{what}: external file {uri:?} must be a relative path inside the scene's folder"));
+    if rel.is_absolute()
+        || rel
+            .components()
+            .any(|c| matches!(c, std::path::Component::ParentDir))
+    {
+        return Err(format!(
+            "{what}: external file {uri:?} must be a relative path inside the scene's folder"
+        ));
     }
-    std::fs::read(base.join(&rel)).map_err(|e| format!("{what}: cannot read external file {decoded:?}: {e}"))
+    std::fs::read(base.join(&rel))
+        .map_err(|e| format!("{what}: cannot read external file {decoded:?}: {e}"))
 }
 
 fn percent_decode(s: &str) -> String {
@@ -201,7 +258,10 @@ fn percent_decode(s: &str) -> String {
     while i < bytes.len() {
         if bytes[i] == b'%'
             && i + 2 < bytes.len()
-            && let Ok(v) = u8::from_str_radix(std::str::from_utf8(&bytes[i + 1..i + 3]).unwrap_or("zz"), 16)
+            && let Ok(v) = u8::from_str_radix(
+                std::str::from_utf8(&bytes[i + 1..i + 3]).unwrap_or("zz"),
+                16,
+            )
         {
             out.push(v);
             i += 3;
@@ -222,14 +282,17 @@ fn load_buffers(gltf: &gltf::Gltf, base_dir: Option<&Path>) -> Result<Vec<Vec<u8
                 buffer: i,
                 problem: "refers to the GLB binary chunk, but the file has none".into(),
             })?,
-            gltf::buffer::Source::Uri(uri) => {
-                resolve_uri(uri, base_dir, "uri").map_err(|problem| ImportError::Buffer { buffer: i, problem })?
-            }
+            gltf::buffer::Source::Uri(uri) => resolve_uri(uri, base_dir, "uri")
+                .map_err(|problem| ImportError::Buffer { buffer: i, problem })?,
         };
         if data.len() < buffer.length() {
             return Err(ImportError::Buffer {
                 buffer: i,
-                problem: format!("truncated: byteLength is {} but only {} bytes are present", buffer.length(), data.len()),
+                problem: format!(
+                    "truncated: byteLength is {} but only {} bytes are present",
+                    buffer.length(),
+                    data.len()
+                ),
             });
         }
         out.push(data);
@@ -238,8 +301,13 @@ fn load_buffers(gltf: &gltf::Gltf, base_dir: Option<&Path>) -> Result<Vec<Vec<u8
 }
 
 fn view_bytes<'b>(view: &gltf::buffer::View, buffers: &'b [Vec<u8>]) -> Result<&'b [u8], String> {
-    let buf = buffers.get(view.buffer().index()).ok_or("buffer view refers to a missing buffer")?;
-    let end = view.offset().checked_add(view.length()).ok_or("buffer view range overflows")?;
+    let buf = buffers
+        .get(view.buffer().index())
+        .ok_or("buffer view refers to a missing buffer")?;
+    let end = view
+        .offset()
+        .checked_add(view.length())
+        .ok_or("buffer view range overflows")?;
     if end > buf.len() {
         return Err(format!(
             "buffer view {} (bytes {}..{}) lies outside buffer {} of {} bytes",
@@ -265,23 +333,35 @@ fn load_textures(
         let image = tex.source();
         let i = image.index();
         let bytes = match image.source() {
-            gltf::image::Source::View { view, .. } => {
-                view_bytes(&view, buffers).map_err(|problem| ImportError::Image { image: i, problem })?.to_vec()
-            }
-            gltf::image::Source::Uri { uri, .. } => {
-                resolve_uri(uri, base_dir, "uri").map_err(|problem| ImportError::Image { image: i, problem })?
-            }
+            gltf::image::Source::View { view, .. } => view_bytes(&view, buffers)
+                .map_err(|problem| ImportError::Image { image: i, problem })?
+                .to_vec(),
+            gltf::image::Source::Uri { uri, .. } => resolve_uri(uri, base_dir, "uri")
+                .map_err(|problem| ImportError::Image { image: i, problem })?,
         };
         let decoded = image::load_from_memory(&bytes)
-            .map_err(|e| ImportError::Image { image: i, problem: format!("cannot decode (PNG and JPEG are supported): {e}") })?
+            .map_err(|e| ImportError::Image {
+                image: i,
+                problem: format!("cannot decode (PNG and JPEG are supported): {e}"),
+            })?
             .to_rgba32f();
         let (width, height) = decoded.dimensions();
         if width == 0 || height == 0 {
-            return Err(ImportError::Image { image: i, problem: "has zero size".into() });
+            return Err(ImportError::Image {
+                image: i,
+                problem: "has zero size".into(),
+            });
         }
         let texels = decoded
             .pixels()
-            .map(|p| Vec4::new(srgb_to_linear(p[0]), srgb_to_linear(p[1]), srgb_to_linear(p[2]), p[3]))
+            .map(|p| {
+                Vec4::new(
+                    srgb_to_linear(p[0]),
+                    srgb_to_linear(p[1]),
+                    srgb_to_linear(p[2]),
+                    p[3],
+                )
+            })
             .collect();
         let sampler = tex.sampler();
         let wrap = |m: gltf::texture::WrappingMode| match m {
@@ -289,30 +369,58 @@ fn load_textures(
             gltf::texture::WrappingMode::MirroredRepeat => Wrap::Mirror,
             gltf::texture::WrappingMode::ClampToEdge => Wrap::Clamp,
         };
-        textures.push(Texture { width, height, texels, wrap_u: wrap(sampler.wrap_s()), wrap_v: wrap(sampler.wrap_t()) });
+        textures.push(Texture {
+            width,
+            height,
+            texels,
+            wrap_u: wrap(sampler.wrap_s()),
+            wrap_v: wrap(sampler.wrap_t()),
+        });
     }
     Ok(textures)
 }
 
 pub(crate) fn srgb_to_linear(c: f32) -> f32 {
-    if c <= 0.04045 { c / 12.92 } else { ((c + 0.055) / 1.055).powf(2.4) }
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
 }
 
 fn load_materials(gltf: &gltf::Gltf) -> Result<Vec<Material>, ImportError> {
     let mut out = Vec::new();
     for m in gltf.materials() {
-        let name = m.name().map(str::to_string).unwrap_or_else(|| format!("material {}", m.index().unwrap_or(0)));
+        let name = m
+            .name()
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("material {}", m.index().unwrap_or(0)));
         let pbr = m.pbr_metallic_roughness();
         let base_color = Vec4::from_array(pbr.base_color_factor());
         let strength = m.emissive_strength().unwrap_or(1.0);
         let emissive = Vec3::from_array(m.emissive_factor()) * strength;
         let check = |what: &str, ok: bool| -> Result<(), ImportError> {
-            if ok { Ok(()) } else { Err(ImportError::Material(format!("{name}: {what} must be finite and >= 0"))) }
+            if ok {
+                Ok(())
+            } else {
+                Err(ImportError::Material(format!(
+                    "{name}: {what} must be finite and >= 0"
+                )))
+            }
         };
-        check("baseColorFactor", base_color.is_finite() && base_color.min_element() >= 0.0)?;
-        check("emissiveFactor × emissive_strength", emissive.is_finite() && emissive.min_element() >= 0.0)?;
+        check(
+            "baseColorFactor",
+            base_color.is_finite() && base_color.min_element() >= 0.0,
+        )?;
+        check(
+            "emissiveFactor × emissive_strength",
+            emissive.is_finite() && emissive.min_element() >= 0.0,
+        )?;
         let tref = |info: Option<gltf::texture::Info>| {
-            info.map(|i| TextureRef { texture: i.texture().index() as u32, texcoord: i.tex_coord().min(1) })
+            info.map(|i| TextureRef {
+                texture: i.texture().index() as u32,
+                texcoord: i.tex_coord().min(1),
+            })
         };
         out.push(Material {
             name,
@@ -357,15 +465,26 @@ struct Flatten<'a> {
 }
 
 impl Flatten<'_> {
-    fn visit(&mut self, node: &gltf::Node, parent: DMat4, seen: &mut HashSet<usize>) -> Result<(), ImportError> {
+    fn visit(
+        &mut self,
+        node: &gltf::Node,
+        parent: DMat4,
+        seen: &mut HashSet<usize>,
+    ) -> Result<(), ImportError> {
         // glTF forbids cycles, but a hostile file may still have them: never loop.
         if !seen.insert(node.index()) {
-            return Err(ImportError::Invalid(format!("node {} is reached twice (the node graph is not a tree)", node.index())));
+            return Err(ImportError::Invalid(format!(
+                "node {} is reached twice (the node graph is not a tree)",
+                node.index()
+            )));
         }
         let local = DMat4::from_cols_array_2d(&node.transform().matrix().map(|c| c.map(f64::from)));
         let world = parent * local;
         if !world.is_finite() {
-            return Err(ImportError::Invalid(format!("node {}: transform is not finite", node.index())));
+            return Err(ImportError::Invalid(format!(
+                "node {}: transform is not finite",
+                node.index()
+            )));
         }
         if let Some(mesh) = node.mesh() {
             self.mesh(&mesh, &world)?;
@@ -379,29 +498,57 @@ impl Flatten<'_> {
         Ok(())
     }
 
-    fn light(&mut self, light: &gltf::khr_lights_punctual::Light, world: &DMat4, node: usize) -> Result<(), ImportError> {
-        let name = light.name().map(str::to_string).unwrap_or_else(|| format!("light {}", light.index()));
+    fn light(
+        &mut self,
+        light: &gltf::khr_lights_punctual::Light,
+        world: &DMat4,
+        node: usize,
+    ) -> Result<(), ImportError> {
+        let name = light
+            .name()
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("light {}", light.index()));
         let color = Vec3::from_array(light.color());
         let intensity = light.intensity();
-        if !color.is_finite() || color.min_element() < 0.0 || !intensity.is_finite() || intensity < 0.0 {
-            return Err(ImportError::Invalid(format!("{name} (node {node}): colour and intensity must be finite and >= 0")));
+        if !color.is_finite()
+            || color.min_element() < 0.0
+            || !intensity.is_finite()
+            || intensity < 0.0
+        {
+            return Err(ImportError::Invalid(format!(
+                "{name} (node {node}): colour and intensity must be finite and >= 0"
+            )));
         }
         let kind = match light.kind() {
             gltf::khr_lights_punctual::Kind::Directional => LightKind::Directional,
             gltf::khr_lights_punctual::Kind::Point => LightKind::Point,
-            gltf::khr_lights_punctual::Kind::Spot { inner_cone_angle, outer_cone_angle } => {
-                if !(0.0..=std::f32::consts::FRAC_PI_2).contains(&outer_cone_angle) || !(inner_cone_angle < outer_cone_angle) {
+            gltf::khr_lights_punctual::Kind::Spot {
+                inner_cone_angle,
+                outer_cone_angle,
+            } => {
+                if !(0.0..=std::f32::consts::FRAC_PI_2).contains(&outer_cone_angle)
+                    || inner_cone_angle >= outer_cone_angle
+                    || inner_cone_angle.is_nan()
+                {
                     return Err(ImportError::Invalid(format!(
                         "{name} (node {node}): spot cone angles need 0 <= inner < outer <= pi/2, got {inner_cone_angle} and {outer_cone_angle}"
                     )));
                 }
-                LightKind::Spot { inner_cone: inner_cone_angle.max(0.0), outer_cone: outer_cone_angle }
+                LightKind::Spot {
+                    inner_cone: inner_cone_angle.max(0.0),
+                    outer_cone: outer_cone_angle,
+                }
             }
         };
         let position = world.transform_point3(DVec3::ZERO);
-        let direction = world.transform_vector3(DVec3::NEG_Z).normalize_or_zero().as_vec3();
+        let direction = world
+            .transform_vector3(DVec3::NEG_Z)
+            .normalize_or_zero()
+            .as_vec3();
         if direction == Vec3::ZERO && kind != LightKind::Point {
-            return Err(ImportError::Invalid(format!("{name} (node {node}): transform collapses the light's direction")));
+            return Err(ImportError::Invalid(format!(
+                "{name} (node {node}): transform collapses the light's direction"
+            )));
         }
         self.lights.push(RawLight {
             light: PunctualLight {
@@ -423,25 +570,40 @@ impl Flatten<'_> {
         let normal_matrix = world.inverse().transpose();
         let mesh_name = mesh.name().unwrap_or("").to_string();
         for prim in mesh.primitives() {
-            let at = PrimitiveRef { mesh: mesh.index(), mesh_name: mesh_name.clone(), primitive: prim.index() };
+            let at = PrimitiveRef {
+                mesh: mesh.index(),
+                mesh_name: mesh_name.clone(),
+                primitive: prim.index(),
+            };
             if first_visit {
                 self.report.primitives += 1;
             }
             if prim.mode() != Mode::Triangles {
                 if first_visit {
-                    self.report.warnings.push(format!("{at}: mode {:?} is not TRIANGLES and is skipped", prim.mode()));
+                    self.report.warnings.push(format!(
+                        "{at}: mode {:?} is not TRIANGLES and is skipped",
+                        prim.mode()
+                    ));
                 }
                 continue;
             }
             // glTF's default material sits after the file's own (see `load_materials`).
             let material = match prim.material().index() {
                 Some(i) if i < self.materials_len => i as u32,
-                Some(i) => return Err(ImportError::Primitive { at, problem: format!("material {i} does not exist") }),
+                Some(i) => {
+                    return Err(ImportError::Primitive {
+                        at,
+                        problem: format!("material {i} does not exist"),
+                    });
+                }
                 None => self.materials_len as u32,
             };
 
             let positions = read_vec3(&prim, gltf::Semantic::Positions, self.buffers, &at)?
-                .ok_or_else(|| ImportError::Primitive { at: at.clone(), problem: "has no POSITION attribute".into() })?;
+                .ok_or_else(|| ImportError::Primitive {
+                    at: at.clone(),
+                    problem: "has no POSITION attribute".into(),
+                })?;
             let normals = read_vec3(&prim, gltf::Semantic::Normals, self.buffers, &at)?;
             let uv0 = read_vec2(&prim, 0, self.buffers, &at)?;
             let Some(uv1) = read_vec2(&prim, 1, self.buffers, &at)? else {
@@ -451,20 +613,37 @@ impl Flatten<'_> {
                 continue;
             };
             let n = positions.len();
-            for (what, len) in [("NORMAL", normals.as_ref().map(Vec::len)), ("TEXCOORD_0", uv0.as_ref().map(Vec::len)), ("TEXCOORD_1", Some(uv1.len()))] {
+            for (what, len) in [
+                ("NORMAL", normals.as_ref().map(Vec::len)),
+                ("TEXCOORD_0", uv0.as_ref().map(Vec::len)),
+                ("TEXCOORD_1", Some(uv1.len())),
+            ] {
                 if let Some(len) = len
                     && len != n
                 {
-                    return Err(ImportError::Primitive { at: at.clone(), problem: format!("{what} has {len} elements but POSITION has {n}") });
+                    return Err(ImportError::Primitive {
+                        at: at.clone(),
+                        problem: format!("{what} has {len} elements but POSITION has {n}"),
+                    });
                 }
             }
-            if let Some((i, uv)) = uv1.iter().enumerate().find(|(_, uv)| !(0.0..=1.0).contains(&uv.x) || !(0.0..=1.0).contains(&uv.y)) {
-                let acc = prim.get(&gltf::Semantic::TexCoords(1)).map(|a| a.index()).unwrap_or(0);
+            if let Some((i, uv)) = uv1
+                .iter()
+                .enumerate()
+                .find(|(_, uv)| !(0.0..=1.0).contains(&uv.x) || !(0.0..=1.0).contains(&uv.y))
+            {
+                let acc = prim
+                    .get(&gltf::Semantic::TexCoords(1))
+                    .map(|a| a.index())
+                    .unwrap_or(0);
                 return Err(ImportError::Accessor {
                     at,
                     accessor: acc,
                     attribute: "TEXCOORD_1".into(),
-                    problem: format!("lightmap UV ({}, {}) of vertex {i} is outside [0, 1]", uv.x, uv.y),
+                    problem: format!(
+                        "lightmap UV ({}, {}) of vertex {i} is outside [0, 1]",
+                        uv.x, uv.y
+                    ),
                 });
             }
             let indices: Vec<u32> = match prim.indices() {
@@ -476,61 +655,124 @@ impl Flatten<'_> {
                         .ok_or_else(|| accessor_err(&at, &acc, "indices", "cannot be read".into()))?
                         .into_u32()
                         .collect();
-                    if let Some((k, bad)) = idx.iter().enumerate().find(|(_, i)| **i as usize >= n) {
-                        return Err(accessor_err(&at, &acc, "indices", format!("index {bad} at position {k} is past the {n} vertices")));
+                    if let Some((k, bad)) = idx.iter().enumerate().find(|(_, i)| **i as usize >= n)
+                    {
+                        return Err(accessor_err(
+                            &at,
+                            &acc,
+                            "indices",
+                            format!("index {bad} at position {k} is past the {n} vertices"),
+                        ));
                     }
                     idx
                 }
                 None => (0..n as u32).collect(),
             };
-            if indices.len() % 3 != 0 {
-                self.report.warnings.push(format!("{at}: {} indices is not a multiple of 3; the last ones are ignored", indices.len()));
+            if !indices.len().is_multiple_of(3) {
+                self.report.warnings.push(format!(
+                    "{at}: {} indices is not a multiple of 3; the last ones are ignored",
+                    indices.len()
+                ));
             }
 
-            let world_pos: Vec<DVec3> = positions.iter().map(|p| world.transform_point3(p.as_dvec3())).collect();
+            let world_pos: Vec<DVec3> = positions
+                .iter()
+                .map(|p| world.transform_point3(p.as_dvec3()))
+                .collect();
             let world_nrm: Option<Vec<Vec3>> = normals.map(|ns| {
-                ns.iter().map(|v| normal_matrix.transform_vector3(v.as_dvec3()).normalize_or_zero().as_vec3()).collect()
+                ns.iter()
+                    .map(|v| {
+                        normal_matrix
+                            .transform_vector3(v.as_dvec3())
+                            .normalize_or_zero()
+                            .as_vec3()
+                    })
+                    .collect()
             });
             for tri in indices.chunks_exact(3) {
-                let (a, b, c) = if mirrored { (tri[0], tri[2], tri[1]) } else { (tri[0], tri[1], tri[2]) };
+                let (a, b, c) = if mirrored {
+                    (tri[0], tri[2], tri[1])
+                } else {
+                    (tri[0], tri[1], tri[2])
+                };
                 let (a, b, c) = (a as usize, b as usize, c as usize);
                 let w = [world_pos[a], world_pos[b], world_pos[c]];
                 let cross = (w[1] - w[0]).cross(w[2] - w[0]);
-                let scale2 = (w[1] - w[0]).length_squared().max((w[2] - w[0]).length_squared());
+                let scale2 = (w[1] - w[0])
+                    .length_squared()
+                    .max((w[2] - w[0]).length_squared());
                 // Relative test: a sliver whose normal cannot be computed in f32 is degenerate.
-                if !(cross.length_squared() > 1e-12 * scale2 * scale2) || scale2 == 0.0 {
+                let well_formed = cross.length_squared() > 1e-12 * scale2 * scale2 && scale2 > 0.0;
+                if !well_formed {
                     self.report.degenerate_triangles += 1;
                     continue;
                 }
                 let flat = cross.normalize().as_vec3();
                 let n3 = match &world_nrm {
-                    Some(ns) => [ns[a], ns[b], ns[c]].map(|v| if v == Vec3::ZERO { flat } else { v }),
+                    Some(ns) => {
+                        [ns[a], ns[b], ns[c]].map(|v| if v == Vec3::ZERO { flat } else { v })
+                    }
                     None => [flat; 3],
                 };
                 let lm = [uv1[a], uv1[b], uv1[c]];
                 if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0 {
                     self.report.zero_uv_area_triangles += 1;
                 }
-                let uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);
-                self.triangles.push(RawTriangle { world: w, n: n3, uv, lm, material, mesh: mesh.index() as u32 });
+                let uv = uv0
+                    .as_ref()
+                    .map(|u| [u[a], u[b], u[c]])
+                    .unwrap_or([Vec2::ZERO; 3]);
+                self.triangles.push(RawTriangle {
+                    world: w,
+                    n: n3,
+                    uv,
+                    lm,
+                    material,
+                    mesh: mesh.index() as u32,
+                });
             }
         }
         Ok(())
     }
 }
 
-fn accessor_err(at: &PrimitiveRef, acc: &gltf::Accessor, attribute: &str, problem: String) -> ImportError {
-    ImportError::Accessor { at: at.clone(), accessor: acc.index(), attribute: attribute.into(), problem }
+fn accessor_err(
+    at: &PrimitiveRef,
+    acc: &gltf::Accessor,
+    attribute: &str,
+    problem: String,
+) -> ImportError {
+    ImportError::Accessor {
+        at: at.clone(),
+        accessor: acc.index(),
+        attribute: attribute.into(),
+        problem,
+    }
 }
 
 /// Checks that every byte the accessor reads lies inside its view and the view inside its
 /// buffer, so reading can never go out of bounds.
-fn check_accessor(acc: &gltf::Accessor, buffers: &[Vec<u8>], at: &PrimitiveRef, attribute: &str) -> Result<(), ImportError> {
+fn check_accessor(
+    acc: &gltf::Accessor,
+    buffers: &[Vec<u8>],
+    at: &PrimitiveRef,
+    attribute: &str,
+) -> Result<(), ImportError> {
     if acc.sparse().is_some() {
-        return Err(accessor_err(at, acc, attribute, "sparse accessors are not supported".into()));
+        return Err(accessor_err(
+            at,
+            acc,
+            attribute,
+            "sparse accessors are not supported".into(),
+        ));
     }
     let Some(view) = acc.view() else {
-        return Err(accessor_err(at, acc, attribute, "has no buffer view (all-zero accessors are not supported)".into()));
+        return Err(accessor_err(
+            at,
+            acc,
+            attribute,
+            "has no buffer view (all-zero accessors are not supported)".into(),
+        ));
     };
     let bytes = view_bytes(&view, buffers).map_err(|p| accessor_err(at, acc, attribute, p))?;
     if acc.count() == 0 {
@@ -567,36 +809,73 @@ fn read_vec3(
     buffers: &[Vec<u8>],
     at: &PrimitiveRef,
 ) -> Result<Option<Vec<Vec3>>, ImportError> {
-    let Some(acc) = prim.get(&semantic) else { return Ok(None) };
+    let Some(acc) = prim.get(&semantic) else {
+        return Ok(None);
+    };
     let name = semantic.to_string();
     check_accessor(&acc, buffers, at, &name)?;
     let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
     let data: Option<Vec<Vec3>> = match semantic {
-        gltf::Semantic::Positions => reader.read_positions().map(|it| it.map(Vec3::from_array).collect()),
-        gltf::Semantic::Normals => reader.read_normals().map(|it| it.map(Vec3::from_array).collect()),
+        gltf::Semantic::Positions => reader
+            .read_positions()
+            .map(|it| it.map(Vec3::from_array).collect()),
+        gltf::Semantic::Normals => reader
+            .read_normals()
+            .map(|it| it.map(Vec3::from_array).collect()),
         _ => None,
     };
-    let data = data.ok_or_else(|| accessor_err(at, &acc, &name, "cannot be read (wrong component type?)".into()))?;
+    let data = data.ok_or_else(|| {
+        accessor_err(
+            at,
+            &acc,
+            &name,
+            "cannot be read (wrong component type?)".into(),
+        )
+    })?;
     if let Some((i, v)) = data.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-        return Err(accessor_err(at, &acc, &name, format!("element {i} is not finite: {:?}", v.to_array())));
+        return Err(accessor_err(
+            at,
+            &acc,
+            &name,
+            format!("element {i} is not finite: {:?}", v.to_array()),
+        ));
     }
     Ok(Some(data))
 }
 
-fn read_vec2(prim: &gltf::Primitive, set: u32, buffers: &[Vec<u8>], at: &PrimitiveRef) -> Result<Option<Vec<Vec2>>, ImportError> {
+fn read_vec2(
+    prim: &gltf::Primitive,
+    set: u32,
+    buffers: &[Vec<u8>],
+    at: &PrimitiveRef,
+) -> Result<Option<Vec<Vec2>>, ImportError> {
     let semantic = gltf::Semantic::TexCoords(set);
-    let Some(acc) = prim.get(&semantic) else { return Ok(None) };
+    let Some(acc) = prim.get(&semantic) else {
+        return Ok(None);
+    };
     let name = semantic.to_string();
     check_accessor(&acc, buffers, at, &name)?;
     let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
     let data: Vec<Vec2> = reader
         .read_tex_coords(set)
-        .ok_or_else(|| accessor_err(at, &acc, &name, "cannot be read (wrong component type?)".into()))?
+        .ok_or_else(|| {
+            accessor_err(
+                at,
+                &acc,
+                &name,
+                "cannot be read (wrong component type?)".into(),
+            )
+        })?
         .into_f32()
         .map(Vec2::from_array)
         .collect();
     if let Some((i, v)) = data.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-        return Err(accessor_err(at, &acc, &name, format!("element {i} is not finite: {:?}", v.to_array())));
+        return Err(accessor_err(
+            at,
+            &acc,
+            &name,
+            format!("element {i} is not finite: {:?}", v.to_array()),
+        ));
     }
     Ok(Some(data))
 }

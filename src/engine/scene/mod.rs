@@ -104,7 +104,11 @@ fn wrap(i: i64, n: u32, mode: Wrap) -> usize {
         Wrap::Clamp => i.clamp(0, n - 1),
         Wrap::Mirror => {
             let period = i.rem_euclid(2 * n);
-            if period < n { period } else { 2 * n - 1 - period }
+            if period < n {
+                period
+            } else {
+                2 * n - 1 - period
+            }
         }
     };
     r as usize
@@ -155,7 +159,10 @@ pub enum LightKind {
     Directional,
     Point,
     /// Cone angles in radians from the axis; glTF's smooth falloff between them.
-    Spot { inner_cone: f32, outer_cone: f32 },
+    Spot {
+        inner_cone: f32,
+        outer_cone: f32,
+    },
 }
 
 /// A `KHR_lights_punctual` light, placed in the world.
@@ -185,7 +192,10 @@ pub struct Bounds {
 }
 
 impl Bounds {
-    pub const EMPTY: Bounds = Bounds { min: Vec3::splat(f32::INFINITY), max: Vec3::splat(f32::NEG_INFINITY) };
+    pub const EMPTY: Bounds = Bounds {
+        min: Vec3::splat(f32::INFINITY),
+        max: Vec3::splat(f32::NEG_INFINITY),
+    };
 
     pub fn grow(&mut self, p: Vec3) {
         self.min = self.min.min(p);
@@ -225,7 +235,9 @@ impl Scene {
         let m = &self.materials[t.material as usize];
         let mut c = m.base_color.truncate();
         if let Some(r) = m.base_color_texture {
-            c *= self.textures[r.texture as usize].sample(interp_uv(t, r.texcoord, b)).truncate();
+            c *= self.textures[r.texture as usize]
+                .sample(interp_uv(t, r.texcoord, b))
+                .truncate();
         }
         c
     }
@@ -237,7 +249,9 @@ impl Scene {
         if e != Vec3::ZERO
             && let Some(r) = m.emissive_texture
         {
-            e *= self.textures[r.texture as usize].sample(interp_uv(t, r.texcoord, b)).truncate();
+            e *= self.textures[r.texture as usize]
+                .sample(interp_uv(t, r.texcoord, b))
+                .truncate();
         }
         e
     }
@@ -320,11 +334,17 @@ impl Lighting {
         if let Some(s) = &self.sky
             && (!s.radiance.is_finite() || s.radiance.min_element() < 0.0)
         {
-            return Err(format!("lighting.sky.radiance must be finite and >= 0, got {:?}", s.radiance.to_array()));
+            return Err(format!(
+                "lighting.sky.radiance must be finite and >= 0, got {:?}",
+                s.radiance.to_array()
+            ));
         }
         if let Some(s) = &self.sun {
             if !s.direction.is_finite() || s.direction.length() < 1e-6 {
-                return Err(format!("lighting.sun.direction must be a non-zero finite vector, got {:?}", s.direction.to_array()));
+                return Err(format!(
+                    "lighting.sun.direction must be a non-zero finite vector, got {:?}",
+                    s.direction.to_array()
+                ));
             }
             if !(s.angular_diameter > 0.0 && s.angular_diameter < std::f32::consts::PI) {
                 return Err(format!(
@@ -333,7 +353,10 @@ impl Lighting {
                 ));
             }
             if !s.radiance.is_finite() || s.radiance.min_element() < 0.0 {
-                return Err(format!("lighting.sun.radiance must be finite and >= 0, got {:?}", s.radiance.to_array()));
+                return Err(format!(
+                    "lighting.sun.radiance must be finite and >= 0, got {:?}",
+                    s.radiance.to_array()
+                ));
             }
         }
         Ok(())

@@ -13,6 +13,7 @@
 //!   hit's largest albedo component (capped at 0.999), which keeps the estimator
 //!   unbiased and the throughput at most 1. A hard cap of `max_bounces` (default 65536)
 //!   only bounds run time for albedo 1 in a closed room; its bias is ρ^65536.
+//!
 //! The sky has no light sampling: for uniform radiance cosine sampling is already ideal.
 //!
 //! Surfaces are Lambertian with glTF's base colour as albedo (metallic/roughness are
@@ -58,17 +59,26 @@ pub struct PathParams {
 
 impl Default for PathParams {
     fn default() -> Self {
-        PathParams { samples_per_step: 4, max_bounces: 65536 }
+        PathParams {
+            samples_per_step: 4,
+            max_bounces: 65536,
+        }
     }
 }
 
 impl PathParams {
     fn validate(&self) -> Result<(), EngineError> {
         if !(1..=4096).contains(&self.samples_per_step) {
-            return Err(EngineError::BadInput(format!("params.samples_per_step must be in 1..=4096, got {}", self.samples_per_step)));
+            return Err(EngineError::BadInput(format!(
+                "params.samples_per_step must be in 1..=4096, got {}",
+                self.samples_per_step
+            )));
         }
         if !(1..=65536).contains(&self.max_bounces) {
-            return Err(EngineError::BadInput(format!("params.max_bounces must be in 1..=65536, got {}", self.max_bounces)));
+            return Err(EngineError::BadInput(format!(
+                "params.max_bounces must be in 1..=65536, got {}",
+                self.max_bounces
+            )));
         }
         Ok(())
     }
@@ -87,7 +97,12 @@ impl PathTracer {
         params.validate()?;
         let tracer = Tracer::new(&inputs.scene);
         let acc = HalfAccumulator::new(inputs.atlas.texels.len(), inputs.want_direct);
-        Ok(PathTracer { inputs, params, tracer, acc })
+        Ok(PathTracer {
+            inputs,
+            params,
+            tracer,
+            acc,
+        })
     }
 }
 
@@ -122,7 +137,8 @@ impl Technique for PathTracer {
                 let mut direct = Vec3::ZERO;
                 for s in 0..spp {
                     let mut rng = Rng::new(seed, step, ti as u64, s as u64);
-                    let (t, d) = ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
+                    let (t, d) =
+                        ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
                     total += t;
                     direct += d;
                 }
@@ -166,9 +182,17 @@ impl Tracer {
         let tris: Vec<obvhs::triangle::Triangle> = scene
             .triangles
             .iter()
-            .map(|t| obvhs::triangle::Triangle { v0: t.p[0].into(), v1: t.p[1].into(), v2: t.p[2].into() })
+            .map(|t| obvhs::triangle::Triangle {
+                v0: t.p[0].into(),
+                v1: t.p[1].into(),
+                v2: t.p[2].into(),
+            })
             .collect();
-        let bvh = build_cwbvh_from_tris(&tris, obvhs::BvhBuildParams::medium_build(), &mut Duration::default());
+        let bvh = build_cwbvh_from_tris(
+            &tris,
+            obvhs::BvhBuildParams::medium_build(),
+            &mut Duration::default(),
+        );
         let mut emitters = Vec::new();
         let mut weights = Vec::new();
         for (i, t) in scene.triangles.iter().enumerate() {
@@ -191,7 +215,12 @@ impl Tracer {
         if let Some(last) = emitter_cdf.last_mut() {
             *last = 1.0;
         }
-        Tracer { bvh, emitters, emitter_cdf, emitter_pick }
+        Tracer {
+            bvh,
+            emitters,
+            emitter_cdf,
+            emitter_pick,
+        }
     }
 
     /// Closest hit along `origin + t·dir`, t in (0, tmax).
@@ -207,7 +236,10 @@ impl Tracer {
         }
         let triangle = self.bvh.primitive_indices[hit.primitive_id as usize];
         let tri = &scene.triangles[triangle as usize];
-        let (t, bary) = intersect(tri, &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY))?;
+        let (t, bary) = intersect(
+            tri,
+            &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY),
+        )?;
         Some(Hit { triangle, t, bary })
     }
 
@@ -251,7 +283,10 @@ pub fn basis(n: Vec3) -> (Vec3, Vec3) {
     let sign = 1.0f32.copysign(n.z);
     let a = -1.0 / (sign + n.z);
     let b = n.x * n.y * a;
-    (Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x), Vec3::new(b, sign + n.y * n.y * a, -n.y))
+    (
+        Vec3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x),
+        Vec3::new(b, sign + n.y * n.y * a, -n.y),
+    )
 }
 
 /// Cosine-weighted direction about `n`; pdf = cos θ / π.
@@ -335,7 +370,11 @@ impl PathContext<'_> {
                 // Density with which next-event estimation would have picked this point.
                 let pick = self.tracer.emitter_pick[hit.triangle as usize];
                 let cos_l = dir.dot(geo).abs();
-                let pdf_light = if cos_l > 0.0 { pick / tri.area() * hit.t * hit.t / cos_l } else { f32::INFINITY };
+                let pdf_light = if cos_l > 0.0 {
+                    pick / tri.area() * hit.t * hit.t / cos_l
+                } else {
+                    f32::INFINITY
+                };
                 let l = emission * power_heuristic(pdf_bsdf, pdf_light);
                 total += throughput * l;
                 if bounce == 0 {
@@ -353,7 +392,9 @@ impl PathContext<'_> {
             }
             throughput *= albedo / survive;
             let side = if front { 1.0 } else { -1.0 };
-            let shading = (tri.n[0] * hit.bary.x + tri.n[1] * hit.bary.y + tri.n[2] * hit.bary.z).normalize_or_zero() * side;
+            let shading = (tri.n[0] * hit.bary.x + tri.n[1] * hit.bary.y + tri.n[2] * hit.bary.z)
+                .normalize_or_zero()
+                * side;
             ng = geo * side;
             n = if shading.dot(ng) > 0.0 { shading } else { ng };
             x = p + ng * self.eps;
@@ -391,13 +432,21 @@ impl PathContext<'_> {
                         // KHR_lights_punctual's recommended window, so lights end at range.
                         falloff *= (1.0 - (dist / range).powi(4)).clamp(0.0, 1.0).powi(2);
                     }
-                    if let LightKind::Spot { inner_cone, outer_cone } = light.kind {
+                    if let LightKind::Spot {
+                        inner_cone,
+                        outer_cone,
+                    } = light.kind
+                    {
                         let cd = (-d).dot(light.direction);
                         let scale = 1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3);
                         let a = ((cd - outer_cone.cos()) * scale).clamp(0.0, 1.0);
                         falloff *= a * a;
                     }
-                    if falloff > 0.0 && self.tracer.unoccluded(self.scene, x, d, dist * (1.0 - 1e-4)) {
+                    if falloff > 0.0
+                        && self
+                            .tracer
+                            .unoccluded(self.scene, x, d, dist * (1.0 - 1e-4))
+                    {
                         sum += light.intensity * falloff * d.dot(n) * FRAC_1_PI;
                     }
                 }
@@ -415,7 +464,11 @@ impl PathContext<'_> {
         }
         if !self.tracer.emitters.is_empty() {
             let u = rng.next_f32();
-            let k = self.tracer.emitter_cdf.partition_point(|c| *c <= u).min(self.tracer.emitters.len() - 1);
+            let k = self
+                .tracer
+                .emitter_cdf
+                .partition_point(|c| *c <= u)
+                .min(self.tracer.emitters.len() - 1);
             let ti = self.tracer.emitters[k];
             let tri = &self.scene.triangles[ti as usize];
             let (mut b1, mut b2) = (rng.next_f32(), rng.next_f32());
@@ -437,8 +490,13 @@ impl PathContext<'_> {
                 if front(d) && cos_l > 0.0 {
                     let emission = self.scene.emission(tri, bary);
                     // Stop short of the emitter itself so it does not occlude its own sample.
-                    if emission != Vec3::ZERO && self.tracer.unoccluded(self.scene, x, d, dist * (1.0 - 1e-4)) {
-                        let pdf_light = self.tracer.emitter_pick[ti as usize] / tri.area() * dist2 / cos_l;
+                    if emission != Vec3::ZERO
+                        && self
+                            .tracer
+                            .unoccluded(self.scene, x, d, dist * (1.0 - 1e-4))
+                    {
+                        let pdf_light =
+                            self.tracer.emitter_pick[ti as usize] / tri.area() * dist2 / cos_l;
                         let cos = d.dot(n);
                         let w = power_heuristic(pdf_light, cos * FRAC_1_PI);
                         sum += emission * cos * FRAC_1_PI / pdf_light * w;
@@ -456,7 +514,12 @@ mod tests {
 
     #[test]
     fn basis_is_orthonormal() {
-        for n in [Vec3::X, Vec3::NEG_Z, Vec3::new(0.3, -0.5, 0.81).normalize(), Vec3::new(0.0, 0.0, -1.0)] {
+        for n in [
+            Vec3::X,
+            Vec3::NEG_Z,
+            Vec3::new(0.3, -0.5, 0.81).normalize(),
+            Vec3::new(0.0, 0.0, -1.0),
+        ] {
             let (t, b) = basis(n);
             assert!(t.dot(b).abs() < 1e-6 && t.dot(n).abs() < 1e-6 && b.dot(n).abs() < 1e-6);
             assert!((t.length() - 1.0).abs() < 1e-6 && (b.length() - 1.0).abs() < 1e-6);
@@ -468,7 +531,10 @@ mod tests {
         // E[cos θ] under pdf cos θ/π is 2/3; 20000 samples give a standard error of 0.0017.
         let n = Vec3::new(0.2, 0.9, -0.1).normalize();
         let mut rng = Rng::new(3, 0, 0, 0);
-        let m: f32 = (0..20000).map(|_| cosine_sample(n, rng.next_f32(), rng.next_f32()).dot(n)).sum::<f32>() / 20000.0;
+        let m: f32 = (0..20000)
+            .map(|_| cosine_sample(n, rng.next_f32(), rng.next_f32()).dot(n))
+            .sum::<f32>()
+            / 20000.0;
         assert!((m - 2.0 / 3.0).abs() < 0.01, "{m}");
     }
 
