@@ -56,8 +56,9 @@ struct TriInfo {
 
 // One lightmap texel's geometry, compact over valid texels.
 struct TexelGeom {
-    position: vec4<f32>,  // xyz: sample point (normalised scene space); w: unused
-    normal: vec4<f32>,    // xyz: unit shading normal; w: unused
+    position: vec4<f32>,    // xyz: sample point (normalised scene space); w: unused
+    normal: vec4<f32>,      // xyz: unit shading normal (cosine weight); w: unused
+    geo_normal: vec4<f32>,  // xyz: unit geometric normal (the plane samples must be above); w: unused
 }
 
 // One lightmap texel's material, compact over valid texels.

@@ -12,7 +12,7 @@
 
 struct DirectParams {
     irradiance: vec4<f32>,  // rgb: E/pi on a surface facing the light, unshadowed; w: the direction's blend b (see sdb_gather.wgsl)
-    bias: vec4<f32>,        // x: receiver offset along the normal, y: depth bias (normalised scene units); z: decay of the direct layer, 1 - b for the first light of a direction and 1 after; w: unused
+    bias: vec4<f32>,        // x: receiver offset along the normal, y: depth bias (normalised scene units); z: decay of the direct layer: 1 when gather_direct already blended it this direction, else 1 - b for the first light and 1 after; w: unused
     misc: vec4<u32>,        // x: parity, y: texel count N; z, w: unused
 }
 
@@ -44,10 +44,11 @@ fn direct(
     }
     let n = texels[i].normal.xyz;
     let d = view.dir.xyz;
+    let ng = texels[i].geo_normal.xyz;
     let cos_theta = -dot(n, d);
     var e = vec3<f32>(0.0);
-    if cos_theta > 0.0 {
-        let x = texels[i].position.xyz + n * params.bias.x;
+    if cos_theta > 0.0 && -dot(ng, d) > 0.0 {
+        let x = texels[i].position.xyz + ng * params.bias.x;
         let t = dot(x, d);
         let f = project_to_map(view, x) - 0.5;
         let base = floor(f);

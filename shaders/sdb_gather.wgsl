@@ -28,6 +28,67 @@ struct GatherParams {
 @group(0) @binding(2) var illum: texture_2d<f32>;
 @group(0) @binding(3) var<storage, read> texels: array<TexelGeom>;
 @group(0) @binding(4) var<storage, read_write> acc: array<vec4<f32>>;  // 2N: even then odd
+// Only with gather_direct: the illumination map's emitted-radiance target and the
+// direct-light accumulators (direct = light straight from an emitter or the sky).
+@group(1) @binding(0) var illum_emission: texture_2d<f32>;
+@group(1) @binding(1) var<storage, read_write> direct_acc: array<vec4<f32>>;  // 2N
+
+struct Gathered {
+    contribution: vec3<f32>,  // 4 L max(<d, n>, 0)
+    weight: f32,              // 4 max(<d, n>, 0)
+    best: vec2<i32>,          // winning map pixel, or (-1, -1) for the environment
+}
+
+fn gather_texel(i: u32) -> Gathered {
+    var g: Gathered;
+    g.contribution = vec3<f32>(0.0);
+    g.weight = 0.0;
+    g.best = vec2<i32>(-1);
+    let x = texels[i].position.xyz;
+    let n = texels[i].normal.xyz;
+    let ng = texels[i].geo_normal.xyz;
+    let d = view.dir.xyz;
+    let cos_theta = dot(n, d);
+    // Below the geometric surface the surface itself blocks the direction (as in the
+    // `path` reference), whatever the interpolated shading normal says.
+    if cos_theta <= 0.0 || dot(ng, d) <= 0.0 {
+        return g;
+    }
+    let tx = dot(x, d);
+    let centre = vec2<i32>(floor(project_to_map(view, x)));
+    let size = i32(view.extent.z);
+    let r = i32(params.misc.x);
+    var best_t = EMPTY_T;
+    var best = params.env.rgb;
+    for (var dy = -r; dy <= r; dy++) {
+        for (var dx = -r; dx <= r; dx++) {
+            let px = centre + vec2<i32>(dx, dy);
+            if any(px < vec2<i32>(0)) || any(px >= vec2<i32>(size)) {
+                continue;
+            }
+            let s = textureLoad(illum, px, 0);
+            if s.a >= 0.5 * EMPTY_T || s.a >= best_t {
+                continue;
+            }
+            let p = map_sample_position(view, px, s.a);
+            if s.a - tx > params.eps.y && dot(p - x, ng) > params.eps.x {
+                best_t = s.a;
+                best = s.rgb;
+                g.best = px;
+            }
+        }
+    }
+    g.weight = 4.0 * cos_theta;
+    g.contribution = best * g.weight;
+    return g;
+}
+
+// Every direction blends, including the ones facing away from the texel, whose
+// estimator value is zero.
+fn blend_into(slot: u32, value: vec3<f32>) {
+    let b = params.env.w;
+    acc[slot] = vec4<f32>(acc[slot].rgb * (1.0 - b) + value * b, 0.0);
+}
 
 @compute @workgroup_size(64)
 fn gather(
@@ -40,40 +101,29 @@ fn gather(
     if i >= n_texels {
         return;
     }
-    let x = texels[i].position.xyz;
-    let n = texels[i].normal.xyz;
-    let d = view.dir.xyz;
-    let weight = dot(n, d);
-    var contribution = vec3<f32>(0.0);
-    if weight > 0.0 {
-        let tx = dot(x, d);
-        let centre = vec2<i32>(floor(project_to_map(view, x)));
-        let size = i32(view.extent.z);
-        let r = i32(params.misc.x);
-        var best_t = EMPTY_T;
-        var best = params.env.rgb;
-        for (var dy = -r; dy <= r; dy++) {
-            for (var dx = -r; dx <= r; dx++) {
-                let px = centre + vec2<i32>(dx, dy);
-                if any(px < vec2<i32>(0)) || any(px >= vec2<i32>(size)) {
-                    continue;
-                }
-                let s = textureLoad(illum, px, 0);
-                if s.a >= 0.5 * EMPTY_T || s.a >= best_t {
-                    continue;
-                }
-                let p = map_sample_position(view, px, s.a);
-                if s.a - tx > params.eps.y && dot(p - x, n) > params.eps.x {
-                    best_t = s.a;
-                    best = s.rgb;
-                }
-            }
-        }
-        contribution = 4.0 * best * weight;
+    let g = gather_texel(i);
+    blend_into(params.misc.z * n_texels + i, g.contribution);
+}
+
+@compute @workgroup_size(64)
+fn gather_direct(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let i = invocation_index(wid, nwg, lid);
+    let n_texels = params.misc.w;
+    if i >= n_texels {
+        return;
     }
-    // Every direction blends, including the ones facing away from the texel, whose
-    // estimator value is zero.
+    let g = gather_texel(i);
     let slot = params.misc.z * n_texels + i;
+    blend_into(slot, g.contribution);
+    // Direct part: the environment on a miss, the winner's emission on a hit.
+    var direct = params.env.rgb * g.weight;
+    if g.best.x >= 0 {
+        direct = textureLoad(illum_emission, g.best, 0).rgb * g.weight;
+    }
     let b = params.env.w;
-    acc[slot] = vec4<f32>(acc[slot].rgb * (1.0 - b) + contribution * b, 0.0);
+    direct_acc[slot] = vec4<f32>(direct_acc[slot].rgb * (1.0 - b) + direct * b, 0.0);
 }

@@ -13,6 +13,10 @@
 //
 // DEPTH_NEAREST: ordinary nearest-to-camera depth with every face kept; used as a shadow
 // map for the sun and directional lights (sdb_direct.wgsl).
+//
+// `fs_main_direct` (used when the job wants a direct-light layer) also writes the
+// fragment's emitted radiance alone to a second target, so the gather can tell light
+// coming straight from an emitter (direct) from light reflected by a surface.
 
 struct Vertex {
     @location(0) position: vec3<f32>,
@@ -32,6 +36,12 @@ struct FsOut {
     @builtin(frag_depth) depth: f32,
 }
 
+struct FsOutDirect {
+    @location(0) sample: vec4<f32>,
+    @location(1) emission: vec4<f32>,
+    @builtin(frag_depth) depth: f32,
+}
+
 struct LightmapDims {
     dims: vec4<u32>,  // x: lightmap width W, y: height H; z, w: unused
 }
@@ -40,6 +50,8 @@ struct LightmapDims {
 @group(0) @binding(1) var<uniform> lightmap: LightmapDims;
 @group(0) @binding(2) var<storage, read> tris: array<TriInfo>;
 @group(0) @binding(3) var<storage, read> radiance: array<vec4<f32>>;  // W*H, from sdb_resolve
+// Only with fs_main_direct: emitted radiance per lightmap pixel (a: coverage), static.
+@group(1) @binding(0) var<storage, read> emission_px: array<vec4<f32>>;  // W*H
 
 @vertex
 fn vs_main(v: Vertex) -> VsOut {
@@ -57,38 +69,49 @@ fn vs_main(v: Vertex) -> VsOut {
     return out;
 }
 
-fn load_radiance(px: vec2<i32>) -> vec4<f32> {
+// Bilinear taps of a lightmap lookup: pixel indices and weights (bilinear x coverage,
+// so pixels outside every chart do not darken chart borders).
+struct Taps {
+    index: vec4<u32>,
+    weight: vec4<f32>,
+}
+
+fn pixel_index(px: vec2<i32>) -> u32 {
     let w = i32(lightmap.dims.x);
     let h = i32(lightmap.dims.y);
     let q = clamp(px, vec2<i32>(0), vec2<i32>(w - 1, h - 1));
-    return radiance[u32(q.y * w + q.x)];
+    return u32(q.y * w + q.x);
 }
 
-// Bilinear lookup weighted by coverage (alpha), so that pixels outside every chart do
-// not darken chart borders. Returns alpha = total coverage weight.
-fn lightmap_radiance(uv: vec2<f32>) -> vec4<f32> {
+fn lightmap_taps(uv: vec2<f32>) -> Taps {
     let size = vec2<f32>(f32(lightmap.dims.x), f32(lightmap.dims.y));
     let f = uv * size - 0.5;
     let base = floor(f);
-    let frac = f - base;
+    let fr = f - base;
     let p = vec2<i32>(base);
-    let s00 = load_radiance(p);
-    let s10 = load_radiance(p + vec2<i32>(1, 0));
-    let s01 = load_radiance(p + vec2<i32>(0, 1));
-    let s11 = load_radiance(p + vec2<i32>(1, 1));
-    let w00 = (1.0 - frac.x) * (1.0 - frac.y) * s00.a;
-    let w10 = frac.x * (1.0 - frac.y) * s10.a;
-    let w01 = (1.0 - frac.x) * frac.y * s01.a;
-    let w11 = frac.x * frac.y * s11.a;
-    let wsum = w00 + w10 + w01 + w11;
-    let rgb = s00.rgb * w00 + s10.rgb * w10 + s01.rgb * w01 + s11.rgb * w11;
-    return vec4<f32>(rgb, wsum);
+    var taps: Taps;
+    taps.index = vec4<u32>(pixel_index(p), pixel_index(p + vec2<i32>(1, 0)),
+                           pixel_index(p + vec2<i32>(0, 1)), pixel_index(p + vec2<i32>(1, 1)));
+    let coverage = vec4<f32>(radiance[taps.index.x].a, radiance[taps.index.y].a,
+                             radiance[taps.index.z].a, radiance[taps.index.w].a);
+    taps.weight = vec4<f32>((1.0 - fr.x) * (1.0 - fr.y), fr.x * (1.0 - fr.y),
+                            (1.0 - fr.x) * fr.y, fr.x * fr.y) * coverage;
+    return taps;
 }
 
-@fragment
-fn fs_main(in: VsOut, @builtin(front_facing) front: bool) -> FsOut {
+// What a fragment writes, before culling is applied by the entry point.
+struct Shaded {
+    sample: vec4<f32>,    // rgb: outgoing radiance, a: t
+    emission: vec3<f32>,  // emitted part of rgb
+    depth: f32,
+    culled: bool,
+}
+
+fn shade(in: VsOut, front: bool, with_emission: bool) -> Shaded {
     let t = dot(in.world, view.dir.xyz);
-    var out: FsOut;
+    var out: Shaded;
+    out.culled = false;
+    out.emission = vec3<f32>(0.0);
     if view.params.y == DEPTH_NEAREST {
         out.sample = vec4<f32>(0.0, 0.0, 0.0, t);
         out.depth = clamp((t - view.dir.w) / view.extent.y, 0.0, 1.0);
@@ -97,21 +120,54 @@ fn fs_main(in: VsOut, @builtin(front_facing) front: bool) -> FsOut {
     let info = tris[in.triangle];
     var l = vec3<f32>(0.0);
     if front || (info.flags & TRI_DOUBLE_SIDED) != 0u {
-        let lm = lightmap_radiance(in.lightmap_uv);
-        if lm.a > 1.0e-6 {
-            l = lm.rgb / lm.a;
+        let taps = lightmap_taps(in.lightmap_uv);
+        let wsum = dot(taps.weight, vec4<f32>(1.0));
+        if wsum > 1.0e-6 {
+            let w = taps.weight / wsum;
+            l = radiance[taps.index.x].rgb * w.x + radiance[taps.index.y].rgb * w.y
+              + radiance[taps.index.z].rgb * w.z + radiance[taps.index.w].rgb * w.w;
+            if with_emission {
+                out.emission = emission_px[taps.index.x].rgb * w.x + emission_px[taps.index.y].rgb * w.y
+                             + emission_px[taps.index.z].rgb * w.z + emission_px[taps.index.w].rgb * w.w;
+            }
         } else {
             // No texel near this fragment (a triangle smaller than a texel): keep at
             // least its own emission so that small emitters still light the scene.
             l = info.emission;
+            out.emission = info.emission;
         }
     } else if (info.flags & TRI_CULL_BACK) != 0u {
-        discard;
+        out.culled = true;
     }
     // else: back face of open single-sided geometry: a black blocker (seed section 6).
     let h = pcg(view.params.x ^ pcg(in.triangle ^ pcg(bitcast<u32>(in.world.x)
         ^ pcg(bitcast<u32>(in.world.y) ^ pcg(bitcast<u32>(in.world.z))))));
     out.sample = vec4<f32>(l, t);
     out.depth = unit_float(h);
+    return out;
+}
+
+@fragment
+fn fs_main(in: VsOut, @builtin(front_facing) front: bool) -> FsOut {
+    let s = shade(in, front, false);
+    if s.culled {
+        discard;
+    }
+    var out: FsOut;
+    out.sample = s.sample;
+    out.depth = s.depth;
+    return out;
+}
+
+@fragment
+fn fs_main_direct(in: VsOut, @builtin(front_facing) front: bool) -> FsOutDirect {
+    let s = shade(in, front, true);
+    if s.culled {
+        discard;
+    }
+    var out: FsOutDirect;
+    out.sample = s.sample;
+    out.emission = vec4<f32>(s.emission, 0.0);
+    out.depth = s.depth;
     return out;
 }

@@ -1,1 +1,309 @@
-fn main(){}
+//! `lightmapd`: the command line (DESIGN §9). `bake` runs the engine on one scene with no
+//! server; `example` writes the bundled example scenes. Exit codes: 0 success, 2 bad input
+//! (unreadable scene, bad option), 1 anything else.
+
+use std::io::IsTerminal;
+use std::ops::ControlFlow;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+
+use clap::{Parser, Subcommand, ValueEnum};
+use glam::Vec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use lightmapd::engine::bake::{BakeEvent, StopCriteria};
+use lightmapd::engine::job::{self, BakeRequest};
+use lightmapd::engine::output::{OutputLayer, write_atomically};
+use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
+use lightmapd::engine::technique::TECHNIQUES;
+
+#[derive(Parser)]
+#[command(
+    name = "lightmapd",
+    version,
+    about = "Bakes lightmaps from glTF scenes"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Bake a lightmap from a .glb or .gltf scene into an EXR file.
+    Bake(Box<BakeArgs>),
+    /// Write a bundled example scene as .glb.
+    Example {
+        #[arg(value_enum, default_value = "cornell-box")]
+        name: Example,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Example {
+    CornellBox,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum HemisphereArg {
+    Upper,
+    Full,
+}
+
+#[derive(clap::Args)]
+struct BakeArgs {
+    /// The scene: .glb, or .gltf with its buffers and images beside it.
+    scene: PathBuf,
+    /// Where to write the lightmap (OpenEXR).
+    #[arg(short, long)]
+    output: PathBuf,
+    #[arg(long, default_value = "path")]
+    technique: String,
+    /// Lightmap width and height in texels.
+    #[arg(long, default_value_t = 256)]
+    resolution: u32,
+    /// Uniform sky radiance R,G,B.
+    #[arg(long, value_parser = parse_vec3)]
+    sky: Option<Vec3>,
+    #[arg(long, value_enum, default_value = "upper")]
+    sky_hemisphere: HemisphereArg,
+    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance).
+    #[arg(long, value_parser = parse_sun)]
+    sun: Option<Sun>,
+    /// Stop after this many steps.
+    #[arg(long)]
+    steps: Option<u64>,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    seconds: Option<f64>,
+    /// Stop when the estimated relative error falls to this.
+    #[arg(long)]
+    target_error: Option<f32>,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Extra layers: validity, direct, indirect (comma separated).
+    #[arg(long, value_delimiter = ',', value_parser = OutputLayer::parse)]
+    outputs: Vec<OutputLayer>,
+    /// Also write a tone-mapped PNG preview here.
+    #[arg(long)]
+    preview: Option<PathBuf>,
+    /// Technique parameters as a JSON object, e.g. '{"samples_per_step": 8}'.
+    #[arg(long)]
+    params: Option<String>,
+}
+
+fn parse_floats(s: &str, n: usize, what: &str) -> Result<Vec<f32>, String> {
+    let v: Result<Vec<f32>, _> = s.split(',').map(|x| x.trim().parse::<f32>()).collect();
+    match v {
+        Ok(v) if v.len() == n && v.iter().all(|x| x.is_finite()) => Ok(v),
+        _ => Err(format!(
+            "expected {what} as {n} comma-separated finite numbers, got {s:?}"
+        )),
+    }
+}
+
+fn parse_vec3(s: &str) -> Result<Vec3, String> {
+    parse_floats(s, 3, "R,G,B").map(|v| Vec3::new(v[0], v[1], v[2]))
+}
+
+fn parse_sun(s: &str) -> Result<Sun, String> {
+    let v = parse_floats(s, 7, "DX,DY,DZ,DIAMETER_DEG,R,G,B")?;
+    let direction = Vec3::new(v[0], v[1], v[2]);
+    if direction.length() < 1e-6 {
+        return Err("sun direction must not be zero".into());
+    }
+    Ok(Sun {
+        direction: direction.normalize(),
+        angular_diameter: v[3].to_radians(),
+        radiance: Vec3::new(v[4], v[5], v[6]),
+    })
+}
+
+/// A failure and the exit code it earns.
+struct Failure {
+    code: u8,
+    message: String,
+}
+
+fn bad_input(message: impl Into<String>) -> Failure {
+    Failure {
+        code: 2,
+        message: message.into(),
+    }
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if e.use_stderr() => {
+            // Bad options get one line, like every other bad input; clap's usage hints
+            // and the "--help" tip are left out.
+            let text = e.to_string();
+            let line: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.starts_with("Usage:") && !l.starts_with("For more information"))
+                .filter(|l| !l.is_empty())
+                .collect();
+            eprintln!("{}", line.join(" "));
+            return ExitCode::from(2);
+        }
+        Err(e) => e.exit(), // --help and --version
+    };
+    let result = match cli.command {
+        Command::Bake(args) => bake(*args),
+        Command::Example {
+            name: Example::CornellBox,
+            output,
+        } => {
+            write_atomically(&output, &scene::build::cornell_box().to_glb()).map_err(|e| Failure {
+                code: 1,
+                message: format!("cannot write {}: {e}", output.display()),
+            })
+        }
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(f) => {
+            eprintln!("error: {}", f.message);
+            ExitCode::from(f.code)
+        }
+    }
+}
+
+fn bake(args: BakeArgs) -> Result<(), Failure> {
+    if !TECHNIQUES.contains(&args.technique.as_str()) {
+        return Err(bad_input(format!(
+            "unknown technique {:?}; available: {}",
+            args.technique,
+            TECHNIQUES.join(", ")
+        )));
+    }
+    let params = match &args.params {
+        Some(p) => {
+            serde_json::from_str(p).map_err(|e| bad_input(format!("--params is not JSON: {e}")))?
+        }
+        None => serde_json::Value::Null,
+    };
+    let stop = if args.steps.is_none() && args.seconds.is_none() && args.target_error.is_none() {
+        BakeRequest::default().stop
+    } else {
+        StopCriteria {
+            steps: args.steps,
+            seconds: args.seconds,
+            target_error: args.target_error,
+        }
+    };
+    let request = BakeRequest {
+        technique: args.technique.clone(),
+        resolution: args.resolution,
+        lighting: Lighting {
+            sky: args.sky.map(|radiance| Sky {
+                radiance,
+                hemisphere: match args.sky_hemisphere {
+                    HemisphereArg::Upper => Hemisphere::Upper,
+                    HemisphereArg::Full => Hemisphere::Full,
+                },
+            }),
+            sun: args.sun,
+        },
+        stop,
+        params,
+        outputs: args.outputs.clone(),
+        seed: args.seed,
+    };
+
+    let (scene, report) = scene::import_file(&args.scene)
+        .map_err(|e| bad_input(format!("{}: {e}", args.scene.display())))?;
+    for w in &report.warnings {
+        eprintln!("warning: {w}");
+    }
+    tracing::info!(
+        triangles = report.triangles,
+        lights = report.lights,
+        "scene imported"
+    );
+
+    let bar = if std::io::stderr().is_terminal() {
+        ProgressBar::new(0)
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} {elapsed_precise} [{wide_bar}] step {pos} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    if let Some(n) = stop.steps {
+        bar.set_length(n);
+    }
+    let mut observer = |e: BakeEvent<'_>| {
+        match e {
+            BakeEvent::Progress { steps, .. } => bar.set_position(steps),
+            BakeEvent::Snapshot { estimate, .. } => {
+                if let Some(err) = estimate.error.relative {
+                    bar.set_message(format!("error {:.2}%", err * 100.0));
+                }
+            }
+        }
+        ControlFlow::Continue(())
+    };
+    let mut on_atlas = |a: &lightmapd::engine::atlas::AtlasReport| {
+        tracing::info!(
+            texels = a.valid_texels,
+            overlapping = a.overlapping_texels,
+            "texel set built"
+        );
+        if a.overlapping_texels > 0 {
+            eprintln!(
+                "warning: {} lightmap texels are covered by more than one triangle (overlapping UV charts)",
+                a.overlapping_texels
+            );
+        }
+    };
+    let result =
+        job::bake(Arc::new(scene), &request, &mut observer, &mut on_atlas).map_err(|e| {
+            Failure {
+                code: if e.is_bad_input() { 2 } else { 1 },
+                message: e.to_string(),
+            }
+        })?;
+    bar.finish_and_clear();
+    write_atomically(&args.output, &result.exr).map_err(|e| Failure {
+        code: 1,
+        message: format!("cannot write {}: {e}", args.output.display()),
+    })?;
+    if let Some(p) = &args.preview {
+        write_atomically(p, &result.preview_png).map_err(|e| Failure {
+            code: 1,
+            message: format!("cannot write {}: {e}", p.display()),
+        })?;
+    }
+    let s = &result.summary;
+    let err = s
+        .error
+        .relative
+        .map(|e| format!("{:.2}%", e * 100.0))
+        .unwrap_or_else(|| "n/a".into());
+    eprintln!(
+        "baked {} ({}x{}, {} texels) with {}: {} steps in {:.1} s, estimated error {} (stopped by {:?}) -> {}",
+        args.scene.display(),
+        s.atlas.width,
+        s.atlas.height,
+        s.atlas.valid_texels,
+        s.technique,
+        s.steps,
+        s.seconds,
+        err,
+        s.stopped_by,
+        args.output.display()
+    );
+    Ok(())
+}

@@ -97,6 +97,7 @@ fn build(quads: &[Quad], width: u32, height: u32) -> (Vec<SdbTriangle>, Vec<SdbT
                         pixel: j * width + i,
                         position: p + q.normal * (2e-4 * q.half),
                         normal: q.normal,
+                        geo_normal: q.normal,
                         albedo: q.albedo,
                         emission: q.emission,
                     });
@@ -143,6 +144,7 @@ fn open_plane_under_uniform_sky_sees_the_sky() {
         environment: Some(Arc::new(|_| Vec3::ONE)),
         lights: vec![],
         seed: 7,
+        want_direct: false,
     };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 512);
@@ -183,7 +185,7 @@ fn closed_emissive_box_converges_to_the_furnace_solution() {
     // errors are noise and the feedback transient (about n^-2(1-a) = 1/n with ramp 1).
     let Some(ctx) = context() else { return };
     let (triangles, texels, _) = build(&inward_cube(0.5, 1.0), 48, 32);
-    let input = SdbInput { triangles, texels, width: 48, height: 32, environment: None, lights: vec![], seed: 3 };
+    let input = SdbInput { triangles, texels, width: 48, height: 32, environment: None, lights: vec![], seed: 3, want_direct: false };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 1024);
     let m = mean(&e);
@@ -201,7 +203,7 @@ fn leaky_mode_reaches_the_same_solution() {
     // its noise is larger (it averages only about 2/b directions), hence the tolerance.
     let Some(ctx) = context() else { return };
     let (triangles, texels, _) = build(&inward_cube(0.5, 1.0), 48, 32);
-    let input = SdbInput { triangles, texels, width: 48, height: 32, environment: None, lights: vec![], seed: 5 };
+    let input = SdbInput { triangles, texels, width: 48, height: 32, environment: None, lights: vec![], seed: 5, want_direct: false };
     let p = SdbParams { mode: AccumulationMode::Leaky, blend: 0.02, ..params(128, 3) };
     let mut engine = SdbEngine::new(ctx, input, p).unwrap();
     let e = run(&mut engine, 600);
@@ -231,7 +233,7 @@ fn sun_direct_light_and_shadow() {
         irradiance_over_pi: Vec3::ONE,
         cone_half_angle: 0.0,
     };
-    let input = SdbInput { triangles, texels, width: 32, height: 32, environment: None, lights: vec![light], seed: 1 };
+    let input = SdbInput { triangles, texels, width: 32, height: 32, environment: None, lights: vec![light], seed: 1, want_direct: true };
     let mut engine = SdbEngine::new(ctx, input, params(256, 3)).unwrap();
     let e = run(&mut engine, 8);
     let [even, _] = engine.read_halves().unwrap();
@@ -271,6 +273,7 @@ fn random_and_stratified_directions_agree() {
         environment: Some(Arc::new(|w: Vec3| Vec3::splat(w.y.max(0.0) * 3.0))),
         lights: vec![],
         seed: 11,
+        want_direct: false,
     };
     // Sky radiance 3 cos(theta) over the upper hemisphere: E/pi = (1/pi) int 3 cos^2 = 2.
     let p = SdbParams { directions: DirectionSequence::Random, ..params(64, 1) };

@@ -1,3 +1,15 @@
+//! The bake engine: everything between a glTF scene and a lightmap, with no knowledge of
+//! HTTP, SQL or storage (DESIGN §1). A bake is: [`scene`] import → [`atlas`] texel set →
+//! a [`technique`] stepped by [`bake`] into the half-accumulators of [`accumulate`] →
+//! [`post`] dilation → [`output`] EXR.
+
+pub mod accumulate;
 pub mod gpu;
+pub mod atlas;
+pub mod bake;
+pub mod job;
+pub mod output;
+pub mod post;
+pub mod rng;
 pub mod scene;
 pub mod technique;

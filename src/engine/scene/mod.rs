@@ -1,1 +1,364 @@
+//! The scene as every technique sees it: world-space triangles with their lightmap UVs,
+//! materials, punctual lights, and the lighting a job adds (sky, sun).
+//!
+//! Data flow: [`import`] reads glTF 2.0 (`.glb`, or `.gltf` with external or data-URI
+//! buffers) and flattens the node hierarchy into one triangle list in world space, so no
+//! technique ever walks a node tree. [`build`] goes the other way: it writes small scenes
+//! made in code (the bundled Cornell box, the analytic test scenes) as `.glb`, so tests
+//! exercise the same import path a user's file takes.
+//!
+//! Conventions (DESIGN §2): glTF's right-handed, +Y up, metres. Colours are linear RGB.
+//! glTF's photometric light units are read as radiometric ones with no conversion
+//! (candela as W/sr, lux as W/m²), the choice Godot and Blender's importers make; see
+//! `docs/conventions.md`.
+//!
+//! Precision: the importer removes the centre of the scene's bounds from every position
+//! (kept in [`Scene::origin_offset`], in f64), so a scene translated by 1e5 m keeps full
+//! f32 precision near its geometry. Irradiance does not depend on where the scene sits.
+//!
+//! Limits: alpha (MASK/BLEND) is ignored, every surface is opaque; morph targets and
+//! skins are ignored (the bind pose is baked); texture transforms are not applied.
 
+pub mod build;
+mod error;
+pub mod import;
+
+pub use error::ImportError;
+pub use import::{ImportReport, import_file, import_slice};
+
+use glam::{DVec3, Vec2, Vec3, Vec4};
+use serde::{Deserialize, Serialize};
+
+/// One world-space triangle with everything a technique needs at a hit point.
+#[derive(Clone, Debug)]
+pub struct Triangle {
+    /// Positions, relative to [`Scene::origin_offset`].
+    pub p: [Vec3; 3],
+    /// Shading normals (unit length). Flat normals when the mesh has none.
+    pub n: [Vec3; 3],
+    /// TEXCOORD_0 (zero when absent): base-colour and emissive textures use it by default.
+    pub uv: [Vec2; 3],
+    /// TEXCOORD_1: the lightmap UV, in [0, 1].
+    pub lm: [Vec2; 3],
+    pub material: u32,
+    /// Index into [`Scene::meshes`], for error messages and reports.
+    pub mesh: u32,
+}
+
+impl Triangle {
+    /// Unnormalised geometric normal, following the winding (counter-clockwise is front).
+    pub fn cross(&self) -> Vec3 {
+        (self.p[1] - self.p[0]).cross(self.p[2] - self.p[0])
+    }
+
+    pub fn area(&self) -> f32 {
+        0.5 * self.cross().length()
+    }
+
+    pub fn geometric_normal(&self) -> Vec3 {
+        self.cross().normalize_or_zero()
+    }
+}
+
+/// A texture, decoded to linear RGBA f32 (sRGB-encoded colour textures are linearised
+/// once at import, not at every lookup).
+#[derive(Clone, Debug)]
+pub struct Texture {
+    pub width: u32,
+    pub height: u32,
+    pub texels: Vec<Vec4>,
+    pub wrap_u: Wrap,
+    pub wrap_v: Wrap,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Wrap {
+    Repeat,
+    Mirror,
+    Clamp,
+}
+
+impl Texture {
+    /// Bilinear lookup with the texture's wrap modes; `uv` in glTF's convention (v down).
+    pub fn sample(&self, uv: Vec2) -> Vec4 {
+        let x = uv.x * self.width as f32 - 0.5;
+        let y = uv.y * self.height as f32 - 0.5;
+        let (x0, y0) = (x.floor(), y.floor());
+        let (fx, fy) = (x - x0, y - y0);
+        let fetch = |xi: i64, yi: i64| -> Vec4 {
+            let xi = wrap(xi, self.width, self.wrap_u);
+            let yi = wrap(yi, self.height, self.wrap_v);
+            self.texels[(yi * self.width as usize) + xi]
+        };
+        let (xi, yi) = (x0 as i64, y0 as i64);
+        let top = fetch(xi, yi).lerp(fetch(xi + 1, yi), fx);
+        let bottom = fetch(xi, yi + 1).lerp(fetch(xi + 1, yi + 1), fx);
+        top.lerp(bottom, fy)
+    }
+}
+
+fn wrap(i: i64, n: u32, mode: Wrap) -> usize {
+    let n = n as i64;
+    let r = match mode {
+        Wrap::Repeat => i.rem_euclid(n),
+        Wrap::Clamp => i.clamp(0, n - 1),
+        Wrap::Mirror => {
+            let period = i.rem_euclid(2 * n);
+            if period < n {
+                period
+            } else {
+                2 * n - 1 - period
+            }
+        }
+    };
+    r as usize
+}
+
+/// Which texture a material slot reads and with which UV set.
+#[derive(Clone, Copy, Debug)]
+pub struct TextureRef {
+    pub texture: u32,
+    /// 0 = TEXCOORD_0, 1 = TEXCOORD_1 (the lightmap UV).
+    pub texcoord: u32,
+}
+
+/// glTF metallic-roughness material, reduced to what lightmap transport uses.
+#[derive(Clone, Debug)]
+pub struct Material {
+    pub name: String,
+    /// Linear RGBA; RGB is the diffuse albedo.
+    pub base_color: Vec4,
+    pub base_color_texture: Option<TextureRef>,
+    /// Emitted radiance factor: `emissiveFactor` × `KHR_materials_emissive_strength`.
+    pub emissive: Vec3,
+    pub emissive_texture: Option<TextureRef>,
+    pub metallic: f32,
+    pub roughness: f32,
+    pub double_sided: bool,
+}
+
+impl Default for Material {
+    /// glTF's default material: white, dielectric, fully rough, single-sided.
+    fn default() -> Self {
+        Material {
+            name: "default".into(),
+            base_color: Vec4::ONE,
+            base_color_texture: None,
+            emissive: Vec3::ZERO,
+            emissive_texture: None,
+            metallic: 1.0,
+            roughness: 1.0,
+            double_sided: false,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "type")]
+pub enum LightKind {
+    Directional,
+    Point,
+    /// Cone angles in radians from the axis; glTF's smooth falloff between them.
+    Spot {
+        inner_cone: f32,
+        outer_cone: f32,
+    },
+}
+
+/// A `KHR_lights_punctual` light, placed in the world.
+#[derive(Clone, Debug, Serialize)]
+pub struct PunctualLight {
+    pub name: String,
+    pub kind: LightKind,
+    /// colour × intensity: W/sr for point and spot, W/m² for directional.
+    pub intensity: Vec3,
+    pub position: Vec3,
+    /// The direction the light travels (the node's -Z), unit length.
+    pub direction: Vec3,
+    pub range: Option<f32>,
+}
+
+/// A mesh as the report and error messages name it.
+#[derive(Clone, Debug, Serialize)]
+pub struct MeshInfo {
+    pub name: String,
+    pub index: usize,
+}
+
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct Bounds {
+    pub min: Vec3,
+    pub max: Vec3,
+}
+
+impl Bounds {
+    pub const EMPTY: Bounds = Bounds {
+        min: Vec3::splat(f32::INFINITY),
+        max: Vec3::splat(f32::NEG_INFINITY),
+    };
+
+    pub fn grow(&mut self, p: Vec3) {
+        self.min = self.min.min(p);
+        self.max = self.max.max(p);
+    }
+
+    pub fn extent(&self) -> Vec3 {
+        (self.max - self.min).max(Vec3::ZERO)
+    }
+
+    pub fn diagonal(&self) -> f32 {
+        self.extent().length()
+    }
+
+    pub fn center(&self) -> Vec3 {
+        0.5 * (self.min + self.max)
+    }
+}
+
+/// An imported scene: what every technique bakes.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub triangles: Vec<Triangle>,
+    pub materials: Vec<Material>,
+    pub textures: Vec<Texture>,
+    pub lights: Vec<PunctualLight>,
+    pub meshes: Vec<MeshInfo>,
+    /// Bounds of `triangles` (after re-centring).
+    pub bounds: Bounds,
+    /// What was subtracted from every glTF world position.
+    pub origin_offset: DVec3,
+}
+
+impl Scene {
+    /// Diffuse albedo at barycentric `b` of triangle `t` (texture × factor, linear).
+    pub fn albedo(&self, t: &Triangle, b: Vec3) -> Vec3 {
+        let m = &self.materials[t.material as usize];
+        let mut c = m.base_color.truncate();
+        if let Some(r) = m.base_color_texture {
+            c *= self.textures[r.texture as usize]
+                .sample(interp_uv(t, r.texcoord, b))
+                .truncate();
+        }
+        c
+    }
+
+    /// Emitted radiance at barycentric `b` of triangle `t` (factor × strength × texture).
+    pub fn emission(&self, t: &Triangle, b: Vec3) -> Vec3 {
+        let m = &self.materials[t.material as usize];
+        let mut e = m.emissive;
+        if e != Vec3::ZERO
+            && let Some(r) = m.emissive_texture
+        {
+            e *= self.textures[r.texture as usize]
+                .sample(interp_uv(t, r.texcoord, b))
+                .truncate();
+        }
+        e
+    }
+
+    pub fn material(&self, t: &Triangle) -> &Material {
+        &self.materials[t.material as usize]
+    }
+
+    /// The scale every relative epsilon is taken against.
+    pub fn scale(&self) -> f32 {
+        self.bounds.diagonal().max(f32::MIN_POSITIVE)
+    }
+}
+
+fn interp_uv(t: &Triangle, set: u32, b: Vec3) -> Vec2 {
+    let uv = if set == 1 { &t.lm } else { &t.uv };
+    uv[0] * b.x + uv[1] * b.y + uv[2] * b.z
+}
+
+/// Which part of the sphere a uniform sky covers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Hemisphere {
+    /// Directions with +Y > 0 only; below the horizon is black.
+    #[default]
+    Upper,
+    Full,
+}
+
+/// Uniform sky radiance (W/(sr·m²)) over the upper hemisphere or the full sphere.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Sky {
+    pub radiance: Vec3,
+    pub hemisphere: Hemisphere,
+}
+
+/// A sun: a disc of uniform radiance seen under a small angle.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Sun {
+    /// From the sun toward the scene, unit length.
+    pub direction: Vec3,
+    /// Full angular diameter of the disc, radians (> 0).
+    pub angular_diameter: f32,
+    pub radiance: Vec3,
+}
+
+impl Sun {
+    /// cos of the disc's half angle: a direction `w` toward the sun is inside the disc
+    /// when `dot(w, -direction) >= cos_half_angle()`.
+    pub fn cos_half_angle(&self) -> f32 {
+        (0.5 * self.angular_diameter).cos()
+    }
+
+    /// Solid angle of the disc, 2π(1 - cos θ), in a form accurate for tiny discs.
+    pub fn solid_angle(&self) -> f32 {
+        let s = (0.25 * self.angular_diameter).sin();
+        4.0 * std::f32::consts::PI * s * s
+    }
+}
+
+/// The light a job adds to the scene's own emitters and punctual lights.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Lighting {
+    pub sky: Option<Sky>,
+    pub sun: Option<Sun>,
+}
+
+impl Lighting {
+    /// Radiance arriving from direction `w` (pointing away from the receiver) from the
+    /// sky alone; the sun is handled by its own estimator.
+    pub fn sky_radiance(&self, w: Vec3) -> Vec3 {
+        match self.sky {
+            Some(s) if s.hemisphere == Hemisphere::Full || w.y > 0.0 => s.radiance,
+            _ => Vec3::ZERO,
+        }
+    }
+
+    /// Checks ranges; the message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        if let Some(s) = &self.sky
+            && (!s.radiance.is_finite() || s.radiance.min_element() < 0.0)
+        {
+            return Err(format!(
+                "lighting.sky.radiance must be finite and >= 0, got {:?}",
+                s.radiance.to_array()
+            ));
+        }
+        if let Some(s) = &self.sun {
+            if !s.direction.is_finite() || s.direction.length() < 1e-6 {
+                return Err(format!(
+                    "lighting.sun.direction must be a non-zero finite vector, got {:?}",
+                    s.direction.to_array()
+                ));
+            }
+            if !(s.angular_diameter > 0.0 && s.angular_diameter < std::f32::consts::PI) {
+                return Err(format!(
+                    "lighting.sun.angular_diameter_deg must be in (0, 180), got {}",
+                    s.angular_diameter.to_degrees()
+                ));
+            }
+            if !s.radiance.is_finite() || s.radiance.min_element() < 0.0 {
+                return Err(format!(
+                    "lighting.sun.radiance must be finite and >= 0, got {:?}",
+                    s.radiance.to_array()
+                ));
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,3 +1,93 @@
-//! Bake techniques.
+//! The techniques, behind one trait. Each technique owns its resources (BVH, GPU buffers,
+//! passes) in one place: `technique/<id>.rs` here and its WGSL in `shaders/`.
+//!
+//! Contract (DESIGN §3): a technique is prepared once from the scene, the texel set and
+//! the job's lighting; then [`Technique::step`] adds one more batch of samples for every
+//! valid texel, alternating between two half-accumulators (even and odd steps, DESIGN §4);
+//! [`Technique::snapshot`] returns both halves' means at any time. Keeping the halves
+//! inside the technique lets a GPU technique accumulate on the GPU and read back only at a
+//! snapshot, never per step.
+//!
+//! Every layer holds irradiance / π at the texel's sample point (the outgoing radiance of
+//! a white Lambertian surface), not including the surface's own emission.
 
+pub mod path;
 pub mod sdb;
+
+use std::sync::Arc;
+
+use serde_json::Value;
+
+use crate::engine::accumulate::Snapshot;
+use crate::engine::atlas::Atlas;
+use crate::engine::scene::{Lighting, Scene};
+
+/// The identifiers [`create`] accepts.
+pub const TECHNIQUES: &[&str] = &["path", "sdb"];
+
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    /// The job asked for something out of range: exit code 2, HTTP 4xx.
+    #[error("{0}")]
+    BadInput(String),
+    #[error("GPU: {0}")]
+    Gpu(String),
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl EngineError {
+    pub fn is_bad_input(&self) -> bool {
+        matches!(self, EngineError::BadInput(_))
+    }
+}
+
+/// Everything a technique is prepared from.
+#[derive(Clone)]
+pub struct BakeInputs {
+    pub scene: Arc<Scene>,
+    pub atlas: Arc<Atlas>,
+    pub lighting: Lighting,
+    pub seed: u64,
+    /// Keep a separate direct-light layer (for the `direct` / `indirect` outputs).
+    pub want_direct: bool,
+}
+
+pub trait Technique: Send {
+    fn id(&self) -> &'static str;
+    /// The parameters in effect, defaults filled in (written into the EXR header).
+    fn params(&self) -> Value;
+    /// Adds one step of samples to the half-accumulator of this step's parity.
+    fn step(&mut self) -> Result<(), EngineError>;
+    fn steps_done(&self) -> u64;
+    /// Both halves' current means, per valid texel.
+    fn snapshot(&mut self) -> Result<Snapshot, EngineError>;
+}
+
+/// Prepares technique `id` with `params` (a JSON object; unknown fields are rejected).
+pub fn create(
+    id: &str,
+    inputs: BakeInputs,
+    params: &Value,
+) -> Result<Box<dyn Technique>, EngineError> {
+    match id {
+        "path" => Ok(Box::new(path::PathTracer::prepare(inputs, params)?)),
+        "sdb" => Ok(Box::new(sdb::Sdb::prepare(inputs, params)?)),
+        other => Err(EngineError::BadInput(format!(
+            "unknown technique {other:?}; available: {}",
+            TECHNIQUES.join(", ")
+        ))),
+    }
+}
+
+/// Parses a technique's parameter object, naming the technique in the error.
+pub fn parse_params<T: serde::de::DeserializeOwned + Default>(
+    technique: &str,
+    params: &Value,
+) -> Result<T, EngineError> {
+    if params.is_null() {
+        return Ok(T::default());
+    }
+    serde_json::from_value(params.clone())
+        .map_err(|e| EngineError::BadInput(format!("params for {technique}: {e}")))
+}

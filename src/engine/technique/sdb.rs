@@ -83,7 +83,10 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Quat, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 
+use super::{BakeInputs, EngineError, Technique, parse_params};
+use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
+use crate::engine::scene::LightKind;
 
 // ---------------------------------------------------------------------------------------
 // Parameters
@@ -220,8 +223,10 @@ pub struct SdbTexel {
     pub pixel: u32,
     /// Sample point (already offset off the surface by the atlas).
     pub position: Vec3,
-    /// Unit shading normal.
+    /// Unit shading normal: the hemisphere the texel integrates (cosine weight).
     pub normal: Vec3,
+    /// Unit geometric normal: the plane below which samples are rejected.
+    pub geo_normal: Vec3,
     pub albedo: Vec3,
     pub emission: Vec3,
 }
@@ -251,6 +256,9 @@ pub struct SdbInput {
     pub environment: Option<Environment>,
     pub lights: Vec<DirectionalLight>,
     pub seed: u64,
+    /// Keep a direct-light layer: light arriving straight from emitters, the sky, the sun
+    /// and directional lights (the `path` reference's definition: first vertex only).
+    pub want_direct: bool,
 }
 
 // ---------------------------------------------------------------------------------------
@@ -323,6 +331,7 @@ struct GpuTriInfo {
 struct GpuTexelGeom {
     position: [f32; 4],
     normal: [f32; 4],
+    geo_normal: [f32; 4],
 }
 
 #[repr(C)]
@@ -554,7 +563,8 @@ pub struct SdbHalf {
     pub steps: u64,
     /// Mean (average) or start-up-corrected leaky value of E/pi, total.
     pub total: Vec<Vec3>,
-    /// The part from the sun and directional lights (None when there are none).
+    /// The direct part (emitters, sky, sun, directional lights seen from the texel);
+    /// None unless the input asked for it.
     pub direct: Option<Vec<Vec3>>,
 }
 
@@ -589,6 +599,10 @@ pub struct SdbEngine {
     acc_buf: wgpu::Buffer,
     direct_acc_buf: Option<wgpu::Buffer>,
     illum_view: wgpu::TextureView,
+    emission_view: Option<wgpu::TextureView>,
+    illum_emission_bg: Option<wgpu::BindGroup>,
+    gather_direct_bg: Option<wgpu::BindGroup>,
+    want_direct: bool,
     depth_view: wgpu::TextureView,
     resolve_pipeline: wgpu::ComputePipeline,
     illum_pipeline: wgpu::RenderPipeline,
@@ -759,6 +773,7 @@ impl SdbEngine {
             .map(|t| GpuTexelGeom {
                 position: norm(t.position).extend(0.0).to_array(),
                 normal: t.normal.normalize_or_zero().extend(0.0).to_array(),
+                geo_normal: t.geo_normal.normalize_or_zero().extend(0.0).to_array(),
             })
             .collect();
         let shade: Vec<GpuTexelShade> = input
@@ -780,7 +795,8 @@ impl SdbEngine {
         let radiance_buf =
             ctx.buffer_zeroed("sdb outgoing radiance", width as u64 * height as u64 * 16, U::STORAGE);
         let acc_buf = ctx.buffer_zeroed("sdb accumulators (even, odd)", n_texels as u64 * 2 * 16, U::STORAGE | U::COPY_SRC);
-        let direct_acc_buf = (!input.lights.is_empty()).then(|| {
+        let want_direct = input.want_direct;
+        let direct_acc_buf = (want_direct || !input.lights.is_empty()).then(|| {
             ctx.buffer_zeroed("sdb direct accumulators (even, odd)", n_texels as u64 * 2 * 16, U::STORAGE | U::COPY_SRC)
         });
         let view_buf = ctx.uniform("sdb view", &GpuView::zeroed());
@@ -789,6 +805,14 @@ impl SdbEngine {
         let gather_buf = ctx.uniform("sdb gather params", &GpuGatherParams::zeroed());
         let direct_buf = ctx.uniform("sdb direct params", &GpuDirectParams::zeroed());
 
+        // Emitted radiance per lightmap pixel, for the direct layer only.
+        let emission_px_buf = want_direct.then(|| {
+            let px: Vec<[f32; 4]> = fill
+                .iter()
+                .map(|&k| if k == NO_TEXEL { [0.0; 4] } else { input.texels[k as usize].emission.extend(1.0).to_array() })
+                .collect();
+            ctx.buffer_init("sdb emission per lightmap pixel", &px, U::STORAGE)
+        });
         let extent = wgpu::Extent3d { width: params.map_size, height: params.map_size, depth_or_array_layers: 1 };
         let illum_tex = ctx.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("sdb illumination map (rgb radiance, a distance)"),
@@ -809,6 +833,21 @@ impl SdbEngine {
             format: wgpu::TextureFormat::Depth32Float,
             usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
             view_formats: &[],
+        });
+        let emission_tex = want_direct.then(|| {
+            ctx.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("sdb illumination map emission"),
+                size: extent,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::Rgba32Float,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            })
+        });
+        let emission_view = emission_tex.as_ref().map(|t| {
+            t.create_view(&wgpu::TextureViewDescriptor { label: Some("sdb illumination emission view"), ..Default::default() })
         });
         let illum_view = illum_tex.create_view(&wgpu::TextureViewDescriptor {
             label: Some("sdb illumination map view"),
@@ -852,11 +891,23 @@ impl SdbEngine {
                 storage_entry(3, S::FRAGMENT, true),
             ],
         });
+        let emission_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("sdb illumination emission layout"),
+            entries: &[storage_entry(0, S::FRAGMENT, true)],
+        });
+        let illum_groups: Vec<Option<&wgpu::BindGroupLayout>> =
+            if want_direct { vec![Some(&illum_layout), Some(&emission_layout)] } else { vec![Some(&illum_layout)] };
         let illum_pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("sdb illumination pipeline layout"),
-            bind_group_layouts: &[Some(&illum_layout)],
+            bind_group_layouts: &illum_groups,
             immediate_size: 0,
         });
+        let target = Some(wgpu::ColorTargetState {
+            format: wgpu::TextureFormat::Rgba32Float,
+            blend: None,
+            write_mask: wgpu::ColorWrites::ALL,
+        });
+        let targets = if want_direct { vec![target.clone(), target] } else { vec![target] };
         let illum_pipeline = ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("sdb illumination map"),
             layout: Some(&illum_pl),
@@ -888,13 +939,9 @@ impl SdbEngine {
             multisample: Default::default(),
             fragment: Some(wgpu::FragmentState {
                 module: &illum_module,
-                entry_point: Some("fs_main"),
+                entry_point: Some(if want_direct { "fs_main_direct" } else { "fs_main" }),
                 compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: wgpu::TextureFormat::Rgba32Float,
-                    blend: None,
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
+                targets: &targets,
             }),
             multiview_mask: None,
             cache: None,
@@ -905,6 +952,10 @@ impl SdbEngine {
             (2, tris_buf.as_entire_binding()),
             (3, radiance_buf.as_entire_binding()),
         ]);
+
+        let illum_emission_bg = emission_px_buf.as_ref().map(|b| {
+            bind_group(&ctx, "sdb illumination emission bindings", &emission_layout, &[(0, b.as_entire_binding())])
+        });
 
         // Gather.
         let gather_module = ctx.shader(&shaders::SDB_GATHER)?;
@@ -918,7 +969,36 @@ impl SdbEngine {
                 storage_entry(4, S::COMPUTE, false),
             ],
         });
-        let gather_pipeline = compute_pipeline(&ctx, "sdb gather", &gather_module, "gather", &gather_layout);
+        let gather_direct_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("sdb gather direct layout"),
+            entries: &[texture_entry(0), storage_entry(1, S::COMPUTE, false)],
+        });
+        let gather_pipeline = if want_direct {
+            let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("sdb gather (direct layer)"),
+                bind_group_layouts: &[Some(&gather_layout), Some(&gather_direct_layout)],
+                immediate_size: 0,
+            });
+            ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("sdb gather (direct layer)"),
+                layout: Some(&pl),
+                module: &gather_module,
+                entry_point: Some("gather_direct"),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        } else {
+            compute_pipeline(&ctx, "sdb gather", &gather_module, "gather", &gather_layout)
+        };
+        let gather_direct_bg = match (&emission_view, &direct_acc_buf) {
+            (Some(view), Some(direct_acc)) if want_direct => Some(bind_group(
+                &ctx,
+                "sdb gather direct bindings",
+                &gather_direct_layout,
+                &[(0, wgpu::BindingResource::TextureView(view)), (1, direct_acc.as_entire_binding())],
+            )),
+            _ => None,
+        };
         let gather_bg = bind_group(&ctx, "sdb gather bindings", &gather_layout, &[
             (0, view_buf.as_entire_binding()),
             (1, gather_buf.as_entire_binding()),
@@ -929,8 +1009,7 @@ impl SdbEngine {
 
         // Direct light: only with directional lights (DESIGN.md section 6).
         let (direct_pipeline, direct_bg) = match &direct_acc_buf {
-            None => (None, None),
-            Some(direct_acc) => {
+            Some(direct_acc) if !input.lights.is_empty() => {
                 let module = ctx.shader(&shaders::SDB_DIRECT)?;
                 let layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                     label: Some("sdb direct layout"),
@@ -954,6 +1033,7 @@ impl SdbEngine {
                 ]);
                 (Some(pipeline), Some(bg))
             }
+            _ => (None, None),
         };
         ctx.take_error("sdb setup")?;
 
@@ -988,6 +1068,10 @@ impl SdbEngine {
             acc_buf,
             direct_acc_buf,
             illum_view,
+            emission_view,
+            illum_emission_bg,
+            gather_direct_bg,
+            want_direct,
             depth_view,
             resolve_pipeline,
             illum_pipeline,
@@ -1058,17 +1142,24 @@ impl SdbEngine {
     }
 
     fn render_map(&self, encoder: &mut wgpu::CommandEncoder, label: &str) {
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some(label),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: &self.illum_view,
+        let attachment = |view, a: f64| {
+            Some(wgpu::RenderPassColorAttachment {
+                view,
                 depth_slice: None,
                 resolve_target: None,
                 ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color { r: 0.0, g: 0.0, b: 0.0, a: EMPTY_T as f64 }),
+                    load: wgpu::LoadOp::Clear(wgpu::Color { r: 0.0, g: 0.0, b: 0.0, a }),
                     store: wgpu::StoreOp::Store,
                 },
-            })],
+            })
+        };
+        let mut colors = vec![attachment(&self.illum_view, EMPTY_T as f64)];
+        if let Some(v) = &self.emission_view {
+            colors.push(attachment(v, 0.0));
+        }
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some(label),
+            color_attachments: &colors,
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                 view: &self.depth_view,
                 depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Discard }),
@@ -1080,6 +1171,9 @@ impl SdbEngine {
         });
         pass.set_pipeline(&self.illum_pipeline);
         pass.set_bind_group(0, &self.illum_bg, &[]);
+        if let Some(bg) = &self.illum_emission_bg {
+            pass.set_bind_group(1, bg, &[]);
+        }
         pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
         pass.draw(0..self.vertex_count, 0..1);
     }
@@ -1131,7 +1225,16 @@ impl SdbEngine {
             let mut encoder =
                 self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("sdb direction") });
             self.render_map(&mut encoder, "sdb illumination map");
-            Self::dispatch(&mut encoder, "sdb gather", &self.gather_pipeline, &self.gather_bg, self.texel_dispatch);
+            {
+                let mut pass = encoder
+                    .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("sdb gather"), timestamp_writes: None });
+                pass.set_pipeline(&self.gather_pipeline);
+                pass.set_bind_group(0, &self.gather_bg, &[]);
+                if let Some(bg) = &self.gather_direct_bg {
+                    pass.set_bind_group(1, bg, &[]);
+                }
+                pass.dispatch_workgroups(self.texel_dispatch.0, self.texel_dispatch.1, 1);
+            }
             // Uniform writes land before the next submit, so each map that reuses the
             // view buffer goes in its own submission.
             self.ctx.queue.submit([encoder.finish()]);
@@ -1145,7 +1248,7 @@ impl SdbEngine {
                 let e = light.irradiance_over_pi;
                 let direct = GpuDirectParams {
                     irradiance: [e.x, e.y, e.z, blend],
-                    bias: [pixel, 2.0 * pixel, if li == 0 { 1.0 - blend } else { 1.0 }, 0.0],
+                    bias: [pixel, 2.0 * pixel, if li == 0 && !self.want_direct { 1.0 - blend } else { 1.0 }, 0.0],
                     misc: [parity, self.n_texels, 0, 0],
                 };
                 self.ctx.queue.write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
@@ -1173,8 +1276,8 @@ impl SdbEngine {
         let n = self.n_texels as usize;
         let acc: Vec<[f32; 4]> = self.ctx.read_buffer("sdb accumulators", &self.acc_buf, 2 * n)?;
         let direct: Option<Vec<[f32; 4]>> = match &self.direct_acc_buf {
-            Some(b) => Some(self.ctx.read_buffer("sdb direct accumulators", b, 2 * n)?),
-            None => None,
+            Some(b) if self.want_direct => Some(self.ctx.read_buffer("sdb direct accumulators", b, 2 * n)?),
+            _ => None,
         };
         let half = |h: usize| {
             let s = match self.params.mode {
@@ -1188,5 +1291,135 @@ impl SdbEngine {
             SdbHalf { steps: self.half_steps[h], total: pick(&acc), direct: direct.as_deref().map(pick) }
         };
         Ok([half(0), half(1)])
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The technique behind the engine's trait
+// ---------------------------------------------------------------------------------------
+
+/// `sdb` as a [`Technique`]: builds [`SdbInput`] from the scene, the texel set and the
+/// job's lighting, and keeps the accumulators on the GPU (read back only at snapshots).
+pub struct Sdb {
+    engine: SdbEngine,
+    params: SdbParams,
+    notes: Vec<String>,
+}
+
+impl Sdb {
+    pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
+        let params: SdbParams = parse_params("sdb", params)?;
+        params.validate().map_err(|e| EngineError::BadInput(e.to_string()))?;
+        let (input, notes) = sdb_input(&inputs);
+        for n in &notes {
+            tracing::warn!("{n}");
+        }
+        let ctx = GpuContext::new(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
+        let engine = SdbEngine::new(Arc::new(ctx), input, params.clone()).map_err(gpu_error)?;
+        Ok(Sdb { engine, params, notes })
+    }
+
+    /// What this bake leaves out of the scene's light, for the job's plan.
+    pub fn notes(&self) -> &[String] {
+        &self.notes
+    }
+}
+
+fn gpu_error(e: GpuError) -> EngineError {
+    match e {
+        // Too large a map or lightmap for this device is the job's choice, not a fault.
+        GpuError::Unsupported { .. } => EngineError::BadInput(e.to_string()),
+        other => EngineError::Gpu(other.to_string()),
+    }
+}
+
+/// The scene in `sdb`'s terms, and notes on what it leaves out.
+pub fn sdb_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
+    let scene = &inputs.scene;
+    let atlas = &inputs.atlas;
+    let triangles = scene
+        .triangles
+        .iter()
+        .map(|t| {
+            let m = scene.material(t);
+            SdbTriangle { p: t.p, lm: t.lm, emission: m.emissive, double_sided: m.double_sided, mesh: t.mesh }
+        })
+        .collect();
+    let texels = atlas
+        .texels
+        .iter()
+        .map(|t| SdbTexel {
+            pixel: t.pixel,
+            position: t.position,
+            normal: t.normal,
+            geo_normal: t.geo_normal,
+            albedo: t.albedo,
+            emission: t.emission,
+        })
+        .collect();
+    let mut lights = Vec::new();
+    let mut notes = Vec::new();
+    if let Some(sun) = inputs.lighting.sun {
+        lights.push(DirectionalLight {
+            direction: sun.direction.normalize(),
+            irradiance_over_pi: sun.radiance * (sun.solid_angle() / std::f32::consts::PI),
+            cone_half_angle: 0.5 * sun.angular_diameter,
+        });
+    }
+    let mut ignored = 0;
+    for l in &scene.lights {
+        match l.kind {
+            LightKind::Directional => lights.push(DirectionalLight {
+                direction: l.direction.normalize(),
+                irradiance_over_pi: l.intensity / std::f32::consts::PI,
+                cone_half_angle: 0.0,
+            }),
+            LightKind::Point | LightKind::Spot { .. } => ignored += 1,
+        }
+    }
+    if ignored > 0 {
+        notes.push(format!(
+            "sdb ignores {ignored} point/spot light(s) of the scene: it has shadow maps for the sun and \
+             directional lights only; bake with `path` for their light"
+        ));
+    }
+    let environment: Option<Environment> = inputs.lighting.sky.map(|_| {
+        let lighting = inputs.lighting;
+        Arc::new(move |w: Vec3| lighting.sky_radiance(w)) as Environment
+    });
+    let input = SdbInput {
+        triangles,
+        texels,
+        width: atlas.width,
+        height: atlas.height,
+        environment,
+        lights,
+        seed: inputs.seed,
+        want_direct: inputs.want_direct,
+    };
+    (input, notes)
+}
+
+impl Technique for Sdb {
+    fn id(&self) -> &'static str {
+        "sdb"
+    }
+
+    fn params(&self) -> serde_json::Value {
+        self.params.to_json()
+    }
+
+    fn step(&mut self) -> Result<(), EngineError> {
+        self.engine.step().map_err(gpu_error)
+    }
+
+    fn steps_done(&self) -> u64 {
+        self.engine.steps_done()
+    }
+
+    fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
+        let [even, odd] = self.engine.read_halves().map_err(gpu_error)?;
+        let half = |h: SdbHalf| HalfEstimate { steps: h.steps, total: h.total, direct: h.direct };
+        Ok(Snapshot { even: half(even), odd: half(odd) })
     }
 }

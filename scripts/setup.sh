@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# Installs what lightmapd needs on a fresh Debian machine with the Rust toolchain:
+# Mesa's software Vulkan driver (GPU techniques run on lavapipe when there is no GPU)
+# and OpenEXR's command-line tools (tests read the EXR back with `exrheader`).
+# Idempotent: installs only what is missing.
+set -euo pipefail
+
+need=()
+for pkg in mesa-vulkan-drivers libvulkan1 openexr; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || need+=("$pkg")
+done
+if ((${#need[@]})); then
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    echo "setup: installing ${need[*]}" >&2
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+fi
+command -v cargo >/dev/null || { echo "setup: cargo not found; install the Rust toolchain (rustup) first" >&2; exit 1; }

@@ -1,0 +1,454 @@
+//! The lightmap texel set: which texels of a W × H lightmap lie on the scene, and the
+//! surface point, normals and material each one stands for.
+//!
+//! How: every triangle is rasterised in TEXCOORD_1 space with edge functions, one sample
+//! at each texel centre (DESIGN §2: texel (i, j) covers u in [i/W, (i+1)/W], v in
+//! [j/H, (j+1)/H], row 0 first, v grows downward as in glTF). A centre on an edge shared
+//! by two triangles belongs to exactly one of them (the top-left rule, applied after
+//! orienting each UV triangle the same way), so only true overlaps are counted. A centre
+//! claimed twice (overlapping charts, coplanar duplicates) keeps the first triangle and
+//! is counted in [`Atlas::overlapping_texels`].
+//!
+//! Texels a chart touches but whose centre lies outside every triangle are not valid;
+//! each keeps a link to the nearest valid texel of the chart (a [`GutterLink`]), which
+//! dilation copies first, so the partly covered texels at chart borders get their own
+//! chart's light rather than a neighbour chart's.
+//!
+//! The sample point is the surface point pushed off along the geometric normal by
+//! [`Atlas::surface_offset`], a fixed fraction (2e-5) of the scene's diagonal: relative,
+//! so a scene scaled by 1e-3 or 1e4 bakes the same lightmap, and small enough for walls
+//! much thinner than a texel (2 mm in a 100 m scene).
+//!
+//! Limits: one sample per texel centre (no supersampling of texels half on a chart); a
+//! texel whose sample point lies inside closed geometry is still valid here (techniques
+//! see back faces from it).
+
+use glam::{Vec2, Vec3};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::engine::scene::Scene;
+
+/// Marks a pixel that holds no valid texel in [`Atlas::pixel_texel`].
+pub const NO_TEXEL: u32 = u32::MAX;
+
+/// The largest lightmap side accepted (a 16384² lightmap is 3 GiB of texel data).
+pub const MAX_RESOLUTION: u32 = 16384;
+
+/// Relative offset of sample points off their surface, as a fraction of the scene diagonal.
+pub const SURFACE_OFFSET: f32 = 2e-5;
+
+#[derive(Clone, Copy, Debug)]
+pub struct Texel {
+    /// Pixel index `j * width + i` in the lightmap image.
+    pub pixel: u32,
+    /// Sample point: the surface point, pushed off along `geo_normal`.
+    pub position: Vec3,
+    /// Interpolated shading normal, unit length (the hemisphere the texel integrates).
+    pub normal: Vec3,
+    /// The triangle's geometric normal, unit length (front side, CCW winding).
+    pub geo_normal: Vec3,
+    pub albedo: Vec3,
+    pub emission: Vec3,
+    pub triangle: u32,
+}
+
+/// A texel a chart touches but whose centre is outside it, and the valid texel whose
+/// value it takes before general dilation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct GutterLink {
+    pub pixel: u32,
+    pub texel: u32,
+}
+
+#[derive(Clone, Debug)]
+pub struct Atlas {
+    pub width: u32,
+    pub height: u32,
+    /// Valid texels only, in pixel order.
+    pub texels: Vec<Texel>,
+    /// For every pixel, its index in `texels`, or [`NO_TEXEL`].
+    pub pixel_texel: Vec<u32>,
+    pub links: Vec<GutterLink>,
+    pub overlapping_texels: u32,
+    pub surface_offset: f32,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct AtlasReport {
+    pub width: u32,
+    pub height: u32,
+    pub valid_texels: usize,
+    pub gutter_texels: usize,
+    pub overlapping_texels: u32,
+    /// Fraction of the lightmap covered by valid texels.
+    pub utilisation: f32,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum AtlasError {
+    #[error("lightmap resolution {0}x{1} is out of range (1 to {MAX_RESOLUTION} per side)")]
+    Resolution(u32, u32),
+    #[error(
+        "no texel centre of the {0}x{1} lightmap falls on any triangle: raise the resolution or check TEXCOORD_1"
+    )]
+    Empty(u32, u32),
+}
+
+/// Texel centre of pixel (i, j) in UV space.
+pub fn texel_centre_uv(i: u32, j: u32, width: u32, height: u32) -> Vec2 {
+    Vec2::new(
+        (i as f32 + 0.5) / width as f32,
+        (j as f32 + 0.5) / height as f32,
+    )
+}
+
+struct Claim {
+    triangle: u32,
+    bary: Vec3,
+}
+
+/// Does the edge a→b (in an oriented triangle) own sample points lying exactly on it?
+/// Exactly one of a→b and b→a does, so a shared edge's points go to one triangle.
+fn owns_edge(a: Vec2, b: Vec2) -> bool {
+    let d = b - a;
+    d.y < 0.0 || (d.y == 0.0 && d.x > 0.0)
+}
+
+impl Atlas {
+    pub fn build(scene: &Scene, width: u32, height: u32) -> Result<Atlas, AtlasError> {
+        if width == 0 || height == 0 || width > MAX_RESOLUTION || height > MAX_RESOLUTION {
+            return Err(AtlasError::Resolution(width, height));
+        }
+        let (w, h) = (width as usize, height as usize);
+        let size = Vec2::new(width as f32, height as f32);
+        let mut claims: Vec<Option<Claim>> = (0..w * h).map(|_| None).collect();
+        let mut overlapping = vec![false; w * h];
+
+        for (ti, tri) in scene.triangles.iter().enumerate() {
+            let mut q = [tri.lm[0] * size, tri.lm[1] * size, tri.lm[2] * size];
+            let mut order = [0usize, 1, 2];
+            let area2 = (q[1] - q[0]).perp_dot(q[2] - q[0]);
+            if area2 == 0.0 || !area2.is_finite() {
+                continue;
+            }
+            if area2 < 0.0 {
+                q.swap(1, 2);
+                order.swap(1, 2);
+            }
+            let area2 = area2.abs();
+            let lo = q[0].min(q[1]).min(q[2]);
+            let hi = q[0].max(q[1]).max(q[2]);
+            let i0 = (lo.x - 0.5).ceil().max(0.0) as usize;
+            let j0 = (lo.y - 0.5).ceil().max(0.0) as usize;
+            let i1 = ((hi.x - 0.5).floor() as i64).min(w as i64 - 1);
+            let j1 = ((hi.y - 0.5).floor() as i64).min(h as i64 - 1);
+            if i1 < i0 as i64 || j1 < j0 as i64 {
+                continue;
+            }
+            let edges = [(1usize, 2usize), (2, 0), (0, 1)];
+            let owns = edges.map(|(a, b)| owns_edge(q[a], q[b]));
+            for j in j0..=j1 as usize {
+                for i in i0..=i1 as usize {
+                    let p = Vec2::new(i as f32 + 0.5, j as f32 + 0.5);
+                    let mut e = [0.0f32; 3];
+                    let mut inside = true;
+                    for (k, (a, b)) in edges.iter().enumerate() {
+                        e[k] = (q[*b] - q[*a]).perp_dot(p - q[*a]);
+                        if e[k] < 0.0 || (e[k] == 0.0 && !owns[k]) {
+                            inside = false;
+                            break;
+                        }
+                    }
+                    if !inside {
+                        continue;
+                    }
+                    // e[k] is the weight of the vertex opposite edge k, in oriented order.
+                    let mut bary = [0.0f32; 3];
+                    for k in 0..3 {
+                        bary[order[k]] = e[k] / area2;
+                    }
+                    let pix = j * w + i;
+                    if claims[pix].is_some() {
+                        overlapping[pix] = true;
+                    } else {
+                        claims[pix] = Some(Claim {
+                            triangle: ti as u32,
+                            bary: Vec3::from_array(bary),
+                        });
+                    }
+                }
+            }
+        }
+
+        let offset = SURFACE_OFFSET * scene.scale();
+        let texels: Vec<Texel> = claims
+            .par_iter()
+            .enumerate()
+            .filter_map(|(pix, c)| c.as_ref().map(|c| (pix, c)))
+            .map(|(pix, c)| {
+                let t = &scene.triangles[c.triangle as usize];
+                let b = c.bary;
+                let surface = t.p[0] * b.x + t.p[1] * b.y + t.p[2] * b.z;
+                let geo = t.geometric_normal();
+                let mut n = (t.n[0] * b.x + t.n[1] * b.y + t.n[2] * b.z).normalize_or_zero();
+                // A shading normal on the far side of the surface is a broken export;
+                // integrate the geometric hemisphere rather than the wrong one.
+                if n.dot(geo) <= 0.0 {
+                    n = geo;
+                }
+                Texel {
+                    pixel: pix as u32,
+                    position: surface + geo * offset,
+                    normal: n,
+                    geo_normal: geo,
+                    albedo: scene.albedo(t, b),
+                    emission: scene.emission(t, b),
+                    triangle: c.triangle,
+                }
+            })
+            .collect();
+        if texels.is_empty() {
+            return Err(AtlasError::Empty(width, height));
+        }
+        let mut pixel_texel = vec![NO_TEXEL; w * h];
+        for (k, t) in texels.iter().enumerate() {
+            pixel_texel[t.pixel as usize] = k as u32;
+        }
+        let links = gutter_links(scene, &pixel_texel, &texels, width, height);
+        Ok(Atlas {
+            width,
+            height,
+            texels,
+            pixel_texel,
+            links,
+            overlapping_texels: overlapping.iter().filter(|o| **o).count() as u32,
+            surface_offset: offset,
+        })
+    }
+
+    pub fn report(&self) -> AtlasReport {
+        AtlasReport {
+            width: self.width,
+            height: self.height,
+            valid_texels: self.texels.len(),
+            gutter_texels: self.links.len(),
+            overlapping_texels: self.overlapping_texels,
+            utilisation: self.texels.len() as f32 / (self.width as f32 * self.height as f32),
+        }
+    }
+
+    /// Spreads per-texel values into a full W × H image; invalid pixels get `empty`.
+    pub fn to_image<T: Copy>(&self, values: &[T], empty: T) -> Vec<T> {
+        let mut img = vec![empty; (self.width * self.height) as usize];
+        for (t, v) in self.texels.iter().zip(values) {
+            img[t.pixel as usize] = *v;
+        }
+        img
+    }
+}
+
+/// Distance from `p` to triangle `q` (all in pixel units), and the closest point.
+fn closest_point(p: Vec2, q: &[Vec2; 3]) -> Vec2 {
+    let area2 = (q[1] - q[0]).perp_dot(q[2] - q[0]);
+    let inside = (0..3).all(|k| {
+        let (a, b) = (q[k], q[(k + 1) % 3]);
+        (b - a).perp_dot(p - a) * area2.signum() >= 0.0
+    });
+    if inside {
+        return p;
+    }
+    let mut best = q[0];
+    let mut best_d = f32::INFINITY;
+    for k in 0..3 {
+        let (a, b) = (q[k], q[(k + 1) % 3]);
+        let ab = b - a;
+        let t = if ab.length_squared() > 0.0 {
+            ((p - a).dot(ab) / ab.length_squared()).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let c = a + ab * t;
+        let d = c.distance_squared(p);
+        if d < best_d {
+            best_d = d;
+            best = c;
+        }
+    }
+    best
+}
+
+fn gutter_links(
+    scene: &Scene,
+    pixel_texel: &[u32],
+    texels: &[Texel],
+    width: u32,
+    height: u32,
+) -> Vec<GutterLink> {
+    let (w, h) = (width as i64, height as i64);
+    let size = Vec2::new(width as f32, height as f32);
+    let mut linked = vec![false; pixel_texel.len()];
+    let mut links = Vec::new();
+    // A texel square meets the triangle when its centre is within half a diagonal of it.
+    let reach = std::f32::consts::FRAC_1_SQRT_2;
+    for tri in scene.triangles.iter() {
+        let q = [tri.lm[0] * size, tri.lm[1] * size, tri.lm[2] * size];
+        if (q[1] - q[0]).perp_dot(q[2] - q[0]) == 0.0 {
+            continue;
+        }
+        let lo = q[0].min(q[1]).min(q[2]);
+        let hi = q[0].max(q[1]).max(q[2]);
+        let (i0, j0) = (
+            (lo.x - 1.0).floor().max(0.0) as i64,
+            (lo.y - 1.0).floor().max(0.0) as i64,
+        );
+        let (i1, j1) = (
+            (hi.x + 1.0).ceil().min(w as f32 - 1.0) as i64,
+            (hi.y + 1.0).ceil().min(h as f32 - 1.0) as i64,
+        );
+        for j in j0..=j1 {
+            for i in i0..=i1 {
+                let pix = (j * w + i) as usize;
+                if pixel_texel[pix] != NO_TEXEL || linked[pix] {
+                    continue;
+                }
+                let centre = Vec2::new(i as f32 + 0.5, j as f32 + 0.5);
+                let c = closest_point(centre, &q);
+                if c.distance(centre) > reach {
+                    continue;
+                }
+                // Nearest valid texel to the touched point, searched in a 5 x 5 window.
+                let mut best: Option<(f32, u32)> = None;
+                for dj in -2..=2i64 {
+                    for di in -2..=2i64 {
+                        let (ni, nj) = (i + di, j + dj);
+                        if ni < 0 || nj < 0 || ni >= w || nj >= h {
+                            continue;
+                        }
+                        let t = pixel_texel[(nj * w + ni) as usize];
+                        if t == NO_TEXEL
+                            || scene.triangles[texels[t as usize].triangle as usize].mesh
+                                != tri.mesh
+                        {
+                            continue;
+                        }
+                        let d = Vec2::new(ni as f32 + 0.5, nj as f32 + 0.5).distance_squared(c);
+                        if best.is_none_or(|(bd, _)| d < bd) {
+                            best = Some((d, t));
+                        }
+                    }
+                }
+                if let Some((_, t)) = best {
+                    linked[pix] = true;
+                    links.push(GutterLink {
+                        pixel: pix as u32,
+                        texel: t,
+                    });
+                }
+            }
+        }
+    }
+    links
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::scene::build::{MaterialDesc, SceneBuilder};
+    use crate::engine::scene::import_slice;
+
+    fn one_quad(margin: f32) -> Scene {
+        let mut b = SceneBuilder::new();
+        let m = b.material(MaterialDesc::diffuse("grey", [0.5, 0.5, 0.5]));
+        b.square("floor", Vec3::ZERO, 2.0, Vec3::Y, m);
+        b.margin = Some(margin);
+        import_slice(&b.to_glb(), None).unwrap().0
+    }
+
+    #[test]
+    fn full_chart_covers_every_texel_exactly_once() {
+        // The quad's two triangles share a diagonal through texel centres of a square
+        // lightmap: the top-left rule must give each centre to exactly one triangle.
+        let scene = one_quad(0.0);
+        let atlas = Atlas::build(&scene, 16, 16).unwrap();
+        assert_eq!(atlas.texels.len(), 256);
+        assert_eq!(atlas.overlapping_texels, 0);
+        assert!(atlas.links.is_empty());
+    }
+
+    #[test]
+    fn texel_positions_match_uv_mapping() {
+        let scene = one_quad(0.0);
+        let atlas = Atlas::build(&scene, 8, 8).unwrap();
+        // The square spans x, z in [-1, 1] at y = 0; the builder's frame for +Y runs u
+        // along -X and v along -Z.
+        for t in &atlas.texels {
+            let (i, j) = (t.pixel % 8, t.pixel / 8);
+            let uv = texel_centre_uv(i, j, 8, 8);
+            assert!(
+                (t.position.x - (1.0 - 2.0 * uv.x)).abs() < 1e-5,
+                "{:?} {uv}",
+                t.position
+            );
+            assert!(
+                (t.position.z - (1.0 - 2.0 * uv.y)).abs() < 1e-5,
+                "{:?} {uv}",
+                t.position
+            );
+            assert!(t.position.y > 0.0 && t.position.y < 1e-3);
+            assert_eq!(t.geo_normal, Vec3::Y);
+            assert!((t.albedo - Vec3::splat(0.5)).abs().max_element() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn partial_chart_links_border_texels() {
+        let scene = one_quad(0.1);
+        let atlas = Atlas::build(&scene, 20, 20).unwrap();
+        // The chart spans [2, 18] in pixels: centres 2.5..17.5 are inside (16 x 16).
+        assert_eq!(atlas.texels.len(), 16 * 16);
+        assert_eq!(atlas.overlapping_texels, 0);
+        // Every border pixel whose square touches the chart links to a valid texel.
+        for l in &atlas.links {
+            assert_ne!(
+                atlas.pixel_texel[atlas.texels[l.texel as usize].pixel as usize],
+                NO_TEXEL
+            );
+            assert_eq!(atlas.pixel_texel[l.pixel as usize], NO_TEXEL);
+        }
+        assert!(atlas.links.len() >= 4 * 16, "{} links", atlas.links.len());
+    }
+
+    #[test]
+    fn duplicated_faces_are_counted_as_overlap() {
+        let mut b = SceneBuilder::new();
+        let m = b.material(MaterialDesc::diffuse("grey", [0.5, 0.5, 0.5]));
+        b.square("a", Vec3::ZERO, 2.0, Vec3::Y, m);
+        let (json, bin) = b.to_gltf();
+        let mut json = json;
+        // Two nodes with the same mesh: coplanar duplicates on the same chart.
+        json["nodes"]
+            .as_array_mut()
+            .unwrap()
+            .push(serde_json::json!({"mesh": 0}));
+        json["scenes"][0]["nodes"] = serde_json::json!([0, 1]);
+        let scene = import_slice(&crate::engine::scene::build::write_glb(&json, &bin), None)
+            .unwrap()
+            .0;
+        let atlas = Atlas::build(&scene, 8, 8).unwrap();
+        assert_eq!(atlas.overlapping_texels as usize, atlas.texels.len());
+    }
+
+    #[test]
+    fn bad_resolution_is_an_error() {
+        let scene = one_quad(0.0);
+        assert!(matches!(
+            Atlas::build(&scene, 0, 8),
+            Err(AtlasError::Resolution(0, 8))
+        ));
+        assert!(matches!(
+            Atlas::build(&scene, 8, MAX_RESOLUTION + 1),
+            Err(AtlasError::Resolution(..))
+        ));
+    }
+}

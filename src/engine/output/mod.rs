@@ -1,0 +1,230 @@
+//! Writing lightmaps: OpenEXR with the layers and header attributes of DESIGN §2.
+//!
+//! How: one single-part scanline EXR, float32, ZIP-compressed (lossless; lightmaps are
+//! smooth and compress well). The default `R`, `G`, `B` channels hold the full lightmap
+//! (irradiance / π, dilated into gutters). Optional layers follow OpenEXR's naming
+//! convention for layers in one part (`direct.R`, `indirect.R`, `validity.Y`, …), so
+//! OpenEXR's own tools, Blender and Nuke list them as layers. Header attributes carry
+//! the technique, its parameters (JSON text), steps, seconds and the error estimate;
+//! they are prefixed `lightmapd:` so they cannot collide with standard attribute names.
+//!
+//! The `exr` crate does the encoding; this module only arranges channels and attributes.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use exr::image::Layer;
+use exr::prelude::{
+    AnyChannel, AnyChannels, AttributeValue, Encoding, FlatSamples, Image, LayerAttributes, Text,
+    WritableImage,
+};
+use glam::Vec3;
+use smallvec::SmallVec;
+
+use crate::engine::accumulate::Estimate;
+use crate::engine::atlas::Atlas;
+use crate::engine::post;
+
+/// The optional layers a job may ask for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OutputLayer {
+    Validity,
+    Direct,
+    Indirect,
+}
+
+impl OutputLayer {
+    pub fn parse(s: &str) -> Result<OutputLayer, String> {
+        match s {
+            "validity" => Ok(OutputLayer::Validity),
+            "direct" => Ok(OutputLayer::Direct),
+            "indirect" => Ok(OutputLayer::Indirect),
+            other => Err(format!(
+                "unknown output layer {other:?}; available: validity, direct, indirect"
+            )),
+        }
+    }
+}
+
+/// What goes into the header besides the pixels.
+#[derive(Clone, Debug)]
+pub struct ExrMetadata {
+    pub technique: String,
+    pub params: serde_json::Value,
+    pub steps: u64,
+    pub seconds: f64,
+    pub relative_error: Option<f32>,
+    pub seed: u64,
+}
+
+/// Builds the channel list for `estimate` (dilated) plus the requested layers.
+pub fn lightmap_channels(
+    atlas: &Atlas,
+    estimate: &Estimate,
+    layers: &[OutputLayer],
+    rings: u32,
+) -> Result<Vec<(String, Vec<f32>)>, String> {
+    let mut channels = Vec::new();
+    let mut rgb = |prefix: &str, values: &[Vec3]| {
+        let img = post::dilate(atlas, values, rings);
+        for (k, c) in ["R", "G", "B"].iter().enumerate() {
+            let name = if prefix.is_empty() {
+                c.to_string()
+            } else {
+                format!("{prefix}.{c}")
+            };
+            channels.push((name, img.iter().map(|v| v[k]).collect::<Vec<f32>>()));
+        }
+    };
+    rgb("", &estimate.total);
+    for layer in layers {
+        match layer {
+            OutputLayer::Direct | OutputLayer::Indirect => {
+                let direct = estimate
+                    .direct
+                    .as_ref()
+                    .ok_or("the technique kept no direct-light layer")?;
+                if *layer == OutputLayer::Direct {
+                    rgb("direct", direct);
+                } else {
+                    let indirect: Vec<Vec3> = estimate
+                        .total
+                        .iter()
+                        .zip(direct)
+                        .map(|(t, d)| (*t - *d).max(Vec3::ZERO))
+                        .collect();
+                    rgb("indirect", &indirect);
+                }
+            }
+            OutputLayer::Validity => {}
+        }
+    }
+    if layers.contains(&OutputLayer::Validity) {
+        let ones = vec![1.0f32; atlas.texels.len()];
+        channels.push(("validity.Y".into(), post::scatter_scalar(atlas, &ones)));
+    }
+    Ok(channels)
+}
+
+/// Encodes channels and metadata as EXR bytes.
+pub fn encode_exr(
+    width: u32,
+    height: u32,
+    channels: Vec<(String, Vec<f32>)>,
+    meta: &ExrMetadata,
+) -> Result<Vec<u8>, String> {
+    let list: SmallVec<[AnyChannel<FlatSamples>; 4]> = channels
+        .into_iter()
+        .map(|(name, data)| AnyChannel::new(name.as_str(), FlatSamples::F32(data)))
+        .collect();
+    let mut attrs = LayerAttributes::default();
+    let mut other: HashMap<Text, AttributeValue> = HashMap::new();
+    let text = |s: &str| AttributeValue::Text(Text::new_or_panic(sanitize(s)));
+    other.insert(Text::from("lightmapd:technique"), text(&meta.technique));
+    other.insert(
+        Text::from("lightmapd:params"),
+        text(&meta.params.to_string()),
+    );
+    other.insert(
+        Text::from("lightmapd:steps"),
+        AttributeValue::I32(meta.steps.min(i32::MAX as u64) as i32),
+    );
+    other.insert(
+        Text::from("lightmapd:seconds"),
+        AttributeValue::F64(meta.seconds),
+    );
+    other.insert(Text::from("lightmapd:seed"), text(&meta.seed.to_string()));
+    other.insert(
+        Text::from("lightmapd:quantity"),
+        text("irradiance/pi, linear RGB (albedo * lightmap = outgoing radiance)"),
+    );
+    if let Some(e) = meta.relative_error {
+        other.insert(
+            Text::from("lightmapd:relative_error"),
+            AttributeValue::F32(e),
+        );
+    }
+    attrs.other = other;
+    attrs.software_name = Some(Text::from(concat!("lightmapd ", env!("CARGO_PKG_VERSION"))));
+    let layer = Layer::new(
+        (width as usize, height as usize),
+        attrs,
+        Encoding::SMALL_LOSSLESS,
+        AnyChannels::sort(list),
+    );
+    let image = Image::from_layer(layer);
+    let mut out = std::io::Cursor::new(Vec::new());
+    image
+        .write()
+        .to_buffered(&mut out)
+        .map_err(|e| format!("encoding EXR: {e}"))?;
+    Ok(out.into_inner())
+}
+
+/// EXR text attributes are Latin-1; keep JSON printable ASCII so every reader copes.
+fn sanitize(s: &str) -> String {
+    s.chars()
+        .map(|c| {
+            if c.is_ascii() && !c.is_ascii_control() {
+                c
+            } else {
+                '?'
+            }
+        })
+        .collect()
+}
+
+/// Writes `bytes` to `path` through a temporary file and a rename, so a failing or
+/// interrupted bake never leaves a half-written lightmap where a good one was.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "lightmap".into());
+    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    std::fs::write(&tmp, bytes)?;
+    std::fs::rename(&tmp, path).inspect_err(|_| {
+        let _ = std::fs::remove_file(&tmp);
+    })
+}
+
+/// A tone-mapped PNG of a full lightmap image (for previews and dashboards): exposure so
+/// the 99th-percentile luminance maps to 0.9 before the sRGB curve, clamped.
+pub fn encode_preview_png(width: u32, height: u32, rgb: &[Vec3]) -> Result<Vec<u8>, String> {
+    let mut lum: Vec<f32> = rgb
+        .iter()
+        .map(|v| v.dot(crate::engine::accumulate::LUMINANCE))
+        .filter(|l| *l > 0.0)
+        .collect();
+    lum.sort_by(f32::total_cmp);
+    let white = lum
+        .get(lum.len().saturating_sub(1) * 99 / 100)
+        .copied()
+        .unwrap_or(1.0)
+        .max(1e-12);
+    let exposure = 0.9 / white;
+    let encode = |c: f32| {
+        let c = (c * exposure).clamp(0.0, 1.0);
+        let s = if c <= 0.003_130_8 {
+            12.92 * c
+        } else {
+            1.055 * c.powf(1.0 / 2.4) - 0.055
+        };
+        (s * 255.0 + 0.5) as u8
+    };
+    let bytes: Vec<u8> = rgb
+        .iter()
+        .flat_map(|v| [encode(v.x), encode(v.y), encode(v.z)])
+        .collect();
+    let img = image::RgbImage::from_raw(width, height, bytes)
+        .ok_or("preview: image size does not match")?;
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png)
+        .map_err(|e| format!("encoding PNG: {e}"))?;
+    Ok(out.into_inner())
+}

@@ -1,0 +1,881 @@
+//! glTF 2.0 import: `.glb`, or `.gltf` with external or data-URI buffers and images.
+//!
+//! How: the `gltf` crate parses and validates the JSON; buffers and images are resolved
+//! here rather than with its `import` feature, because every range is checked before it
+//! is read (buffer view inside its buffer, accessor inside its view) and each failure must
+//! name the buffer, mesh, primitive and accessor involved. The node hierarchy is walked
+//! from the default scene (or every root when there is none) and every TRIANGLES
+//! primitive is flattened into world space; a transform with a negative determinant
+//! mirrors the mesh, so its winding is flipped to keep front faces in front.
+//!
+//! Validation (DESIGN §5): NaN or infinite positions, normals or UVs are rejected with the
+//! accessor named; lightmap UVs must lie in [0, 1]; degenerate and zero-area triangles are
+//! dropped and counted (they cover no texel and carry no light). Triangles with a
+//! zero-area lightmap-UV footprint are kept for transport but counted, since they get no
+//! texel of their own.
+//!
+//! Limits: sparse accessors, morph targets, skins and texture transforms are not read
+//! (sparse position or UV accessors are an error; the others are ignored with a warning).
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+
+use base64::Engine as _;
+use glam::{DMat4, DVec3, Vec2, Vec3, Vec4};
+use gltf::mesh::Mode;
+use serde::Serialize;
+
+use super::error::{ImportError, PrimitiveRef};
+use super::{
+    Bounds, LightKind, Material, MeshInfo, PunctualLight, Scene, Texture, TextureRef, Triangle,
+    Wrap,
+};
+
+/// What import found, for the CLI summary and the service's scene report.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ImportReport {
+    pub meshes: usize,
+    pub primitives: usize,
+    pub triangles: usize,
+    pub materials: usize,
+    pub textures: usize,
+    pub lights: usize,
+    pub emissive_triangles: usize,
+    /// Dropped because their world-space area is zero (or too small to have a normal).
+    pub degenerate_triangles: usize,
+    /// Kept, but with no area in lightmap UV space, so they own no texel.
+    pub zero_uv_area_triangles: usize,
+    pub bounds_min: [f64; 3],
+    pub bounds_max: [f64; 3],
+    /// Every mesh has TEXCOORD_1.
+    pub has_lightmap_uvs: bool,
+    pub warnings: Vec<String>,
+}
+
+/// Imports a `.glb` or `.gltf` file; relative URIs resolve against its folder.
+pub fn import_file(path: &Path) -> Result<(Scene, ImportReport), ImportError> {
+    let bytes = std::fs::read(path).map_err(|source| ImportError::Io {
+        path: path.display().to_string(),
+        source,
+    })?;
+    import_slice(&bytes, path.parent())
+}
+
+/// Imports glTF from memory. `base_dir` resolves relative URIs; `None` allows only
+/// embedded data (GLB binary chunk and data URIs), which is what the service wants.
+pub fn import_slice(
+    bytes: &[u8],
+    base_dir: Option<&Path>,
+) -> Result<(Scene, ImportReport), ImportError> {
+    let gltf = parse(bytes)?;
+    let buffers = load_buffers(&gltf, base_dir)?;
+    let mut report = ImportReport::default();
+    let textures = load_textures(&gltf, &buffers, base_dir)?;
+    let materials = load_materials(&gltf)?;
+
+    for ext in gltf.extensions_required() {
+        if !matches!(
+            ext,
+            "KHR_lights_punctual" | "KHR_materials_emissive_strength"
+        ) {
+            report.warnings.push(format!(
+                "required extension {ext} is not supported and is ignored"
+            ));
+        }
+    }
+
+    let mut ctx = Flatten {
+        buffers: &buffers,
+        triangles: Vec::new(),
+        lights: Vec::new(),
+        meshes: gltf
+            .meshes()
+            .map(|m| MeshInfo {
+                name: m.name().unwrap_or("").to_string(),
+                index: m.index(),
+            })
+            .collect(),
+        report: &mut report,
+        materials_len: materials.len() - 1,
+        missing_lightmap_uvs: Vec::new(),
+        visited_meshes: HashSet::new(),
+    };
+    let roots: Vec<gltf::Node> = match gltf.default_scene().or_else(|| gltf.scenes().next()) {
+        Some(s) => s.nodes().collect(),
+        None => gltf.nodes().collect(), // no scene: glTF allows it; bake every node once
+    };
+    let mut seen_nodes = HashSet::new();
+    for node in roots {
+        ctx.visit(&node, DMat4::IDENTITY, &mut seen_nodes)?;
+    }
+    let Flatten {
+        mut triangles,
+        mut lights,
+        meshes,
+        missing_lightmap_uvs,
+        ..
+    } = ctx;
+
+    if !missing_lightmap_uvs.is_empty() {
+        return Err(ImportError::NoLightmapUvs(format!(
+            "{} has no TEXCOORD_1 (lightmap UV generation is not available yet: add a second UV set in your editor)",
+            missing_lightmap_uvs.join("; ")
+        )));
+    }
+    if triangles.is_empty() {
+        let why = if report.degenerate_triangles > 0 {
+            format!(
+                " (all {} triangles are degenerate)",
+                report.degenerate_triangles
+            )
+        } else {
+            String::new()
+        };
+        return Err(ImportError::NoTriangles(why));
+    }
+
+    // Re-centre in f64 so a scene far from the origin keeps f32 precision (module doc).
+    let mut dmin = DVec3::splat(f64::INFINITY);
+    let mut dmax = DVec3::splat(f64::NEG_INFINITY);
+    for t in &triangles {
+        for p in &t.world {
+            dmin = dmin.min(*p);
+            dmax = dmax.max(*p);
+        }
+    }
+    let offset = 0.5 * (dmin + dmax);
+    let mut bounds = Bounds::EMPTY;
+    let tris: Vec<Triangle> = triangles
+        .drain(..)
+        .map(|t| {
+            let p = t.world.map(|w| (w - offset).as_vec3());
+            p.iter().for_each(|q| bounds.grow(*q));
+            Triangle {
+                p,
+                n: t.n,
+                uv: t.uv,
+                lm: t.lm,
+                material: t.material,
+                mesh: t.mesh,
+            }
+        })
+        .collect();
+    for l in &mut lights {
+        l.light.position = (l.world_position - offset).as_vec3();
+    }
+
+    report.meshes = meshes.len();
+    report.triangles = tris.len();
+    report.materials = gltf.materials().len();
+    report.textures = textures.len();
+    report.lights = lights.len();
+    report.emissive_triangles = tris
+        .iter()
+        .filter(|t| {
+            materials
+                .get(t.material as usize)
+                .is_some_and(|m| m.emissive != Vec3::ZERO)
+        })
+        .count();
+    report.bounds_min = dmin.to_array();
+    report.bounds_max = dmax.to_array();
+    report.has_lightmap_uvs = true;
+
+    let scene = Scene {
+        triangles: tris,
+        materials,
+        textures,
+        lights: lights.into_iter().map(|l| l.light).collect(),
+        meshes,
+        bounds,
+        origin_offset: offset,
+    };
+    Ok((scene, report))
+}
+
+fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
+    if bytes.is_empty() {
+        return Err(ImportError::NotGltf("the file is empty".into()));
+    }
+    let looks_binary = bytes.starts_with(b"glTF");
+    let looks_json = bytes.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'{');
+    if !looks_binary && !looks_json {
+        return Err(ImportError::NotGltf(
+            "neither a GLB header (\"glTF\" magic) nor a JSON document".into(),
+        ));
+    }
+    gltf::Gltf::from_slice(bytes).map_err(|e| match e {
+        gltf::Error::Validation(errors) => ImportError::Invalid(
+            errors
+                .iter()
+                .take(5)
+                .map(|(path, err)| format!("{}: {}", path, err))
+                .collect::<Vec<_>>()
+                .join("; "),
+        ),
+        gltf::Error::Binary(b) => ImportError::NotGltf(format!("broken GLB container: {b:?}")),
+        gltf::Error::Deserialize(d) => ImportError::NotGltf(format!("JSON: {d}")),
+        other => ImportError::NotGltf(other.to_string()),
+    })
+}
+
+fn resolve_uri(uri: &str, base_dir: Option<&Path>, what: &str) -> Result<Vec<u8>, String> {
+    if let Some(rest) = uri.strip_prefix("data:") {
+        let (_, payload) = rest
+            .split_once(";base64,")
+            .ok_or_else(|| format!("{what}: data URI is not base64"))?;
+        return base64::engine::general_purpose::STANDARD
+            .decode(payload)
+            .map_err(|e| format!("{what}: bad base64 in data URI: {e}"));
+    }
+    if uri.contains("://") {
+        return Err(format!(
+            "{what}: URI scheme of {uri:?} is not supported (only relative paths and data URIs)"
+        ));
+    }
+    let base = base_dir.ok_or_else(|| {
+        format!("{what}: external file {uri:?} cannot be resolved here (upload it with the scene)")
+    })?;
+    let decoded = percent_decode(uri);
+    let rel = PathBuf::from(&decoded);
+    if rel.is_absolute()
+        || rel
+            .components()
+            .any(|c| matches!(c, std::path::Component::ParentDir))
+    {
+        return Err(format!(
+            "{what}: external file {uri:?} must be a relative path inside the scene's folder"
+        ));
+    }
+    std::fs::read(base.join(&rel))
+        .map_err(|e| format!("{what}: cannot read external file {decoded:?}: {e}"))
+}
+
+fn percent_decode(s: &str) -> String {
+    let bytes = s.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        if bytes[i] == b'%'
+            && i + 2 < bytes.len()
+            && let Ok(v) = u8::from_str_radix(
+                std::str::from_utf8(&bytes[i + 1..i + 3]).unwrap_or("zz"),
+                16,
+            )
+        {
+            out.push(v);
+            i += 3;
+            continue;
+        }
+        out.push(bytes[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+fn load_buffers(gltf: &gltf::Gltf, base_dir: Option<&Path>) -> Result<Vec<Vec<u8>>, ImportError> {
+    let mut out = Vec::new();
+    for buffer in gltf.buffers() {
+        let i = buffer.index();
+        let data = match buffer.source() {
+            gltf::buffer::Source::Bin => gltf.blob.clone().ok_or_else(|| ImportError::Buffer {
+                buffer: i,
+                problem: "refers to the GLB binary chunk, but the file has none".into(),
+            })?,
+            gltf::buffer::Source::Uri(uri) => resolve_uri(uri, base_dir, "uri")
+                .map_err(|problem| ImportError::Buffer { buffer: i, problem })?,
+        };
+        if data.len() < buffer.length() {
+            return Err(ImportError::Buffer {
+                buffer: i,
+                problem: format!(
+                    "truncated: byteLength is {} but only {} bytes are present",
+                    buffer.length(),
+                    data.len()
+                ),
+            });
+        }
+        out.push(data);
+    }
+    Ok(out)
+}
+
+fn view_bytes<'b>(view: &gltf::buffer::View, buffers: &'b [Vec<u8>]) -> Result<&'b [u8], String> {
+    let buf = buffers
+        .get(view.buffer().index())
+        .ok_or("buffer view refers to a missing buffer")?;
+    let end = view
+        .offset()
+        .checked_add(view.length())
+        .ok_or("buffer view range overflows")?;
+    if end > buf.len() {
+        return Err(format!(
+            "buffer view {} (bytes {}..{}) lies outside buffer {} of {} bytes",
+            view.index(),
+            view.offset(),
+            end,
+            view.buffer().index(),
+            buf.len()
+        ));
+    }
+    Ok(&buf[view.offset()..end])
+}
+
+fn load_textures(
+    gltf: &gltf::Gltf,
+    buffers: &[Vec<u8>],
+    base_dir: Option<&Path>,
+) -> Result<Vec<Texture>, ImportError> {
+    // Which images hold colour (sRGB-encoded by glTF's rules); others would be linear,
+    // but only base colour and emissive textures are read here, and both are colour.
+    let mut textures = Vec::new();
+    for tex in gltf.textures() {
+        let image = tex.source();
+        let i = image.index();
+        let bytes = match image.source() {
+            gltf::image::Source::View { view, .. } => view_bytes(&view, buffers)
+                .map_err(|problem| ImportError::Image { image: i, problem })?
+                .to_vec(),
+            gltf::image::Source::Uri { uri, .. } => resolve_uri(uri, base_dir, "uri")
+                .map_err(|problem| ImportError::Image { image: i, problem })?,
+        };
+        let decoded = image::load_from_memory(&bytes)
+            .map_err(|e| ImportError::Image {
+                image: i,
+                problem: format!("cannot decode (PNG and JPEG are supported): {e}"),
+            })?
+            .to_rgba32f();
+        let (width, height) = decoded.dimensions();
+        if width == 0 || height == 0 {
+            return Err(ImportError::Image {
+                image: i,
+                problem: "has zero size".into(),
+            });
+        }
+        let texels = decoded
+            .pixels()
+            .map(|p| {
+                Vec4::new(
+                    srgb_to_linear(p[0]),
+                    srgb_to_linear(p[1]),
+                    srgb_to_linear(p[2]),
+                    p[3],
+                )
+            })
+            .collect();
+        let sampler = tex.sampler();
+        let wrap = |m: gltf::texture::WrappingMode| match m {
+            gltf::texture::WrappingMode::Repeat => Wrap::Repeat,
+            gltf::texture::WrappingMode::MirroredRepeat => Wrap::Mirror,
+            gltf::texture::WrappingMode::ClampToEdge => Wrap::Clamp,
+        };
+        textures.push(Texture {
+            width,
+            height,
+            texels,
+            wrap_u: wrap(sampler.wrap_s()),
+            wrap_v: wrap(sampler.wrap_t()),
+        });
+    }
+    Ok(textures)
+}
+
+pub(crate) fn srgb_to_linear(c: f32) -> f32 {
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+fn load_materials(gltf: &gltf::Gltf) -> Result<Vec<Material>, ImportError> {
+    let mut out = Vec::new();
+    for m in gltf.materials() {
+        let name = m
+            .name()
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("material {}", m.index().unwrap_or(0)));
+        let pbr = m.pbr_metallic_roughness();
+        let base_color = Vec4::from_array(pbr.base_color_factor());
+        let strength = m.emissive_strength().unwrap_or(1.0);
+        let emissive = Vec3::from_array(m.emissive_factor()) * strength;
+        let check = |what: &str, ok: bool| -> Result<(), ImportError> {
+            if ok {
+                Ok(())
+            } else {
+                Err(ImportError::Material(format!(
+                    "{name}: {what} must be finite and >= 0"
+                )))
+            }
+        };
+        check(
+            "baseColorFactor",
+            base_color.is_finite() && base_color.min_element() >= 0.0,
+        )?;
+        check(
+            "emissiveFactor × emissive_strength",
+            emissive.is_finite() && emissive.min_element() >= 0.0,
+        )?;
+        let tref = |info: Option<gltf::texture::Info>| {
+            info.map(|i| TextureRef {
+                texture: i.texture().index() as u32,
+                texcoord: i.tex_coord().min(1),
+            })
+        };
+        out.push(Material {
+            name,
+            base_color,
+            base_color_texture: tref(pbr.base_color_texture()),
+            emissive,
+            emissive_texture: tref(m.emissive_texture()),
+            metallic: pbr.metallic_factor(),
+            roughness: pbr.roughness_factor(),
+            double_sided: m.double_sided(),
+        });
+    }
+    // Primitives without a material use glTF's default one, kept at the end.
+    out.push(Material::default());
+    Ok(out)
+}
+
+/// A triangle before re-centring, in f64 world space.
+struct RawTriangle {
+    world: [DVec3; 3],
+    n: [Vec3; 3],
+    uv: [Vec2; 3],
+    lm: [Vec2; 3],
+    material: u32,
+    mesh: u32,
+}
+
+struct RawLight {
+    light: PunctualLight,
+    world_position: DVec3,
+}
+
+struct Flatten<'a> {
+    buffers: &'a [Vec<u8>],
+    triangles: Vec<RawTriangle>,
+    lights: Vec<RawLight>,
+    meshes: Vec<MeshInfo>,
+    report: &'a mut ImportReport,
+    materials_len: usize,
+    missing_lightmap_uvs: Vec<String>,
+    visited_meshes: HashSet<usize>,
+}
+
+impl Flatten<'_> {
+    fn visit(
+        &mut self,
+        node: &gltf::Node,
+        parent: DMat4,
+        seen: &mut HashSet<usize>,
+    ) -> Result<(), ImportError> {
+        // glTF forbids cycles, but a hostile file may still have them: never loop.
+        if !seen.insert(node.index()) {
+            return Err(ImportError::Invalid(format!(
+                "node {} is reached twice (the node graph is not a tree)",
+                node.index()
+            )));
+        }
+        let local = DMat4::from_cols_array_2d(&node.transform().matrix().map(|c| c.map(f64::from)));
+        let world = parent * local;
+        if !world.is_finite() {
+            return Err(ImportError::Invalid(format!(
+                "node {}: transform is not finite",
+                node.index()
+            )));
+        }
+        if let Some(mesh) = node.mesh() {
+            self.mesh(&mesh, &world)?;
+        }
+        if let Some(light) = node.light() {
+            self.light(&light, &world, node.index())?;
+        }
+        for child in node.children() {
+            self.visit(&child, world, seen)?;
+        }
+        Ok(())
+    }
+
+    fn light(
+        &mut self,
+        light: &gltf::khr_lights_punctual::Light,
+        world: &DMat4,
+        node: usize,
+    ) -> Result<(), ImportError> {
+        let name = light
+            .name()
+            .map(str::to_string)
+            .unwrap_or_else(|| format!("light {}", light.index()));
+        let color = Vec3::from_array(light.color());
+        let intensity = light.intensity();
+        if !color.is_finite()
+            || color.min_element() < 0.0
+            || !intensity.is_finite()
+            || intensity < 0.0
+        {
+            return Err(ImportError::Invalid(format!(
+                "{name} (node {node}): colour and intensity must be finite and >= 0"
+            )));
+        }
+        let kind = match light.kind() {
+            gltf::khr_lights_punctual::Kind::Directional => LightKind::Directional,
+            gltf::khr_lights_punctual::Kind::Point => LightKind::Point,
+            gltf::khr_lights_punctual::Kind::Spot {
+                inner_cone_angle,
+                outer_cone_angle,
+            } => {
+                if !(0.0..=std::f32::consts::FRAC_PI_2).contains(&outer_cone_angle)
+                    || inner_cone_angle >= outer_cone_angle
+                    || inner_cone_angle.is_nan()
+                {
+                    return Err(ImportError::Invalid(format!(
+                        "{name} (node {node}): spot cone angles need 0 <= inner < outer <= pi/2, got {inner_cone_angle} and {outer_cone_angle}"
+                    )));
+                }
+                LightKind::Spot {
+                    inner_cone: inner_cone_angle.max(0.0),
+                    outer_cone: outer_cone_angle,
+                }
+            }
+        };
+        let position = world.transform_point3(DVec3::ZERO);
+        let direction = world
+            .transform_vector3(DVec3::NEG_Z)
+            .normalize_or_zero()
+            .as_vec3();
+        if direction == Vec3::ZERO && kind != LightKind::Point {
+            return Err(ImportError::Invalid(format!(
+                "{name} (node {node}): transform collapses the light's direction"
+            )));
+        }
+        self.lights.push(RawLight {
+            light: PunctualLight {
+                name,
+                kind,
+                intensity: color * intensity,
+                position: Vec3::ZERO,
+                direction,
+                range: light.range().filter(|r| *r > 0.0),
+            },
+            world_position: position,
+        });
+        Ok(())
+    }
+
+    fn mesh(&mut self, mesh: &gltf::Mesh, world: &DMat4) -> Result<(), ImportError> {
+        let first_visit = self.visited_meshes.insert(mesh.index());
+        let mirrored = world.determinant() < 0.0;
+        let normal_matrix = world.inverse().transpose();
+        let mesh_name = mesh.name().unwrap_or("").to_string();
+        for prim in mesh.primitives() {
+            let at = PrimitiveRef {
+                mesh: mesh.index(),
+                mesh_name: mesh_name.clone(),
+                primitive: prim.index(),
+            };
+            if first_visit {
+                self.report.primitives += 1;
+            }
+            if prim.mode() != Mode::Triangles {
+                if first_visit {
+                    self.report.warnings.push(format!(
+                        "{at}: mode {:?} is not TRIANGLES and is skipped",
+                        prim.mode()
+                    ));
+                }
+                continue;
+            }
+            // glTF's default material sits after the file's own (see `load_materials`).
+            let material = match prim.material().index() {
+                Some(i) if i < self.materials_len => i as u32,
+                Some(i) => {
+                    return Err(ImportError::Primitive {
+                        at,
+                        problem: format!("material {i} does not exist"),
+                    });
+                }
+                None => self.materials_len as u32,
+            };
+
+            let positions = read_vec3(&prim, gltf::Semantic::Positions, self.buffers, &at)?
+                .ok_or_else(|| ImportError::Primitive {
+                    at: at.clone(),
+                    problem: "has no POSITION attribute".into(),
+                })?;
+            let normals = read_vec3(&prim, gltf::Semantic::Normals, self.buffers, &at)?;
+            let uv0 = read_vec2(&prim, 0, self.buffers, &at)?;
+            let Some(uv1) = read_vec2(&prim, 1, self.buffers, &at)? else {
+                if first_visit {
+                    self.missing_lightmap_uvs.push(at.to_string());
+                }
+                continue;
+            };
+            let n = positions.len();
+            for (what, len) in [
+                ("NORMAL", normals.as_ref().map(Vec::len)),
+                ("TEXCOORD_0", uv0.as_ref().map(Vec::len)),
+                ("TEXCOORD_1", Some(uv1.len())),
+            ] {
+                if let Some(len) = len
+                    && len != n
+                {
+                    return Err(ImportError::Primitive {
+                        at: at.clone(),
+                        problem: format!("{what} has {len} elements but POSITION has {n}"),
+                    });
+                }
+            }
+            if let Some((i, uv)) = uv1
+                .iter()
+                .enumerate()
+                .find(|(_, uv)| !(0.0..=1.0).contains(&uv.x) || !(0.0..=1.0).contains(&uv.y))
+            {
+                let acc = prim
+                    .get(&gltf::Semantic::TexCoords(1))
+                    .map(|a| a.index())
+                    .unwrap_or(0);
+                return Err(ImportError::Accessor {
+                    at,
+                    accessor: acc,
+                    attribute: "TEXCOORD_1".into(),
+                    problem: format!(
+                        "lightmap UV ({}, {}) of vertex {i} is outside [0, 1]",
+                        uv.x, uv.y
+                    ),
+                });
+            }
+            let indices: Vec<u32> = match prim.indices() {
+                Some(acc) => {
+                    check_accessor(&acc, self.buffers, &at, "indices")?;
+                    let reader = prim.reader(|b| self.buffers.get(b.index()).map(Vec::as_slice));
+                    let idx: Vec<u32> = reader
+                        .read_indices()
+                        .ok_or_else(|| accessor_err(&at, &acc, "indices", "cannot be read".into()))?
+                        .into_u32()
+                        .collect();
+                    if let Some((k, bad)) = idx.iter().enumerate().find(|(_, i)| **i as usize >= n)
+                    {
+                        return Err(accessor_err(
+                            &at,
+                            &acc,
+                            "indices",
+                            format!("index {bad} at position {k} is past the {n} vertices"),
+                        ));
+                    }
+                    idx
+                }
+                None => (0..n as u32).collect(),
+            };
+            if !indices.len().is_multiple_of(3) {
+                self.report.warnings.push(format!(
+                    "{at}: {} indices is not a multiple of 3; the last ones are ignored",
+                    indices.len()
+                ));
+            }
+
+            let world_pos: Vec<DVec3> = positions
+                .iter()
+                .map(|p| world.transform_point3(p.as_dvec3()))
+                .collect();
+            let world_nrm: Option<Vec<Vec3>> = normals.map(|ns| {
+                ns.iter()
+                    .map(|v| {
+                        normal_matrix
+                            .transform_vector3(v.as_dvec3())
+                            .normalize_or_zero()
+                            .as_vec3()
+                    })
+                    .collect()
+            });
+            for tri in indices.chunks_exact(3) {
+                let (a, b, c) = if mirrored {
+                    (tri[0], tri[2], tri[1])
+                } else {
+                    (tri[0], tri[1], tri[2])
+                };
+                let (a, b, c) = (a as usize, b as usize, c as usize);
+                let w = [world_pos[a], world_pos[b], world_pos[c]];
+                let cross = (w[1] - w[0]).cross(w[2] - w[0]);
+                let scale2 = (w[1] - w[0])
+                    .length_squared()
+                    .max((w[2] - w[0]).length_squared());
+                // Relative test: a sliver whose normal cannot be computed in f32 is degenerate.
+                let well_formed = cross.length_squared() > 1e-12 * scale2 * scale2 && scale2 > 0.0;
+                if !well_formed {
+                    self.report.degenerate_triangles += 1;
+                    continue;
+                }
+                let flat = cross.normalize().as_vec3();
+                let n3 = match &world_nrm {
+                    Some(ns) => {
+                        [ns[a], ns[b], ns[c]].map(|v| if v == Vec3::ZERO { flat } else { v })
+                    }
+                    None => [flat; 3],
+                };
+                let lm = [uv1[a], uv1[b], uv1[c]];
+                if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0 {
+                    self.report.zero_uv_area_triangles += 1;
+                }
+                let uv = uv0
+                    .as_ref()
+                    .map(|u| [u[a], u[b], u[c]])
+                    .unwrap_or([Vec2::ZERO; 3]);
+                self.triangles.push(RawTriangle {
+                    world: w,
+                    n: n3,
+                    uv,
+                    lm,
+                    material,
+                    mesh: mesh.index() as u32,
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+fn accessor_err(
+    at: &PrimitiveRef,
+    acc: &gltf::Accessor,
+    attribute: &str,
+    problem: String,
+) -> ImportError {
+    ImportError::Accessor {
+        at: at.clone(),
+        accessor: acc.index(),
+        attribute: attribute.into(),
+        problem,
+    }
+}
+
+/// Checks that every byte the accessor reads lies inside its view and the view inside its
+/// buffer, so reading can never go out of bounds.
+fn check_accessor(
+    acc: &gltf::Accessor,
+    buffers: &[Vec<u8>],
+    at: &PrimitiveRef,
+    attribute: &str,
+) -> Result<(), ImportError> {
+    if acc.sparse().is_some() {
+        return Err(accessor_err(
+            at,
+            acc,
+            attribute,
+            "sparse accessors are not supported".into(),
+        ));
+    }
+    let Some(view) = acc.view() else {
+        return Err(accessor_err(
+            at,
+            acc,
+            attribute,
+            "has no buffer view (all-zero accessors are not supported)".into(),
+        ));
+    };
+    let bytes = view_bytes(&view, buffers).map_err(|p| accessor_err(at, acc, attribute, p))?;
+    if acc.count() == 0 {
+        return Err(accessor_err(at, acc, attribute, "count is 0".into()));
+    }
+    let elem = acc.size();
+    let stride = view.stride().unwrap_or(elem);
+    let need = (acc.count() - 1)
+        .checked_mul(stride)
+        .and_then(|s| s.checked_add(acc.offset()))
+        .and_then(|s| s.checked_add(elem));
+    match need {
+        Some(end) if end <= bytes.len() => Ok(()),
+        _ => Err(accessor_err(
+            at,
+            acc,
+            attribute,
+            format!(
+                "out of bounds: {} elements of {} bytes (stride {}, offset {}) need more than buffer view {}'s {} bytes",
+                acc.count(),
+                elem,
+                stride,
+                acc.offset(),
+                view.index(),
+                bytes.len()
+            ),
+        )),
+    }
+}
+
+fn read_vec3(
+    prim: &gltf::Primitive,
+    semantic: gltf::Semantic,
+    buffers: &[Vec<u8>],
+    at: &PrimitiveRef,
+) -> Result<Option<Vec<Vec3>>, ImportError> {
+    let Some(acc) = prim.get(&semantic) else {
+        return Ok(None);
+    };
+    let name = semantic.to_string();
+    check_accessor(&acc, buffers, at, &name)?;
+    let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
+    let data: Option<Vec<Vec3>> = match semantic {
+        gltf::Semantic::Positions => reader
+            .read_positions()
+            .map(|it| it.map(Vec3::from_array).collect()),
+        gltf::Semantic::Normals => reader
+            .read_normals()
+            .map(|it| it.map(Vec3::from_array).collect()),
+        _ => None,
+    };
+    let data = data.ok_or_else(|| {
+        accessor_err(
+            at,
+            &acc,
+            &name,
+            "cannot be read (wrong component type?)".into(),
+        )
+    })?;
+    if let Some((i, v)) = data.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(accessor_err(
+            at,
+            &acc,
+            &name,
+            format!("element {i} is not finite: {:?}", v.to_array()),
+        ));
+    }
+    Ok(Some(data))
+}
+
+fn read_vec2(
+    prim: &gltf::Primitive,
+    set: u32,
+    buffers: &[Vec<u8>],
+    at: &PrimitiveRef,
+) -> Result<Option<Vec<Vec2>>, ImportError> {
+    let semantic = gltf::Semantic::TexCoords(set);
+    let Some(acc) = prim.get(&semantic) else {
+        return Ok(None);
+    };
+    let name = semantic.to_string();
+    check_accessor(&acc, buffers, at, &name)?;
+    let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
+    let data: Vec<Vec2> = reader
+        .read_tex_coords(set)
+        .ok_or_else(|| {
+            accessor_err(
+                at,
+                &acc,
+                &name,
+                "cannot be read (wrong component type?)".into(),
+            )
+        })?
+        .into_f32()
+        .map(Vec2::from_array)
+        .collect();
+    if let Some((i, v)) = data.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(accessor_err(
+            at,
+            &acc,
+            &name,
+            format!("element {i} is not finite: {:?}", v.to_array()),
+        ));
+    }
+    Ok(Some(data))
+}

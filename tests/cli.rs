@@ -1,0 +1,249 @@
+//! The command line end to end: the README's main job on the bundled scene, the EXR it
+//! writes (read back with the `exr` crate, and with OpenEXR's `exrheader` when it is
+//! installed), and exit code 2 with one clear line for bad input.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use exr::prelude::{ReadChannels, ReadLayers};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("lightmapd-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+fn bundled() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb")
+}
+
+#[test]
+fn bundled_scene_is_what_the_generator_writes() {
+    let out = tmp("generated.glb");
+    let status = bin()
+        .args(["example", "cornell-box", "-o"])
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    assert_eq!(
+        std::fs::read(&out).unwrap(),
+        std::fs::read(bundled()).unwrap(),
+        "regenerate scenes/cornell-box.glb with `lightmapd example -o`"
+    );
+}
+
+#[test]
+fn bake_writes_a_readable_exr_with_layers_and_metadata() {
+    let out = tmp("cornell.exr");
+    let output = bin()
+        .arg("bake")
+        .arg(bundled())
+        .arg("-o")
+        .arg(&out)
+        .args([
+            "--resolution",
+            "32",
+            "--steps",
+            "4",
+            "--outputs",
+            "validity,direct,indirect",
+            "--seed",
+            "7",
+        ])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stderr.contains("4 steps"), "{stderr}");
+
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_file(&out)
+        .unwrap();
+    let layer = &image.layer_data[0];
+    assert_eq!(layer.size.0, 32);
+    assert_eq!(layer.size.1, 32);
+    let names: Vec<String> = layer
+        .channel_data
+        .list
+        .iter()
+        .map(|c| c.name.to_string())
+        .collect();
+    for want in ["R", "G", "B", "direct.R", "indirect.G", "validity.Y"] {
+        assert!(
+            names.iter().any(|n| n == want),
+            "missing channel {want} in {names:?}"
+        );
+    }
+    let channel = |name: &str| -> Vec<f32> {
+        let c = layer
+            .channel_data
+            .list
+            .iter()
+            .find(|c| c.name.to_string() == name)
+            .unwrap();
+        c.sample_data.values_as_f32().collect()
+    };
+    let (r, dr, ir, valid) = (
+        channel("R"),
+        channel("direct.R"),
+        channel("indirect.R"),
+        channel("validity.Y"),
+    );
+    let n_valid = valid.iter().filter(|v| **v == 1.0).count();
+    assert!(n_valid > 100, "{n_valid} valid texels");
+    assert!(valid.iter().all(|v| *v == 0.0 || *v == 1.0));
+    // The full lightmap is direct + indirect wherever the indirect part is not clamped.
+    for k in 0..r.len() {
+        if valid[k] == 1.0 && ir[k] > 0.0 {
+            assert!(
+                (r[k] - dr[k] - ir[k]).abs() <= 1e-5 * r[k].max(1.0),
+                "texel {k}: {} != {} + {}",
+                r[k],
+                dr[k],
+                ir[k]
+            );
+        }
+        assert!(r[k].is_finite() && r[k] >= 0.0);
+    }
+    // Something is lit.
+    assert!(r.iter().any(|v| *v > 0.1));
+    let attrs = &layer.attributes.other;
+    let text = |k: &str| match attrs.get(&exr::prelude::Text::from(k)) {
+        Some(exr::prelude::AttributeValue::Text(t)) => t.to_string(),
+        other => panic!("attribute {k}: {other:?}"),
+    };
+    assert_eq!(text("lightmapd:technique"), "path");
+    assert_eq!(text("lightmapd:seed"), "7");
+    assert!(text("lightmapd:params").contains("samples_per_step"));
+    assert!(matches!(
+        attrs.get(&exr::prelude::Text::from("lightmapd:steps")),
+        Some(exr::prelude::AttributeValue::I32(4))
+    ));
+
+    // OpenEXR's own reader, where installed (the README's set-up installs it).
+    if let Ok(o) = Command::new("exrheader").arg(&out).output() {
+        let text = String::from_utf8_lossy(&o.stdout);
+        assert!(o.status.success(), "exrheader failed: {text}");
+        assert!(text.contains("validity.Y, 32-bit floating-point"), "{text}");
+        assert!(
+            text.contains("lightmapd:technique (type string): \"path\""),
+            "{text}"
+        );
+    } else {
+        eprintln!("exrheader not installed: checked with the exr crate only");
+    }
+}
+
+fn assert_bad_input(args: &[&str], scene: &Path, expect: &str) {
+    let output = bin()
+        .arg("bake")
+        .arg(scene)
+        .args(["-o"])
+        .arg(tmp("never.exr"))
+        .args(args)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(2), "{stderr}");
+    assert_eq!(stderr.lines().count(), 1, "one line, got: {stderr}");
+    assert!(
+        stderr.starts_with("error: ") && stderr.contains(expect),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("panicked"));
+}
+
+#[test]
+fn malformed_glb_exits_2_with_one_line() {
+    let bad = tmp("broken.glb");
+    let mut glb = std::fs::read(bundled()).unwrap();
+    glb.truncate(glb.len() / 2);
+    std::fs::write(&bad, &glb).unwrap();
+    assert_bad_input(
+        &[],
+        &bad,
+        "broken.glb: not a glTF 2.0 file: broken GLB container",
+    );
+
+    let garbage = tmp("garbage.glb");
+    std::fs::write(&garbage, b"definitely not a scene").unwrap();
+    assert_bad_input(&[], &garbage, "neither a GLB header");
+
+    assert_bad_input(
+        &[],
+        Path::new("/nonexistent/scene.glb"),
+        "cannot read /nonexistent/scene.glb",
+    );
+}
+
+#[test]
+fn bad_options_exit_2() {
+    let scene = bundled();
+    assert_bad_input(
+        &["--technique", "magic"],
+        &scene,
+        "unknown technique \"magic\"",
+    );
+    assert_bad_input(
+        &["--resolution", "0", "--steps", "1"],
+        &scene,
+        "lightmap resolution 0x0 is out of range",
+    );
+    assert_bad_input(
+        &["--params", "{\"samples_per_step\": 0}", "--steps", "1"],
+        &scene,
+        "params.samples_per_step must be in 1..=4096",
+    );
+    assert_bad_input(
+        &["--params", "{\"bogus\": 1}", "--steps", "1"],
+        &scene,
+        "unknown field `bogus`",
+    );
+    assert_bad_input(
+        &["--sun", "0,0,0,0.5,1,1,1", "--steps", "1"],
+        &scene,
+        "sun direction must not be zero",
+    );
+    assert_bad_input(
+        &["--sun", "0,-1,0,0,1,1,1", "--steps", "1"],
+        &scene,
+        "angular_diameter_deg must be in (0, 180)",
+    );
+    assert_bad_input(
+        &["--seconds=-1"],
+        &scene,
+        "stop.seconds must be a positive number",
+    );
+    // clap's own errors use exit code 2 as well.
+    let o = bin()
+        .args(["bake", "--resolution", "abc"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+}
+
+#[test]
+fn a_failing_bake_leaves_an_existing_lightmap_alone() {
+    let out = tmp("keep.exr");
+    std::fs::write(&out, b"previous lightmap").unwrap();
+    let o = bin()
+        .arg("bake")
+        .arg(bundled())
+        .arg("-o")
+        .arg(&out)
+        .args(["--technique", "magic"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert_eq!(std::fs::read(&out).unwrap(), b"previous lightmap");
+}

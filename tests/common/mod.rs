@@ -1,0 +1,88 @@
+//! Shared helpers for the engine's integration tests: build a scene in code, import it
+//! through the real glTF path, bake it, and compare against analytic answers with
+//! tolerances that follow from the sample count.
+#![allow(dead_code)]
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use lightmapd::engine::accumulate::{Estimate, LUMINANCE};
+use lightmapd::engine::atlas::{Atlas, Texel};
+use lightmapd::engine::scene::build::SceneBuilder;
+use lightmapd::engine::scene::{Lighting, Scene, import_slice};
+use lightmapd::engine::technique::{self, BakeInputs};
+
+pub fn import(builder: &SceneBuilder) -> Scene {
+    import_slice(&builder.to_glb(), None)
+        .expect("test scene imports")
+        .0
+}
+
+/// Bakes `steps` steps of `technique` and returns the atlas and the estimate.
+pub fn bake(
+    scene: Scene,
+    resolution: u32,
+    lighting: Lighting,
+    technique: &str,
+    params: serde_json::Value,
+    steps: u64,
+) -> (Arc<Atlas>, Estimate) {
+    let scene = Arc::new(scene);
+    let atlas = Arc::new(Atlas::build(&scene, resolution, resolution).expect("atlas"));
+    let inputs = BakeInputs {
+        scene,
+        atlas: atlas.clone(),
+        lighting,
+        seed: 1,
+        want_direct: true,
+    };
+    let mut tech = technique::create(technique, inputs, &params).expect("technique prepares");
+    for _ in 0..steps {
+        tech.step().expect("step");
+    }
+    (atlas, tech.snapshot().expect("snapshot").estimate())
+}
+
+pub fn lum(v: Vec3) -> f64 {
+    v.dot(LUMINANCE) as f64
+}
+
+/// Compares an unbiased estimate with `expected` over the texels `select` keeps.
+///
+/// The texels are independent (separate random streams), so the mean deviation over n
+/// texels has standard error sqrt(Σ se_t²) / n, with se_t each texel's standard error
+/// from the two half-accumulators. A mean deviation beyond 5 of those (probability
+/// below 1e-6 for an unbiased estimator) or beyond the stated `model_bias` is a failure.
+/// Returns (mean relative deviation, its standard error, texel count).
+pub fn assert_unbiased(
+    atlas: &Atlas,
+    est: &Estimate,
+    select: impl Fn(&Texel) -> bool,
+    expected: impl Fn(&Texel) -> Vec3,
+    model_bias: f64,
+    what: &str,
+) -> (f64, f64, usize) {
+    let se = est.texel_error.as_ref().expect("both halves have steps");
+    let (mut dev, mut var, mut norm, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
+    for (k, t) in atlas.texels.iter().enumerate() {
+        if !select(t) {
+            continue;
+        }
+        let e = lum(expected(t));
+        dev += lum(est.total[k]) - e;
+        var += (se[k] as f64).powi(2);
+        norm += e;
+        n += 1;
+    }
+    assert!(n > 0, "{what}: no texel selected");
+    let mean_dev = dev / norm;
+    let mean_se = var.sqrt() / norm;
+    eprintln!(
+        "{what}: {n} texels, mean relative deviation {mean_dev:+.5} (standard error {mean_se:.5}, model bias allowance {model_bias})"
+    );
+    assert!(
+        mean_dev.abs() <= 5.0 * mean_se + model_bias,
+        "{what}: mean relative deviation {mean_dev:+.5} exceeds 5 standard errors ({mean_se:.5}) + {model_bias}"
+    );
+    (mean_dev, mean_se, n)
+}

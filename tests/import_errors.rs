@@ -1,0 +1,328 @@
+//! Every import error, from a deliberately broken file: each must be a specific error
+//! that names the place (mesh, primitive, accessor, buffer), never a panic.
+
+use glam::Vec3;
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
+use lightmapd::engine::scene::{ImportError, import_file, import_slice};
+use serde_json::{Value, json};
+
+fn quad_scene() -> SceneBuilder {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("Floor", Vec3::ZERO, 2.0, Vec3::Y, m);
+    b
+}
+
+fn err_of(json: &Value, bin: &[u8]) -> String {
+    match import_slice(&write_glb(json, bin), None) {
+        Ok(_) => panic!("import should fail"),
+        Err(e) => e.to_string(),
+    }
+}
+
+/// Accessor index of `attribute` in mesh 0, primitive 0.
+fn accessor(json: &Value, attribute: &str) -> usize {
+    json["meshes"][0]["primitives"][0]["attributes"][attribute]
+        .as_u64()
+        .unwrap() as usize
+}
+
+/// Byte offset of accessor `a`'s data in the binary buffer.
+fn data_offset(json: &Value, a: usize) -> usize {
+    let view = json["accessors"][a]["bufferView"].as_u64().unwrap() as usize;
+    json["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize
+}
+
+#[test]
+fn not_gltf() {
+    let e = import_slice(b"\x89PNG\r\n\x1a\n not a scene", None).unwrap_err();
+    assert!(matches!(e, ImportError::NotGltf(_)), "{e}");
+    assert!(e.to_string().contains("neither a GLB header"), "{e}");
+    let e = import_slice(b"", None).unwrap_err();
+    assert_eq!(e.to_string(), "not a glTF 2.0 file: the file is empty");
+    let e = import_slice(b"{\"asset\": ", None).unwrap_err();
+    assert!(matches!(e, ImportError::NotGltf(_)), "{e}");
+}
+
+#[test]
+fn truncated_glb() {
+    let glb = quad_scene().to_glb();
+    let e = import_slice(&glb[..glb.len() - 40], None).unwrap_err();
+    assert!(matches!(e, ImportError::NotGltf(_)), "{e}");
+    assert!(e.to_string().contains("GLB"), "{e}");
+}
+
+#[test]
+fn truncated_data_uri_buffer() {
+    use base64::Engine as _;
+    let (mut json, bin) = quad_scene().to_gltf();
+    let short = base64::engine::general_purpose::STANDARD.encode(&bin[..bin.len() / 2]);
+    json["buffers"][0]["uri"] = json!(format!("data:application/octet-stream;base64,{short}"));
+    let text = serde_json::to_vec(&json).unwrap();
+    let e = import_slice(&text, None).unwrap_err().to_string();
+    assert!(e.starts_with("buffer 0: truncated: byteLength is"), "{e}");
+}
+
+#[test]
+fn missing_external_buffer() {
+    let dir = std::env::temp_dir().join(format!("lightmapd-missing-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (mut json, _) = quad_scene().to_gltf();
+    json["buffers"][0]["uri"] = json!("scene.bin");
+    let path = dir.join("scene.gltf");
+    std::fs::write(&path, serde_json::to_vec(&json).unwrap()).unwrap();
+    let e = import_file(&path).unwrap_err().to_string();
+    assert!(
+        e.starts_with("buffer 0: uri: cannot read external file \"scene.bin\""),
+        "{e}"
+    );
+    // The same file sent without a folder (as the service receives it) says so.
+    let e = import_slice(&std::fs::read(&path).unwrap(), None)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("cannot be resolved here"), "{e}");
+    // Paths must stay inside the scene's folder.
+    json["buffers"][0]["uri"] = json!("../../etc/passwd");
+    std::fs::write(&path, serde_json::to_vec(&json).unwrap()).unwrap();
+    let e = import_file(&path).unwrap_err().to_string();
+    assert!(
+        e.contains("must be a relative path inside the scene's folder"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn external_buffer_is_read() {
+    let dir = std::env::temp_dir().join(format!("lightmapd-external-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (mut json, bin) = quad_scene().to_gltf();
+    json["buffers"][0]["uri"] = json!("quad%20data.bin");
+    std::fs::write(dir.join("quad data.bin"), &bin).unwrap();
+    std::fs::write(dir.join("quad.gltf"), serde_json::to_vec(&json).unwrap()).unwrap();
+    let (scene, report) = import_file(&dir.join("quad.gltf")).unwrap();
+    assert_eq!(scene.triangles.len(), 2);
+    assert_eq!(report.triangles, 2);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn accessor_out_of_bounds() {
+    let (mut json, bin) = quad_scene().to_gltf();
+    let a = accessor(&json, "POSITION");
+    json["accessors"][a]["count"] = json!(1000);
+    let e = err_of(&json, &bin);
+    assert!(
+        e.starts_with(&format!(
+            "mesh 0 \"Floor\", primitive 0: accessor {a} (POSITION): out of bounds: 1000 elements"
+        )),
+        "{e}"
+    );
+}
+
+#[test]
+fn buffer_view_outside_buffer() {
+    let (mut json, bin) = quad_scene().to_gltf();
+    let a = accessor(&json, "NORMAL");
+    let view = json["accessors"][a]["bufferView"].as_u64().unwrap() as usize;
+    json["bufferViews"][view]["byteOffset"] = json!(bin.len() - 8);
+    let e = err_of(&json, &bin);
+    assert!(
+        e.contains(&format!("accessor {a} (NORMAL)")) && e.contains("lies outside buffer 0"),
+        "{e}"
+    );
+}
+
+#[test]
+fn nan_and_infinite_positions() {
+    for bad in [f32::NAN, f32::INFINITY] {
+        let (json, mut bin) = quad_scene().to_gltf();
+        let a = accessor(&json, "POSITION");
+        let off = data_offset(&json, a) + 12 * 2 + 4; // vertex 2, y
+        bin[off..off + 4].copy_from_slice(&bad.to_le_bytes());
+        let e = err_of(&json, &bin);
+        assert!(
+            e.starts_with(&format!(
+                "mesh 0 \"Floor\", primitive 0: accessor {a} (POSITION): element 2 is not finite"
+            )),
+            "{e}"
+        );
+    }
+}
+
+#[test]
+fn nan_lightmap_uv() {
+    let (json, mut bin) = quad_scene().to_gltf();
+    let a = accessor(&json, "TEXCOORD_1");
+    let off = data_offset(&json, a) + 8; // vertex 1, u
+    bin[off..off + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let e = err_of(&json, &bin);
+    assert!(
+        e.contains(&format!(
+            "accessor {a} (TEXCOORD_1): element 1 is not finite"
+        )),
+        "{e}"
+    );
+}
+
+#[test]
+fn lightmap_uv_outside_unit_square() {
+    let (json, mut bin) = quad_scene().to_gltf();
+    let a = accessor(&json, "TEXCOORD_1");
+    let off = data_offset(&json, a) + 8 * 3 + 4; // vertex 3, v
+    bin[off..off + 4].copy_from_slice(&1.25f32.to_le_bytes());
+    let e = err_of(&json, &bin);
+    assert!(
+        e.contains(&format!("accessor {a} (TEXCOORD_1): lightmap UV"))
+            && e.contains("of vertex 3 is outside [0, 1]"),
+        "{e}"
+    );
+}
+
+#[test]
+fn no_lightmap_uvs() {
+    let (mut json, bin) = quad_scene().to_gltf();
+    json["meshes"][0]["primitives"][0]["attributes"]
+        .as_object_mut()
+        .unwrap()
+        .remove("TEXCOORD_1");
+    let e = err_of(&json, &bin);
+    assert!(
+        e.starts_with(
+            "the scene has no lightmap UVs: mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1"
+        ),
+        "{e}"
+    );
+}
+
+#[test]
+fn no_triangles() {
+    let (mut json, bin) = quad_scene().to_gltf();
+    json["meshes"][0]["primitives"][0]["mode"] = json!(0); // POINTS
+    let e = err_of(&json, &bin);
+    assert_eq!(e, "the scene has no triangles to bake");
+
+    // All triangles degenerate: said so.
+    let (json, mut bin) = quad_scene().to_gltf();
+    let a = accessor(&json, "POSITION");
+    let off = data_offset(&json, a);
+    for v in 0..4 {
+        bin[off + 12 * v..off + 12 * v + 12]
+            .copy_from_slice(bytemuck::cast_slice(&[1.0f32, 2.0, 3.0]));
+    }
+    let e = err_of(&json, &bin);
+    assert_eq!(
+        e,
+        "the scene has no triangles to bake (all 2 triangles are degenerate)"
+    );
+}
+
+#[test]
+fn degenerate_triangles_are_dropped_and_counted() {
+    let (mut json, mut bin) = quad_scene().to_gltf();
+    // Append a third triangle (0, 0, 1): zero area.
+    let idx = json["meshes"][0]["primitives"][0]["indices"]
+        .as_u64()
+        .unwrap() as usize;
+    let view = json["accessors"][idx]["bufferView"].as_u64().unwrap() as usize;
+    assert_eq!(
+        json["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize + 24,
+        bin.len(),
+        "indices are last"
+    );
+    bin.extend_from_slice(bytemuck::cast_slice(&[0u32, 0, 1]));
+    json["bufferViews"][view]["byteLength"] = json!(36);
+    json["accessors"][idx]["count"] = json!(9);
+    json["buffers"][0]["byteLength"] = json!(bin.len());
+    let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert_eq!(scene.triangles.len(), 2);
+    assert_eq!(report.degenerate_triangles, 1);
+    assert_eq!(report.triangles, 2);
+}
+
+#[test]
+fn index_past_the_vertices() {
+    let (json, mut bin) = quad_scene().to_gltf();
+    let n = bin.len();
+    bin[n - 4..].copy_from_slice(&7u32.to_le_bytes());
+    let e = err_of(&json, &bin);
+    assert!(
+        e.contains("(indices): index 7 at position 5 is past the 4 vertices"),
+        "{e}"
+    );
+}
+
+#[test]
+fn non_triangle_modes_are_named_in_a_warning() {
+    let (mut json, bin) = quad_scene().to_gltf();
+    let prim = json["meshes"][0]["primitives"][0].clone();
+    let mut lines = prim.clone();
+    lines["mode"] = json!(1);
+    json["meshes"][0]["primitives"] = json!([prim, lines]);
+    let (_, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert_eq!(
+        report.warnings,
+        vec![
+            "mesh 0 \"Floor\", primitive 1: mode Lines is not TRIANGLES and is skipped".to_string()
+        ]
+    );
+}
+
+#[test]
+fn mirrored_node_keeps_front_faces_in_front() {
+    let (mut json, bin) = quad_scene().to_gltf();
+    json["nodes"][0]["scale"] = json!([-1.0, 1.0, 1.0]);
+    let (scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    for t in &scene.triangles {
+        assert!(
+            (t.geometric_normal() - Vec3::Y).length() < 1e-6,
+            "{}",
+            t.geometric_normal()
+        );
+        assert!((t.n[0] - Vec3::Y).length() < 1e-6);
+    }
+}
+
+#[test]
+fn node_hierarchy_transforms_compose() {
+    let (mut json, bin) = quad_scene().to_gltf();
+    // Parent translates by (10, 0, 0) and scales by 2; child is the quad, moved up 1.
+    json["nodes"][0]["translation"] = json!([0.0, 1.0, 0.0]);
+    json["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(json!({"children": [0], "translation": [10.0, 0.0, 0.0], "scale": [2.0, 2.0, 2.0]}));
+    json["scenes"][0]["nodes"] = json!([1]);
+    let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    // World y = 2 * 1 = 2, x in 10 + 2 * [-1, 1].
+    assert_eq!(report.bounds_min, [8.0, 2.0, -2.0]);
+    assert_eq!(report.bounds_max, [12.0, 2.0, 2.0]);
+    assert!((scene.origin_offset.x - 10.0).abs() < 1e-12);
+}
+
+#[test]
+fn emissive_strength_and_lights_are_read() {
+    let mut b = quad_scene();
+    let lamp = b.material(MaterialDesc::emissive("lamp", [1.0; 3], [40.0, 20.0, 10.0]));
+    b.square("panel", Vec3::new(0.0, 2.0, 0.0), 0.5, Vec3::NEG_Y, lamp);
+    b.light(lightmapd::engine::scene::build::LightDesc::Spot {
+        position: Vec3::new(0.0, 3.0, 0.0),
+        direction: Vec3::NEG_Y,
+        color: [1.0, 0.5, 0.25],
+        intensity: 8.0,
+        inner: 0.2,
+        outer: 0.5,
+    });
+    let (scene, report) = import_slice(&b.to_glb(), None).unwrap();
+    assert_eq!(report.lights, 1);
+    assert_eq!(report.emissive_triangles, 2);
+    let l = &scene.lights[0];
+    assert!((l.intensity - Vec3::new(8.0, 4.0, 2.0)).length() < 1e-5);
+    assert!((l.direction - Vec3::NEG_Y).length() < 1e-5);
+    let m = scene.materials.iter().find(|m| m.name == "lamp").unwrap();
+    assert!(
+        (m.emissive - Vec3::new(40.0, 20.0, 10.0)).length() < 1e-4,
+        "{}",
+        m.emissive
+    );
+}
