@@ -33,9 +33,7 @@ impl StopCriteria {
             ));
         }
         if self.steps == Some(0) {
-            return Err(EngineError::BadInput(
-                "stop.steps must be at least 1".into(),
-            ));
+            return Err(EngineError::BadInput("stop.steps must be at least 1".into()));
         }
         if let Some(s) = self.seconds
             && !(s.is_finite() && s > 0.0)
@@ -129,12 +127,8 @@ impl BakeLoop {
                 })
                 .is_break();
             let by_steps = self.stop.steps.is_some_and(|n| steps >= n);
-            let by_time = self
-                .stop
-                .seconds
-                .is_some_and(|s| elapsed.as_secs_f64() >= s);
-            let scheduled =
-                steps >= next_doubling || last_snapshot.elapsed() >= self.snapshot_interval;
+            let by_time = self.stop.seconds.is_some_and(|s| elapsed.as_secs_f64() >= s);
+            let scheduled = steps >= next_doubling || last_snapshot.elapsed() >= self.snapshot_interval;
             if !(cancelled || by_steps || by_time || scheduled) {
                 continue;
             }

@@ -13,9 +13,7 @@ use lightmapd::engine::scene::{Lighting, Scene, import_slice};
 use lightmapd::engine::technique::{self, BakeInputs};
 
 pub fn import(builder: &SceneBuilder) -> Scene {
-    import_slice(&builder.to_glb(), None)
-        .expect("test scene imports")
-        .0
+    import_slice(&builder.to_glb(), None).expect("test scene imports").0
 }
 
 /// Bakes `steps` steps of `technique` and returns the atlas and the estimate.

@@ -64,11 +64,7 @@ pub trait Technique: Send {
 }
 
 /// Prepares technique `id` with `params` (a JSON object; unknown fields are rejected).
-pub fn create(
-    id: &str,
-    inputs: BakeInputs,
-    params: &Value,
-) -> Result<Box<dyn Technique>, EngineError> {
+pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Technique>, EngineError> {
     match id {
         "path" => Ok(Box::new(path::PathTracer::prepare(inputs, params)?)),
         other => Err(EngineError::BadInput(format!(
@@ -86,6 +82,5 @@ pub fn parse_params<T: serde::de::DeserializeOwned + Default>(
     if params.is_null() {
         return Ok(T::default());
     }
-    serde_json::from_value(params.clone())
-        .map_err(|e| EngineError::BadInput(format!("params for {technique}: {e}")))
+    serde_json::from_value(params.clone()).map_err(|e| EngineError::BadInput(format!("params for {technique}: {e}")))
 }

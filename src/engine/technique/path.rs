@@ -137,8 +137,7 @@ impl Technique for PathTracer {
                 let mut direct = Vec3::ZERO;
                 for s in 0..spp {
                     let mut rng = Rng::new(seed, step, ti as u64, s as u64);
-                    let (t, d) =
-                        ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
+                    let (t, d) = ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
                     total += t;
                     direct += d;
                 }
@@ -188,11 +187,7 @@ impl Tracer {
                 v2: t.p[2].into(),
             })
             .collect();
-        let bvh = build_cwbvh_from_tris(
-            &tris,
-            obvhs::BvhBuildParams::medium_build(),
-            &mut Duration::default(),
-        );
+        let bvh = build_cwbvh_from_tris(&tris, obvhs::BvhBuildParams::medium_build(), &mut Duration::default());
         let mut emitters = Vec::new();
         let mut weights = Vec::new();
         for (i, t) in scene.triangles.iter().enumerate() {
@@ -236,10 +231,7 @@ impl Tracer {
         }
         let triangle = self.bvh.primitive_indices[hit.primitive_id as usize];
         let tri = &scene.triangles[triangle as usize];
-        let (t, bary) = intersect(
-            tri,
-            &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY),
-        )?;
+        let (t, bary) = intersect(tri, &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY))?;
         Some(Hit { triangle, t, bary })
     }
 
@@ -392,9 +384,8 @@ impl PathContext<'_> {
             }
             throughput *= albedo / survive;
             let side = if front { 1.0 } else { -1.0 };
-            let shading = (tri.n[0] * hit.bary.x + tri.n[1] * hit.bary.y + tri.n[2] * hit.bary.z)
-                .normalize_or_zero()
-                * side;
+            let shading =
+                (tri.n[0] * hit.bary.x + tri.n[1] * hit.bary.y + tri.n[2] * hit.bary.z).normalize_or_zero() * side;
             ng = geo * side;
             n = if shading.dot(ng) > 0.0 { shading } else { ng };
             x = p + ng * self.eps;
@@ -432,21 +423,13 @@ impl PathContext<'_> {
                         // KHR_lights_punctual's recommended window, so lights end at range.
                         falloff *= (1.0 - (dist / range).powi(4)).clamp(0.0, 1.0).powi(2);
                     }
-                    if let LightKind::Spot {
-                        inner_cone,
-                        outer_cone,
-                    } = light.kind
-                    {
+                    if let LightKind::Spot { inner_cone, outer_cone } = light.kind {
                         let cd = (-d).dot(light.direction);
                         let scale = 1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3);
                         let a = ((cd - outer_cone.cos()) * scale).clamp(0.0, 1.0);
                         falloff *= a * a;
                     }
-                    if falloff > 0.0
-                        && self
-                            .tracer
-                            .unoccluded(self.scene, x, d, dist * (1.0 - 1e-4))
-                    {
+                    if falloff > 0.0 && self.tracer.unoccluded(self.scene, x, d, dist * (1.0 - 1e-4)) {
                         sum += light.intensity * falloff * d.dot(n) * FRAC_1_PI;
                     }
                 }
@@ -490,13 +473,8 @@ impl PathContext<'_> {
                 if front(d) && cos_l > 0.0 {
                     let emission = self.scene.emission(tri, bary);
                     // Stop short of the emitter itself so it does not occlude its own sample.
-                    if emission != Vec3::ZERO
-                        && self
-                            .tracer
-                            .unoccluded(self.scene, x, d, dist * (1.0 - 1e-4))
-                    {
-                        let pdf_light =
-                            self.tracer.emitter_pick[ti as usize] / tri.area() * dist2 / cos_l;
+                    if emission != Vec3::ZERO && self.tracer.unoccluded(self.scene, x, d, dist * (1.0 - 1e-4)) {
+                        let pdf_light = self.tracer.emitter_pick[ti as usize] / tri.area() * dist2 / cos_l;
                         let cos = d.dot(n);
                         let w = power_heuristic(pdf_light, cos * FRAC_1_PI);
                         sum += emission * cos * FRAC_1_PI / pdf_light * w;
