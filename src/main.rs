@@ -261,6 +261,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         &job::BakeOptions::default(),
         &mut observer,
         &mut on_atlas,
+        &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
     )
     .map_err(|e| Failure {
         code: if e.is_bad_input() { 2 } else { 1 },
@@ -278,6 +279,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         })?;
     }
     let s = &result.summary;
+    eprintln!("plan: {}", s.plan.summary_line());
     let err = s
         .error
         .relative

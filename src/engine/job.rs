@@ -14,6 +14,7 @@ use crate::engine::accumulate::{ErrorSummary, Estimate};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
+use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
 use crate::engine::scene::{Lighting, Scene};
 use crate::engine::technique::{self, BakeInputs, EngineError};
@@ -56,6 +57,7 @@ pub struct BakeSummary {
     pub seconds: f64,
     pub stopped_by: StopReason,
     pub error: ErrorSummary,
+    pub plan: Plan,
 }
 
 pub struct BakeResult {
@@ -91,25 +93,26 @@ pub fn bake(
     options: &BakeOptions,
     observer: &mut dyn BakeObserver,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+    on_plan: &mut dyn FnMut(&Plan),
 ) -> Result<BakeResult, EngineError> {
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
+    let plan = crate::engine::plan::build(&scene, request)?;
+    on_plan(&plan);
     let atlas = Arc::new(
         Atlas::build(&scene, request.resolution, request.resolution)
             .map_err(|e| EngineError::BadInput(e.to_string()))?,
     );
     let report = atlas.report();
     on_atlas(&atlas);
-    let want_direct = request
-        .outputs
-        .iter()
-        .any(|o| matches!(o, OutputLayer::Direct | OutputLayer::Indirect));
+    let want_direct = plan.runs("direct-light layer");
     let inputs = BakeInputs {
         scene,
         atlas: atlas.clone(),
         lighting: request.lighting,
         seed: request.seed,
         want_direct,
+        plan: plan.clone(),
     };
     let mut tech = technique::create(&request.technique, inputs, &request.params)?;
     let mut bake_loop = BakeLoop::new(request.stop);
@@ -124,6 +127,7 @@ pub fn bake(
         seconds: outcome.elapsed.as_secs_f64(),
         stopped_by: outcome.stopped_by,
         error: outcome.estimate.error,
+        plan,
     };
     Ok(BakeResult {
         exr,
