@@ -64,6 +64,8 @@ pub trait Technique: Send {
     fn steps_done(&self) -> u64;
     /// Both halves' current means, per valid texel.
     fn snapshot(&mut self) -> Result<Snapshot, EngineError>;
+    /// The pass that writes the accumulators, named when a snapshot is not finite.
+    fn accumulating_pass(&self) -> &'static str;
 }
 
 /// Prepares technique `id` with `params` (a JSON object; unknown fields are rejected).

@@ -220,6 +220,10 @@ impl Technique for PathTracer {
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         Ok(self.acc.snapshot())
     }
+
+    fn accumulating_pass(&self) -> &'static str {
+        "path trace"
+    }
 }
 
 /// BVH plus the light-sampling tables the path tracer needs.
