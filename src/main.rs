@@ -18,11 +18,7 @@ use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
 use lightmapd::engine::technique::TECHNIQUES;
 
 #[derive(Parser)]
-#[command(
-    name = "lightmapd",
-    version,
-    about = "Bakes lightmaps from glTF scenes"
-)]
+#[command(name = "lightmapd", version, about = "Bakes lightmaps from glTF scenes")]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -136,9 +132,7 @@ fn bad_input(message: impl Into<String>) -> Failure {
 
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
-        )
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .with_writer(std::io::stderr)
         .init();
     let cli = match Cli::try_parse() {
@@ -163,12 +157,10 @@ fn main() -> ExitCode {
         Command::Example {
             name: Example::CornellBox,
             output,
-        } => {
-            write_atomically(&output, &scene::build::cornell_box().to_glb()).map_err(|e| Failure {
-                code: 1,
-                message: format!("cannot write {}: {e}", output.display()),
-            })
-        }
+        } => write_atomically(&output, &scene::build::cornell_box().to_glb()).map_err(|e| Failure {
+            code: 1,
+            message: format!("cannot write {}: {e}", output.display()),
+        }),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -188,9 +180,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         )));
     }
     let params = match &args.params {
-        Some(p) => {
-            serde_json::from_str(p).map_err(|e| bad_input(format!("--params is not JSON: {e}")))?
-        }
+        Some(p) => serde_json::from_str(p).map_err(|e| bad_input(format!("--params is not JSON: {e}")))?,
         None => serde_json::Value::Null,
     };
     let stop = if args.steps.is_none() && args.seconds.is_none() && args.target_error.is_none() {
@@ -221,16 +211,12 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         seed: args.seed,
     };
 
-    let (scene, report) = scene::import_file(&args.scene)
-        .map_err(|e| bad_input(format!("{}: {e}", args.scene.display())))?;
+    let (scene, report) =
+        scene::import_file(&args.scene).map_err(|e| bad_input(format!("{}: {e}", args.scene.display())))?;
     for w in &report.warnings {
         eprintln!("warning: {w}");
     }
-    tracing::info!(
-        triangles = report.triangles,
-        lights = report.lights,
-        "scene imported"
-    );
+    tracing::info!(triangles = report.triangles, lights = report.lights, "scene imported");
 
     let bar = if std::io::stderr().is_terminal() {
         ProgressBar::new(0)
@@ -255,7 +241,8 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         }
         ControlFlow::Continue(())
     };
-    let mut on_atlas = |a: &lightmapd::engine::atlas::AtlasReport| {
+    let mut on_atlas = |atlas: &Arc<lightmapd::engine::atlas::Atlas>| {
+        let a = atlas.report();
         tracing::info!(
             texels = a.valid_texels,
             overlapping = a.overlapping_texels,
@@ -268,13 +255,18 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             );
         }
     };
-    let result =
-        job::bake(Arc::new(scene), &request, &mut observer, &mut on_atlas).map_err(|e| {
-            Failure {
-                code: if e.is_bad_input() { 2 } else { 1 },
-                message: e.to_string(),
-            }
-        })?;
+    let result = job::bake(
+        Arc::new(scene),
+        &request,
+        &job::BakeOptions::default(),
+        &mut observer,
+        &mut on_atlas,
+        &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
+    )
+    .map_err(|e| Failure {
+        code: if e.is_bad_input() { 2 } else { 1 },
+        message: e.to_string(),
+    })?;
     bar.finish_and_clear();
     write_atomically(&args.output, &result.exr).map_err(|e| Failure {
         code: 1,
@@ -287,6 +279,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         })?;
     }
     let s = &result.summary;
+    eprintln!("plan: {}", s.plan.summary_line());
     let err = s
         .error
         .relative

@@ -16,14 +16,7 @@ use serde_json::json;
 fn closed_cube(rho: f32, le: f32) {
     let mut b = SceneBuilder::new();
     let m = b.material(MaterialDesc::emissive("wall", [rho; 3], [le; 3]));
-    for n in [
-        Vec3::X,
-        Vec3::NEG_X,
-        Vec3::Y,
-        Vec3::NEG_Y,
-        Vec3::Z,
-        Vec3::NEG_Z,
-    ] {
+    for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
         // Face at -n facing inward (+n direction into the cube).
         b.square(&format!("face {n}"), -n, 2.0, n, m);
     }
@@ -49,10 +42,7 @@ fn closed_cube(rho: f32, le: f32) {
         &format!("closed cube rho={rho}"),
     );
     assert!(n > 1000);
-    assert!(
-        se < 0.02,
-        "too few samples to test anything: standard error {se}"
-    );
+    assert!(se < 0.02, "too few samples to test anything: standard error {se}");
     // Texel by texel, with no exceptions: no texel may be wildly off (leaks at edges).
     let se_t = est.texel_error.as_ref().unwrap();
     let worst = atlas
@@ -61,9 +51,7 @@ fn closed_cube(rho: f32, le: f32) {
         .enumerate()
         .map(|(k, _)| ((lum(est.total[k]) - lum(expected)) / lum(expected)).abs())
         .fold(0.0f64, f64::max);
-    let typical = (se_t.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / se_t.len() as f64)
-        .sqrt()
-        / lum(expected);
+    let typical = (se_t.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / se_t.len() as f64).sqrt() / lum(expected);
     assert!(
         worst < 8.0 * typical + 0.05,
         "worst texel off by {worst}, typical standard error {typical}"
@@ -98,14 +86,7 @@ fn plane_under_uniform_sky_reads_the_sky_radiance() {
     let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
     b.square("ground", Vec3::ZERO, 10.0, Vec3::Y, m);
     let l = 1.7;
-    let (atlas, est) = bake(
-        import(&b),
-        32,
-        upper_sky(l),
-        "path",
-        json!({"samples_per_step": 2}),
-        4,
-    );
+    let (atlas, est) = bake(import(&b), 32, upper_sky(l), "path", json!({"samples_per_step": 2}), 4);
     assert!(atlas.texels.len() > 500);
     for v in &est.total {
         assert!((*v - Vec3::splat(l)).abs().max_element() < 1e-5 * l, "{v}");
@@ -134,17 +115,9 @@ fn black_sphere_over_black_plane() {
     let offset = scene.origin_offset.as_vec3();
     let l = 1.0f32;
     // The plane's chart is centred at u = v = 0.25: a texel centre for W = 98 (texel 24).
-    let (atlas, est) = bake(
-        scene,
-        98,
-        upper_sky(l),
-        "path",
-        json!({"samples_per_step": 16}),
-        8,
-    );
-    let on_plane = |t: &lightmapd::engine::atlas::Texel| {
-        t.geo_normal.y > 0.99 && (t.position.y + offset.y).abs() < 1e-3
-    };
+    let (atlas, est) = bake(scene, 98, upper_sky(l), "path", json!({"samples_per_step": 16}), 8);
+    let on_plane =
+        |t: &lightmapd::engine::atlas::Texel| t.geo_normal.y > 0.99 && (t.position.y + offset.y).abs() < 1e-3;
     let expected = |t: &lightmapd::engine::atlas::Texel| {
         let p = t.position + offset;
         let s = ((p.x as f64).powi(2) + (p.z as f64).powi(2)).sqrt();
@@ -270,13 +243,6 @@ fn same_seed_same_lightmap() {
         json!({"samples_per_step": 1}),
         2,
     );
-    let (_, c) = bake(
-        scene,
-        24,
-        upper_sky(1.0),
-        "path",
-        json!({"samples_per_step": 1}),
-        2,
-    );
+    let (_, c) = bake(scene, 24, upper_sky(1.0), "path", json!({"samples_per_step": 1}), 2);
     assert_eq!(a.total, c.total);
 }

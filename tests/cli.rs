@@ -24,11 +24,7 @@ fn bundled() -> PathBuf {
 #[test]
 fn bundled_scene_is_what_the_generator_writes() {
     let out = tmp("generated.glb");
-    let status = bin()
-        .args(["example", "cornell-box", "-o"])
-        .arg(&out)
-        .status()
-        .unwrap();
+    let status = bin().args(["example", "cornell-box", "-o"]).arg(&out).status().unwrap();
     assert!(status.success());
     assert_eq!(
         std::fs::read(&out).unwrap(),
@@ -72,17 +68,9 @@ fn bake_writes_a_readable_exr_with_layers_and_metadata() {
     let layer = &image.layer_data[0];
     assert_eq!(layer.size.0, 32);
     assert_eq!(layer.size.1, 32);
-    let names: Vec<String> = layer
-        .channel_data
-        .list
-        .iter()
-        .map(|c| c.name.to_string())
-        .collect();
+    let names: Vec<String> = layer.channel_data.list.iter().map(|c| c.name.to_string()).collect();
     for want in ["R", "G", "B", "direct.R", "indirect.G", "validity.Y"] {
-        assert!(
-            names.iter().any(|n| n == want),
-            "missing channel {want} in {names:?}"
-        );
+        assert!(names.iter().any(|n| n == want), "missing channel {want} in {names:?}");
     }
     let channel = |name: &str| -> Vec<f32> {
         let c = layer
@@ -135,10 +123,7 @@ fn bake_writes_a_readable_exr_with_layers_and_metadata() {
         let text = String::from_utf8_lossy(&o.stdout);
         assert!(o.status.success(), "exrheader failed: {text}");
         assert!(text.contains("validity.Y, 32-bit floating-point"), "{text}");
-        assert!(
-            text.contains("lightmapd:technique (type string): \"path\""),
-            "{text}"
-        );
+        assert!(text.contains("lightmapd:technique (type string): \"path\""), "{text}");
     } else {
         eprintln!("exrheader not installed: checked with the exr crate only");
     }
@@ -156,10 +141,7 @@ fn assert_bad_input(args: &[&str], scene: &Path, expect: &str) {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert_eq!(output.status.code(), Some(2), "{stderr}");
     assert_eq!(stderr.lines().count(), 1, "one line, got: {stderr}");
-    assert!(
-        stderr.starts_with("error: ") && stderr.contains(expect),
-        "{stderr}"
-    );
+    assert!(stderr.starts_with("error: ") && stderr.contains(expect), "{stderr}");
     assert!(!stderr.contains("panicked"));
 }
 
@@ -169,11 +151,7 @@ fn malformed_glb_exits_2_with_one_line() {
     let mut glb = std::fs::read(bundled()).unwrap();
     glb.truncate(glb.len() / 2);
     std::fs::write(&bad, &glb).unwrap();
-    assert_bad_input(
-        &[],
-        &bad,
-        "broken.glb: not a glTF 2.0 file: broken GLB container",
-    );
+    assert_bad_input(&[], &bad, "broken.glb: not a glTF 2.0 file: broken GLB container");
 
     let garbage = tmp("garbage.glb");
     std::fs::write(&garbage, b"definitely not a scene").unwrap();
@@ -189,11 +167,7 @@ fn malformed_glb_exits_2_with_one_line() {
 #[test]
 fn bad_options_exit_2() {
     let scene = bundled();
-    assert_bad_input(
-        &["--technique", "magic"],
-        &scene,
-        "unknown technique \"magic\"",
-    );
+    assert_bad_input(&["--technique", "magic"], &scene, "unknown technique \"magic\"");
     assert_bad_input(
         &["--resolution", "0", "--steps", "1"],
         &scene,
@@ -219,16 +193,9 @@ fn bad_options_exit_2() {
         &scene,
         "angular_diameter_deg must be in (0, 180)",
     );
-    assert_bad_input(
-        &["--seconds=-1"],
-        &scene,
-        "stop.seconds must be a positive number",
-    );
+    assert_bad_input(&["--seconds=-1"], &scene, "stop.seconds must be a positive number");
     // clap's own errors use exit code 2 as well.
-    let o = bin()
-        .args(["bake", "--resolution", "abc"])
-        .output()
-        .unwrap();
+    let o = bin().args(["bake", "--resolution", "abc"]).output().unwrap();
     assert_eq!(o.status.code(), Some(2));
 }
 

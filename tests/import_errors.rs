@@ -85,10 +85,7 @@ fn missing_external_buffer() {
     json["buffers"][0]["uri"] = json!("../../etc/passwd");
     std::fs::write(&path, serde_json::to_vec(&json).unwrap()).unwrap();
     let e = import_file(&path).unwrap_err().to_string();
-    assert!(
-        e.contains("must be a relative path inside the scene's folder"),
-        "{e}"
-    );
+    assert!(e.contains("must be a relative path inside the scene's folder"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -158,9 +155,7 @@ fn nan_lightmap_uv() {
     bin[off..off + 4].copy_from_slice(&f32::NAN.to_le_bytes());
     let e = err_of(&json, &bin);
     assert!(
-        e.contains(&format!(
-            "accessor {a} (TEXCOORD_1): element 1 is not finite"
-        )),
+        e.contains(&format!("accessor {a} (TEXCOORD_1): element 1 is not finite")),
         "{e}"
     );
 }
@@ -173,8 +168,7 @@ fn lightmap_uv_outside_unit_square() {
     bin[off..off + 4].copy_from_slice(&1.25f32.to_le_bytes());
     let e = err_of(&json, &bin);
     assert!(
-        e.contains(&format!("accessor {a} (TEXCOORD_1): lightmap UV"))
-            && e.contains("of vertex 3 is outside [0, 1]"),
+        e.contains(&format!("accessor {a} (TEXCOORD_1): lightmap UV")) && e.contains("of vertex 3 is outside [0, 1]"),
         "{e}"
     );
 }
@@ -188,9 +182,7 @@ fn no_lightmap_uvs() {
         .remove("TEXCOORD_1");
     let e = err_of(&json, &bin);
     assert!(
-        e.starts_with(
-            "the scene has no lightmap UVs: mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1"
-        ),
+        e.starts_with("the scene has no lightmap UVs: mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1"),
         "{e}"
     );
 }
@@ -207,23 +199,17 @@ fn no_triangles() {
     let a = accessor(&json, "POSITION");
     let off = data_offset(&json, a);
     for v in 0..4 {
-        bin[off + 12 * v..off + 12 * v + 12]
-            .copy_from_slice(bytemuck::cast_slice(&[1.0f32, 2.0, 3.0]));
+        bin[off + 12 * v..off + 12 * v + 12].copy_from_slice(bytemuck::cast_slice(&[1.0f32, 2.0, 3.0]));
     }
     let e = err_of(&json, &bin);
-    assert_eq!(
-        e,
-        "the scene has no triangles to bake (all 2 triangles are degenerate)"
-    );
+    assert_eq!(e, "the scene has no triangles to bake (all 2 triangles are degenerate)");
 }
 
 #[test]
 fn degenerate_triangles_are_dropped_and_counted() {
     let (mut json, mut bin) = quad_scene().to_gltf();
     // Append a third triangle (0, 0, 1): zero area.
-    let idx = json["meshes"][0]["primitives"][0]["indices"]
-        .as_u64()
-        .unwrap() as usize;
+    let idx = json["meshes"][0]["primitives"][0]["indices"].as_u64().unwrap() as usize;
     let view = json["accessors"][idx]["bufferView"].as_u64().unwrap() as usize;
     assert_eq!(
         json["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize + 24,
@@ -262,9 +248,7 @@ fn non_triangle_modes_are_named_in_a_warning() {
     let (_, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
     assert_eq!(
         report.warnings,
-        vec![
-            "mesh 0 \"Floor\", primitive 1: mode Lines is not TRIANGLES and is skipped".to_string()
-        ]
+        vec!["mesh 0 \"Floor\", primitive 1: mode Lines is not TRIANGLES and is skipped".to_string()]
     );
 }
 

@@ -69,12 +69,8 @@ impl Snapshot {
             _ => None,
         };
         let count = total.len().max(1) as f64;
-        let rms_luminance = (total
-            .iter()
-            .map(|v| (v.dot(LUMINANCE) as f64).powi(2))
-            .sum::<f64>()
-            / count)
-            .sqrt() as f32;
+        let rms_luminance =
+            (total.iter().map(|v| (v.dot(LUMINANCE) as f64).powi(2)).sum::<f64>() / count).sqrt() as f32;
         let (texel_error, relative) = if na > 0 && nb > 0 {
             let k = ((na * nb) as f64).sqrt() / (na + nb) as f64;
             let errs: Vec<f32> = self
@@ -149,10 +145,7 @@ impl HalfAccumulator {
             HalfEstimate {
                 steps: self.steps[h],
                 total: self.sums[h].iter().map(|s| *s / n).collect(),
-                direct: self
-                    .direct
-                    .as_ref()
-                    .map(|d| d[h].iter().map(|s| *s / n).collect()),
+                direct: self.direct.as_ref().map(|d| d[h].iter().map(|s| *s / n).collect()),
             }
         };
         Snapshot {
@@ -195,10 +188,7 @@ mod tests {
         let est = acc.snapshot().estimate();
         let rel = est.error.relative.unwrap();
         let truth = (1.0f32 / 3.0 / 64.0).sqrt();
-        assert!(
-            (rel / truth - 1.0).abs() < 0.06,
-            "estimated {rel}, true {truth}"
-        );
+        assert!((rel / truth - 1.0).abs() < 0.06, "estimated {rel}, true {truth}");
     }
 
     #[test]

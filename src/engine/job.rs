@@ -5,6 +5,7 @@
 //! progress events into a progress bar or an event stream.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -13,6 +14,7 @@ use crate::engine::accumulate::{ErrorSummary, Estimate};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
+use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
 use crate::engine::scene::{Lighting, Scene};
 use crate::engine::technique::{self, BakeInputs, EngineError};
@@ -55,6 +57,7 @@ pub struct BakeSummary {
     pub seconds: f64,
     pub stopped_by: StopReason,
     pub error: ErrorSummary,
+    pub plan: Plan,
 }
 
 pub struct BakeResult {
@@ -66,50 +69,57 @@ pub struct BakeResult {
     pub summary: BakeSummary,
 }
 
-/// Runs `request` on `scene`; `on_atlas` is told the texel set before the first step.
+/// How a caller wants a bake run, beyond what is baked.
+#[derive(Clone, Debug)]
+pub struct BakeOptions {
+    /// Longest time between snapshots (each costs a readback and, in the service, an
+    /// EXR upload).
+    pub snapshot_interval: Duration,
+}
+
+impl Default for BakeOptions {
+    fn default() -> Self {
+        BakeOptions {
+            snapshot_interval: Duration::from_secs(5),
+        }
+    }
+}
+
+/// Runs `request` on `scene`; `on_atlas` is given the texel set before the first step
+/// (the service keeps it to encode snapshot EXRs with [`snapshot_exr`]).
 pub fn bake(
     scene: Arc<Scene>,
     request: &BakeRequest,
+    options: &BakeOptions,
     observer: &mut dyn BakeObserver,
-    on_atlas: &mut dyn FnMut(&AtlasReport),
+    on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+    on_plan: &mut dyn FnMut(&Plan),
 ) -> Result<BakeResult, EngineError> {
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
+    let plan = crate::engine::plan::build(&scene, request)?;
+    on_plan(&plan);
     let atlas = Arc::new(
         Atlas::build(&scene, request.resolution, request.resolution)
             .map_err(|e| EngineError::BadInput(e.to_string()))?,
     );
     let report = atlas.report();
-    on_atlas(&report);
-    let want_direct = request
-        .outputs
-        .iter()
-        .any(|o| matches!(o, OutputLayer::Direct | OutputLayer::Indirect));
+    on_atlas(&atlas);
+    let want_direct = plan.runs("direct-light layer");
     let inputs = BakeInputs {
         scene,
         atlas: atlas.clone(),
         lighting: request.lighting,
         seed: request.seed,
         want_direct,
+        plan: plan.clone(),
     };
     let mut tech = technique::create(&request.technique, inputs, &request.params)?;
-    let outcome = BakeLoop::new(request.stop).run(tech.as_mut(), observer)?;
-    let channels =
-        output::lightmap_channels(&atlas, &outcome.estimate, &request.outputs, DEFAULT_RINGS)
-            .map_err(EngineError::Internal)?;
-    let meta = ExrMetadata {
-        technique: request.technique.clone(),
-        params: tech.params(),
-        steps: outcome.estimate.steps,
-        seconds: outcome.elapsed.as_secs_f64(),
-        relative_error: outcome.estimate.error.relative,
-        seed: request.seed,
-    };
-    let preview = crate::engine::post::dilate(&atlas, &outcome.estimate.total, DEFAULT_RINGS);
-    let preview_png = output::encode_preview_png(atlas.width, atlas.height, &preview)
-        .map_err(EngineError::Internal)?;
-    let exr = output::encode_exr(atlas.width, atlas.height, channels, &meta)
-        .map_err(EngineError::Internal)?;
+    let mut bake_loop = BakeLoop::new(request.stop);
+    bake_loop.snapshot_interval = options.snapshot_interval;
+    let outcome = bake_loop.run(tech.as_mut(), observer)?;
+    let exr = snapshot_exr(&atlas, &outcome.estimate, request, &tech.params(), outcome.elapsed)?;
+    let preview_png = preview_png(&atlas, &outcome.estimate)?;
     let summary = BakeSummary {
         technique: request.technique.clone(),
         atlas: report,
@@ -117,6 +127,7 @@ pub fn bake(
         seconds: outcome.elapsed.as_secs_f64(),
         stopped_by: outcome.stopped_by,
         error: outcome.estimate.error,
+        plan,
     };
     Ok(BakeResult {
         exr,
@@ -125,4 +136,32 @@ pub fn bake(
         atlas,
         summary,
     })
+}
+
+/// The EXR for an estimate (final or snapshot): dilated lightmap, requested layers, and
+/// the header attributes of DESIGN §2.
+pub fn snapshot_exr(
+    atlas: &Atlas,
+    estimate: &Estimate,
+    request: &BakeRequest,
+    params: &Value,
+    elapsed: Duration,
+) -> Result<Vec<u8>, EngineError> {
+    let channels =
+        output::lightmap_channels(atlas, estimate, &request.outputs, DEFAULT_RINGS).map_err(EngineError::Internal)?;
+    let meta = ExrMetadata {
+        technique: request.technique.clone(),
+        params: params.clone(),
+        steps: estimate.steps,
+        seconds: elapsed.as_secs_f64(),
+        relative_error: estimate.error.relative,
+        seed: request.seed,
+    };
+    output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)
+}
+
+/// A tone-mapped PNG of an estimate, gutters filled.
+pub fn preview_png(atlas: &Atlas, estimate: &Estimate) -> Result<Vec<u8>, EngineError> {
+    let img = crate::engine::post::dilate(atlas, &estimate.total, DEFAULT_RINGS);
+    output::encode_preview_png(atlas.width, atlas.height, &img).map_err(EngineError::Internal)
 }

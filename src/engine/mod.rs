@@ -9,6 +9,7 @@ pub mod atlas;
 pub mod bake;
 pub mod job;
 pub mod output;
+pub mod plan;
 pub mod post;
 pub mod rng;
 pub mod scene;

@@ -89,18 +89,13 @@ pub struct AtlasReport {
 pub enum AtlasError {
     #[error("lightmap resolution {0}x{1} is out of range (1 to {MAX_RESOLUTION} per side)")]
     Resolution(u32, u32),
-    #[error(
-        "no texel centre of the {0}x{1} lightmap falls on any triangle: raise the resolution or check TEXCOORD_1"
-    )]
+    #[error("no texel centre of the {0}x{1} lightmap falls on any triangle: raise the resolution or check TEXCOORD_1")]
     Empty(u32, u32),
 }
 
 /// Texel centre of pixel (i, j) in UV space.
 pub fn texel_centre_uv(i: u32, j: u32, width: u32, height: u32) -> Vec2 {
-    Vec2::new(
-        (i as f32 + 0.5) / width as f32,
-        (j as f32 + 0.5) / height as f32,
-    )
+    Vec2::new((i as f32 + 0.5) / width as f32, (j as f32 + 0.5) / height as f32)
 }
 
 struct Claim {
@@ -278,13 +273,7 @@ fn closest_point(p: Vec2, q: &[Vec2; 3]) -> Vec2 {
     best
 }
 
-fn gutter_links(
-    scene: &Scene,
-    pixel_texel: &[u32],
-    texels: &[Texel],
-    width: u32,
-    height: u32,
-) -> Vec<GutterLink> {
+fn gutter_links(scene: &Scene, pixel_texel: &[u32], texels: &[Texel], width: u32, height: u32) -> Vec<GutterLink> {
     let (w, h) = (width as i64, height as i64);
     let size = Vec2::new(width as f32, height as f32);
     let mut linked = vec![false; pixel_texel.len()];
@@ -326,10 +315,7 @@ fn gutter_links(
                             continue;
                         }
                         let t = pixel_texel[(nj * w + ni) as usize];
-                        if t == NO_TEXEL
-                            || scene.triangles[texels[t as usize].triangle as usize].mesh
-                                != tri.mesh
-                        {
+                        if t == NO_TEXEL || scene.triangles[texels[t as usize].triangle as usize].mesh != tri.mesh {
                             continue;
                         }
                         let d = Vec2::new(ni as f32 + 0.5, nj as f32 + 0.5).distance_squared(c);
@@ -442,10 +428,7 @@ mod tests {
     #[test]
     fn bad_resolution_is_an_error() {
         let scene = one_quad(0.0);
-        assert!(matches!(
-            Atlas::build(&scene, 0, 8),
-            Err(AtlasError::Resolution(0, 8))
-        ));
+        assert!(matches!(Atlas::build(&scene, 0, 8), Err(AtlasError::Resolution(0, 8))));
         assert!(matches!(
             Atlas::build(&scene, 8, MAX_RESOLUTION + 1),
             Err(AtlasError::Resolution(..))

@@ -15,8 +15,7 @@ use std::path::Path;
 
 use exr::image::Layer;
 use exr::prelude::{
-    AnyChannel, AnyChannels, AttributeValue, Encoding, FlatSamples, Image, LayerAttributes, Text,
-    WritableImage,
+    AnyChannel, AnyChannels, AttributeValue, Encoding, FlatSamples, Image, LayerAttributes, Text, WritableImage,
 };
 use glam::Vec3;
 use smallvec::SmallVec;
@@ -122,28 +121,19 @@ pub fn encode_exr(
     let mut other: HashMap<Text, AttributeValue> = HashMap::new();
     let text = |s: &str| AttributeValue::Text(Text::new_or_panic(sanitize(s)));
     other.insert(Text::from("lightmapd:technique"), text(&meta.technique));
-    other.insert(
-        Text::from("lightmapd:params"),
-        text(&meta.params.to_string()),
-    );
+    other.insert(Text::from("lightmapd:params"), text(&meta.params.to_string()));
     other.insert(
         Text::from("lightmapd:steps"),
         AttributeValue::I32(meta.steps.min(i32::MAX as u64) as i32),
     );
-    other.insert(
-        Text::from("lightmapd:seconds"),
-        AttributeValue::F64(meta.seconds),
-    );
+    other.insert(Text::from("lightmapd:seconds"), AttributeValue::F64(meta.seconds));
     other.insert(Text::from("lightmapd:seed"), text(&meta.seed.to_string()));
     other.insert(
         Text::from("lightmapd:quantity"),
         text("irradiance/pi, linear RGB (albedo * lightmap = outgoing radiance)"),
     );
     if let Some(e) = meta.relative_error {
-        other.insert(
-            Text::from("lightmapd:relative_error"),
-            AttributeValue::F32(e),
-        );
+        other.insert(Text::from("lightmapd:relative_error"), AttributeValue::F32(e));
     }
     attrs.other = other;
     attrs.software_name = Some(Text::from(concat!("lightmapd ", env!("CARGO_PKG_VERSION"))));
@@ -165,13 +155,7 @@ pub fn encode_exr(
 /// EXR text attributes are Latin-1; keep JSON printable ASCII so every reader copes.
 fn sanitize(s: &str) -> String {
     s.chars()
-        .map(|c| {
-            if c.is_ascii() && !c.is_ascii_control() {
-                c
-            } else {
-                '?'
-            }
-        })
+        .map(|c| if c.is_ascii() && !c.is_ascii_control() { c } else { '?' })
         .collect()
 }
 
@@ -221,8 +205,7 @@ pub fn encode_preview_png(width: u32, height: u32, rgb: &[Vec3]) -> Result<Vec<u
         .iter()
         .flat_map(|v| [encode(v.x), encode(v.y), encode(v.z)])
         .collect();
-    let img = image::RgbImage::from_raw(width, height, bytes)
-        .ok_or("preview: image size does not match")?;
+    let img = image::RgbImage::from_raw(width, height, bytes).ok_or("preview: image size does not match")?;
     let mut out = std::io::Cursor::new(Vec::new());
     img.write_to(&mut out, image::ImageFormat::Png)
         .map_err(|e| format!("encoding PNG: {e}"))?;

@@ -38,12 +38,7 @@ pub fn dilate(atlas: &Atlas, values: &[Vec3], rings: u32) -> Vec<Vec3> {
                 for dj in -1i64..=1 {
                     for di in -1i64..=1 {
                         let (ni, nj) = (i as i64 + di, j as i64 + dj);
-                        if (di, dj) == (0, 0)
-                            || ni < 0
-                            || nj < 0
-                            || ni >= w as i64
-                            || nj >= h as i64
-                        {
+                        if (di, dj) == (0, 0) || ni < 0 || nj < 0 || ni >= w as i64 || nj >= h as i64 {
                             continue;
                         }
                         let np = nj as usize * w + ni as usize;

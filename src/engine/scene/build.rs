@@ -121,14 +121,7 @@ impl SceneBuilder {
 
     /// An axis-aligned square of side `size` centred at `centre`, facing `normal`
     /// (one of ±X, ±Y, ±Z).
-    pub fn square(
-        &mut self,
-        name: &str,
-        centre: Vec3,
-        size: f32,
-        normal: Vec3,
-        material: usize,
-    ) -> usize {
+    pub fn square(&mut self, name: &str, centre: Vec3, size: f32, normal: Vec3, material: usize) -> usize {
         let (u, v) = tangent_frame(normal);
         let corner = centre - 0.5 * size * (u + v);
         self.quad(name, corner, u * size, v * size, material)
@@ -157,17 +150,10 @@ impl SceneBuilder {
             let theta = std::f32::consts::PI * j as f32 / rings as f32;
             for i in 0..=segments {
                 let phi = std::f32::consts::TAU * i as f32 / segments as f32;
-                let n = Vec3::new(
-                    theta.sin() * phi.cos(),
-                    theta.cos(),
-                    -theta.sin() * phi.sin(),
-                );
+                let n = Vec3::new(theta.sin() * phi.cos(), theta.cos(), -theta.sin() * phi.sin());
                 positions.push(centre + r * n);
                 normals.push(n);
-                chart_uv.push(Vec2::new(
-                    i as f32 / segments as f32,
-                    j as f32 / rings as f32,
-                ));
+                chart_uv.push(Vec2::new(i as f32 / segments as f32, j as f32 / rings as f32));
             }
         }
         let mut indices = Vec::new();
@@ -201,46 +187,16 @@ impl SceneBuilder {
         let q = Quat::from_rotation_y(yaw);
         let c = base + Vec3::Y * half.y;
         let faces = [
-            (
-                "top",
-                Vec3::Y,
-                half.y,
-                Vec3::X * half.x,
-                Vec3::NEG_Z * half.z,
-            ),
+            ("top", Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
             ("front", Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
-            (
-                "back",
-                Vec3::NEG_Z,
-                half.z,
-                Vec3::NEG_X * half.x,
-                Vec3::Y * half.y,
-            ),
-            (
-                "left",
-                Vec3::NEG_X,
-                half.x,
-                Vec3::Z * half.z,
-                Vec3::Y * half.y,
-            ),
-            (
-                "right",
-                Vec3::X,
-                half.x,
-                Vec3::NEG_Z * half.z,
-                Vec3::Y * half.y,
-            ),
+            ("back", Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
+            ("left", Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
+            ("right", Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
         ];
         for (face, n, d, u, v) in faces {
             let (n, u, v) = (q * n, q * u, q * v);
             let centre = c + n * d;
-            self.quad(
-                &format!("{name} {face}"),
-                centre - u - v,
-                2.0 * u,
-                2.0 * v,
-                material,
-            );
+            self.quad(&format!("{name} {face}"), centre - u - v, 2.0 * u, 2.0 * v, material);
         }
     }
 
@@ -449,33 +405,11 @@ pub fn cornell_box() -> SceneBuilder {
     let white = s.material(MaterialDesc::diffuse("white", [0.725, 0.71, 0.68]));
     let red = s.material(MaterialDesc::diffuse("red", [0.63, 0.065, 0.05]));
     let green = s.material(MaterialDesc::diffuse("green", [0.14, 0.45, 0.091]));
-    let light = s.material(MaterialDesc::emissive(
-        "light",
-        [0.78, 0.78, 0.78],
-        [17.0, 12.0, 4.0],
-    ));
+    let light = s.material(MaterialDesc::emissive("light", [0.78, 0.78, 0.78], [17.0, 12.0, 4.0]));
     let (w, h) = (2.0f32, 2.0f32);
-    s.quad(
-        "floor",
-        Vec3::new(-1.0, 0.0, 1.0),
-        Vec3::X * w,
-        Vec3::NEG_Z * w,
-        white,
-    );
-    s.quad(
-        "ceiling",
-        Vec3::new(-1.0, h, -1.0),
-        Vec3::X * w,
-        Vec3::Z * w,
-        white,
-    );
-    s.quad(
-        "back wall",
-        Vec3::new(-1.0, 0.0, -1.0),
-        Vec3::X * w,
-        Vec3::Y * h,
-        white,
-    );
+    s.quad("floor", Vec3::new(-1.0, 0.0, 1.0), Vec3::X * w, Vec3::NEG_Z * w, white);
+    s.quad("ceiling", Vec3::new(-1.0, h, -1.0), Vec3::X * w, Vec3::Z * w, white);
+    s.quad("back wall", Vec3::new(-1.0, 0.0, -1.0), Vec3::X * w, Vec3::Y * h, white);
     s.quad(
         "left wall",
         Vec3::new(-1.0, 0.0, 1.0),
@@ -483,13 +417,7 @@ pub fn cornell_box() -> SceneBuilder {
         Vec3::Y * h,
         red,
     );
-    s.quad(
-        "right wall",
-        Vec3::new(1.0, 0.0, -1.0),
-        Vec3::Z * w,
-        Vec3::Y * h,
-        green,
-    );
+    s.quad("right wall", Vec3::new(1.0, 0.0, -1.0), Vec3::Z * w, Vec3::Y * h, green);
     s.quad(
         "light",
         Vec3::new(-0.25, h - 0.005, -0.2),
@@ -522,10 +450,7 @@ mod tests {
     fn glb_header_and_chunks_are_aligned() {
         let glb = cornell_box().to_glb();
         assert_eq!(&glb[0..4], b"glTF");
-        assert_eq!(
-            u32::from_le_bytes(glb[8..12].try_into().unwrap()) as usize,
-            glb.len()
-        );
+        assert_eq!(u32::from_le_bytes(glb[8..12].try_into().unwrap()) as usize, glb.len());
         let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
         assert_eq!(json_len % 4, 0);
         assert_eq!(&glb[20 + json_len + 4..20 + json_len + 8], b"BIN\0");
@@ -533,14 +458,7 @@ mod tests {
 
     #[test]
     fn tangent_frame_is_right_handed() {
-        for n in [
-            Vec3::X,
-            Vec3::NEG_X,
-            Vec3::Y,
-            Vec3::NEG_Y,
-            Vec3::Z,
-            Vec3::NEG_Z,
-        ] {
+        for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
             let (u, v) = tangent_frame(n);
             assert!((u.cross(v) - n).length() < 1e-6, "{n}");
         }
@@ -555,8 +473,7 @@ mod tests {
             assert!(lo_a.min_element() > 0.0 && hi_a.max_element() < 1.0);
             for b in a + 1..n {
                 let (lo_b, hi_b) = (s.atlas_uv(b, Vec2::ZERO), s.atlas_uv(b, Vec2::ONE));
-                let disjoint =
-                    hi_a.x < lo_b.x || hi_b.x < lo_a.x || hi_a.y < lo_b.y || hi_b.y < lo_a.y;
+                let disjoint = hi_a.x < lo_b.x || hi_b.x < lo_a.x || hi_a.y < lo_b.y || hi_b.y < lo_a.y;
                 assert!(disjoint, "charts {a} and {b} overlap");
             }
         }

@@ -28,10 +28,7 @@ impl std::fmt::Display for PrimitiveRef {
 #[derive(Debug, Error)]
 pub enum ImportError {
     #[error("cannot read {path}: {source}")]
-    Io {
-        path: String,
-        source: std::io::Error,
-    },
+    Io { path: String, source: std::io::Error },
     #[error("not a glTF 2.0 file: {0}")]
     NotGltf(String),
     #[error("invalid glTF: {0}")]

@@ -26,10 +26,7 @@ use gltf::mesh::Mode;
 use serde::Serialize;
 
 use super::error::{ImportError, PrimitiveRef};
-use super::{
-    Bounds, LightKind, Material, MeshInfo, PunctualLight, Scene, Texture, TextureRef, Triangle,
-    Wrap,
-};
+use super::{Bounds, LightKind, Material, MeshInfo, PunctualLight, Scene, Texture, TextureRef, Triangle, Wrap};
 
 /// What import found, for the CLI summary and the service's scene report.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -63,10 +60,7 @@ pub fn import_file(path: &Path) -> Result<(Scene, ImportReport), ImportError> {
 
 /// Imports glTF from memory. `base_dir` resolves relative URIs; `None` allows only
 /// embedded data (GLB binary chunk and data URIs), which is what the service wants.
-pub fn import_slice(
-    bytes: &[u8],
-    base_dir: Option<&Path>,
-) -> Result<(Scene, ImportReport), ImportError> {
+pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, ImportReport), ImportError> {
     let gltf = parse(bytes)?;
     let buffers = load_buffers(&gltf, base_dir)?;
     let mut report = ImportReport::default();
@@ -74,13 +68,10 @@ pub fn import_slice(
     let materials = load_materials(&gltf)?;
 
     for ext in gltf.extensions_required() {
-        if !matches!(
-            ext,
-            "KHR_lights_punctual" | "KHR_materials_emissive_strength"
-        ) {
-            report.warnings.push(format!(
-                "required extension {ext} is not supported and is ignored"
-            ));
+        if !matches!(ext, "KHR_lights_punctual" | "KHR_materials_emissive_strength") {
+            report
+                .warnings
+                .push(format!("required extension {ext} is not supported and is ignored"));
         }
     }
 
@@ -124,10 +115,7 @@ pub fn import_slice(
     }
     if triangles.is_empty() {
         let why = if report.degenerate_triangles > 0 {
-            format!(
-                " (all {} triangles are degenerate)",
-                report.degenerate_triangles
-            )
+            format!(" (all {} triangles are degenerate)", report.degenerate_triangles)
         } else {
             String::new()
         };
@@ -233,22 +221,16 @@ fn resolve_uri(uri: &str, base_dir: Option<&Path>, what: &str) -> Result<Vec<u8>
             "{what}: URI scheme of {uri:?} is not supported (only relative paths and data URIs)"
         ));
     }
-    let base = base_dir.ok_or_else(|| {
-        format!("{what}: external file {uri:?} cannot be resolved here (upload it with the scene)")
-    })?;
+    let base = base_dir
+        .ok_or_else(|| format!("{what}: external file {uri:?} cannot be resolved here (upload it with the scene)"))?;
     let decoded = percent_decode(uri);
     let rel = PathBuf::from(&decoded);
-    if rel.is_absolute()
-        || rel
-            .components()
-            .any(|c| matches!(c, std::path::Component::ParentDir))
-    {
+    if rel.is_absolute() || rel.components().any(|c| matches!(c, std::path::Component::ParentDir)) {
         return Err(format!(
             "{what}: external file {uri:?} must be a relative path inside the scene's folder"
         ));
     }
-    std::fs::read(base.join(&rel))
-        .map_err(|e| format!("{what}: cannot read external file {decoded:?}: {e}"))
+    std::fs::read(base.join(&rel)).map_err(|e| format!("{what}: cannot read external file {decoded:?}: {e}"))
 }
 
 fn percent_decode(s: &str) -> String {
@@ -258,10 +240,7 @@ fn percent_decode(s: &str) -> String {
     while i < bytes.len() {
         if bytes[i] == b'%'
             && i + 2 < bytes.len()
-            && let Ok(v) = u8::from_str_radix(
-                std::str::from_utf8(&bytes[i + 1..i + 3]).unwrap_or("zz"),
-                16,
-            )
+            && let Ok(v) = u8::from_str_radix(std::str::from_utf8(&bytes[i + 1..i + 3]).unwrap_or("zz"), 16)
         {
             out.push(v);
             i += 3;
@@ -282,8 +261,9 @@ fn load_buffers(gltf: &gltf::Gltf, base_dir: Option<&Path>) -> Result<Vec<Vec<u8
                 buffer: i,
                 problem: "refers to the GLB binary chunk, but the file has none".into(),
             })?,
-            gltf::buffer::Source::Uri(uri) => resolve_uri(uri, base_dir, "uri")
-                .map_err(|problem| ImportError::Buffer { buffer: i, problem })?,
+            gltf::buffer::Source::Uri(uri) => {
+                resolve_uri(uri, base_dir, "uri").map_err(|problem| ImportError::Buffer { buffer: i, problem })?
+            }
         };
         if data.len() < buffer.length() {
             return Err(ImportError::Buffer {
@@ -321,11 +301,7 @@ fn view_bytes<'b>(view: &gltf::buffer::View, buffers: &'b [Vec<u8>]) -> Result<&
     Ok(&buf[view.offset()..end])
 }
 
-fn load_textures(
-    gltf: &gltf::Gltf,
-    buffers: &[Vec<u8>],
-    base_dir: Option<&Path>,
-) -> Result<Vec<Texture>, ImportError> {
+fn load_textures(gltf: &gltf::Gltf, buffers: &[Vec<u8>], base_dir: Option<&Path>) -> Result<Vec<Texture>, ImportError> {
     // Which images hold colour (sRGB-encoded by glTF's rules); others would be linear,
     // but only base colour and emissive textures are read here, and both are colour.
     let mut textures = Vec::new();
@@ -336,8 +312,9 @@ fn load_textures(
             gltf::image::Source::View { view, .. } => view_bytes(&view, buffers)
                 .map_err(|problem| ImportError::Image { image: i, problem })?
                 .to_vec(),
-            gltf::image::Source::Uri { uri, .. } => resolve_uri(uri, base_dir, "uri")
-                .map_err(|problem| ImportError::Image { image: i, problem })?,
+            gltf::image::Source::Uri { uri, .. } => {
+                resolve_uri(uri, base_dir, "uri").map_err(|problem| ImportError::Image { image: i, problem })?
+            }
         };
         let decoded = image::load_from_memory(&bytes)
             .map_err(|e| ImportError::Image {
@@ -354,14 +331,7 @@ fn load_textures(
         }
         let texels = decoded
             .pixels()
-            .map(|p| {
-                Vec4::new(
-                    srgb_to_linear(p[0]),
-                    srgb_to_linear(p[1]),
-                    srgb_to_linear(p[2]),
-                    p[3],
-                )
-            })
+            .map(|p| Vec4::new(srgb_to_linear(p[0]), srgb_to_linear(p[1]), srgb_to_linear(p[2]), p[3]))
             .collect();
         let sampler = tex.sampler();
         let wrap = |m: gltf::texture::WrappingMode| match m {
@@ -403,9 +373,7 @@ fn load_materials(gltf: &gltf::Gltf) -> Result<Vec<Material>, ImportError> {
             if ok {
                 Ok(())
             } else {
-                Err(ImportError::Material(format!(
-                    "{name}: {what} must be finite and >= 0"
-                )))
+                Err(ImportError::Material(format!("{name}: {what} must be finite and >= 0")))
             }
         };
         check(
@@ -465,12 +433,7 @@ struct Flatten<'a> {
 }
 
 impl Flatten<'_> {
-    fn visit(
-        &mut self,
-        node: &gltf::Node,
-        parent: DMat4,
-        seen: &mut HashSet<usize>,
-    ) -> Result<(), ImportError> {
+    fn visit(&mut self, node: &gltf::Node, parent: DMat4, seen: &mut HashSet<usize>) -> Result<(), ImportError> {
         // glTF forbids cycles, but a hostile file may still have them: never loop.
         if !seen.insert(node.index()) {
             return Err(ImportError::Invalid(format!(
@@ -510,11 +473,7 @@ impl Flatten<'_> {
             .unwrap_or_else(|| format!("light {}", light.index()));
         let color = Vec3::from_array(light.color());
         let intensity = light.intensity();
-        if !color.is_finite()
-            || color.min_element() < 0.0
-            || !intensity.is_finite()
-            || intensity < 0.0
-        {
+        if !color.is_finite() || color.min_element() < 0.0 || !intensity.is_finite() || intensity < 0.0 {
             return Err(ImportError::Invalid(format!(
                 "{name} (node {node}): colour and intensity must be finite and >= 0"
             )));
@@ -541,10 +500,7 @@ impl Flatten<'_> {
             }
         };
         let position = world.transform_point3(DVec3::ZERO);
-        let direction = world
-            .transform_vector3(DVec3::NEG_Z)
-            .normalize_or_zero()
-            .as_vec3();
+        let direction = world.transform_vector3(DVec3::NEG_Z).normalize_or_zero().as_vec3();
         if direction == Vec3::ZERO && kind != LightKind::Point {
             return Err(ImportError::Invalid(format!(
                 "{name} (node {node}): transform collapses the light's direction"
@@ -580,10 +536,9 @@ impl Flatten<'_> {
             }
             if prim.mode() != Mode::Triangles {
                 if first_visit {
-                    self.report.warnings.push(format!(
-                        "{at}: mode {:?} is not TRIANGLES and is skipped",
-                        prim.mode()
-                    ));
+                    self.report
+                        .warnings
+                        .push(format!("{at}: mode {:?} is not TRIANGLES and is skipped", prim.mode()));
                 }
                 continue;
             }
@@ -599,11 +554,12 @@ impl Flatten<'_> {
                 None => self.materials_len as u32,
             };
 
-            let positions = read_vec3(&prim, gltf::Semantic::Positions, self.buffers, &at)?
-                .ok_or_else(|| ImportError::Primitive {
+            let positions = read_vec3(&prim, gltf::Semantic::Positions, self.buffers, &at)?.ok_or_else(|| {
+                ImportError::Primitive {
                     at: at.clone(),
                     problem: "has no POSITION attribute".into(),
-                })?;
+                }
+            })?;
             let normals = read_vec3(&prim, gltf::Semantic::Normals, self.buffers, &at)?;
             let uv0 = read_vec2(&prim, 0, self.buffers, &at)?;
             let Some(uv1) = read_vec2(&prim, 1, self.buffers, &at)? else {
@@ -632,18 +588,12 @@ impl Flatten<'_> {
                 .enumerate()
                 .find(|(_, uv)| !(0.0..=1.0).contains(&uv.x) || !(0.0..=1.0).contains(&uv.y))
             {
-                let acc = prim
-                    .get(&gltf::Semantic::TexCoords(1))
-                    .map(|a| a.index())
-                    .unwrap_or(0);
+                let acc = prim.get(&gltf::Semantic::TexCoords(1)).map(|a| a.index()).unwrap_or(0);
                 return Err(ImportError::Accessor {
                     at,
                     accessor: acc,
                     attribute: "TEXCOORD_1".into(),
-                    problem: format!(
-                        "lightmap UV ({}, {}) of vertex {i} is outside [0, 1]",
-                        uv.x, uv.y
-                    ),
+                    problem: format!("lightmap UV ({}, {}) of vertex {i} is outside [0, 1]", uv.x, uv.y),
                 });
             }
             let indices: Vec<u32> = match prim.indices() {
@@ -655,8 +605,7 @@ impl Flatten<'_> {
                         .ok_or_else(|| accessor_err(&at, &acc, "indices", "cannot be read".into()))?
                         .into_u32()
                         .collect();
-                    if let Some((k, bad)) = idx.iter().enumerate().find(|(_, i)| **i as usize >= n)
-                    {
+                    if let Some((k, bad)) = idx.iter().enumerate().find(|(_, i)| **i as usize >= n) {
                         return Err(accessor_err(
                             &at,
                             &acc,
@@ -675,10 +624,7 @@ impl Flatten<'_> {
                 ));
             }
 
-            let world_pos: Vec<DVec3> = positions
-                .iter()
-                .map(|p| world.transform_point3(p.as_dvec3()))
-                .collect();
+            let world_pos: Vec<DVec3> = positions.iter().map(|p| world.transform_point3(p.as_dvec3())).collect();
             let world_nrm: Option<Vec<Vec3>> = normals.map(|ns| {
                 ns.iter()
                     .map(|v| {
@@ -698,9 +644,7 @@ impl Flatten<'_> {
                 let (a, b, c) = (a as usize, b as usize, c as usize);
                 let w = [world_pos[a], world_pos[b], world_pos[c]];
                 let cross = (w[1] - w[0]).cross(w[2] - w[0]);
-                let scale2 = (w[1] - w[0])
-                    .length_squared()
-                    .max((w[2] - w[0]).length_squared());
+                let scale2 = (w[1] - w[0]).length_squared().max((w[2] - w[0]).length_squared());
                 // Relative test: a sliver whose normal cannot be computed in f32 is degenerate.
                 let well_formed = cross.length_squared() > 1e-12 * scale2 * scale2 && scale2 > 0.0;
                 if !well_formed {
@@ -709,19 +653,14 @@ impl Flatten<'_> {
                 }
                 let flat = cross.normalize().as_vec3();
                 let n3 = match &world_nrm {
-                    Some(ns) => {
-                        [ns[a], ns[b], ns[c]].map(|v| if v == Vec3::ZERO { flat } else { v })
-                    }
+                    Some(ns) => [ns[a], ns[b], ns[c]].map(|v| if v == Vec3::ZERO { flat } else { v }),
                     None => [flat; 3],
                 };
                 let lm = [uv1[a], uv1[b], uv1[c]];
                 if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0 {
                     self.report.zero_uv_area_triangles += 1;
                 }
-                let uv = uv0
-                    .as_ref()
-                    .map(|u| [u[a], u[b], u[c]])
-                    .unwrap_or([Vec2::ZERO; 3]);
+                let uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);
                 self.triangles.push(RawTriangle {
                     world: w,
                     n: n3,
@@ -736,12 +675,7 @@ impl Flatten<'_> {
     }
 }
 
-fn accessor_err(
-    at: &PrimitiveRef,
-    acc: &gltf::Accessor,
-    attribute: &str,
-    problem: String,
-) -> ImportError {
+fn accessor_err(at: &PrimitiveRef, acc: &gltf::Accessor, attribute: &str, problem: String) -> ImportError {
     ImportError::Accessor {
         at: at.clone(),
         accessor: acc.index(),
@@ -816,22 +750,11 @@ fn read_vec3(
     check_accessor(&acc, buffers, at, &name)?;
     let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
     let data: Option<Vec<Vec3>> = match semantic {
-        gltf::Semantic::Positions => reader
-            .read_positions()
-            .map(|it| it.map(Vec3::from_array).collect()),
-        gltf::Semantic::Normals => reader
-            .read_normals()
-            .map(|it| it.map(Vec3::from_array).collect()),
+        gltf::Semantic::Positions => reader.read_positions().map(|it| it.map(Vec3::from_array).collect()),
+        gltf::Semantic::Normals => reader.read_normals().map(|it| it.map(Vec3::from_array).collect()),
         _ => None,
     };
-    let data = data.ok_or_else(|| {
-        accessor_err(
-            at,
-            &acc,
-            &name,
-            "cannot be read (wrong component type?)".into(),
-        )
-    })?;
+    let data = data.ok_or_else(|| accessor_err(at, &acc, &name, "cannot be read (wrong component type?)".into()))?;
     if let Some((i, v)) = data.iter().enumerate().find(|(_, v)| !v.is_finite()) {
         return Err(accessor_err(
             at,
@@ -858,14 +781,7 @@ fn read_vec2(
     let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
     let data: Vec<Vec2> = reader
         .read_tex_coords(set)
-        .ok_or_else(|| {
-            accessor_err(
-                at,
-                &acc,
-                &name,
-                "cannot be read (wrong component type?)".into(),
-            )
-        })?
+        .ok_or_else(|| accessor_err(at, &acc, &name, "cannot be read (wrong component type?)".into()))?
         .into_f32()
         .map(Vec2::from_array)
         .collect();

@@ -104,11 +104,7 @@ fn wrap(i: i64, n: u32, mode: Wrap) -> usize {
         Wrap::Clamp => i.clamp(0, n - 1),
         Wrap::Mirror => {
             let period = i.rem_euclid(2 * n);
-            if period < n {
-                period
-            } else {
-                2 * n - 1 - period
-            }
+            if period < n { period } else { 2 * n - 1 - period }
         }
     };
     r as usize
