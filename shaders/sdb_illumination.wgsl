@@ -100,17 +100,22 @@ fn lightmap_taps(uv: vec2<f32>) -> Taps {
 }
 
 // What a fragment writes, before culling is applied by the entry point.
+// (A helper may not touch emission_px: fs_main's pipeline has no group 1, and a binding
+// used by any function an entry point calls must be in its layout.)
 struct Shaded {
     sample: vec4<f32>,    // rgb: outgoing radiance, a: t
-    emission: vec3<f32>,  // emitted part of rgb
+    emission: vec3<f32>,  // emitted part of rgb when it came from the triangle's material
+    taps: Taps,           // lightmap lookup, when lookup is true
+    lookup: bool,         // rgb came from the lightmap (the emitted part is at the same taps)
     depth: f32,
     culled: bool,
 }
 
-fn shade(in: VsOut, front: bool, with_emission: bool) -> Shaded {
+fn shade(in: VsOut, front: bool) -> Shaded {
     let t = dot(in.world, view.dir.xyz);
     var out: Shaded;
     out.culled = false;
+    out.lookup = false;
     out.emission = vec3<f32>(0.0);
     if view.params.y == DEPTH_NEAREST {
         out.sample = vec4<f32>(0.0, 0.0, 0.0, t);
@@ -126,10 +131,9 @@ fn shade(in: VsOut, front: bool, with_emission: bool) -> Shaded {
             let w = taps.weight / wsum;
             l = radiance[taps.index.x].rgb * w.x + radiance[taps.index.y].rgb * w.y
               + radiance[taps.index.z].rgb * w.z + radiance[taps.index.w].rgb * w.w;
-            if with_emission {
-                out.emission = emission_px[taps.index.x].rgb * w.x + emission_px[taps.index.y].rgb * w.y
-                             + emission_px[taps.index.z].rgb * w.z + emission_px[taps.index.w].rgb * w.w;
-            }
+            out.taps = taps;
+            out.taps.weight = w;
+            out.lookup = true;
         } else {
             // No texel near this fragment (a triangle smaller than a texel): keep at
             // least its own emission so that small emitters still light the scene.
@@ -149,7 +153,7 @@ fn shade(in: VsOut, front: bool, with_emission: bool) -> Shaded {
 
 @fragment
 fn fs_main(in: VsOut, @builtin(front_facing) front: bool) -> FsOut {
-    let s = shade(in, front, false);
+    let s = shade(in, front);
     if s.culled {
         discard;
     }
@@ -161,13 +165,20 @@ fn fs_main(in: VsOut, @builtin(front_facing) front: bool) -> FsOut {
 
 @fragment
 fn fs_main_direct(in: VsOut, @builtin(front_facing) front: bool) -> FsOutDirect {
-    let s = shade(in, front, true);
+    let s = shade(in, front);
     if s.culled {
         discard;
     }
+    var emission = s.emission;
+    if s.lookup {
+        let i = s.taps.index;
+        let w = s.taps.weight;
+        emission = emission_px[i.x].rgb * w.x + emission_px[i.y].rgb * w.y
+                 + emission_px[i.z].rgb * w.z + emission_px[i.w].rgb * w.w;
+    }
     var out: FsOutDirect;
     out.sample = s.sample;
-    out.emission = vec4<f32>(s.emission, 0.0);
+    out.emission = vec4<f32>(emission, 0.0);
     out.depth = s.depth;
     return out;
 }

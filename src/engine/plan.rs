@@ -95,6 +95,8 @@ impl Plan {
 #[derive(Clone, Debug, Serialize)]
 pub struct SceneFeatures {
     pub punctual_lights: usize,
+    /// How many of `punctual_lights` are directional (the rest are point or spot).
+    pub directional_lights: usize,
     pub emissive_triangles: usize,
     pub sky: bool,
     pub sun: bool,
@@ -120,6 +122,11 @@ impl SceneFeatures {
         let used_materials = || scene.materials.iter().zip(&used).filter(|(_, u)| **u).map(|(m, _)| m);
         SceneFeatures {
             punctual_lights: scene.lights.len(),
+            directional_lights: scene
+                .lights
+                .iter()
+                .filter(|l| matches!(l.kind, crate::engine::scene::LightKind::Directional))
+                .count(),
             emissive_triangles,
             sky: lighting.sky.is_some_and(|s| s.radiance != glam::Vec3::ZERO),
             sun: lighting.sun.is_some_and(|s| s.radiance != glam::Vec3::ZERO),

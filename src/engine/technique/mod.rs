@@ -85,6 +85,7 @@ pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Te
 pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
     match id {
         "path" => Ok(path::plan(features)),
+        "sdb" => Ok(sdb::plan(features)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")

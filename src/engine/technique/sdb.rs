@@ -86,6 +86,7 @@ use serde::{Deserialize, Serialize};
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
+use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::LightKind;
 
 // ---------------------------------------------------------------------------------------
@@ -1422,4 +1423,48 @@ impl Technique for Sdb {
         let half = |h: SdbHalf| HalfEstimate { steps: h.steps, total: h.total, direct: h.direct };
         Ok(Snapshot { even: half(even), odd: half(odd) })
     }
+
+    fn accumulating_pass(&self) -> &'static str {
+        "sdb gather (shaders/sdb_gather.wgsl)"
+    }
+}
+
+/// What `sdb` runs for a scene and job, and what it leaves out (DESIGN section 6).
+pub fn plan(f: &SceneFeatures) -> Plan {
+    let mut p = Plan::new("sdb");
+    p.run("resolve", "outgoing radiance of every lightmap pixel from the running estimate (bounces)");
+    p.run("illumination map", "orthographic render with stochastic depth along each direction");
+    p.run("gather", "k x k neighbourhood lookup for every texel, per direction");
+    let directional = f.sun || f.directional_lights > 0;
+    p.decide(
+        "shadow maps + direct pass",
+        directional,
+        "the job has a sun or the scene has directional lights",
+        "no sun and no directional light",
+    );
+    p.decide("sky lookups", f.sky, "the job has a sky", "the job has no sky");
+    p.decide(
+        "direct-light layer",
+        f.want_direct,
+        "direct or indirect output asked for (emission target + direct accumulators)",
+        "not asked for in outputs",
+    );
+    let ignored = f.punctual_lights.saturating_sub(f.directional_lights);
+    if ignored > 0 {
+        p.leave_out(
+            "point and spot lights",
+            &format!(
+                "sdb has shadow maps only for the sun and directional lights: the scene's {ignored} point/spot                  light(s) are NOT baked (use `path`)"
+            ),
+        );
+    }
+    if f.glossy_materials > 0 {
+        p.leave_out("glossy transport", "sdb gathers diffuse light only; metallic/roughness are ignored");
+    } else {
+        p.leave_out("glossy data", "every material is a fully rough dielectric");
+    }
+    if !f.has_light() {
+        p.leave_out("light", "the scene and job have no light at all: the lightmap is exactly zero");
+    }
+    p
 }
