@@ -51,9 +51,10 @@
 //! 1e-3 .. 1e4 do not change the result (they only cost the precision the f32 input
 //! already lost).
 //!
-//! Culling (seed section 6): back faces of closed meshes with single-sided materials are
-//! discarded (they are never the first surface along a ray from outside, so culling only
-//! removes overdraw); back faces of open single-sided geometry are kept with zero
+//! Culling (seed section 6): back faces of closed surfaces with single-sided materials
+//! are discarded (they are never the first surface along a ray from outside, so culling
+//! only removes overdraw; closedness is found by welding vertices across the scene, see
+//! [`cullable_triangles`]); back faces of open single-sided geometry are kept with zero
 //! radiance so they block light; double-sided materials reflect and emit on both faces
 //! (with the one lightmap's value: a lightmap stores one side).
 //!
@@ -213,7 +214,7 @@ pub struct SdbTriangle {
     /// Emitted radiance of the material (without texture), used where no texel exists.
     pub emission: Vec3,
     pub double_sided: bool,
-    /// Mesh index: closedness (for culling) is decided per mesh.
+    /// Mesh index (for reports).
     pub mesh: u32,
 }
 
@@ -442,38 +443,79 @@ fn sample_cone(axis: Vec3, half: f32, rng: &mut SplitMix64) -> Vec3 {
     (axis * cos_t as f32 + t * (sin_t * phi.cos()) as f32 + b * (sin_t * phi.sin()) as f32).normalize()
 }
 
-/// Per-mesh closedness: every directed edge (a, b) of the mesh's triangles is matched by
-/// exactly one (b, a), with vertices welded by exact position. Only then is back-face
-/// culling exact for single-sided materials (seed section 6).
-pub fn closed_meshes(triangles: &[SdbTriangle]) -> std::collections::HashSet<u32> {
+/// Which triangles may have their back faces culled (seed section 6): single-sided
+/// triangles in a closed surface. Vertices are welded by exact position across the whole
+/// scene (a room built from separate wall meshes counts), triangles sharing an edge are
+/// joined into components, and a component is closed when every directed edge (a, b) of
+/// it is matched by exactly one (b, a) and used once. Only then is a back face never the
+/// first surface a point outside the surface sees, so culling it removes overdraw and
+/// nothing else. Double-sided triangles take no part (they are never culled).
+pub fn cullable_triangles(triangles: &[SdbTriangle]) -> Vec<bool> {
     use std::collections::HashMap;
-    let key = |v: Vec3| (v.x.to_bits(), v.y.to_bits(), v.z.to_bits());
-    let mut ids: HashMap<(u32, (u32, u32, u32)), u32> = HashMap::new();
-    let mut edges: HashMap<u32, HashMap<(u32, u32), i32>> = HashMap::new();
-    let mut meshes = std::collections::HashSet::new();
+    // Weld on a grid of 1e-6 of the scene size: exact bits would split corners that two
+    // meshes computed with different rounding.
+    let extent = triangles
+        .iter()
+        .flat_map(|t| t.p)
+        .fold(0.0f32, |m, p| m.max(p.abs().max_element()))
+        .max(f32::MIN_POSITIVE);
+    let cell = extent * 1e-6;
+    let key = |v: Vec3| {
+        let q = (v / cell).round();
+        (q.x as i64, q.y as i64, q.z as i64)
+    };
+    let mut ids: HashMap<(i64, i64, i64), u32> = HashMap::new();
+    let mut tri_vertices: Vec<Option<[u32; 3]>> = Vec::with_capacity(triangles.len());
     for t in triangles {
-        meshes.insert(t.mesh);
+        if t.double_sided {
+            tri_vertices.push(None);
+            continue;
+        }
         let mut v = [0u32; 3];
         for (k, p) in t.p.iter().enumerate() {
             let next = ids.len() as u32;
-            v[k] = *ids.entry((t.mesh, key(*p))).or_insert(next);
+            v[k] = *ids.entry(key(*p)).or_insert(next);
         }
-        if v[0] == v[1] || v[1] == v[2] || v[0] == v[2] {
-            continue; // degenerate: contributes no edge
-        }
-        let e = edges.entry(t.mesh).or_default();
-        for k in 0..3 {
-            let (a, b) = (v[k], v[(k + 1) % 3]);
-            *e.entry((a, b)).or_insert(0) += 1;
+        // Degenerate triangles have no area and no edges that matter.
+        tri_vertices.push((v[0] != v[1] && v[1] != v[2] && v[0] != v[2]).then_some(v));
+    }
+    // Directed edge -> (use count, first triangle using it).
+    let mut edges: HashMap<(u32, u32), (u32, usize)> = HashMap::new();
+    for (i, v) in tri_vertices.iter().enumerate() {
+        if let Some(v) = v {
+            for k in 0..3 {
+                let e = edges.entry((v[k], v[(k + 1) % 3])).or_insert((0, i));
+                e.0 += 1;
+            }
         }
     }
-    meshes
-        .into_iter()
-        .filter(|m| {
-            edges.get(m).is_some_and(|e| {
-                !e.is_empty() && e.iter().all(|(&(a, b), &n)| n == 1 && e.get(&(b, a)) == Some(&1))
-            })
-        })
+    // Union-find over triangles joined by an edge pair.
+    let mut parent: Vec<usize> = (0..triangles.len()).collect();
+    fn find(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    for (&(a, b), &(_, t)) in &edges {
+        if let Some(&(_, u)) = edges.get(&(b, a)) {
+            let (ra, rb) = (find(&mut parent, t), find(&mut parent, u));
+            if ra != rb {
+                parent[ra] = rb;
+            }
+        }
+    }
+    let mut open = vec![false; triangles.len()];
+    for (&(a, b), &(count, t)) in &edges {
+        let matched = edges.get(&(b, a)).is_some_and(|&(c, _)| c == 1);
+        if count != 1 || !matched {
+            let r = find(&mut parent, t);
+            open[r] = true;
+        }
+    }
+    (0..triangles.len())
+        .map(|i| tri_vertices[i].is_some() && !open[find(&mut parent, i)])
         .collect()
 }
 
@@ -749,7 +791,7 @@ impl SdbEngine {
             )
         });
 
-        let closed = closed_meshes(&input.triangles);
+        let cullable = cullable_triangles(&input.triangles);
         let mut vertices = Vec::with_capacity(input.triangles.len() * 3);
         let mut tris = Vec::with_capacity(input.triangles.len());
         for (i, t) in input.triangles.iter().enumerate() {
@@ -763,7 +805,7 @@ impl SdbEngine {
             let mut flags = 0;
             if t.double_sided {
                 flags |= TRI_DOUBLE_SIDED;
-            } else if closed.contains(&t.mesh) {
+            } else if cullable[i] {
                 flags |= TRI_CULL_BACK;
             }
             tris.push(GpuTriInfo { emission: t.emission.to_array(), flags });
@@ -1467,4 +1509,108 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         p.leave_out("light", "the scene and job have no light at all: the lightmap is exactly zero");
     }
     p
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn quad_tris(corners: [Vec3; 4], mesh: u32) -> [SdbTriangle; 2] {
+        let t = |a: usize, b: usize, c: usize| SdbTriangle {
+            p: [corners[a], corners[b], corners[c]],
+            lm: [Vec2::ZERO; 3],
+            emission: Vec3::ZERO,
+            double_sided: false,
+            mesh,
+        };
+        [t(0, 1, 2), t(0, 2, 3)]
+    }
+
+    /// A unit cube from six separate meshes, outward-facing, counter-clockwise.
+    fn cube() -> Vec<SdbTriangle> {
+        let v = |x: f32, y: f32, z: f32| Vec3::new(x, y, z);
+        let faces = [
+            [v(0., 0., 1.), v(1., 0., 1.), v(1., 1., 1.), v(0., 1., 1.)],
+            [v(1., 0., 0.), v(0., 0., 0.), v(0., 1., 0.), v(1., 1., 0.)],
+            [v(1., 0., 1.), v(1., 0., 0.), v(1., 1., 0.), v(1., 1., 1.)],
+            [v(0., 0., 0.), v(0., 0., 1.), v(0., 1., 1.), v(0., 1., 0.)],
+            [v(0., 1., 1.), v(1., 1., 1.), v(1., 1., 0.), v(0., 1., 0.)],
+            [v(0., 0., 0.), v(1., 0., 0.), v(1., 0., 1.), v(0., 0., 1.)],
+        ];
+        faces.iter().enumerate().flat_map(|(i, f)| quad_tris(*f, i as u32)).collect()
+    }
+
+    #[test]
+    fn closed_surfaces_are_found_across_meshes() {
+        let tris = cube();
+        assert!(cullable_triangles(&tris).iter().all(|&c| c));
+        // Remove one face: the box is open, nothing may be culled.
+        let open: Vec<SdbTriangle> = tris[..10].to_vec();
+        assert!(cullable_triangles(&open).iter().all(|&c| !c));
+        // A closed cube plus a separate open quad: only the cube is cullable.
+        let mut mixed = tris.clone();
+        mixed.extend(quad_tris([Vec3::splat(5.0), Vec3::new(6., 5., 5.), Vec3::new(6., 6., 5.), Vec3::new(5., 6., 5.)], 9));
+        let c = cullable_triangles(&mixed);
+        assert!(c[..12].iter().all(|&x| x) && c[12..].iter().all(|&x| !x));
+        // A double-sided face makes its surface open (it is never culled itself).
+        let mut ds = tris;
+        ds[0].double_sided = true;
+        ds[1].double_sided = true;
+        assert!(cullable_triangles(&ds).iter().all(|&c| !c));
+    }
+
+    #[test]
+    fn params_defaults_and_ranges() {
+        let p = SdbParams::from_json(&serde_json::Value::Null).unwrap();
+        assert_eq!(p, SdbParams::default());
+        let p = SdbParams::from_json(&serde_json::json!({"neighbourhood": 5, "mode": "leaky", "blend": 0.05})).unwrap();
+        assert_eq!((p.neighbourhood, p.mode, p.blend), (5, AccumulationMode::Leaky, 0.05));
+        for bad in [
+            serde_json::json!({"neighbourhood": 4}),
+            serde_json::json!({"map_size": 32}),
+            serde_json::json!({"blend": 0.0}),
+            serde_json::json!({"directions_per_step": 0}),
+            serde_json::json!({"ramp": 9}),
+            serde_json::json!({"directions": "sobol"}),
+            serde_json::json!({"unknown": 1}),
+        ] {
+            assert!(SdbParams::from_json(&bad).is_err(), "{bad} accepted");
+        }
+    }
+
+    #[test]
+    fn stratified_directions_are_uniform_and_seeded() {
+        // Mean of a uniform distribution on the sphere is 0, and the mean of |z| is 1/2;
+        // R2 with 4096 points gets both far closer than i.i.d. sampling (about 0.009).
+        let mut d = Directions::new(DirectionSequence::Stratified, 42);
+        let v: Vec<Vec3> = (0..4096).map(|_| d.next_direction()).collect();
+        let mean = v.iter().copied().sum::<Vec3>() / v.len() as f32;
+        let abs_z = v.iter().map(|w| w.z.abs()).sum::<f32>() / v.len() as f32;
+        assert!(mean.length() < 2e-3, "{mean}");
+        assert!((abs_z - 0.5).abs() < 2e-3, "{abs_z}");
+        assert!(v.iter().all(|w| (w.length() - 1.0).abs() < 1e-5));
+        let mut other = Directions::new(DirectionSequence::Stratified, 43);
+        assert!(other.next_direction().distance(v[0]) > 1e-3, "seeds must rotate the sequence");
+    }
+
+    #[test]
+    fn view_covers_the_bounds_with_a_right_handed_frame() {
+        let corners: [Vec3; 8] =
+            std::array::from_fn(|i| Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32) * 2.0 - 1.0);
+        let mut dirs = Directions::new(DirectionSequence::Random, 1);
+        for _ in 0..64 {
+            let d = dirs.next_direction();
+            let v = make_view(d, &corners, 256, (0.7, 0.3), 0, DEPTH_STOCHASTIC);
+            let (r, u, dd) = (Vec3::from_slice(&v.right[..3]), Vec3::from_slice(&v.up[..3]), Vec3::from_slice(&v.dir[..3]));
+            // right x up = -d: a look-at camera, so winding is preserved on screen.
+            assert!((r.cross(u) + dd).length() < 1e-5);
+            for c in &corners {
+                let a = c.dot(r) - v.right[3];
+                let b = c.dot(u) - v.up[3];
+                let t = c.dot(dd) - v.dir[3];
+                assert!(a >= 0.0 && a <= v.extent[0] && b >= 0.0 && b <= v.extent[0], "corner outside the map");
+                assert!(t > 0.0 && t < v.extent[1], "corner outside the depth range");
+            }
+        }
+    }
 }
