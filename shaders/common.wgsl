@@ -45,10 +45,11 @@ const EMPTY_T: f32 = 1.0e30;
 
 // Flags per triangle (TriInfo.flags).
 const TRI_DOUBLE_SIDED: u32 = 1u;  // material.double_sided: both faces reflect and emit
-const TRI_CULL_BACK: u32 = 2u;     // single-sided face of a closed mesh: back face culled
+const TRI_CULL_BACK: u32 = 2u;     // single-sided face of a closed surface: back face culled
+const TRI_TEXTURED_EMISSION: u32 = 4u;  // emission varies over the triangle: read it from the lightmap
 
-// Per triangle: the material's emitted radiance (used where the lightmap has no texel to
-// look up, e.g. a triangle smaller than a texel) and the TRI_* flags.
+// Per triangle: the material's emitted radiance (exact; with an emissive texture, the
+// fallback where the lightmap has no texel to look up) and the TRI_* flags.
 struct TriInfo {
     emission: vec3<f32>,
     flags: u32,
@@ -63,8 +64,7 @@ struct TexelGeom {
 
 // One lightmap texel's material, compact over valid texels.
 struct TexelShade {
-    albedo: vec4<f32>,    // rgb: diffuse albedo (linear)
-    emission: vec4<f32>,  // rgb: emitted radiance
+    albedo: vec4<f32>,    // rgb: diffuse albedo (linear); a: unused
 }
 
 // Centre of pixel (i, j) of the view's map in lateral coordinates (a, b).

@@ -49,9 +49,9 @@ struct LightmapDims {
 @group(0) @binding(0) var<uniform> view: View;
 @group(0) @binding(1) var<uniform> lightmap: LightmapDims;
 @group(0) @binding(2) var<storage, read> tris: array<TriInfo>;
-@group(0) @binding(3) var<storage, read> radiance: array<vec4<f32>>;  // W*H, from sdb_resolve
-// Only with fs_main_direct: emitted radiance per lightmap pixel (a: coverage), static.
-@group(1) @binding(0) var<storage, read> emission_px: array<vec4<f32>>;  // W*H
+@group(0) @binding(3) var<storage, read> radiance: array<vec4<f32>>;  // W*H: reflected (sdb_resolve)
+// Emitted radiance per lightmap pixel, static; used by triangles with TRI_TEXTURED_EMISSION.
+@group(0) @binding(4) var<storage, read> emission_px: array<vec4<f32>>;  // W*H
 
 @vertex
 fn vs_main(v: Vertex) -> VsOut {
@@ -100,22 +100,29 @@ fn lightmap_taps(uv: vec2<f32>) -> Taps {
 }
 
 // What a fragment writes, before culling is applied by the entry point.
-// (A helper may not touch emission_px: fs_main's pipeline has no group 1, and a binding
-// used by any function an entry point calls must be in its layout.)
+// What a fragment writes, before culling is applied by the entry point.
 struct Shaded {
     sample: vec4<f32>,    // rgb: outgoing radiance, a: t
-    emission: vec3<f32>,  // emitted part of rgb when it came from the triangle's material
-    taps: Taps,           // lightmap lookup, when lookup is true
-    lookup: bool,         // rgb came from the lightmap (the emitted part is at the same taps)
+    emission: vec3<f32>,  // the emitted part of rgb
     depth: f32,
     culled: bool,
+}
+
+fn lookup(buffer_is_emission: bool, taps: Taps) -> vec3<f32> {
+    let i = taps.index;
+    let w = taps.weight;
+    if buffer_is_emission {
+        return emission_px[i.x].rgb * w.x + emission_px[i.y].rgb * w.y
+             + emission_px[i.z].rgb * w.z + emission_px[i.w].rgb * w.w;
+    }
+    return radiance[i.x].rgb * w.x + radiance[i.y].rgb * w.y
+         + radiance[i.z].rgb * w.z + radiance[i.w].rgb * w.w;
 }
 
 fn shade(in: VsOut, front: bool) -> Shaded {
     let t = dot(in.world, view.dir.xyz);
     var out: Shaded;
     out.culled = false;
-    out.lookup = false;
     out.emission = vec3<f32>(0.0);
     if view.params.y == DEPTH_NEAREST {
         out.sample = vec4<f32>(0.0, 0.0, 0.0, t);
@@ -125,21 +132,21 @@ fn shade(in: VsOut, front: bool) -> Shaded {
     let info = tris[in.triangle];
     var l = vec3<f32>(0.0);
     if front || (info.flags & TRI_DOUBLE_SIDED) != 0u {
-        let taps = lightmap_taps(in.lightmap_uv);
+        // Emission: the material's exact value, so a small emitter's light does not
+        // depend on how many lightmap texels it got.
+        out.emission = info.emission;
+        var taps = lightmap_taps(in.lightmap_uv);
         let wsum = dot(taps.weight, vec4<f32>(1.0));
         if wsum > 1.0e-6 {
-            let w = taps.weight / wsum;
-            l = radiance[taps.index.x].rgb * w.x + radiance[taps.index.y].rgb * w.y
-              + radiance[taps.index.z].rgb * w.z + radiance[taps.index.w].rgb * w.w;
-            out.taps = taps;
-            out.taps.weight = w;
-            out.lookup = true;
-        } else {
-            // No texel near this fragment (a triangle smaller than a texel): keep at
-            // least its own emission so that small emitters still light the scene.
-            l = info.emission;
-            out.emission = info.emission;
+            taps.weight = taps.weight / wsum;
+            l = lookup(false, taps);
+            if (info.flags & TRI_TEXTURED_EMISSION) != 0u {
+                out.emission = lookup(true, taps);
+            }
         }
+        // else: no texel near this fragment (a triangle smaller than a texel): its
+        // reflected light is unknown and taken as zero; its emission still counts.
+        l += out.emission;
     } else if (info.flags & TRI_CULL_BACK) != 0u {
         out.culled = true;
     }
@@ -169,16 +176,9 @@ fn fs_main_direct(in: VsOut, @builtin(front_facing) front: bool) -> FsOutDirect 
     if s.culled {
         discard;
     }
-    var emission = s.emission;
-    if s.lookup {
-        let i = s.taps.index;
-        let w = s.taps.weight;
-        emission = emission_px[i.x].rgb * w.x + emission_px[i.y].rgb * w.y
-                 + emission_px[i.z].rgb * w.z + emission_px[i.w].rgb * w.w;
-    }
     var out: FsOutDirect;
     out.sample = s.sample;
-    out.emission = vec4<f32>(emission, 0.0);
+    out.emission = vec4<f32>(s.emission, 0.0);
     out.depth = s.depth;
     return out;
 }

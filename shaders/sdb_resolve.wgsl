@@ -1,6 +1,6 @@
-// sdb_resolve.wgsl: outgoing radiance of every lightmap pixel from the current estimate,
-// L_o = L_e + albedo * E/pi (seed Eq. 1 with the running estimate in place of the
-// integral). The illumination pass reads this buffer at each fragment's lightmap UV, which
+// sdb_resolve.wgsl: reflected radiance of every lightmap pixel from the current
+// estimate, albedo * E/pi (seed Eq. 1 with the running estimate in place of the integral;
+// the illumination pass adds the emission). The illumination pass reads this buffer at each fragment's lightmap UV, which
 // is how bounces happen: each direction gathers light that was itself gathered before.
 //
 // Pixels outside every chart take the values of a nearby valid texel (`fill`, built on
@@ -20,7 +20,7 @@ struct ResolveParams {
 @group(0) @binding(1) var<storage, read> fill: array<u32>;          // W*H, texel index or NO_TEXEL
 @group(0) @binding(2) var<storage, read> shade: array<TexelShade>;  // N
 @group(0) @binding(3) var<storage, read> acc: array<vec4<f32>>;     // 2N: even then odd
-@group(0) @binding(4) var<storage, read_write> radiance: array<vec4<f32>>;  // W*H
+@group(0) @binding(4) var<storage, read_write> radiance: array<vec4<f32>>;  // W*H: rgb reflected, a coverage
 
 const NO_TEXEL: u32 = 0xffffffffu;
 
@@ -42,5 +42,5 @@ fn resolve(
     let n = params.dims.z;
     let e = acc[src].rgb * params.scale.x + acc[n + src].rgb * params.scale.y;
     let s = shade[src];
-    radiance[pixel] = vec4<f32>(s.emission.rgb + s.albedo.rgb * e, 1.0);
+    radiance[pixel] = vec4<f32>(s.albedo.rgb * e, 1.0);
 }

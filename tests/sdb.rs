@@ -19,13 +19,13 @@ use std::sync::Arc;
 
 use common::{bake, import, lum};
 use glam::{Vec2, Vec3};
+use lightmapd::engine::gpu::{GpuContext, GpuError, Requirements};
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, Sun};
-use serde_json::json;
-use lightmapd::engine::gpu::{GpuContext, GpuError, Requirements};
 use lightmapd::engine::technique::sdb::{
     AccumulationMode, DirectionSequence, DirectionalLight, SdbEngine, SdbInput, SdbParams, SdbTexel, SdbTriangle,
 };
+use serde_json::json;
 
 /// The test context, or None (with a message) when the machine has no adapter at all.
 fn context() -> Option<Arc<GpuContext>> {
@@ -60,7 +60,18 @@ impl Quad {
         let n = normal.normalize();
         let (t, _) = n.any_orthonormal_pair();
         let b = n.cross(t);
-        Quad { centre, normal: n, t, b, half, rect, albedo: Vec3::splat(0.5), emission: Vec3::ZERO, double_sided: false, mesh: 0 }
+        Quad {
+            centre,
+            normal: n,
+            t,
+            b,
+            half,
+            rect,
+            albedo: Vec3::splat(0.5),
+            emission: Vec3::ZERO,
+            double_sided: false,
+            mesh: 0,
+        }
     }
 
     fn point(&self, alpha: f32, beta: f32) -> Vec3 {
@@ -69,12 +80,23 @@ impl Quad {
 
     fn triangles(&self) -> [SdbTriangle; 2] {
         let [u0, v0, u1, v1] = self.rect;
-        let p = [self.point(0.0, 0.0), self.point(1.0, 0.0), self.point(1.0, 1.0), self.point(0.0, 1.0)];
-        let uv = [Vec2::new(u0, v0), Vec2::new(u1, v0), Vec2::new(u1, v1), Vec2::new(u0, v1)];
+        let p = [
+            self.point(0.0, 0.0),
+            self.point(1.0, 0.0),
+            self.point(1.0, 1.0),
+            self.point(0.0, 1.0),
+        ];
+        let uv = [
+            Vec2::new(u0, v0),
+            Vec2::new(u1, v0),
+            Vec2::new(u1, v1),
+            Vec2::new(u0, v1),
+        ];
         let tri = |a: usize, b: usize, c: usize| SdbTriangle {
             p: [p[a], p[b], p[c]],
             lm: [uv[a], uv[b], uv[c]],
             emission: self.emission,
+            emission_textured: false,
             double_sided: self.double_sided,
             mesh: self.mesh,
         };
@@ -124,11 +146,19 @@ fn run(engine: &mut SdbEngine, steps: u32) -> Vec<Vec3> {
     }
     let [even, odd] = engine.read_halves().expect("read back");
     eprintln!("{steps} steps in {:.2} s", start.elapsed().as_secs_f64());
-    even.total.iter().zip(&odd.total).map(|(a, b)| (*a + *b) * 0.5).collect()
+    even.total
+        .iter()
+        .zip(&odd.total)
+        .map(|(a, b)| (*a + *b) * 0.5)
+        .collect()
 }
 
 fn params(map: u32, k: u32) -> SdbParams {
-    SdbParams { map_size: map, neighbourhood: k, ..SdbParams::default() }
+    SdbParams {
+        map_size: map,
+        neighbourhood: k,
+        ..SdbParams::default()
+    }
 }
 
 fn mean(v: &[Vec3]) -> Vec3 {
@@ -175,7 +205,12 @@ fn inward_cube(albedo: f32, emission: f32) -> Vec<Quad> {
         .map(|(k, &axis)| {
             let (bx, by) = ((k % 3) as f32, (k / 3) as f32);
             // 3 x 2 blocks of 16 texels on a 48 x 32 map, gutter of 1 texel.
-            let rect = [(bx * 16.0 + 1.0) / 48.0, (by * 16.0 + 1.0) / 32.0, (bx * 16.0 + 15.0) / 48.0, (by * 16.0 + 15.0) / 32.0];
+            let rect = [
+                (bx * 16.0 + 1.0) / 48.0,
+                (by * 16.0 + 1.0) / 32.0,
+                (bx * 16.0 + 15.0) / 48.0,
+                (by * 16.0 + 15.0) / 32.0,
+            ];
             let mut q = Quad::new(axis * 0.5, -axis, 0.5, rect);
             q.albedo = Vec3::splat(albedo);
             q.emission = Vec3::splat(emission);
@@ -192,13 +227,25 @@ fn closed_emissive_box_converges_to_the_furnace_solution() {
     // errors are noise and the feedback transient (about n^-2(1-a) = 1/n with ramp 1).
     let Some(ctx) = context() else { return };
     let (triangles, texels, _) = build(&inward_cube(0.5, 1.0), 48, 32);
-    let input = SdbInput { triangles, texels, width: 48, height: 32, environment: None, lights: vec![], seed: 3, want_direct: false };
+    let input = SdbInput {
+        triangles,
+        texels,
+        width: 48,
+        height: 32,
+        environment: None,
+        lights: vec![],
+        seed: 3,
+        want_direct: false,
+    };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 1024);
     let m = mean(&e);
     eprintln!("mean {m}");
     assert!((m - Vec3::splat(2.0)).abs().max_element() < 0.03, "mean {m}");
-    let worst = e.iter().map(|v| (*v - Vec3::splat(2.0)).abs().max_element()).fold(0.0, f32::max);
+    let worst = e
+        .iter()
+        .map(|v| (*v - Vec3::splat(2.0)).abs().max_element())
+        .fold(0.0, f32::max);
     eprintln!("worst texel error {worst}");
     assert!(worst < 0.15, "worst texel error {worst}");
 }
@@ -210,8 +257,21 @@ fn leaky_mode_reaches_the_same_solution() {
     // its noise is larger (it averages only about 2/b directions), hence the tolerance.
     let Some(ctx) = context() else { return };
     let (triangles, texels, _) = build(&inward_cube(0.5, 1.0), 48, 32);
-    let input = SdbInput { triangles, texels, width: 48, height: 32, environment: None, lights: vec![], seed: 5, want_direct: false };
-    let p = SdbParams { mode: AccumulationMode::Leaky, blend: 0.02, ..params(128, 3) };
+    let input = SdbInput {
+        triangles,
+        texels,
+        width: 48,
+        height: 32,
+        environment: None,
+        lights: vec![],
+        seed: 5,
+        want_direct: false,
+    };
+    let p = SdbParams {
+        mode: AccumulationMode::Leaky,
+        blend: 0.02,
+        ..params(128, 3)
+    };
     let mut engine = SdbEngine::new(ctx, input, p).unwrap();
     let e = run(&mut engine, 600);
     let m = mean(&e);
@@ -240,7 +300,16 @@ fn sun_direct_light_and_shadow() {
         irradiance_over_pi: Vec3::ONE,
         cone_half_angle: 0.0,
     };
-    let input = SdbInput { triangles, texels, width: 32, height: 32, environment: None, lights: vec![light], seed: 1, want_direct: true };
+    let input = SdbInput {
+        triangles,
+        texels,
+        width: 32,
+        height: 32,
+        environment: None,
+        lights: vec![light],
+        seed: 1,
+        want_direct: true,
+    };
     let mut engine = SdbEngine::new(ctx, input, params(256, 3)).unwrap();
     let e = run(&mut engine, 8);
     let [even, _] = engine.read_halves().unwrap();
@@ -259,8 +328,16 @@ fn sun_direct_light_and_shadow() {
             assert!(e[k].max_element() < 0.01, "shadowed texel at {p}: {}", e[k]);
             shadowed += 1;
         } else if outside {
-            assert!((e[k] - Vec3::splat(0.5)).abs().max_element() < 0.01, "lit texel at {p}: {}", e[k]);
-            assert!((direct[k] - Vec3::splat(0.5)).abs().max_element() < 0.01, "direct layer at {p}: {}", direct[k]);
+            assert!(
+                (e[k] - Vec3::splat(0.5)).abs().max_element() < 0.01,
+                "lit texel at {p}: {}",
+                e[k]
+            );
+            assert!(
+                (direct[k] - Vec3::splat(0.5)).abs().max_element() < 0.01,
+                "direct layer at {p}: {}",
+                direct[k]
+            );
             lit += 1;
         }
     }
@@ -283,7 +360,10 @@ fn random_and_stratified_directions_agree() {
         want_direct: false,
     };
     // Sky radiance 3 cos(theta) over the upper hemisphere: E/pi = (1/pi) int 3 cos^2 = 2.
-    let p = SdbParams { directions: DirectionSequence::Random, ..params(64, 1) };
+    let p = SdbParams {
+        directions: DirectionSequence::Random,
+        ..params(64, 1)
+    };
     let mut engine = SdbEngine::new(ctx, input, p).unwrap();
     let e = run(&mut engine, 2048);
     // i.i.d. directions: relative standard deviation of 4 * 3 cos^2 max(.,0) estimator
@@ -304,7 +384,13 @@ fn have_adapter() -> bool {
 }
 
 fn upper_sky(l: f32) -> Lighting {
-    Lighting { sky: Some(Sky { radiance: Vec3::splat(l), hemisphere: Hemisphere::Upper }), sun: None }
+    Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::splat(l),
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: None,
+    }
 }
 
 #[test]
@@ -323,7 +409,14 @@ fn imported_closed_cube_furnace() {
     for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
         b.square(&format!("face {n}"), -n, 2.0, n, m);
     }
-    let (atlas, est) = bake(import(&b), 48, Lighting::default(), "sdb", json!({"map_size": 128}), 1024);
+    let (atlas, est) = bake(
+        import(&b),
+        48,
+        Lighting::default(),
+        "sdb",
+        json!({"map_size": 128}),
+        1024,
+    );
     assert!(atlas.texels.len() > 1000);
     let mean = est.total.iter().map(|v| lum(*v)).sum::<f64>() / est.total.len() as f64;
     let worst = est.total.iter().map(|v| (lum(*v) - 2.0).abs()).fold(0.0, f64::max);
@@ -399,7 +492,9 @@ fn imported_parallel_squares_form_factor() {
     }
     let rel = got / want - 1.0;
     let rms = (sq / count as f64).sqrt();
-    eprintln!("parallel squares: mean relative deviation {rel:+.4}, RMS relative deviation {rms:.4} over {count} texels");
+    eprintln!(
+        "parallel squares: mean relative deviation {rel:+.4}, RMS relative deviation {rms:.4} over {count} texels"
+    );
     assert!(rel.abs() < 0.02, "mean relative deviation {rel}");
     // Per texel the estimator is noisy: only about 7% of uniform directions hit the
     // emitter (solid angle about 0.9 sr of 4 pi), so a texel's estimate is a Bernoulli
@@ -433,7 +528,10 @@ fn imported_sun_on_a_plane() {
         radiance: Vec3::splat(1e4),
     };
     let expected = 1e4 * sun.solid_angle() * theta.cos() / std::f32::consts::PI;
-    let lighting = Lighting { sky: None, sun: Some(sun) };
+    let lighting = Lighting {
+        sky: None,
+        sun: Some(sun),
+    };
     let (_, est) = bake(import(&b), 16, lighting, "sdb", json!({"map_size": 128}), 16);
     let direct = est.direct.as_ref().expect("direct layer");
     for (t, d) in est.total.iter().zip(direct) {
@@ -460,7 +558,11 @@ fn plan_reports_ignored_point_lights() {
     };
     let plan = lightmapd::engine::technique::plan("sdb", &f).unwrap();
     assert!(plan.runs("shadow maps + direct pass"));
-    let left = plan.left_out.iter().find(|i| i.name == "point and spot lights").expect("point lights reported");
+    let left = plan
+        .left_out
+        .iter()
+        .find(|i| i.name == "point and spot lights")
+        .expect("point lights reported");
     assert!(left.why.contains('2'), "{}", left.why);
 }
 
@@ -471,30 +573,104 @@ fn cornell_box_against_path() {
     // Budget, justified by the numbers printed: the reference's own noise (its halves'
     // standard error), sdb's noise (its halves), and sdb's bias: the light is a small
     // 0.5 x 0.4 m emitter hit by few directions (variance, not bias), the box is open at
-    // the front so overdraw reaches 2 to 4 along many rays (k = 3: a nearer surface
-    // missed with probability (1 - 1/K)^9, up to 7.5% of rays at K = 4), and contact
-    // shadows blur over about 2 map pixels (1.3 cm at 512). The bound below is the
-    // measured noise floor plus a 10% bias allowance.
+    // the front, so no surface is closed and back faces stay as black blockers: overdraw
+    // reaches 4 to 5 along vertical rays, and the layers behind the receiver win the
+    // depth lottery and are rejected, so the nearest surface in front is missed with
+    // probability about (1 - 1/K)^(k^2): 0.4% at K = 5 with the default k = 5 (but 13%
+    // with k = 3, which measured 23% dark here). Contact shadows blur over about 3 map
+    // pixels (0.6 cm at 512). Measured per surface (docs/sdb.md): within 5% except the
+    // short block's side in its contact shadow (12% dark). Bound: the measured noise
+    // floor plus 10% for that bias. The mean over the box is tested within 10%: 5% bias
+    // plus its noise, which is large because the light subtends about 0.4% of the sphere
+    // from the floor (about 8 of 2048 directions hit it) and all texels share the same
+    // directions, so their errors are correlated. With k = 3 the mean is 20-26% dark,
+    // which this catches.
     if !have_adapter() {
         return;
     }
     let res = 24;
-    let (_, reference) = bake(import(&cornell_box()), res, Lighting::default(), "path", json!({"samples_per_step": 64}), 16);
-    let (_, est) = bake(import(&cornell_box()), res, Lighting::default(), "sdb", json!({"map_size": 256}), 4096);
+    let (_, reference) = bake(
+        import(&cornell_box()),
+        res,
+        Lighting::default(),
+        "path",
+        json!({"samples_per_step": 64}),
+        16,
+    );
+    let (_, est) = bake(
+        import(&cornell_box()),
+        res,
+        Lighting::default(),
+        "sdb",
+        json!({"map_size": 256}),
+        4096,
+    );
     let n = reference.total.len() as f64;
     let ms = |a: &[Vec3], b: &[Vec3]| a.iter().zip(b).map(|(x, y)| (lum(*x) - lum(*y)).powi(2)).sum::<f64>() / n;
     let zeros = vec![Vec3::ZERO; reference.total.len()];
     let norm = ms(&reference.total, &zeros).sqrt();
     let rmse = ms(&est.total, &reference.total).sqrt() / norm;
     let se = |e: &lightmapd::engine::accumulate::Estimate| {
-        (e.texel_error.as_ref().unwrap().iter().map(|x| (*x as f64).powi(2)).sum::<f64>() / n).sqrt() / norm
+        (e.texel_error
+            .as_ref()
+            .unwrap()
+            .iter()
+            .map(|x| (*x as f64).powi(2))
+            .sum::<f64>()
+            / n)
+            .sqrt()
+            / norm
     };
     let (se_ref, se_sdb) = (se(&reference), se(&est));
     let noise = (se_ref * se_ref + se_sdb * se_sdb).sqrt();
-    let mean_rel = est.total.iter().map(|v| lum(*v)).sum::<f64>() / reference.total.iter().map(|v| lum(*v)).sum::<f64>() - 1.0;
+    let mean_rel =
+        est.total.iter().map(|v| lum(*v)).sum::<f64>() / reference.total.iter().map(|v| lum(*v)).sum::<f64>() - 1.0;
     eprintln!(
         "cornell: relative RMSE {rmse:.4}, noise floor {noise:.4} (path {se_ref:.4}, sdb {se_sdb:.4}), mean deviation {mean_rel:+.4}"
     );
     assert!(rmse < 2.0 * noise + 0.10, "relative RMSE {rmse} (noise {noise})");
-    assert!(mean_rel.abs() < 0.05, "mean deviation {mean_rel}");
+    assert!(mean_rel.abs() < 0.10, "mean deviation {mean_rel}");
+}
+
+#[test]
+#[ignore = "diagnostic: per-surface sdb / path ratios on the Cornell box"]
+fn cornell_per_surface() {
+    if !have_adapter() {
+        return;
+    }
+    let res = 24;
+    let scene = import(&cornell_box());
+    let names: Vec<String> = scene.meshes.iter().map(|m| m.name.clone()).collect();
+    let tri_mesh: Vec<u32> = scene.triangles.iter().map(|t| t.mesh).collect();
+    let (atlas, reference) = bake(
+        import(&cornell_box()),
+        res,
+        Lighting::default(),
+        "path",
+        json!({"samples_per_step": 64}),
+        8,
+    );
+    let params: serde_json::Value = std::env::var("SDB_PARAMS")
+        .ok()
+        .map(|s| serde_json::from_str(&s).unwrap())
+        .unwrap_or(json!({}));
+    let (_, est) = bake(import(&cornell_box()), res, Lighting::default(), "sdb", params, 1024);
+    let mut sums = vec![(0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize); names.len()];
+    for (k, t) in atlas.texels.iter().enumerate() {
+        let m = tri_mesh[t.triangle as usize] as usize;
+        sums[m].0 += lum(est.total[k]);
+        sums[m].1 += lum(reference.total[k]);
+        sums[m].2 += lum(est.direct.as_ref().unwrap()[k]);
+        sums[m].3 += lum(reference.direct.as_ref().unwrap()[k]);
+        sums[m].4 += 1;
+    }
+    for (name, s) in names.iter().zip(&sums) {
+        eprintln!(
+            "{name:>14}: {:4} texels  total sdb/path {:.3}  direct sdb/path {:.3}  (path total {:.3})",
+            s.4,
+            s.0 / s.1,
+            s.2 / s.3,
+            s.1 / s.4 as f64
+        );
+    }
 }

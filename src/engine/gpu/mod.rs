@@ -51,7 +51,10 @@ pub enum GpuError {
     #[error("adapter {adapter:?} lacks what lightmapd needs: {missing}")]
     Unsupported { adapter: String, missing: String },
     #[error("could not create a device on {adapter:?}: {source}")]
-    RequestDevice { adapter: String, source: wgpu::RequestDeviceError },
+    RequestDevice {
+        adapter: String,
+        source: wgpu::RequestDeviceError,
+    },
     #[error("shader {name} failed to compile:\n{message}")]
     Shader { name: String, message: String },
     #[error("GPU error during {during}: {message}")]
@@ -73,7 +76,10 @@ impl Default for Requirements {
     /// The WebGPU defaults: compute shaders, 8192^2 textures, 128 MiB storage bindings,
     /// 8 storage buffers per stage. Every pass in `shaders/` fits in these.
     fn default() -> Self {
-        Requirements { features: wgpu::Features::empty(), limits: wgpu::Limits::default() }
+        Requirements {
+            features: wgpu::Features::empty(),
+            limits: wgpu::Limits::default(),
+        }
     }
 }
 
@@ -133,9 +139,7 @@ fn device_type_rank(t: wgpu::DeviceType) -> u32 {
 fn is_hardware(t: wgpu::DeviceType) -> bool {
     matches!(
         t,
-        wgpu::DeviceType::DiscreteGpu
-            | wgpu::DeviceType::IntegratedGpu
-            | wgpu::DeviceType::VirtualGpu
+        wgpu::DeviceType::DiscreteGpu | wgpu::DeviceType::IntegratedGpu | wgpu::DeviceType::VirtualGpu
     )
 }
 
@@ -149,7 +153,9 @@ pub fn choose_adapter(infos: &[wgpu::AdapterInfo], pref: &AdapterPreference) -> 
         AdapterPreference::Cpu => i.device_type == wgpu::DeviceType::Cpu,
         AdapterPreference::Name(n) => i.name.to_lowercase().contains(&n.to_lowercase()),
     });
-    candidates.min_by_key(|(idx, i)| (device_type_rank(i.device_type), *idx)).map(|(idx, _)| idx)
+    candidates
+        .min_by_key(|(idx, i)| (device_type_rank(i.device_type), *idx))
+        .map(|(idx, _)| idx)
 }
 
 /// Features and limits the adapter lacks, as readable text; empty when it has them all.
@@ -219,7 +225,10 @@ impl GpuContext {
                 .map(|i| format!("{:?} ({:?}, {:?})", i.name, i.device_type, i.backend))
                 .collect::<Vec<_>>()
                 .join(", ");
-            return Err(GpuError::AdapterNotFound { wanted: pref.wanted(), available });
+            return Err(GpuError::AdapterNotFound {
+                wanted: pref.wanted(),
+                available,
+            });
         };
         let adapter = adapters.into_iter().nth(idx).expect("index from choose_adapter");
         let info = infos[idx].clone();
@@ -230,7 +239,10 @@ impl GpuContext {
             req,
         );
         if !missing.is_empty() {
-            return Err(GpuError::Unsupported { adapter: info.name.clone(), missing: missing.join("; ") });
+            return Err(GpuError::Unsupported {
+                adapter: info.name.clone(),
+                missing: missing.join("; "),
+            });
         }
         if is_hardware(info.device_type) {
             tracing::info!(adapter = %info.name, backend = ?info.backend, kind = ?info.device_type, "using GPU adapter");
@@ -248,7 +260,10 @@ impl GpuContext {
             required_limits: limits.clone(),
             ..Default::default()
         }))
-        .map_err(|source| GpuError::RequestDevice { adapter: info.name.clone(), source })?;
+        .map_err(|source| GpuError::RequestDevice {
+            adapter: info.name.clone(),
+            source,
+        })?;
         let errors: Arc<Mutex<Option<String>>> = Arc::new(Mutex::new(None));
         let sink = errors.clone();
         device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
@@ -258,7 +273,14 @@ impl GpuContext {
                 *slot = Some(e.to_string());
             }
         }));
-        Ok(GpuContext { adapter, device, queue, info, limits, errors })
+        Ok(GpuContext {
+            adapter,
+            device,
+            queue,
+            info,
+            limits,
+            errors,
+        })
     }
 
     /// True for a software adapter (lavapipe, WARP, ...).
@@ -270,7 +292,10 @@ impl GpuContext {
     pub fn take_error(&self, during: &str) -> Result<(), GpuError> {
         let mut slot = self.errors.lock().unwrap_or_else(|p| p.into_inner());
         match slot.take() {
-            Some(message) => Err(GpuError::Device { during: during.to_string(), message }),
+            Some(message) => Err(GpuError::Device {
+                during: during.to_string(),
+                message,
+            }),
             None => Ok(()),
         }
     }
@@ -284,7 +309,10 @@ impl GpuContext {
             source: wgpu::ShaderSource::Wgsl(source.into()),
         });
         if let Some(e) = pollster::block_on(scope.pop()) {
-            return Err(GpuError::Shader { name: pass.name.to_string(), message: e.to_string() });
+            return Err(GpuError::Shader {
+                name: pass.name.to_string(),
+                message: e.to_string(),
+            });
         }
         Ok(module)
     }
@@ -303,7 +331,11 @@ impl GpuContext {
                 usage,
             });
         }
-        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: bytes, usage })
+        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytes,
+            usage,
+        })
     }
 
     /// A zero-filled buffer of `size` bytes (at least 16).
@@ -340,16 +372,31 @@ impl GpuContext {
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(&staging_label) });
-        encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT));
+        let mut encoder = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some(&staging_label),
+        });
+        encoder.copy_buffer_to_buffer(
+            buffer,
+            0,
+            &staging,
+            0,
+            size.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT),
+        );
         self.queue.submit([encoder.finish()]);
         let (tx, rx) = std::sync::mpsc::channel();
         staging.slice(..).map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
         });
-        let err = |message: String| GpuError::Readback { label: label.to_string(), message };
-        self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| err(e.to_string()))?;
-        rx.recv().map_err(|e| err(e.to_string()))?.map_err(|e| err(e.to_string()))?;
+        let err = |message: String| GpuError::Readback {
+            label: label.to_string(),
+            message,
+        };
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| err(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| err(e.to_string()))?
+            .map_err(|e| err(e.to_string()))?;
         let out = {
             let view = staging.slice(..).get_mapped_range().map_err(|e| err(e.to_string()))?;
             bytemuck::pod_collect_to_vec::<u8, T>(&view[..size as usize])
@@ -363,7 +410,10 @@ impl GpuContext {
     pub fn wait_idle(&self) -> Result<(), GpuError> {
         self.device
             .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| GpuError::Device { during: "wait".into(), message: e.to_string() })?;
+            .map_err(|e| GpuError::Device {
+                during: "wait".into(),
+                message: e.to_string(),
+            })?;
         Ok(())
     }
 }
@@ -385,13 +435,20 @@ mod tests {
     use super::*;
 
     fn info(name: &str, t: wgpu::DeviceType) -> wgpu::AdapterInfo {
-        wgpu::AdapterInfo { name: name.into(), ..wgpu::AdapterInfo::new(t, wgpu::Backend::Vulkan) }
+        wgpu::AdapterInfo {
+            name: name.into(),
+            ..wgpu::AdapterInfo::new(t, wgpu::Backend::Vulkan)
+        }
     }
 
     #[test]
     fn adapter_policy() {
         use wgpu::DeviceType::*;
-        let list = [info("llvmpipe (LLVM 15)", Cpu), info("Intel UHD", IntegratedGpu), info("NVIDIA RTX", DiscreteGpu)];
+        let list = [
+            info("llvmpipe (LLVM 15)", Cpu),
+            info("Intel UHD", IntegratedGpu),
+            info("NVIDIA RTX", DiscreteGpu),
+        ];
         assert_eq!(choose_adapter(&list, &AdapterPreference::Auto), Some(2));
         assert_eq!(choose_adapter(&list, &AdapterPreference::Gpu), Some(2));
         assert_eq!(choose_adapter(&list, &AdapterPreference::Cpu), Some(0));
@@ -411,7 +468,10 @@ mod tests {
         small.max_texture_dimension_2d = 2048;
         let down = wgpu::DownlevelCapabilities::default();
         let missing = missing_capabilities(wgpu::Features::empty(), &small, &down, &req);
-        assert!(missing.iter().any(|m| m.contains("max_texture_dimension_2d")), "{missing:?}");
+        assert!(
+            missing.iter().any(|m| m.contains("max_texture_dimension_2d")),
+            "{missing:?}"
+        );
         let ok = missing_capabilities(wgpu::Features::empty(), &wgpu::Limits::default(), &down, &req);
         assert!(ok.is_empty(), "{ok:?}");
     }

@@ -32,7 +32,10 @@ impl PassShader {
 
 macro_rules! pass {
     ($name:literal) => {
-        PassShader { name: $name, source: include_str!(concat!("../../../shaders/", $name)) }
+        PassShader {
+            name: $name,
+            source: include_str!(concat!("../../../shaders/", $name)),
+        }
     };
 }
 
@@ -53,12 +56,10 @@ pub const ALL: &[PassShader] = &[SDB_RESOLVE, SDB_ILLUMINATION, SDB_GATHER, SDB_
 /// `create_shader_module`; doing them here lets a unit test catch a broken shader on a
 /// machine with no adapter at all.
 pub fn validate_wgsl(name: &str, source: &str) -> Result<naga::Module, String> {
-    let module = naga::front::wgsl::parse_str(source)
-        .map_err(|e| e.emit_to_string_with_path(source, name))?;
+    let module = naga::front::wgsl::parse_str(source).map_err(|e| e.emit_to_string_with_path(source, name))?;
     // Default capabilities: only what every WebGPU implementation has, which is all the
     // shaders may assume (the device is created with no optional shader features).
-    let mut validator =
-        naga::valid::Validator::new(naga::valid::ValidationFlags::all(), Default::default());
+    let mut validator = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), Default::default());
     validator
         .validate(&module)
         .map_err(|e| e.emit_to_string_with_path(source, name))?;

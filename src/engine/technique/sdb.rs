@@ -7,8 +7,10 @@
 //! surface's own emission (DESIGN.md section 2).
 //!
 //! # How (per direction d; one step = `directions_per_step` directions)
-//! 1. *Resolve* (`shaders/sdb_resolve.wgsl`, once per step): the outgoing radiance of
-//!    every lightmap pixel from the running estimate, L_o = L_e + albedo * E/pi.
+//! 1. *Resolve* (`shaders/sdb_resolve.wgsl`, once per step): the reflected radiance of
+//!    every lightmap pixel from the running estimate, albedo * E/pi; the fragment adds its
+//!    material's emission, exactly (read from the texels only for emissive textures),
+//!    so small emitters are not blurred by a coarse lightmap.
 //! 2. *Illumination map* (`shaders/sdb_illumination.wgsl`, seed sections 3 and 5,
 //!    Figure 4): an orthographic render of the scene along d covering its bounds. Each
 //!    fragment writes its outgoing radiance (looked up at its lightmap UV in step 1's
@@ -123,7 +125,12 @@ pub struct SdbParams {
     /// Illumination-map size in pixels (square). Range 64..=8192 (and the device's
     /// maximum texture size); default 512, as in the seed.
     pub map_size: u32,
-    /// Neighbourhood k (k x k samples): 1, 3 or 5; default 3 (the seed's usual choice).
+    /// Neighbourhood k (k x k samples): 1, 3 or 5; default 5. The seed found 3 x 3
+    /// enough for most of its scenes, but on the bundled Cornell box (open room, light
+    /// 5 mm under the ceiling, overdraw 4 to 5 along vertical rays counting the black
+    /// back faces of open geometry, which win the depth lottery and are then rejected as
+    /// behind the receiver) 3 x 3 bakes 15-25% dark against `path` and 5 x 5 within 5%;
+    /// see docs/sdb.md.
     pub neighbourhood: u32,
     /// Directions gathered per step: 1..=256; default 1, so steps count the seed's
     /// iterations. More per step amortises per-step overhead on a fast GPU.
@@ -145,7 +152,7 @@ impl Default for SdbParams {
     fn default() -> Self {
         SdbParams {
             map_size: 512,
-            neighbourhood: 3,
+            neighbourhood: 5,
             directions_per_step: 1,
             directions: DirectionSequence::Stratified,
             mode: AccumulationMode::Average,
@@ -169,8 +176,10 @@ impl SdbParams {
         let p: SdbParams = if v.is_null() {
             SdbParams::default()
         } else {
-            serde_json::from_value(v.clone())
-                .map_err(|e| ParamError { name: "params", message: e.to_string() })?
+            serde_json::from_value(v.clone()).map_err(|e| ParamError {
+                name: "params",
+                message: e.to_string(),
+            })?
         };
         p.validate()?;
         Ok(p)
@@ -185,7 +194,10 @@ impl SdbParams {
             return err("neighbourhood", format!("{} is not 1, 3 or 5", self.neighbourhood));
         }
         if !(1..=256).contains(&self.directions_per_step) {
-            return err("directions_per_step", format!("{} is outside 1..=256", self.directions_per_step));
+            return err(
+                "directions_per_step",
+                format!("{} is outside 1..=256", self.directions_per_step),
+            );
         }
         if !(self.blend > 0.0 && self.blend <= 1.0) {
             return err("blend", format!("{} is outside (0, 1]", self.blend));
@@ -211,8 +223,11 @@ pub struct SdbTriangle {
     pub p: [Vec3; 3],
     /// Lightmap UV (TEXCOORD_1) of each corner.
     pub lm: [Vec2; 3],
-    /// Emitted radiance of the material (without texture), used where no texel exists.
+    /// Emitted radiance of the material (factor x strength): exact, so emitters do not
+    /// depend on the lightmap's resolution.
     pub emission: Vec3,
+    /// The material has an emissive texture: its emission is read from the texels.
+    pub emission_textured: bool,
     pub double_sided: bool,
     /// Mesh index (for reports).
     pub mesh: u32,
@@ -281,6 +296,7 @@ const DEPTH_STOCHASTIC: u32 = 0;
 const DEPTH_NEAREST: u32 = 1;
 const TRI_DOUBLE_SIDED: u32 = 1;
 const TRI_CULL_BACK: u32 = 2;
+const TRI_TEXTURED_EMISSION: u32 = 4;
 const NO_TEXEL: u32 = u32::MAX;
 const EMPTY_T: f32 = 1.0e30;
 
@@ -340,7 +356,6 @@ struct GpuTexelGeom {
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct GpuTexelShade {
     albedo: [f32; 4],
-    emission: [f32; 4],
 }
 
 // ---------------------------------------------------------------------------------------
@@ -406,7 +421,13 @@ impl Directions {
         let mut rng = SplitMix64::new(seed ^ 0x5DB0_D1EC_7104_0000);
         let rotation = random_rotation(&mut rng);
         let shift = (rng.next_f64(), rng.next_f64());
-        Directions { kind, rotation, shift, rng, index: 0 }
+        Directions {
+            kind,
+            rotation,
+            shift,
+            rng,
+            index: 0,
+        }
     }
 
     /// The next direction (unit).
@@ -643,7 +664,6 @@ pub struct SdbEngine {
     direct_acc_buf: Option<wgpu::Buffer>,
     illum_view: wgpu::TextureView,
     emission_view: Option<wgpu::TextureView>,
-    illum_emission_bg: Option<wgpu::BindGroup>,
     gather_direct_bg: Option<wgpu::BindGroup>,
     want_direct: bool,
     depth_view: wgpu::TextureView,
@@ -710,9 +730,18 @@ fn bind_group(
     layout: &wgpu::BindGroupLayout,
     entries: &[(u32, wgpu::BindingResource<'_>)],
 ) -> wgpu::BindGroup {
-    let entries: Vec<wgpu::BindGroupEntry> =
-        entries.iter().map(|(b, r)| wgpu::BindGroupEntry { binding: *b, resource: r.clone() }).collect();
-    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(label), layout, entries: &entries })
+    let entries: Vec<wgpu::BindGroupEntry> = entries
+        .iter()
+        .map(|(b, r)| wgpu::BindGroupEntry {
+            binding: *b,
+            resource: r.clone(),
+        })
+        .collect();
+    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &entries,
+    })
 }
 
 fn compute_pipeline(
@@ -808,7 +837,13 @@ impl SdbEngine {
             } else if cullable[i] {
                 flags |= TRI_CULL_BACK;
             }
-            tris.push(GpuTriInfo { emission: t.emission.to_array(), flags });
+            if t.emission_textured {
+                flags |= TRI_TEXTURED_EMISSION;
+            }
+            tris.push(GpuTriInfo {
+                emission: t.emission.to_array(),
+                flags,
+            });
         }
         let geom: Vec<GpuTexelGeom> = input
             .texels
@@ -824,7 +859,6 @@ impl SdbEngine {
             .iter()
             .map(|t| GpuTexelShade {
                 albedo: t.albedo.extend(0.0).to_array(),
-                emission: t.emission.extend(0.0).to_array(),
             })
             .collect();
         let fill = fill_map(width, height, &input.texels);
@@ -835,28 +869,51 @@ impl SdbEngine {
         let geom_buf = ctx.buffer_init("sdb texel geometry", &geom, U::STORAGE);
         let shade_buf = ctx.buffer_init("sdb texel materials", &shade, U::STORAGE);
         let fill_buf = ctx.buffer_init("sdb lightmap fill map", &fill, U::STORAGE);
-        let radiance_buf =
-            ctx.buffer_zeroed("sdb outgoing radiance", width as u64 * height as u64 * 16, U::STORAGE);
-        let acc_buf = ctx.buffer_zeroed("sdb accumulators (even, odd)", n_texels as u64 * 2 * 16, U::STORAGE | U::COPY_SRC);
+        let radiance_buf = ctx.buffer_zeroed("sdb outgoing radiance", width as u64 * height as u64 * 16, U::STORAGE);
+        let acc_buf = ctx.buffer_zeroed(
+            "sdb accumulators (even, odd)",
+            n_texels as u64 * 2 * 16,
+            U::STORAGE | U::COPY_SRC,
+        );
         let want_direct = input.want_direct;
         let direct_acc_buf = (want_direct || !input.lights.is_empty()).then(|| {
-            ctx.buffer_zeroed("sdb direct accumulators (even, odd)", n_texels as u64 * 2 * 16, U::STORAGE | U::COPY_SRC)
+            ctx.buffer_zeroed(
+                "sdb direct accumulators (even, odd)",
+                n_texels as u64 * 2 * 16,
+                U::STORAGE | U::COPY_SRC,
+            )
         });
         let view_buf = ctx.uniform("sdb view", &GpuView::zeroed());
-        let dims_buf = ctx.uniform("sdb lightmap dims", &GpuDims { dims: [width, height, n_texels, 0] });
+        let dims_buf = ctx.uniform(
+            "sdb lightmap dims",
+            &GpuDims {
+                dims: [width, height, n_texels, 0],
+            },
+        );
         let resolve_buf = ctx.uniform("sdb resolve params", &GpuResolveParams::zeroed());
         let gather_buf = ctx.uniform("sdb gather params", &GpuGatherParams::zeroed());
         let direct_buf = ctx.uniform("sdb direct params", &GpuDirectParams::zeroed());
 
-        // Emitted radiance per lightmap pixel, for the direct layer only.
-        let emission_px_buf = want_direct.then(|| {
+        // Emitted radiance per lightmap pixel: the emission of triangles with an emissive
+        // texture (the others use their material's exact value).
+        let emission_px_buf = {
             let px: Vec<[f32; 4]> = fill
                 .iter()
-                .map(|&k| if k == NO_TEXEL { [0.0; 4] } else { input.texels[k as usize].emission.extend(1.0).to_array() })
+                .map(|&k| {
+                    if k == NO_TEXEL {
+                        [0.0; 4]
+                    } else {
+                        input.texels[k as usize].emission.extend(1.0).to_array()
+                    }
+                })
                 .collect();
             ctx.buffer_init("sdb emission per lightmap pixel", &px, U::STORAGE)
-        });
-        let extent = wgpu::Extent3d { width: params.map_size, height: params.map_size, depth_or_array_layers: 1 };
+        };
+        let extent = wgpu::Extent3d {
+            width: params.map_size,
+            height: params.map_size,
+            depth_or_array_layers: 1,
+        };
         let illum_tex = ctx.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("sdb illumination map (rgb radiance, a distance)"),
             size: extent,
@@ -890,7 +947,10 @@ impl SdbEngine {
             })
         });
         let emission_view = emission_tex.as_ref().map(|t| {
-            t.create_view(&wgpu::TextureViewDescriptor { label: Some("sdb illumination emission view"), ..Default::default() })
+            t.create_view(&wgpu::TextureViewDescriptor {
+                label: Some("sdb illumination emission view"),
+                ..Default::default()
+            })
         });
         let illum_view = illum_tex.create_view(&wgpu::TextureViewDescriptor {
             label: Some("sdb illumination map view"),
@@ -915,13 +975,18 @@ impl SdbEngine {
             ],
         });
         let resolve_pipeline = compute_pipeline(&ctx, "sdb resolve", &resolve_module, "resolve", &resolve_layout);
-        let resolve_bg = bind_group(&ctx, "sdb resolve bindings", &resolve_layout, &[
-            (0, resolve_buf.as_entire_binding()),
-            (1, fill_buf.as_entire_binding()),
-            (2, shade_buf.as_entire_binding()),
-            (3, acc_buf.as_entire_binding()),
-            (4, radiance_buf.as_entire_binding()),
-        ]);
+        let resolve_bg = bind_group(
+            &ctx,
+            "sdb resolve bindings",
+            &resolve_layout,
+            &[
+                (0, resolve_buf.as_entire_binding()),
+                (1, fill_buf.as_entire_binding()),
+                (2, shade_buf.as_entire_binding()),
+                (3, acc_buf.as_entire_binding()),
+                (4, radiance_buf.as_entire_binding()),
+            ],
+        );
 
         // Illumination map (and shadow maps).
         let illum_module = ctx.shader(&shaders::SDB_ILLUMINATION)?;
@@ -932,14 +997,10 @@ impl SdbEngine {
                 uniform_entry(1, S::FRAGMENT),
                 storage_entry(2, S::FRAGMENT, true),
                 storage_entry(3, S::FRAGMENT, true),
+                storage_entry(4, S::FRAGMENT, true),
             ],
         });
-        let emission_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdb illumination emission layout"),
-            entries: &[storage_entry(0, S::FRAGMENT, true)],
-        });
-        let illum_groups: Vec<Option<&wgpu::BindGroupLayout>> =
-            if want_direct { vec![Some(&illum_layout), Some(&emission_layout)] } else { vec![Some(&illum_layout)] };
+        let illum_groups: Vec<Option<&wgpu::BindGroupLayout>> = vec![Some(&illum_layout)];
         let illum_pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("sdb illumination pipeline layout"),
             bind_group_layouts: &illum_groups,
@@ -950,7 +1011,11 @@ impl SdbEngine {
             blend: None,
             write_mask: wgpu::ColorWrites::ALL,
         });
-        let targets = if want_direct { vec![target.clone(), target] } else { vec![target] };
+        let targets = if want_direct {
+            vec![target.clone(), target]
+        } else {
+            vec![target]
+        };
         let illum_pipeline = ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("sdb illumination map"),
             layout: Some(&illum_pl),
@@ -989,16 +1054,18 @@ impl SdbEngine {
             multiview_mask: None,
             cache: None,
         });
-        let illum_bg = bind_group(&ctx, "sdb illumination bindings", &illum_layout, &[
-            (0, view_buf.as_entire_binding()),
-            (1, dims_buf.as_entire_binding()),
-            (2, tris_buf.as_entire_binding()),
-            (3, radiance_buf.as_entire_binding()),
-        ]);
-
-        let illum_emission_bg = emission_px_buf.as_ref().map(|b| {
-            bind_group(&ctx, "sdb illumination emission bindings", &emission_layout, &[(0, b.as_entire_binding())])
-        });
+        let illum_bg = bind_group(
+            &ctx,
+            "sdb illumination bindings",
+            &illum_layout,
+            &[
+                (0, view_buf.as_entire_binding()),
+                (1, dims_buf.as_entire_binding()),
+                (2, tris_buf.as_entire_binding()),
+                (3, radiance_buf.as_entire_binding()),
+                (4, emission_px_buf.as_entire_binding()),
+            ],
+        );
 
         // Gather.
         let gather_module = ctx.shader(&shaders::SDB_GATHER)?;
@@ -1038,17 +1105,25 @@ impl SdbEngine {
                 &ctx,
                 "sdb gather direct bindings",
                 &gather_direct_layout,
-                &[(0, wgpu::BindingResource::TextureView(view)), (1, direct_acc.as_entire_binding())],
+                &[
+                    (0, wgpu::BindingResource::TextureView(view)),
+                    (1, direct_acc.as_entire_binding()),
+                ],
             )),
             _ => None,
         };
-        let gather_bg = bind_group(&ctx, "sdb gather bindings", &gather_layout, &[
-            (0, view_buf.as_entire_binding()),
-            (1, gather_buf.as_entire_binding()),
-            (2, wgpu::BindingResource::TextureView(&illum_view)),
-            (3, geom_buf.as_entire_binding()),
-            (4, acc_buf.as_entire_binding()),
-        ]);
+        let gather_bg = bind_group(
+            &ctx,
+            "sdb gather bindings",
+            &gather_layout,
+            &[
+                (0, view_buf.as_entire_binding()),
+                (1, gather_buf.as_entire_binding()),
+                (2, wgpu::BindingResource::TextureView(&illum_view)),
+                (3, geom_buf.as_entire_binding()),
+                (4, acc_buf.as_entire_binding()),
+            ],
+        );
 
         // Direct light: only with directional lights (DESIGN.md section 6).
         let (direct_pipeline, direct_bg) = match &direct_acc_buf {
@@ -1066,14 +1141,19 @@ impl SdbEngine {
                     ],
                 });
                 let pipeline = compute_pipeline(&ctx, "sdb direct", &module, "direct", &layout);
-                let bg = bind_group(&ctx, "sdb direct bindings", &layout, &[
-                    (0, view_buf.as_entire_binding()),
-                    (1, direct_buf.as_entire_binding()),
-                    (2, wgpu::BindingResource::TextureView(&illum_view)),
-                    (3, geom_buf.as_entire_binding()),
-                    (4, acc_buf.as_entire_binding()),
-                    (5, direct_acc.as_entire_binding()),
-                ]);
+                let bg = bind_group(
+                    &ctx,
+                    "sdb direct bindings",
+                    &layout,
+                    &[
+                        (0, view_buf.as_entire_binding()),
+                        (1, direct_buf.as_entire_binding()),
+                        (2, wgpu::BindingResource::TextureView(&illum_view)),
+                        (3, geom_buf.as_entire_binding()),
+                        (4, acc_buf.as_entire_binding()),
+                        (5, direct_acc.as_entire_binding()),
+                    ],
+                );
                 (Some(pipeline), Some(bg))
             }
             _ => (None, None),
@@ -1083,7 +1163,10 @@ impl SdbEngine {
         let lights = input
             .lights
             .iter()
-            .map(|l| DirectionalLight { direction: l.direction.normalize(), ..*l })
+            .map(|l| DirectionalLight {
+                direction: l.direction.normalize(),
+                ..*l
+            })
             .collect();
         Ok(SdbEngine {
             texel_dispatch: gpu::dispatch_size_64(n_texels),
@@ -1112,7 +1195,6 @@ impl SdbEngine {
             direct_acc_buf,
             illum_view,
             emission_view,
-            illum_emission_bg,
             gather_direct_bg,
             want_direct,
             depth_view,
@@ -1147,7 +1229,11 @@ impl SdbEngine {
     /// Leaky start-up correction: an exponential average started from zero has total
     /// weight 1 - (1 - b)^n.
     fn leaky_correction(&self, n: u64) -> f64 {
-        if n == 0 { 0.0 } else { 1.0 / (1.0 - (1.0 - self.params.blend as f64).powf(n as f64)) }
+        if n == 0 {
+            0.0
+        } else {
+            1.0 / (1.0 - (1.0 - self.params.blend as f64).powf(n as f64))
+        }
     }
 
     /// The weights that turn the two accumulators into the current estimate.
@@ -1191,7 +1277,12 @@ impl SdbEngine {
                 depth_slice: None,
                 resolve_target: None,
                 ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color { r: 0.0, g: 0.0, b: 0.0, a }),
+                    load: wgpu::LoadOp::Clear(wgpu::Color {
+                        r: 0.0,
+                        g: 0.0,
+                        b: 0.0,
+                        a,
+                    }),
                     store: wgpu::StoreOp::Store,
                 },
             })
@@ -1205,7 +1296,10 @@ impl SdbEngine {
             color_attachments: &colors,
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                 view: &self.depth_view,
-                depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Discard }),
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(1.0),
+                    store: wgpu::StoreOp::Discard,
+                }),
                 stencil_ops: None,
             }),
             timestamp_writes: None,
@@ -1214,9 +1308,6 @@ impl SdbEngine {
         });
         pass.set_pipeline(&self.illum_pipeline);
         pass.set_bind_group(0, &self.illum_bg, &[]);
-        if let Some(bg) = &self.illum_emission_bg {
-            pass.set_bind_group(1, bg, &[]);
-        }
         pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
         pass.draw(0..self.vertex_count, 0..1);
     }
@@ -1228,7 +1319,10 @@ impl SdbEngine {
         bg: &wgpu::BindGroup,
         size: (u32, u32),
     ) {
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: None });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: None,
+        });
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bg, &[]);
         pass.dispatch_workgroups(size.0, size.1, 1);
@@ -1244,10 +1338,23 @@ impl SdbEngine {
     pub fn step(&mut self) -> Result<(), GpuError> {
         let parity = (self.steps_done % 2) as u32;
         let scales = self.half_scales();
-        let resolve = GpuResolveParams { scale: [scales[0], scales[1], 0.0, 0.0], dims: self.lm_dims };
-        self.ctx.queue.write_buffer(&self.resolve_buf, 0, bytemuck::bytes_of(&resolve));
-        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("sdb resolve") });
-        Self::dispatch(&mut encoder, "sdb resolve", &self.resolve_pipeline, &self.resolve_bg, self.pixel_dispatch);
+        let resolve = GpuResolveParams {
+            scale: [scales[0], scales[1], 0.0, 0.0],
+            dims: self.lm_dims,
+        };
+        self.ctx
+            .queue
+            .write_buffer(&self.resolve_buf, 0, bytemuck::bytes_of(&resolve));
+        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("sdb resolve"),
+        });
+        Self::dispatch(
+            &mut encoder,
+            "sdb resolve",
+            &self.resolve_pipeline,
+            &self.resolve_bg,
+            self.pixel_dispatch,
+        );
         self.ctx.queue.submit([encoder.finish()]);
 
         for _ in 0..self.params.directions_per_step {
@@ -1263,14 +1370,21 @@ impl SdbEngine {
                 eps: [EPS_NORMAL_PLANE, EPS_ALONG_D, 0.0, 0.0],
                 misc: [(self.params.neighbourhood - 1) / 2, 0, parity, self.n_texels],
             };
-            self.ctx.queue.write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
-            self.ctx.queue.write_buffer(&self.gather_buf, 0, bytemuck::bytes_of(&gather));
-            let mut encoder =
-                self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("sdb direction") });
+            self.ctx
+                .queue
+                .write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
+            self.ctx
+                .queue
+                .write_buffer(&self.gather_buf, 0, bytemuck::bytes_of(&gather));
+            let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("sdb direction"),
+            });
             self.render_map(&mut encoder, "sdb illumination map");
             {
-                let mut pass = encoder
-                    .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("sdb gather"), timestamp_writes: None });
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("sdb gather"),
+                    timestamp_writes: None,
+                });
                 pass.set_pipeline(&self.gather_pipeline);
                 pass.set_bind_group(0, &self.gather_bg, &[]);
                 if let Some(bg) = &self.gather_direct_bg {
@@ -1291,18 +1405,30 @@ impl SdbEngine {
                 let e = light.irradiance_over_pi;
                 let direct = GpuDirectParams {
                     irradiance: [e.x, e.y, e.z, blend],
-                    bias: [pixel, 2.0 * pixel, if li == 0 && !self.want_direct { 1.0 - blend } else { 1.0 }, 0.0],
+                    bias: [
+                        pixel,
+                        2.0 * pixel,
+                        if li == 0 && !self.want_direct { 1.0 - blend } else { 1.0 },
+                        0.0,
+                    ],
                     misc: [parity, self.n_texels, 0, 0],
                 };
-                self.ctx.queue.write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
-                self.ctx.queue.write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
-                let mut encoder =
-                    self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("sdb direct light") });
+                self.ctx
+                    .queue
+                    .write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
+                self.ctx
+                    .queue
+                    .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
+                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("sdb direct light"),
+                });
                 self.render_map(&mut encoder, "sdb shadow map");
                 Self::dispatch(
                     &mut encoder,
                     "sdb direct",
-                    self.direct_pipeline.as_ref().expect("direct pipeline exists with lights"),
+                    self.direct_pipeline
+                        .as_ref()
+                        .expect("direct pipeline exists with lights"),
                     self.direct_bg.as_ref().expect("direct bind group exists with lights"),
                     self.texel_dispatch,
                 );
@@ -1329,9 +1455,16 @@ impl SdbEngine {
                 AccumulationMode::Leaky => self.leaky_correction(self.dirs[h]) as f32,
             };
             let pick = |v: &[[f32; 4]]| -> Vec<Vec3> {
-                v[h * n..(h + 1) * n].iter().map(|a| Vec3::new(a[0], a[1], a[2]) * s).collect()
+                v[h * n..(h + 1) * n]
+                    .iter()
+                    .map(|a| Vec3::new(a[0], a[1], a[2]) * s)
+                    .collect()
             };
-            SdbHalf { steps: self.half_steps[h], total: pick(&acc), direct: direct.as_deref().map(pick) }
+            SdbHalf {
+                steps: self.half_steps[h],
+                total: pick(&acc),
+                direct: direct.as_deref().map(pick),
+            }
         };
         Ok([half(0), half(1)])
     }
@@ -1385,7 +1518,14 @@ pub fn sdb_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
         .iter()
         .map(|t| {
             let m = scene.material(t);
-            SdbTriangle { p: t.p, lm: t.lm, emission: m.emissive, double_sided: m.double_sided, mesh: t.mesh }
+            SdbTriangle {
+                p: t.p,
+                lm: t.lm,
+                emission: m.emissive,
+                emission_textured: m.emissive_texture.is_some(),
+                double_sided: m.double_sided,
+                mesh: t.mesh,
+            }
         })
         .collect();
     let texels = atlas
@@ -1462,8 +1602,15 @@ impl Technique for Sdb {
 
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let [even, odd] = self.engine.read_halves().map_err(gpu_error)?;
-        let half = |h: SdbHalf| HalfEstimate { steps: h.steps, total: h.total, direct: h.direct };
-        Ok(Snapshot { even: half(even), odd: half(odd) })
+        let half = |h: SdbHalf| HalfEstimate {
+            steps: h.steps,
+            total: h.total,
+            direct: h.direct,
+        };
+        Ok(Snapshot {
+            even: half(even),
+            odd: half(odd),
+        })
     }
 
     fn accumulating_pass(&self) -> &'static str {
@@ -1474,8 +1621,14 @@ impl Technique for Sdb {
 /// What `sdb` runs for a scene and job, and what it leaves out (DESIGN section 6).
 pub fn plan(f: &SceneFeatures) -> Plan {
     let mut p = Plan::new("sdb");
-    p.run("resolve", "outgoing radiance of every lightmap pixel from the running estimate (bounces)");
-    p.run("illumination map", "orthographic render with stochastic depth along each direction");
+    p.run(
+        "resolve",
+        "outgoing radiance of every lightmap pixel from the running estimate (bounces)",
+    );
+    p.run(
+        "illumination map",
+        "orthographic render with stochastic depth along each direction",
+    );
     p.run("gather", "k x k neighbourhood lookup for every texel, per direction");
     let directional = f.sun || f.directional_lights > 0;
     p.decide(
@@ -1501,12 +1654,18 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         );
     }
     if f.glossy_materials > 0 {
-        p.leave_out("glossy transport", "sdb gathers diffuse light only; metallic/roughness are ignored");
+        p.leave_out(
+            "glossy transport",
+            "sdb gathers diffuse light only; metallic/roughness are ignored",
+        );
     } else {
         p.leave_out("glossy data", "every material is a fully rough dielectric");
     }
     if !f.has_light() {
-        p.leave_out("light", "the scene and job have no light at all: the lightmap is exactly zero");
+        p.leave_out(
+            "light",
+            "the scene and job have no light at all: the lightmap is exactly zero",
+        );
     }
     p
 }
@@ -1520,6 +1679,7 @@ mod tests {
             p: [corners[a], corners[b], corners[c]],
             lm: [Vec2::ZERO; 3],
             emission: Vec3::ZERO,
+            emission_textured: false,
             double_sided: false,
             mesh,
         };
@@ -1537,7 +1697,11 @@ mod tests {
             [v(0., 1., 1.), v(1., 1., 1.), v(1., 1., 0.), v(0., 1., 0.)],
             [v(0., 0., 0.), v(1., 0., 0.), v(1., 0., 1.), v(0., 0., 1.)],
         ];
-        faces.iter().enumerate().flat_map(|(i, f)| quad_tris(*f, i as u32)).collect()
+        faces
+            .iter()
+            .enumerate()
+            .flat_map(|(i, f)| quad_tris(*f, i as u32))
+            .collect()
     }
 
     #[test]
@@ -1549,7 +1713,15 @@ mod tests {
         assert!(cullable_triangles(&open).iter().all(|&c| !c));
         // A closed cube plus a separate open quad: only the cube is cullable.
         let mut mixed = tris.clone();
-        mixed.extend(quad_tris([Vec3::splat(5.0), Vec3::new(6., 5., 5.), Vec3::new(6., 6., 5.), Vec3::new(5., 6., 5.)], 9));
+        mixed.extend(quad_tris(
+            [
+                Vec3::splat(5.0),
+                Vec3::new(6., 5., 5.),
+                Vec3::new(6., 6., 5.),
+                Vec3::new(5., 6., 5.),
+            ],
+            9,
+        ));
         let c = cullable_triangles(&mixed);
         assert!(c[..12].iter().all(|&x| x) && c[12..].iter().all(|&x| !x));
         // A double-sided face makes its surface open (it is never culled itself).
@@ -1590,25 +1762,36 @@ mod tests {
         assert!((abs_z - 0.5).abs() < 2e-3, "{abs_z}");
         assert!(v.iter().all(|w| (w.length() - 1.0).abs() < 1e-5));
         let mut other = Directions::new(DirectionSequence::Stratified, 43);
-        assert!(other.next_direction().distance(v[0]) > 1e-3, "seeds must rotate the sequence");
+        assert!(
+            other.next_direction().distance(v[0]) > 1e-3,
+            "seeds must rotate the sequence"
+        );
     }
 
     #[test]
     fn view_covers_the_bounds_with_a_right_handed_frame() {
-        let corners: [Vec3; 8] =
-            std::array::from_fn(|i| Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32) * 2.0 - 1.0);
+        let corners: [Vec3; 8] = std::array::from_fn(|i| {
+            Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32) * 2.0 - 1.0
+        });
         let mut dirs = Directions::new(DirectionSequence::Random, 1);
         for _ in 0..64 {
             let d = dirs.next_direction();
             let v = make_view(d, &corners, 256, (0.7, 0.3), 0, DEPTH_STOCHASTIC);
-            let (r, u, dd) = (Vec3::from_slice(&v.right[..3]), Vec3::from_slice(&v.up[..3]), Vec3::from_slice(&v.dir[..3]));
+            let (r, u, dd) = (
+                Vec3::from_slice(&v.right[..3]),
+                Vec3::from_slice(&v.up[..3]),
+                Vec3::from_slice(&v.dir[..3]),
+            );
             // right x up = -d: a look-at camera, so winding is preserved on screen.
             assert!((r.cross(u) + dd).length() < 1e-5);
             for c in &corners {
                 let a = c.dot(r) - v.right[3];
                 let b = c.dot(u) - v.up[3];
                 let t = c.dot(dd) - v.dir[3];
-                assert!(a >= 0.0 && a <= v.extent[0] && b >= 0.0 && b <= v.extent[0], "corner outside the map");
+                assert!(
+                    a >= 0.0 && a <= v.extent[0] && b >= 0.0 && b <= v.extent[0],
+                    "corner outside the map"
+                );
                 assert!(t > 0.0 && t < v.extent[1], "corner outside the depth range");
             }
         }
