@@ -462,11 +462,8 @@ fn rect_form_factor(px: f64, pz: f64, x0: f64, x1: f64, z0: f64, z1: f64, c: f64
 #[test]
 fn imported_parallel_squares_form_factor() {
     // A black receiver under a unit emitter one unit up: E/pi = the point-to-rectangle
-    // form factor (0.23946 at the centre). Known bias: the emitter's edges are blurred
-    // over about (k + 1) / 2 map pixels (about 0.02 m with a 256 map over the 1.4 m
-    // scene), which moves the form factor near the receiver's edge by a few per cent
-    // but cancels to first order over the receiver. Tolerances: 2% on the mean over the
-    // receiver; per texel see below.
+    // form factor (0.23946 at the centre). Tolerances: see the bias note below for the
+    // mean over the receiver, and the noise note for the RMS per texel.
     if !have_adapter() {
         return;
     }
@@ -477,7 +474,7 @@ fn imported_parallel_squares_form_factor() {
     b.square("emitter", Vec3::new(0.0, 1.0, 0.0), 1.0, Vec3::NEG_Y, lamp);
     let scene = import(&b);
     let offset = scene.origin_offset.as_vec3();
-    let (atlas, est) = bake(scene, 62, Lighting::default(), "sdb", json!({"map_size": 256}), 2048);
+    let (atlas, est) = bake(scene, 62, Lighting::default(), "sdb", json!({"map_size": 512}), 1024);
     let (mut got, mut want, mut sq, mut count) = (0.0, 0.0, 0.0f64, 0usize);
     for (k, t) in atlas.texels.iter().enumerate() {
         if t.geo_normal.y < 0.99 {
@@ -495,14 +492,22 @@ fn imported_parallel_squares_form_factor() {
     eprintln!(
         "parallel squares: mean relative deviation {rel:+.4}, RMS relative deviation {rms:.4} over {count} texels"
     );
-    assert!(rel.abs() < 0.02, "mean relative deviation {rel}");
+    // Known bias: "nearest wins" dilates every surface by (k - 1)/2 map pixels, since a
+    // ray passing just outside the emitter still finds emitter samples in its
+    // neighbourhood while one just inside always does. With k = 5 and a 512 map over this
+    // scene (projected span at most its 1.73 m diagonal: pixel <= 3.4 mm) the 1 m emitter
+    // grows by at most 2 x 6.8 mm per side: +0% to +2.7% in area. Measured +4.0% with a
+    // 256 map and +1.1% with k = 3 at 256, as this predicts. Allowed: that range plus
+    // 1.5% for the noise of the mean.
+    assert!((-0.015..0.042).contains(&rel), "mean relative deviation {rel}");
     // Per texel the estimator is noisy: only about 7% of uniform directions hit the
     // emitter (solid angle about 0.9 sr of 4 pi), so a texel's estimate is a Bernoulli
-    // count with relative standard deviation about sqrt(0.93 / 0.07 / n) = 8% at n = 2048
+    // count with relative standard deviation about sqrt(0.93 / 0.07 / n) = 11% at n = 1024
     // for i.i.d. directions; stratification brings it below that but the even/odd
     // halves of one R2 sequence are too correlated to estimate it per texel. So the RMS
-    // over texels is tested against 8% (noise bound) + 2% (edge blur).
-    assert!(rms < 0.10, "RMS relative deviation {rms}");
+    // over texels is tested against 10% (most of the i.i.d. noise bound; stratification
+    // measured 2.5% at n = 2048) + 2.7% (dilation).
+    assert!(rms < 0.127, "RMS relative deviation {rms}");
     // The emitter faces the black receiver only: zero.
     for (k, t) in atlas.texels.iter().enumerate() {
         if t.geo_normal.y < -0.99 {
