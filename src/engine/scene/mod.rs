@@ -51,6 +51,11 @@ impl Triangle {
         (self.p[1] - self.p[0]).cross(self.p[2] - self.p[0])
     }
 
+    /// The point at barycentric weights `b`.
+    pub fn point(&self, b: Vec3) -> Vec3 {
+        self.p[0] * b.x + self.p[1] * b.y + self.p[2] * b.z
+    }
+
     pub fn area(&self) -> f32 {
         0.5 * self.cross().length()
     }
