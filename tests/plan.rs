@@ -19,7 +19,11 @@ fn names(items: &[lightmapd::engine::plan::PlanItem]) -> Vec<&str> {
 fn plan_for(request: &BakeRequest, with_light: bool) -> Plan {
     let mut b = cornell_box();
     if with_light {
-        b.light(LightDesc::Point { position: Vec3::new(0.0, 1.5, 0.0), color: [1.0; 3], intensity: 2.0 });
+        b.light(LightDesc::Point {
+            position: Vec3::new(0.0, 1.5, 0.0),
+            color: [1.0; 3],
+            intensity: 2.0,
+        });
     }
     let scene = import_slice(&b.to_glb(), None).unwrap().0;
     plan::build(&scene, request).unwrap()
@@ -29,29 +33,56 @@ fn plan_for(request: &BakeRequest, with_light: bool) -> Plan {
 fn bare_job_leaves_out_lights_environment_glossy_and_layers() {
     let p = plan_for(&BakeRequest::default(), false);
     let left = names(&p.left_out);
-    for item in ["light sampling: punctual lights", "light sampling: sun", "sky lookups", "direct-light layer", "glossy data"] {
+    for item in [
+        "light sampling: punctual lights",
+        "light sampling: sun",
+        "sky lookups",
+        "direct-light layer",
+        "glossy data",
+    ] {
         assert!(left.contains(&item), "{item} should be left out: {left:?}");
     }
-    assert_eq!(names(&p.passes), vec!["bvh", "path trace", "light sampling: emissive triangles"]);
+    assert_eq!(
+        names(&p.passes),
+        vec!["bvh", "path trace", "light sampling: emissive triangles"]
+    );
     let why = |n: &str| p.left_out.iter().find(|i| i.name == n).unwrap().why.clone();
-    assert_eq!(why("light sampling: punctual lights"), "the scene has no punctual lights");
+    assert_eq!(
+        why("light sampling: punctual lights"),
+        "the scene has no punctual lights"
+    );
     assert_eq!(why("direct-light layer"), "not asked for in outputs");
-    assert!(p.summary_line().starts_with("ran: bvh, path trace, light sampling: emissive triangles; left out: "));
+    assert!(
+        p.summary_line()
+            .starts_with("ran: bvh, path trace, light sampling: emissive triangles; left out: ")
+    );
 }
 
 #[test]
 fn what_the_scene_and_job_have_is_planned() {
     let request = BakeRequest {
         lighting: Lighting {
-            sky: Some(Sky { radiance: Vec3::ONE, hemisphere: Hemisphere::Full }),
-            sun: Some(Sun { direction: Vec3::NEG_Y, angular_diameter: 0.01, radiance: Vec3::splat(1e4) }),
+            sky: Some(Sky {
+                radiance: Vec3::ONE,
+                hemisphere: Hemisphere::Full,
+            }),
+            sun: Some(Sun {
+                direction: Vec3::NEG_Y,
+                angular_diameter: 0.01,
+                radiance: Vec3::splat(1e4),
+            }),
         },
         outputs: vec![OutputLayer::Indirect],
         ..Default::default()
     };
     let p = plan_for(&request, true);
     let ran = names(&p.passes);
-    for item in ["light sampling: punctual lights", "light sampling: sun", "sky lookups", "direct-light layer"] {
+    for item in [
+        "light sampling: punctual lights",
+        "light sampling: sun",
+        "sky lookups",
+        "direct-light layer",
+    ] {
         assert!(ran.contains(&item), "{item} should run: {ran:?}");
     }
 }
@@ -62,7 +93,10 @@ fn layers_nobody_asked_for_are_not_allocated() {
     let bake = |outputs: Vec<OutputLayer>| {
         let request = BakeRequest {
             resolution: 16,
-            stop: StopCriteria { steps: Some(2), ..Default::default() },
+            stop: StopCriteria {
+                steps: Some(2),
+                ..Default::default()
+            },
             outputs,
             ..Default::default()
         };
@@ -83,7 +117,10 @@ fn layers_nobody_asked_for_are_not_allocated() {
 
 #[test]
 fn unknown_technique_is_refused_before_any_work() {
-    let request = BakeRequest { technique: "radiosity9000".into(), ..Default::default() };
+    let request = BakeRequest {
+        technique: "radiosity9000".into(),
+        ..Default::default()
+    };
     let scene = import_slice(&cornell_box().to_glb(), None).unwrap().0;
     let err = plan::build(&scene, &request).unwrap_err();
     assert!(err.is_bad_input());

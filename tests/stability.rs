@@ -17,6 +17,7 @@ use lightmapd::engine::bake::{BakeEvent, StopCriteria};
 use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
 use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box, write_glb};
+use lightmapd::engine::scene::library::{closed_box as closed_box_builder, rect_form_factor};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, import_slice};
 use serde_json::{Value, json};
 
@@ -40,12 +41,7 @@ fn upper_sky(l: f32) -> Lighting {
 }
 
 fn closed_box(rho: f32) -> Scene {
-    let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::emissive("wall", [rho; 3], [1.0 - rho; 3]));
-    for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
-        b.square(&format!("face {n}"), -n, 2.0, n, m);
-    }
-    import(&b)
+    import(&closed_box_builder(rho))
 }
 
 /// Closed box, Le = 1 − ρ so the answer is 1 whatever ρ: the stiff case where hundreds
@@ -303,17 +299,6 @@ pub fn no_light_at_all(row: &Row) {
     };
     let plan = lightmapd::engine::plan::build(&scene, &request).unwrap();
     assert!(plan.left_out.iter().any(|p| p.name == "light"), "{plan:?}");
-}
-
-fn corner_form_factor(a: f64, b: f64, c: f64) -> f64 {
-    let (x, y) = (a / c, b / c);
-    let (sx, sy) = ((1.0 + x * x).sqrt(), (1.0 + y * y).sqrt());
-    (x / sx * (y / sx).atan() + y / sy * (x / sy).atan()) / (2.0 * std::f64::consts::PI)
-}
-
-fn rect_form_factor(px: f64, pz: f64, x0: f64, x1: f64, z0: f64, z1: f64, c: f64) -> f64 {
-    let s = |a: f64, b: f64| a.signum() * b.signum() * corner_form_factor(a.abs(), b.abs(), c);
-    s(x1 - px, z1 - pz) - s(x0 - px, z1 - pz) - s(x1 - px, z0 - pz) + s(x0 - px, z0 - pz)
 }
 
 /// One test per case for technique row `$row` in module `$name`; `$leak` is the largest

@@ -22,6 +22,7 @@
 pub mod build;
 mod error;
 pub mod import;
+pub mod library;
 
 pub use error::ImportError;
 pub use import::{ImportReport, import_file, import_slice};
