@@ -273,12 +273,6 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             overlapping = a.overlapping_texels,
             "texel set built"
         );
-        if a.overlapping_texels > 0 {
-            eprintln!(
-                "warning: {} lightmap texels are covered by more than one triangle (overlapping UV charts)",
-                a.overlapping_texels
-            );
-        }
     };
     let result = job::bake(
         Arc::new(scene),
@@ -305,6 +299,9 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
     }
     let s = &result.summary;
     eprintln!("plan: {}", s.plan.summary_line());
+    for w in &s.validation.warnings {
+        eprintln!("warning: {w}");
+    }
     let err = s
         .error
         .relative
