@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::engine::accumulate::{ErrorSummary, Estimate};
+use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
@@ -58,6 +59,7 @@ pub struct BakeSummary {
     pub stopped_by: StopReason,
     pub error: ErrorSummary,
     pub plan: Plan,
+    pub validation: ValidationReport,
 }
 
 pub struct BakeResult {
@@ -99,10 +101,10 @@ pub fn bake(
     request.stop.validate()?;
     let plan = crate::engine::plan::build(&scene, request)?;
     on_plan(&plan);
-    let atlas = Arc::new(
-        Atlas::build(&scene, request.resolution, request.resolution)
-            .map_err(|e| EngineError::BadInput(e.to_string()))?,
-    );
+    let mut atlas = Atlas::build(&scene, request.resolution, request.resolution)
+        .map_err(|e| EngineError::BadInput(e.to_string()))?;
+    let validation = validate::validate(&scene, &mut atlas);
+    let atlas = Arc::new(atlas);
     let report = atlas.report();
     on_atlas(&atlas);
     let want_direct = plan.runs("direct-light layer");
@@ -128,6 +130,7 @@ pub fn bake(
         stopped_by: outcome.stopped_by,
         error: outcome.estimate.error,
         plan,
+        validation,
     };
     Ok(BakeResult {
         exr,

@@ -11,6 +11,7 @@ pub mod job;
 pub mod output;
 pub mod plan;
 pub mod post;
+pub mod raytrace;
 pub mod rng;
 pub mod scene;
 pub mod technique;
