@@ -1221,6 +1221,17 @@ impl SdbEngine {
         self.n_texels
     }
 
+    /// Block until the GPU has finished every submitted step (benchmarks).
+    pub fn finish(&self) -> Result<(), GpuError> {
+        self.ctx.wait_idle()?;
+        self.ctx.take_error("sdb step")
+    }
+
+    /// The adapter this engine runs on.
+    pub fn adapter(&self) -> &wgpu::AdapterInfo {
+        &self.ctx.info
+    }
+
     /// Scene radius in input units (for reports).
     pub fn scene_radius(&self) -> f32 {
         self.scale

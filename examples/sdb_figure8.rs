@@ -1,0 +1,101 @@
+//! The seed's Figure 8 experiment (issue 3, item 4): red light leaking through an
+//! occluder because of illumination-map overflow.
+//!
+//! Scene: seven horizontal two-sided 2 m planes under a white upper-hemisphere sky. From
+//! the top: a white plane, isolated 0.5 m above the stack; then the stack, 0.1 m apart: a
+//! white plane and five red ones. The top plane's underside sees only the white plane
+//! below it (which hides the red ones completely for points over its central metre), so
+//! its light must be grey. Along a vertical map ray there are up to 7 layers; a texel
+//! whose neighbourhood misses the white plane takes a red one instead: red leaks.
+//!
+//! Two-sided planes are modelled as two back-to-back single-sided quads, each with its own
+//! lightmap chart, so each side has its own light (a two-sided material with one lightmap
+//! would give both sides one value). The pair is a closed surface, so back faces are
+//! culled and the overdraw is the paper's 7, not 14.
+//!
+//! Leak = (R - G) / G of the mean over the top plane's underside within 0.5 m of its
+//! centre (G = B there: only the red albedo differs), the paper's "red level in relation
+//! to the grey level". `path` gives the reference (zero up to its noise).
+//!
+//! Usage: cargo run --example sdb_figure8 -- [MAP_SIZE=256] [STEPS=2000] [RESOLUTION=48]
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::Vec3;
+use lightmapd::engine::atlas::Atlas;
+use lightmapd::engine::job::BakeRequest;
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
+use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, import_slice};
+use lightmapd::engine::technique::{self, BakeInputs};
+use serde_json::json;
+
+const TOP_Y: f32 = 0.5;
+
+fn scene() -> SceneBuilder {
+    let mut b = SceneBuilder::new();
+    let white = b.material(MaterialDesc::diffuse("white", [0.8, 0.8, 0.8]));
+    let red = b.material(MaterialDesc::diffuse("red", [0.8, 0.05, 0.05]));
+    let mut planes = vec![("top white", TOP_Y, white), ("stack white", 0.0, white)];
+    for i in 0..5 {
+        planes.push(("red", -0.1 * (i + 1) as f32, red));
+    }
+    for (name, y, m) in planes {
+        b.square(&format!("{name} {y} up"), Vec3::new(0.0, y, 0.0), 2.0, Vec3::Y, m);
+        b.square(&format!("{name} {y} down"), Vec3::new(0.0, y, 0.0), 2.0, Vec3::NEG_Y, m);
+    }
+    b
+}
+
+fn bake(scene: &Arc<Scene>, atlas: &Arc<Atlas>, technique: &str, params: serde_json::Value, steps: u64) -> Vec<Vec3> {
+    let lighting = Lighting { sky: Some(Sky { radiance: Vec3::ONE, hemisphere: Hemisphere::Upper }), sun: None };
+    let request = BakeRequest { technique: technique.into(), lighting, ..Default::default() };
+    let plan = lightmapd::engine::plan::build(scene, &request).expect("plan");
+    let inputs = BakeInputs { scene: scene.clone(), atlas: atlas.clone(), lighting, seed: 1, want_direct: false, plan };
+    let mut t = technique::create(technique, inputs, &params).expect("technique");
+    for _ in 0..steps {
+        t.step().expect("step");
+    }
+    t.snapshot().expect("snapshot").estimate().total
+}
+
+fn leak(scene: &Scene, atlas: &Atlas, values: &[Vec3]) -> (f64, Vec3) {
+    let offset = scene.origin_offset.as_vec3();
+    let (mut sum, mut n) = (Vec3::ZERO, 0);
+    for (k, t) in atlas.texels.iter().enumerate() {
+        let p = t.position + offset;
+        if t.geo_normal.y < -0.99 && (p.y - TOP_Y).abs() < 0.01 && p.x.abs() < 0.5 && p.z.abs() < 0.5 {
+            sum += values[k];
+            n += 1;
+        }
+    }
+    let m = sum / n.max(1) as f32;
+    (((m.x - m.y) / m.y) as f64, m)
+}
+
+fn main() {
+    let args: Vec<u64> = std::env::args().skip(1).map(|a| a.parse().expect("numbers")).collect();
+    let map = *args.first().unwrap_or(&256);
+    let steps = *args.get(1).unwrap_or(&2000);
+    let res = *args.get(2).unwrap_or(&48) as u32;
+    let scene = Arc::new(import_slice(&scene().to_glb(), None).expect("scene").0);
+    let atlas = Arc::new(Atlas::build(&scene, res, res).expect("atlas"));
+    println!("Figure 8: 7 two-sided planes, lightmap {res}x{res}, illumination map {map}x{map}, {steps} directions");
+    let t0 = Instant::now();
+    let reference = bake(&scene, &atlas, "path", json!({"samples_per_step": 64}), 16);
+    let (ref_leak, ref_mean) = leak(&scene, &atlas, &reference);
+    println!("| path (1024 paths/texel) | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |", 100.0 * ref_leak, ref_mean.x, ref_mean.y, ref_mean.z, t0.elapsed().as_secs_f64());
+    for extra in std::env::var("FIG8_EXTRA").ok().into_iter() {
+        let params: serde_json::Value = serde_json::from_str(&extra).expect("FIG8_EXTRA is JSON");
+        let t0 = Instant::now();
+        let v = bake(&scene, &atlas, "sdb", params.clone(), steps);
+        let (l, m) = leak(&scene, &atlas, &v);
+        println!("| sdb {params} | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |", 100.0 * l, m.x, m.y, m.z, t0.elapsed().as_secs_f64());
+    }
+    for k in [1, 3, 5] {
+        let t0 = Instant::now();
+        let v = bake(&scene, &atlas, "sdb", json!({"map_size": map, "neighbourhood": k}), steps);
+        let (l, m) = leak(&scene, &atlas, &v);
+        println!("| sdb {k}x{k} | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |", 100.0 * l, m.x, m.y, m.z, t0.elapsed().as_secs_f64());
+    }
+}
