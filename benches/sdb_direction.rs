@@ -30,7 +30,11 @@ fn spheres(n: usize, segments: u32) -> SceneBuilder {
     let step = 16.0 / n as f32;
     for i in 0..n {
         for j in 0..n {
-            let c = Vec3::new(-8.0 + (i as f32 + 0.5) * step, 0.5 * step, -8.0 + (j as f32 + 0.5) * step);
+            let c = Vec3::new(
+                -8.0 + (i as f32 + 0.5) * step,
+                0.5 * step,
+                -8.0 + (j as f32 + 0.5) * step,
+            );
             b.sphere(&format!("ball {i} {j}"), c, 0.4 * step, segments, segments / 2, grey);
         }
     }
@@ -49,21 +53,45 @@ fn main() {
             return;
         }
     };
-    println!("adapter: {} ({:?}, {:?})", ctx.info.name, ctx.info.device_type, ctx.info.backend);
+    println!(
+        "adapter: {} ({:?}, {:?})",
+        ctx.info.name, ctx.info.device_type, ctx.info.backend
+    );
     println!("| scene | triangles | lightmap | valid texels | map | k | ms / direction |");
     println!("| --- | --- | --- | --- | --- | --- | --- |");
-    let lighting = Lighting { sky: Some(Sky { radiance: Vec3::ONE, hemisphere: Hemisphere::Upper }), sun: None };
+    let lighting = Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::ONE,
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: None,
+    };
     // 1k: 1 sphere of 32 x 16 quads (1024 triangles); 25k: 25 spheres of 32 x 16; 100k:
     // 25 spheres of 64 x 32 (4096 triangles each).
     for (name, n, segments) in [("1 sphere", 1, 32), ("25 spheres", 5, 32), ("25 fine spheres", 5, 64)] {
         let scene = Arc::new(import_slice(&spheres(n, segments).to_glb(), None).expect("scene").0);
         for res in [256u32, 1024] {
             let atlas = Arc::new(Atlas::build(&scene, res, res).expect("atlas"));
-            let request = BakeRequest { technique: "sdb".into(), lighting, ..Default::default() };
+            let request = BakeRequest {
+                technique: "sdb".into(),
+                lighting,
+                ..Default::default()
+            };
             let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");
-            let inputs = BakeInputs { scene: scene.clone(), atlas: atlas.clone(), lighting, seed: 1, want_direct: false, plan };
+            let inputs = BakeInputs {
+                scene: scene.clone(),
+                atlas: atlas.clone(),
+                lighting,
+                seed: 1,
+                want_direct: false,
+                plan,
+            };
             for k in [3u32, 5] {
-                let params = SdbParams { map_size: 512, neighbourhood: k, ..SdbParams::default() };
+                let params = SdbParams {
+                    map_size: 512,
+                    neighbourhood: k,
+                    ..SdbParams::default()
+                };
                 let mut engine = SdbEngine::new(ctx.clone(), sdb_input(&inputs).0, params).expect("engine");
                 for _ in 0..4 {
                     engine.step().expect("step");

@@ -51,10 +51,27 @@ fn scene() -> SceneBuilder {
 }
 
 fn bake(scene: &Arc<Scene>, atlas: &Arc<Atlas>, technique: &str, params: serde_json::Value, steps: u64) -> Vec<Vec3> {
-    let lighting = Lighting { sky: Some(Sky { radiance: Vec3::ONE, hemisphere: Hemisphere::Upper }), sun: None };
-    let request = BakeRequest { technique: technique.into(), lighting, ..Default::default() };
+    let lighting = Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::ONE,
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: None,
+    };
+    let request = BakeRequest {
+        technique: technique.into(),
+        lighting,
+        ..Default::default()
+    };
     let plan = lightmapd::engine::plan::build(scene, &request).expect("plan");
-    let inputs = BakeInputs { scene: scene.clone(), atlas: atlas.clone(), lighting, seed: 1, want_direct: false, plan };
+    let inputs = BakeInputs {
+        scene: scene.clone(),
+        atlas: atlas.clone(),
+        lighting,
+        seed: 1,
+        want_direct: false,
+        plan,
+    };
     let mut t = technique::create(technique, inputs, &params).expect("technique");
     for _ in 0..steps {
         t.step().expect("step");
@@ -87,10 +104,23 @@ fn main() {
     let t0 = Instant::now();
     let reference = bake(&scene, &atlas, "path", json!({"samples_per_step": 64}), 16);
     let (ref_leak, ref_mean) = leak(&scene, &atlas, &reference);
-    println!("| path (1024 paths/texel) | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |", 100.0 * ref_leak, ref_mean.x, ref_mean.y, ref_mean.z, t0.elapsed().as_secs_f64());
+    println!(
+        "| path (1024 paths/texel) | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |",
+        100.0 * ref_leak,
+        ref_mean.x,
+        ref_mean.y,
+        ref_mean.z,
+        t0.elapsed().as_secs_f64()
+    );
     if std::env::var("FIG8_DEBUG").is_ok() {
         // Per face mean, path vs sdb 5x5: where does the light differ?
-        let v = bake(&scene, &atlas, "sdb", json!({"map_size": map, "neighbourhood": 5}), steps);
+        let v = bake(
+            &scene,
+            &atlas,
+            "sdb",
+            json!({"map_size": map, "neighbourhood": 5}),
+            steps,
+        );
         let offset = scene.origin_offset.as_vec3();
         let mut faces: Vec<(i32, i32, Vec3, Vec3, u32)> = Vec::new();
         for (k, t) in atlas.texels.iter().enumerate() {
@@ -107,7 +137,13 @@ fn main() {
         }
         faces.sort_by_key(|f| (-f.0, -f.1));
         for f in faces {
-            println!("y {:+.2} {} path {:.4} sdb {:.4}", f.0 as f32 / 100.0, if f.1 > 0 { "up  " } else { "down" }, (f.2 / f.4 as f32).y, (f.3 / f.4 as f32).y);
+            println!(
+                "y {:+.2} {} path {:.4} sdb {:.4}",
+                f.0 as f32 / 100.0,
+                if f.1 > 0 { "up  " } else { "down" },
+                (f.2 / f.4 as f32).y,
+                (f.3 / f.4 as f32).y
+            );
         }
     }
     for extra in std::env::var("FIG8_EXTRA").ok().into_iter() {
@@ -115,12 +151,32 @@ fn main() {
         let t0 = Instant::now();
         let v = bake(&scene, &atlas, "sdb", params.clone(), steps);
         let (l, m) = leak(&scene, &atlas, &v);
-        println!("| sdb {params} | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |", 100.0 * l, m.x, m.y, m.z, t0.elapsed().as_secs_f64());
+        println!(
+            "| sdb {params} | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |",
+            100.0 * l,
+            m.x,
+            m.y,
+            m.z,
+            t0.elapsed().as_secs_f64()
+        );
     }
     for k in [1, 3, 5] {
         let t0 = Instant::now();
-        let v = bake(&scene, &atlas, "sdb", json!({"map_size": map, "neighbourhood": k}), steps);
+        let v = bake(
+            &scene,
+            &atlas,
+            "sdb",
+            json!({"map_size": map, "neighbourhood": k}),
+            steps,
+        );
         let (l, m) = leak(&scene, &atlas, &v);
-        println!("| sdb {k}x{k} | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |", 100.0 * l, m.x, m.y, m.z, t0.elapsed().as_secs_f64());
+        println!(
+            "| sdb {k}x{k} | {:+.2}% | {:.4} {:.4} {:.4} | {:.1} s |",
+            100.0 * l,
+            m.x,
+            m.y,
+            m.z,
+            t0.elapsed().as_secs_f64()
+        );
     }
 }

@@ -18,7 +18,7 @@ struct DirectParams {
 
 @group(0) @binding(0) var<uniform> view: View;
 @group(0) @binding(1) var<uniform> params: DirectParams;
-@group(0) @binding(2) var shadow: texture_2d<f32>;
+@group(0) @binding(2) var shadow: texture_2d_array<f32>;  // layer 0 holds the shadow map
 @group(0) @binding(3) var<storage, read> texels: array<TexelGeom>;
 @group(0) @binding(4) var<storage, read_write> acc: array<vec4<f32>>;         // 2N, the full estimate
 @group(0) @binding(5) var<storage, read_write> direct_acc: array<vec4<f32>>;  // 2N, direct light only
@@ -26,7 +26,7 @@ struct DirectParams {
 fn lit(px: vec2<i32>, t: f32) -> f32 {
     let size = i32(view.extent.z);
     let q = clamp(px, vec2<i32>(0), vec2<i32>(size - 1));
-    let s = textureLoad(shadow, q, 0);
+    let s = textureLoad(shadow, q, 0, 0);
     // Empty pixel (s.a = EMPTY_T) or first occluder not in front of the receiver.
     return select(0.0, 1.0, t <= s.a + params.bias.y);
 }

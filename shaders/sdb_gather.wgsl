@@ -20,23 +20,24 @@
 struct GatherParams {
     env: vec4<f32>,   // rgb: environment radiance arriving along -d (seen looking along +d); w: blend b
     eps: vec4<f32>,   // x: normal-plane epsilon, y: along-d epsilon (normalised scene units); z, w: unused
-    misc: vec4<u32>,  // x: neighbourhood radius r (k = 2r+1), y: unused, z: parity (0 even, 1 odd), w: texel count N
+    misc: vec4<u32>,  // x: neighbourhood radius r (k = 2r+1), y: depth layers, z: parity (0 even, 1 odd), w: texel count N
 }
 
 @group(0) @binding(0) var<uniform> view: View;
 @group(0) @binding(1) var<uniform> params: GatherParams;
-@group(0) @binding(2) var illum: texture_2d<f32>;
+@group(0) @binding(2) var illum: texture_2d_array<f32>;  // one layer per independent depth draw
 @group(0) @binding(3) var<storage, read> texels: array<TexelGeom>;
 @group(0) @binding(4) var<storage, read_write> acc: array<vec4<f32>>;  // 2N: even then odd
 // Only with gather_direct: the illumination map's emitted-radiance target and the
 // direct-light accumulators (direct = light straight from an emitter or the sky).
-@group(1) @binding(0) var illum_emission: texture_2d<f32>;
+@group(1) @binding(0) var illum_emission: texture_2d_array<f32>;
 @group(1) @binding(1) var<storage, read_write> direct_acc: array<vec4<f32>>;  // 2N
 
 struct Gathered {
     contribution: vec3<f32>,  // 4 L max(<d, n>, 0)
     weight: f32,              // 4 max(<d, n>, 0)
     best: vec2<i32>,          // winning map pixel, or (-1, -1) for the environment
+    best_layer: i32,
 }
 
 fn gather_texel(i: u32) -> Gathered {
@@ -44,6 +45,7 @@ fn gather_texel(i: u32) -> Gathered {
     g.contribution = vec3<f32>(0.0);
     g.weight = 0.0;
     g.best = vec2<i32>(-1);
+    g.best_layer = 0;
     let x = texels[i].position.xyz;
     let n = texels[i].normal.xyz;
     let ng = texels[i].geo_normal.xyz;
@@ -60,21 +62,25 @@ fn gather_texel(i: u32) -> Gathered {
     let r = i32(params.misc.x);
     var best_t = EMPTY_T;
     var best = params.env.rgb;
-    for (var dy = -r; dy <= r; dy++) {
-        for (var dx = -r; dx <= r; dx++) {
-            let px = centre + vec2<i32>(dx, dy);
-            if any(px < vec2<i32>(0)) || any(px >= vec2<i32>(size)) {
-                continue;
-            }
-            let s = textureLoad(illum, px, 0);
-            if s.a >= 0.5 * EMPTY_T || s.a >= best_t {
-                continue;
-            }
-            let p = map_sample_position(view, px, s.a);
-            if s.a - tx > params.eps.y && dot(p - x, ng) > params.eps.x {
-                best_t = s.a;
-                best = s.rgb;
-                g.best = px;
+    let layers = i32(params.misc.y);
+    for (var layer = 0; layer < layers; layer++) {
+        for (var dy = -r; dy <= r; dy++) {
+            for (var dx = -r; dx <= r; dx++) {
+                let px = centre + vec2<i32>(dx, dy);
+                if any(px < vec2<i32>(0)) || any(px >= vec2<i32>(size)) {
+                    continue;
+                }
+                let s = textureLoad(illum, px, layer, 0);
+                if s.a >= 0.5 * EMPTY_T || s.a >= best_t {
+                    continue;
+                }
+                let p = map_sample_position(view, px, s.a);
+                if s.a - tx > params.eps.y && dot(p - x, ng) > params.eps.x {
+                    best_t = s.a;
+                    best = s.rgb;
+                    g.best = px;
+                    g.best_layer = layer;
+                }
             }
         }
     }
@@ -122,7 +128,7 @@ fn gather_direct(
     // Direct part: the environment on a miss, the winner's emission on a hit.
     var direct = params.env.rgb * g.weight;
     if g.best.x >= 0 {
-        direct = textureLoad(illum_emission, g.best, 0).rgb * g.weight;
+        direct = textureLoad(illum_emission, g.best, g.best_layer, 0).rgb * g.weight;
     }
     let b = params.env.w;
     direct_acc[slot] = vec4<f32>(direct_acc[slot].rgb * (1.0 - b) + direct * b, 0.0);

@@ -29,6 +29,7 @@ struct VsOut {
     @location(0) world: vec3<f32>,
     @location(1) lightmap_uv: vec2<f32>,
     @location(2) @interpolate(flat) triangle: u32,
+    @location(3) @interpolate(flat) layer: u32,
 }
 
 struct FsOut {
@@ -54,7 +55,7 @@ struct LightmapDims {
 @group(0) @binding(4) var<storage, read> emission_px: array<vec4<f32>>;  // W*H
 
 @vertex
-fn vs_main(v: Vertex) -> VsOut {
+fn vs_main(v: Vertex, @builtin(instance_index) layer: u32) -> VsOut {
     let a = dot(v.position, view.right.xyz) - view.right.w;
     let b = dot(v.position, view.up.xyz) - view.up.w;
     let t = dot(v.position, view.dir.xyz) - view.dir.w;
@@ -66,6 +67,7 @@ fn vs_main(v: Vertex) -> VsOut {
     out.world = v.position;
     out.lightmap_uv = v.lightmap_uv;
     out.triangle = v.triangle;
+    out.layer = layer;
     return out;
 }
 
@@ -151,8 +153,10 @@ fn shade(in: VsOut, front: bool) -> Shaded {
         out.culled = true;
     }
     // else: back face of open single-sided geometry: a black blocker (seed section 6).
-    let h = pcg(view.params.x ^ pcg(in.triangle ^ pcg(bitcast<u32>(in.world.x)
-        ^ pcg(bitcast<u32>(in.world.y) ^ pcg(bitcast<u32>(in.world.z))))));
+    // The instance index is the depth layer (one draw per layer): each layer is an
+    // independent draw of the random depths.
+    let h = pcg(view.params.x ^ pcg(in.layer ^ pcg(in.triangle ^ pcg(bitcast<u32>(in.world.x)
+        ^ pcg(bitcast<u32>(in.world.y) ^ pcg(bitcast<u32>(in.world.z)))))));
     out.sample = vec4<f32>(l, t);
     out.depth = unit_float(h);
     return out;

@@ -141,6 +141,11 @@ pub struct SdbParams {
     pub mode: AccumulationMode,
     /// Leaky blend factor b in (0, 1], used by `leaky` only; default 0.01 (the seed's).
     pub blend: f32,
+    /// Independent stochastic-depth maps per direction, 1..=4; default 1 (the seed). The
+    /// gather reads the k x k neighbourhood in every layer, so a surface along a ray with
+    /// overdraw K is missed with probability (1 - 1/K)^(layers k^2) instead of
+    /// (1 - 1/K)^(k^2), at the cost of one more render per layer.
+    pub depth_layers: u32,
     /// `average` only: direction i of a half gets weight i^ramp in the mean. 0 is the
     /// seed's plain mean; the default 1 discounts the early directions, which saw an
     /// incomplete bounce estimate, so the feedback transient decays like n^-2(1-albedo)
@@ -157,6 +162,7 @@ impl Default for SdbParams {
             directions: DirectionSequence::Stratified,
             mode: AccumulationMode::Average,
             blend: 0.01,
+            depth_layers: 1,
             ramp: 1.0,
         }
     }
@@ -201,6 +207,9 @@ impl SdbParams {
         }
         if !(self.blend > 0.0 && self.blend <= 1.0) {
             return err("blend", format!("{} is outside (0, 1]", self.blend));
+        }
+        if !(1..=4).contains(&self.depth_layers) {
+            return err("depth_layers", format!("{} is outside 1..=4", self.depth_layers));
         }
         if !(0.0..=4.0).contains(&self.ramp) {
             return err("ramp", format!("{} is outside 0..=4", self.ramp));
@@ -662,8 +671,8 @@ pub struct SdbEngine {
     direct_buf: wgpu::Buffer,
     acc_buf: wgpu::Buffer,
     direct_acc_buf: Option<wgpu::Buffer>,
-    illum_view: wgpu::TextureView,
-    emission_view: Option<wgpu::TextureView>,
+    illum_layer_views: Vec<wgpu::TextureView>,
+    emission_layer_views: Option<Vec<wgpu::TextureView>>,
     gather_direct_bg: Option<wgpu::BindGroup>,
     want_direct: bool,
     depth_view: wgpu::TextureView,
@@ -717,7 +726,7 @@ fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
             // Read with textureLoad only: no filtering, so Rgba32Float needs no
             // FLOAT32_FILTERABLE.
             sample_type: wgpu::TextureSampleType::Float { filterable: false },
-            view_dimension: wgpu::TextureViewDimension::D2,
+            view_dimension: wgpu::TextureViewDimension::D2Array,
             multisampled: false,
         },
         count: None,
@@ -914,9 +923,14 @@ impl SdbEngine {
             height: params.map_size,
             depth_or_array_layers: 1,
         };
+        let layers = params.depth_layers;
+        let layered = wgpu::Extent3d {
+            depth_or_array_layers: layers,
+            ..extent
+        };
         let illum_tex = ctx.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("sdb illumination map (rgb radiance, a distance)"),
-            size: extent,
+            label: Some("sdb illumination map (rgb radiance, a distance), one layer per depth draw"),
+            size: layered,
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
@@ -937,7 +951,7 @@ impl SdbEngine {
         let emission_tex = want_direct.then(|| {
             ctx.device.create_texture(&wgpu::TextureDescriptor {
                 label: Some("sdb illumination map emission"),
-                size: extent,
+                size: layered,
                 mip_level_count: 1,
                 sample_count: 1,
                 dimension: wgpu::TextureDimension::D2,
@@ -946,16 +960,35 @@ impl SdbEngine {
                 view_formats: &[],
             })
         });
-        let emission_view = emission_tex.as_ref().map(|t| {
+        // Per-layer views to render into; one array view for the compute passes.
+        let layer_views = |t: &wgpu::Texture, label: &str| -> Vec<wgpu::TextureView> {
+            (0..layers)
+                .map(|l| {
+                    t.create_view(&wgpu::TextureViewDescriptor {
+                        label: Some(&format!("{label} layer {l}")),
+                        dimension: Some(wgpu::TextureViewDimension::D2),
+                        base_array_layer: l,
+                        array_layer_count: Some(1),
+                        ..Default::default()
+                    })
+                })
+                .collect()
+        };
+        let array_view = |t: &wgpu::Texture, label: &str| {
             t.create_view(&wgpu::TextureViewDescriptor {
-                label: Some("sdb illumination emission view"),
+                label: Some(label),
+                dimension: Some(wgpu::TextureViewDimension::D2Array),
                 ..Default::default()
             })
-        });
-        let illum_view = illum_tex.create_view(&wgpu::TextureViewDescriptor {
-            label: Some("sdb illumination map view"),
-            ..Default::default()
-        });
+        };
+        let emission_layer_views = emission_tex
+            .as_ref()
+            .map(|t| layer_views(t, "sdb illumination emission"));
+        let emission_view = emission_tex
+            .as_ref()
+            .map(|t| array_view(t, "sdb illumination emission array view"));
+        let illum_layer_views = layer_views(&illum_tex, "sdb illumination map");
+        let illum_view = array_view(&illum_tex, "sdb illumination map array view");
         let depth_view = depth_tex.create_view(&wgpu::TextureViewDescriptor {
             label: Some("sdb illumination depth view"),
             ..Default::default()
@@ -1193,8 +1226,8 @@ impl SdbEngine {
             direct_buf,
             acc_buf,
             direct_acc_buf,
-            illum_view,
-            emission_view,
+            illum_layer_views,
+            emission_layer_views,
             gather_direct_bg,
             want_direct,
             depth_view,
@@ -1281,7 +1314,10 @@ impl SdbEngine {
         }
     }
 
-    fn render_map(&self, encoder: &mut wgpu::CommandEncoder, label: &str) {
+    /// Render the map along the current view into array layer `layer`; the layer goes to
+    /// the shaders as the instance index and into the depth hash, so layers are
+    /// independent draws of the stochastic depth.
+    fn render_map(&self, encoder: &mut wgpu::CommandEncoder, label: &str, layer: u32) {
         let attachment = |view, a: f64| {
             Some(wgpu::RenderPassColorAttachment {
                 view,
@@ -1298,9 +1334,10 @@ impl SdbEngine {
                 },
             })
         };
-        let mut colors = vec![attachment(&self.illum_view, EMPTY_T as f64)];
-        if let Some(v) = &self.emission_view {
-            colors.push(attachment(v, 0.0));
+        let l = layer as usize;
+        let mut colors = vec![attachment(&self.illum_layer_views[l], EMPTY_T as f64)];
+        if let Some(v) = &self.emission_layer_views {
+            colors.push(attachment(&v[l], 0.0));
         }
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some(label),
@@ -1320,7 +1357,7 @@ impl SdbEngine {
         pass.set_pipeline(&self.illum_pipeline);
         pass.set_bind_group(0, &self.illum_bg, &[]);
         pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
-        pass.draw(0..self.vertex_count, 0..1);
+        pass.draw(0..self.vertex_count, layer..layer + 1);
     }
 
     fn dispatch(
@@ -1379,7 +1416,12 @@ impl SdbEngine {
             let gather = GpuGatherParams {
                 env: [env.x, env.y, env.z, blend],
                 eps: [EPS_NORMAL_PLANE, EPS_ALONG_D, 0.0, 0.0],
-                misc: [(self.params.neighbourhood - 1) / 2, 0, parity, self.n_texels],
+                misc: [
+                    (self.params.neighbourhood - 1) / 2,
+                    self.params.depth_layers,
+                    parity,
+                    self.n_texels,
+                ],
             };
             self.ctx
                 .queue
@@ -1390,7 +1432,9 @@ impl SdbEngine {
             let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("sdb direction"),
             });
-            self.render_map(&mut encoder, "sdb illumination map");
+            for layer in 0..self.params.depth_layers {
+                self.render_map(&mut encoder, "sdb illumination map", layer);
+            }
             {
                 let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                     label: Some("sdb gather"),
@@ -1433,7 +1477,7 @@ impl SdbEngine {
                 let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
                     label: Some("sdb direct light"),
                 });
-                self.render_map(&mut encoder, "sdb shadow map");
+                self.render_map(&mut encoder, "sdb shadow map", 0);
                 Self::dispatch(
                     &mut encoder,
                     "sdb direct",
