@@ -742,3 +742,48 @@ fn depth_layers_recover_surfaces_lost_to_overdraw() {
     assert!((0.7..0.92).contains(&one), "one layer: {one}");
     assert!((four - 1.0).abs() < 0.02, "four layers: {four}");
 }
+
+#[test]
+#[ignore = "measurement for docs/sdb.md: stratified vs random directions at equal steps"]
+fn measure_stratified_vs_random() {
+    // RMS relative error over the receiver of the parallel-squares scene (closed form),
+    // for both sequences at equal direction counts, averaged over 4 seeds. Map 256, k = 3.
+    let Some(ctx) = context() else { return };
+    let emitter_half = 0.5f32;
+    println!("| directions | stratified RMS error | random RMS error |");
+    println!("| --- | --- | --- |");
+    for n in [64u32, 256, 1024, 4096] {
+        let mut err = [0.0f64; 2];
+        for (s, seq) in [DirectionSequence::Stratified, DirectionSequence::Random].into_iter().enumerate() {
+            for seed in 0..4u64 {
+                let receiver = Quad::new(Vec3::ZERO, Vec3::Y, 0.5, [0.0, 0.0, 0.5, 1.0]);
+                let mut emitter = Quad::new(Vec3::new(0.0, 1.0, 0.0), -Vec3::Y, emitter_half, [0.5, 0.0, 1.0, 1.0]);
+                emitter.emission = Vec3::ONE;
+                emitter.albedo = Vec3::ZERO;
+                let mut receiver = receiver;
+                receiver.albedo = Vec3::ZERO;
+                let (triangles, texels, owner) = build(&[receiver, emitter], 32, 16);
+                let positions: Vec<Vec3> = texels.iter().map(|t| t.position).collect();
+                let input = SdbInput { triangles, texels, width: 32, height: 16, environment: None, lights: vec![], seed, want_direct: false };
+                let p = SdbParams { directions: seq, ..params(256, 3) };
+                let mut engine = SdbEngine::new(ctx.clone(), input, p).unwrap();
+                for _ in 0..n {
+                    engine.step().unwrap();
+                }
+                let [a, b] = engine.read_halves().unwrap();
+                let (mut sq, mut count) = (0.0, 0);
+                for (k, p) in positions.iter().enumerate() {
+                    if owner[k] != 0 {
+                        continue;
+                    }
+                    let f = rect_form_factor(p.x as f64, p.z as f64, -0.5, 0.5, -0.5, 0.5, 1.0 - p.y as f64);
+                    let v = ((a.total[k] + b.total[k]) * 0.5).x as f64;
+                    sq += ((v - f) / f).powi(2);
+                    count += 1;
+                }
+                err[s] += (sq / count as f64).sqrt() / 4.0;
+            }
+        }
+        println!("| {n} | {:.4} | {:.4} |", err[0], err[1]);
+    }
+}

@@ -66,6 +66,9 @@
 //! - Two half accumulators (even and odd steps) instead of one, for the error estimate.
 //! - Float32 illumination map (the seed used float16): irradiance may exceed half range.
 //! - Stratified, randomly rotated directions instead of i.i.d. ones (selectable).
+//! - Optional `depth_layers`: several independent stochastic-depth maps per direction,
+//!   gathered together (k^2 x layers samples), against overflow (docs/sdb.md, Figure 8).
+//! - Emitters use their material's exact emission rather than the lightmap's.
 //! - Point and spot lights are not handled: [`SdbEngine`] reports them, and the plan must
 //!   say that `sdb` ignores them.
 //!
