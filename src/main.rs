@@ -106,6 +106,9 @@ struct BakeArgs {
     /// Extra layers: validity, direct, indirect (comma separated).
     #[arg(long, value_delimiter = ',', value_parser = OutputLayer::parse)]
     outputs: Vec<OutputLayer>,
+    /// Write the raw estimate, without the edge-aware denoiser.
+    #[arg(long)]
+    no_denoise: bool,
     /// Also write a tone-mapped PNG preview here.
     #[arg(long)]
     preview: Option<PathBuf>,
@@ -234,6 +237,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         params,
         outputs: args.outputs.clone(),
         seed: args.seed,
+        denoise: !args.no_denoise,
     };
 
     let (scene, report) =
