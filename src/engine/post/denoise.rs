@@ -151,7 +151,7 @@ mod tests {
 
     #[test]
     fn noise_is_reduced_and_charts_never_mix() {
-        let (scene, atlas) = two_quads();
+        let (_, atlas) = two_quads();
         // Chart a holds 1, chart b holds 10, both with noise of standard deviation 0.2
         // (and the filter is told so). The charts touch in UV space.
         let sigma = 0.2f32;
