@@ -47,7 +47,7 @@ fn bake_writes_a_readable_exr_with_layers_and_metadata() {
             "--steps",
             "4",
             "--outputs",
-            "validity,direct,indirect",
+            "validity,direct,indirect,sh",
             "--seed",
             "7",
         ])
@@ -69,7 +69,17 @@ fn bake_writes_a_readable_exr_with_layers_and_metadata() {
     assert_eq!(layer.size.0, 32);
     assert_eq!(layer.size.1, 32);
     let names: Vec<String> = layer.channel_data.list.iter().map(|c| c.name.to_string()).collect();
-    for want in ["R", "G", "B", "direct.R", "indirect.G", "validity.Y"] {
+    for want in [
+        "R",
+        "G",
+        "B",
+        "direct.R",
+        "indirect.G",
+        "validity.Y",
+        "sh.x.R",
+        "sh.y.G",
+        "sh.z.B",
+    ] {
         assert!(names.iter().any(|n| n == want), "missing channel {want} in {names:?}");
     }
     let channel = |name: &str| -> Vec<f32> {

@@ -185,6 +185,12 @@ pub fn finish(atlas: &Atlas, estimate: &Estimate, request: &BakeRequest) -> Esti
         if let Some(d) = &estimate.direct {
             out.direct = Some(denoise(atlas, d, se));
         }
+        if let Some(m) = &estimate.moments {
+            let axes: Vec<Vec<glam::Vec3>> = (0..3)
+                .map(|k| denoise(atlas, &m.iter().map(|v| v[k]).collect::<Vec<_>>(), se))
+                .collect();
+            out.moments = Some((0..m.len()).map(|t| [axes[0][t], axes[1][t], axes[2][t]]).collect());
+        }
     }
     out
 }

@@ -31,6 +31,8 @@ pub enum OutputLayer {
     Validity,
     Direct,
     Indirect,
+    /// L1 directional moments of incident light (`sh.x.*`, `sh.y.*`, `sh.z.*`).
+    Sh,
 }
 
 impl OutputLayer {
@@ -39,8 +41,9 @@ impl OutputLayer {
             "validity" => Ok(OutputLayer::Validity),
             "direct" => Ok(OutputLayer::Direct),
             "indirect" => Ok(OutputLayer::Indirect),
+            "sh" => Ok(OutputLayer::Sh),
             other => Err(format!(
-                "unknown output layer {other:?}; available: validity, direct, indirect"
+                "unknown output layer {other:?}; available: validity, direct, indirect, sh"
             )),
         }
     }
@@ -95,6 +98,16 @@ pub fn lightmap_channels(
                         .map(|(t, d)| (*t - *d).max(Vec3::ZERO))
                         .collect();
                     rgb("indirect", &indirect);
+                }
+            }
+            OutputLayer::Sh => {
+                let m = estimate
+                    .moments
+                    .as_ref()
+                    .ok_or("the technique kept no directional (sh) layer")?;
+                for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+                    let values: Vec<Vec3> = m.iter().map(|v| v[k]).collect();
+                    rgb(&format!("sh.{axis}"), &values);
                 }
             }
             OutputLayer::Validity => {}
