@@ -78,6 +78,8 @@ pub struct Atlas {
     pub links: Vec<GutterLink>,
     pub overlapping_texels: u32,
     pub surface_offset: f32,
+    /// Sample pairs along UV seams, for `post::seams::stitch`.
+    pub seams: Vec<crate::engine::post::seams::SeamSample>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -228,6 +230,7 @@ impl Atlas {
             links,
             overlapping_texels: overlapping.iter().filter(|o| **o).count() as u32,
             surface_offset: offset,
+            seams: crate::engine::post::seams::find_seams(scene, width, height),
         })
     }
 

@@ -70,7 +70,8 @@ pub fn lightmap_channels(
 ) -> Result<Vec<(String, Vec<f32>)>, String> {
     let mut channels = Vec::new();
     let mut rgb = |prefix: &str, values: &[Vec3]| {
-        let img = post::dilate(atlas, values, rings);
+        let mut img = post::dilate(atlas, values, rings);
+        post::seams::stitch(&mut img, atlas.width, atlas.height, &atlas.pixel_texel, &atlas.seams);
         for (k, c) in ["R", "G", "B"].iter().enumerate() {
             let name = if prefix.is_empty() {
                 c.to_string()
