@@ -109,6 +109,10 @@ struct BakeArgs {
     /// Write the raw estimate, without the edge-aware denoiser.
     #[arg(long)]
     no_denoise: bool,
+    /// Also write the scene as .glb with its lightmap UVs (TEXCOORD_1), e.g. after they
+    /// were generated for a scene that had none.
+    #[arg(long)]
+    write_gltf: Option<PathBuf>,
     /// Also write a tone-mapped PNG preview here.
     #[arg(long)]
     preview: Option<PathBuf>,
@@ -295,6 +299,16 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         code: 1,
         message: format!("cannot write {}: {e}", args.output.display()),
     })?;
+    if let Some(p) = &args.write_gltf {
+        let glb = lightmapd::engine::scene::export::to_glb(&result.scene).map_err(|e| Failure {
+            code: 1,
+            message: format!("writing {}: {e}", p.display()),
+        })?;
+        write_atomically(p, &glb).map_err(|e| Failure {
+            code: 1,
+            message: format!("cannot write {}: {e}", p.display()),
+        })?;
+    }
     if let Some(p) = &args.preview {
         write_atomically(p, &result.preview_png).map_err(|e| Failure {
             code: 1,
@@ -303,6 +317,14 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
     }
     let s = &result.summary;
     eprintln!("plan: {}", s.plan.summary_line());
+    if let Some(u) = &s.generated_uvs {
+        eprintln!(
+            "generated lightmap UVs: {} charts, {:.0} % of the lightmap used, {:.1} texels per metre",
+            u.charts,
+            u.utilisation * 100.0,
+            u.texels_per_metre
+        );
+    }
     for w in &s.validation.warnings {
         eprintln!("warning: {w}");
     }

@@ -23,6 +23,7 @@
 //! texel whose sample point lies inside closed geometry is still valid here (techniques
 //! see back faces from it).
 
+pub mod unwrap;
 pub mod validate;
 
 use glam::{Vec2, Vec3};

@@ -108,10 +108,10 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
     } = ctx;
 
     if !missing_lightmap_uvs.is_empty() {
-        return Err(ImportError::NoLightmapUvs(format!(
-            "{} has no TEXCOORD_1 (lightmap UV generation is not available yet: add a second UV set in your editor)",
+        report.warnings.push(format!(
+            "{} has no TEXCOORD_1: lightmap UVs will be generated for the whole scene (bake --write-gltf saves them)",
             missing_lightmap_uvs.join("; ")
-        )));
+        ));
     }
     if triangles.is_empty() {
         let why = if report.degenerate_triangles > 0 {
@@ -167,7 +167,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         .count();
     report.bounds_min = dmin.to_array();
     report.bounds_max = dmax.to_array();
-    report.has_lightmap_uvs = true;
+    report.has_lightmap_uvs = missing_lightmap_uvs.is_empty();
 
     let scene = Scene {
         triangles: tris,
@@ -177,6 +177,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         meshes,
         bounds,
         origin_offset: offset,
+        needs_lightmap_uvs: !missing_lightmap_uvs.is_empty(),
     };
     Ok((scene, report))
 }
@@ -562,13 +563,17 @@ impl Flatten<'_> {
             })?;
             let normals = read_vec3(&prim, gltf::Semantic::Normals, self.buffers, &at)?;
             let uv0 = read_vec2(&prim, 0, self.buffers, &at)?;
-            let Some(uv1) = read_vec2(&prim, 1, self.buffers, &at)? else {
-                if first_visit {
-                    self.missing_lightmap_uvs.push(at.to_string());
-                }
-                continue;
-            };
             let n = positions.len();
+            let uv1 = match read_vec2(&prim, 1, self.buffers, &at)? {
+                Some(uv1) => uv1,
+                None => {
+                    // Placeholder; `atlas::unwrap` generates the real UVs at bake time.
+                    if first_visit {
+                        self.missing_lightmap_uvs.push(at.to_string());
+                    }
+                    vec![Vec2::ZERO; n]
+                }
+            };
             for (what, len) in [
                 ("NORMAL", normals.as_ref().map(Vec::len)),
                 ("TEXCOORD_0", uv0.as_ref().map(Vec::len)),
@@ -657,7 +662,9 @@ impl Flatten<'_> {
                     None => [flat; 3],
                 };
                 let lm = [uv1[a], uv1[b], uv1[c]];
-                if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0 {
+                if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0
+                    && !self.missing_lightmap_uvs.contains(&at.to_string())
+                {
                     self.report.zero_uv_area_triangles += 1;
                 }
                 let uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);

@@ -21,6 +21,7 @@
 
 pub mod build;
 mod error;
+pub mod export;
 pub mod import;
 pub mod library;
 
@@ -229,6 +230,9 @@ pub struct Scene {
     pub bounds: Bounds,
     /// What was subtracted from every glTF world position.
     pub origin_offset: DVec3,
+    /// Some mesh had no TEXCOORD_1: `atlas::unwrap` must generate every triangle's
+    /// lightmap UVs before a texel set can be built.
+    pub needs_lightmap_uvs: bool,
 }
 
 impl Scene {

@@ -1,0 +1,93 @@
+//! Lightmap UV generation for scenes whose meshes have no `TEXCOORD_1`.
+//!
+//! How: every triangle of the (flattened, world-space) scene goes to an [`Unwrapper`];
+//! the one used is the `uvunwrap` crate (region-growing charts within a normal cone,
+//! LSCM + ARAP flattening, shape packing), behind this small trait because the crate is
+//! young and xatlas-rs does not link here (../shared/NOTES.md). World space means every
+//! instance of a mesh gets its own charts, as a lightmap needs. The page is the job's
+//! lightmap resolution, with a padding of 3 texels (charts at least 6 apart): enough
+//! for the gutter links, bilinear filtering and one mip level, and the dilation fills
+//! the rest. `uvunwrap` is built without its `direct-solver` feature: the output is then
+//! the same on every CPU, so a lightmap baked on one machine fits UVs made on another.
+//!
+//! Limits: all lightmap UVs of the scene are regenerated when any mesh lacks them (the
+//! packer cannot place new charts around existing ones); a scene with too many charts
+//! for one page at this resolution is an error that says to raise the resolution.
+
+use glam::Vec2;
+use serde::Serialize;
+
+use crate::engine::scene::Scene;
+
+/// Padding around each chart, in texels.
+pub const PADDING: u32 = 3;
+
+/// Triangles in, one lightmap UV per corner out (in [0, 1], DESIGN §2's orientation).
+pub trait Unwrapper {
+    fn unwrap(&self, triangles: &[[[f32; 3]; 3]], resolution: u32) -> Result<(Vec<[Vec2; 3]>, UnwrapReport), String>;
+}
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct UnwrapReport {
+    pub charts: u32,
+    /// Fraction of the page covered by charts.
+    pub utilisation: f32,
+    pub texels_per_metre: f32,
+}
+
+/// The `uvunwrap` crate.
+pub struct UvUnwrap;
+
+impl Unwrapper for UvUnwrap {
+    fn unwrap(&self, triangles: &[[[f32; 3]; 3]], resolution: u32) -> Result<(Vec<[Vec2; 3]>, UnwrapReport), String> {
+        let positions: Vec<[f32; 3]> = triangles.iter().flatten().copied().collect();
+        let indices: Vec<u32> = (0..positions.len() as u32).collect();
+        let input = uvunwrap::MeshInput::new(&positions, &indices);
+        let options = uvunwrap::Options {
+            density: uvunwrap::Density::Auto { page_size: resolution },
+            padding: PADDING,
+            ..Default::default()
+        };
+        let atlas = uvunwrap::generate(&[input], &options).map_err(|e| e.to_string())?;
+        if atlas.page_count > 1 {
+            return Err(format!(
+                "{} charts do not fit one {resolution}x{resolution} lightmap: raise the resolution",
+                atlas.chart_count
+            ));
+        }
+        let mesh = &atlas.meshes[0];
+        // A cropped page is shorter than it is wide: v is relative to its height.
+        let v_scale = atlas.height as f32 / resolution as f32;
+        let u_scale = atlas.width as f32 / resolution as f32;
+        let uv = |i: u32| {
+            let v = &mesh.vertices[mesh.indices[i as usize] as usize];
+            Vec2::new(v.uv[0] * u_scale, v.uv[1] * v_scale).clamp(Vec2::ZERO, Vec2::ONE)
+        };
+        let out = (0..triangles.len() as u32)
+            .map(|t| [uv(3 * t), uv(3 * t + 1), uv(3 * t + 2)])
+            .collect();
+        Ok((
+            out,
+            UnwrapReport {
+                charts: atlas.chart_count,
+                utilisation: atlas.utilization * (u_scale * v_scale),
+                texels_per_metre: atlas.texels_per_unit,
+            },
+        ))
+    }
+}
+
+/// Gives every triangle of `scene` a generated lightmap UV for a `resolution`² lightmap.
+pub fn generate_lightmap_uvs(
+    scene: &mut Scene,
+    resolution: u32,
+    unwrapper: &dyn Unwrapper,
+) -> Result<UnwrapReport, String> {
+    let tris: Vec<[[f32; 3]; 3]> = scene.triangles.iter().map(|t| t.p.map(|p| p.to_array())).collect();
+    let (uvs, report) = unwrapper.unwrap(&tris, resolution)?;
+    for (t, uv) in scene.triangles.iter_mut().zip(uvs) {
+        t.lm = uv;
+    }
+    scene.needs_lightmap_uvs = false;
+    Ok(report)
+}
