@@ -44,8 +44,8 @@ struct BenchArgs {
     /// Scenes to run (comma separated; default: all).
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
-    /// Techniques to compare (comma separated).
-    #[arg(long, value_delimiter = ',', default_value = "path")]
+    /// Techniques to compare (comma separated; default: all).
+    #[arg(long, value_delimiter = ',')]
     techniques: Vec<String>,
     /// Bake time per scene and technique.
     #[arg(long, default_value_t = 20.0)]
@@ -360,7 +360,11 @@ fn bench(args: BenchArgs) -> Result<(), Failure> {
     }
     let cfg = lightmapd::bench::BenchConfig {
         scenes: args.scenes,
-        techniques: args.techniques,
+        techniques: if args.techniques.is_empty() {
+            lightmapd::engine::technique::TECHNIQUES.iter().map(|t| t.to_string()).collect()
+        } else {
+            args.techniques
+        },
         budget: std::time::Duration::from_secs_f64(args.budget_seconds),
         reference_budget: std::time::Duration::from_secs_f64(args.reference_seconds),
         out_dir: args.out.clone(),
