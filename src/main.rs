@@ -361,7 +361,10 @@ fn bench(args: BenchArgs) -> Result<(), Failure> {
     let cfg = lightmapd::bench::BenchConfig {
         scenes: args.scenes,
         techniques: if args.techniques.is_empty() {
-            lightmapd::engine::technique::TECHNIQUES.iter().map(|t| t.to_string()).collect()
+            lightmapd::engine::technique::TECHNIQUES
+                .iter()
+                .map(|t| t.to_string())
+                .collect()
         } else {
             args.techniques
         },

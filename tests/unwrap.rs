@@ -126,3 +126,46 @@ fn generated_uvs_bake_and_match_the_closed_form() {
         }
     }
 }
+
+/// `extras.lightmap_scale` on a mesh gives it that many times the texels per metre.
+#[test]
+fn lightmap_scale_from_extras() {
+    use lightmapd::engine::atlas::unwrap::{UvUnwrap, generate_lightmap_uvs};
+    use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("plain", Vec3::ZERO, 1.0, Vec3::Y, m);
+    b.square("detailed", Vec3::new(3.0, 0.0, 0.0), 1.0, Vec3::Y, m);
+    let (mut json, bin) = b.to_gltf();
+    json["meshes"][1]["extras"] = json!({"lightmap_scale": 2.0});
+    for mesh in json["meshes"].as_array_mut().unwrap() {
+        mesh["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
+    }
+    let (mut scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert_eq!(scene.meshes[1].lightmap_scale, 2.0);
+    generate_lightmap_uvs(&mut scene, 64, &UvUnwrap).unwrap();
+    let uv_area = |mesh: u32| -> f32 {
+        scene
+            .triangles
+            .iter()
+            .filter(|t| t.mesh == mesh)
+            .map(|t| 0.5 * (t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs())
+            .sum()
+    };
+    let ratio = uv_area(1) / uv_area(0);
+    assert!((ratio - 4.0).abs() < 0.2, "UV area ratio {ratio}");
+
+    // A bad value is warned about and ignored.
+    json["meshes"][1]["extras"] = json!({"lightmap_scale": -1});
+    let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert_eq!(scene.meshes[1].lightmap_scale, 1.0);
+    assert!(
+        report
+            .warnings
+            .iter()
+            .any(|w| w.contains("extras.lightmap_scale -1 is not a number in (0, 1000]"))
+    );
+}

@@ -10,6 +10,9 @@
 //! the rest. `uvunwrap` is built without its `direct-solver` feature: the output is then
 //! the same on every CPU, so a lightmap baked on one machine fits UVs made on another.
 //!
+//! Each mesh's charts are scaled by its `lightmap_scale` (glTF mesh `extras`), the
+//! "scale in lightmap" of Unity and Bakery.
+//!
 //! Limits: all lightmap UVs of the scene are regenerated when any mesh lacks them (the
 //! packer cannot place new charts around existing ones); a scene with too many charts
 //! for one page at this resolution is an error that says to raise the resolution.
@@ -22,9 +25,16 @@ use crate::engine::scene::Scene;
 /// Padding around each chart, in texels.
 pub const PADDING: u32 = 3;
 
-/// Triangles in, one lightmap UV per corner out (in [0, 1], DESIGN §2's orientation).
+/// One mesh's world-space triangles and its relative texel density.
+pub struct UnwrapMesh {
+    pub triangles: Vec<[[f32; 3]; 3]>,
+    pub scale: f32,
+}
+
+/// Meshes in, one lightmap UV per triangle corner out (in [0, 1], DESIGN §2's
+/// orientation), in the same order. Charts never span meshes; all share one page.
 pub trait Unwrapper {
-    fn unwrap(&self, triangles: &[[[f32; 3]; 3]], resolution: u32) -> Result<(Vec<[Vec2; 3]>, UnwrapReport), String>;
+    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32) -> Result<(Vec<Vec<[Vec2; 3]>>, UnwrapReport), String>;
 }
 
 #[derive(Clone, Debug, Serialize, PartialEq)]
@@ -39,32 +49,49 @@ pub struct UnwrapReport {
 pub struct UvUnwrap;
 
 impl Unwrapper for UvUnwrap {
-    fn unwrap(&self, triangles: &[[[f32; 3]; 3]], resolution: u32) -> Result<(Vec<[Vec2; 3]>, UnwrapReport), String> {
-        let positions: Vec<[f32; 3]> = triangles.iter().flatten().copied().collect();
-        let indices: Vec<u32> = (0..positions.len() as u32).collect();
-        let input = uvunwrap::MeshInput::new(&positions, &indices);
+    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32) -> Result<(Vec<Vec<[Vec2; 3]>>, UnwrapReport), String> {
+        let positions: Vec<Vec<[f32; 3]>> = meshes
+            .iter()
+            .map(|m| m.triangles.iter().flatten().copied().collect())
+            .collect();
+        let indices: Vec<Vec<u32>> = positions.iter().map(|p| (0..p.len() as u32).collect()).collect();
+        let inputs: Vec<uvunwrap::MeshInput> = meshes
+            .iter()
+            .enumerate()
+            .map(|(k, m)| {
+                let mut input = uvunwrap::MeshInput::new(&positions[k], &indices[k]);
+                input.scale = m.scale;
+                input
+            })
+            .collect();
         let options = uvunwrap::Options {
             density: uvunwrap::Density::Auto { page_size: resolution },
             padding: PADDING,
             ..Default::default()
         };
-        let atlas = uvunwrap::generate(&[input], &options).map_err(|e| e.to_string())?;
+        let atlas = uvunwrap::generate(&inputs, &options).map_err(|e| e.to_string())?;
         if atlas.page_count > 1 {
             return Err(format!(
                 "{} charts do not fit one {resolution}x{resolution} lightmap: raise the resolution",
                 atlas.chart_count
             ));
         }
-        let mesh = &atlas.meshes[0];
         // A cropped page is shorter than it is wide: v is relative to its height.
         let v_scale = atlas.height as f32 / resolution as f32;
         let u_scale = atlas.width as f32 / resolution as f32;
-        let uv = |i: u32| {
-            let v = &mesh.vertices[mesh.indices[i as usize] as usize];
-            Vec2::new(v.uv[0] * u_scale, v.uv[1] * v_scale).clamp(Vec2::ZERO, Vec2::ONE)
-        };
-        let out = (0..triangles.len() as u32)
-            .map(|t| [uv(3 * t), uv(3 * t + 1), uv(3 * t + 2)])
+        let out = atlas
+            .meshes
+            .iter()
+            .zip(meshes)
+            .map(|(mesh, input)| {
+                let uv = |i: u32| {
+                    let v = &mesh.vertices[mesh.indices[i as usize] as usize];
+                    Vec2::new(v.uv[0] * u_scale, v.uv[1] * v_scale).clamp(Vec2::ZERO, Vec2::ONE)
+                };
+                (0..input.triangles.len() as u32)
+                    .map(|t| [uv(3 * t), uv(3 * t + 1), uv(3 * t + 2)])
+                    .collect()
+            })
             .collect();
         Ok((
             out,
@@ -83,10 +110,43 @@ pub fn generate_lightmap_uvs(
     resolution: u32,
     unwrapper: &dyn Unwrapper,
 ) -> Result<UnwrapReport, String> {
-    let tris: Vec<[[f32; 3]; 3]> = scene.triangles.iter().map(|t| t.p.map(|p| p.to_array())).collect();
-    let (uvs, report) = unwrapper.unwrap(&tris, resolution)?;
-    for (t, uv) in scene.triangles.iter_mut().zip(uvs) {
-        t.lm = uv;
+    // Group triangles by mesh (each mesh's charts get its own density), remembering where
+    // each triangle came from.
+    let mut groups: Vec<(usize, UnwrapMesh, Vec<usize>)> = Vec::new();
+    let mut slot = std::collections::HashMap::new();
+    for (i, t) in scene.triangles.iter().enumerate() {
+        let g = *slot.entry(t.mesh).or_insert_with(|| {
+            let scale = scene.meshes.get(t.mesh as usize).map_or(1.0, |m| m.lightmap_scale);
+            groups.push((
+                t.mesh as usize,
+                UnwrapMesh {
+                    triangles: Vec::new(),
+                    scale,
+                },
+                Vec::new(),
+            ));
+            groups.len() - 1
+        });
+        groups[g].1.triangles.push(t.p.map(|p| p.to_array()));
+        groups[g].2.push(i);
+    }
+    let meshes: Vec<UnwrapMesh> = groups
+        .iter_mut()
+        .map(|g| {
+            std::mem::replace(
+                &mut g.1,
+                UnwrapMesh {
+                    triangles: Vec::new(),
+                    scale: 1.0,
+                },
+            )
+        })
+        .collect();
+    let (uvs, report) = unwrapper.unwrap(&meshes, resolution)?;
+    for ((_, _, tris), mesh_uvs) in groups.iter().zip(uvs) {
+        for (i, uv) in tris.iter().zip(mesh_uvs) {
+            scene.triangles[*i].lm = uv;
+        }
     }
     scene.needs_lightmap_uvs = false;
     Ok(report)

@@ -75,6 +75,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         }
     }
 
+    let mut scale_warnings = Vec::new();
     let mut ctx = Flatten {
         buffers: &buffers,
         triangles: Vec::new(),
@@ -84,6 +85,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
             .map(|m| MeshInfo {
                 name: m.name().unwrap_or("").to_string(),
                 index: m.index(),
+                lightmap_scale: lightmap_scale(m.extras(), m.index(), &mut scale_warnings),
             })
             .collect(),
         report: &mut report,
@@ -95,6 +97,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         Some(s) => s.nodes().collect(),
         None => gltf.nodes().collect(), // no scene: glTF allows it; bake every node once
     };
+    ctx.report.warnings.append(&mut scale_warnings);
     let mut seen_nodes = HashSet::new();
     for node in roots {
         ctx.visit(&node, DMat4::IDENTITY, &mut seen_nodes)?;
@@ -180,6 +183,26 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         needs_lightmap_uvs: !missing_lightmap_uvs.is_empty(),
     };
     Ok((scene, report))
+}
+
+/// A mesh's `extras.lightmap_scale`, if it is a positive finite number (else 1, warned).
+fn lightmap_scale(extras: &gltf::json::Extras, mesh: usize, warnings: &mut Vec<String>) -> f32 {
+    let Some(raw) = extras else { return 1.0 };
+    let Ok(value) = serde_json::from_str::<serde_json::Value>(raw.get()) else {
+        return 1.0;
+    };
+    match value.get("lightmap_scale") {
+        None => 1.0,
+        Some(v) => match v.as_f64() {
+            Some(s) if s.is_finite() && s > 0.0 && s <= 1e3 => s as f32,
+            _ => {
+                warnings.push(format!(
+                    "mesh {mesh}: extras.lightmap_scale {v} is not a number in (0, 1000]; using 1"
+                ));
+                1.0
+            }
+        },
+    }
 }
 
 fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {

@@ -186,6 +186,9 @@ pub struct PunctualLight {
 pub struct MeshInfo {
     pub name: String,
     pub index: usize,
+    /// Relative texel density when lightmap UVs are generated (glTF mesh `extras`
+    /// `"lightmap_scale"`, default 1): 2 gives this mesh twice the texels per metre.
+    pub lightmap_scale: f32,
 }
 
 #[derive(Clone, Copy, Debug, Serialize)]
