@@ -34,8 +34,11 @@ pub struct UnwrapMesh {
 /// Meshes in, one lightmap UV per triangle corner out (in [0, 1], DESIGN §2's
 /// orientation), in the same order. Charts never span meshes; all share one page.
 pub trait Unwrapper {
-    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32) -> Result<(Vec<Vec<[Vec2; 3]>>, UnwrapReport), String>;
+    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32) -> Result<Unwrapped, String>;
 }
+
+/// Per mesh, per triangle, the three corners' lightmap UVs; and the report.
+pub type Unwrapped = (Vec<Vec<[Vec2; 3]>>, UnwrapReport);
 
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct UnwrapReport {
@@ -49,7 +52,7 @@ pub struct UnwrapReport {
 pub struct UvUnwrap;
 
 impl Unwrapper for UvUnwrap {
-    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32) -> Result<(Vec<Vec<[Vec2; 3]>>, UnwrapReport), String> {
+    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32) -> Result<Unwrapped, String> {
         let positions: Vec<Vec<[f32; 3]>> = meshes
             .iter()
             .map(|m| m.triangles.iter().flatten().copied().collect())
