@@ -79,6 +79,10 @@ pub struct Atlas {
     pub links: Vec<GutterLink>,
     pub overlapping_texels: u32,
     pub surface_offset: f32,
+    /// Pixels claimed by more than one triangle (for the `debug.overlap` layer).
+    pub overlap_pixels: Vec<u32>,
+    /// Pixels whose texel validation found inside closed geometry (`debug.inside`).
+    pub inside_pixels: Vec<u32>,
     /// Sample pairs along UV seams, for `post::seams::stitch`.
     pub seams: Vec<crate::engine::post::seams::SeamSample>,
 }
@@ -230,6 +234,8 @@ impl Atlas {
             pixel_texel,
             links,
             overlapping_texels: overlapping.iter().filter(|o| **o).count() as u32,
+            overlap_pixels: (0..w * h).filter(|p| overlapping[*p]).map(|p| p as u32).collect(),
+            inside_pixels: Vec::new(),
             surface_offset: offset,
             seams: crate::engine::post::seams::find_seams(scene, width, height),
         })

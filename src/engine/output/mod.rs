@@ -33,6 +33,9 @@ pub enum OutputLayer {
     Indirect,
     /// L1 directional moments of incident light (`sh.x.*`, `sh.y.*`, `sh.z.*`).
     Sh,
+    /// The validation report as images: `debug.inside.Y` (texels inside geometry),
+    /// `debug.overlap.Y` (overlapping charts), `debug.density.Y` (texels per metre).
+    Debug,
 }
 
 impl OutputLayer {
@@ -111,8 +114,24 @@ pub fn lightmap_channels(
                     rgb(&format!("sh.{axis}"), &values);
                 }
             }
-            OutputLayer::Validity => {}
+            OutputLayer::Validity | OutputLayer::Debug => {}
         }
+    }
+    if layers.contains(&OutputLayer::Debug) {
+        let size = (atlas.width * atlas.height) as usize;
+        let mark = |pixels: &[u32]| {
+            let mut img = vec![0.0f32; size];
+            pixels.iter().for_each(|p| img[*p as usize] = 1.0);
+            img
+        };
+        channels.push(("debug.inside.Y".into(), mark(&atlas.inside_pixels)));
+        channels.push(("debug.overlap.Y".into(), mark(&atlas.overlap_pixels)));
+        let density: Vec<f32> = atlas
+            .texels
+            .iter()
+            .map(|t| if t.size > 0.0 { 1.0 / t.size } else { 0.0 })
+            .collect();
+        channels.push(("debug.density.Y".into(), post::scatter_scalar(atlas, &density)));
     }
     if layers.contains(&OutputLayer::Validity) {
         let ones = vec![1.0f32; atlas.texels.len()];
