@@ -52,6 +52,8 @@ pub struct Sample {
     pub steps: u64,
     pub true_error: f64,
     pub estimated_error: Option<f32>,
+    /// True error of the same snapshot after the denoiser.
+    pub denoised_error: f64,
 }
 
 /// Per valid texel, the reference value (None where it has none), and how it was made.
@@ -207,8 +209,15 @@ pub fn measure(
     let mut samples = Vec::new();
     let start = Instant::now();
     let mut next = budget.as_secs_f64() / 128.0;
+    let request = BakeRequest {
+        technique: technique.into(),
+        lighting: lib.lighting,
+        ..Default::default()
+    };
     let mut record = |est: &Estimate, seconds: f64| {
+        let denoised = crate::engine::job::finish(&p.atlas, est, &request);
         samples.push(Sample {
+            denoised_error: true_error(&denoised.total, &reference.values),
             scene: lib.name.into(),
             technique: technique.into(),
             seconds,
@@ -286,7 +295,7 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
         .map_err(io)?;
         all_samples.extend(scene_samples);
     }
-    let mut csv = String::from("scene,technique,seconds,steps,true_error,estimated_error\n");
+    let mut csv = String::from("scene,technique,seconds,steps,true_error,estimated_error,denoised_error\n");
     for s in &all_samples {
         let est = s.estimated_error.map(|e| format!("{e:.6}")).unwrap_or_default();
         let _ = writeln!(
@@ -320,7 +329,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
     );
     let _ = writeln!(
         md,
-        "| scene | technique | 10 % | 5 % | 2 % | final error (estimated) |\n| --- | --- | --- | --- | --- | --- |"
+        "| scene | technique | 10 % | 5 % | 2 % | 2 % denoised | final error (estimated) | final denoised |\n| --- | --- | --- | --- | --- | --- | --- | --- |"
     );
     let mut keys: Vec<(&str, &str)> = samples
         .iter()
@@ -332,6 +341,15 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
             .iter()
             .filter(|s| s.scene == scene && s.technique == tech)
             .collect();
+        let reach_denoised = run
+            .iter()
+            .find(|s| s.denoised_error <= 0.02)
+            .map(|s| format!("{:.2} s", s.seconds))
+            .unwrap_or_else(|| "—".into());
+        let last_denoised = run
+            .last()
+            .map(|s| format!("{:.2} %", s.denoised_error * 100.0))
+            .unwrap_or_default();
         let reach = |target: f64| {
             run.iter()
                 .find(|s| s.true_error <= target)
@@ -347,7 +365,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
         });
         let _ = writeln!(
             md,
-            "| {scene} | {tech} | {} | {} | {} | {} |",
+            "| {scene} | {tech} | {} | {} | {} | {reach_denoised} | {} | {last_denoised} |",
             reach(0.10),
             reach(0.05),
             reach(0.02),

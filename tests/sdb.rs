@@ -560,6 +560,7 @@ fn plan_reports_ignored_point_lights() {
         double_sided_triangles: 0,
         want_direct: false,
         want_validity: false,
+        want_sh: true,
     };
     let plan = lightmapd::engine::technique::plan("sdb", &f).unwrap();
     assert!(plan.runs("shadow maps + direct pass"));
@@ -569,6 +570,12 @@ fn plan_reports_ignored_point_lights() {
         .find(|i| i.name == "point and spot lights")
         .expect("point lights reported");
     assert!(left.why.contains('2'), "{}", left.why);
+    // Asking sdb for the sh layer is reported, not silently dropped.
+    assert!(
+        plan.left_out
+            .iter()
+            .any(|i| i.name == "directional (sh) layer" && i.why.starts_with("asked for"))
+    );
 }
 
 #[test]
@@ -754,7 +761,10 @@ fn measure_stratified_vs_random() {
     println!("| --- | --- | --- |");
     for n in [64u32, 256, 1024, 4096] {
         let mut err = [0.0f64; 2];
-        for (s, seq) in [DirectionSequence::Stratified, DirectionSequence::Random].into_iter().enumerate() {
+        for (s, seq) in [DirectionSequence::Stratified, DirectionSequence::Random]
+            .into_iter()
+            .enumerate()
+        {
             for seed in 0..4u64 {
                 let receiver = Quad::new(Vec3::ZERO, Vec3::Y, 0.5, [0.0, 0.0, 0.5, 1.0]);
                 let mut emitter = Quad::new(Vec3::new(0.0, 1.0, 0.0), -Vec3::Y, emitter_half, [0.5, 0.0, 1.0, 1.0]);
@@ -764,8 +774,20 @@ fn measure_stratified_vs_random() {
                 receiver.albedo = Vec3::ZERO;
                 let (triangles, texels, owner) = build(&[receiver, emitter], 32, 16);
                 let positions: Vec<Vec3> = texels.iter().map(|t| t.position).collect();
-                let input = SdbInput { triangles, texels, width: 32, height: 16, environment: None, lights: vec![], seed, want_direct: false };
-                let p = SdbParams { directions: seq, ..params(256, 3) };
+                let input = SdbInput {
+                    triangles,
+                    texels,
+                    width: 32,
+                    height: 16,
+                    environment: None,
+                    lights: vec![],
+                    seed,
+                    want_direct: false,
+                };
+                let p = SdbParams {
+                    directions: seq,
+                    ..params(256, 3)
+                };
                 let mut engine = SdbEngine::new(ctx.clone(), input, p).unwrap();
                 for _ in 0..n {
                     engine.step().unwrap();

@@ -11,12 +11,14 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::engine::accumulate::{ErrorSummary, Estimate};
+use crate::engine::atlas::unwrap::{self, UnwrapReport};
 use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
 use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
+use crate::engine::post::denoise::denoise;
 use crate::engine::scene::{Lighting, Scene};
 use crate::engine::technique::{self, BakeInputs, EngineError};
 
@@ -30,6 +32,13 @@ pub struct BakeRequest {
     pub params: Value,
     pub outputs: Vec<OutputLayer>,
     pub seed: u64,
+    /// Run the edge-aware denoiser (`engine::post::denoise`) on what is written.
+    #[serde(default = "yes")]
+    pub denoise: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Default for BakeRequest {
@@ -46,6 +55,7 @@ impl Default for BakeRequest {
             params: Value::Null,
             outputs: Vec::new(),
             seed: 0,
+            denoise: true,
         }
     }
 }
@@ -60,9 +70,13 @@ pub struct BakeSummary {
     pub error: ErrorSummary,
     pub plan: Plan,
     pub validation: ValidationReport,
+    /// Set when the scene had no lightmap UVs and they were generated.
+    pub generated_uvs: Option<UnwrapReport>,
 }
 
 pub struct BakeResult {
+    /// The scene as baked: with generated lightmap UVs when it had none.
+    pub scene: Arc<Scene>,
     pub exr: Vec<u8>,
     /// Tone-mapped PNG of the dilated lightmap.
     pub preview_png: Vec<u8>,
@@ -101,6 +115,14 @@ pub fn bake(
     request.stop.validate()?;
     let plan = crate::engine::plan::build(&scene, request)?;
     on_plan(&plan);
+    let (scene, unwrap) = if scene.needs_lightmap_uvs {
+        let mut generated = (*scene).clone();
+        let report = unwrap::generate_lightmap_uvs(&mut generated, request.resolution, &unwrap::UvUnwrap)
+            .map_err(|e| EngineError::BadInput(format!("generating lightmap UVs: {e}")))?;
+        (Arc::new(generated), Some(report))
+    } else {
+        (scene, None)
+    };
     let mut atlas = Atlas::build(&scene, request.resolution, request.resolution)
         .map_err(|e| EngineError::BadInput(e.to_string()))?;
     let validation = validate::validate(&scene, &mut atlas);
@@ -109,7 +131,7 @@ pub fn bake(
     on_atlas(&atlas);
     let want_direct = plan.runs("direct-light layer");
     let inputs = BakeInputs {
-        scene,
+        scene: scene.clone(),
         atlas: atlas.clone(),
         lighting: request.lighting,
         seed: request.seed,
@@ -121,7 +143,8 @@ pub fn bake(
     bake_loop.snapshot_interval = options.snapshot_interval;
     let outcome = bake_loop.run(tech.as_mut(), observer)?;
     let exr = snapshot_exr(&atlas, &outcome.estimate, request, &tech.params(), outcome.elapsed)?;
-    let preview_png = preview_png(&atlas, &outcome.estimate)?;
+    let finished = finish(&atlas, &outcome.estimate, request);
+    let preview_png = preview_png(&atlas, &finished)?;
     let summary = BakeSummary {
         technique: request.technique.clone(),
         atlas: report,
@@ -131,11 +154,13 @@ pub fn bake(
         error: outcome.estimate.error,
         plan,
         validation,
+        generated_uvs: unwrap,
     };
     Ok(BakeResult {
+        scene,
         exr,
         preview_png,
-        estimate: outcome.estimate,
+        estimate: finished,
         atlas,
         summary,
     })
@@ -150,6 +175,8 @@ pub fn snapshot_exr(
     params: &Value,
     elapsed: Duration,
 ) -> Result<Vec<u8>, EngineError> {
+    let finished = finish(atlas, estimate, request);
+    let estimate = &finished;
     let channels =
         output::lightmap_channels(atlas, estimate, &request.outputs, DEFAULT_RINGS).map_err(EngineError::Internal)?;
     let meta = ExrMetadata {
@@ -159,8 +186,28 @@ pub fn snapshot_exr(
         seconds: elapsed.as_secs_f64(),
         relative_error: estimate.error.relative,
         seed: request.seed,
+        denoised: request.denoise && estimate.texel_error.is_some(),
     };
     output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)
+}
+
+/// What is written for an estimate: denoised when the request asks for it and the
+/// estimate has per-texel errors to guide the filter (both halves have steps).
+pub fn finish(atlas: &Atlas, estimate: &Estimate, request: &BakeRequest) -> Estimate {
+    let mut out = estimate.clone();
+    if let (true, Some(se)) = (request.denoise, &estimate.texel_error) {
+        out.total = denoise(atlas, &estimate.total, se);
+        if let Some(d) = &estimate.direct {
+            out.direct = Some(denoise(atlas, d, se));
+        }
+        if let Some(m) = &estimate.moments {
+            let axes: Vec<Vec<glam::Vec3>> = (0..3)
+                .map(|k| denoise(atlas, &m.iter().map(|v| v[k]).collect::<Vec<_>>(), se))
+                .collect();
+            out.moments = Some((0..m.len()).map(|t| [axes[0][t], axes[1][t], axes[2][t]]).collect());
+        }
+    }
+    out
 }
 
 /// A tone-mapped PNG of an estimate, gutters filled.

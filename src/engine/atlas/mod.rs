@@ -23,6 +23,7 @@
 //! texel whose sample point lies inside closed geometry is still valid here (techniques
 //! see back faces from it).
 
+pub mod unwrap;
 pub mod validate;
 
 use glam::{Vec2, Vec3};
@@ -53,6 +54,10 @@ pub struct Texel {
     pub albedo: Vec3,
     pub emission: Vec3,
     pub triangle: u32,
+    /// The triangle's mesh: texels of different meshes never share light in filtering.
+    pub mesh: u32,
+    /// World-space side of one texel on this texel's triangle (metres).
+    pub size: f32,
 }
 
 /// A texel a chart touches but whose centre is outside it, and the valid texel whose
@@ -74,6 +79,12 @@ pub struct Atlas {
     pub links: Vec<GutterLink>,
     pub overlapping_texels: u32,
     pub surface_offset: f32,
+    /// Pixels claimed by more than one triangle (for the `debug.overlap` layer).
+    pub overlap_pixels: Vec<u32>,
+    /// Pixels whose texel validation found inside closed geometry (`debug.inside`).
+    pub inside_pixels: Vec<u32>,
+    /// Sample pairs along UV seams, for `post::seams::stitch`.
+    pub seams: Vec<crate::engine::post::seams::SeamSample>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -194,7 +205,10 @@ impl Atlas {
                 if n.dot(geo) <= 0.0 {
                     n = geo;
                 }
+                let uv_area = 0.5 * (t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs();
                 Texel {
+                    mesh: t.mesh,
+                    size: (t.area() / (uv_area * (w * h) as f32)).sqrt(),
                     pixel: pix as u32,
                     position: surface + geo * offset,
                     normal: n,
@@ -220,7 +234,10 @@ impl Atlas {
             pixel_texel,
             links,
             overlapping_texels: overlapping.iter().filter(|o| **o).count() as u32,
+            overlap_pixels: (0..w * h).filter(|p| overlapping[*p]).map(|p| p as u32).collect(),
+            inside_pixels: Vec::new(),
             surface_offset: offset,
+            seams: crate::engine::post::seams::find_seams(scene, width, height),
         })
     }
 

@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 
 use base64::Engine as _;
 use glam::{DMat4, DVec3, Vec2, Vec3, Vec4};
+use gltf::accessor::{DataType, Dimensions};
 use gltf::mesh::Mode;
 use serde::Serialize;
 
@@ -75,6 +76,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         }
     }
 
+    let mut scale_warnings = Vec::new();
     let mut ctx = Flatten {
         buffers: &buffers,
         triangles: Vec::new(),
@@ -84,6 +86,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
             .map(|m| MeshInfo {
                 name: m.name().unwrap_or("").to_string(),
                 index: m.index(),
+                lightmap_scale: lightmap_scale(m.extras(), m.index(), &mut scale_warnings),
             })
             .collect(),
         report: &mut report,
@@ -95,6 +98,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         Some(s) => s.nodes().collect(),
         None => gltf.nodes().collect(), // no scene: glTF allows it; bake every node once
     };
+    ctx.report.warnings.append(&mut scale_warnings);
     let mut seen_nodes = HashSet::new();
     for node in roots {
         ctx.visit(&node, DMat4::IDENTITY, &mut seen_nodes)?;
@@ -108,10 +112,10 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
     } = ctx;
 
     if !missing_lightmap_uvs.is_empty() {
-        return Err(ImportError::NoLightmapUvs(format!(
-            "{} has no TEXCOORD_1 (lightmap UV generation is not available yet: add a second UV set in your editor)",
+        report.warnings.push(format!(
+            "{} has no TEXCOORD_1: lightmap UVs will be generated for the whole scene (bake --write-gltf saves them)",
             missing_lightmap_uvs.join("; ")
-        )));
+        ));
     }
     if triangles.is_empty() {
         let why = if report.degenerate_triangles > 0 {
@@ -167,7 +171,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         .count();
     report.bounds_min = dmin.to_array();
     report.bounds_max = dmax.to_array();
-    report.has_lightmap_uvs = true;
+    report.has_lightmap_uvs = missing_lightmap_uvs.is_empty();
 
     let scene = Scene {
         triangles: tris,
@@ -177,8 +181,29 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         meshes,
         bounds,
         origin_offset: offset,
+        needs_lightmap_uvs: !missing_lightmap_uvs.is_empty(),
     };
     Ok((scene, report))
+}
+
+/// A mesh's `extras.lightmap_scale`, if it is a positive finite number (else 1, warned).
+fn lightmap_scale(extras: &gltf::json::Extras, mesh: usize, warnings: &mut Vec<String>) -> f32 {
+    let Some(raw) = extras else { return 1.0 };
+    let Ok(value) = serde_json::from_str::<serde_json::Value>(raw.get()) else {
+        return 1.0;
+    };
+    match value.get("lightmap_scale") {
+        None => 1.0,
+        Some(v) => match v.as_f64() {
+            Some(s) if s.is_finite() && s > 0.0 && s <= 1e3 => s as f32,
+            _ => {
+                warnings.push(format!(
+                    "mesh {mesh}: extras.lightmap_scale {v} is not a number in (0, 1000]; using 1"
+                ));
+                1.0
+            }
+        },
+    }
 }
 
 fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
@@ -192,19 +217,45 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
             "neither a GLB header (\"glTF\" magic) nor a JSON document".into(),
         ));
     }
-    gltf::Gltf::from_slice(bytes).map_err(|e| match e {
-        gltf::Error::Validation(errors) => ImportError::Invalid(
-            errors
-                .iter()
-                .take(5)
-                .map(|(path, err)| format!("{}: {}", path, err))
-                .collect::<Vec<_>>()
-                .join("; "),
-        ),
+    let map_err = |e: gltf::Error| match e {
         gltf::Error::Binary(b) => ImportError::NotGltf(format!("broken GLB container: {b:?}")),
         gltf::Error::Deserialize(d) => ImportError::NotGltf(format!("JSON: {d}")),
         other => ImportError::NotGltf(other.to_string()),
-    })
+    };
+    let gltf = gltf::Gltf::from_slice_without_validation(bytes).map_err(map_err)?;
+    // gltf-json's validator indexes accessors by attribute without a bounds check (and
+    // panics), so attribute indices are checked here first.
+    let root = gltf.document.as_json();
+    for (mi, mesh) in root.meshes.iter().enumerate() {
+        for (pi, prim) in mesh.primitives.iter().enumerate() {
+            for (semantic, index) in &prim.attributes {
+                if index.value() >= root.accessors.len() {
+                    return Err(ImportError::Invalid(format!(
+                        "mesh {mi}, primitive {pi}: attribute {} refers to accessor {}, but there are {}",
+                        semantic.to_string(),
+                        index.value(),
+                        root.accessors.len()
+                    )));
+                }
+            }
+        }
+    }
+    use gltf::json::validation::Validate;
+    let mut errors = Vec::new();
+    root.validate(root, gltf::json::Path::new, &mut |path, error| {
+        errors.push((path(), error))
+    });
+    if !errors.is_empty() {
+        return Err(ImportError::Invalid(
+            errors
+                .iter()
+                .take(5)
+                .map(|(path, err)| format!("{path}: {err}"))
+                .collect::<Vec<_>>()
+                .join("; "),
+        ));
+    }
+    Ok(gltf)
 }
 
 fn resolve_uri(uri: &str, base_dir: Option<&Path>, what: &str) -> Result<Vec<u8>, String> {
@@ -562,13 +613,17 @@ impl Flatten<'_> {
             })?;
             let normals = read_vec3(&prim, gltf::Semantic::Normals, self.buffers, &at)?;
             let uv0 = read_vec2(&prim, 0, self.buffers, &at)?;
-            let Some(uv1) = read_vec2(&prim, 1, self.buffers, &at)? else {
-                if first_visit {
-                    self.missing_lightmap_uvs.push(at.to_string());
-                }
-                continue;
-            };
             let n = positions.len();
+            let uv1 = match read_vec2(&prim, 1, self.buffers, &at)? {
+                Some(uv1) => uv1,
+                None => {
+                    // Placeholder; `atlas::unwrap` generates the real UVs at bake time.
+                    if first_visit {
+                        self.missing_lightmap_uvs.push(at.to_string());
+                    }
+                    vec![Vec2::ZERO; n]
+                }
+            };
             for (what, len) in [
                 ("NORMAL", normals.as_ref().map(Vec::len)),
                 ("TEXCOORD_0", uv0.as_ref().map(Vec::len)),
@@ -599,6 +654,13 @@ impl Flatten<'_> {
             let indices: Vec<u32> = match prim.indices() {
                 Some(acc) => {
                     check_accessor(&acc, self.buffers, &at, "indices")?;
+                    check_format(
+                        &acc,
+                        &at,
+                        "indices",
+                        Dimensions::Scalar,
+                        &[DataType::U8, DataType::U16, DataType::U32],
+                    )?;
                     let reader = prim.reader(|b| self.buffers.get(b.index()).map(Vec::as_slice));
                     let idx: Vec<u32> = reader
                         .read_indices()
@@ -657,7 +719,9 @@ impl Flatten<'_> {
                     None => [flat; 3],
                 };
                 let lm = [uv1[a], uv1[b], uv1[c]];
-                if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0 {
+                if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0
+                    && !self.missing_lightmap_uvs.contains(&at.to_string())
+                {
                     self.report.zero_uv_area_triangles += 1;
                 }
                 let uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);
@@ -737,6 +801,31 @@ fn check_accessor(
     }
 }
 
+/// The element type and component types glTF allows for an attribute; the `gltf` crate's
+/// readers assume them (and panic otherwise), so they are checked first.
+fn check_format(
+    acc: &gltf::Accessor,
+    at: &PrimitiveRef,
+    attribute: &str,
+    dims: Dimensions,
+    types: &[DataType],
+) -> Result<(), ImportError> {
+    if acc.dimensions() != dims || !types.contains(&acc.data_type()) {
+        return Err(accessor_err(
+            at,
+            acc,
+            attribute,
+            format!(
+                "is {:?} of {:?}; glTF requires {dims:?} of {}",
+                acc.dimensions(),
+                acc.data_type(),
+                types.iter().map(|t| format!("{t:?}")).collect::<Vec<_>>().join(" or ")
+            ),
+        ));
+    }
+    Ok(())
+}
+
 fn read_vec3(
     prim: &gltf::Primitive,
     semantic: gltf::Semantic,
@@ -748,6 +837,7 @@ fn read_vec3(
     };
     let name = semantic.to_string();
     check_accessor(&acc, buffers, at, &name)?;
+    check_format(&acc, at, &name, Dimensions::Vec3, &[DataType::F32])?;
     let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
     let data: Option<Vec<Vec3>> = match semantic {
         gltf::Semantic::Positions => reader.read_positions().map(|it| it.map(Vec3::from_array).collect()),
@@ -778,6 +868,13 @@ fn read_vec2(
     };
     let name = semantic.to_string();
     check_accessor(&acc, buffers, at, &name)?;
+    check_format(
+        &acc,
+        at,
+        &name,
+        Dimensions::Vec2,
+        &[DataType::F32, DataType::U8, DataType::U16],
+    )?;
     let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
     let data: Vec<Vec2> = reader
         .read_tex_coords(set)

@@ -1542,6 +1542,16 @@ pub struct Sdb {
 
 impl Sdb {
     pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
+        if inputs
+            .plan
+            .left_out
+            .iter()
+            .any(|i| i.name == SH_LAYER && i.why.starts_with(SH_ASKED))
+        {
+            return Err(EngineError::BadInput(
+                "sdb does not keep the directional (sh) layer; drop `sh` from outputs or bake with `path`".into(),
+            ));
+        }
         let params: SdbParams = parse_params("sdb", params)?;
         params.validate().map_err(|e| EngineError::BadInput(e.to_string()))?;
         let (input, notes) = sdb_input(&inputs);
@@ -1661,6 +1671,9 @@ impl Technique for Sdb {
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let [even, odd] = self.engine.read_halves().map_err(gpu_error)?;
         let half = |h: SdbHalf| HalfEstimate {
+            // No directional (sh) layer: the plan says so, and `prepare` refuses jobs
+            // that ask for one.
+            moments: None,
             steps: h.steps,
             total: h.total,
             direct: h.direct,
@@ -1675,6 +1688,9 @@ impl Technique for Sdb {
         "sdb gather (shaders/sdb_gather.wgsl)"
     }
 }
+
+const SH_LAYER: &str = "directional (sh) layer";
+const SH_ASKED: &str = "asked for";
 
 /// What `sdb` runs for a scene and job, and what it leaves out (DESIGN section 6).
 pub fn plan(f: &SceneFeatures) -> Plan {
@@ -1702,6 +1718,14 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "direct or indirect output asked for (emission target + direct accumulators)",
         "not asked for in outputs",
     );
+    if f.want_sh {
+        p.leave_out(
+            SH_LAYER,
+            &format!("{SH_ASKED}, but sdb keeps no directional moments (use `path`)"),
+        );
+    } else {
+        p.leave_out(SH_LAYER, "not asked for in outputs");
+    }
     let ignored = f.punctual_lights.saturating_sub(f.directional_lights);
     if ignored > 0 {
         p.leave_out(
