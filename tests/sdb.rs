@@ -609,14 +609,7 @@ fn cornell_box_against_path() {
         json!({"samples_per_step": 64}),
         16,
     );
-    let (_, est) = bake(
-        import(&cornell_box()),
-        res,
-        Lighting::default(),
-        "sdb",
-        json!({"map_size": 256}),
-        4096,
-    );
+    let (_, est) = bake(import(&cornell_box()), res, Lighting::default(), "sdb", json!({}), 2048);
     let n = reference.total.len() as f64;
     let ms = |a: &[Vec3], b: &[Vec3]| a.iter().zip(b).map(|(x, y)| (lum(*x) - lum(*y)).powi(2)).sum::<f64>() / n;
     let zeros = vec![Vec3::ZERO; reference.total.len()];

@@ -1542,16 +1542,6 @@ pub struct Sdb {
 
 impl Sdb {
     pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
-        if inputs
-            .plan
-            .left_out
-            .iter()
-            .any(|i| i.name == SH_LAYER && i.why.starts_with(SH_ASKED))
-        {
-            return Err(EngineError::BadInput(
-                "sdb does not keep the directional (sh) layer; drop `sh` from outputs or bake with `path`".into(),
-            ));
-        }
         let params: SdbParams = parse_params("sdb", params)?;
         params.validate().map_err(|e| EngineError::BadInput(e.to_string()))?;
         let (input, notes) = sdb_input(&inputs);
@@ -1671,8 +1661,8 @@ impl Technique for Sdb {
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let [even, odd] = self.engine.read_halves().map_err(gpu_error)?;
         let half = |h: SdbHalf| HalfEstimate {
-            // No directional (sh) layer: the plan says so, and `prepare` refuses jobs
-            // that ask for one.
+            // No directional (sh) layer: the plan lists it as left out, and an EXR output
+            // that asks for `sh` fails with "the technique kept no directional (sh) layer".
             moments: None,
             steps: h.steps,
             total: h.total,
@@ -1721,7 +1711,7 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     if f.want_sh {
         p.leave_out(
             SH_LAYER,
-            &format!("{SH_ASKED}, but sdb keeps no directional moments (use `path`)"),
+            &format!("{SH_ASKED}, but sdb keeps no directional moments yet: `sh` outputs fail with sdb (use `path`)"),
         );
     } else {
         p.leave_out(SH_LAYER, "not asked for in outputs");
