@@ -297,7 +297,9 @@ fn tuning(t: &Tuning) -> Result<(Duration, Duration), Failure> {
         if v.is_finite() && v > 0.0 {
             Ok(Duration::from_secs_f64(v))
         } else {
-            Err(bad_input(format!("--{name} must be a positive number of seconds, got {v}")))
+            Err(bad_input(format!(
+                "--{name} must be a positive number of seconds, got {v}"
+            )))
         }
     };
     Ok((
@@ -352,10 +354,12 @@ fn worker(args: WorkerArgs) -> Result<(), Failure> {
         snapshot_interval,
         ..service::Config::default()
     };
-    runtime()?.block_on(service::run_workers(config, service::termination())).map_err(|e| Failure {
-        code: 1,
-        message: format!("worker: {e:#}"),
-    })
+    runtime()?
+        .block_on(service::run_workers(config, service::termination()))
+        .map_err(|e| Failure {
+            code: 1,
+            message: format!("worker: {e:#}"),
+        })
 }
 
 fn submit(args: SubmitArgs) -> Result<(), Failure> {

@@ -135,7 +135,9 @@ async fn read_events(http: &reqwest::Client, url: &str) -> Vec<(String, Value)> 
             }
         }
     };
-    tokio::time::timeout(DEADLINE, read).await.expect("events end with done, failed or cancelled");
+    tokio::time::timeout(DEADLINE, read)
+        .await
+        .expect("events end with done, failed or cancelled");
     out
 }
 
@@ -162,12 +164,7 @@ async fn happy_path_upload_bake_follow_download() {
     assert!(scene["content_hash"].as_str().unwrap().starts_with("sha256:"));
     assert_eq!(scene["report"]["has_lightmap_uvs"], true);
     assert!(scene["report"]["triangles"].as_u64().unwrap() > 0);
-    let again = h
-        .post(format!("{}/v1/scenes", s.url))
-        .body(glb())
-        .send()
-        .await
-        .unwrap();
+    let again = h.post(format!("{}/v1/scenes", s.url)).body(glb()).send().await.unwrap();
     assert_eq!(again.status(), 200);
     assert_eq!(again.json::<Value>().await.unwrap()["id"], scene_id.as_str());
     let fetched = get_json(h, &format!("{}/v1/scenes/{scene_id}", s.url)).await;
@@ -232,7 +229,14 @@ async fn happy_path_upload_bake_follow_download() {
     // Health, metrics, dashboard.
     let health = get_json(h, &format!("{}/healthz", s.url)).await;
     assert_eq!(health["status"], "ok");
-    let metrics = h.get(format!("{}/metrics", s.url)).send().await.unwrap().text().await.unwrap();
+    let metrics = h
+        .get(format!("{}/metrics", s.url))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
     for line in [
         "lightmapd_queue_depth 0",
         "lightmapd_jobs{state=\"succeeded\"} 1",
@@ -309,13 +313,16 @@ async fn every_error_status_has_its_problem_body() {
     let s = start(0, |c| c.max_scene_bytes = 64 << 10).await;
     let (h, u) = (&s.http, &s.url);
     let scene = s.upload().await;
-    let job = s.submit(json!({"scene": scene, "resolution": 16, "stop": {"steps": 1}})).await;
+    let job = s
+        .submit(json!({"scene": scene, "resolution": 16, "stop": {"steps": 1}}))
+        .await;
     let post_job = |body: &str| {
         h.post(format!("{u}/v1/jobs"))
             .header("content-type", "application/json")
             .body(body.to_string())
     };
-    let invalid = |field: &str, detail: &str| problem(422, "Unprocessable Entity", "invalid-field", detail, Some(field));
+    let invalid =
+        |field: &str, detail: &str| problem(422, "Unprocessable Entity", "invalid-field", detail, Some(field));
 
     // 400
     expect_problem(
@@ -331,7 +338,8 @@ async fn every_error_status_has_its_problem_body() {
     )
     .await;
     expect_problem(
-        h.post(format!("{u}/v1/scenes")).header("content-type", "model/gltf-binary"),
+        h.post(format!("{u}/v1/scenes"))
+            .header("content-type", "model/gltf-binary"),
         400,
         problem(
             400,
@@ -466,7 +474,9 @@ async fn every_error_status_has_its_problem_body() {
 
     // 415
     expect_problem(
-        h.post(format!("{u}/v1/jobs")).header("content-type", "text/plain").body("{}"),
+        h.post(format!("{u}/v1/jobs"))
+            .header("content-type", "text/plain")
+            .body("{}"),
         415,
         problem(
             415,
@@ -488,7 +498,7 @@ async fn every_error_status_has_its_problem_body() {
             422,
             "Unprocessable Entity",
             "invalid-scene",
-            "not a glTF 2.0 file: neither a GLB container nor glTF JSON",
+            "not a glTF 2.0 file: neither a GLB header (\"glTF\" magic) nor a JSON document",
             None,
         ),
     )
@@ -585,7 +595,9 @@ async fn cancel_stops_a_running_bake_and_a_queued_job() {
     let running = s
         .submit(json!({"scene": scene, "resolution": 16, "stop": {"seconds": 60}}))
         .await;
-    let queued = s.submit(json!({"scene": scene, "resolution": 16, "stop": {"steps": 1}})).await;
+    let queued = s
+        .submit(json!({"scene": scene, "resolution": 16, "stop": {"steps": 1}}))
+        .await;
     s.wait_job(&running, "running with steps", |j| {
         j["status"] == "running" && j["progress"]["steps"].as_u64().unwrap_or(0) >= 1
     })
@@ -615,7 +627,11 @@ async fn cancel_stops_a_running_bake_and_a_queued_job() {
     assert_eq!(j["status"], "cancelled");
     // One step of a 16² path bake is milliseconds; the whole round trip stays well
     // under a second even on a loaded machine.
-    assert!(asked.elapsed() < Duration::from_secs(2), "cancel took {:?}", asked.elapsed());
+    assert!(
+        asked.elapsed() < Duration::from_secs(2),
+        "cancel took {:?}",
+        asked.elapsed()
+    );
     assert_eq!(s.job(&queued).await["attempts"], 0, "a cancelled queued job never ran");
     s.running.shutdown().await;
 }
@@ -648,7 +664,11 @@ async fn fifty_concurrent_jobs_two_workers_all_succeed_once() {
         if list["total"] == 50 {
             break;
         }
-        assert!(start.elapsed() < Duration::from_secs(120), "not all succeeded: {}", list["total"]);
+        assert!(
+            start.elapsed() < Duration::from_secs(120),
+            "not all succeeded: {}",
+            list["total"]
+        );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     let list = get_json(&s.http, &format!("{}/v1/jobs?limit=500", s.url)).await;
@@ -669,7 +689,10 @@ async fn fifty_concurrent_jobs_two_workers_all_succeed_once() {
         .text()
         .await
         .unwrap();
-    assert!(metrics.contains("lightmapd_jobs_finished_total{outcome=\"succeeded\"} 50"), "{metrics}");
+    assert!(
+        metrics.contains("lightmapd_jobs_finished_total{outcome=\"succeeded\"} 50"),
+        "{metrics}"
+    );
     assert!(metrics.contains("lightmapd_workers 2"), "{metrics}");
     s.running.shutdown().await;
 }
@@ -692,7 +715,9 @@ fn spawn_serve(dir: &Path, workers: usize) -> Process {
         .spawn()
         .unwrap();
     let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
     let url = line
         .trim()
         .strip_prefix("lightmapd listening on ")
@@ -704,8 +729,18 @@ fn spawn_serve(dir: &Path, workers: usize) -> Process {
 /// A job's document, fetched from a plain thread (the process test has no runtime of
 /// its own running).
 fn blocking_job(url: &str, id: &str) -> Value {
-    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
-    let text = rt.block_on(async { reqwest::get(format!("{url}/v1/jobs/{id}")).await.unwrap().text().await.unwrap() });
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let text = rt.block_on(async {
+        reqwest::get(format!("{url}/v1/jobs/{id}"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap()
+    });
     serde_json::from_str(&text).unwrap()
 }
 
@@ -722,14 +757,20 @@ fn wait_for(url: &str, id: &str, what: &str, pred: impl Fn(&Value) -> bool) -> V
 }
 
 fn sigterm(p: &Child) {
-    let status = Command::new("kill").args(["-TERM", &p.id().to_string()]).status().unwrap();
+    let status = Command::new("kill")
+        .args(["-TERM", &p.id().to_string()])
+        .status()
+        .unwrap();
     assert!(status.success());
 }
 
 #[test]
 fn killed_server_recovers_the_job_and_sigterm_hands_it_back() {
     let dir = tempfile::tempdir().unwrap();
-    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
 
     // 1. A bake is running when the server is killed with SIGKILL.
     let mut p = spawn_serve(dir.path(), 1);
@@ -819,17 +860,15 @@ async fn openapi_lists_every_route() {
         std::fs::write(&snapshot, &got).unwrap();
     }
     let want = std::fs::read_to_string(&snapshot).unwrap();
-    assert_eq!(got, want, "routes changed: rerun with UPDATE_SNAPSHOTS=1 and review the diff");
+    assert_eq!(
+        got, want,
+        "routes changed: rerun with UPDATE_SNAPSHOTS=1 and review the diff"
+    );
     // Every listed route answers something other than "no route" on this server.
     for r in &routes {
         let (method, path) = r.split_once(' ').unwrap();
         let url = format!("{}{}", s.url, path.replace("{id}", "x"));
-        let resp = s
-            .http
-            .request(method.parse().unwrap(), &url)
-            .send()
-            .await
-            .unwrap();
+        let resp = s.http.request(method.parse().unwrap(), &url).send().await.unwrap();
         let status = resp.status();
         let body = resp.text().await.unwrap_or_default();
         assert!(!body.contains("no-route") && status != 405, "{r}: {status} {body}");

@@ -136,7 +136,9 @@ pub async fn submit(s: Submit) -> Result<JobView, ClientError> {
         p.steps,
         p.elapsed_s,
         p.error.map_or("n/a".into(), |e| format!("{:.2}%", e * 100.0)),
-        s.output.as_ref().map_or(String::new(), |o| format!(" -> {}", o.display()))
+        s.output
+            .as_ref()
+            .map_or(String::new(), |o| format!(" -> {}", o.display()))
     );
     Ok(job)
 }
@@ -157,9 +159,7 @@ async fn get_job(http: &reqwest::Client, server: &str, id: &str) -> Result<JobVi
 fn scene_request(http: &reqwest::Client, server: &str, path: &Path) -> Result<reqwest::RequestBuilder, ClientError> {
     let read = |p: &Path| std::fs::read(p).map_err(|e| fail(2, format!("cannot read {}: {e}", p.display())));
     let url = format!("{server}/v1/scenes");
-    let is_gltf = path
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("gltf"));
+    let is_gltf = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("gltf"));
     if !is_gltf {
         return Ok(http
             .post(url)
@@ -170,11 +170,13 @@ fn scene_request(http: &reqwest::Client, server: &str, path: &Path) -> Result<re
     let json: Value =
         serde_json::from_slice(&main).map_err(|e| fail(2, format!("{} is not JSON: {e}", path.display())))?;
     let dir = path.parent().unwrap_or(Path::new("."));
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("scene.gltf").to_string();
-    let mut form = reqwest::multipart::Form::new().part(
-        name.clone(),
-        reqwest::multipart::Part::bytes(main).file_name(name),
-    );
+    let name = path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("scene.gltf")
+        .to_string();
+    let mut form =
+        reqwest::multipart::Form::new().part(name.clone(), reqwest::multipart::Part::bytes(main).file_name(name));
     let mut seen = std::collections::HashSet::new();
     for kind in ["buffers", "images"] {
         for item in json[kind].as_array().into_iter().flatten() {
@@ -240,7 +242,9 @@ async fn follow(http: &reqwest::Client, server: &str, id: &str) -> Result<JobVie
                         data.push_str(v.strip_prefix(' ').unwrap_or(v));
                     }
                 }
-                let Ok(v) = serde_json::from_str::<Value>(&data) else { continue };
+                let Ok(v) = serde_json::from_str::<Value>(&data) else {
+                    continue;
+                };
                 match name.as_str() {
                     "status" => {
                         if let Ok(job) = serde_json::from_value::<JobView>(v) {

@@ -20,7 +20,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use crate::service::model::JobStatus;
 
 const STEP_BUCKETS: &[f64] = &[0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0];
-const BAKE_BUCKETS: &[f64] = &[0.1, 0.5, 1.0, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0, 3600.0];
+const BAKE_BUCKETS: &[f64] = &[
+    0.1, 0.5, 1.0, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0, 3600.0,
+];
 
 #[derive(Clone, Default)]
 struct Histogram {
@@ -65,13 +67,17 @@ pub struct Metrics {
 impl Metrics {
     pub fn observe_step(&self, technique: &str, seconds: f64) {
         if let Ok(mut m) = self.steps.lock() {
-            m.entry(technique.to_string()).or_default().observe(STEP_BUCKETS, seconds);
+            m.entry(technique.to_string())
+                .or_default()
+                .observe(STEP_BUCKETS, seconds);
         }
     }
 
     pub fn observe_bake(&self, technique: &str, seconds: f64) {
         if let Ok(mut m) = self.bakes.lock() {
-            m.entry(technique.to_string()).or_default().observe(BAKE_BUCKETS, seconds);
+            m.entry(technique.to_string())
+                .or_default()
+                .observe(BAKE_BUCKETS, seconds);
         }
     }
 
@@ -107,7 +113,12 @@ impl Metrics {
         out.push_str("# HELP lightmapd_step_seconds Time per bake step.\n# TYPE lightmapd_step_seconds histogram\n");
         if let Ok(m) = self.steps.lock() {
             for (t, h) in m.iter() {
-                h.render(&mut out, "lightmapd_step_seconds", &format!("technique=\"{t}\""), STEP_BUCKETS);
+                h.render(
+                    &mut out,
+                    "lightmapd_step_seconds",
+                    &format!("technique=\"{t}\""),
+                    STEP_BUCKETS,
+                );
             }
         }
         out.push_str(
@@ -115,7 +126,12 @@ impl Metrics {
         );
         if let Ok(m) = self.bakes.lock() {
             for (t, h) in m.iter() {
-                h.render(&mut out, "lightmapd_bake_seconds", &format!("technique=\"{t}\""), BAKE_BUCKETS);
+                h.render(
+                    &mut out,
+                    "lightmapd_bake_seconds",
+                    &format!("technique=\"{t}\""),
+                    BAKE_BUCKETS,
+                );
             }
         }
         out

@@ -226,7 +226,11 @@ pub async fn start(config: Config) -> anyhow::Result<Running> {
         shutdown: rx.clone(),
     };
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
-    tasks.extend(worker::spawn_pool(&state, config.workers, Arc::new(worker::EngineShared::default())));
+    tasks.extend(worker::spawn_pool(
+        &state,
+        config.workers,
+        Arc::new(worker::EngineShared::default()),
+    ));
     let listener = tokio::net::TcpListener::bind(config.listen).await?;
     let addr = listener.local_addr()?;
     let app = routes::router(state.clone());
@@ -260,7 +264,11 @@ pub async fn run_workers(config: Config, shutdown: impl std::future::Future<Outp
         shutdown: rx,
     };
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
-    tasks.extend(worker::spawn_pool(&state, config.workers, Arc::new(worker::EngineShared::default())));
+    tasks.extend(worker::spawn_pool(
+        &state,
+        config.workers,
+        Arc::new(worker::EngineShared::default()),
+    ));
     shutdown.await;
     let _ = tx.send(true);
     for t in tasks {

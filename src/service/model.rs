@@ -478,13 +478,22 @@ mod tests {
         let field = |body: &str| JobSpec::parse(body.as_bytes()).unwrap_err().field;
         assert_eq!(field(r#"{}"#).as_deref(), Some("scene"));
         assert_eq!(field(r#"{"scene":"a","colour":1}"#).as_deref(), Some("colour"));
-        assert_eq!(field(r#"{"scene":"a","stop":{"steps":-1}}"#).as_deref(), Some("stop.steps"));
+        assert_eq!(
+            field(r#"{"scene":"a","stop":{"steps":-1}}"#).as_deref(),
+            Some("stop.steps")
+        );
         assert_eq!(field(r#"{"scene":"a","stop":{"spp":1}}"#).as_deref(), Some("stop.spp"));
-        assert_eq!(field(r#"{"scene":"a","stop":{"seconds":-1}}"#).as_deref(), Some("stop.seconds"));
+        assert_eq!(
+            field(r#"{"scene":"a","stop":{"seconds":-1}}"#).as_deref(),
+            Some("stop.seconds")
+        );
         assert_eq!(field(r#"{"scene":"a","stop":{}}"#).as_deref(), Some("stop"));
         assert_eq!(field(r#"{"scene":"a","resolution":0}"#).as_deref(), Some("resolution"));
         assert_eq!(field(r#"{"scene":"a","technique":"x"}"#).as_deref(), Some("technique"));
-        assert_eq!(field(r#"{"scene":"a","outputs":["ao"]}"#).as_deref(), Some("outputs[0]"));
+        assert_eq!(
+            field(r#"{"scene":"a","outputs":["ao"]}"#).as_deref(),
+            Some("outputs[0]")
+        );
         assert_eq!(
             field(r#"{"scene":"a","lighting":{"sky":{"radiance":[-1,0,0]}}}"#).as_deref(),
             Some("lighting.sky.radiance")

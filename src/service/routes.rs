@@ -25,9 +25,7 @@ use bytes::Bytes;
 use sha2::{Digest, Sha256};
 use utoipa::OpenApi;
 
-use crate::service::model::{
-    Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339,
-};
+use crate::service::model::{Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339};
 use crate::service::problem::Problem;
 use crate::service::queue::{Cancellation, JobRecord, SceneDeletion, SceneRecord, now_ms};
 use crate::service::worker::{SceneFiles, import_files};
@@ -35,7 +33,10 @@ use crate::service::{AppState, StopSignal, events, store};
 
 #[derive(OpenApi)]
 #[openapi(
-    info(title = "lightmapd", description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7)."),
+    info(
+        title = "lightmapd",
+        description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7)."
+    ),
     paths(
         upload_scene,
         get_scene,
@@ -53,15 +54,7 @@ use crate::service::{AppState, StopSignal, events, store};
         dashboard
     ),
     components(schemas(
-        Problem,
-        JobSpec,
-        JobView,
-        JobList,
-        JobCreated,
-        JobStatus,
-        Progress,
-        SceneView,
-        Health
+        Problem, JobSpec, JobView, JobList, JobCreated, JobStatus, Progress, SceneView, Health
     ))
 )]
 pub struct ApiDoc;
@@ -163,7 +156,9 @@ async fn upload_scene(State(state): State<AppState>, req: Request) -> Result<Res
         let (files, main) = read_gltf_parts(mp, max).await?;
         (files, main, "gltf")
     } else if ct.is_empty() || ct == "model/gltf-binary" || ct == "application/octet-stream" {
-        let body = axum::body::to_bytes(req.into_body(), max).await.map_err(|_| too_large(max))?;
+        let body = axum::body::to_bytes(req.into_body(), max)
+            .await
+            .map_err(|_| too_large(max))?;
         if body.is_empty() {
             return Err(Problem::bad_request(
                 "empty body: send a .glb (model/gltf-binary) or multipart/form-data with a .gltf and its files",
@@ -174,7 +169,9 @@ async fn upload_scene(State(state): State<AppState>, req: Request) -> Result<Res
         return Err(Problem::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
             "unsupported-media-type",
-            format!("content type {ct:?}: send model/gltf-binary (a .glb) or multipart/form-data (a .gltf and its files)"),
+            format!(
+                "content type {ct:?}: send model/gltf-binary (a .glb) or multipart/form-data (a .gltf and its files)"
+            ),
         ));
     };
 
@@ -209,7 +206,10 @@ async fn upload_scene(State(state): State<AppState>, req: Request) -> Result<Res
     let report = imported.map_err(|msg| Problem::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid-scene", msg))?;
 
     for (name, bytes) in &files {
-        state.artifacts.put(&store::scene_file(&id, name), bytes.clone()).await?;
+        state
+            .artifacts
+            .put(&store::scene_file(&id, name), bytes.clone())
+            .await?;
     }
     let rec = SceneRecord {
         id: id.clone(),
@@ -240,7 +240,12 @@ async fn read_gltf_parts(mut mp: Multipart, max: usize) -> Result<(Vec<(String, 
             Ok(Some(f)) => f,
             Ok(None) => break,
             Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => return Err(too_large(max)),
-            Err(e) => return Err(Problem::bad_request(format!("malformed multipart body: {}", e.body_text()))),
+            Err(e) => {
+                return Err(Problem::bad_request(format!(
+                    "malformed multipart body: {}",
+                    e.body_text()
+                )));
+            }
         };
         let name = field
             .file_name()
@@ -391,11 +396,9 @@ async fn create_job(State(state): State<AppState>, headers: HeaderMap, body: Byt
     }
     let spec = JobSpec::parse(&body)?;
     let id = uuid::Uuid::new_v4().to_string();
-    let job = state
-        .queue
-        .enqueue(&id, &spec, now_ms())
-        .await?
-        .ok_or_else(|| Problem::invalid_field("scene", format!("no scene with id {:?}; upload it first", spec.scene)))?;
+    let job = state.queue.enqueue(&id, &spec, now_ms()).await?.ok_or_else(|| {
+        Problem::invalid_field("scene", format!("no scene with id {:?}; upload it first", spec.scene))
+    })?;
     state.hub.work.notify_one();
     tracing::info!(job = %id, technique = %spec.technique, scene = %spec.scene, "job queued");
     let mut resp = (
@@ -494,11 +497,7 @@ async fn list_jobs(
 }
 
 async fn find_job(state: &AppState, id: &str) -> Result<JobRecord, Problem> {
-    state
-        .queue
-        .job(id)
-        .await?
-        .ok_or_else(|| Problem::not_found("job", id))
+    state.queue.job(id).await?.ok_or_else(|| Problem::not_found("job", id))
 }
 
 /// A job's status, progress, plan, error history and failure reason.
@@ -532,7 +531,10 @@ async fn cancel_job(State(state): State<AppState>, Path(id): Path<String>) -> Re
     match state.queue.cancel(&id, now_ms()).await? {
         Cancellation::NotFound => return Err(Problem::not_found("job", &id)),
         Cancellation::AlreadyFinished(s) => {
-            return Err(Problem::conflict(format!("job {id} has already finished ({})", s.as_str())));
+            return Err(Problem::conflict(format!(
+                "job {id} has already finished ({})",
+                s.as_str()
+            )));
         }
         Cancellation::Cancelled => tracing::info!(job = %id, "queued job cancelled"),
         Cancellation::Requested => {
@@ -599,7 +601,10 @@ async fn get_lightmap(
                 job.snapshots
             } else {
                 s.parse::<u32>().ok().filter(|n| *n >= 1).ok_or_else(|| {
-                    Problem::invalid_field("snapshot", format!("snapshot must be `latest` or a number >= 1, got {s:?}"))
+                    Problem::invalid_field(
+                        "snapshot",
+                        format!("snapshot must be `latest` or a number >= 1, got {s:?}"),
+                    )
                 })?
             };
             if n == 0 || n > job.snapshots {

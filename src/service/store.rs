@@ -60,7 +60,12 @@ impl Artifacts {
 
     /// Deletes every object under `prefix`.
     pub async fn delete_prefix(&self, prefix: &Path) -> Result<(), object_store::Error> {
-        let keys: Vec<Path> = self.store.list(Some(prefix)).map_ok(|m| m.location).try_collect().await?;
+        let keys: Vec<Path> = self
+            .store
+            .list(Some(prefix))
+            .map_ok(|m| m.location)
+            .try_collect()
+            .await?;
         for key in keys {
             match self.store.delete(&key).await {
                 Ok(()) | Err(object_store::Error::NotFound { .. }) => {}

@@ -178,7 +178,9 @@ async fn run_job(state: &AppState, worker: &str, job: JobRecord, _engine: &Arc<E
     match written {
         Ok(true) => {}
         Ok(false) => tracing::warn!("the job was no longer ours when it ended (lease expired); result dropped"),
-        Err(e) => tracing::error!(error = %e, "cannot record the end of the job; its lease will expire and it runs again"),
+        Err(e) => {
+            tracing::error!(error = %e, "cannot record the end of the job; its lease will expire and it runs again")
+        }
     }
     state.hub.job_changed(&id);
 }
@@ -478,10 +480,18 @@ fn run_bake(
                     h.push(point);
                 }
                 if let Ok(mut p) = shared.progress.lock() {
-                    *p = Some(Progress::new(estimate.steps, elapsed.as_secs_f64(), latest_error, &spec.stop));
+                    *p = Some(Progress::new(
+                        estimate.steps,
+                        elapsed.as_secs_f64(),
+                        latest_error,
+                        &spec.stop,
+                    ));
                 }
                 let due = last_stored.is_none_or(|t| elapsed >= t + snapshot_interval);
-                if due && flag.get() == StopSignal::None && let Some(a) = atlas.get() {
+                if due
+                    && flag.get() == StopSignal::None
+                    && let Some(a) = atlas.get()
+                {
                     let exr = job::snapshot_exr(a, estimate, &request, &request.params, elapsed);
                     let png = job::preview_png(a, estimate);
                     match (exr, png) {

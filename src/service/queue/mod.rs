@@ -85,8 +85,14 @@ pub enum Lease {
 
 #[derive(Clone, Debug)]
 pub enum Outcome {
-    Succeeded { summary: Value, progress: Value, history: Value },
-    Failed { reason: String },
+    Succeeded {
+        summary: Value,
+        progress: Value,
+        history: Value,
+    },
+    Failed {
+        reason: String,
+    },
     Cancelled,
 }
 

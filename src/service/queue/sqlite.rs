@@ -18,7 +18,9 @@ use std::time::Duration;
 use async_trait::async_trait;
 use serde_json::Value;
 use sqlx::Row;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow, SqliteSynchronous};
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow, SqliteSynchronous,
+};
 
 use super::{
     Cancellation, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult, Recovered, SceneDeletion,
@@ -149,7 +151,10 @@ impl Queue for SqliteQueue {
         if in_use > 0 {
             return Ok(SceneDeletion::InUse(in_use as u64));
         }
-        let r = sqlx::query("DELETE FROM scenes WHERE id = ?").bind(id).execute(&mut *tx).await?;
+        let r = sqlx::query("DELETE FROM scenes WHERE id = ?")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
         tx.commit().await?;
         Ok(if r.rows_affected() == 1 {
             SceneDeletion::Deleted
@@ -229,13 +234,12 @@ impl Queue for SqliteQueue {
         if r.rows_affected() == 1 {
             return Ok(Cancellation::Cancelled);
         }
-        let r = sqlx::query(
-            "UPDATE jobs SET cancel_requested = 1, updated_at = ?2 WHERE id = ?1 AND status = 'running'",
-        )
-        .bind(id)
-        .bind(now)
-        .execute(&self.pool)
-        .await?;
+        let r =
+            sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = ?2 WHERE id = ?1 AND status = 'running'")
+                .bind(id)
+                .bind(now)
+                .execute(&self.pool)
+                .await?;
         if r.rows_affected() == 1 {
             return Ok(Cancellation::Requested);
         }
@@ -265,14 +269,7 @@ impl Queue for SqliteQueue {
         row.as_ref().map(job_from_row).transpose()
     }
 
-    async fn heartbeat(
-        &self,
-        id: &str,
-        worker: &str,
-        lease: Duration,
-        u: &JobUpdate,
-        now: i64,
-    ) -> QueueResult<Lease> {
+    async fn heartbeat(&self, id: &str, worker: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
         let cancel: Option<i64> = sqlx::query_scalar(
             "UPDATE jobs SET lease_expires_at = ?3, updated_at = ?4,
                  progress = COALESCE(?5, progress), history = COALESCE(?6, history),
@@ -424,9 +421,15 @@ mod tests {
         for attempt in 1..=MAX_ATTEMPTS {
             let job = q.claim("w", lease, now).await.unwrap().expect("queued job is claimed");
             assert_eq!(job.attempts, attempt);
-            assert!(q.claim("w2", lease, now).await.unwrap().is_none(), "one job, one holder");
+            assert!(
+                q.claim("w2", lease, now).await.unwrap().is_none(),
+                "one job, one holder"
+            );
             // Renewed in time: nothing is recovered.
-            let held = q.heartbeat("j", "w", lease, &JobUpdate::default(), now + 50).await.unwrap();
+            let held = q
+                .heartbeat("j", "w", lease, &JobUpdate::default(), now + 50)
+                .await
+                .unwrap();
             assert_eq!(held, Lease::Held { cancel: false });
             assert_eq!(q.recover_expired(now + 140).await.unwrap(), Recovered::default());
             now += 1000;
