@@ -32,6 +32,8 @@ struct Cli {
 enum Command {
     /// Bake a lightmap from a .glb or .gltf scene into an EXR file.
     Bake(Box<BakeArgs>),
+    /// Measure true error against run time for techniques on the benchmark scenes.
+    Bench(BenchArgs),
     /// Write a bundled example scene as .glb.
     Example {
         #[arg(value_enum, default_value = "cornell-box")]
@@ -138,6 +140,28 @@ struct SubmitArgs {
     priority: Option<i32>,
 }
 
+#[derive(clap::Args)]
+struct BenchArgs {
+    /// Scenes to run (comma separated; default: all).
+    #[arg(long, value_delimiter = ',')]
+    scenes: Vec<String>,
+    /// Techniques to compare (comma separated).
+    #[arg(long, value_delimiter = ',', default_value = "path")]
+    techniques: Vec<String>,
+    /// Bake time per scene and technique.
+    #[arg(long, default_value_t = 20.0)]
+    budget_seconds: f64,
+    /// Bake time of a path reference for scenes with no closed form (cached).
+    #[arg(long, default_value_t = 90.0)]
+    reference_seconds: f64,
+    /// Where results.csv, summary.md and the plots go.
+    #[arg(long, default_value = "bench-results")]
+    out: PathBuf,
+    /// Where converged references are cached.
+    #[arg(long, default_value = "bench-results/cache")]
+    cache: PathBuf,
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum Example {
     CornellBox,
@@ -183,6 +207,9 @@ struct BakeArgs {
     /// Extra layers: validity, direct, indirect (comma separated).
     #[arg(long, value_delimiter = ',', value_parser = OutputLayer::parse)]
     outputs: Vec<OutputLayer>,
+    /// Write the raw estimate, without the edge-aware denoiser.
+    #[arg(long)]
+    no_denoise: bool,
     /// Also write a tone-mapped PNG preview here.
     #[arg(long)]
     preview: Option<PathBuf>,
@@ -265,6 +292,7 @@ fn main() -> ExitCode {
         Command::Worker(args) => worker(args),
         Command::Submit(args) => submit(*args),
         Command::Bake(args) => bake(*args),
+        Command::Bench(args) => bench(args),
         Command::Example {
             name: Example::CornellBox,
             output,
@@ -477,6 +505,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         params,
         outputs: args.outputs.clone(),
         seed: args.seed,
+        denoise: !args.no_denoise,
     };
 
     let (scene, report) =
@@ -516,12 +545,6 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             overlapping = a.overlapping_texels,
             "texel set built"
         );
-        if a.overlapping_texels > 0 {
-            eprintln!(
-                "warning: {} lightmap texels are covered by more than one triangle (overlapping UV charts)",
-                a.overlapping_texels
-            );
-        }
     };
     let result = job::bake(
         Arc::new(scene),
@@ -529,6 +552,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         &job::BakeOptions::default(),
         &mut observer,
         &mut on_atlas,
+        &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
     )
     .map_err(|e| Failure {
         code: if e.is_bad_input() { 2 } else { 1 },
@@ -546,6 +570,10 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         })?;
     }
     let s = &result.summary;
+    eprintln!("plan: {}", s.plan.summary_line());
+    for w in &s.validation.warnings {
+        eprintln!("warning: {w}");
+    }
     let err = s
         .error
         .relative
@@ -563,6 +591,35 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         err,
         s.stopped_by,
         args.output.display()
+    );
+    Ok(())
+}
+
+fn bench(args: BenchArgs) -> Result<(), Failure> {
+    for (what, v) in [
+        ("--budget-seconds", args.budget_seconds),
+        ("--reference-seconds", args.reference_seconds),
+    ] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(bad_input(format!("{what} must be a positive number, got {v}")));
+        }
+    }
+    let cfg = lightmapd::bench::BenchConfig {
+        scenes: args.scenes,
+        techniques: args.techniques,
+        budget: std::time::Duration::from_secs_f64(args.budget_seconds),
+        reference_budget: std::time::Duration::from_secs_f64(args.reference_seconds),
+        out_dir: args.out.clone(),
+        cache_dir: args.cache,
+    };
+    let samples = lightmapd::bench::run(&cfg, &mut |line| eprintln!("bench: {line}")).map_err(|e| Failure {
+        code: if e.is_bad_input() { 2 } else { 1 },
+        message: e.to_string(),
+    })?;
+    eprintln!(
+        "bench: {} measurements written to {}",
+        samples.len(),
+        args.out.display()
     );
     Ok(())
 }

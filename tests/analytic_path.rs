@@ -3,11 +3,10 @@
 
 mod common;
 
-use std::f64::consts::PI;
-
 use common::{assert_unbiased, bake, import, lum};
 use glam::Vec3;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
+use lightmapd::engine::scene::library::{rect_form_factor, sphere_occlusion};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Sky};
 use serde_json::json;
 
@@ -94,17 +93,6 @@ fn plane_under_uniform_sky_reads_the_sky_radiance() {
     assert_eq!(est.error.relative, Some(0.0));
 }
 
-/// Irradiance / π under a uniform sky L at a point of an upward plane, with a black
-/// sphere of radius r centred at height h above a point at horizontal distance s:
-/// the sphere (always fully above the horizon here, since h > r) removes the projected
-/// solid angle π sin²α cos θ, with sin α = r/d, cos θ = h/d, d² = s² + h².
-fn sphere_occlusion(l: f64, r: f64, h: f64, s: f64) -> f64 {
-    let d2 = s * s + h * h;
-    let sin2 = r * r / d2;
-    let cos_t = h / d2.sqrt();
-    l * (1.0 - sin2 * cos_t)
-}
-
 #[test]
 fn black_sphere_over_black_plane() {
     let mut b = SceneBuilder::new();
@@ -155,21 +143,6 @@ fn black_sphere_over_black_plane() {
         (got - want).abs() < 5.0 * se,
         "centre texel {got}, expected {want} ± {se}"
     );
-}
-
-/// Form factor from a differential area to a parallel rectangle [0, a] × [0, b] at
-/// height c whose corner is straight above it (Howell's catalogue, C-11).
-fn corner_form_factor(a: f64, b: f64, c: f64) -> f64 {
-    let (x, y) = (a / c, b / c);
-    let (sx, sy) = ((1.0 + x * x).sqrt(), (1.0 + y * y).sqrt());
-    (x / sx * (y / sx).atan() + y / sy * (x / sy).atan()) / (2.0 * PI)
-}
-
-/// Form factor from a point at (px, pz) to the rectangle [x0, x1] × [z0, z1] a height c
-/// above it, by superposition of corner rectangles with signs.
-fn rect_form_factor(px: f64, pz: f64, x0: f64, x1: f64, z0: f64, z1: f64, c: f64) -> f64 {
-    let s = |a: f64, b: f64| a.signum() * b.signum() * corner_form_factor(a.abs(), b.abs(), c);
-    s(x1 - px, z1 - pz) - s(x0 - px, z1 - pz) - s(x1 - px, z0 - pz) + s(x0 - px, z0 - pz)
 }
 
 #[test]

@@ -214,3 +214,31 @@ fn a_failing_bake_leaves_an_existing_lightmap_alone() {
     assert_eq!(o.status.code(), Some(2));
     assert_eq!(std::fs::read(&out).unwrap(), b"previous lightmap");
 }
+
+#[test]
+fn target_error_stops_a_bake_of_the_bundled_scene() {
+    let out = tmp("target.exr");
+    let output = bin()
+        .arg("bake")
+        .arg(bundled())
+        .arg("-o")
+        .arg(&out)
+        .args(["--resolution", "16", "--target-error", "0.25", "--steps", "100000"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stderr.contains("(stopped by TargetError)"), "{stderr}");
+    // Never before the minimum step count, and well before the step limit.
+    let steps: u64 = stderr
+        .split(" steps in ")
+        .next()
+        .unwrap()
+        .rsplit(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((16..100000).contains(&steps), "{steps} steps");
+    assert!(stderr.contains("plan: ran: bvh, path trace"), "{stderr}");
+}

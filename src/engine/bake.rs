@@ -16,6 +16,13 @@ use serde::{Deserialize, Serialize};
 use crate::engine::accumulate::Estimate;
 use crate::engine::technique::{EngineError, Technique};
 
+/// A target error is not trusted before this many steps: with few steps per half the
+/// half-difference is itself too noisy, and a lucky early estimate could stop a bake
+/// that is far from converged (with 8 steps per half the estimate's own relative
+/// spread is about 1/sqrt(2 · 8 · texels) per texel, but correlated early bounces in
+/// progressive techniques need a few steps to show).
+pub const MIN_STEPS_FOR_TARGET_ERROR: u64 = 16;
+
 /// When a bake stops: whichever criterion is met first. At least one must be set.
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -128,7 +135,9 @@ impl BakeLoop {
                 .is_break();
             let by_steps = self.stop.steps.is_some_and(|n| steps >= n);
             let by_time = self.stop.seconds.is_some_and(|s| elapsed.as_secs_f64() >= s);
-            let scheduled = steps >= next_doubling || last_snapshot.elapsed() >= self.snapshot_interval;
+            let error_check_due = self.stop.target_error.is_some() && steps == MIN_STEPS_FOR_TARGET_ERROR;
+            let scheduled =
+                steps >= next_doubling || error_check_due || last_snapshot.elapsed() >= self.snapshot_interval;
             if !(cancelled || by_steps || by_time || scheduled) {
                 continue;
             }
@@ -137,8 +146,9 @@ impl BakeLoop {
             }
             last_snapshot = Instant::now();
             let estimate = technique.snapshot()?.estimate();
+            check_finite(technique, &estimate)?;
             let by_error = match (self.stop.target_error, estimate.error.relative) {
-                (Some(target), Some(err)) => err <= target,
+                (Some(target), Some(err)) => err <= target && steps >= MIN_STEPS_FOR_TARGET_ERROR,
                 _ => false,
             };
             let cancelled = cancelled
@@ -165,5 +175,129 @@ impl BakeLoop {
                 stopped_by,
             });
         }
+    }
+}
+
+/// The guard of DESIGN §5: a non-finite value fails the bake, naming the technique and
+/// the pass, so no NaN or infinity ever reaches an EXR.
+fn check_finite(technique: &dyn Technique, estimate: &Estimate) -> Result<(), EngineError> {
+    let layers = std::iter::once(("total", &estimate.total)).chain(estimate.direct.iter().map(|d| ("direct", d)));
+    for (layer, values) in layers {
+        if let Some((k, v)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+            return Err(EngineError::Internal(format!(
+                "technique {} produced a non-finite value {:?} at texel {k} of the {layer} layer in pass \"{}\" \
+                 (by step {}); the lightmap was not written",
+                technique.id(),
+                v.to_array(),
+                technique.accumulating_pass(),
+                estimate.steps
+            )));
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::accumulate::{HalfAccumulator, Snapshot};
+    use glam::Vec3;
+
+    /// A technique that returns given values, to drive the loop and the guard.
+    struct Fixed {
+        acc: HalfAccumulator,
+        value: Vec3,
+    }
+
+    impl Technique for Fixed {
+        fn id(&self) -> &'static str {
+            "fixed"
+        }
+        fn params(&self) -> serde_json::Value {
+            serde_json::Value::Null
+        }
+        fn step(&mut self) -> Result<(), EngineError> {
+            self.acc.add(&[Vec3::ONE, self.value], None);
+            Ok(())
+        }
+        fn steps_done(&self) -> u64 {
+            self.acc.steps()
+        }
+        fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
+            Ok(self.acc.snapshot())
+        }
+        fn accumulating_pass(&self) -> &'static str {
+            "test pass"
+        }
+    }
+
+    fn run(value: Vec3, stop: StopCriteria) -> Result<BakeOutcome, EngineError> {
+        let mut t = Fixed {
+            acc: HalfAccumulator::new(2, false),
+            value,
+        };
+        BakeLoop::new(stop).run(&mut t, &mut |_: BakeEvent<'_>| ControlFlow::Continue(()))
+    }
+
+    #[test]
+    fn non_finite_values_fail_the_bake_naming_technique_and_pass() {
+        for bad in [f32::NAN, f32::INFINITY] {
+            let stop = StopCriteria {
+                steps: Some(4),
+                ..Default::default()
+            };
+            let err = run(Vec3::new(1.0, bad, 1.0), stop)
+                .err()
+                .expect("must fail")
+                .to_string();
+            assert!(err.contains("technique fixed produced a non-finite value"), "{err}");
+            assert!(
+                err.contains("at texel 1 of the total layer in pass \"test pass\""),
+                "{err}"
+            );
+        }
+    }
+
+    #[test]
+    fn stops_on_steps_and_on_zero_error() {
+        let out = run(
+            Vec3::ONE,
+            StopCriteria {
+                steps: Some(5),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!((out.stopped_by, out.estimate.steps), (StopReason::Steps, 5));
+        // Constant values have zero error: a target error is met at the first snapshot
+        // after the minimum number of steps.
+        let out = run(
+            Vec3::ONE,
+            StopCriteria {
+                target_error: Some(0.01),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(out.stopped_by, StopReason::TargetError);
+        assert_eq!(out.estimate.steps, MIN_STEPS_FOR_TARGET_ERROR);
+    }
+
+    #[test]
+    fn cancel_stops_within_one_step() {
+        let mut t = Fixed {
+            acc: HalfAccumulator::new(2, false),
+            value: Vec3::ONE,
+        };
+        let stop = StopCriteria {
+            steps: Some(1000),
+            ..Default::default()
+        };
+        let mut observer = |e: BakeEvent<'_>| match e {
+            BakeEvent::Progress { steps, .. } if steps >= 3 => ControlFlow::Break(()),
+            _ => ControlFlow::Continue(()),
+        };
+        let out = BakeLoop::new(stop).run(&mut t, &mut observer).unwrap();
+        assert_eq!((out.stopped_by, out.estimate.steps), (StopReason::Cancelled, 3));
     }
 }

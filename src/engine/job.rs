@@ -11,10 +11,13 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::engine::accumulate::{ErrorSummary, Estimate};
+use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
+use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
+use crate::engine::post::denoise::denoise;
 use crate::engine::scene::{Lighting, Scene};
 use crate::engine::technique::{self, BakeInputs, EngineError};
 
@@ -28,6 +31,13 @@ pub struct BakeRequest {
     pub params: Value,
     pub outputs: Vec<OutputLayer>,
     pub seed: u64,
+    /// Run the edge-aware denoiser (`engine::post::denoise`) on what is written.
+    #[serde(default = "yes")]
+    pub denoise: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 impl Default for BakeRequest {
@@ -44,6 +54,7 @@ impl Default for BakeRequest {
             params: Value::Null,
             outputs: Vec::new(),
             seed: 0,
+            denoise: true,
         }
     }
 }
@@ -56,6 +67,8 @@ pub struct BakeSummary {
     pub seconds: f64,
     pub stopped_by: StopReason,
     pub error: ErrorSummary,
+    pub plan: Plan,
+    pub validation: ValidationReport,
 }
 
 pub struct BakeResult {
@@ -91,32 +104,34 @@ pub fn bake(
     options: &BakeOptions,
     observer: &mut dyn BakeObserver,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+    on_plan: &mut dyn FnMut(&Plan),
 ) -> Result<BakeResult, EngineError> {
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
-    let atlas = Arc::new(
-        Atlas::build(&scene, request.resolution, request.resolution)
-            .map_err(|e| EngineError::BadInput(e.to_string()))?,
-    );
+    let plan = crate::engine::plan::build(&scene, request)?;
+    on_plan(&plan);
+    let mut atlas = Atlas::build(&scene, request.resolution, request.resolution)
+        .map_err(|e| EngineError::BadInput(e.to_string()))?;
+    let validation = validate::validate(&scene, &mut atlas);
+    let atlas = Arc::new(atlas);
     let report = atlas.report();
     on_atlas(&atlas);
-    let want_direct = request
-        .outputs
-        .iter()
-        .any(|o| matches!(o, OutputLayer::Direct | OutputLayer::Indirect));
+    let want_direct = plan.runs("direct-light layer");
     let inputs = BakeInputs {
         scene,
         atlas: atlas.clone(),
         lighting: request.lighting,
         seed: request.seed,
         want_direct,
+        plan: plan.clone(),
     };
     let mut tech = technique::create(&request.technique, inputs, &request.params)?;
     let mut bake_loop = BakeLoop::new(request.stop);
     bake_loop.snapshot_interval = options.snapshot_interval;
     let outcome = bake_loop.run(tech.as_mut(), observer)?;
     let exr = snapshot_exr(&atlas, &outcome.estimate, request, &tech.params(), outcome.elapsed)?;
-    let preview_png = preview_png(&atlas, &outcome.estimate)?;
+    let finished = finish(&atlas, &outcome.estimate, request);
+    let preview_png = preview_png(&atlas, &finished)?;
     let summary = BakeSummary {
         technique: request.technique.clone(),
         atlas: report,
@@ -124,11 +139,13 @@ pub fn bake(
         seconds: outcome.elapsed.as_secs_f64(),
         stopped_by: outcome.stopped_by,
         error: outcome.estimate.error,
+        plan,
+        validation,
     };
     Ok(BakeResult {
         exr,
         preview_png,
-        estimate: outcome.estimate,
+        estimate: finished,
         atlas,
         summary,
     })
@@ -143,6 +160,8 @@ pub fn snapshot_exr(
     params: &Value,
     elapsed: Duration,
 ) -> Result<Vec<u8>, EngineError> {
+    let finished = finish(atlas, estimate, request);
+    let estimate = &finished;
     let channels =
         output::lightmap_channels(atlas, estimate, &request.outputs, DEFAULT_RINGS).map_err(EngineError::Internal)?;
     let meta = ExrMetadata {
@@ -152,8 +171,22 @@ pub fn snapshot_exr(
         seconds: elapsed.as_secs_f64(),
         relative_error: estimate.error.relative,
         seed: request.seed,
+        denoised: request.denoise && estimate.texel_error.is_some(),
     };
     output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)
+}
+
+/// What is written for an estimate: denoised when the request asks for it and the
+/// estimate has per-texel errors to guide the filter (both halves have steps).
+pub fn finish(atlas: &Atlas, estimate: &Estimate, request: &BakeRequest) -> Estimate {
+    let mut out = estimate.clone();
+    if let (true, Some(se)) = (request.denoise, &estimate.texel_error) {
+        out.total = denoise(atlas, &estimate.total, se);
+        if let Some(d) = &estimate.direct {
+            out.direct = Some(denoise(atlas, d, se));
+        }
+    }
+    out
 }
 
 /// A tone-mapped PNG of an estimate, gutters filled.

@@ -27,12 +27,20 @@ pub fn bake(
 ) -> (Arc<Atlas>, Estimate) {
     let scene = Arc::new(scene);
     let atlas = Arc::new(Atlas::build(&scene, resolution, resolution).expect("atlas"));
+    let request = lightmapd::engine::job::BakeRequest {
+        technique: technique.into(),
+        lighting,
+        outputs: vec![lightmapd::engine::output::OutputLayer::Direct],
+        ..Default::default()
+    };
+    let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");
     let inputs = BakeInputs {
         scene,
         atlas: atlas.clone(),
         lighting,
         seed: 1,
         want_direct: true,
+        plan,
     };
     let mut tech = technique::create(technique, inputs, &params).expect("technique prepares");
     for _ in 0..steps {

@@ -23,6 +23,8 @@
 //! texel whose sample point lies inside closed geometry is still valid here (techniques
 //! see back faces from it).
 
+pub mod validate;
+
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -51,6 +53,10 @@ pub struct Texel {
     pub albedo: Vec3,
     pub emission: Vec3,
     pub triangle: u32,
+    /// The triangle's mesh: texels of different meshes never share light in filtering.
+    pub mesh: u32,
+    /// World-space side of one texel on this texel's triangle (metres).
+    pub size: f32,
 }
 
 /// A texel a chart touches but whose centre is outside it, and the valid texel whose
@@ -192,7 +198,10 @@ impl Atlas {
                 if n.dot(geo) <= 0.0 {
                     n = geo;
                 }
+                let uv_area = 0.5 * (t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs();
                 Texel {
+                    mesh: t.mesh,
+                    size: (t.area() / (uv_area * (w * h) as f32)).sqrt(),
                     pixel: pix as u32,
                     position: surface + geo * offset,
                     normal: n,

@@ -55,6 +55,7 @@ pub struct ExrMetadata {
     pub seconds: f64,
     pub relative_error: Option<f32>,
     pub seed: u64,
+    pub denoised: bool,
 }
 
 /// Builds the channel list for `estimate` (dilated) plus the requested layers.
@@ -128,6 +129,10 @@ pub fn encode_exr(
     );
     other.insert(Text::from("lightmapd:seconds"), AttributeValue::F64(meta.seconds));
     other.insert(Text::from("lightmapd:seed"), text(&meta.seed.to_string()));
+    other.insert(
+        Text::from("lightmapd:denoised"),
+        text(if meta.denoised { "yes" } else { "no" }),
+    );
     other.insert(
         Text::from("lightmapd:quantity"),
         text("irradiance/pi, linear RGB (albedo * lightmap = outgoing radiance)"),

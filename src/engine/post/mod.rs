@@ -9,6 +9,8 @@
 //! Limits: a ring may average two charts' values where their gutters meet; Bakery-style
 //! seam stitching and denoising are later work.
 
+pub mod denoise;
+
 use glam::Vec3;
 
 use crate::engine::atlas::{Atlas, NO_TEXEL};

@@ -119,6 +119,39 @@ impl SceneBuilder {
         self.meshes.len() - 1
     }
 
+    /// A parallelogram like [`quad`](Self::quad), split into `n` × `n` cells (2n² triangles,
+    /// one chart): for benchmark scenes that need many triangles.
+    pub fn quad_grid(&mut self, name: &str, corner: Vec3, u: Vec3, v: Vec3, n: u32, material: usize) -> usize {
+        let normal = u.cross(v).normalize();
+        let mut positions = Vec::new();
+        let mut chart_uv = Vec::new();
+        for j in 0..=n {
+            for i in 0..=n {
+                let (s, t) = (i as f32 / n as f32, j as f32 / n as f32);
+                positions.push(corner + u * s + v * t);
+                chart_uv.push(Vec2::new(s, 1.0 - t));
+            }
+        }
+        let mut indices = Vec::new();
+        for j in 0..n {
+            for i in 0..n {
+                let a = j * (n + 1) + i;
+                let (b, c, d) = (a + 1, a + n + 2, a + n + 1);
+                indices.extend([a, b, c, a, c, d]);
+            }
+        }
+        let count = positions.len();
+        self.meshes.push(MeshDesc {
+            name: name.into(),
+            positions,
+            normals: vec![normal; count],
+            chart_uv,
+            indices,
+            material,
+        });
+        self.meshes.len() - 1
+    }
+
     /// An axis-aligned square of side `size` centred at `centre`, facing `normal`
     /// (one of ±X, ±Y, ±Z).
     pub fn square(&mut self, name: &str, centre: Vec3, size: f32, normal: Vec3, material: usize) -> usize {

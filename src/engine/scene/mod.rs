@@ -22,6 +22,7 @@
 pub mod build;
 mod error;
 pub mod import;
+pub mod library;
 
 pub use error::ImportError;
 pub use import::{ImportReport, import_file, import_slice};
@@ -49,6 +50,11 @@ impl Triangle {
     /// Unnormalised geometric normal, following the winding (counter-clockwise is front).
     pub fn cross(&self) -> Vec3 {
         (self.p[1] - self.p[0]).cross(self.p[2] - self.p[0])
+    }
+
+    /// The point at barycentric weights `b`.
+    pub fn point(&self, b: Vec3) -> Vec3 {
+        self.p[0] * b.x + self.p[1] * b.y + self.p[2] * b.z
     }
 
     pub fn area(&self) -> f32 {

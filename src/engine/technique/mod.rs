@@ -19,6 +19,7 @@ use serde_json::Value;
 
 use crate::engine::accumulate::Snapshot;
 use crate::engine::atlas::Atlas;
+use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::{Lighting, Scene};
 
 /// The identifiers [`create`] accepts.
@@ -50,6 +51,8 @@ pub struct BakeInputs {
     pub seed: u64,
     /// Keep a separate direct-light layer (for the `direct` / `indirect` outputs).
     pub want_direct: bool,
+    /// What to create: a technique builds only the passes its plan lists.
+    pub plan: Plan,
 }
 
 pub trait Technique: Send {
@@ -61,12 +64,25 @@ pub trait Technique: Send {
     fn steps_done(&self) -> u64;
     /// Both halves' current means, per valid texel.
     fn snapshot(&mut self) -> Result<Snapshot, EngineError>;
+    /// The pass that writes the accumulators, named when a snapshot is not finite.
+    fn accumulating_pass(&self) -> &'static str;
 }
 
 /// Prepares technique `id` with `params` (a JSON object; unknown fields are rejected).
 pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Technique>, EngineError> {
     match id {
         "path" => Ok(Box::new(path::PathTracer::prepare(inputs, params)?)),
+        other => Err(EngineError::BadInput(format!(
+            "unknown technique {other:?}; available: {}",
+            TECHNIQUES.join(", ")
+        ))),
+    }
+}
+
+/// The plan technique `id` makes for a scene with `features` (see `engine::plan`).
+pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
+    match id {
+        "path" => Ok(path::plan(features)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")

@@ -1,0 +1,483 @@
+//! `lightmapd bench`: true error against run time for every technique on the benchmark
+//! scenes (DESIGN §4, issue 5).
+//!
+//! How: for each scene of `engine::scene::library` and each technique, bake with a
+//! snapshot at geometric time points (budget/128, budget/64, …, budget) and measure the
+//! true error of each snapshot against the reference: the closed-form answer where the
+//! scene has one, else a long `path` bake cached on disk, keyed by a hash of the scene
+//! file, resolution, lighting and reference budget (so a changed scene is never compared
+//! with a stale reference). The error metric is the one of `docs/accuracy.md`:
+//! RMS over reference texels of the luminance difference, over the RMS reference
+//! luminance. Outputs: `results.csv`, one log-log SVG plot per scene (written by hand:
+//! a few polylines need no plotting crate), and `summary.md` with the time each
+//! technique needs to reach 10 %, 5 % and 2 %.
+//!
+//! Limits: times are wall-clock on whatever machine runs it; a reference bake's own
+//! noise (reported in `summary.md`) is a floor under every measured error.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use serde_json::json;
+
+use crate::engine::accumulate::{Estimate, LUMINANCE};
+use crate::engine::atlas::Atlas;
+use crate::engine::job::BakeRequest;
+use crate::engine::scene::library::{LibraryScene, benchmark_scenes};
+use crate::engine::scene::{Scene, import_slice};
+
+use crate::engine::technique::{self, BakeInputs, EngineError};
+
+#[derive(Clone, Debug)]
+pub struct BenchConfig {
+    /// Scene names to run (all when empty).
+    pub scenes: Vec<String>,
+    pub techniques: Vec<String>,
+    /// Bake time per scene and technique.
+    pub budget: Duration,
+    /// Bake time of a `path` reference where a scene has no closed form.
+    pub reference_budget: Duration,
+    pub out_dir: PathBuf,
+    pub cache_dir: PathBuf,
+}
+
+#[derive(Clone, Debug)]
+pub struct Sample {
+    pub scene: String,
+    pub technique: String,
+    pub seconds: f64,
+    pub steps: u64,
+    pub true_error: f64,
+    pub estimated_error: Option<f32>,
+    /// True error of the same snapshot after the denoiser.
+    pub denoised_error: f64,
+}
+
+/// Per valid texel, the reference value (None where it has none), and how it was made.
+pub struct Reference {
+    pub values: Vec<Option<Vec3>>,
+    pub kind: String,
+    /// The reference's own estimated relative error (0 for a closed form).
+    pub error: f64,
+}
+
+/// True relative error of `estimate` against `reference` (`docs/accuracy.md`).
+pub fn true_error(estimate: &[Vec3], reference: &[Option<Vec3>]) -> f64 {
+    let (mut diff, mut norm) = (0.0f64, 0.0f64);
+    for (e, r) in estimate.iter().zip(reference) {
+        if let Some(r) = r {
+            diff += ((*e - *r).dot(LUMINANCE) as f64).powi(2);
+            norm += (r.dot(LUMINANCE) as f64).powi(2);
+        }
+    }
+    if norm > 0.0 { (diff / norm).sqrt() } else { diff.sqrt() }
+}
+
+fn fnv1a(bytes: &[u8], mut h: u64) -> u64 {
+    for b in bytes {
+        h ^= *b as u64;
+        h = h.wrapping_mul(0x100_0000_01b3);
+    }
+    h
+}
+
+pub struct PreparedScene {
+    pub scene: Arc<Scene>,
+    pub atlas: Arc<Atlas>,
+    pub glb: Vec<u8>,
+}
+
+pub fn prepare(lib: &LibraryScene) -> Result<PreparedScene, EngineError> {
+    let glb = lib.builder.to_glb();
+    let scene = Arc::new(
+        import_slice(&glb, None)
+            .map_err(|e| EngineError::Internal(e.to_string()))?
+            .0,
+    );
+    let atlas = Arc::new(
+        Atlas::build(&scene, lib.resolution, lib.resolution).map_err(|e| EngineError::Internal(e.to_string()))?,
+    );
+    Ok(PreparedScene { scene, atlas, glb })
+}
+
+fn inputs(p: &PreparedScene, lib: &LibraryScene, technique: &str, seed: u64) -> Result<BakeInputs, EngineError> {
+    let request = BakeRequest {
+        technique: technique.into(),
+        lighting: lib.lighting,
+        seed,
+        ..Default::default()
+    };
+    let plan = crate::engine::plan::build(&p.scene, &request)?;
+    Ok(BakeInputs {
+        scene: p.scene.clone(),
+        atlas: p.atlas.clone(),
+        lighting: lib.lighting,
+        seed,
+        want_direct: false,
+        plan,
+    })
+}
+
+/// The reference for `lib`: its closed form, or a cached long `path` bake.
+pub fn reference(lib: &LibraryScene, p: &PreparedScene, cfg: &BenchConfig) -> Result<Reference, EngineError> {
+    let offset = p.scene.origin_offset;
+    if let Some(f) = lib.analytic {
+        let values = p
+            .atlas
+            .texels
+            .iter()
+            .map(|t| f(t.position.as_dvec3() + offset, t.geo_normal))
+            .collect();
+        return Ok(Reference {
+            values,
+            kind: "analytic".into(),
+            error: 0.0,
+        });
+    }
+    let key = {
+        let mut h = fnv1a(&p.glb, 0xcbf2_9ce4_8422_2325);
+        h = fnv1a(&lib.resolution.to_le_bytes(), h);
+        h = fnv1a(json!(lib.lighting).to_string().as_bytes(), h);
+        fnv1a(&cfg.reference_budget.as_millis().to_le_bytes(), h)
+    };
+    let path = cfg.cache_dir.join(format!("{}-{key:016x}.ref", lib.name));
+    if let Some(r) = read_cached(&path, p.atlas.texels.len()) {
+        return Ok(r);
+    }
+    let mut tech = technique::create("path", inputs(p, lib, "path", 0xbe9c)?, &json!({"samples_per_step": 8}))?;
+    let start = Instant::now();
+    while start.elapsed() < cfg.reference_budget || tech.steps_done() < 2 {
+        tech.step()?;
+    }
+    let est = tech.snapshot()?.estimate();
+    let error = est.error.relative.unwrap_or(1.0) as f64;
+    write_cached(&path, &est.total, error)
+        .map_err(|e| EngineError::Internal(format!("writing {}: {e}", path.display())))?;
+    Ok(Reference {
+        values: est.total.into_iter().map(Some).collect(),
+        kind: "path".into(),
+        error,
+    })
+}
+
+fn read_cached(path: &Path, texels: usize) -> Option<Reference> {
+    let bytes = std::fs::read(path).ok()?;
+    if bytes.len() != 8 + texels * 12 {
+        return None;
+    }
+    let error = f64::from_le_bytes(bytes[..8].try_into().ok()?);
+    let floats: Vec<f32> = bytes[8..]
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    let values = floats
+        .chunks_exact(3)
+        .map(|c| Some(Vec3::new(c[0], c[1], c[2])))
+        .collect();
+    Some(Reference {
+        values,
+        kind: "path (cached)".into(),
+        error,
+    })
+}
+
+fn write_cached(path: &Path, values: &[Vec3], error: f64) -> std::io::Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    let mut bytes = error.to_le_bytes().to_vec();
+    for v in values {
+        for c in v.to_array() {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    crate::engine::output::write_atomically(path, &bytes)
+}
+
+/// Bakes `technique` on a prepared scene, measuring at geometric time points.
+pub fn measure(
+    lib: &LibraryScene,
+    p: &PreparedScene,
+    reference: &Reference,
+    technique: &str,
+    budget: Duration,
+) -> Result<Vec<Sample>, EngineError> {
+    let mut tech = technique::create(technique, inputs(p, lib, technique, 1)?, &serde_json::Value::Null)?;
+    let mut samples = Vec::new();
+    let start = Instant::now();
+    let mut next = budget.as_secs_f64() / 128.0;
+    let request = BakeRequest {
+        technique: technique.into(),
+        lighting: lib.lighting,
+        ..Default::default()
+    };
+    let mut record = |est: &Estimate, seconds: f64| {
+        let denoised = crate::engine::job::finish(&p.atlas, est, &request);
+        samples.push(Sample {
+            denoised_error: true_error(&denoised.total, &reference.values),
+            scene: lib.name.into(),
+            technique: technique.into(),
+            seconds,
+            steps: est.steps,
+            true_error: true_error(&est.total, &reference.values),
+            estimated_error: est.error.relative,
+        })
+    };
+    loop {
+        tech.step()?;
+        let t = start.elapsed().as_secs_f64();
+        if tech.steps_done() >= 2 && (t >= next || t >= budget.as_secs_f64()) {
+            let est = tech.snapshot()?.estimate();
+            record(&est, t);
+            while next <= t {
+                next *= 2.0;
+            }
+        }
+        if t >= budget.as_secs_f64() && tech.steps_done() >= 2 {
+            break;
+        }
+    }
+    Ok(samples)
+}
+
+/// Runs the whole benchmark and writes its outputs; `log` receives one line per stage.
+pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, EngineError> {
+    let all = benchmark_scenes();
+    for s in &cfg.scenes {
+        if !all.iter().any(|l| l.name == s) {
+            let names: Vec<&str> = all.iter().map(|l| l.name).collect();
+            return Err(EngineError::BadInput(format!(
+                "unknown bench scene {s:?}; available: {}",
+                names.join(", ")
+            )));
+        }
+    }
+    for t in &cfg.techniques {
+        if !technique::TECHNIQUES.contains(&t.as_str()) {
+            return Err(EngineError::BadInput(format!("unknown technique {t:?}")));
+        }
+    }
+    let io = |e: std::io::Error| EngineError::Internal(format!("writing bench results: {e}"));
+    std::fs::create_dir_all(&cfg.out_dir).map_err(io)?;
+    let mut all_samples = Vec::new();
+    let mut refs = Vec::new();
+    for lib in all
+        .iter()
+        .filter(|l| cfg.scenes.is_empty() || cfg.scenes.iter().any(|s| s == l.name))
+    {
+        let p = prepare(lib)?;
+        log(&format!(
+            "{}: {} triangles, {} texels; reference…",
+            lib.name,
+            p.scene.triangles.len(),
+            p.atlas.texels.len()
+        ));
+        let r = reference(lib, &p, cfg)?;
+        refs.push((
+            lib.name,
+            r.kind.clone(),
+            r.error,
+            p.scene.triangles.len(),
+            p.atlas.texels.len(),
+        ));
+        let mut scene_samples = Vec::new();
+        for t in &cfg.techniques {
+            log(&format!("{}: {t} for {:.0} s", lib.name, cfg.budget.as_secs_f64()));
+            scene_samples.extend(measure(lib, &p, &r, t, cfg.budget)?);
+        }
+        std::fs::write(
+            cfg.out_dir.join(format!("{}.svg", lib.name)),
+            plot_svg(lib.name, &scene_samples),
+        )
+        .map_err(io)?;
+        all_samples.extend(scene_samples);
+    }
+    let mut csv = String::from("scene,technique,seconds,steps,true_error,estimated_error,denoised_error\n");
+    for s in &all_samples {
+        let est = s.estimated_error.map(|e| format!("{e:.6}")).unwrap_or_default();
+        let _ = writeln!(
+            csv,
+            "{},{},{:.4},{},{:.6},{}",
+            s.scene, s.technique, s.seconds, s.steps, s.true_error, est
+        );
+    }
+    std::fs::write(cfg.out_dir.join("results.csv"), csv).map_err(io)?;
+    std::fs::write(cfg.out_dir.join("summary.md"), summary_md(&all_samples, &refs, cfg)).map_err(io)?;
+    Ok(all_samples)
+}
+
+fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cfg: &BenchConfig) -> String {
+    let mut md = String::new();
+    let _ = writeln!(
+        md,
+        "Budget {:.0} s per scene and technique.\n",
+        cfg.budget.as_secs_f64()
+    );
+    let _ = writeln!(
+        md,
+        "| scene | triangles | texels | reference | reference error |\n| --- | --- | --- | --- | --- |"
+    );
+    for (name, kind, err, tris, texels) in refs {
+        let _ = writeln!(md, "| {name} | {tris} | {texels} | {kind} | {:.2} % |", err * 100.0);
+    }
+    let _ = writeln!(
+        md,
+        "\nTime to reach a true relative error (— = not within the budget); last column: error at the end.\n"
+    );
+    let _ = writeln!(
+        md,
+        "| scene | technique | 10 % | 5 % | 2 % | final error (estimated) |\n| --- | --- | --- | --- | --- | --- |"
+    );
+    let mut keys: Vec<(&str, &str)> = samples
+        .iter()
+        .map(|s| (s.scene.as_str(), s.technique.as_str()))
+        .collect();
+    keys.dedup();
+    for (scene, tech) in keys {
+        let run: Vec<&Sample> = samples
+            .iter()
+            .filter(|s| s.scene == scene && s.technique == tech)
+            .collect();
+        let reach_denoised = run
+            .iter()
+            .find(|s| s.denoised_error <= 0.02)
+            .map(|s| format!("{:.2} s", s.seconds))
+            .unwrap_or_else(|| "—".into());
+        let last_denoised = run
+            .last()
+            .map(|s| format!("{:.2} %", s.denoised_error * 100.0))
+            .unwrap_or_default();
+        let reach = |target: f64| {
+            run.iter()
+                .find(|s| s.true_error <= target)
+                .map(|s| format!("{:.2} s", s.seconds))
+                .unwrap_or_else(|| "—".into())
+        };
+        let last = run.last().map(|s| {
+            let est = s
+                .estimated_error
+                .map(|e| format!("{:.2} %", e * 100.0))
+                .unwrap_or_else(|| "n/a".into());
+            format!("{:.2} % ({est})", s.true_error * 100.0)
+        });
+        let _ = writeln!(
+            md,
+            "| {scene} | {tech} | {} | {} | {} | {reach_denoised} | {} | {last_denoised} |",
+            reach(0.10),
+            reach(0.05),
+            reach(0.02),
+            last.unwrap_or_default()
+        );
+    }
+    md
+}
+
+/// A log-log plot of true error (solid) and estimated error (dashed) against time.
+pub fn plot_svg(title: &str, samples: &[Sample]) -> String {
+    let (w, h, left, right, top, bottom) = (640.0, 420.0, 70.0, 150.0, 40.0, 50.0);
+    let pts: Vec<&Sample> = samples
+        .iter()
+        .filter(|s| s.seconds > 0.0 && s.true_error > 0.0)
+        .collect();
+    let (mut t0, mut t1, mut e0, mut e1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for s in &pts {
+        t0 = t0.min(s.seconds.log10());
+        t1 = t1.max(s.seconds.log10());
+        for e in [
+            Some(s.true_error),
+            s.estimated_error.map(|e| e as f64).filter(|e| *e > 0.0),
+        ]
+        .into_iter()
+        .flatten()
+        {
+            e0 = e0.min(e.log10());
+            e1 = e1.max(e.log10());
+        }
+    }
+    if pts.is_empty() {
+        (t0, t1, e0, e1) = (-1.0, 1.0, -3.0, 0.0);
+    }
+    let (t0, t1, e0, e1) = (
+        t0.floor(),
+        t1.ceil().max(t0.floor() + 1.0),
+        e0.floor(),
+        e1.ceil().max(e0.floor() + 1.0),
+    );
+    let x = |t: f64| left + (t.log10() - t0) / (t1 - t0) * (w - left - right);
+    let y = |e: f64| top + (e1 - e.log10()) / (e1 - e0) * (h - top - bottom);
+    let mut svg = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"12\">\n\
+         <rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n\
+         <text x=\"{}\" y=\"22\" text-anchor=\"middle\" font-size=\"15\">{title}: relative error against time</text>\n",
+        (left + w - right) / 2.0
+    );
+    for d in t0 as i32..=t1 as i32 {
+        let px = x(10f64.powi(d));
+        let _ = writeln!(
+            svg,
+            "<line x1=\"{px}\" y1=\"{top}\" x2=\"{px}\" y2=\"{}\" stroke=\"#ddd\"/><text x=\"{px}\" y=\"{}\" text-anchor=\"middle\">1e{d} s</text>",
+            h - bottom,
+            h - bottom + 18.0
+        );
+    }
+    for d in e0 as i32..=e1 as i32 {
+        let py = y(10f64.powi(d));
+        let _ = writeln!(
+            svg,
+            "<line x1=\"{left}\" y1=\"{py}\" x2=\"{}\" y2=\"{py}\" stroke=\"#ddd\"/><text x=\"{}\" y=\"{}\" text-anchor=\"end\">1e{d}</text>",
+            w - right,
+            left - 6.0,
+            py + 4.0
+        );
+    }
+    let colours = ["#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b"];
+    let mut techniques: Vec<&str> = pts.iter().map(|s| s.technique.as_str()).collect();
+    techniques.dedup();
+    for (k, tech) in techniques.iter().enumerate() {
+        let colour = colours[k % colours.len()];
+        let run: Vec<&&Sample> = pts.iter().filter(|s| s.technique == *tech).collect();
+        let line: Vec<String> = run
+            .iter()
+            .map(|s| format!("{:.1},{:.1}", x(s.seconds), y(s.true_error)))
+            .collect();
+        let est: Vec<String> = run
+            .iter()
+            .filter_map(|s| {
+                s.estimated_error
+                    .filter(|e| *e > 0.0)
+                    .map(|e| format!("{:.1},{:.1}", x(s.seconds), y(e as f64)))
+            })
+            .collect();
+        let _ = writeln!(
+            svg,
+            "<polyline fill=\"none\" stroke=\"{colour}\" stroke-width=\"2\" points=\"{}\"/>",
+            line.join(" ")
+        );
+        let _ = writeln!(
+            svg,
+            "<polyline fill=\"none\" stroke=\"{colour}\" stroke-dasharray=\"5,4\" points=\"{}\"/>",
+            est.join(" ")
+        );
+        let ly = top + 20.0 * k as f64;
+        let _ = writeln!(
+            svg,
+            "<line x1=\"{}\" y1=\"{ly}\" x2=\"{}\" y2=\"{ly}\" stroke=\"{colour}\" stroke-width=\"2\"/><text x=\"{}\" y=\"{}\">{tech}</text>",
+            w - right + 10.0,
+            w - right + 34.0,
+            w - right + 40.0,
+            ly + 4.0
+        );
+    }
+    let _ = writeln!(
+        svg,
+        "<text x=\"{}\" y=\"{}\" fill=\"#555\">solid: true error</text><text x=\"{}\" y=\"{}\" fill=\"#555\">dashed: estimated</text>\n</svg>",
+        w - right + 10.0,
+        h - bottom - 20.0,
+        w - right + 10.0,
+        h - bottom - 4.0
+    );
+    svg
+}

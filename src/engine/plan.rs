@@ -1,0 +1,150 @@
+//! What a given scene and job need, decided before any GPU work (DESIGN §6).
+//!
+//! How: [`SceneFeatures`] reads off the scene and the job what light and material data
+//! exist (punctual lights, emitters, sky, sun, glossy materials, textures, layers asked
+//! for); each technique turns those into its [`Plan`] in its own module (`plan()` next
+//! to the technique, so a reader finds a technique's passes in one place). A technique
+//! creates only the passes, buffers and shader variants its plan lists; everything it
+//! leaves out is listed with the reason, and the plan is shown in `bake`'s summary and
+//! in a job's status. A technique that cannot handle something the scene has (a light
+//! type, glossy transport) says so here: light is never dropped silently.
+
+use serde::Serialize;
+
+use crate::engine::job::BakeRequest;
+use crate::engine::output::OutputLayer;
+use crate::engine::scene::{Lighting, Scene};
+use crate::engine::technique::{self, EngineError};
+
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct PlanItem {
+    pub name: String,
+    pub why: String,
+}
+
+#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+pub struct Plan {
+    pub technique: String,
+    /// Passes and resources that will be created, each with why it is needed.
+    pub passes: Vec<PlanItem>,
+    /// What this scene and job do not need (or this technique cannot do), and why.
+    pub left_out: Vec<PlanItem>,
+}
+
+impl Plan {
+    pub fn new(technique: &str) -> Self {
+        Plan {
+            technique: technique.into(),
+            ..Default::default()
+        }
+    }
+
+    /// Records `name` as run when `needed`, else as left out; returns `needed`.
+    pub fn decide(&mut self, name: &str, needed: bool, why_run: &str, why_not: &str) -> bool {
+        let item = PlanItem {
+            name: name.into(),
+            why: if needed { why_run } else { why_not }.into(),
+        };
+        if needed {
+            self.passes.push(item)
+        } else {
+            self.left_out.push(item)
+        }
+        needed
+    }
+
+    pub fn run(&mut self, name: &str, why: &str) {
+        self.passes.push(PlanItem {
+            name: name.into(),
+            why: why.into(),
+        });
+    }
+
+    pub fn leave_out(&mut self, name: &str, why: &str) {
+        self.left_out.push(PlanItem {
+            name: name.into(),
+            why: why.into(),
+        });
+    }
+
+    pub fn runs(&self, name: &str) -> bool {
+        self.passes.iter().any(|p| p.name == name)
+    }
+
+    /// One line for a terminal: `ran: a, b; left out: c (why), d (why)`.
+    pub fn summary_line(&self) -> String {
+        let ran: Vec<&str> = self.passes.iter().map(|p| p.name.as_str()).collect();
+        let left: Vec<String> = self
+            .left_out
+            .iter()
+            .map(|p| format!("{} ({})", p.name, p.why))
+            .collect();
+        format!(
+            "ran: {}; left out: {}",
+            ran.join(", "),
+            if left.is_empty() {
+                "nothing".into()
+            } else {
+                left.join(", ")
+            }
+        )
+    }
+}
+
+/// What the scene and the job contain, as far as any technique's plan cares.
+#[derive(Clone, Debug, Serialize)]
+pub struct SceneFeatures {
+    pub punctual_lights: usize,
+    pub emissive_triangles: usize,
+    pub sky: bool,
+    pub sun: bool,
+    /// Materials that are not fully rough dielectrics, on at least one triangle.
+    pub glossy_materials: usize,
+    pub textured_materials: usize,
+    pub double_sided_triangles: usize,
+    pub want_direct: bool,
+    pub want_validity: bool,
+}
+
+impl SceneFeatures {
+    pub fn of(scene: &Scene, lighting: &Lighting, outputs: &[OutputLayer]) -> Self {
+        let mut used = vec![false; scene.materials.len()];
+        let mut emissive_triangles = 0;
+        let mut double_sided_triangles = 0;
+        for t in &scene.triangles {
+            used[t.material as usize] = true;
+            let m = &scene.materials[t.material as usize];
+            emissive_triangles += usize::from(m.emissive != glam::Vec3::ZERO);
+            double_sided_triangles += usize::from(m.double_sided);
+        }
+        let used_materials = || scene.materials.iter().zip(&used).filter(|(_, u)| **u).map(|(m, _)| m);
+        SceneFeatures {
+            punctual_lights: scene.lights.len(),
+            emissive_triangles,
+            sky: lighting.sky.is_some_and(|s| s.radiance != glam::Vec3::ZERO),
+            sun: lighting.sun.is_some_and(|s| s.radiance != glam::Vec3::ZERO),
+            glossy_materials: used_materials()
+                .filter(|m| m.metallic > 0.0 || m.roughness < 1.0)
+                .count(),
+            textured_materials: used_materials()
+                .filter(|m| m.base_color_texture.is_some() || m.emissive_texture.is_some())
+                .count(),
+            double_sided_triangles,
+            want_direct: outputs
+                .iter()
+                .any(|o| matches!(o, OutputLayer::Direct | OutputLayer::Indirect)),
+            want_validity: outputs.contains(&OutputLayer::Validity),
+        }
+    }
+
+    /// Whether any light reaches the scene at all.
+    pub fn has_light(&self) -> bool {
+        self.punctual_lights > 0 || self.emissive_triangles > 0 || self.sky || self.sun
+    }
+}
+
+/// The plan for `request` on `scene`; an unknown technique is a bad-input error.
+pub fn build(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineError> {
+    let features = SceneFeatures::of(scene, &request.lighting, &request.outputs);
+    technique::plan(&request.technique, &features)
+}

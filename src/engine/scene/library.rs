@@ -1,0 +1,241 @@
+//! The benchmark and test scenes, made in code, with their closed-form answers where one
+//! exists (issue 5's list). Tests and `lightmapd bench` use the same scenes and the same
+//! answers, so a figure in `docs/accuracy.md` and an assertion in CI mean the same thing.
+//!
+//! Analytic answers are functions of a texel's world-space sample point and normal; a
+//! scene whose answer covers only some texels (the plane under the sphere, not the
+//! sphere) says so by returning `None` for the others.
+
+use std::f64::consts::PI;
+
+use glam::{DVec3, Vec3};
+
+use super::build::{MaterialDesc, SceneBuilder, cornell_box};
+use super::{Hemisphere, Lighting, Sky};
+
+/// Form factor from a differential area to a parallel rectangle [0, a] × [0, b] at
+/// height c with one corner straight above it (Howell's catalogue of configuration
+/// factors, case B-3).
+pub fn corner_form_factor(a: f64, b: f64, c: f64) -> f64 {
+    let (x, y) = (a / c, b / c);
+    let (sx, sy) = ((1.0 + x * x).sqrt(), (1.0 + y * y).sqrt());
+    (x / sx * (y / sx).atan() + y / sy * (x / sy).atan()) / (2.0 * PI)
+}
+
+/// Form factor from a point to the parallel rectangle [x0, x1] × [z0, z1] a height `c`
+/// above it, the point at (px, pz): superposition of four corner rectangles with signs.
+pub fn rect_form_factor(px: f64, pz: f64, x0: f64, x1: f64, z0: f64, z1: f64, c: f64) -> f64 {
+    let s = |a: f64, b: f64| a.signum() * b.signum() * corner_form_factor(a.abs(), b.abs(), c);
+    s(x1 - px, z1 - pz) - s(x0 - px, z1 - pz) - s(x1 - px, z0 - pz) + s(x0 - px, z0 - pz)
+}
+
+/// Irradiance / π on an upward plane under a uniform upper-hemisphere sky `l`, with a
+/// black sphere of radius `r` centred `h` above a point at horizontal distance `s`: the
+/// sphere, fully above the horizon when h > r, hides the projected solid angle
+/// π sin²α cos θ (sin α = r/d, cos θ = h/d, d² = s² + h²).
+pub fn sphere_occlusion(l: f64, r: f64, h: f64, s: f64) -> f64 {
+    let d2 = s * s + h * h;
+    l * (1.0 - r * r / d2 * (h / d2.sqrt()))
+}
+
+/// The answer at a texel: world-space sample point and geometric normal in, irradiance / π
+/// out, `None` where the scene has no closed form.
+pub type Analytic = fn(p: DVec3, n: Vec3) -> Option<Vec3>;
+
+/// A scene with the lighting and resolution it is baked at.
+pub struct LibraryScene {
+    pub name: &'static str,
+    pub description: &'static str,
+    pub builder: SceneBuilder,
+    pub lighting: Lighting,
+    pub resolution: u32,
+    pub analytic: Option<Analytic>,
+}
+
+fn sky(l: f32) -> Lighting {
+    Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::splat(l),
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: None,
+    }
+}
+
+/// Closed cube of side 2 with inward faces, albedo ρ, emitting Le = 1 − ρ: answer 1.
+pub fn closed_box(rho: f32) -> SceneBuilder {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::emissive("wall", [rho; 3], [1.0 - rho; 3]));
+    for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
+        b.square(&format!("face {n}"), -n, 2.0, n, m);
+    }
+    b
+}
+
+/// A 10 m grey plane at y = 0 facing up.
+pub fn sky_plane() -> SceneBuilder {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("ground", Vec3::ZERO, 10.0, Vec3::Y, m);
+    b
+}
+
+/// A black 6 m plane and a black sphere of radius 1 centred 2 m above it.
+pub fn sphere_over_plane() -> SceneBuilder {
+    let mut b = SceneBuilder::new();
+    let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
+    b.square("ground", Vec3::ZERO, 6.0, Vec3::Y, black);
+    b.sphere("ball", Vec3::new(0.0, 2.0, 0.0), 1.0, 96, 48, black);
+    b
+}
+
+/// Two coaxial black unit squares 1 m apart, the upper one emitting 1 downward.
+pub fn parallel_plates() -> SceneBuilder {
+    let mut b = SceneBuilder::new();
+    let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
+    let lamp = b.material(MaterialDesc::emissive("lamp", [0.0; 3], [1.0; 3]));
+    b.square("receiver", Vec3::ZERO, 1.0, Vec3::Y, black);
+    b.square("emitter", Vec3::new(0.0, 1.0, 0.0), 1.0, Vec3::NEG_Y, lamp);
+    b
+}
+
+/// About 25 000 triangles: 40 boxes of subdivided faces (8 × 8 cells a face, 640
+/// triangles a box) on a ground plane, under the sky.
+pub fn procedural_blocks() -> SceneBuilder {
+    let mut b = SceneBuilder::new();
+    let ground = b.material(MaterialDesc::diffuse("ground", [0.6, 0.55, 0.5]));
+    let colours = [[0.8, 0.3, 0.2], [0.3, 0.6, 0.3], [0.7, 0.7, 0.7], [0.2, 0.3, 0.7]];
+    let mats: Vec<usize> = colours
+        .iter()
+        .enumerate()
+        .map(|(i, c)| b.material(MaterialDesc::diffuse(&format!("block {i}"), *c)))
+        .collect();
+    b.quad_grid(
+        "ground",
+        Vec3::new(-10.0, 0.0, 10.0),
+        Vec3::X * 20.0,
+        Vec3::NEG_Z * 20.0,
+        8,
+        ground,
+    );
+    let mut state = 12345u32;
+    let mut rnd = || {
+        // A fixed LCG: the scene must be the same on every machine and version.
+        state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+        (state >> 8) as f32 / 16_777_216.0
+    };
+    for k in 0..40 {
+        let (i, j) = ((k % 8) as f32, (k / 8) as f32);
+        let centre = Vec3::new(-8.0 + i * 2.3 + rnd() * 0.4, 0.0, -6.0 + j * 3.0 + rnd() * 0.4);
+        let half = Vec3::new(0.4 + rnd() * 0.4, 0.3 + rnd() * 1.2, 0.4 + rnd() * 0.4);
+        let m = mats[k % mats.len()];
+        let c = centre + Vec3::Y * half.y;
+        let faces = [
+            (Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
+            (Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
+            (Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
+            (Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
+            (Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
+        ];
+        for (f, (n, d, u, v)) in faces.into_iter().enumerate() {
+            let centre = c + n * d;
+            b.quad_grid(&format!("block {k} face {f}"), centre - u - v, 2.0 * u, 2.0 * v, 8, m);
+        }
+    }
+    b
+}
+
+/// Every benchmark scene of issue 5, in a fixed order.
+pub fn benchmark_scenes() -> Vec<LibraryScene> {
+    vec![
+        LibraryScene {
+            name: "closed-box-0.5",
+            description: "closed cube, albedo 0.5, Le 0.5 everywhere: lightmap 1",
+            builder: closed_box(0.5),
+            lighting: Lighting::default(),
+            resolution: 48,
+            analytic: Some(|_, _| Some(Vec3::ONE)),
+        },
+        LibraryScene {
+            name: "closed-box-0.9",
+            description: "closed cube, albedo 0.9, Le 0.1 everywhere: lightmap 1",
+            builder: closed_box(0.9),
+            lighting: Lighting::default(),
+            resolution: 48,
+            analytic: Some(|_, _| Some(Vec3::ONE)),
+        },
+        LibraryScene {
+            name: "sky-plane",
+            description: "upward plane under a uniform upper sky of 1: lightmap 1",
+            builder: sky_plane(),
+            lighting: sky(1.0),
+            resolution: 32,
+            analytic: Some(|_, _| Some(Vec3::ONE)),
+        },
+        LibraryScene {
+            name: "sphere-over-plane",
+            description: "black sphere r = 1 centred 2 m over a black plane, sky 1: 1 - sin²α cos θ on the plane",
+            builder: sphere_over_plane(),
+            lighting: sky(1.0),
+            resolution: 98,
+            analytic: Some(|p, n| {
+                (n.y > 0.99 && p.y.abs() < 0.01)
+                    .then(|| Vec3::splat(sphere_occlusion(1.0, 1.0, 2.0 - p.y, (p.x * p.x + p.z * p.z).sqrt()) as f32))
+            }),
+        },
+        LibraryScene {
+            name: "parallel-plates",
+            description: "unit squares 1 m apart, upper emits 1, both black: the receiver reads the form factor",
+            builder: parallel_plates(),
+            lighting: Lighting::default(),
+            resolution: 62,
+            analytic: Some(|p, n| {
+                if n.y > 0.99 {
+                    Some(Vec3::splat(
+                        rect_form_factor(p.x, p.z, -0.5, 0.5, -0.5, 0.5, 1.0 - p.y) as f32
+                    ))
+                } else {
+                    Some(Vec3::ZERO)
+                }
+            }),
+        },
+        LibraryScene {
+            name: "cornell-box",
+            description: "the bundled Cornell box (reference: converged path bake)",
+            builder: cornell_box(),
+            lighting: Lighting::default(),
+            resolution: 64,
+            analytic: None,
+        },
+        LibraryScene {
+            name: "blocks-25k",
+            description: "40 subdivided boxes on a ground plane under the sky, 25 728 triangles (reference: converged path bake)",
+            builder: procedural_blocks(),
+            lighting: sky(1.0),
+            resolution: 128,
+            analytic: None,
+        },
+    ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn form_factor_of_the_unit_square_at_unit_distance() {
+        assert!((rect_form_factor(0.0, 0.0, -0.5, 0.5, -0.5, 0.5, 1.0) - 0.23946).abs() < 1e-5);
+    }
+
+    #[test]
+    fn sphere_occlusion_below_the_centre() {
+        assert!((sphere_occlusion(1.0, 1.0, 2.0, 0.0) - 0.75).abs() < 1e-12);
+    }
+
+    #[test]
+    fn procedural_scene_has_about_25k_triangles() {
+        let b = procedural_blocks();
+        let tris: usize = b.meshes.iter().map(|m| m.indices.len() / 3).sum();
+        assert_eq!(tris, 128 + 40 * 5 * 128);
+    }
+}

@@ -1,0 +1,360 @@
+//! The stiff and extreme cases of DESIGN §5, for every technique (issue 6). The suite is
+//! table-driven: `stability_suite!` generates one test per case for a technique row, so
+//! a new technique adds one line at the bottom with the bias it is allowed.
+//!
+//! Every case asserts a value; the figures each prints (run with `--nocapture`) are the
+//! ones in `docs/stability.md`.
+
+mod common;
+
+use std::ops::ControlFlow;
+use std::sync::Arc;
+
+use common::{assert_unbiased, bake, import, lum};
+use glam::Vec3;
+use lightmapd::engine::atlas::Texel;
+use lightmapd::engine::bake::{BakeEvent, StopCriteria};
+use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
+use lightmapd::engine::output::OutputLayer;
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box, write_glb};
+use lightmapd::engine::scene::library::{closed_box as closed_box_builder, rect_form_factor};
+use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, import_slice};
+use serde_json::{Value, json};
+
+/// A technique under test: its parameters, a step budget scale, and the relative bias
+/// it is allowed on top of its noise (0 for an unbiased technique).
+#[derive(Clone)]
+pub struct Row {
+    pub technique: &'static str,
+    pub params: Value,
+    pub bias: f64,
+}
+
+fn upper_sky(l: f32) -> Lighting {
+    Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::splat(l),
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: None,
+    }
+}
+
+fn closed_box(rho: f32) -> Scene {
+    import(&closed_box_builder(rho))
+}
+
+/// Closed box, Le = 1 − ρ so the answer is 1 whatever ρ: the stiff case where hundreds
+/// or thousands of bounces matter.
+pub fn stiff_closed_box(row: &Row, rho: f32) {
+    let (atlas, est) = bake(
+        closed_box(rho),
+        16,
+        Lighting::default(),
+        row.technique,
+        row.params.clone(),
+        8,
+    );
+    let (dev, se, _) = assert_unbiased(
+        &atlas,
+        &est,
+        |_| true,
+        |_| Vec3::ONE,
+        row.bias,
+        &format!("{} closed box rho={rho}", row.technique),
+    );
+    // The issue's bound: within 2 % (and the data must be able to show it).
+    assert!(
+        dev.abs() < 0.02 && 5.0 * se < 0.02,
+        "deviation {dev}, standard error {se}"
+    );
+}
+
+/// An emitter of radiance 1e6 on 1 cm² (area 1e-4) 1 m above a black plane, beside a sky
+/// of 1e-3: no NaN or infinity, and the plane reads the small source's form factor.
+pub fn tiny_bright_emitter(row: &Row) {
+    let mut b = SceneBuilder::new();
+    let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
+    let lamp = b.material(MaterialDesc::emissive("lamp", [0.0; 3], [1e6; 3]));
+    b.square("ground", Vec3::ZERO, 4.0, Vec3::Y, black);
+    b.square("lamp", Vec3::new(0.0, 1.0, 0.0), 0.01, Vec3::NEG_Y, lamp);
+    let scene = import(&b);
+    let offset = scene.origin_offset.as_vec3();
+    let sky = 1e-3f32;
+    // The ground chart is centred at u = v = 0.25: a texel centre for W = 62.
+    let (atlas, est) = bake(scene, 62, upper_sky(sky), row.technique, row.params.clone(), 8);
+    assert!(est.total.iter().all(|v| v.is_finite()), "non-finite texel");
+    let on_ground = |t: &Texel| t.geo_normal.y > 0.99 && (t.position.y + offset.y).abs() < 0.01;
+    let expected = |t: &Texel| {
+        let p = t.position + offset;
+        let f = rect_form_factor(p.x as f64, p.z as f64, -0.005, 0.005, -0.005, 0.005, 1.0 - p.y as f64);
+        // The lamp's own square hides that much sky.
+        Vec3::splat((1e6 * f + sky as f64 * (1.0 - f)) as f32)
+    };
+    assert_unbiased(
+        &atlas,
+        &est,
+        on_ground,
+        expected,
+        row.bias,
+        &format!("{} tiny bright emitter", row.technique),
+    );
+    // Directly below: about Le·A/(π h²) = 31.8.
+    let centre = atlas
+        .texels
+        .iter()
+        .position(|t| on_ground(t) && (t.position + offset).x.abs() < 1e-4 && (t.position + offset).z.abs() < 1e-4);
+    let k = centre.expect("a texel near the axis");
+    assert!(
+        (lum(est.total[k]) - 31.83).abs() < 0.05 * 31.83,
+        "below the lamp: {}",
+        est.total[k]
+    );
+}
+
+/// The Cornell box baked as given, scaled by 1e-3 and 1e4, and translated by 1e5: the
+/// lightmap may differ by at most 1 % RMS (irradiance does not depend on scale or place).
+pub fn scale_and_translation_invariance(row: &Row) {
+    let (json, bin) = cornell_box().to_gltf();
+    let bake_with = |transform: Option<Value>| {
+        let mut json = json.clone();
+        if let Some(t) = transform {
+            let n = json["nodes"].as_array().unwrap().len();
+            let mut parent = t;
+            parent["children"] = json!((0..n).collect::<Vec<_>>());
+            json["nodes"].as_array_mut().unwrap().push(parent);
+            json["scenes"][0]["nodes"] = json!([n]);
+        }
+        let scene = import_slice(&write_glb(&json, &bin), None).unwrap().0;
+        bake(scene, 32, Lighting::default(), row.technique, row.params.clone(), 4).1
+    };
+    let base = bake_with(None);
+    let rms = |v: &[Vec3]| (v.iter().map(|x| lum(*x).powi(2)).sum::<f64>() / v.len() as f64).sqrt();
+    for (name, t) in [
+        ("scaled 1e-3", json!({"scale": [1e-3, 1e-3, 1e-3]})),
+        ("scaled 1e4", json!({"scale": [1e4, 1e4, 1e4]})),
+        ("translated 1e5", json!({"translation": [1e5, 1e5, -1e5]})),
+    ] {
+        let other = bake_with(Some(t));
+        let diff: Vec<Vec3> = base.total.iter().zip(&other.total).map(|(a, b)| *a - *b).collect();
+        let rel = rms(&diff) / rms(&base.total);
+        eprintln!("{} {name}: RMS difference {rel:.2e}", row.technique);
+        assert!(rel <= 0.01, "{name}: RMS difference {rel}");
+    }
+}
+
+/// Zero-area, sliver and coplanar duplicate triangles on a plane under the sky: import
+/// drops what has no area, nothing is NaN, and the plane still reads the sky.
+pub fn degenerate_and_coplanar_geometry(row: &Row) {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("ground", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.square("ground copy", Vec3::ZERO, 4.0, Vec3::Y, m); // coplanar, its own chart
+    // A sliver 1e-7 m wide and a triangle with two equal vertices, floating above.
+    let sliver = b.quad(
+        "sliver",
+        Vec3::new(-1.0, 1.0, 0.0),
+        Vec3::new(2.0, 0.0, 0.0),
+        Vec3::new(0.0, 0.0, 1e-7),
+        m,
+    );
+    b.meshes[sliver].indices.extend([0, 0, 1]);
+    let (json, bin) = b.to_gltf();
+    let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert!(report.degenerate_triangles >= 1, "the zero-area triangle is dropped");
+    let offset = scene.origin_offset.as_vec3();
+    let (atlas, est) = bake(scene, 48, upper_sky(1.0), row.technique, row.params.clone(), 4);
+    assert!(est.total.iter().all(|v| v.is_finite()));
+    // Ground texels away from the sliver's shadow (|z| > 0.5) see the whole sky.
+    let open = |t: &Texel| {
+        let p = t.position + offset;
+        t.geo_normal.y > 0.99 && p.y.abs() < 0.01 && p.z.abs() > 0.5
+    };
+    assert_unbiased(
+        &atlas,
+        &est,
+        open,
+        |_| Vec3::ONE,
+        row.bias,
+        &format!("{} coplanar ground", row.technique),
+    );
+}
+
+/// Two closed rooms sharing a wall 1 mm thick (a tenth of a texel here): one lit by an
+/// emissive ceiling, one dark. Whatever the dark room reads is leaked light.
+pub fn thin_wall_leak(row: &Row) -> f64 {
+    let mut b = SceneBuilder::new();
+    let wall = b.material(MaterialDesc::diffuse("wall", [0.5; 3]));
+    let lamp = b.material(MaterialDesc::emissive("lamp", [0.5; 3], [1.0; 3]));
+    let room = |b: &mut SceneBuilder, centre: Vec3, name: &str, ceiling: usize| {
+        for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
+            let mat = if n == Vec3::NEG_Y { ceiling } else { wall };
+            b.square(&format!("{name} {n}"), centre - n, 2.0, n, mat);
+        }
+    };
+    room(&mut b, Vec3::new(-1.0, 0.0, 0.0), "lit", lamp);
+    room(&mut b, Vec3::new(1.001, 0.0, 0.0), "dark", wall);
+    let scene = import(&b);
+    let offset = scene.origin_offset.as_vec3();
+    let (atlas, est) = bake(scene, 64, Lighting::default(), row.technique, row.params.clone(), 4);
+    let (mut lit, mut dark, mut nl, mut nd) = (0.0, 0.0, 0, 0);
+    for (k, t) in atlas.texels.iter().enumerate() {
+        if (t.position + offset).x < 0.0 {
+            lit += lum(est.total[k]);
+            nl += 1;
+        } else {
+            dark += lum(est.total[k]);
+            nd += 1;
+        }
+    }
+    let leak = (dark / nd as f64) / (lit / nl as f64);
+    eprintln!(
+        "{} thin wall: dark room / lit room = {leak:.2e} ({nd} and {nl} texels)",
+        row.technique
+    );
+    leak
+}
+
+/// Values far beyond half-float range survive to the EXR unclamped.
+pub fn beyond_half_float(row: &Row) {
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    let lamp = b.material(MaterialDesc::emissive("lamp", [0.0; 3], [1e6; 3]));
+    b.square("ground", Vec3::ZERO, 1.0, Vec3::Y, grey);
+    b.square("lamp", Vec3::new(0.0, 0.05, 0.0), 1.0, Vec3::NEG_Y, lamp);
+    let scene = Arc::new(import(&b));
+    let request = BakeRequest {
+        technique: row.technique.into(),
+        resolution: 32,
+        stop: StopCriteria {
+            steps: Some(4),
+            ..Default::default()
+        },
+        params: row.params.clone(),
+        outputs: vec![OutputLayer::Validity],
+        ..Default::default()
+    };
+    let result = job::bake(
+        scene,
+        &request,
+        &BakeOptions::default(),
+        &mut |_: BakeEvent<'_>| ControlFlow::Continue(()),
+        &mut |_| {},
+        &mut |_| {},
+    )
+    .unwrap();
+    let peak = result
+        .estimate
+        .total
+        .iter()
+        .map(|v| v.max_element())
+        .fold(0.0f32, f32::max);
+    assert!(
+        peak > 1e5,
+        "the ground under a 1e6 lamp 5 cm away reads about 1e6 × 0.9, got {peak}"
+    );
+    use exr::prelude::{ReadChannels, ReadLayers};
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(result.exr))
+        .unwrap();
+    let r = image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .find(|c| c.name.to_string() == "R")
+        .unwrap();
+    let exr_peak = r.sample_data.values_as_f32().fold(0.0f32, f32::max);
+    assert_eq!(
+        exr_peak, peak,
+        "the EXR holds the float32 value, not a half-float 65504"
+    );
+}
+
+/// No light anywhere: exact zeros, an error of 0 (not NaN), and a plan that says so.
+pub fn no_light_at_all(row: &Row) {
+    let scene = import(&cornell_box().materials.iter().fold(cornell_box(), |mut b, _| {
+        for m in &mut b.materials {
+            m.emission = [0.0; 3];
+        }
+        b
+    }));
+    let (_, est) = bake(
+        scene.clone(),
+        24,
+        Lighting::default(),
+        row.technique,
+        row.params.clone(),
+        4,
+    );
+    assert!(est.total.iter().all(|v| *v == Vec3::ZERO));
+    assert_eq!(est.error.relative, Some(0.0));
+    let request = BakeRequest {
+        technique: row.technique.into(),
+        ..Default::default()
+    };
+    let plan = lightmapd::engine::plan::build(&scene, &request).unwrap();
+    assert!(plan.left_out.iter().any(|p| p.name == "light"), "{plan:?}");
+}
+
+/// One test per case for technique row `$row` in module `$name`; `$leak` is the largest
+/// thin-wall leak the technique is allowed.
+macro_rules! stability_suite {
+    ($name:ident, $row:expr, leak <= $leak:expr) => {
+        mod $name {
+            use super::*;
+            fn row() -> Row {
+                $row
+            }
+            #[test]
+            fn closed_box_rho_0_99() {
+                stiff_closed_box(&row(), 0.99);
+            }
+            #[test]
+            fn closed_box_rho_0_999() {
+                stiff_closed_box(&row(), 0.999);
+            }
+            #[test]
+            fn tiny_bright_emitter_beside_dim_sky() {
+                tiny_bright_emitter(&row());
+            }
+            #[test]
+            fn scale_and_translation() {
+                scale_and_translation_invariance(&row());
+            }
+            #[test]
+            fn degenerate_and_coplanar() {
+                degenerate_and_coplanar_geometry(&row());
+            }
+            #[test]
+            fn thin_wall() {
+                let leak = thin_wall_leak(&row());
+                assert!(leak <= $leak, "leak {leak} above {}", $leak);
+            }
+            #[test]
+            fn values_beyond_half_float() {
+                beyond_half_float(&row());
+            }
+            #[test]
+            fn no_light() {
+                no_light_at_all(&row());
+            }
+        }
+    };
+}
+
+// The reference is unbiased: no bias allowance, and a closed wall must not leak at all
+// beyond rays slipping through the cracks of non-watertight triangle tests (< 1e-4).
+stability_suite!(
+    path,
+    Row {
+        technique: "path",
+        params: json!({"samples_per_step": 4}),
+        bias: 0.0
+    },
+    leak <= 1e-4
+);
