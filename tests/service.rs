@@ -188,6 +188,9 @@ async fn happy_path_upload_bake_follow_download() {
     assert_eq!(job["progress"]["fraction"], 1.0);
     assert_eq!(job["spec"]["technique"], "path");
     assert_eq!(job["plan"]["texel_set"]["width"], 16);
+    assert_eq!(job["plan"]["technique"], "path");
+    assert!(!job["plan"]["passes"].as_array().unwrap().is_empty(), "{job:#}");
+    assert!(job["plan"]["left_out"].is_array(), "{job:#}");
     assert_eq!(job["summary"]["stopped_by"], "steps");
     let history = job["history"].as_array().unwrap();
     assert!(!history.is_empty(), "{job:#}");

@@ -242,6 +242,8 @@ impl JobSpec {
             params: self.params.clone(),
             outputs: self.outputs.iter().filter_map(|o| OutputLayer::parse(o).ok()).collect(),
             seed: self.seed,
+            // Not part of the job body (DESIGN §7): the engine's default (denoised).
+            denoise: BakeRequest::default().denoise,
         }
     }
 }

@@ -33,6 +33,7 @@ use tracing::Instrument;
 use crate::engine::atlas::Atlas;
 use crate::engine::bake::{BakeEvent, StopReason};
 use crate::engine::job::{self, BakeOptions, BakeResult};
+use crate::engine::plan::Plan;
 use crate::engine::scene::{self, Scene};
 use crate::engine::technique::EngineError;
 use crate::service::model::{HistoryPoint, JobStatus, Progress};
@@ -214,7 +215,7 @@ async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<St
     let mut shutdown = state.shutdown.clone();
     let mut stopping = false;
     let mut written_progress: Option<Progress> = None;
-    let mut plan_written = false;
+    let mut written_plan: Option<Value> = None;
     let mut last_renewal = Instant::now();
     let mut snapshots = job.snapshots;
     let lease = state.config.lease;
@@ -226,7 +227,7 @@ async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<St
                     match store_snapshot(state, &job.id, snapshots + 1, files).await {
                         Ok(()) => {
                             snapshots += 1;
-                            let update = JobUpdate { snapshots: Some(snapshots), ..collect(&shared, &mut written_progress, &mut plan_written, true) };
+                            let update = JobUpdate { snapshots: Some(snapshots), ..collect(&shared, &mut written_progress, &mut written_plan, true) };
                             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
                             tracing::debug!(snapshot = snapshots, "snapshot stored");
                         }
@@ -235,7 +236,7 @@ async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<St
                 }
             }
             _ = ticker.tick() => {
-                let update = collect(&shared, &mut written_progress, &mut plan_written, false);
+                let update = collect(&shared, &mut written_progress, &mut written_plan, false);
                 let changed = update.progress.is_some() || update.plan.is_some();
                 if (changed || last_renewal.elapsed() >= lease / 3) && flag.get() != StopSignal::LeaseLost {
                     beat(state, job, worker, &update, &flag, &mut last_renewal).await;
@@ -256,7 +257,7 @@ async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<St
             snapshots += 1;
             let update = JobUpdate {
                 snapshots: Some(snapshots),
-                ..collect(&shared, &mut written_progress, &mut plan_written, true)
+                ..collect(&shared, &mut written_progress, &mut written_plan, true)
             };
             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
         }
@@ -309,16 +310,22 @@ async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<St
 }
 
 /// The parts of the shared state not yet written.
-fn collect(shared: &Shared, written: &mut Option<Progress>, plan_written: &mut bool, with_history: bool) -> JobUpdate {
+fn collect(
+    shared: &Shared,
+    written: &mut Option<Progress>,
+    written_plan: &mut Option<Value>,
+    with_history: bool,
+) -> JobUpdate {
     let mut u = JobUpdate::default();
     let p = shared.progress.lock().ok().and_then(|p| *p);
     if p.is_some() && p != *written {
         u.progress = p.and_then(|p| serde_json::to_value(p).ok());
         *written = p;
     }
-    if !*plan_written && let Some(plan) = shared.plan.lock().ok().and_then(|p| p.clone()) {
-        u.plan = Some(plan);
-        *plan_written = true;
+    let plan = shared.plan.lock().ok().and_then(|p| p.clone());
+    if plan.is_some() && plan != *written_plan {
+        u.plan = plan.clone();
+        *written_plan = plan;
     }
     if with_history {
         u.history = shared.history.lock().ok().and_then(|h| serde_json::to_value(&*h).ok());
@@ -438,20 +445,20 @@ fn run_bake(
     let request = spec.to_request();
     let options = BakeOptions { snapshot_interval };
     let atlas: OnceLock<Arc<Atlas>> = OnceLock::new();
+    // The engine's plan (passes run and left out, with reasons) comes first; the texel
+    // set is added to it once it is built.
+    let mut on_plan = |plan: &Plan| {
+        let mut v = serde_json::to_value(plan).unwrap_or_else(|_| json!({}));
+        v["resolution"] = json!(request.resolution);
+        if let Ok(mut p) = shared.plan.lock() {
+            *p = Some(v);
+        }
+    };
     let mut on_atlas = |a: &Arc<Atlas>| {
         let _ = atlas.set(a.clone());
-        let plan = json!({
-            "technique": request.technique,
-            "resolution": request.resolution,
-            "texel_set": a.report(),
-            "layers": std::iter::once("rgb".to_string())
-                .chain(spec.outputs.iter().cloned())
-                .collect::<Vec<_>>(),
-            "lighting": spec.lighting,
-            "stop": spec.stop,
-        });
         if let Ok(mut p) = shared.plan.lock() {
-            *p = Some(plan);
+            let plan = p.get_or_insert_with(|| json!({}));
+            plan["texel_set"] = json!(a.report());
         }
         tracing::info!(texels = a.report().valid_texels, "texel set built");
     };
@@ -493,7 +500,8 @@ fn run_bake(
                     && let Some(a) = atlas.get()
                 {
                     let exr = job::snapshot_exr(a, estimate, &request, &request.params, elapsed);
-                    let png = job::preview_png(a, estimate);
+                    // The preview shows what the EXR holds (denoised when the job is).
+                    let png = job::preview_png(a, &job::finish(a, estimate, &request));
                     match (exr, png) {
                         (Ok(exr), Ok(png)) => {
                             last_stored = Some(elapsed);
@@ -510,5 +518,12 @@ fn run_bake(
             ControlFlow::Break(())
         }
     };
-    job::bake(Arc::new(scene), &request, &options, &mut observer, &mut on_atlas)
+    job::bake(
+        Arc::new(scene),
+        &request,
+        &options,
+        &mut observer,
+        &mut on_atlas,
+        &mut on_plan,
+    )
 }
