@@ -878,3 +878,67 @@ async fn openapi_lists_every_route() {
     }
     s.running.shutdown().await;
 }
+
+#[test]
+fn worker_process_runs_the_jobs_of_an_api_only_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut api = spawn_serve(dir.path(), 0);
+    let mut worker = Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+        .arg("worker")
+        .arg("--database-url")
+        .arg(format!("sqlite://{}", dir.path().join("lightmapd.db").display()))
+        .arg("--store")
+        .arg(dir.path().join("objects"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let events = rt.block_on(async {
+        let http = reqwest::Client::new();
+        let scene: Value = http
+            .post(format!("{}/v1/scenes", api.url))
+            .body(glb())
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        let job: Value = http
+            .post(format!("{}/v1/jobs", api.url))
+            .json(&json!({"scene": scene["id"], "resolution": 16, "stop": {"steps": 4}}))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        // The API process learns of the other process's progress by polling its database.
+        read_events(
+            &http,
+            &format!("{}/v1/jobs/{}/events", api.url, job["id"].as_str().unwrap()),
+        )
+        .await
+    });
+    let (last, job) = events.last().unwrap();
+    assert_eq!(last, "done");
+    assert_eq!(job["progress"]["steps"], 4);
+    assert_eq!(job["status"], "succeeded");
+    sigterm(&worker);
+    assert!(worker.wait().unwrap().success());
+    sigterm(&api.child);
+    assert!(api.child.wait().unwrap().success());
+
+    // Only SQLite exists so far: another URL is bad input (exit code 2).
+    let out = Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+        .args(["worker", "--database-url", "postgres://db/lightmapd", "--store"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("only sqlite:// is implemented"));
+}
