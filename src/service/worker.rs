@@ -138,6 +138,8 @@ struct Shared {
 struct SnapshotFiles {
     exr: Vec<u8>,
     png: Vec<u8>,
+    steps: u64,
+    error: Option<f32>,
 }
 
 async fn run_job(state: &AppState, worker: &str, job: JobRecord, _engine: &Arc<EngineShared>) {
@@ -224,12 +226,13 @@ async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<St
             r = &mut bake => break r,
             Some(files) = snap_rx.recv() => {
                 if flag.get() != StopSignal::LeaseLost {
+                    let (step, error) = (files.steps, files.error);
                     match store_snapshot(state, &job.id, snapshots + 1, files).await {
                         Ok(()) => {
                             snapshots += 1;
                             let update = JobUpdate { snapshots: Some(snapshots), ..collect(&shared, &mut written_progress, &mut written_plan, true) };
                             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
-                            tracing::debug!(snapshot = snapshots, "snapshot stored");
+                            tracing::info!(snapshot = snapshots, step, error, "snapshot stored");
                         }
                         Err(e) => tracing::error!(error = %e, "cannot store a snapshot"),
                     }
@@ -287,6 +290,13 @@ async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<St
             }
         }
         (_, Ok(r)) => {
+            tracing::info!(
+                step = r.summary.steps,
+                seconds = r.summary.seconds,
+                error = r.summary.error.relative,
+                stopped_by = ?r.summary.stopped_by,
+                "bake finished"
+            );
             state.metrics.observe_bake(&job.spec.technique, r.summary.seconds);
             if let Err(e) = store_final(state, &job.id, &r).await {
                 return End::Finish(Outcome::Failed {
@@ -505,7 +515,12 @@ fn run_bake(
                     match (exr, png) {
                         (Ok(exr), Ok(png)) => {
                             last_stored = Some(elapsed);
-                            let _ = snapshots.send(SnapshotFiles { exr, png });
+                            let _ = snapshots.send(SnapshotFiles {
+                                exr,
+                                png,
+                                steps: estimate.steps,
+                                error: estimate.error.relative,
+                            });
                         }
                         (Err(e), _) | (_, Err(e)) => tracing::error!(error = %e, "cannot encode a snapshot"),
                     }
