@@ -942,3 +942,58 @@ fn worker_process_runs_the_jobs_of_an_api_only_server() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("only sqlite:// is implemented"));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn gltf_with_external_buffer_uploads_as_multipart_and_bakes() {
+    let s = start(1, |_| {}).await;
+    let (mut gltf, bin) = lightmapd::engine::scene::build::cornell_box().to_gltf();
+    gltf["buffers"][0]["uri"] = json!("cornell%20box.bin");
+    let gltf_bytes = serde_json::to_vec(&gltf).unwrap();
+    let dir = s._dir.path().join("upload");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("cornell.gltf"), &gltf_bytes).unwrap();
+    std::fs::write(dir.join("cornell box.bin"), &bin).unwrap();
+
+    // A part the .gltf refers to is missing: 422 naming the URI.
+    let form = reqwest::multipart::Form::new().part(
+        "cornell.gltf",
+        reqwest::multipart::Part::bytes(gltf_bytes.clone()).file_name("cornell.gltf"),
+    );
+    expect_problem(
+        s.http.post(format!("{}/v1/scenes", s.url)).multipart(form),
+        422,
+        problem(
+            422,
+            "Unprocessable Entity",
+            "invalid-field",
+            "cornell.gltf refers to \"cornell%20box.bin\", which is not among the uploaded parts",
+            Some("buffers[0].uri"),
+        ),
+    )
+    .await;
+
+    // `lightmapd submit` sends the .gltf and the file it names.
+    let (url, path) = (s.url.clone(), dir.join("cornell.gltf"));
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+            .arg("submit")
+            .arg(path)
+            .args(["--server", &url, "--resolution", "16", "--steps", "2", "--wait"])
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let job: Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(job["status"], "succeeded");
+    let scene = get_json(
+        &s.http,
+        &format!("{}/v1/scenes/{}", s.url, job["scene"].as_str().unwrap()),
+    )
+    .await;
+    assert_eq!(scene["format"], "gltf");
+    assert_eq!(scene["files"], json!(["cornell.gltf", "cornell box.bin"]));
+    assert_eq!(scene["report"]["has_lightmap_uvs"], true);
+    s.running.shutdown().await;
+}

@@ -19,7 +19,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::{Value, json};
 
 use crate::engine::output::write_atomically;
-use crate::service::model::{JobView, Progress};
+use crate::service::model::{JobView, Progress, uri_file_name};
 use crate::service::problem::Problem;
 
 /// What `lightmapd submit` does.
@@ -182,13 +182,12 @@ fn scene_request(http: &reqwest::Client, server: &str, path: &Path) -> Result<re
         for item in json[kind].as_array().into_iter().flatten() {
             if let Some(uri) = item["uri"].as_str()
                 && !uri.starts_with("data:")
-                && seen.insert(uri.to_string())
             {
-                let bytes = read(&dir.join(uri))?;
-                form = form.part(
-                    uri.to_string(),
-                    reqwest::multipart::Part::bytes(bytes).file_name(uri.to_string()),
-                );
+                let file = uri_file_name(uri);
+                if seen.insert(file.clone()) {
+                    let bytes = read(&dir.join(&file))?;
+                    form = form.part(file.clone(), reqwest::multipart::Part::bytes(bytes).file_name(file));
+                }
             }
         }
     }

@@ -431,6 +431,28 @@ pub struct Health {
     pub workers: usize,
 }
 
+/// The file name a relative glTF URI names: percent-decoded (`quad%20data.bin` is the
+/// file `quad data.bin`), as the importer reads it.
+pub fn uri_file_name(uri: &str) -> String {
+    let b = uri.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        let hex = |c: u8| (c as char).to_digit(16);
+        if b[i] == b'%'
+            && i + 2 < b.len()
+            && let (Some(h), Some(l)) = (hex(b[i + 1]), hex(b[i + 2]))
+        {
+            out.push((h * 16 + l) as u8);
+            i += 3;
+        } else {
+            out.push(b[i]);
+            i += 1;
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
 /// Unix milliseconds as RFC 3339 UTC (`2026-11-01T12:00:00.000Z`).
 pub fn rfc3339(ms: i64) -> String {
     let secs = ms.div_euclid(1000);
@@ -458,6 +480,13 @@ pub fn rfc3339(ms: i64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn uri_file_names_are_percent_decoded() {
+        assert_eq!(uri_file_name("quad%20data.bin"), "quad data.bin");
+        assert_eq!(uri_file_name("plain.bin"), "plain.bin");
+        assert_eq!(uri_file_name("odd%2"), "odd%2");
+    }
 
     #[test]
     fn rfc3339_known_dates() {

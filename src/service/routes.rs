@@ -25,7 +25,9 @@ use bytes::Bytes;
 use sha2::{Digest, Sha256};
 use utoipa::OpenApi;
 
-use crate::service::model::{Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339};
+use crate::service::model::{
+    Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339, uri_file_name,
+};
 use crate::service::problem::Problem;
 use crate::service::queue::{Cancellation, JobRecord, SceneDeletion, SceneRecord, now_ms};
 use crate::service::worker::{SceneFiles, import_files};
@@ -305,7 +307,7 @@ async fn read_gltf_parts(mut mp: Multipart, max: usize) -> Result<(Vec<(String, 
         for (i, item) in json[kind].as_array().into_iter().flatten().enumerate() {
             if let Some(uri) = item["uri"].as_str()
                 && !uri.starts_with("data:")
-                && !files.iter().any(|(n, _)| n == uri)
+                && !files.iter().any(|(n, _)| *n == uri_file_name(uri))
             {
                 return Err(Problem::invalid_field(
                     format!("{kind}[{i}].uri"),
