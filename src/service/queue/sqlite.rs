@@ -142,24 +142,30 @@ impl Queue for SqliteQueue {
     }
 
     async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion> {
-        let mut tx = self.pool.begin().await?;
+        // One statement, so a job cannot be queued for the scene between the check and
+        // the delete (a read in a WAL transaction does not hold the write lock).
+        let r = sqlx::query(
+            "DELETE FROM scenes WHERE id = ?1 AND NOT EXISTS
+                 (SELECT 1 FROM jobs WHERE scene_id = ?1 AND status IN ('queued', 'running'))",
+        )
+        .bind(id)
+        .execute(&self.pool)
+        .await?;
+        if r.rows_affected() == 1 {
+            return Ok(SceneDeletion::Deleted);
+        }
         let in_use: i64 =
             sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE scene_id = ? AND status IN ('queued', 'running')")
                 .bind(id)
-                .fetch_one(&mut *tx)
+                .fetch_one(&self.pool)
                 .await?;
-        if in_use > 0 {
-            return Ok(SceneDeletion::InUse(in_use as u64));
-        }
-        let r = sqlx::query("DELETE FROM scenes WHERE id = ?")
+        let exists: Option<i64> = sqlx::query_scalar("SELECT 1 FROM scenes WHERE id = ?")
             .bind(id)
-            .execute(&mut *tx)
+            .fetch_optional(&self.pool)
             .await?;
-        tx.commit().await?;
-        Ok(if r.rows_affected() == 1 {
-            SceneDeletion::Deleted
-        } else {
-            SceneDeletion::NotFound
+        Ok(match exists {
+            None => SceneDeletion::NotFound,
+            Some(_) => SceneDeletion::InUse(in_use.max(1) as u64),
         })
     }
 
