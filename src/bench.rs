@@ -329,7 +329,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
     );
     let _ = writeln!(
         md,
-        "| scene | technique | 10 % | 5 % | 2 % | final error (estimated) |\n| --- | --- | --- | --- | --- | --- |"
+        "| scene | technique | 10 % | 5 % | 2 % | 2 % denoised | final error (estimated) | final denoised |\n| --- | --- | --- | --- | --- | --- | --- | --- |"
     );
     let mut keys: Vec<(&str, &str)> = samples
         .iter()

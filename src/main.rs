@@ -145,8 +145,8 @@ struct BenchArgs {
     /// Scenes to run (comma separated; default: all).
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
-    /// Techniques to compare (comma separated).
-    #[arg(long, value_delimiter = ',', default_value = "path")]
+    /// Techniques to compare (comma separated; default: all).
+    #[arg(long, value_delimiter = ',')]
     techniques: Vec<String>,
     /// Bake time per scene and technique.
     #[arg(long, default_value_t = 20.0)]
@@ -210,6 +210,10 @@ struct BakeArgs {
     /// Write the raw estimate, without the edge-aware denoiser.
     #[arg(long)]
     no_denoise: bool,
+    /// Also write the scene as .glb with its lightmap UVs (TEXCOORD_1), e.g. after they
+    /// were generated for a scene that had none.
+    #[arg(long)]
+    write_gltf: Option<PathBuf>,
     /// Also write a tone-mapped PNG preview here.
     #[arg(long)]
     preview: Option<PathBuf>,
@@ -565,6 +569,16 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         code: 1,
         message: format!("cannot write {}: {e}", args.output.display()),
     })?;
+    if let Some(p) = &args.write_gltf {
+        let glb = lightmapd::engine::scene::export::to_glb(&result.scene).map_err(|e| Failure {
+            code: 1,
+            message: format!("writing {}: {e}", p.display()),
+        })?;
+        write_atomically(p, &glb).map_err(|e| Failure {
+            code: 1,
+            message: format!("cannot write {}: {e}", p.display()),
+        })?;
+    }
     if let Some(p) = &args.preview {
         write_atomically(p, &result.preview_png).map_err(|e| Failure {
             code: 1,
@@ -573,6 +587,14 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
     }
     let s = &result.summary;
     eprintln!("plan: {}", s.plan.summary_line());
+    if let Some(u) = &s.generated_uvs {
+        eprintln!(
+            "generated lightmap UVs: {} charts, {:.0} % of the lightmap used, {:.1} texels per metre",
+            u.charts,
+            u.utilisation * 100.0,
+            u.texels_per_metre
+        );
+    }
     for w in &s.validation.warnings {
         eprintln!("warning: {w}");
     }
@@ -608,7 +630,14 @@ fn bench(args: BenchArgs) -> Result<(), Failure> {
     }
     let cfg = lightmapd::bench::BenchConfig {
         scenes: args.scenes,
-        techniques: args.techniques,
+        techniques: if args.techniques.is_empty() {
+            lightmapd::engine::technique::TECHNIQUES
+                .iter()
+                .map(|t| t.to_string())
+                .collect()
+        } else {
+            args.techniques
+        },
         budget: std::time::Duration::from_secs_f64(args.budget_seconds),
         reference_budget: std::time::Duration::from_secs_f64(args.reference_seconds),
         out_dir: args.out.clone(),

@@ -47,7 +47,7 @@ fn bake_writes_a_readable_exr_with_layers_and_metadata() {
             "--steps",
             "4",
             "--outputs",
-            "validity,direct,indirect",
+            "validity,direct,indirect,sh",
             "--seed",
             "7",
         ])
@@ -69,7 +69,17 @@ fn bake_writes_a_readable_exr_with_layers_and_metadata() {
     assert_eq!(layer.size.0, 32);
     assert_eq!(layer.size.1, 32);
     let names: Vec<String> = layer.channel_data.list.iter().map(|c| c.name.to_string()).collect();
-    for want in ["R", "G", "B", "direct.R", "indirect.G", "validity.Y"] {
+    for want in [
+        "R",
+        "G",
+        "B",
+        "direct.R",
+        "indirect.G",
+        "validity.Y",
+        "sh.x.R",
+        "sh.y.G",
+        "sh.z.B",
+    ] {
         assert!(names.iter().any(|n| n == want), "missing channel {want} in {names:?}");
     }
     let channel = |name: &str| -> Vec<f32> {
@@ -241,4 +251,39 @@ fn target_error_stops_a_bake_of_the_bundled_scene() {
         .unwrap();
     assert!((16..100000).contains(&steps), "{steps} steps");
     assert!(stderr.contains("plan: ran: bvh, path trace"), "{stderr}");
+}
+
+#[test]
+fn scene_without_lightmap_uvs_bakes_and_writes_them() {
+    use lightmapd::engine::scene::build::{cornell_box, write_glb};
+    let (mut json, buffer) = cornell_box().to_gltf();
+    for m in json["meshes"].as_array_mut().unwrap() {
+        m["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
+    }
+    let scene = tmp("no-uv.glb");
+    std::fs::write(&scene, write_glb(&json, &buffer)).unwrap();
+    let (out, gltf) = (tmp("no-uv.exr"), tmp("with-uv.glb"));
+    let output = bin()
+        .arg("bake")
+        .arg(&scene)
+        .arg("-o")
+        .arg(&out)
+        .arg("--write-gltf")
+        .arg(&gltf)
+        .args(["--resolution", "64", "--steps", "2"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("has no TEXCOORD_1: lightmap UVs will be generated"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("generated lightmap UVs: "), "{stderr}");
+    let (_, report) = lightmapd::engine::scene::import_file(&gltf).unwrap();
+    assert!(report.has_lightmap_uvs);
+    assert!(out.exists());
 }

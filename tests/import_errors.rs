@@ -174,16 +174,22 @@ fn lightmap_uv_outside_unit_square() {
 }
 
 #[test]
-fn no_lightmap_uvs() {
+fn no_lightmap_uvs_is_reported_not_refused() {
     let (mut json, bin) = quad_scene().to_gltf();
     json["meshes"][0]["primitives"][0]["attributes"]
         .as_object_mut()
         .unwrap()
         .remove("TEXCOORD_1");
-    let e = err_of(&json, &bin);
-    assert!(
-        e.starts_with("the scene has no lightmap UVs: mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1"),
-        "{e}"
+    let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert!(!report.has_lightmap_uvs);
+    assert!(scene.needs_lightmap_uvs);
+    assert_eq!(
+        report.warnings,
+        vec![
+            "mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1: lightmap UVs will be generated for the whole scene \
+             (bake --write-gltf saves them)"
+                .to_string()
+        ]
     );
 }
 

@@ -25,6 +25,8 @@ pub struct HalfEstimate {
     pub steps: u64,
     pub total: Vec<Vec3>,
     pub direct: Option<Vec<Vec3>>,
+    /// First moments of incident light per world axis (the `sh.*` layers), when kept.
+    pub moments: Option<Vec<[Vec3; 3]>>,
 }
 
 #[derive(Clone, Debug, Default)]
@@ -40,6 +42,7 @@ pub struct Estimate {
     /// Irradiance / π per valid texel: the full lightmap.
     pub total: Vec<Vec3>,
     pub direct: Option<Vec<Vec3>>,
+    pub moments: Option<Vec<[Vec3; 3]>>,
     /// Standard error of `total`'s luminance per texel (absolute); `None` before both
     /// halves have a step.
     pub texel_error: Option<Vec<f32>>,
@@ -68,6 +71,19 @@ impl Snapshot {
             (Some(a), Some(b)) => Some(combine(a, na, b, nb)),
             _ => None,
         };
+        let moments = match (&self.even.moments, &self.odd.moments) {
+            (Some(a), Some(b)) => {
+                let n = (na + nb).max(1) as f32;
+                let (wa, wb) = (na as f32 / n, nb as f32 / n);
+                Some(
+                    a.iter()
+                        .zip(b)
+                        .map(|(x, y)| [0, 1, 2].map(|k| x[k] * wa + y[k] * wb))
+                        .collect(),
+                )
+            }
+            _ => None,
+        };
         let count = total.len().max(1) as f64;
         let rms_luminance =
             (total.iter().map(|v| (v.dot(LUMINANCE) as f64).powi(2)).sum::<f64>() / count).sqrt() as f32;
@@ -94,6 +110,7 @@ impl Snapshot {
             steps: na + nb,
             total,
             direct,
+            moments,
             texel_error,
             error: ErrorSummary {
                 relative,
@@ -109,6 +126,7 @@ impl Snapshot {
 pub struct HalfAccumulator {
     sums: [Vec<Vec3>; 2],
     direct: Option<[Vec<Vec3>; 2]>,
+    moments: Option<[Vec<[Vec3; 3]>; 2]>,
     steps: [u64; 2],
 }
 
@@ -117,8 +135,16 @@ impl HalfAccumulator {
         HalfAccumulator {
             sums: [vec![Vec3::ZERO; texels], vec![Vec3::ZERO; texels]],
             direct: with_direct.then(|| [vec![Vec3::ZERO; texels], vec![Vec3::ZERO; texels]]),
+            moments: None,
             steps: [0, 0],
         }
+    }
+
+    /// Also keeps first moments of incident light (for the `sh.*` layers).
+    pub fn with_moments(mut self, keep: bool) -> Self {
+        let n = self.sums[0].len();
+        self.moments = keep.then(|| [vec![[Vec3::ZERO; 3]; n], vec![[Vec3::ZERO; 3]; n]]);
+        self
     }
 
     pub fn steps(&self) -> u64 {
@@ -127,7 +153,18 @@ impl HalfAccumulator {
 
     /// Adds one step's estimate; the half is the parity of the step index.
     pub fn add(&mut self, total: &[Vec3], direct: Option<&[Vec3]>) {
+        self.add_with_moments(total, direct, None);
+    }
+
+    pub fn add_with_moments(&mut self, total: &[Vec3], direct: Option<&[Vec3]>, moments: Option<&[[Vec3; 3]]>) {
         let half = (self.steps() % 2) as usize;
+        if let (Some(m), Some(v)) = (&mut self.moments, moments) {
+            for (s, v) in m[half].iter_mut().zip(v) {
+                for k in 0..3 {
+                    s[k] += v[k];
+                }
+            }
+        }
         for (s, v) in self.sums[half].iter_mut().zip(total) {
             *s += *v;
         }
@@ -146,6 +183,10 @@ impl HalfAccumulator {
                 steps: self.steps[h],
                 total: self.sums[h].iter().map(|s| *s / n).collect(),
                 direct: self.direct.as_ref().map(|d| d[h].iter().map(|s| *s / n).collect()),
+                moments: self
+                    .moments
+                    .as_ref()
+                    .map(|m| m[h].iter().map(|s| s.map(|v| v / n)).collect()),
             }
         };
         Snapshot {

@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::engine::accumulate::{ErrorSummary, Estimate};
+use crate::engine::atlas::unwrap::{self, UnwrapReport};
 use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
@@ -69,9 +70,13 @@ pub struct BakeSummary {
     pub error: ErrorSummary,
     pub plan: Plan,
     pub validation: ValidationReport,
+    /// Set when the scene had no lightmap UVs and they were generated.
+    pub generated_uvs: Option<UnwrapReport>,
 }
 
 pub struct BakeResult {
+    /// The scene as baked: with generated lightmap UVs when it had none.
+    pub scene: Arc<Scene>,
     pub exr: Vec<u8>,
     /// Tone-mapped PNG of the dilated lightmap.
     pub preview_png: Vec<u8>,
@@ -110,6 +115,14 @@ pub fn bake(
     request.stop.validate()?;
     let plan = crate::engine::plan::build(&scene, request)?;
     on_plan(&plan);
+    let (scene, unwrap) = if scene.needs_lightmap_uvs {
+        let mut generated = (*scene).clone();
+        let report = unwrap::generate_lightmap_uvs(&mut generated, request.resolution, &unwrap::UvUnwrap)
+            .map_err(|e| EngineError::BadInput(format!("generating lightmap UVs: {e}")))?;
+        (Arc::new(generated), Some(report))
+    } else {
+        (scene, None)
+    };
     let mut atlas = Atlas::build(&scene, request.resolution, request.resolution)
         .map_err(|e| EngineError::BadInput(e.to_string()))?;
     let validation = validate::validate(&scene, &mut atlas);
@@ -118,7 +131,7 @@ pub fn bake(
     on_atlas(&atlas);
     let want_direct = plan.runs("direct-light layer");
     let inputs = BakeInputs {
-        scene,
+        scene: scene.clone(),
         atlas: atlas.clone(),
         lighting: request.lighting,
         seed: request.seed,
@@ -141,8 +154,10 @@ pub fn bake(
         error: outcome.estimate.error,
         plan,
         validation,
+        generated_uvs: unwrap,
     };
     Ok(BakeResult {
+        scene,
         exr,
         preview_png,
         estimate: finished,
@@ -184,6 +199,12 @@ pub fn finish(atlas: &Atlas, estimate: &Estimate, request: &BakeRequest) -> Esti
         out.total = denoise(atlas, &estimate.total, se);
         if let Some(d) = &estimate.direct {
             out.direct = Some(denoise(atlas, d, se));
+        }
+        if let Some(m) = &estimate.moments {
+            let axes: Vec<Vec<glam::Vec3>> = (0..3)
+                .map(|k| denoise(atlas, &m.iter().map(|v| v[k]).collect::<Vec<_>>(), se))
+                .collect();
+            out.moments = Some((0..m.len()).map(|t| [axes[0][t], axes[1][t], axes[2][t]]).collect());
         }
     }
     out

@@ -104,6 +104,7 @@ pub struct SceneFeatures {
     pub double_sided_triangles: usize,
     pub want_direct: bool,
     pub want_validity: bool,
+    pub want_sh: bool,
 }
 
 impl SceneFeatures {
@@ -134,6 +135,7 @@ impl SceneFeatures {
                 .iter()
                 .any(|o| matches!(o, OutputLayer::Direct | OutputLayer::Indirect)),
             want_validity: outputs.contains(&OutputLayer::Validity),
+            want_sh: outputs.contains(&OutputLayer::Sh),
         }
     }
 

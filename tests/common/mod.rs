@@ -30,7 +30,10 @@ pub fn bake(
     let request = lightmapd::engine::job::BakeRequest {
         technique: technique.into(),
         lighting,
-        outputs: vec![lightmapd::engine::output::OutputLayer::Direct],
+        outputs: vec![
+            lightmapd::engine::output::OutputLayer::Direct,
+            lightmapd::engine::output::OutputLayer::Sh,
+        ],
         ..Default::default()
     };
     let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");

@@ -23,6 +23,7 @@
 //! texel whose sample point lies inside closed geometry is still valid here (techniques
 //! see back faces from it).
 
+pub mod unwrap;
 pub mod validate;
 
 use glam::{Vec2, Vec3};
@@ -78,6 +79,12 @@ pub struct Atlas {
     pub links: Vec<GutterLink>,
     pub overlapping_texels: u32,
     pub surface_offset: f32,
+    /// Pixels claimed by more than one triangle (for the `debug.overlap` layer).
+    pub overlap_pixels: Vec<u32>,
+    /// Pixels whose texel validation found inside closed geometry (`debug.inside`).
+    pub inside_pixels: Vec<u32>,
+    /// Sample pairs along UV seams, for `post::seams::stitch`.
+    pub seams: Vec<crate::engine::post::seams::SeamSample>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -227,7 +234,10 @@ impl Atlas {
             pixel_texel,
             links,
             overlapping_texels: overlapping.iter().filter(|o| **o).count() as u32,
+            overlap_pixels: (0..w * h).filter(|p| overlapping[*p]).map(|p| p as u32).collect(),
+            inside_pixels: Vec::new(),
             surface_offset: offset,
+            seams: crate::engine::post::seams::find_seams(scene, width, height),
         })
     }
 

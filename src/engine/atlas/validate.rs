@@ -90,6 +90,13 @@ pub fn validate(scene: &Scene, atlas: &mut Atlas) -> ValidationReport {
     let inside: Vec<bool> = fractions.iter().map(|f| *f > BACKFACE_TOLERANCE).collect();
     let inside_count = inside.iter().filter(|i| **i).count();
     if inside_count > 0 && inside_count < atlas.texels.len() {
+        atlas.inside_pixels = atlas
+            .texels
+            .iter()
+            .zip(&inside)
+            .filter(|(_, i)| **i)
+            .map(|(t, _)| t.pixel)
+            .collect();
         atlas.remove_texels(&inside);
     }
     let density = mesh_density(scene, atlas);

@@ -31,6 +31,11 @@ pub enum OutputLayer {
     Validity,
     Direct,
     Indirect,
+    /// L1 directional moments of incident light (`sh.x.*`, `sh.y.*`, `sh.z.*`).
+    Sh,
+    /// The validation report as images: `debug.inside.Y` (texels inside geometry),
+    /// `debug.overlap.Y` (overlapping charts), `debug.density.Y` (texels per metre).
+    Debug,
 }
 
 impl OutputLayer {
@@ -39,8 +44,9 @@ impl OutputLayer {
             "validity" => Ok(OutputLayer::Validity),
             "direct" => Ok(OutputLayer::Direct),
             "indirect" => Ok(OutputLayer::Indirect),
+            "sh" => Ok(OutputLayer::Sh),
             other => Err(format!(
-                "unknown output layer {other:?}; available: validity, direct, indirect"
+                "unknown output layer {other:?}; available: validity, direct, indirect, sh"
             )),
         }
     }
@@ -67,7 +73,8 @@ pub fn lightmap_channels(
 ) -> Result<Vec<(String, Vec<f32>)>, String> {
     let mut channels = Vec::new();
     let mut rgb = |prefix: &str, values: &[Vec3]| {
-        let img = post::dilate(atlas, values, rings);
+        let mut img = post::dilate(atlas, values, rings);
+        post::seams::stitch(&mut img, atlas.width, atlas.height, &atlas.pixel_texel, &atlas.seams);
         for (k, c) in ["R", "G", "B"].iter().enumerate() {
             let name = if prefix.is_empty() {
                 c.to_string()
@@ -97,8 +104,34 @@ pub fn lightmap_channels(
                     rgb("indirect", &indirect);
                 }
             }
-            OutputLayer::Validity => {}
+            OutputLayer::Sh => {
+                let m = estimate
+                    .moments
+                    .as_ref()
+                    .ok_or("the technique kept no directional (sh) layer")?;
+                for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+                    let values: Vec<Vec3> = m.iter().map(|v| v[k]).collect();
+                    rgb(&format!("sh.{axis}"), &values);
+                }
+            }
+            OutputLayer::Validity | OutputLayer::Debug => {}
         }
+    }
+    if layers.contains(&OutputLayer::Debug) {
+        let size = (atlas.width * atlas.height) as usize;
+        let mark = |pixels: &[u32]| {
+            let mut img = vec![0.0f32; size];
+            pixels.iter().for_each(|p| img[*p as usize] = 1.0);
+            img
+        };
+        channels.push(("debug.inside.Y".into(), mark(&atlas.inside_pixels)));
+        channels.push(("debug.overlap.Y".into(), mark(&atlas.overlap_pixels)));
+        let density: Vec<f32> = atlas
+            .texels
+            .iter()
+            .map(|t| if t.size > 0.0 { 1.0 / t.size } else { 0.0 })
+            .collect();
+        channels.push(("debug.density.Y".into(), post::scatter_scalar(atlas, &density)));
     }
     if layers.contains(&OutputLayer::Validity) {
         let ones = vec![1.0f32; atlas.texels.len()];

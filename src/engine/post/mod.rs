@@ -10,6 +10,7 @@
 //! seam stitching and denoising are later work.
 
 pub mod denoise;
+pub mod seams;
 
 use glam::Vec3;
 

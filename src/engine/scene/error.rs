@@ -50,6 +50,4 @@ pub enum ImportError {
     Material(String),
     #[error("the scene has no triangles to bake{0}")]
     NoTriangles(String),
-    #[error("the scene has no lightmap UVs: {0}")]
-    NoLightmapUvs(String),
 }

@@ -75,6 +75,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         }
     }
 
+    let mut scale_warnings = Vec::new();
     let mut ctx = Flatten {
         buffers: &buffers,
         triangles: Vec::new(),
@@ -84,6 +85,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
             .map(|m| MeshInfo {
                 name: m.name().unwrap_or("").to_string(),
                 index: m.index(),
+                lightmap_scale: lightmap_scale(m.extras(), m.index(), &mut scale_warnings),
             })
             .collect(),
         report: &mut report,
@@ -95,6 +97,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         Some(s) => s.nodes().collect(),
         None => gltf.nodes().collect(), // no scene: glTF allows it; bake every node once
     };
+    ctx.report.warnings.append(&mut scale_warnings);
     let mut seen_nodes = HashSet::new();
     for node in roots {
         ctx.visit(&node, DMat4::IDENTITY, &mut seen_nodes)?;
@@ -108,10 +111,10 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
     } = ctx;
 
     if !missing_lightmap_uvs.is_empty() {
-        return Err(ImportError::NoLightmapUvs(format!(
-            "{} has no TEXCOORD_1 (lightmap UV generation is not available yet: add a second UV set in your editor)",
+        report.warnings.push(format!(
+            "{} has no TEXCOORD_1: lightmap UVs will be generated for the whole scene (bake --write-gltf saves them)",
             missing_lightmap_uvs.join("; ")
-        )));
+        ));
     }
     if triangles.is_empty() {
         let why = if report.degenerate_triangles > 0 {
@@ -167,7 +170,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         .count();
     report.bounds_min = dmin.to_array();
     report.bounds_max = dmax.to_array();
-    report.has_lightmap_uvs = true;
+    report.has_lightmap_uvs = missing_lightmap_uvs.is_empty();
 
     let scene = Scene {
         triangles: tris,
@@ -177,8 +180,29 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         meshes,
         bounds,
         origin_offset: offset,
+        needs_lightmap_uvs: !missing_lightmap_uvs.is_empty(),
     };
     Ok((scene, report))
+}
+
+/// A mesh's `extras.lightmap_scale`, if it is a positive finite number (else 1, warned).
+fn lightmap_scale(extras: &gltf::json::Extras, mesh: usize, warnings: &mut Vec<String>) -> f32 {
+    let Some(raw) = extras else { return 1.0 };
+    let Ok(value) = serde_json::from_str::<serde_json::Value>(raw.get()) else {
+        return 1.0;
+    };
+    match value.get("lightmap_scale") {
+        None => 1.0,
+        Some(v) => match v.as_f64() {
+            Some(s) if s.is_finite() && s > 0.0 && s <= 1e3 => s as f32,
+            _ => {
+                warnings.push(format!(
+                    "mesh {mesh}: extras.lightmap_scale {v} is not a number in (0, 1000]; using 1"
+                ));
+                1.0
+            }
+        },
+    }
 }
 
 fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
@@ -562,13 +586,17 @@ impl Flatten<'_> {
             })?;
             let normals = read_vec3(&prim, gltf::Semantic::Normals, self.buffers, &at)?;
             let uv0 = read_vec2(&prim, 0, self.buffers, &at)?;
-            let Some(uv1) = read_vec2(&prim, 1, self.buffers, &at)? else {
-                if first_visit {
-                    self.missing_lightmap_uvs.push(at.to_string());
-                }
-                continue;
-            };
             let n = positions.len();
+            let uv1 = match read_vec2(&prim, 1, self.buffers, &at)? {
+                Some(uv1) => uv1,
+                None => {
+                    // Placeholder; `atlas::unwrap` generates the real UVs at bake time.
+                    if first_visit {
+                        self.missing_lightmap_uvs.push(at.to_string());
+                    }
+                    vec![Vec2::ZERO; n]
+                }
+            };
             for (what, len) in [
                 ("NORMAL", normals.as_ref().map(Vec::len)),
                 ("TEXCOORD_0", uv0.as_ref().map(Vec::len)),
@@ -657,7 +685,9 @@ impl Flatten<'_> {
                     None => [flat; 3],
                 };
                 let lm = [uv1[a], uv1[b], uv1[c]];
-                if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0 {
+                if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0
+                    && !self.missing_lightmap_uvs.contains(&at.to_string())
+                {
                     self.report.zero_uv_area_triangles += 1;
                 }
                 let uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);

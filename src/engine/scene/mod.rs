@@ -21,6 +21,7 @@
 
 pub mod build;
 mod error;
+pub mod export;
 pub mod import;
 pub mod library;
 
@@ -185,6 +186,9 @@ pub struct PunctualLight {
 pub struct MeshInfo {
     pub name: String,
     pub index: usize,
+    /// Relative texel density when lightmap UVs are generated (glTF mesh `extras`
+    /// `"lightmap_scale"`, default 1): 2 gives this mesh twice the texels per metre.
+    pub lightmap_scale: f32,
 }
 
 #[derive(Clone, Copy, Debug, Serialize)]
@@ -229,6 +233,9 @@ pub struct Scene {
     pub bounds: Bounds,
     /// What was subtracted from every glTF world position.
     pub origin_offset: DVec3,
+    /// Some mesh had no TEXCOORD_1: `atlas::unwrap` must generate every triangle's
+    /// lightmap UVs before a texel set can be built.
+    pub needs_lightmap_uvs: bool,
 }
 
 impl Scene {

@@ -123,6 +123,12 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "direct or indirect output asked for",
         "not asked for in outputs",
     );
+    p.decide(
+        "directional (sh) layer",
+        f.want_sh,
+        "sh output asked for",
+        "not asked for in outputs",
+    );
     if f.glossy_materials > 0 {
         p.leave_out(
             "glossy transport",
@@ -154,7 +160,8 @@ impl PathTracer {
         params.validate()?;
         let tracer = Tracer::new(&inputs.scene);
         let emitters = EmitterTable::new(&inputs.scene);
-        let acc = HalfAccumulator::new(inputs.atlas.texels.len(), inputs.want_direct);
+        let acc = HalfAccumulator::new(inputs.atlas.texels.len(), inputs.want_direct)
+            .with_moments(inputs.plan.runs("directional (sh) layer"));
         Ok(PathTracer {
             inputs,
             params,
@@ -187,28 +194,47 @@ impl Technique for PathTracer {
             eps: self.inputs.atlas.surface_offset,
         };
         let seed = self.inputs.seed;
-        let results: Vec<(Vec3, Vec3)> = self
+        let results: Vec<PathSample> = self
             .inputs
             .atlas
             .texels
             .par_iter()
             .enumerate()
             .map(|(ti, texel)| {
-                let mut total = Vec3::ZERO;
-                let mut direct = Vec3::ZERO;
+                let mut sum = PathSample {
+                    total: Vec3::ZERO,
+                    direct: Vec3::ZERO,
+                    moment: Moment::default(),
+                };
                 for s in 0..spp {
                     let mut rng = Rng::new(seed, step, ti as u64, s as u64);
-                    let (t, d) = ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
-                    total += t;
-                    direct += d;
+                    let r = ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
+                    sum.total += r.total;
+                    sum.direct += r.direct;
+                    for a in 0..3 {
+                        sum.moment.0[a] += r.moment.0[a];
+                    }
                 }
-                (total / spp as f32, direct / spp as f32)
+                let k = 1.0 / spp as f32;
+                PathSample {
+                    total: sum.total * k,
+                    direct: sum.direct * k,
+                    moment: Moment(sum.moment.0.map(|m| m * k)),
+                }
             })
             .collect();
-        let total: Vec<Vec3> = results.iter().map(|r| r.0).collect();
-        // The direct layer exists only when an output asked for it (the plan says so).
-        let direct: Option<Vec<Vec3>> = self.inputs.want_direct.then(|| results.iter().map(|r| r.1).collect());
-        self.acc.add(&total, direct.as_deref());
+        let total: Vec<Vec3> = results.iter().map(|r| r.total).collect();
+        // Layers exist only when an output asked for them (the plan says so).
+        let direct: Option<Vec<Vec3>> = self
+            .inputs
+            .want_direct
+            .then(|| results.iter().map(|r| r.direct).collect());
+        let moments: Option<Vec<[Vec3; 3]>> = self
+            .inputs
+            .plan
+            .runs("directional (sh) layer")
+            .then(|| results.iter().map(|r| r.moment.0).collect());
+        self.acc.add_with_moments(&total, direct.as_deref(), moments.as_deref());
         Ok(())
     }
 
@@ -275,6 +301,25 @@ fn power_heuristic(a: f32, b: f32) -> f32 {
     if a2 + b2 > 0.0 { a2 / (a2 + b2) } else { 0.0 }
 }
 
+/// Σ c·ω over a path's contributions c arriving from directions ω: per world axis, an
+/// RGB value (the `sh.*` layers' L1 moments).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Moment(pub [Vec3; 3]);
+
+impl Moment {
+    fn add(&mut self, c: Vec3, dir: Vec3) {
+        self.0[0] += c * dir.x;
+        self.0[1] += c * dir.y;
+        self.0[2] += c * dir.z;
+    }
+}
+
+struct PathSample {
+    total: Vec3,
+    direct: Vec3,
+    moment: Moment,
+}
+
 struct PathContext<'a> {
     scene: &'a Scene,
     tracer: &'a Tracer,
@@ -286,24 +331,33 @@ struct PathContext<'a> {
 }
 
 impl PathContext<'_> {
-    /// Irradiance / π at `x` (normal `n`, geometric normal `ng`): (total, direct part).
-    fn radiance(&self, x0: Vec3, n0: Vec3, ng0: Vec3, rng: &mut Rng) -> (Vec3, Vec3) {
+    /// Irradiance / π at `x0` (normal `n0`, geometric normal `ng0`), its direct part, and
+    /// the first moment of where it came from.
+    fn radiance(&self, x0: Vec3, n0: Vec3, ng0: Vec3, rng: &mut Rng) -> PathSample {
         let (mut x, mut n, mut ng) = (x0, n0, ng0);
         let mut throughput = Vec3::ONE;
         let mut total = Vec3::ZERO;
         let mut direct = Vec3::ZERO;
         let mut bounce = 0u32;
+        let mut moment = Moment::default();
+        let mut first_dir = None;
+        let mut first_nee = Vec3::ZERO;
         loop {
-            let nee = self.next_event(x, n, ng, rng);
+            let (nee, nee_moment) = self.next_event(x, n, ng, rng);
             total += throughput * nee;
             if bounce == 0 {
                 direct += nee;
+                first_nee = nee;
+                moment = nee_moment;
             }
 
             let dir = cosine_sample(n, rng.next_f32(), rng.next_f32());
             let cos = dir.dot(n);
             if dir.dot(ng) <= 0.0 || cos <= 0.0 {
                 break; // below the geometric surface: the surface itself blocks it
+            }
+            if bounce == 0 {
+                first_dir = Some(dir);
             }
             let pdf_bsdf = cos * FRAC_1_PI;
             let Some(hit) = self.tracer.trace(self.scene, x, dir, f32::INFINITY) else {
@@ -364,21 +418,28 @@ impl PathContext<'_> {
             n = if shading.dot(ng) > 0.0 { shading } else { ng };
             x = p + ng * self.eps;
         }
-        (total, direct)
+        // Everything but the first vertex's light samples arrived along the first direction.
+        if let Some(d) = first_dir {
+            moment.add(total - first_nee, d);
+        }
+        PathSample { total, direct, moment }
     }
 
     /// Direct light at `x` from punctual lights, the sun and emissive triangles, as
     /// irradiance / π (visibility tested, MIS-weighted where the continuation can also
     /// find the light).
-    fn next_event(&self, x: Vec3, n: Vec3, ng: Vec3, rng: &mut Rng) -> Vec3 {
+    fn next_event(&self, x: Vec3, n: Vec3, ng: Vec3, rng: &mut Rng) -> (Vec3, Moment) {
         let mut sum = Vec3::ZERO;
+        let mut moment = Moment::default();
         let front = |d: Vec3| d.dot(n) > 0.0 && d.dot(ng) > 0.0;
         for light in &self.scene.lights {
             match light.kind {
                 LightKind::Directional => {
                     let d = -light.direction;
                     if front(d) && self.tracer.unoccluded(self.scene, x, d, f32::INFINITY) {
-                        sum += light.intensity * d.dot(n) * FRAC_1_PI;
+                        let c = light.intensity * d.dot(n) * FRAC_1_PI;
+                        sum += c;
+                        moment.add(c, d);
                     }
                 }
                 LightKind::Point | LightKind::Spot { .. } => {
@@ -404,7 +465,9 @@ impl PathContext<'_> {
                         falloff *= a * a;
                     }
                     if falloff > 0.0 && self.tracer.unoccluded(self.scene, x, d, dist * (1.0 - 1e-4)) {
-                        sum += light.intensity * falloff * d.dot(n) * FRAC_1_PI;
+                        let c = light.intensity * falloff * d.dot(n) * FRAC_1_PI;
+                        sum += c;
+                        moment.add(c, d);
                     }
                 }
             }
@@ -416,7 +479,9 @@ impl PathContext<'_> {
                 let pdf_light = 1.0 / sun.solid_angle();
                 let cos = d.dot(n);
                 let w = power_heuristic(pdf_light, cos * FRAC_1_PI);
-                sum += sun.radiance * cos * FRAC_1_PI / pdf_light * w;
+                let c = sun.radiance * cos * FRAC_1_PI / pdf_light * w;
+                sum += c;
+                moment.add(c, d);
             }
         }
         if !self.emitters.emitters.is_empty() {
@@ -451,11 +516,13 @@ impl PathContext<'_> {
                         let pdf_light = self.emitters.emitter_pick[ti as usize] / tri.area() * dist2 / cos_l;
                         let cos = d.dot(n);
                         let w = power_heuristic(pdf_light, cos * FRAC_1_PI);
-                        sum += emission * cos * FRAC_1_PI / pdf_light * w;
+                        let c = emission * cos * FRAC_1_PI / pdf_light * w;
+                        sum += c;
+                        moment.add(c, d);
                     }
                 }
             }
         }
-        sum
+        (sum, moment)
     }
 }

@@ -1,0 +1,85 @@
+//! The validation report flags a crafted scene with overlapping charts and texels inside
+//! a closed box, in the bake summary and as debug EXR layers (issue 13).
+
+use std::ops::ControlFlow;
+use std::sync::Arc;
+
+use exr::prelude::{ReadChannels, ReadLayers};
+use glam::Vec3;
+use lightmapd::engine::bake::{BakeEvent, StopCriteria};
+use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
+use lightmapd::engine::output::OutputLayer;
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
+use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, import_slice};
+use serde_json::json;
+
+#[test]
+fn overlap_and_inside_texels_are_reported_and_shown() {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("floor", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.block("crate", Vec3::ZERO, Vec3::splat(0.5), 0.0, m);
+    let (mut json, bin) = b.to_gltf();
+    // A second instance of the floor on the same chart: overlapping lightmap UVs.
+    json["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(json!({"mesh": 0, "translation": [0.0, -3.0, 0.0]}));
+    let n = json["nodes"].as_array().unwrap().len();
+    json["scenes"][0]["nodes"] = json!((0..n).collect::<Vec<_>>());
+    let scene = Arc::new(import_slice(&write_glb(&json, &bin), None).unwrap().0);
+    let request = BakeRequest {
+        resolution: 64,
+        lighting: Lighting {
+            sky: Some(Sky {
+                radiance: Vec3::ONE,
+                hemisphere: Hemisphere::Upper,
+            }),
+            sun: None,
+        },
+        stop: StopCriteria {
+            steps: Some(2),
+            ..Default::default()
+        },
+        outputs: vec![OutputLayer::Debug, OutputLayer::Validity],
+        ..Default::default()
+    };
+    let result = job::bake(
+        scene,
+        &request,
+        &BakeOptions::default(),
+        &mut |_: BakeEvent<'_>| ControlFlow::Continue(()),
+        &mut |_| {},
+        &mut |_| {},
+    )
+    .unwrap();
+    let v = &result.summary.validation;
+    eprintln!("{v:?}");
+    assert!(v.inside_geometry_texels > 0, "texels under the crate are inside it");
+    assert!(v.overlapping_texels > 0, "the floor's two instances share texels");
+    assert!(v.warnings.iter().any(|w| w.contains("overlap")));
+    assert!(v.warnings.iter().any(|w| w.contains("inside closed geometry")));
+
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(result.exr))
+        .unwrap();
+    let count = |name: &str| {
+        let c = image.layer_data[0]
+            .channel_data
+            .list
+            .iter()
+            .find(|c| c.name.to_string() == name)
+            .unwrap();
+        c.sample_data.values_as_f32().filter(|v| *v > 0.0).count()
+    };
+    assert_eq!(count("debug.inside.Y"), v.inside_geometry_texels);
+    assert_eq!(count("debug.overlap.Y"), v.overlapping_texels as usize);
+    assert_eq!(count("debug.density.Y"), v.valid_texels);
+    // Inside texels are not valid.
+    assert_eq!(count("validity.Y"), v.valid_texels);
+}
