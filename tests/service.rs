@@ -443,6 +443,18 @@ async fn every_error_status_has_its_problem_body() {
         ),
     )
     .await;
+    expect_problem(
+        h.get(format!("{u}/v1/jobs/{job}/scene.glb")),
+        409,
+        problem(
+            409,
+            "Conflict",
+            "conflict",
+            &format!("job {job} is queued; the scene with generated UVs comes with the final lightmap"),
+            None,
+        ),
+    )
+    .await;
     let c = h.post(format!("{u}/v1/jobs/{job}/cancel")).send().await.unwrap();
     assert_eq!(c.status(), 202);
     assert_eq!(c.json::<Value>().await.unwrap()["status"], "cancelled");
@@ -551,7 +563,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "outputs": ["ao"]}).to_string(),
             "outputs[0]",
-            "unknown output layer \"ao\"; available: validity, direct, indirect".into(),
+            "unknown output layer \"ao\"; available: validity, direct, indirect, sh".into(),
         ),
         (
             json!({"scene": scene, "lighting": {"sky": {"radiance": [1, -1, 1]}}}).to_string(),
@@ -995,5 +1007,49 @@ async fn gltf_with_external_buffer_uploads_as_multipart_and_bakes() {
     assert_eq!(scene["format"], "gltf");
     assert_eq!(scene["files"], json!(["cornell.gltf", "cornell box.bin"]));
     assert_eq!(scene["report"]["has_lightmap_uvs"], true);
+    s.running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
+    use lightmapd::engine::scene::build::{cornell_box, write_glb};
+    let s = start(1, |_| {}).await;
+    let (mut gltf, buffer) = cornell_box().to_gltf();
+    for m in gltf["meshes"].as_array_mut().unwrap() {
+        m["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
+    }
+    let r = s
+        .http
+        .post(format!("{}/v1/scenes", s.url))
+        .body(write_glb(&gltf, &buffer))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let scene: Value = r.json().await.unwrap();
+    assert_eq!(scene["report"]["has_lightmap_uvs"], false);
+    let id = s
+        .submit(json!({"scene": scene["id"], "resolution": 32, "stop": {"steps": 2}}))
+        .await;
+    let job = s
+        .wait_job(&id, "finished", |j| j["status"] != "queued" && j["status"] != "running")
+        .await;
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let glb = s
+        .http
+        .get(format!("{}/v1/jobs/{id}/scene.glb", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(glb.status(), 200);
+    let bytes = glb.bytes().await.unwrap();
+    let (_, report) = lightmapd::engine::scene::import_slice(&bytes, None).unwrap();
+    assert!(
+        report.has_lightmap_uvs,
+        "the returned scene carries the generated TEXCOORD_1"
+    );
     s.running.shutdown().await;
 }

@@ -50,7 +50,7 @@ pub struct JobSpec {
     #[serde(default)]
     #[schema(value_type = Object)]
     pub params: Value,
-    /// Extra EXR layers: `validity`, `direct`, `indirect`.
+    /// Extra EXR layers: `validity`, `direct`, `indirect`, `sh`.
     #[serde(default)]
     pub outputs: Vec<String>,
     /// Higher runs first; equal priorities run oldest first.

@@ -50,6 +50,7 @@ use crate::service::{AppState, StopSignal, events, store};
         events::job_events,
         get_lightmap,
         get_preview,
+        get_generated_scene,
         healthz,
         metrics,
         openapi_json,
@@ -77,6 +78,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/events", get(events::job_events))
         .route("/v1/jobs/{id}/lightmap.exr", get(get_lightmap))
         .route("/v1/jobs/{id}/preview.png", get(get_preview))
+        .route("/v1/jobs/{id}/scene.glb", get(get_generated_scene))
         .route("/healthz", get(healthz))
         .route("/metrics", get(metrics))
         .route("/openapi.json", get(openapi_json))
@@ -657,6 +659,37 @@ async fn get_preview(State(state): State<AppState>, Path(id): Path<String>) -> R
         .await?
         .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
     Ok(binary(bytes, "image/png", None))
+}
+
+/// The scene with the lightmap UVs the engine generated for it (only when it had none:
+/// the lightmap fits these UVs, not the uploaded scene).
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/scene.glb",
+    tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "glTF binary with TEXCOORD_1", content_type = "model/gltf-binary", body = Vec<u8>),
+        (status = 404, description = "No such job, or its scene had lightmap UVs of its own", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The job has not succeeded", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_generated_scene(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
+    let job = find_job(&state, &id).await?;
+    if job.status != JobStatus::Succeeded {
+        return Err(Problem::conflict(format!(
+            "job {id} is {}; the scene with generated UVs comes with the final lightmap",
+            job.status.as_str()
+        )));
+    }
+    match state.artifacts.get(&store::generated_scene(&id)).await? {
+        Some(bytes) => Ok(binary(bytes, "model/gltf-binary", Some(format!("{id}.glb")))),
+        None => Err(Problem::new(
+            StatusCode::NOT_FOUND,
+            "not-found",
+            format!("job {id} baked the scene's own lightmap UVs (TEXCOORD_1): use the uploaded scene"),
+        )),
+    }
 }
 
 /// Liveness and database reachability.

@@ -10,6 +10,7 @@
 //! jobs/{job}/snapshots/{n}.png     its tone-mapped preview
 //! jobs/{job}/lightmap.exr          the final lightmap
 //! jobs/{job}/preview.png           its preview
+//! jobs/{job}/scene.glb             the scene with generated lightmap UVs (when it had none)
 //! ```
 //!
 //! Limits: whole objects are buffered in memory (lightmaps are megabytes, not gigabytes).
@@ -103,4 +104,8 @@ pub fn final_exr(job: &str) -> Path {
 
 pub fn final_png(job: &str) -> Path {
     Path::from(format!("jobs/{job}/preview.png"))
+}
+
+pub fn generated_scene(job: &str) -> Path {
+    Path::from(format!("jobs/{job}/scene.glb"))
 }

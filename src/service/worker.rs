@@ -382,6 +382,22 @@ async fn store_snapshot(state: &AppState, job: &str, n: u32, files: SnapshotFile
 }
 
 async fn store_final(state: &AppState, job: &str, r: &BakeResult) -> Result<(), object_store::Error> {
+    if r.summary.generated_uvs.is_some() {
+        // The lightmap is only usable with the UVs it was baked for (DESIGN §2).
+        let scene = r.scene.clone();
+        let glb = tokio::task::spawn_blocking(move || crate::engine::scene::export::to_glb(&scene))
+            .await
+            .map_err(|e| e.to_string())
+            .and_then(|r| r)
+            .map_err(|e| object_store::Error::Generic {
+                store: "export",
+                source: format!("cannot export the scene with generated UVs: {e}").into(),
+            })?;
+        state
+            .artifacts
+            .put(&store::generated_scene(job), Bytes::from(glb))
+            .await?;
+    }
     state
         .artifacts
         .put(&store::final_exr(job), Bytes::from(r.exr.clone()))
