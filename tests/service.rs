@@ -13,6 +13,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
+use lightmapd::engine::technique::TECHNIQUES;
 use lightmapd::service::{self, Config, Running};
 use serde_json::{Value, json};
 
@@ -276,6 +277,28 @@ async fn happy_path_upload_bake_follow_download() {
     assert_eq!(printed["scene"], scene_id.as_str());
     assert!(is_exr(&std::fs::read(s._dir.path().join("submitted.exr")).unwrap()));
 
+    // A job the server rejects is bad input for the client too: exit code 2, the
+    // server's detail and field on one line.
+    let url = s.url.clone();
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+            .arg("submit")
+            .arg(bundled())
+            .args(["--server", &url, "--technique", "magic"])
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    assert_eq!(
+        String::from_utf8_lossy(&output.stderr).lines().last().unwrap(),
+        format!(
+            "error: submit: 422 unknown technique \"magic\"; available: {} (technique)",
+            TECHNIQUES.join(", ")
+        )
+    );
+
     // The scene is free again: it can be deleted, and is gone.
     let del = h
         .delete(format!("{}/v1/scenes/{scene_id}", s.url))
@@ -523,7 +546,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "technique": "magic"}).to_string(),
             "technique",
-            "unknown technique \"magic\"; available: path".into(),
+            format!("unknown technique \"magic\"; available: {}", TECHNIQUES.join(", ")),
         ),
         (
             json!({"scene": scene, "resolution": 0}).to_string(),
