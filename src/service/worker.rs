@@ -142,13 +142,13 @@ struct SnapshotFiles {
     error: Option<f32>,
 }
 
-async fn run_job(state: &AppState, worker: &str, job: JobRecord, _engine: &Arc<EngineShared>) {
+async fn run_job(state: &AppState, worker: &str, job: JobRecord, engine: &Arc<EngineShared>) {
     let id = job.id.clone();
     tracing::info!(attempt = job.attempts, "job claimed");
     state.hub.job_changed(&id);
     state.metrics.busy.fetch_add(1, Ordering::Relaxed);
     let flag = state.hub.register(&id);
-    let outcome = supervise(state, worker, &job, flag.clone()).await;
+    let outcome = supervise(state, worker, &job, flag.clone(), engine.clone()).await;
     state.hub.unregister(&id);
     state.metrics.busy.fetch_sub(1, Ordering::Relaxed);
     let now = now_ms();
@@ -194,7 +194,13 @@ enum End {
     Lost,
 }
 
-async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<StopFlag>) -> End {
+async fn supervise(
+    state: &AppState,
+    worker: &str,
+    job: &JobRecord,
+    flag: Arc<StopFlag>,
+    engine: Arc<EngineShared>,
+) -> End {
     let scene = match load_scene(state, &job.scene_id).await {
         Ok(s) => s,
         Err(reason) => return End::Finish(Outcome::Failed { reason }),
@@ -202,13 +208,19 @@ async fn supervise(state: &AppState, worker: &str, job: &JobRecord, flag: Arc<St
     let shared = Arc::new(Shared::default());
     let (snap_tx, mut snap_rx) = mpsc::unbounded_channel::<SnapshotFiles>();
     let bake = {
-        let (shared, flag, metrics) = (shared.clone(), flag.clone(), state.metrics.clone());
+        let ctx = BakeThread {
+            shared: shared.clone(),
+            flag: flag.clone(),
+            metrics: state.metrics.clone(),
+            engine,
+            snapshots: snap_tx,
+            snapshot_interval: state.config.snapshot_interval,
+        };
         let spec = job.spec.clone();
-        let interval = state.config.snapshot_interval;
         let span = tracing::Span::current();
         tokio::task::spawn_blocking(move || {
             let _e = span.enter();
-            run_bake(scene, &spec, interval, &shared, &flag, &metrics, snap_tx)
+            run_bake(scene, &spec, &ctx)
         })
     };
     tokio::pin!(bake);
@@ -455,17 +467,27 @@ pub fn import_files(files: &SceneFiles) -> Result<(Scene, scene::ImportReport), 
     }
 }
 
+/// What the bake thread is given besides the job.
+struct BakeThread {
+    shared: Arc<Shared>,
+    flag: Arc<StopFlag>,
+    metrics: Arc<crate::service::metrics::Metrics>,
+    /// Unused until a technique needs shared engine state; then handed to `job::bake`.
+    #[allow(dead_code)]
+    engine: Arc<EngineShared>,
+    snapshots: mpsc::UnboundedSender<SnapshotFiles>,
+    snapshot_interval: Duration,
+}
+
 /// The bake thread: import, bake with an observer that shares progress and encodes
 /// snapshots, return the result.
 fn run_bake(
     files: SceneFiles,
     spec: &crate::service::model::JobSpec,
-    snapshot_interval: Duration,
-    shared: &Shared,
-    flag: &StopFlag,
-    metrics: &crate::service::metrics::Metrics,
-    snapshots: mpsc::UnboundedSender<SnapshotFiles>,
+    ctx: &BakeThread,
 ) -> Result<BakeResult, EngineError> {
+    let (shared, flag, metrics, snapshots) = (&*ctx.shared, &*ctx.flag, &*ctx.metrics, &ctx.snapshots);
+    let snapshot_interval = ctx.snapshot_interval;
     let (scene, _report) = import_files(&files).map_err(EngineError::BadInput)?;
     drop(files);
     let request = spec.to_request();
