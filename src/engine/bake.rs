@@ -147,6 +147,13 @@ impl BakeLoop {
             last_snapshot = Instant::now();
             let estimate = technique.snapshot()?.estimate();
             check_finite(technique, &estimate)?;
+            tracing::debug!(
+                technique = technique.id(),
+                step = steps,
+                seconds = elapsed.as_secs_f64(),
+                relative_error = ?estimate.error.relative,
+                "snapshot"
+            );
             let by_error = match (self.stop.target_error, estimate.error.relative) {
                 (Some(target), Some(err)) => err <= target && steps >= MIN_STEPS_FOR_TARGET_ERROR,
                 _ => false,

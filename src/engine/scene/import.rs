@@ -22,6 +22,7 @@ use std::path::{Path, PathBuf};
 
 use base64::Engine as _;
 use glam::{DMat4, DVec3, Vec2, Vec3, Vec4};
+use gltf::accessor::{DataType, Dimensions};
 use gltf::mesh::Mode;
 use serde::Serialize;
 
@@ -216,19 +217,45 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
             "neither a GLB header (\"glTF\" magic) nor a JSON document".into(),
         ));
     }
-    gltf::Gltf::from_slice(bytes).map_err(|e| match e {
-        gltf::Error::Validation(errors) => ImportError::Invalid(
-            errors
-                .iter()
-                .take(5)
-                .map(|(path, err)| format!("{}: {}", path, err))
-                .collect::<Vec<_>>()
-                .join("; "),
-        ),
+    let map_err = |e: gltf::Error| match e {
         gltf::Error::Binary(b) => ImportError::NotGltf(format!("broken GLB container: {b:?}")),
         gltf::Error::Deserialize(d) => ImportError::NotGltf(format!("JSON: {d}")),
         other => ImportError::NotGltf(other.to_string()),
-    })
+    };
+    let gltf = gltf::Gltf::from_slice_without_validation(bytes).map_err(map_err)?;
+    // gltf-json's validator indexes accessors by attribute without a bounds check (and
+    // panics), so attribute indices are checked here first.
+    let root = gltf.document.as_json();
+    for (mi, mesh) in root.meshes.iter().enumerate() {
+        for (pi, prim) in mesh.primitives.iter().enumerate() {
+            for (semantic, index) in &prim.attributes {
+                if index.value() >= root.accessors.len() {
+                    return Err(ImportError::Invalid(format!(
+                        "mesh {mi}, primitive {pi}: attribute {} refers to accessor {}, but there are {}",
+                        semantic.to_string(),
+                        index.value(),
+                        root.accessors.len()
+                    )));
+                }
+            }
+        }
+    }
+    use gltf::json::validation::Validate;
+    let mut errors = Vec::new();
+    root.validate(root, gltf::json::Path::new, &mut |path, error| {
+        errors.push((path(), error))
+    });
+    if !errors.is_empty() {
+        return Err(ImportError::Invalid(
+            errors
+                .iter()
+                .take(5)
+                .map(|(path, err)| format!("{path}: {err}"))
+                .collect::<Vec<_>>()
+                .join("; "),
+        ));
+    }
+    Ok(gltf)
 }
 
 fn resolve_uri(uri: &str, base_dir: Option<&Path>, what: &str) -> Result<Vec<u8>, String> {
@@ -627,6 +654,13 @@ impl Flatten<'_> {
             let indices: Vec<u32> = match prim.indices() {
                 Some(acc) => {
                     check_accessor(&acc, self.buffers, &at, "indices")?;
+                    check_format(
+                        &acc,
+                        &at,
+                        "indices",
+                        Dimensions::Scalar,
+                        &[DataType::U8, DataType::U16, DataType::U32],
+                    )?;
                     let reader = prim.reader(|b| self.buffers.get(b.index()).map(Vec::as_slice));
                     let idx: Vec<u32> = reader
                         .read_indices()
@@ -767,6 +801,31 @@ fn check_accessor(
     }
 }
 
+/// The element type and component types glTF allows for an attribute; the `gltf` crate's
+/// readers assume them (and panic otherwise), so they are checked first.
+fn check_format(
+    acc: &gltf::Accessor,
+    at: &PrimitiveRef,
+    attribute: &str,
+    dims: Dimensions,
+    types: &[DataType],
+) -> Result<(), ImportError> {
+    if acc.dimensions() != dims || !types.contains(&acc.data_type()) {
+        return Err(accessor_err(
+            at,
+            acc,
+            attribute,
+            format!(
+                "is {:?} of {:?}; glTF requires {dims:?} of {}",
+                acc.dimensions(),
+                acc.data_type(),
+                types.iter().map(|t| format!("{t:?}")).collect::<Vec<_>>().join(" or ")
+            ),
+        ));
+    }
+    Ok(())
+}
+
 fn read_vec3(
     prim: &gltf::Primitive,
     semantic: gltf::Semantic,
@@ -778,6 +837,7 @@ fn read_vec3(
     };
     let name = semantic.to_string();
     check_accessor(&acc, buffers, at, &name)?;
+    check_format(&acc, at, &name, Dimensions::Vec3, &[DataType::F32])?;
     let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
     let data: Option<Vec<Vec3>> = match semantic {
         gltf::Semantic::Positions => reader.read_positions().map(|it| it.map(Vec3::from_array).collect()),
@@ -808,6 +868,13 @@ fn read_vec2(
     };
     let name = semantic.to_string();
     check_accessor(&acc, buffers, at, &name)?;
+    check_format(
+        &acc,
+        at,
+        &name,
+        Dimensions::Vec2,
+        &[DataType::F32, DataType::U8, DataType::U16],
+    )?;
     let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
     let data: Vec<Vec2> = reader
         .read_tex_coords(set)
