@@ -1,12 +1,15 @@
 //! `lightmapd`: the command line (DESIGN §9). `bake` runs the engine on one scene with no
-//! server; `example` writes the bundled example scenes. Exit codes: 0 success, 2 bad input
-//! (unreadable scene, bad option), 1 anything else.
+//! server; `example` writes the bundled example scenes; `serve` runs the bake service (API
+//! and workers), `worker` runs workers only, `submit` sends a scene to a server. Exit
+//! codes: 0 success, 2 bad input (unreadable scene, bad option, a 4xx answer), 1 anything
+//! else.
 
 use std::io::IsTerminal;
 use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::sync::Arc;
+use std::time::Duration;
 
 use clap::{Parser, Subcommand, ValueEnum};
 use glam::Vec3;
@@ -16,6 +19,7 @@ use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::{OutputLayer, write_atomically};
 use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
 use lightmapd::engine::technique::TECHNIQUES;
+use lightmapd::service;
 
 #[derive(Parser)]
 #[command(name = "lightmapd", version, about = "Bakes lightmaps from glTF scenes")]
@@ -37,6 +41,103 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Run the bake service: HTTP API and a pool of workers, SQLite and a local folder.
+    Serve(ServeArgs),
+    /// Run workers only, against the database and store of a `serve`.
+    Worker(WorkerArgs),
+    /// Upload a scene to a server, submit a bake, optionally wait and download the EXR.
+    Submit(Box<SubmitArgs>),
+}
+
+#[derive(clap::Args)]
+struct ServeArgs {
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    listen: std::net::SocketAddr,
+    /// Holds the SQLite database and the artifact folder.
+    #[arg(long, default_value = "lightmapd-data")]
+    data_dir: PathBuf,
+    /// Bakes run at once in this process (0: API only).
+    #[arg(long, default_value_t = 1)]
+    workers: usize,
+    /// sqlite://FILE (default: DATA_DIR/lightmapd.db).
+    #[arg(long)]
+    database_url: Option<String>,
+    /// Artifact folder (default: DATA_DIR/objects).
+    #[arg(long)]
+    store: Option<PathBuf>,
+    #[command(flatten)]
+    tuning: Tuning,
+}
+
+#[derive(clap::Args)]
+struct WorkerArgs {
+    /// sqlite://FILE, the database of the `serve` this worker helps.
+    #[arg(long)]
+    database_url: String,
+    /// The artifact folder of that `serve`.
+    #[arg(long)]
+    store: PathBuf,
+    #[arg(long, default_value_t = 1)]
+    workers: usize,
+    #[command(flatten)]
+    tuning: Tuning,
+}
+
+#[derive(clap::Args)]
+struct Tuning {
+    /// Largest scene upload in bytes.
+    #[arg(long, default_value_t = 256 << 20)]
+    max_scene_bytes: usize,
+    /// A worker's claim on a job lasts this long without renewal; a job whose worker
+    /// died is taken up again after it.
+    #[arg(long, default_value_t = 30.0)]
+    lease_seconds: f64,
+    /// Longest time between stored snapshot EXRs of a running bake.
+    #[arg(long, default_value_t = 2.0)]
+    snapshot_interval_s: f64,
+}
+
+#[derive(clap::Args)]
+struct SubmitArgs {
+    /// The scene: .glb, or .gltf with its buffers and images beside it.
+    scene: PathBuf,
+    #[arg(long, default_value = "http://127.0.0.1:8080")]
+    server: String,
+    /// Follow the job with a progress bar until it ends.
+    #[arg(long)]
+    wait: bool,
+    /// Download the final lightmap here (implies --wait).
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+    #[arg(long)]
+    technique: Option<String>,
+    #[arg(long)]
+    resolution: Option<u32>,
+    /// Uniform sky radiance R,G,B.
+    #[arg(long, value_parser = parse_vec3)]
+    sky: Option<Vec3>,
+    #[arg(long, value_enum, default_value = "upper")]
+    sky_hemisphere: HemisphereArg,
+    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance).
+    #[arg(long, value_parser = parse_sun)]
+    sun: Option<Sun>,
+    #[arg(long)]
+    steps: Option<u64>,
+    #[arg(long)]
+    seconds: Option<f64>,
+    #[arg(long)]
+    target_error: Option<f32>,
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Extra layers: validity, direct, indirect (comma separated).
+    #[arg(long, value_delimiter = ',')]
+    outputs: Vec<String>,
+    /// Technique parameters as a JSON object.
+    #[arg(long)]
+    params: Option<String>,
+    /// Higher runs first.
+    #[arg(long)]
+    priority: Option<i32>,
 }
 
 #[derive(clap::Args)]
@@ -162,10 +263,6 @@ fn bad_input(message: impl Into<String>) -> Failure {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
-        .with_writer(std::io::stderr)
-        .init();
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
         Err(e) if e.use_stderr() => {
@@ -183,7 +280,23 @@ fn main() -> ExitCode {
         }
         Err(e) => e.exit(), // --help and --version
     };
+    // The service logs what it does by default; the one-shot commands only warn.
+    let default_filter = match cli.command {
+        Command::Serve(_) | Command::Worker(_) => "info",
+        _ => "warn",
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| default_filter.into()),
+        )
+        .with_writer(std::io::stderr)
+        // Colour codes only for a person; log files and journald get plain text.
+        .with_ansi(std::io::stderr().is_terminal())
+        .init();
     let result = match cli.command {
+        Command::Serve(args) => serve(args),
+        Command::Worker(args) => worker(args),
+        Command::Submit(args) => submit(*args),
         Command::Bake(args) => bake(*args),
         Command::Bench(args) => bench(args),
         Command::Example {
@@ -201,6 +314,163 @@ fn main() -> ExitCode {
             ExitCode::from(f.code)
         }
     }
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime, Failure> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| Failure {
+            code: 1,
+            message: format!("cannot start the async runtime: {e}"),
+        })
+}
+
+fn tuning(t: &Tuning) -> Result<(Duration, Duration), Failure> {
+    let positive = |v: f64, name: &str| {
+        if v.is_finite() && v > 0.0 {
+            Ok(Duration::from_secs_f64(v))
+        } else {
+            Err(bad_input(format!(
+                "--{name} must be a positive number of seconds, got {v}"
+            )))
+        }
+    };
+    Ok((
+        positive(t.lease_seconds, "lease-seconds")?,
+        positive(t.snapshot_interval_s, "snapshot-interval-s")?,
+    ))
+}
+
+fn serve(args: ServeArgs) -> Result<(), Failure> {
+    let (lease, snapshot_interval) = tuning(&args.tuning)?;
+    let config = service::Config {
+        listen: args.listen,
+        data_dir: args.data_dir,
+        workers: args.workers,
+        database_url: args.database_url,
+        store: args.store,
+        max_scene_bytes: args.tuning.max_scene_bytes,
+        lease,
+        snapshot_interval,
+    };
+    runtime()?.block_on(async move {
+        let running = service::start(config).await.map_err(|e| Failure {
+            code: 1,
+            message: format!("cannot start the service: {e:#}"),
+        })?;
+        // Tests and scripts read the address from this line (`--listen 127.0.0.1:0`).
+        println!("lightmapd listening on http://{}", running.addr);
+        use std::io::Write;
+        let _ = std::io::stdout().flush();
+        service::termination().await;
+        tracing::info!("shutting down: running jobs go back to the queue");
+        running.shutdown().await;
+        Ok(())
+    })
+}
+
+fn worker(args: WorkerArgs) -> Result<(), Failure> {
+    let (lease, snapshot_interval) = tuning(&args.tuning)?;
+    if !args.database_url.starts_with("sqlite:") {
+        return Err(bad_input(format!(
+            "--database-url {:?}: only sqlite:// is implemented so far (PostgreSQL comes with issue 11)",
+            args.database_url
+        )));
+    }
+    let config = service::Config {
+        workers: args.workers,
+        database_url: Some(args.database_url),
+        store: Some(args.store.clone()),
+        data_dir: args.store,
+        max_scene_bytes: args.tuning.max_scene_bytes,
+        lease,
+        snapshot_interval,
+        ..service::Config::default()
+    };
+    runtime()?
+        .block_on(service::run_workers(config, service::termination()))
+        .map_err(|e| Failure {
+            code: 1,
+            message: format!("worker: {e:#}"),
+        })
+}
+
+fn submit(args: SubmitArgs) -> Result<(), Failure> {
+    let mut job = serde_json::Map::new();
+    if let Some(t) = args.technique {
+        job.insert("technique".into(), t.into());
+    }
+    if let Some(r) = args.resolution {
+        job.insert("resolution".into(), r.into());
+    }
+    let mut lighting = serde_json::Map::new();
+    if let Some(sky) = args.sky {
+        let hemisphere = match args.sky_hemisphere {
+            HemisphereArg::Upper => "upper",
+            HemisphereArg::Full => "full",
+        };
+        lighting.insert(
+            "sky".into(),
+            serde_json::json!({"radiance": sky.to_array(), "hemisphere": hemisphere}),
+        );
+    }
+    if let Some(sun) = args.sun {
+        lighting.insert(
+            "sun".into(),
+            serde_json::json!({
+                "direction": sun.direction.to_array(),
+                "angular_diameter_deg": sun.angular_diameter.to_degrees(),
+                "radiance": sun.radiance.to_array(),
+            }),
+        );
+    }
+    if !lighting.is_empty() {
+        job.insert("lighting".into(), lighting.into());
+    }
+    if args.steps.is_some() || args.seconds.is_some() || args.target_error.is_some() {
+        let mut stop = serde_json::Map::new();
+        if let Some(v) = args.steps {
+            stop.insert("steps".into(), v.into());
+        }
+        if let Some(v) = args.seconds {
+            stop.insert("seconds".into(), v.into());
+        }
+        if let Some(v) = args.target_error {
+            stop.insert("target_error".into(), v.into());
+        }
+        job.insert("stop".into(), stop.into());
+    }
+    if let Some(p) = &args.params {
+        let v: serde_json::Value =
+            serde_json::from_str(p).map_err(|e| bad_input(format!("--params is not JSON: {e}")))?;
+        job.insert("params".into(), v);
+    }
+    if !args.outputs.is_empty() {
+        job.insert("outputs".into(), args.outputs.clone().into());
+    }
+    if let Some(v) = args.seed {
+        job.insert("seed".into(), v.into());
+    }
+    if let Some(v) = args.priority {
+        job.insert("priority".into(), v.into());
+    }
+    let request = service::client::Submit {
+        server: args.server,
+        scene: args.scene,
+        job: job.into(),
+        wait: args.wait,
+        output: args.output,
+    };
+    let job = runtime()?
+        .block_on(service::client::submit(request))
+        .map_err(|e| Failure {
+            code: e.code,
+            message: e.message,
+        })?;
+    // The job document on stdout, for scripts.
+    println!("{}", serde_json::to_string(&job).unwrap_or_default());
+    Ok(())
 }
 
 fn bake(args: BakeArgs) -> Result<(), Failure> {

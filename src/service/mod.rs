@@ -1,3 +1,307 @@
-//! The bake service (HTTP API, durable job queue, artifact store, workers) lands here
-//! with its own issue; it will stay thin and call `engine::job::bake`. Nothing lives here
-//! yet, deliberately: the engine and the command line come first.
+//! The bake service (DESIGN §7, §8): an HTTP API over a durable job queue, an artifact
+//! store, and a pool of workers that run `engine::job::bake`.
+//!
+//! Shape: [`routes`] parse and validate, then call the [`queue`] or the [`store`]; a
+//! [`worker`] claims a job, runs the bake on a blocking thread, and reports progress and
+//! snapshots back through the queue and the store; [`events`] turns a job's row into
+//! server-sent events. Nothing here knows how a lightmap is computed, and the engine knows
+//! nothing of this module.
+//!
+//! Processes: `lightmapd serve` runs the API and N workers in one process ([`start`]);
+//! `lightmapd worker` runs workers only ([`run_workers`]), sharing the database and the
+//! store with a `serve`. In-process notifications (a new job, a cancel, a change to a
+//! job) make one process react at once; across processes the same things are found by
+//! polling the database, a little later.
+//!
+//! Limits: only SQLite and a local directory are wired up (PostgreSQL and S3 are issue 11),
+//! so several processes must share one machine today.
+
+pub mod client;
+pub mod events;
+pub mod metrics;
+pub mod model;
+pub mod problem;
+pub mod queue;
+pub mod routes;
+pub mod store;
+pub mod worker;
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use tokio::sync::{Notify, broadcast, watch};
+use tokio::task::JoinHandle;
+
+use crate::service::metrics::Metrics;
+use crate::service::queue::Queue;
+use crate::service::queue::sqlite::SqliteQueue;
+use crate::service::store::Artifacts;
+
+/// Everything `serve` and `worker` are configured with.
+#[derive(Clone, Debug)]
+pub struct Config {
+    pub listen: SocketAddr,
+    /// Holds `lightmapd.db` and `objects/` unless `database_url` / `store` say otherwise.
+    pub data_dir: PathBuf,
+    pub workers: usize,
+    /// `sqlite://…` (PostgreSQL follows with issue 11).
+    pub database_url: Option<String>,
+    /// A directory for artifacts (S3 URLs follow with issue 11).
+    pub store: Option<PathBuf>,
+    /// Largest scene upload, in bytes (413 beyond).
+    pub max_scene_bytes: usize,
+    /// How long a worker's claim on a job lasts without renewal.
+    pub lease: Duration,
+    /// Longest time between stored snapshot EXRs of a running bake.
+    pub snapshot_interval: Duration,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            data_dir: PathBuf::from("lightmapd-data"),
+            workers: 1,
+            database_url: None,
+            store: None,
+            max_scene_bytes: 256 << 20,
+            lease: Duration::from_secs(30),
+            snapshot_interval: Duration::from_secs(2),
+        }
+    }
+}
+
+/// Why a local bake is being stopped early.
+#[repr(u8)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StopSignal {
+    None = 0,
+    /// The user cancelled the job.
+    Cancel = 1,
+    /// The process is shutting down: hand the job back.
+    Shutdown = 2,
+    /// The lease was lost: someone else owns the job now; write nothing.
+    LeaseLost = 3,
+}
+
+/// A running bake's stop flag, set from the async side and read by the bake thread
+/// after every step. The first reason set wins.
+#[derive(Default)]
+pub struct StopFlag(AtomicU8);
+
+impl StopFlag {
+    pub fn set(&self, s: StopSignal) {
+        let _ = self
+            .0
+            .compare_exchange(StopSignal::None as u8, s as u8, Ordering::SeqCst, Ordering::SeqCst);
+    }
+
+    pub fn get(&self) -> StopSignal {
+        match self.0.load(Ordering::SeqCst) {
+            1 => StopSignal::Cancel,
+            2 => StopSignal::Shutdown,
+            3 => StopSignal::LeaseLost,
+            _ => StopSignal::None,
+        }
+    }
+}
+
+/// In-process signals between routes, workers and event streams.
+pub struct Hub {
+    /// The id of a job whose row just changed (event streams re-read it).
+    pub changed: broadcast::Sender<String>,
+    /// A job was queued (idle workers try a claim).
+    pub work: Notify,
+    /// Stop flags of the bakes this process runs, by job id.
+    running: Mutex<HashMap<String, Arc<StopFlag>>>,
+}
+
+impl Default for Hub {
+    fn default() -> Self {
+        Hub {
+            changed: broadcast::channel(1024).0,
+            work: Notify::new(),
+            running: Mutex::new(HashMap::new()),
+        }
+    }
+}
+
+impl Hub {
+    pub fn job_changed(&self, id: &str) {
+        let _ = self.changed.send(id.to_string());
+    }
+
+    fn register(&self, id: &str) -> Arc<StopFlag> {
+        let flag = Arc::new(StopFlag::default());
+        if let Ok(mut m) = self.running.lock() {
+            m.insert(id.to_string(), flag.clone());
+        }
+        flag
+    }
+
+    fn unregister(&self, id: &str) {
+        if let Ok(mut m) = self.running.lock() {
+            m.remove(id);
+        }
+    }
+
+    /// Stops a bake this process runs, if it runs it (the cancel route calls this so the
+    /// bake stops within one step rather than at the next heartbeat).
+    pub fn stop_local(&self, id: &str, why: StopSignal) {
+        if let Ok(m) = self.running.lock()
+            && let Some(f) = m.get(id)
+        {
+            f.set(why);
+        }
+    }
+}
+
+/// What routes, workers and event streams share.
+#[derive(Clone)]
+pub struct AppState {
+    pub queue: Arc<dyn Queue>,
+    pub artifacts: Artifacts,
+    pub metrics: Arc<Metrics>,
+    pub hub: Arc<Hub>,
+    pub config: Arc<Config>,
+    /// Becomes `true` when the process is shutting down.
+    pub shutdown: watch::Receiver<bool>,
+}
+
+/// Opens the queue and the store the configuration names.
+pub async fn open_backends(config: &Config) -> anyhow::Result<(Arc<dyn Queue>, Artifacts)> {
+    std::fs::create_dir_all(&config.data_dir)?;
+    let queue: Arc<dyn Queue> = match &config.database_url {
+        None => Arc::new(SqliteQueue::open(&config.data_dir.join("lightmapd.db")).await?),
+        Some(url) if url.starts_with("sqlite:") => Arc::new(SqliteQueue::open_url(url).await?),
+        Some(url) => anyhow::bail!(
+            "unsupported database URL {url:?}: only sqlite:// is implemented (PostgreSQL comes with issue 11)"
+        ),
+    };
+    let store_dir = config.store.clone().unwrap_or_else(|| config.data_dir.join("objects"));
+    let artifacts = Artifacts::local(&store_dir)?;
+    Ok((queue, artifacts))
+}
+
+/// A started service: its address, and a way to stop it and wait for it.
+pub struct Running {
+    pub addr: SocketAddr,
+    shutdown: watch::Sender<bool>,
+    tasks: Vec<JoinHandle<()>>,
+}
+
+impl Running {
+    /// Starts a graceful shutdown: no new requests, running bakes handed back to the queue.
+    pub fn begin_shutdown(&self) {
+        let _ = self.shutdown.send(true);
+    }
+
+    /// Waits until the server and every worker have stopped.
+    pub async fn wait(self) {
+        for t in self.tasks {
+            let _ = t.await;
+        }
+    }
+
+    pub async fn shutdown(self) {
+        self.begin_shutdown();
+        self.wait().await;
+    }
+}
+
+/// Starts the API and `config.workers` workers; returns once the socket is bound.
+pub async fn start(config: Config) -> anyhow::Result<Running> {
+    let (queue, artifacts) = open_backends(&config).await?;
+    let (tx, rx) = watch::channel(false);
+    let state = AppState {
+        queue,
+        artifacts,
+        metrics: Arc::new(Metrics::default()),
+        hub: Arc::new(Hub::default()),
+        config: Arc::new(config.clone()),
+        shutdown: rx.clone(),
+    };
+    let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
+    tasks.extend(worker::spawn_pool(
+        &state,
+        config.workers,
+        Arc::new(worker::EngineShared::default()),
+    ));
+    let listener = tokio::net::TcpListener::bind(config.listen).await?;
+    let addr = listener.local_addr()?;
+    let app = routes::router(state.clone());
+    let mut stop = rx.clone();
+    tasks.push(tokio::spawn(async move {
+        let served = axum::serve(listener, app)
+            .with_graceful_shutdown(async move { shutting_down(&mut stop).await })
+            .await;
+        if let Err(e) = served {
+            tracing::error!(error = %e, "HTTP server stopped");
+        }
+    }));
+    tracing::info!(%addr, workers = config.workers, "lightmapd serving");
+    Ok(Running {
+        addr,
+        shutdown: tx,
+        tasks,
+    })
+}
+
+/// Runs workers only (no API) until `shutdown` resolves.
+pub async fn run_workers(config: Config, shutdown: impl std::future::Future<Output = ()>) -> anyhow::Result<()> {
+    let (queue, artifacts) = open_backends(&config).await?;
+    let (tx, rx) = watch::channel(false);
+    let state = AppState {
+        queue,
+        artifacts,
+        metrics: Arc::new(Metrics::default()),
+        hub: Arc::new(Hub::default()),
+        config: Arc::new(config.clone()),
+        shutdown: rx,
+    };
+    let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
+    tasks.extend(worker::spawn_pool(
+        &state,
+        config.workers,
+        Arc::new(worker::EngineShared::default()),
+    ));
+    shutdown.await;
+    let _ = tx.send(true);
+    for t in tasks {
+        let _ = t.await;
+    }
+    Ok(())
+}
+
+/// Resolves once `rx` says the process is shutting down (or its sender is gone).
+pub async fn shutting_down(rx: &mut watch::Receiver<bool>) {
+    // The guard `wait_for` returns is not `Send`; dropping it here keeps callers' futures
+    // spawnable.
+    let _ = rx.wait_for(|s| *s).await.map(|_| ());
+}
+
+/// Resolves on SIGTERM or Ctrl-C.
+pub async fn termination() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}

@@ -1,0 +1,277 @@
+//! The `lightmapd submit` client: upload a scene, submit a job, follow its events with a
+//! progress bar, download the lightmap.
+//!
+//! How: a `.glb` is sent as the body; a `.gltf` as multipart with every buffer and image
+//! it names by relative URI, read from beside it. Progress comes from the job's
+//! server-sent events; if the stream breaks (the server restarted), the client
+//! reconnects and is sent the current state first, so waiting survives a restart.
+//!
+//! Limits: plain HTTP only (reqwest is built without TLS to keep the build small; put a
+//! TLS-terminating proxy in front of a remote server and reach it over a tunnel, or add
+//! reqwest's `rustls` feature).
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use futures_util::StreamExt;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::{Value, json};
+
+use crate::engine::output::write_atomically;
+use crate::service::model::{JobView, Progress, uri_file_name};
+use crate::service::problem::Problem;
+
+/// What `lightmapd submit` does.
+pub struct Submit {
+    /// e.g. `http://127.0.0.1:8080`
+    pub server: String,
+    pub scene: PathBuf,
+    /// The job body without `scene` (the client fills it in after the upload).
+    pub job: Value,
+    /// Follow the job until it ends.
+    pub wait: bool,
+    /// Download the final lightmap here (implies `wait`).
+    pub output: Option<PathBuf>,
+}
+
+/// A failure and the exit code it earns (2: the server said the input is bad).
+#[derive(Debug)]
+pub struct ClientError {
+    pub code: u8,
+    pub message: String,
+}
+
+fn fail(code: u8, message: impl Into<String>) -> ClientError {
+    ClientError {
+        code,
+        message: message.into(),
+    }
+}
+
+fn http_err(server: &str, e: reqwest::Error) -> ClientError {
+    fail(1, format!("cannot reach {server}: {e}"))
+}
+
+/// Turns a non-success response into an error carrying the server's problem detail.
+async fn check(resp: reqwest::Response, what: &str) -> Result<reqwest::Response, ClientError> {
+    let status = resp.status();
+    if status.is_success() {
+        return Ok(resp);
+    }
+    let text = resp.text().await.unwrap_or_default();
+    let detail = match serde_json::from_str::<Problem>(&text) {
+        Ok(p) => match p.field {
+            Some(f) => format!("{} ({f})", p.detail),
+            None => p.detail,
+        },
+        Err(_) => text,
+    };
+    let code = if status.is_client_error() { 2 } else { 1 };
+    Err(fail(code, format!("{what}: {} {detail}", status.as_u16())))
+}
+
+/// Runs the whole submission; returns the finished (or just queued) job.
+pub async fn submit(s: Submit) -> Result<JobView, ClientError> {
+    let server = s.server.trim_end_matches('/').to_string();
+    let http = reqwest::Client::builder()
+        .connect_timeout(Duration::from_secs(10))
+        .build()
+        .map_err(|e| fail(1, format!("HTTP client: {e}")))?;
+
+    let upload = scene_request(&http, &server, &s.scene)?;
+    let resp = check(upload.send().await.map_err(|e| http_err(&server, e))?, "upload").await?;
+    let scene: Value = resp.json().await.map_err(|e| fail(1, format!("upload: {e}")))?;
+    let scene_id = scene["id"].as_str().unwrap_or_default().to_string();
+    for w in scene["report"]["warnings"].as_array().into_iter().flatten() {
+        eprintln!("warning: {}", w.as_str().unwrap_or_default());
+    }
+
+    let mut body = s.job.clone();
+    body["scene"] = json!(scene_id);
+    let resp = http
+        .post(format!("{server}/v1/jobs"))
+        .json(&body)
+        .send()
+        .await
+        .map_err(|e| http_err(&server, e))?;
+    let created: Value = check(resp, "submit")
+        .await?
+        .json()
+        .await
+        .map_err(|e| fail(1, format!("submit: {e}")))?;
+    let job_id = created["id"].as_str().unwrap_or_default().to_string();
+    eprintln!("job {job_id} queued (scene {scene_id})");
+
+    if !(s.wait || s.output.is_some()) {
+        return get_job(&http, &server, &job_id).await;
+    }
+    let job = follow(&http, &server, &job_id).await?;
+    match job.status {
+        crate::service::model::JobStatus::Succeeded => {}
+        crate::service::model::JobStatus::Failed => {
+            return Err(fail(
+                1,
+                format!("job {job_id} failed: {}", job.failure.clone().unwrap_or_default()),
+            ));
+        }
+        other => return Err(fail(1, format!("job {job_id} ended {}", other.as_str()))),
+    }
+    if let Some(out) = &s.output {
+        let resp = http
+            .get(format!("{server}/v1/jobs/{job_id}/lightmap.exr"))
+            .send()
+            .await
+            .map_err(|e| http_err(&server, e))?;
+        let bytes = check(resp, "download")
+            .await?
+            .bytes()
+            .await
+            .map_err(|e| fail(1, format!("download: {e}")))?;
+        write_atomically(out, &bytes).map_err(|e| fail(1, format!("cannot write {}: {e}", out.display())))?;
+    }
+    let p = job.progress.unwrap_or_default();
+    eprintln!(
+        "job {job_id} succeeded: {} steps in {:.1} s, estimated error {}{}",
+        p.steps,
+        p.elapsed_s,
+        p.error.map_or("n/a".into(), |e| format!("{:.2}%", e * 100.0)),
+        s.output
+            .as_ref()
+            .map_or(String::new(), |o| format!(" -> {}", o.display()))
+    );
+    Ok(job)
+}
+
+async fn get_job(http: &reqwest::Client, server: &str, id: &str) -> Result<JobView, ClientError> {
+    let resp = http
+        .get(format!("{server}/v1/jobs/{id}"))
+        .send()
+        .await
+        .map_err(|e| http_err(server, e))?;
+    check(resp, "job")
+        .await?
+        .json()
+        .await
+        .map_err(|e| fail(1, format!("job: {e}")))
+}
+
+fn scene_request(http: &reqwest::Client, server: &str, path: &Path) -> Result<reqwest::RequestBuilder, ClientError> {
+    let read = |p: &Path| std::fs::read(p).map_err(|e| fail(2, format!("cannot read {}: {e}", p.display())));
+    let url = format!("{server}/v1/scenes");
+    let is_gltf = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("gltf"));
+    if !is_gltf {
+        return Ok(http
+            .post(url)
+            .header(reqwest::header::CONTENT_TYPE, "model/gltf-binary")
+            .body(read(path)?));
+    }
+    let main = read(path)?;
+    let json: Value =
+        serde_json::from_slice(&main).map_err(|e| fail(2, format!("{} is not JSON: {e}", path.display())))?;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .unwrap_or("scene.gltf")
+        .to_string();
+    let mut form =
+        reqwest::multipart::Form::new().part(name.clone(), reqwest::multipart::Part::bytes(main).file_name(name));
+    let mut seen = std::collections::HashSet::new();
+    for kind in ["buffers", "images"] {
+        for item in json[kind].as_array().into_iter().flatten() {
+            if let Some(uri) = item["uri"].as_str()
+                && !uri.starts_with("data:")
+            {
+                let file = uri_file_name(uri);
+                if seen.insert(file.clone()) {
+                    let bytes = read(&dir.join(&file))?;
+                    form = form.part(file.clone(), reqwest::multipart::Part::bytes(bytes).file_name(file));
+                }
+            }
+        }
+    }
+    Ok(http.post(url).multipart(form))
+}
+
+/// Follows the job's events until it ends, drawing a progress bar; reconnects when the
+/// stream breaks.
+async fn follow(http: &reqwest::Client, server: &str, id: &str) -> Result<JobView, ClientError> {
+    let bar = if std::io::stderr().is_terminal() {
+        ProgressBar::new(1000)
+    } else {
+        ProgressBar::hidden()
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} {elapsed_precise} [{wide_bar}] {percent:>3}% {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let show = |p: &Progress, bar: &ProgressBar| {
+        bar.set_position((p.fraction * 1000.0) as u64);
+        let err = p.error.map_or(String::new(), |e| format!(", error {:.2}%", e * 100.0));
+        bar.set_message(format!("step {}{err}", p.steps));
+    };
+    let mut failures = 0u32;
+    loop {
+        let resp = match http.get(format!("{server}/v1/jobs/{id}/events")).send().await {
+            Ok(r) => check(r, "events").await?,
+            Err(e) => {
+                failures += 1;
+                if failures > 60 {
+                    return Err(http_err(server, e));
+                }
+                bar.set_message(format!("reconnecting: {e}"));
+                tokio::time::sleep(Duration::from_secs(1)).await;
+                continue;
+            }
+        };
+        failures = 0;
+        let mut stream = resp.bytes_stream();
+        let mut buf = String::new();
+        while let Some(chunk) = stream.next().await {
+            let Ok(chunk) = chunk else { break };
+            buf.push_str(&String::from_utf8_lossy(&chunk));
+            while let Some(end) = buf.find("\n\n") {
+                let block: String = buf.drain(..end + 2).collect();
+                let (mut name, mut data) = (String::new(), String::new());
+                for line in block.lines() {
+                    if let Some(v) = line.strip_prefix("event:") {
+                        name = v.trim().to_string();
+                    } else if let Some(v) = line.strip_prefix("data:") {
+                        data.push_str(v.strip_prefix(' ').unwrap_or(v));
+                    }
+                }
+                let Ok(v) = serde_json::from_str::<Value>(&data) else {
+                    continue;
+                };
+                match name.as_str() {
+                    "status" => {
+                        if let Ok(job) = serde_json::from_value::<JobView>(v) {
+                            bar.set_message(job.status.as_str().to_string());
+                            if let Some(p) = &job.progress {
+                                show(p, &bar);
+                            }
+                        }
+                    }
+                    "progress" => {
+                        if let Ok(p) = serde_json::from_value::<Progress>(v) {
+                            show(&p, &bar);
+                        }
+                    }
+                    "done" | "cancelled" => {
+                        bar.finish_and_clear();
+                        return serde_json::from_value(v).map_err(|e| fail(1, format!("events: {e}")));
+                    }
+                    "failed" => {
+                        bar.finish_and_clear();
+                        return serde_json::from_value(v["job"].clone()).map_err(|e| fail(1, format!("events: {e}")));
+                    }
+                    _ => {}
+                }
+            }
+        }
+        // The stream ended without a last event: the server went away. Try again.
+        bar.set_message("reconnecting");
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+}

@@ -1,0 +1,146 @@
+//! `GET /v1/jobs/{id}/events`: a job's life as server-sent events.
+//!
+//! Events (each `data` is JSON):
+//! - `status`: the whole job document; sent first (so a client that connects late has the
+//!   current state at once) and whenever the status changes (queued → running, or back to
+//!   queued when a worker died);
+//! - `progress`: `{steps, fraction, elapsed_s, error}`, at most ~4 a second;
+//! - `snapshot`: `{n, steps, seconds, error, url}` when a snapshot EXR is stored;
+//! - `done` (the job document), `failed` (`{reason, job}`), `cancelled` (the job
+//!   document): the last event; the stream then ends.
+//!
+//! How: the job's database row is the only source. The stream re-reads it when this
+//! process announces a change to the job, and at least every half second otherwise (a
+//! worker in another process changes it without telling us), and sends what differs
+//! from what it last sent.
+//!
+//! Limits: intermediate progress between two reads is not replayed; a client that needs
+//! every snapshot reads `snapshots` from the job and fetches each by number.
+
+use std::convert::Infallible;
+use std::time::Duration;
+
+use axum::extract::{Path, State};
+use axum::response::IntoResponse;
+use axum::response::sse::{Event, KeepAlive, Sse};
+use serde_json::json;
+use tokio::sync::{broadcast, mpsc};
+
+use crate::service::AppState;
+use crate::service::model::{JobStatus, JobView};
+use crate::service::problem::Problem;
+use crate::service::routes::job_view;
+
+const POLL: Duration = Duration::from_millis(500);
+
+/// Follow a job: status, progress, snapshot, done / failed / cancelled.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/events",
+    tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "Server-sent events: status, progress, snapshot, done, failed, cancelled", content_type = "text/event-stream", body = String),
+        (status = 404, body = Problem, content_type = "application/problem+json")
+    )
+)]
+pub async fn job_events(State(state): State<AppState>, Path(id): Path<String>) -> Result<impl IntoResponse, Problem> {
+    // Subscribe before the first read, so no change between the two is missed.
+    let changes = state.hub.changed.subscribe();
+    let first = state
+        .queue
+        .job(&id)
+        .await?
+        .ok_or_else(|| Problem::not_found("job", &id))?;
+    let (tx, rx) = mpsc::channel::<Event>(16);
+    tokio::spawn(follow(state, id, job_view(&first), changes, tx));
+    let stream = futures_util::stream::unfold(rx, |mut rx| async move {
+        rx.recv().await.map(|e| (Ok::<_, Infallible>(e), rx))
+    });
+    Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
+}
+
+fn event(name: &str, data: serde_json::Value) -> Event {
+    Event::default().event(name).data(data.to_string())
+}
+
+/// Sends the job's events until it ends, the client goes away, or the server stops.
+async fn follow(
+    state: AppState,
+    id: String,
+    mut last: JobView,
+    mut changes: broadcast::Receiver<String>,
+    tx: mpsc::Sender<Event>,
+) {
+    let mut shutdown = state.shutdown.clone();
+    if tx.send(event("status", json!(last))).await.is_err() {
+        return;
+    }
+    let mut sent_snapshots = last.snapshots;
+    loop {
+        if last.status.is_terminal() {
+            let (name, data) = match last.status {
+                JobStatus::Succeeded => ("done", json!(last)),
+                JobStatus::Failed => ("failed", json!({"reason": last.failure, "job": last})),
+                _ => ("cancelled", json!(last)),
+            };
+            let _ = tx.send(event(name, data)).await;
+            return;
+        }
+        // Wait for a change to this job, the poll interval, the client leaving, or shutdown.
+        let deadline = tokio::time::sleep(POLL);
+        tokio::pin!(deadline);
+        loop {
+            tokio::select! {
+                m = changes.recv() => match m {
+                    Ok(changed) if changed == id => break,
+                    Ok(_) => continue,
+                    Err(broadcast::error::RecvError::Lagged(_)) => break,
+                    Err(broadcast::error::RecvError::Closed) => return,
+                },
+                _ = &mut deadline => break,
+                _ = tx.closed() => return,
+                _ = crate::service::shutting_down(&mut shutdown) => return,
+            }
+        }
+        let job = match state.queue.job(&id).await {
+            Ok(Some(j)) => job_view(&j),
+            Ok(None) => return,
+            Err(e) => {
+                tracing::warn!(job = %id, error = %e, "event stream cannot read the job");
+                continue;
+            }
+        };
+        let mut out = Vec::new();
+        if job.status != last.status && !job.status.is_terminal() {
+            out.push(event("status", json!(job)));
+        }
+        if job.snapshots > sent_snapshots {
+            for n in sent_snapshots + 1..=job.snapshots {
+                let p = job.progress.unwrap_or_default();
+                out.push(event(
+                    "snapshot",
+                    json!({
+                        "n": n,
+                        "steps": p.steps,
+                        "seconds": p.elapsed_s,
+                        "error": p.error,
+                        "url": format!("/v1/jobs/{id}/lightmap.exr?snapshot={n}"),
+                    }),
+                ));
+            }
+            sent_snapshots = job.snapshots;
+        }
+        if job.progress != last.progress
+            && let Some(p) = job.progress
+        {
+            out.push(event("progress", json!(p)));
+        }
+        for e in out {
+            if tx.send(e).await.is_err() {
+                return;
+            }
+        }
+        last = job;
+    }
+}

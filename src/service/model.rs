@@ -1,0 +1,538 @@
+//! The API's JSON shapes: the job body of DESIGN §7 with its defaults and field-by-field
+//! validation, and the scene and job documents the API returns.
+//!
+//! How: the body is parsed with `serde_path_to_error`, so a type error or an unknown
+//! field is reported with its dotted path (`stop.steps`), then checked against the
+//! engine's ranges; [`JobSpec::to_request`] turns it into the engine's `BakeRequest`.
+//! The service types are separate from the engine's so the wire format (degrees, plain
+//! arrays) can stay fixed while the engine changes, and so the engine needs no OpenAPI.
+//!
+//! Limits: technique parameters (`params`) are checked by the technique when the job
+//! runs, not at submission; a bad one fails the job with the technique's message.
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use utoipa::ToSchema;
+
+use crate::engine::bake::StopCriteria;
+use crate::engine::job::BakeRequest;
+use crate::engine::output::OutputLayer;
+use crate::engine::scene::{Hemisphere, Lighting, Sky, Sun};
+use crate::engine::technique::TECHNIQUES;
+use crate::service::problem::Problem;
+
+/// The largest lightmap side the service accepts (the engine's own limit is higher, but
+/// a 4096² CPU bake already takes hours).
+pub const MAX_SERVICE_RESOLUTION: u32 = 4096;
+
+/// `POST /v1/jobs` body. Every field but `scene` has a default; unknown fields are rejected.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct JobSpec {
+    /// A scene id from `POST /v1/scenes`.
+    pub scene: String,
+    /// One of the engine's techniques (`path` today).
+    #[serde(default = "default_technique")]
+    #[schema(default = "path")]
+    pub technique: String,
+    /// Lightmap width and height in texels, 1 to 4096.
+    #[serde(default = "default_resolution")]
+    #[schema(default = 256)]
+    pub resolution: u32,
+    #[serde(default)]
+    pub lighting: LightingSpec,
+    /// When to stop. Absent: 4096 steps, 120 s or 2 % error, whichever comes first. Given:
+    /// exactly the criteria given (at least one).
+    #[serde(default = "default_stop")]
+    pub stop: StopSpec,
+    /// Technique parameters (a JSON object; the technique rejects unknown ones).
+    #[serde(default)]
+    #[schema(value_type = Object)]
+    pub params: Value,
+    /// Extra EXR layers: `validity`, `direct`, `indirect`, `sh`.
+    #[serde(default)]
+    pub outputs: Vec<String>,
+    /// Higher runs first; equal priorities run oldest first.
+    #[serde(default)]
+    pub priority: i32,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LightingSpec {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sky: Option<SkySpec>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sun: Option<SunSpec>,
+}
+
+/// Uniform sky radiance (W/(sr·m²)).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SkySpec {
+    pub radiance: [f32; 3],
+    #[serde(default)]
+    pub hemisphere: HemisphereSpec,
+}
+
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum HemisphereSpec {
+    /// Directions with +Y > 0.
+    #[default]
+    Upper,
+    Full,
+}
+
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SunSpec {
+    /// From the sun toward the scene.
+    pub direction: [f32; 3],
+    #[serde(default = "default_sun_diameter")]
+    #[schema(default = 0.53)]
+    pub angular_diameter_deg: f32,
+    pub radiance: [f32; 3],
+}
+
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct StopSpec {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub steps: Option<u64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seconds: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_error: Option<f32>,
+}
+
+fn default_technique() -> String {
+    BakeRequest::default().technique
+}
+
+fn default_resolution() -> u32 {
+    BakeRequest::default().resolution
+}
+
+fn default_stop() -> StopSpec {
+    let s = BakeRequest::default().stop;
+    StopSpec {
+        steps: s.steps,
+        seconds: s.seconds,
+        target_error: s.target_error,
+    }
+}
+
+fn default_sun_diameter() -> f32 {
+    0.53
+}
+
+impl JobSpec {
+    /// Parses a request body: malformed JSON is 400, anything else wrong is 422 naming the
+    /// field.
+    pub fn parse(body: &[u8]) -> Result<JobSpec, Problem> {
+        let de = &mut serde_json::Deserializer::from_slice(body);
+        let spec: JobSpec = serde_path_to_error::deserialize(de).map_err(|e| {
+            let path = e.path().to_string();
+            let inner = e.into_inner();
+            if inner.is_syntax() || inner.is_eof() {
+                return Problem::bad_request(format!("the body is not valid JSON: {inner}"));
+            }
+            let msg = inner.to_string();
+            // serde names an unknown or missing field in its message, not in the path.
+            let field = if let Some(name) = quoted_after(&msg, "unknown field `") {
+                join_path(&path, &name)
+            } else if let Some(name) = quoted_after(&msg, "missing field `") {
+                join_path(&path, &name)
+            } else {
+                path
+            };
+            // serde's message carries its own position ("at line 1 column 40"), which is
+            // noise next to the field name.
+            let msg = match msg.rfind(" at line ") {
+                Some(i) => msg[..i].to_string(),
+                None => msg,
+            };
+            Problem::invalid_field(field, msg)
+        })?;
+        spec.validate()?;
+        Ok(spec)
+    }
+
+    /// The engine's ranges, each failure naming its field.
+    pub fn validate(&self) -> Result<(), Problem> {
+        if self.scene.trim().is_empty() {
+            return Err(Problem::invalid_field("scene", "scene must be a scene id"));
+        }
+        if !TECHNIQUES.contains(&self.technique.as_str()) {
+            return Err(Problem::invalid_field(
+                "technique",
+                format!(
+                    "unknown technique {:?}; available: {}",
+                    self.technique,
+                    TECHNIQUES.join(", ")
+                ),
+            ));
+        }
+        if !(1..=MAX_SERVICE_RESOLUTION).contains(&self.resolution) {
+            return Err(Problem::invalid_field(
+                "resolution",
+                format!(
+                    "resolution must be between 1 and {MAX_SERVICE_RESOLUTION}, got {}",
+                    self.resolution
+                ),
+            ));
+        }
+        for (i, o) in self.outputs.iter().enumerate() {
+            OutputLayer::parse(o).map_err(|e| Problem::invalid_field(format!("outputs[{i}]"), e))?;
+        }
+        if !(self.params.is_null() || self.params.is_object()) {
+            return Err(Problem::invalid_field("params", "params must be a JSON object"));
+        }
+        let request = self.to_request();
+        // The engine's messages start with the field they are about ("stop.steps must
+        // be ...", "lighting.sun.radiance must be ..."): that is the field we name.
+        request
+            .lighting
+            .validate()
+            .map_err(|m| Problem::invalid_field(leading_field(&m), m))?;
+        request
+            .stop
+            .validate()
+            .map_err(|e| Problem::invalid_field(leading_field(&e.to_string()), e.to_string()))?;
+        Ok(())
+    }
+
+    /// The engine's request for this job.
+    pub fn to_request(&self) -> BakeRequest {
+        let lighting = Lighting {
+            sky: self.lighting.sky.map(|s| Sky {
+                radiance: Vec3::from_array(s.radiance),
+                hemisphere: match s.hemisphere {
+                    HemisphereSpec::Upper => Hemisphere::Upper,
+                    HemisphereSpec::Full => Hemisphere::Full,
+                },
+            }),
+            sun: self.lighting.sun.map(|s| {
+                let d = Vec3::from_array(s.direction);
+                Sun {
+                    // A zero or non-finite direction stays as it is, so validation names it.
+                    direction: if d.length() > 1e-6 && d.is_finite() {
+                        d.normalize()
+                    } else {
+                        d
+                    },
+                    angular_diameter: s.angular_diameter_deg.to_radians(),
+                    radiance: Vec3::from_array(s.radiance),
+                }
+            }),
+        };
+        BakeRequest {
+            technique: self.technique.clone(),
+            resolution: self.resolution,
+            lighting,
+            stop: StopCriteria {
+                steps: self.stop.steps,
+                seconds: self.stop.seconds,
+                target_error: self.stop.target_error,
+            },
+            params: self.params.clone(),
+            outputs: self.outputs.iter().filter_map(|o| OutputLayer::parse(o).ok()).collect(),
+            seed: self.seed,
+            // Not part of the job body (DESIGN §7): the engine's default (denoised).
+            denoise: BakeRequest::default().denoise,
+        }
+    }
+}
+
+fn quoted_after(msg: &str, marker: &str) -> Option<String> {
+    let start = msg.find(marker)? + marker.len();
+    let end = msg[start..].find('`')?;
+    Some(msg[start..start + end].to_string())
+}
+
+fn join_path(path: &str, name: &str) -> String {
+    if path.is_empty() || path == "." {
+        name.to_string()
+    } else {
+        // For an unknown field serde_path_to_error's path already ends at it.
+        if path.ends_with(name) {
+            path.to_string()
+        } else {
+            format!("{path}.{name}")
+        }
+    }
+}
+
+fn leading_field(msg: &str) -> String {
+    msg.split_whitespace()
+        .next()
+        .unwrap_or("")
+        .trim_end_matches(':')
+        .to_string()
+}
+
+/// A job's lifecycle (DESIGN §7).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, ToSchema, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum JobStatus {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobStatus {
+    pub const ALL: [JobStatus; 5] = [
+        JobStatus::Queued,
+        JobStatus::Running,
+        JobStatus::Succeeded,
+        JobStatus::Failed,
+        JobStatus::Cancelled,
+    ];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobStatus::Queued => "queued",
+            JobStatus::Running => "running",
+            JobStatus::Succeeded => "succeeded",
+            JobStatus::Failed => "failed",
+            JobStatus::Cancelled => "cancelled",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<JobStatus> {
+        JobStatus::ALL.into_iter().find(|j| j.as_str() == s)
+    }
+
+    pub fn is_terminal(self) -> bool {
+        matches!(self, JobStatus::Succeeded | JobStatus::Failed | JobStatus::Cancelled)
+    }
+}
+
+/// Where a running bake is.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
+pub struct Progress {
+    pub steps: u64,
+    /// 0 to 1: the furthest of steps, time and error toward their stop criteria.
+    pub fraction: f64,
+    pub elapsed_s: f64,
+    /// The estimated relative error at the latest snapshot.
+    #[serde(default)]
+    pub error: Option<f32>,
+}
+
+impl Progress {
+    pub fn new(steps: u64, elapsed_s: f64, error: Option<f32>, stop: &StopSpec) -> Progress {
+        let mut f: f64 = 0.0;
+        if let Some(n) = stop.steps {
+            f = f.max(steps as f64 / n as f64);
+        }
+        if let Some(s) = stop.seconds {
+            f = f.max(elapsed_s / s);
+        }
+        // The error falls as 1/sqrt(steps), so (target / error)² tracks the work done.
+        if let (Some(t), Some(e)) = (stop.target_error, error)
+            && e > 0.0
+        {
+            f = f.max(((t / e) as f64).powi(2));
+        }
+        Progress {
+            steps,
+            fraction: f.clamp(0.0, 1.0),
+            elapsed_s,
+            error,
+        }
+    }
+}
+
+/// One point of a bake's error against time (taken at every snapshot).
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
+pub struct HistoryPoint {
+    pub seconds: f64,
+    pub steps: u64,
+    pub error: Option<f32>,
+}
+
+/// `GET /v1/jobs/{id}`.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct JobView {
+    pub id: String,
+    pub status: JobStatus,
+    pub scene: String,
+    /// The job body with defaults filled in.
+    pub spec: JobSpec,
+    pub priority: i32,
+    /// How many times a worker has taken the job up (a graceful shutdown does not count).
+    pub attempts: u32,
+    /// The worker holding the lease while running.
+    pub worker: Option<String>,
+    pub created_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+    pub progress: Option<Progress>,
+    /// What the bake runs: technique, resolution, texel set, layers.
+    #[schema(value_type = Object)]
+    pub plan: Option<Value>,
+    pub history: Vec<HistoryPoint>,
+    /// Snapshots stored so far (`?snapshot=1..=snapshots`).
+    pub snapshots: u32,
+    /// The engine's summary of a finished bake (steps, seconds, error, stop reason).
+    #[schema(value_type = Object)]
+    pub summary: Option<Value>,
+    /// Why the job failed.
+    pub failure: Option<String>,
+    pub cancel_requested: bool,
+}
+
+/// `GET /v1/jobs`.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct JobList {
+    pub jobs: Vec<JobView>,
+    /// Jobs matching the filter, over all pages.
+    pub total: u64,
+    pub limit: u32,
+    pub offset: u64,
+}
+
+/// `POST /v1/jobs` response.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct JobCreated {
+    pub id: String,
+    pub status: JobStatus,
+}
+
+/// `POST /v1/scenes`, `GET /v1/scenes/{id}`.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct SceneView {
+    pub id: String,
+    /// `sha256:` and the hex digest of the uploaded bytes.
+    pub content_hash: String,
+    /// `glb` or `gltf`.
+    pub format: String,
+    pub files: Vec<String>,
+    pub size_bytes: u64,
+    /// The importer's report: counts, bounds, whether every mesh has lightmap UVs
+    /// (`has_lightmap_uvs`), warnings.
+    #[schema(value_type = Object)]
+    pub report: Value,
+    pub created_at: String,
+}
+
+/// `GET /healthz`.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema)]
+pub struct Health {
+    pub status: String,
+    pub version: String,
+    pub workers: usize,
+}
+
+/// The file name a relative glTF URI names: percent-decoded (`quad%20data.bin` is the
+/// file `quad data.bin`), as the importer reads it.
+pub fn uri_file_name(uri: &str) -> String {
+    let b = uri.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        let hex = |c: u8| (c as char).to_digit(16);
+        if b[i] == b'%'
+            && i + 2 < b.len()
+            && let (Some(h), Some(l)) = (hex(b[i + 1]), hex(b[i + 2]))
+        {
+            out.push((h * 16 + l) as u8);
+            i += 3;
+        } else {
+            out.push(b[i]);
+            i += 1;
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+/// Unix milliseconds as RFC 3339 UTC (`2026-11-01T12:00:00.000Z`).
+pub fn rfc3339(ms: i64) -> String {
+    let secs = ms.div_euclid(1000);
+    let millis = ms.rem_euclid(1000);
+    let days = secs.div_euclid(86_400);
+    let rem = secs.rem_euclid(86_400);
+    // Howard Hinnant's days-to-civil.
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{millis:03}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn uri_file_names_are_percent_decoded() {
+        assert_eq!(uri_file_name("quad%20data.bin"), "quad data.bin");
+        assert_eq!(uri_file_name("plain.bin"), "plain.bin");
+        assert_eq!(uri_file_name("odd%2"), "odd%2");
+    }
+
+    #[test]
+    fn rfc3339_known_dates() {
+        assert_eq!(rfc3339(0), "1970-01-01T00:00:00.000Z");
+        assert_eq!(rfc3339(951_782_400_123), "2000-02-29T00:00:00.123Z");
+        assert_eq!(rfc3339(1_793_534_400_000), "2026-11-01T12:00:00.000Z");
+    }
+
+    #[test]
+    fn defaults_fill_every_field_but_scene() {
+        let s = JobSpec::parse(br#"{"scene": "s1"}"#).unwrap();
+        assert_eq!(s.technique, "path");
+        assert_eq!(s.resolution, 256);
+        assert_eq!(s.stop.steps, Some(4096));
+        assert_eq!(s.priority, 0);
+    }
+
+    #[test]
+    fn errors_name_the_field() {
+        let field = |body: &str| JobSpec::parse(body.as_bytes()).unwrap_err().field;
+        assert_eq!(field(r#"{}"#).as_deref(), Some("scene"));
+        assert_eq!(field(r#"{"scene":"a","colour":1}"#).as_deref(), Some("colour"));
+        assert_eq!(
+            field(r#"{"scene":"a","stop":{"steps":-1}}"#).as_deref(),
+            Some("stop.steps")
+        );
+        assert_eq!(field(r#"{"scene":"a","stop":{"spp":1}}"#).as_deref(), Some("stop.spp"));
+        assert_eq!(
+            field(r#"{"scene":"a","stop":{"seconds":-1}}"#).as_deref(),
+            Some("stop.seconds")
+        );
+        assert_eq!(field(r#"{"scene":"a","stop":{}}"#).as_deref(), Some("stop"));
+        assert_eq!(field(r#"{"scene":"a","resolution":0}"#).as_deref(), Some("resolution"));
+        assert_eq!(field(r#"{"scene":"a","technique":"x"}"#).as_deref(), Some("technique"));
+        assert_eq!(
+            field(r#"{"scene":"a","outputs":["ao"]}"#).as_deref(),
+            Some("outputs[0]")
+        );
+        assert_eq!(
+            field(r#"{"scene":"a","lighting":{"sky":{"radiance":[-1,0,0]}}}"#).as_deref(),
+            Some("lighting.sky.radiance")
+        );
+        assert_eq!(
+            field(r#"{"scene":"a","lighting":{"sun":{"direction":[0,-1,0],"radiance":[1,1,1],"x":1}}}"#).as_deref(),
+            Some("lighting.sun.x")
+        );
+        assert_eq!(JobSpec::parse(b"{").unwrap_err().status, 400);
+    }
+}

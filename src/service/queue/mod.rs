@@ -1,0 +1,166 @@
+//! The durable job queue and scene registry, behind one trait so the embedded SQLite
+//! implementation and a PostgreSQL one (issue 11) are interchangeable for routes and
+//! workers.
+//!
+//! The model (DESIGN §7): a job is `queued` until a worker claims it, which makes it
+//! `running` with a lease (worker id, expiry) and counts an attempt. The worker renews
+//! the lease with every progress write ([`Queue::heartbeat`]); a lease that lapses (the
+//! worker or its machine died) is found by [`Queue::recover_expired`], run at start-up and
+//! periodically, which puts the job back to `queued`, or fails it once it has had
+//! [`MAX_ATTEMPTS`] attempts. A worker that stops on purpose hands its job back with
+//! [`Queue::release`], which does not count the attempt. Every transition is one
+//! statement (or one transaction), so two workers can never hold the same job.
+//!
+//! Limits: a re-run starts the bake again from step 0 (the engine cannot resume from a
+//! snapshot); snapshots of earlier attempts stay, numbered on.
+
+pub mod sqlite;
+
+use std::time::Duration;
+
+use async_trait::async_trait;
+use serde_json::Value;
+
+use crate::service::model::{JobSpec, JobStatus};
+
+/// A job that has lost its lease this many times fails instead of being re-queued.
+pub const MAX_ATTEMPTS: u32 = 3;
+
+pub type QueueResult<T> = Result<T, sqlx::Error>;
+
+#[derive(Clone, Debug)]
+pub struct SceneRecord {
+    pub id: String,
+    pub content_hash: String,
+    pub format: String,
+    pub main_file: String,
+    pub files: Vec<String>,
+    pub size_bytes: u64,
+    pub report: Value,
+    pub created_at: i64,
+}
+
+#[derive(Clone, Debug)]
+pub struct JobRecord {
+    pub id: String,
+    pub scene_id: String,
+    pub spec: JobSpec,
+    pub status: JobStatus,
+    pub priority: i32,
+    pub created_at: i64,
+    pub started_at: Option<i64>,
+    pub finished_at: Option<i64>,
+    pub attempts: u32,
+    pub worker: Option<String>,
+    pub lease_expires_at: Option<i64>,
+    pub cancel_requested: bool,
+    pub progress: Option<Value>,
+    pub history: Value,
+    pub plan: Option<Value>,
+    pub snapshots: u32,
+    pub summary: Option<Value>,
+    pub failure: Option<String>,
+    pub updated_at: i64,
+}
+
+/// What a running worker writes with a heartbeat (each part only when it changed).
+#[derive(Clone, Debug, Default)]
+pub struct JobUpdate {
+    pub progress: Option<Value>,
+    pub history: Option<Value>,
+    pub plan: Option<Value>,
+    /// The number of the snapshot just stored.
+    pub snapshots: Option<u32>,
+}
+
+/// The answer to a heartbeat.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Lease {
+    /// Still ours; `cancel` when someone asked to cancel the job.
+    Held { cancel: bool },
+    /// Not ours any more (expired and re-queued, or the job was cancelled): stop, and
+    /// write nothing.
+    Lost,
+}
+
+#[derive(Clone, Debug)]
+pub enum Outcome {
+    Succeeded {
+        summary: Value,
+        progress: Value,
+        history: Value,
+    },
+    Failed {
+        reason: String,
+    },
+    Cancelled,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SceneDeletion {
+    Deleted,
+    NotFound,
+    /// Queued or running jobs still use it.
+    InUse(u64),
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Cancellation {
+    NotFound,
+    /// A queued job, cancelled at once.
+    Cancelled,
+    /// A running job: its worker stops within one step.
+    Requested,
+    /// Already finished; nothing to do.
+    AlreadyFinished(JobStatus),
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Recovered {
+    pub requeued: Vec<String>,
+    pub failed: Vec<String>,
+    pub cancelled: Vec<String>,
+}
+
+#[async_trait]
+pub trait Queue: Send + Sync + 'static {
+    /// Stores a scene; `false` when one with the same id (same content) already exists.
+    async fn insert_scene(&self, scene: &SceneRecord) -> QueueResult<bool>;
+    async fn scene(&self, id: &str) -> QueueResult<Option<SceneRecord>>;
+    /// Deletes the scene's row unless a queued or running job uses it.
+    async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion>;
+
+    /// Stores a queued job; `None` when its scene does not exist.
+    async fn enqueue(&self, id: &str, spec: &JobSpec, now: i64) -> QueueResult<Option<JobRecord>>;
+    async fn job(&self, id: &str) -> QueueResult<Option<JobRecord>>;
+    /// Newest first.
+    async fn list(&self, status: Option<JobStatus>, limit: u32, offset: u64) -> QueueResult<(Vec<JobRecord>, u64)>;
+    async fn counts(&self) -> QueueResult<Vec<(JobStatus, u64)>>;
+    async fn cancel(&self, id: &str, now: i64) -> QueueResult<Cancellation>;
+
+    /// Takes the next queued job (highest priority, then oldest) for `worker`.
+    async fn claim(&self, worker: &str, lease: Duration, now: i64) -> QueueResult<Option<JobRecord>>;
+    /// Renews the lease and writes `update`.
+    async fn heartbeat(
+        &self,
+        id: &str,
+        worker: &str,
+        lease: Duration,
+        update: &JobUpdate,
+        now: i64,
+    ) -> QueueResult<Lease>;
+    /// Records the end of a job; `false` when the lease was lost (nothing written).
+    async fn finish(&self, id: &str, worker: &str, outcome: &Outcome, now: i64) -> QueueResult<bool>;
+    /// Hands a running job back (graceful shutdown): queued again, attempt not counted.
+    async fn release(&self, id: &str, worker: &str, now: i64) -> QueueResult<bool>;
+    /// Re-queues (or fails, or cancels) running jobs whose lease has lapsed.
+    async fn recover_expired(&self, now: i64) -> QueueResult<Recovered>;
+}
+
+/// Milliseconds since the Unix epoch.
+pub fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis() as i64)
+        .unwrap_or(0)
+}

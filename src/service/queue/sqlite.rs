@@ -1,0 +1,472 @@
+//! The embedded queue: one SQLite file, migrations from `migrations/sqlite/` applied at
+//! start-up.
+//!
+//! How: WAL journal (readers never wait for the writer) with `synchronous = FULL`, so a
+//! job acknowledged with 202 survives a power cut, not only a killed process. A claim is
+//! a single `UPDATE … WHERE id = (SELECT … LIMIT 1) RETURNING *`; SQLite runs one writer
+//! at a time, so the select and the update cannot interleave with another claim. That is
+//! the property `FOR UPDATE SKIP LOCKED` gives the PostgreSQL implementation.
+//!
+//! Limits: one machine (SQLite over a network filesystem is not safe); the writer lock is
+//! held for milliseconds per statement, which is plenty for a few hundred workers' 4 Hz
+//! progress writes, not for thousands.
+
+use std::path::Path;
+use std::str::FromStr;
+use std::time::Duration;
+
+use async_trait::async_trait;
+use serde_json::Value;
+use sqlx::Row;
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow, SqliteSynchronous,
+};
+
+use super::{
+    Cancellation, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult, Recovered, SceneDeletion,
+    SceneRecord,
+};
+use crate::service::model::{JobSpec, JobStatus};
+
+static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("migrations/sqlite");
+
+#[derive(Clone)]
+pub struct SqliteQueue {
+    pool: SqlitePool,
+}
+
+impl SqliteQueue {
+    /// Opens (creating if needed) the database file at `path` and migrates it.
+    pub async fn open(path: &Path) -> QueueResult<SqliteQueue> {
+        let opts = SqliteConnectOptions::new().filename(path);
+        Self::connect(opts).await
+    }
+
+    /// Opens a `sqlite:` URL (`sqlite://path/to/file.db`).
+    pub async fn open_url(url: &str) -> QueueResult<SqliteQueue> {
+        Self::connect(SqliteConnectOptions::from_str(url)?).await
+    }
+
+    async fn connect(opts: SqliteConnectOptions) -> QueueResult<SqliteQueue> {
+        let opts = opts
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            .synchronous(SqliteSynchronous::Full)
+            .foreign_keys(true)
+            // Writers queue on the lock rather than fail: 50 submissions at once must all land.
+            .busy_timeout(Duration::from_secs(10));
+        let pool = SqlitePoolOptions::new().max_connections(8).connect_with(opts).await?;
+        MIGRATOR.run(&pool).await?;
+        Ok(SqliteQueue { pool })
+    }
+}
+
+fn json_col(row: &SqliteRow, col: &str) -> QueueResult<Option<Value>> {
+    let s: Option<String> = row.try_get(col)?;
+    Ok(s.and_then(|s| serde_json::from_str(&s).ok()))
+}
+
+fn job_from_row(row: &SqliteRow) -> QueueResult<JobRecord> {
+    let spec: String = row.try_get("spec")?;
+    let spec: JobSpec = serde_json::from_str(&spec).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
+    let status: String = row.try_get("status")?;
+    let status = JobStatus::parse(&status)
+        .ok_or_else(|| sqlx::Error::Decode(format!("unknown job status {status:?}").into()))?;
+    Ok(JobRecord {
+        id: row.try_get("id")?,
+        scene_id: row.try_get("scene_id")?,
+        spec,
+        status,
+        priority: row.try_get("priority")?,
+        created_at: row.try_get("created_at")?,
+        started_at: row.try_get("started_at")?,
+        finished_at: row.try_get("finished_at")?,
+        attempts: row.try_get::<i64, _>("attempts")? as u32,
+        worker: row.try_get("worker")?,
+        lease_expires_at: row.try_get("lease_expires_at")?,
+        cancel_requested: row.try_get::<i64, _>("cancel_requested")? != 0,
+        progress: json_col(row, "progress")?,
+        history: json_col(row, "history")?.unwrap_or(Value::Array(vec![])),
+        plan: json_col(row, "plan")?,
+        snapshots: row.try_get::<i64, _>("snapshots")? as u32,
+        summary: json_col(row, "summary")?,
+        failure: row.try_get("failure")?,
+        updated_at: row.try_get("updated_at")?,
+    })
+}
+
+fn scene_from_row(row: &SqliteRow) -> QueueResult<SceneRecord> {
+    let files: String = row.try_get("files")?;
+    Ok(SceneRecord {
+        id: row.try_get("id")?,
+        content_hash: row.try_get("content_hash")?,
+        format: row.try_get("format")?,
+        main_file: row.try_get("main_file")?,
+        files: serde_json::from_str(&files).unwrap_or_default(),
+        size_bytes: row.try_get::<i64, _>("size_bytes")? as u64,
+        report: json_col(row, "report")?.unwrap_or(Value::Null),
+        created_at: row.try_get("created_at")?,
+    })
+}
+
+fn lease_until(now: i64, lease: Duration) -> i64 {
+    now + lease.as_millis() as i64
+}
+
+#[async_trait]
+impl Queue for SqliteQueue {
+    async fn insert_scene(&self, s: &SceneRecord) -> QueueResult<bool> {
+        let r = sqlx::query(
+            "INSERT INTO scenes (id, content_hash, format, main_file, files, size_bytes, report, created_at)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (id) DO NOTHING",
+        )
+        .bind(&s.id)
+        .bind(&s.content_hash)
+        .bind(&s.format)
+        .bind(&s.main_file)
+        .bind(serde_json::to_string(&s.files).unwrap_or_default())
+        .bind(s.size_bytes as i64)
+        .bind(s.report.to_string())
+        .bind(s.created_at)
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    async fn scene(&self, id: &str) -> QueueResult<Option<SceneRecord>> {
+        let row = sqlx::query("SELECT * FROM scenes WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.as_ref().map(scene_from_row).transpose()
+    }
+
+    async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion> {
+        // One statement, so a job cannot be queued for the scene between the check and
+        // the delete (a read in a WAL transaction does not hold the write lock).
+        let r = sqlx::query(
+            "DELETE FROM scenes WHERE id = ?1 AND NOT EXISTS
+                 (SELECT 1 FROM jobs WHERE scene_id = ?1 AND status IN ('queued', 'running'))",
+        )
+        .bind(id)
+        .execute(&self.pool)
+        .await?;
+        if r.rows_affected() == 1 {
+            return Ok(SceneDeletion::Deleted);
+        }
+        let in_use: i64 =
+            sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE scene_id = ? AND status IN ('queued', 'running')")
+                .bind(id)
+                .fetch_one(&self.pool)
+                .await?;
+        let exists: Option<i64> = sqlx::query_scalar("SELECT 1 FROM scenes WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(match exists {
+            None => SceneDeletion::NotFound,
+            Some(_) => SceneDeletion::InUse(in_use.max(1) as u64),
+        })
+    }
+
+    async fn enqueue(&self, id: &str, spec: &JobSpec, now: i64) -> QueueResult<Option<JobRecord>> {
+        // One statement: the scene check and the insert cannot be split by a DELETE.
+        let row = sqlx::query(
+            "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at)
+             SELECT ?1, ?2, ?3, 'queued', ?4, ?5, ?5 WHERE EXISTS (SELECT 1 FROM scenes WHERE id = ?2)
+             RETURNING *",
+        )
+        .bind(id)
+        .bind(&spec.scene)
+        .bind(serde_json::to_string(spec).unwrap_or_default())
+        .bind(spec.priority)
+        .bind(now)
+        .fetch_optional(&self.pool)
+        .await?;
+        row.as_ref().map(job_from_row).transpose()
+    }
+
+    async fn job(&self, id: &str) -> QueueResult<Option<JobRecord>> {
+        let row = sqlx::query("SELECT * FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.as_ref().map(job_from_row).transpose()
+    }
+
+    async fn list(&self, status: Option<JobStatus>, limit: u32, offset: u64) -> QueueResult<(Vec<JobRecord>, u64)> {
+        let status = status.map(JobStatus::as_str);
+        let rows = sqlx::query(
+            "SELECT * FROM jobs WHERE (?1 IS NULL OR status = ?1)
+             ORDER BY created_at DESC, rowid DESC LIMIT ?2 OFFSET ?3",
+        )
+        .bind(status)
+        .bind(limit as i64)
+        .bind(offset as i64)
+        .fetch_all(&self.pool)
+        .await?;
+        let total: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE (?1 IS NULL OR status = ?1)")
+            .bind(status)
+            .fetch_one(&self.pool)
+            .await?;
+        let jobs = rows.iter().map(job_from_row).collect::<QueueResult<Vec<_>>>()?;
+        Ok((jobs, total as u64))
+    }
+
+    async fn counts(&self) -> QueueResult<Vec<(JobStatus, u64)>> {
+        let rows = sqlx::query("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status")
+            .fetch_all(&self.pool)
+            .await?;
+        let mut out: Vec<(JobStatus, u64)> = JobStatus::ALL.iter().map(|s| (*s, 0)).collect();
+        for row in rows {
+            let s: String = row.try_get("status")?;
+            let n: i64 = row.try_get("n")?;
+            if let Some(slot) = out.iter_mut().find(|(st, _)| st.as_str() == s) {
+                slot.1 = n as u64;
+            }
+        }
+        Ok(out)
+    }
+
+    async fn cancel(&self, id: &str, now: i64) -> QueueResult<Cancellation> {
+        let r = sqlx::query(
+            "UPDATE jobs SET status = 'cancelled', finished_at = ?2, updated_at = ?2
+             WHERE id = ?1 AND status = 'queued'",
+        )
+        .bind(id)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        if r.rows_affected() == 1 {
+            return Ok(Cancellation::Cancelled);
+        }
+        let r =
+            sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = ?2 WHERE id = ?1 AND status = 'running'")
+                .bind(id)
+                .bind(now)
+                .execute(&self.pool)
+                .await?;
+        if r.rows_affected() == 1 {
+            return Ok(Cancellation::Requested);
+        }
+        let status: Option<String> = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(match status.as_deref().and_then(JobStatus::parse) {
+            None => Cancellation::NotFound,
+            Some(s) => Cancellation::AlreadyFinished(s),
+        })
+    }
+
+    async fn claim(&self, worker: &str, lease: Duration, now: i64) -> QueueResult<Option<JobRecord>> {
+        let row = sqlx::query(
+            "UPDATE jobs SET status = 'running', worker = ?1, attempts = attempts + 1, lease_expires_at = ?2,
+                 started_at = ?3, updated_at = ?3, progress = NULL, history = '[]', plan = NULL
+             WHERE id = (SELECT id FROM jobs WHERE status = 'queued'
+                         ORDER BY priority DESC, created_at, rowid LIMIT 1)
+             RETURNING *",
+        )
+        .bind(worker)
+        .bind(lease_until(now, lease))
+        .bind(now)
+        .fetch_optional(&self.pool)
+        .await?;
+        row.as_ref().map(job_from_row).transpose()
+    }
+
+    async fn heartbeat(&self, id: &str, worker: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
+        let cancel: Option<i64> = sqlx::query_scalar(
+            "UPDATE jobs SET lease_expires_at = ?3, updated_at = ?4,
+                 progress = COALESCE(?5, progress), history = COALESCE(?6, history),
+                 plan = COALESCE(?7, plan), snapshots = COALESCE(?8, snapshots)
+             WHERE id = ?1 AND worker = ?2 AND status = 'running'
+             RETURNING cancel_requested",
+        )
+        .bind(id)
+        .bind(worker)
+        .bind(lease_until(now, lease))
+        .bind(now)
+        .bind(u.progress.as_ref().map(Value::to_string))
+        .bind(u.history.as_ref().map(Value::to_string))
+        .bind(u.plan.as_ref().map(Value::to_string))
+        .bind(u.snapshots.map(i64::from))
+        .fetch_optional(&self.pool)
+        .await?;
+        Ok(match cancel {
+            Some(c) => Lease::Held { cancel: c != 0 },
+            None => Lease::Lost,
+        })
+    }
+
+    async fn finish(&self, id: &str, worker: &str, outcome: &Outcome, now: i64) -> QueueResult<bool> {
+        let (status, summary, progress, history, failure) = match outcome {
+            Outcome::Succeeded {
+                summary,
+                progress,
+                history,
+            } => (
+                "succeeded",
+                Some(summary.to_string()),
+                Some(progress.to_string()),
+                Some(history.to_string()),
+                None,
+            ),
+            Outcome::Failed { reason } => ("failed", None, None, None, Some(reason.clone())),
+            Outcome::Cancelled => ("cancelled", None, None, None, None),
+        };
+        let r = sqlx::query(
+            "UPDATE jobs SET status = ?3, finished_at = ?4, updated_at = ?4, lease_expires_at = NULL,
+                 summary = COALESCE(?5, summary), progress = COALESCE(?6, progress),
+                 history = COALESCE(?7, history), failure = ?8
+             WHERE id = ?1 AND worker = ?2 AND status = 'running'",
+        )
+        .bind(id)
+        .bind(worker)
+        .bind(status)
+        .bind(now)
+        .bind(summary)
+        .bind(progress)
+        .bind(history)
+        .bind(failure)
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    async fn release(&self, id: &str, worker: &str, now: i64) -> QueueResult<bool> {
+        // A cancel that arrived during shutdown wins over the hand-back.
+        let r = sqlx::query(
+            "UPDATE jobs SET
+                 status = CASE WHEN cancel_requested = 1 THEN 'cancelled' ELSE 'queued' END,
+                 finished_at = CASE WHEN cancel_requested = 1 THEN ?3 ELSE NULL END,
+                 attempts = MAX(attempts - 1, 0), worker = NULL, lease_expires_at = NULL, updated_at = ?3
+             WHERE id = ?1 AND worker = ?2 AND status = 'running'",
+        )
+        .bind(id)
+        .bind(worker)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    async fn recover_expired(&self, now: i64) -> QueueResult<Recovered> {
+        let mut tx = self.pool.begin().await?;
+        // Order matters: cancelled first, then failed, then the rest re-queued; each
+        // statement changes the status, so no row is taken twice.
+        let cancelled: Vec<String> = sqlx::query_scalar(
+            "UPDATE jobs SET status = 'cancelled', finished_at = ?1, updated_at = ?1, worker = NULL,
+                 lease_expires_at = NULL
+             WHERE status = 'running' AND lease_expires_at < ?1 AND cancel_requested = 1
+             RETURNING id",
+        )
+        .bind(now)
+        .fetch_all(&mut *tx)
+        .await?;
+        let failed: Vec<String> = sqlx::query_scalar(
+            "UPDATE jobs SET status = 'failed', finished_at = ?1, updated_at = ?1, lease_expires_at = NULL,
+                 failure = 'gave up after ' || attempts || ' attempts: the lease of worker ' || COALESCE(worker, '?')
+                     || ' expired (the worker stopped renewing it: crashed, killed or cut off)'
+             WHERE status = 'running' AND lease_expires_at < ?1 AND attempts >= ?2
+             RETURNING id",
+        )
+        .bind(now)
+        .bind(MAX_ATTEMPTS as i64)
+        .fetch_all(&mut *tx)
+        .await?;
+        let requeued: Vec<String> = sqlx::query_scalar(
+            "UPDATE jobs SET status = 'queued', updated_at = ?1, worker = NULL, lease_expires_at = NULL
+             WHERE status = 'running' AND lease_expires_at < ?1
+             RETURNING id",
+        )
+        .bind(now)
+        .fetch_all(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Recovered {
+            requeued,
+            failed,
+            cancelled,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(scene: &str) -> JobSpec {
+        JobSpec::parse(format!(r#"{{"scene": "{scene}"}}"#).as_bytes()).unwrap()
+    }
+
+    async fn queue_with_scene(dir: &Path) -> SqliteQueue {
+        let q = SqliteQueue::open(&dir.join("q.db")).await.unwrap();
+        let scene = SceneRecord {
+            id: "s".into(),
+            content_hash: "sha256:00".into(),
+            format: "glb".into(),
+            main_file: "scene.glb".into(),
+            files: vec!["scene.glb".into()],
+            size_bytes: 1,
+            report: Value::Null,
+            created_at: 0,
+        };
+        assert!(q.insert_scene(&scene).await.unwrap());
+        assert!(!q.insert_scene(&scene).await.unwrap(), "same id twice is one scene");
+        q
+    }
+
+    #[tokio::test]
+    async fn lease_expiry_requeues_then_fails_after_three_attempts() {
+        let dir = tempfile::tempdir().unwrap();
+        let q = queue_with_scene(dir.path()).await;
+        q.enqueue("j", &spec("s"), 0).await.unwrap().unwrap();
+        let lease = Duration::from_millis(100);
+        let mut now = 1000;
+        for attempt in 1..=MAX_ATTEMPTS {
+            let job = q.claim("w", lease, now).await.unwrap().expect("queued job is claimed");
+            assert_eq!(job.attempts, attempt);
+            assert!(
+                q.claim("w2", lease, now).await.unwrap().is_none(),
+                "one job, one holder"
+            );
+            // Renewed in time: nothing is recovered.
+            let held = q
+                .heartbeat("j", "w", lease, &JobUpdate::default(), now + 50)
+                .await
+                .unwrap();
+            assert_eq!(held, Lease::Held { cancel: false });
+            assert_eq!(q.recover_expired(now + 140).await.unwrap(), Recovered::default());
+            now += 1000;
+            let r = q.recover_expired(now).await.unwrap();
+            if attempt < MAX_ATTEMPTS {
+                assert_eq!(r.requeued, vec!["j".to_string()]);
+            } else {
+                assert_eq!(r.failed, vec!["j".to_string()]);
+            }
+            // The old holder finds out at its next heartbeat and writes nothing more.
+            let lost = q.heartbeat("j", "w", lease, &JobUpdate::default(), now).await.unwrap();
+            assert_eq!(lost, Lease::Lost);
+        }
+        let job = q.job("j").await.unwrap().unwrap();
+        assert_eq!(job.status, JobStatus::Failed);
+        assert!(job.failure.unwrap().starts_with("gave up after 3 attempts"));
+    }
+
+    #[tokio::test]
+    async fn release_does_not_count_the_attempt_and_scene_in_use_is_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let q = queue_with_scene(dir.path()).await;
+        assert!(q.enqueue("j", &spec("missing"), 0).await.unwrap().is_none());
+        q.enqueue("j", &spec("s"), 0).await.unwrap().unwrap();
+        assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::InUse(1));
+        q.claim("w", Duration::from_secs(30), 1).await.unwrap().unwrap();
+        assert!(q.release("j", "w", 2).await.unwrap());
+        let job = q.job("j").await.unwrap().unwrap();
+        assert_eq!((job.status, job.attempts), (JobStatus::Queued, 0));
+        assert_eq!(q.cancel("j", 3).await.unwrap(), Cancellation::Cancelled);
+        assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::Deleted);
+        assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::NotFound);
+    }
+}

@@ -1,0 +1,751 @@
+//! HTTP routes (DESIGN §7): each parses and validates, calls the queue or the store, and
+//! answers. Errors are `application/problem+json` ([`Problem`]); the OpenAPI document
+//! ([`ApiDoc`], served at `/openapi.json`) is generated from the annotations here.
+//!
+//! Scene uploads: a `.glb` body (`model/gltf-binary` or `application/octet-stream`), or
+//! `multipart/form-data` with one `.gltf` part and its buffers and images (each part's
+//! file name is the name the `.gltf` refers to). The id is the first 32 hex digits of the
+//! SHA-256 of the content, so the same upload gives the same id (201 the first time, 200
+//! after). The scene is imported before it is stored: a bad one gets 422 with the
+//! importer's message and nothing is kept.
+//!
+//! Limits: uploads are buffered in memory up to `max_scene_bytes`; `.gltf` URIs must be
+//! data URIs or the plain names of uploaded parts (no folders), so an upload can never
+//! make the server read its own files.
+
+use std::collections::HashMap;
+
+use axum::Router;
+use axum::body::Body;
+use axum::extract::{DefaultBodyLimit, FromRequest, Multipart, Path, Query, Request, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{Html, IntoResponse, Response};
+use axum::routing::{get, post};
+use bytes::Bytes;
+use sha2::{Digest, Sha256};
+use utoipa::OpenApi;
+
+use crate::service::model::{
+    Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339, uri_file_name,
+};
+use crate::service::problem::Problem;
+use crate::service::queue::{Cancellation, JobRecord, SceneDeletion, SceneRecord, now_ms};
+use crate::service::worker::{SceneFiles, import_files};
+use crate::service::{AppState, StopSignal, events, store};
+
+#[derive(OpenApi)]
+#[openapi(
+    info(
+        title = "lightmapd",
+        description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7)."
+    ),
+    paths(
+        upload_scene,
+        get_scene,
+        delete_scene,
+        create_job,
+        list_jobs,
+        get_job,
+        cancel_job,
+        events::job_events,
+        get_lightmap,
+        get_preview,
+        get_generated_scene,
+        healthz,
+        metrics,
+        openapi_json,
+        dashboard
+    ),
+    components(schemas(
+        Problem, JobSpec, JobView, JobList, JobCreated, JobStatus, Progress, SceneView, Health
+    ))
+)]
+pub struct ApiDoc;
+
+pub fn router(state: AppState) -> Router {
+    let max = state.config.max_scene_bytes;
+    Router::new()
+        .route(
+            "/v1/scenes",
+            // The limit is enforced (as a 413 problem) by the handler; axum's own default
+            // of 2 MiB must not cut in first.
+            post(upload_scene).layer(DefaultBodyLimit::max(max.saturating_add(1 << 20))),
+        )
+        .route("/v1/scenes/{id}", get(get_scene).delete(delete_scene))
+        .route("/v1/jobs", post(create_job).get(list_jobs))
+        .route("/v1/jobs/{id}", get(get_job))
+        .route("/v1/jobs/{id}/cancel", post(cancel_job))
+        .route("/v1/jobs/{id}/events", get(events::job_events))
+        .route("/v1/jobs/{id}/lightmap.exr", get(get_lightmap))
+        .route("/v1/jobs/{id}/preview.png", get(get_preview))
+        .route("/v1/jobs/{id}/scene.glb", get(get_generated_scene))
+        .route("/healthz", get(healthz))
+        .route("/metrics", get(metrics))
+        .route("/openapi.json", get(openapi_json))
+        .route("/", get(dashboard))
+        .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
+        .with_state(state)
+}
+
+async fn not_found(req: Request) -> Problem {
+    Problem::new(
+        StatusCode::NOT_FOUND,
+        "no-route",
+        format!("no route for {} {}; see /openapi.json", req.method(), req.uri().path()),
+    )
+}
+
+async fn method_not_allowed(req: Request) -> Problem {
+    Problem::new(
+        StatusCode::METHOD_NOT_ALLOWED,
+        "method-not-allowed",
+        format!("{} is not allowed on {}", req.method(), req.uri().path()),
+    )
+}
+
+fn content_type(headers: &HeaderMap) -> String {
+    headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .map(|v| v.split(';').next().unwrap_or("").trim().to_ascii_lowercase())
+        .unwrap_or_default()
+}
+
+fn too_large(max: usize) -> Problem {
+    Problem::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "too-large",
+        format!("the scene is larger than this server's limit of {max} bytes (--max-scene-bytes)"),
+    )
+}
+
+/// Upload a scene.
+#[utoipa::path(
+    post,
+    path = "/v1/scenes",
+    tag = "scenes",
+    request_body(
+        description = "A .glb (model/gltf-binary), or multipart/form-data with a .gltf and its buffers and images",
+        content(
+            (Vec<u8> = "model/gltf-binary"),
+            (Vec<u8> = "multipart/form-data")
+        )
+    ),
+    responses(
+        (status = 201, description = "Stored", body = SceneView),
+        (status = 200, description = "The same content was stored before: the same scene", body = SceneView),
+        (status = 400, description = "Empty or malformed upload", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Larger than the server's limit", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Neither a .glb nor multipart", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "The importer rejected the scene", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn upload_scene(State(state): State<AppState>, req: Request) -> Result<Response, Problem> {
+    let max = state.config.max_scene_bytes;
+    if let Some(len) = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+        && len > max as u64
+    {
+        return Err(too_large(max));
+    }
+    let ct = content_type(req.headers());
+    let (files, main, format) = if ct == "multipart/form-data" {
+        let mp = Multipart::from_request(req, &state)
+            .await
+            .map_err(|e| Problem::bad_request(format!("malformed multipart body: {}", e.body_text())))?;
+        let (files, main) = read_gltf_parts(mp, max).await?;
+        (files, main, "gltf")
+    } else if ct.is_empty() || ct == "model/gltf-binary" || ct == "application/octet-stream" {
+        let body = axum::body::to_bytes(req.into_body(), max)
+            .await
+            .map_err(|_| too_large(max))?;
+        if body.is_empty() {
+            return Err(Problem::bad_request(
+                "empty body: send a .glb (model/gltf-binary) or multipart/form-data with a .gltf and its files",
+            ));
+        }
+        (vec![("scene.glb".to_string(), body)], "scene.glb".to_string(), "glb")
+    } else {
+        return Err(Problem::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported-media-type",
+            format!(
+                "content type {ct:?}: send model/gltf-binary (a .glb) or multipart/form-data (a .gltf and its files)"
+            ),
+        ));
+    };
+
+    // The id follows the content: every file's name and bytes, in name order.
+    let mut sorted: Vec<&(String, Bytes)> = files.iter().collect();
+    sorted.sort_by(|a, b| a.0.cmp(&b.0));
+    let mut h = Sha256::new();
+    for (name, bytes) in &sorted {
+        if format == "gltf" {
+            h.update((name.len() as u64).to_le_bytes());
+            h.update(name.as_bytes());
+            h.update((bytes.len() as u64).to_le_bytes());
+        }
+        h.update(bytes);
+    }
+    let digest: String = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
+    let id = digest[..32].to_string();
+
+    if let Some(existing) = state.queue.scene(&id).await? {
+        return Ok((StatusCode::OK, axum::Json(scene_view(&existing))).into_response());
+    }
+
+    let scene_files = if format == "glb" {
+        SceneFiles::Glb(files[0].1.clone())
+    } else {
+        SceneFiles::Gltf(main.clone(), files.clone())
+    };
+    // Import is CPU work: off the runtime's threads.
+    let imported = tokio::task::spawn_blocking(move || import_files(&scene_files).map(|(_, report)| report))
+        .await
+        .map_err(Problem::internal)?;
+    let report = imported.map_err(|msg| Problem::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid-scene", msg))?;
+
+    for (name, bytes) in &files {
+        state
+            .artifacts
+            .put(&store::scene_file(&id, name), bytes.clone())
+            .await?;
+    }
+    let rec = SceneRecord {
+        id: id.clone(),
+        content_hash: format!("sha256:{digest}"),
+        format: format.to_string(),
+        main_file: main,
+        files: files.iter().map(|(n, _)| n.clone()).collect(),
+        size_bytes: files.iter().map(|(_, b)| b.len() as u64).sum(),
+        report: serde_json::to_value(&report).map_err(Problem::internal)?,
+        created_at: now_ms(),
+    };
+    let created = state.queue.insert_scene(&rec).await?;
+    tracing::info!(scene = %id, format, triangles = report.triangles, "scene stored");
+    let status = if created { StatusCode::CREATED } else { StatusCode::OK };
+    let mut resp = (status, axum::Json(scene_view(&rec))).into_response();
+    if let Ok(loc) = HeaderValue::from_str(&format!("/v1/scenes/{id}")) {
+        resp.headers_mut().insert(header::LOCATION, loc);
+    }
+    Ok(resp)
+}
+
+/// Reads a multipart .gltf upload: the parts, and the name of the one .gltf among them.
+async fn read_gltf_parts(mut mp: Multipart, max: usize) -> Result<(Vec<(String, Bytes)>, String), Problem> {
+    let mut files: Vec<(String, Bytes)> = Vec::new();
+    let mut total = 0usize;
+    loop {
+        let field = match mp.next_field().await {
+            Ok(Some(f)) => f,
+            Ok(None) => break,
+            Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => return Err(too_large(max)),
+            Err(e) => {
+                return Err(Problem::bad_request(format!(
+                    "malformed multipart body: {}",
+                    e.body_text()
+                )));
+            }
+        };
+        let name = field
+            .file_name()
+            .or(field.name())
+            .map(str::to_string)
+            .unwrap_or_default();
+        if name.is_empty() || name.contains(['/', '\\']) || name.starts_with('.') {
+            return Err(Problem::invalid_field(
+                "files",
+                format!("part name {name:?}: give each part the plain file name the .gltf uses"),
+            ));
+        }
+        let bytes = field.bytes().await.map_err(|e| {
+            if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+                too_large(max)
+            } else {
+                Problem::bad_request(format!("malformed multipart body: {}", e.body_text()))
+            }
+        })?;
+        total += bytes.len();
+        if total > max {
+            return Err(too_large(max));
+        }
+        if files.iter().any(|(n, _)| *n == name) {
+            return Err(Problem::invalid_field("files", format!("file {name:?} is given twice")));
+        }
+        files.push((name, bytes));
+    }
+    let mains: Vec<&String> = files
+        .iter()
+        .map(|(n, _)| n)
+        .filter(|n| n.to_ascii_lowercase().ends_with(".gltf"))
+        .collect();
+    let main = match mains.as_slice() {
+        [one] => (*one).clone(),
+        [] => {
+            return Err(Problem::invalid_field(
+                "files",
+                "no .gltf part: a multipart upload is one .gltf and the files it refers to",
+            ));
+        }
+        _ => return Err(Problem::invalid_field("files", "more than one .gltf part")),
+    };
+    // Every URI must be a data URI or an uploaded part: never a path on this server.
+    let json: serde_json::Value = files
+        .iter()
+        .find(|(n, _)| *n == main)
+        .and_then(|(_, b)| serde_json::from_slice(b).ok())
+        .ok_or_else(|| {
+            Problem::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                "invalid-scene",
+                format!("{main} is not JSON"),
+            )
+        })?;
+    for kind in ["buffers", "images"] {
+        for (i, item) in json[kind].as_array().into_iter().flatten().enumerate() {
+            if let Some(uri) = item["uri"].as_str()
+                && !uri.starts_with("data:")
+                && !files.iter().any(|(n, _)| *n == uri_file_name(uri))
+            {
+                return Err(Problem::invalid_field(
+                    format!("{kind}[{i}].uri"),
+                    format!("{main} refers to {uri:?}, which is not among the uploaded parts"),
+                ));
+            }
+        }
+    }
+    Ok((files, main))
+}
+
+fn scene_view(s: &SceneRecord) -> SceneView {
+    SceneView {
+        id: s.id.clone(),
+        content_hash: s.content_hash.clone(),
+        format: s.format.clone(),
+        files: s.files.clone(),
+        size_bytes: s.size_bytes,
+        report: s.report.clone(),
+        created_at: rfc3339(s.created_at),
+    }
+}
+
+/// A scene's import report.
+#[utoipa::path(
+    get,
+    path = "/v1/scenes/{id}",
+    tag = "scenes",
+    params(("id" = String, Path, description = "Scene id")),
+    responses(
+        (status = 200, body = SceneView),
+        (status = 404, body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_scene(State(state): State<AppState>, Path(id): Path<String>) -> Result<axum::Json<SceneView>, Problem> {
+    match state.queue.scene(&id).await? {
+        Some(s) => Ok(axum::Json(scene_view(&s))),
+        None => Err(Problem::not_found("scene", &id)),
+    }
+}
+
+/// Delete a scene (not while a queued or running job uses it).
+#[utoipa::path(
+    delete,
+    path = "/v1/scenes/{id}",
+    tag = "scenes",
+    params(("id" = String, Path, description = "Scene id")),
+    responses(
+        (status = 204, description = "Deleted"),
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "A queued or running job uses it", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn delete_scene(State(state): State<AppState>, Path(id): Path<String>) -> Result<StatusCode, Problem> {
+    match state.queue.delete_scene(&id).await? {
+        SceneDeletion::Deleted => {
+            state.artifacts.delete_prefix(&store::scene_prefix(&id)).await?;
+            Ok(StatusCode::NO_CONTENT)
+        }
+        SceneDeletion::NotFound => Err(Problem::not_found("scene", &id)),
+        SceneDeletion::InUse(n) => Err(Problem::conflict(format!(
+            "scene {id} is used by {n} queued or running job(s); cancel them or wait for them to finish"
+        ))),
+    }
+}
+
+/// Submit a bake job.
+#[utoipa::path(
+    post,
+    path = "/v1/jobs",
+    tag = "jobs",
+    request_body(content = JobSpec, content_type = "application/json"),
+    responses(
+        (status = 202, description = "Queued", body = JobCreated),
+        (status = 400, description = "Not JSON", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "Not application/json", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "A field is invalid (`field` names it), or the scene does not exist", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn create_job(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Response, Problem> {
+    let ct = content_type(&headers);
+    if !(ct.is_empty() || ct == "application/json") {
+        return Err(Problem::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported-media-type",
+            format!("content type {ct:?}: send the job as application/json"),
+        ));
+    }
+    let spec = JobSpec::parse(&body)?;
+    let id = uuid::Uuid::new_v4().to_string();
+    let job = state.queue.enqueue(&id, &spec, now_ms()).await?.ok_or_else(|| {
+        Problem::invalid_field("scene", format!("no scene with id {:?}; upload it first", spec.scene))
+    })?;
+    state.hub.work.notify_one();
+    tracing::info!(job = %id, technique = %spec.technique, scene = %spec.scene, "job queued");
+    let mut resp = (
+        StatusCode::ACCEPTED,
+        axum::Json(JobCreated {
+            id: job.id.clone(),
+            status: job.status,
+        }),
+    )
+        .into_response();
+    if let Ok(loc) = HeaderValue::from_str(&format!("/v1/jobs/{id}")) {
+        resp.headers_mut().insert(header::LOCATION, loc);
+    }
+    Ok(resp)
+}
+
+pub fn job_view(j: &JobRecord) -> JobView {
+    JobView {
+        id: j.id.clone(),
+        status: j.status,
+        scene: j.scene_id.clone(),
+        spec: j.spec.clone(),
+        priority: j.priority,
+        attempts: j.attempts,
+        worker: j.worker.clone(),
+        created_at: rfc3339(j.created_at),
+        started_at: j.started_at.map(rfc3339),
+        finished_at: j.finished_at.map(rfc3339),
+        progress: j.progress.clone().and_then(|p| serde_json::from_value(p).ok()),
+        plan: j.plan.clone(),
+        history: serde_json::from_value(j.history.clone()).unwrap_or_default(),
+        snapshots: j.snapshots,
+        summary: j.summary.clone(),
+        failure: j.failure.clone(),
+        cancel_requested: j.cancel_requested,
+    }
+}
+
+/// List jobs, newest first.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs",
+    tag = "jobs",
+    params(
+        ("status" = Option<JobStatus>, Query, description = "Only jobs in this state"),
+        ("limit" = Option<u32>, Query, description = "Page size, 1 to 500 (default 50)"),
+        ("offset" = Option<u64>, Query, description = "Jobs to skip (default 0)")
+    ),
+    responses(
+        (status = 200, body = JobList),
+        (status = 422, body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn list_jobs(
+    State(state): State<AppState>,
+    Query(q): Query<HashMap<String, String>>,
+) -> Result<axum::Json<JobList>, Problem> {
+    for k in q.keys() {
+        if !["status", "limit", "offset"].contains(&k.as_str()) {
+            return Err(Problem::invalid_field(
+                k.clone(),
+                format!("unknown query parameter {k:?}; known: status, limit, offset"),
+            ));
+        }
+    }
+    let status = match q.get("status") {
+        None => None,
+        Some(s) => Some(JobStatus::parse(s).ok_or_else(|| {
+            Problem::invalid_field(
+                "status",
+                format!("unknown status {s:?}; one of queued, running, succeeded, failed, cancelled"),
+            )
+        })?),
+    };
+    let limit = match q.get("limit") {
+        None => 50,
+        Some(s) => s
+            .parse::<u32>()
+            .ok()
+            .filter(|n| (1..=500).contains(n))
+            .ok_or_else(|| Problem::invalid_field("limit", format!("limit must be 1 to 500, got {s:?}")))?,
+    };
+    let offset = match q.get("offset") {
+        None => 0,
+        Some(s) => s
+            .parse::<u64>()
+            .map_err(|_| Problem::invalid_field("offset", format!("offset must be a whole number >= 0, got {s:?}")))?,
+    };
+    let (jobs, total) = state.queue.list(status, limit, offset).await?;
+    Ok(axum::Json(JobList {
+        jobs: jobs.iter().map(job_view).collect(),
+        total,
+        limit,
+        offset,
+    }))
+}
+
+async fn find_job(state: &AppState, id: &str) -> Result<JobRecord, Problem> {
+    state.queue.job(id).await?.ok_or_else(|| Problem::not_found("job", id))
+}
+
+/// A job's status, progress, plan, error history and failure reason.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}",
+    tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 200, body = JobView),
+        (status = 404, body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_job(State(state): State<AppState>, Path(id): Path<String>) -> Result<axum::Json<JobView>, Problem> {
+    Ok(axum::Json(job_view(&find_job(&state, &id).await?)))
+}
+
+/// Cancel a job: a queued one at once, a running one within one bake step.
+#[utoipa::path(
+    post,
+    path = "/v1/jobs/{id}/cancel",
+    tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 202, description = "Cancelled, or cancellation requested (a running job stops within one step)", body = JobView),
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The job has already finished", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn cancel_job(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
+    match state.queue.cancel(&id, now_ms()).await? {
+        Cancellation::NotFound => return Err(Problem::not_found("job", &id)),
+        Cancellation::AlreadyFinished(s) => {
+            return Err(Problem::conflict(format!(
+                "job {id} has already finished ({})",
+                s.as_str()
+            )));
+        }
+        Cancellation::Cancelled => tracing::info!(job = %id, "queued job cancelled"),
+        Cancellation::Requested => {
+            tracing::info!(job = %id, "cancel requested");
+            state.hub.stop_local(&id, StopSignal::Cancel);
+        }
+    }
+    state.hub.job_changed(&id);
+    let job = find_job(&state, &id).await?;
+    Ok((StatusCode::ACCEPTED, axum::Json(job_view(&job))).into_response())
+}
+
+fn binary(bytes: Bytes, content_type: &'static str, filename: Option<String>) -> Response {
+    let mut resp = Response::new(Body::from(bytes));
+    resp.headers_mut()
+        .insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    if let Some(f) = filename
+        && let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{f}\""))
+    {
+        resp.headers_mut().insert(header::CONTENT_DISPOSITION, v);
+    }
+    resp
+}
+
+/// The lightmap: final, or a snapshot of the running bake.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/lightmap.exr",
+    tag = "jobs",
+    params(
+        ("id" = String, Path, description = "Job id"),
+        ("snapshot" = Option<String>, Query, description = "`latest` or a snapshot number (1 = first); absent: the final lightmap")
+    ),
+    responses(
+        (status = 200, description = "OpenEXR", content_type = "image/x-exr", body = Vec<u8>),
+        (status = 404, description = "No such job or snapshot", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "No final lightmap (yet): the job has not succeeded", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Bad `snapshot` value", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_lightmap(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(q): Query<HashMap<String, String>>,
+) -> Result<Response, Problem> {
+    let job = find_job(&state, &id).await?;
+    let key = match q.get("snapshot").map(String::as_str) {
+        None => {
+            if job.status != JobStatus::Succeeded {
+                return Err(Problem::conflict(format!(
+                    "job {id} is {} and has no final lightmap{}",
+                    job.status.as_str(),
+                    if job.snapshots > 0 {
+                        "; ?snapshot=latest gives the latest snapshot"
+                    } else {
+                        ""
+                    }
+                )));
+            }
+            store::final_exr(&id)
+        }
+        Some(s) => {
+            let n = if s == "latest" {
+                job.snapshots
+            } else {
+                s.parse::<u32>().ok().filter(|n| *n >= 1).ok_or_else(|| {
+                    Problem::invalid_field(
+                        "snapshot",
+                        format!("snapshot must be `latest` or a number >= 1, got {s:?}"),
+                    )
+                })?
+            };
+            if n == 0 || n > job.snapshots {
+                return Err(Problem::new(
+                    StatusCode::NOT_FOUND,
+                    "not-found",
+                    format!("job {id} has {} snapshot(s); there is no snapshot {s}", job.snapshots),
+                ));
+            }
+            store::snapshot_exr(&id, n)
+        }
+    };
+    let bytes = state
+        .artifacts
+        .get(&key)
+        .await?
+        .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
+    Ok(binary(bytes, "image/x-exr", Some(format!("{id}.exr"))))
+}
+
+/// A tone-mapped PNG of the final lightmap, or of the latest snapshot while running.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/preview.png",
+    tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "PNG", content_type = "image/png", body = Vec<u8>),
+        (status = 404, description = "No such job, or no snapshot yet", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_preview(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
+    let job = find_job(&state, &id).await?;
+    let key = if job.status == JobStatus::Succeeded {
+        store::final_png(&id)
+    } else if job.snapshots > 0 {
+        store::snapshot_png(&id, job.snapshots)
+    } else {
+        return Err(Problem::new(
+            StatusCode::NOT_FOUND,
+            "not-found",
+            format!("job {id} is {} and has no preview yet", job.status.as_str()),
+        ));
+    };
+    let bytes = state
+        .artifacts
+        .get(&key)
+        .await?
+        .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
+    Ok(binary(bytes, "image/png", None))
+}
+
+/// The scene with the lightmap UVs the engine generated for it (only when it had none:
+/// the lightmap fits these UVs, not the uploaded scene).
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/scene.glb",
+    tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "glTF binary with TEXCOORD_1", content_type = "model/gltf-binary", body = Vec<u8>),
+        (status = 404, description = "No such job, or its scene had lightmap UVs of its own", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The job has not succeeded", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_generated_scene(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
+    let job = find_job(&state, &id).await?;
+    if job.status != JobStatus::Succeeded {
+        return Err(Problem::conflict(format!(
+            "job {id} is {}; the scene with generated UVs comes with the final lightmap",
+            job.status.as_str()
+        )));
+    }
+    match state.artifacts.get(&store::generated_scene(&id)).await? {
+        Some(bytes) => Ok(binary(bytes, "model/gltf-binary", Some(format!("{id}.glb")))),
+        None => Err(Problem::new(
+            StatusCode::NOT_FOUND,
+            "not-found",
+            format!("job {id} baked the scene's own lightmap UVs (TEXCOORD_1): use the uploaded scene"),
+        )),
+    }
+}
+
+/// Liveness and database reachability.
+#[utoipa::path(
+    get,
+    path = "/healthz",
+    tag = "service",
+    responses(
+        (status = 200, body = Health),
+        (status = 500, description = "The database cannot be read", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn healthz(State(state): State<AppState>) -> Result<axum::Json<Health>, Problem> {
+    state.queue.counts().await?;
+    Ok(axum::Json(Health {
+        status: "ok".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        workers: state.config.workers,
+    }))
+}
+
+/// Prometheus metrics (text format 0.0.4).
+#[utoipa::path(
+    get,
+    path = "/metrics",
+    tag = "service",
+    responses((status = 200, description = "Prometheus text", content_type = "text/plain", body = String))
+)]
+async fn metrics(State(state): State<AppState>) -> Result<Response, Problem> {
+    let counts = state.queue.counts().await?;
+    let mut resp = state.metrics.render(&counts).into_response();
+    resp.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
+    );
+    Ok(resp)
+}
+
+/// This document.
+#[utoipa::path(
+    get,
+    path = "/openapi.json",
+    tag = "service",
+    responses((status = 200, description = "OpenAPI 3.1", content_type = "application/json", body = serde_json::Value))
+)]
+async fn openapi_json() -> Response {
+    axum::Json(ApiDoc::openapi()).into_response()
+}
+
+/// A small dashboard: the latest jobs, refreshed every two seconds.
+#[utoipa::path(
+    get,
+    path = "/",
+    tag = "service",
+    responses((status = 200, description = "HTML", content_type = "text/html", body = String))
+)]
+async fn dashboard() -> Html<&'static str> {
+    Html(include_str!("dashboard.html"))
+}

@@ -1,0 +1,582 @@
+//! Workers: claim a job, run the bake on a blocking thread, report back, finish.
+//!
+//! How: each worker is an async task that loops over [`Queue::claim`]. A claimed job's
+//! bake runs under `spawn_blocking` (the engine is CPU- or GPU-bound and must never
+//! stall the runtime's threads) with an observer that only touches shared memory: the
+//! latest progress, the history of (seconds, steps, error) points, and, every
+//! `snapshot_interval`, an encoded snapshot EXR and PNG handed over a channel. The async
+//! side ticks 4 times a second: it writes progress if it changed (so the database sees
+//! at most ~4 writes a second per job), renews the lease with the same statement, reads
+//! back the cancel flag, and uploads snapshots. The bake thread checks the job's
+//! [`StopFlag`] after every step, so a cancel stops it within one step.
+//!
+//! Endings: finished → final EXR and preview stored, then `succeeded`; engine error →
+//! `failed` with its message; cancel → `cancelled`; shutdown → the job is released to
+//! `queued` (attempt not counted); lease lost → nothing is written, the job is someone
+//! else's now. [`recovery_loop`] re-queues the jobs of workers that died.
+//!
+//! Limits: a bake restarts from step 0 when it is taken up again. The scene is imported
+//! again for each job (no cache); for the small scenes a lightmap bake takes that is
+//! milliseconds.
+
+use std::ops::ControlFlow;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use serde_json::{Value, json};
+use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
+use tracing::Instrument;
+
+use crate::engine::atlas::Atlas;
+use crate::engine::bake::{BakeEvent, StopReason};
+use crate::engine::job::{self, BakeOptions, BakeResult};
+use crate::engine::plan::Plan;
+use crate::engine::scene::{self, Scene};
+use crate::engine::technique::EngineError;
+use crate::service::model::{HistoryPoint, JobStatus, Progress};
+use crate::service::queue::{JobRecord, JobUpdate, Lease, Outcome, now_ms};
+use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
+
+/// How often a running job's progress is written and its lease checked.
+const TICK: Duration = Duration::from_millis(250);
+/// How long an idle worker waits for a wake-up before asking the queue again.
+const IDLE_POLL: Duration = Duration::from_millis(500);
+/// The most history points kept per job (one per snapshot; the schedule makes few).
+const MAX_HISTORY: usize = 2000;
+
+/// Engine resources every worker of a process shares, created once.
+///
+/// Today it is empty: the `path` technique needs nothing shared. The GPU techniques
+/// (`sdb` first) will keep the process's one wgpu device and queue here, created lazily
+/// by the first job that needs it, and pass it into `engine::job::bake`; a `path` job
+/// never creates it.
+#[derive(Default)]
+pub struct EngineShared {}
+
+/// Starts `n` workers named after this process.
+pub fn spawn_pool(state: &AppState, n: usize, engine: Arc<EngineShared>) -> Vec<JoinHandle<()>> {
+    let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "local".into());
+    let instance = &uuid::Uuid::new_v4().simple().to_string()[..8];
+    state.metrics.workers.fetch_add(n, Ordering::Relaxed);
+    (0..n)
+        .map(|i| {
+            let id = format!("{host}-{}-{instance}-{i}", std::process::id());
+            tokio::spawn(worker_loop(state.clone(), id, engine.clone()))
+        })
+        .collect()
+}
+
+async fn worker_loop(state: AppState, worker: String, engine: Arc<EngineShared>) {
+    let mut shutdown = state.shutdown.clone();
+    loop {
+        if *shutdown.borrow() {
+            break;
+        }
+        match state.queue.claim(&worker, state.config.lease, now_ms()).await {
+            Ok(Some(job)) => {
+                let span = tracing::info_span!("job", job = %job.id, technique = %job.spec.technique, worker = %worker);
+                run_job(&state, &worker, job, &engine).instrument(span).await;
+            }
+            Ok(None) => {
+                tokio::select! {
+                    _ = state.hub.work.notified() => {}
+                    _ = tokio::time::sleep(IDLE_POLL) => {}
+                    _ = shutdown.changed() => {}
+                }
+            }
+            Err(e) => {
+                tracing::error!(worker = %worker, error = %e, "cannot claim a job; retrying");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+    }
+    tracing::info!(worker = %worker, "worker stopped");
+}
+
+/// Finds jobs whose worker died (lease expired) at start-up and every half lease.
+pub async fn recovery_loop(state: AppState) {
+    let mut shutdown = state.shutdown.clone();
+    let period = (state.config.lease / 2).max(Duration::from_millis(100));
+    loop {
+        match state.queue.recover_expired(now_ms()).await {
+            Ok(r) => {
+                for id in &r.requeued {
+                    tracing::warn!(job = %id, "lease expired: job queued again");
+                    state.hub.job_changed(id);
+                }
+                for id in &r.failed {
+                    tracing::error!(job = %id, "lease expired too often: job failed");
+                    state.hub.job_changed(id);
+                }
+                for id in &r.cancelled {
+                    state.hub.job_changed(id);
+                }
+                if !r.requeued.is_empty() {
+                    state.hub.work.notify_waiters();
+                }
+            }
+            Err(e) => tracing::error!(error = %e, "lease recovery failed"),
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(period) => {}
+            _ = shutting_down(&mut shutdown) => break,
+        }
+    }
+}
+
+/// What the bake thread shares with the job's async supervisor.
+#[derive(Default)]
+struct Shared {
+    progress: Mutex<Option<Progress>>,
+    history: Mutex<Vec<HistoryPoint>>,
+    plan: Mutex<Option<Value>>,
+}
+
+struct SnapshotFiles {
+    exr: Vec<u8>,
+    png: Vec<u8>,
+    steps: u64,
+    error: Option<f32>,
+}
+
+async fn run_job(state: &AppState, worker: &str, job: JobRecord, engine: &Arc<EngineShared>) {
+    let id = job.id.clone();
+    tracing::info!(attempt = job.attempts, "job claimed");
+    state.hub.job_changed(&id);
+    state.metrics.busy.fetch_add(1, Ordering::Relaxed);
+    let flag = state.hub.register(&id);
+    let outcome = supervise(state, worker, &job, flag.clone(), engine.clone()).await;
+    state.hub.unregister(&id);
+    state.metrics.busy.fetch_sub(1, Ordering::Relaxed);
+    let now = now_ms();
+    let written = match outcome {
+        End::Lost => {
+            tracing::warn!("lease lost: another worker owns the job now; nothing written");
+            Ok(true)
+        }
+        End::Release => {
+            tracing::info!("shutting down: job handed back to the queue");
+            state.queue.release(&id, worker, now).await
+        }
+        End::Finish(outcome) => {
+            let status = match &outcome {
+                Outcome::Succeeded { .. } => JobStatus::Succeeded,
+                Outcome::Failed { reason } => {
+                    tracing::warn!(reason = %reason, "job failed");
+                    JobStatus::Failed
+                }
+                Outcome::Cancelled => JobStatus::Cancelled,
+            };
+            let r = state.queue.finish(&id, worker, &outcome, now).await;
+            if matches!(r, Ok(true)) {
+                state.metrics.job_finished(status);
+                tracing::info!(status = status.as_str(), "job finished");
+            }
+            r
+        }
+    };
+    match written {
+        Ok(true) => {}
+        Ok(false) => tracing::warn!("the job was no longer ours when it ended (lease expired); result dropped"),
+        Err(e) => {
+            tracing::error!(error = %e, "cannot record the end of the job; its lease will expire and it runs again")
+        }
+    }
+    state.hub.job_changed(&id);
+}
+
+enum End {
+    Finish(Outcome),
+    Release,
+    Lost,
+}
+
+async fn supervise(
+    state: &AppState,
+    worker: &str,
+    job: &JobRecord,
+    flag: Arc<StopFlag>,
+    engine: Arc<EngineShared>,
+) -> End {
+    let scene = match load_scene(state, &job.scene_id).await {
+        Ok(s) => s,
+        Err(reason) => return End::Finish(Outcome::Failed { reason }),
+    };
+    let shared = Arc::new(Shared::default());
+    let (snap_tx, mut snap_rx) = mpsc::unbounded_channel::<SnapshotFiles>();
+    let bake = {
+        let ctx = BakeThread {
+            shared: shared.clone(),
+            flag: flag.clone(),
+            metrics: state.metrics.clone(),
+            engine,
+            snapshots: snap_tx,
+            snapshot_interval: state.config.snapshot_interval,
+        };
+        let spec = job.spec.clone();
+        let span = tracing::Span::current();
+        tokio::task::spawn_blocking(move || {
+            let _e = span.enter();
+            run_bake(scene, &spec, &ctx)
+        })
+    };
+    tokio::pin!(bake);
+    let mut ticker = tokio::time::interval(TICK);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut shutdown = state.shutdown.clone();
+    let mut stopping = false;
+    let mut written_progress: Option<Progress> = None;
+    let mut written_plan: Option<Value> = None;
+    let mut last_renewal = Instant::now();
+    let mut snapshots = job.snapshots;
+    let lease = state.config.lease;
+    let result = loop {
+        tokio::select! {
+            r = &mut bake => break r,
+            Some(files) = snap_rx.recv() => {
+                if flag.get() != StopSignal::LeaseLost {
+                    let (step, error) = (files.steps, files.error);
+                    match store_snapshot(state, &job.id, snapshots + 1, files).await {
+                        Ok(()) => {
+                            snapshots += 1;
+                            let update = JobUpdate { snapshots: Some(snapshots), ..collect(&shared, &mut written_progress, &mut written_plan, true) };
+                            beat(state, job, worker, &update, &flag, &mut last_renewal).await;
+                            tracing::info!(snapshot = snapshots, step, error, "snapshot stored");
+                        }
+                        Err(e) => tracing::error!(error = %e, "cannot store a snapshot"),
+                    }
+                }
+            }
+            _ = ticker.tick() => {
+                let update = collect(&shared, &mut written_progress, &mut written_plan, false);
+                let changed = update.progress.is_some() || update.plan.is_some();
+                if (changed || last_renewal.elapsed() >= lease / 3) && flag.get() != StopSignal::LeaseLost {
+                    beat(state, job, worker, &update, &flag, &mut last_renewal).await;
+                }
+            }
+            _ = shutting_down(&mut shutdown), if !stopping => {
+                stopping = true;
+                flag.set(StopSignal::Shutdown);
+            }
+        }
+    };
+    // The bake has ended: a snapshot still in the channel is stored if the job is ours.
+    while let Ok(files) = snap_rx.try_recv() {
+        if flag.get() == StopSignal::LeaseLost {
+            break;
+        }
+        if store_snapshot(state, &job.id, snapshots + 1, files).await.is_ok() {
+            snapshots += 1;
+            let update = JobUpdate {
+                snapshots: Some(snapshots),
+                ..collect(&shared, &mut written_progress, &mut written_plan, true)
+            };
+            beat(state, job, worker, &update, &flag, &mut last_renewal).await;
+        }
+    }
+    let result = match result {
+        Ok(r) => r,
+        Err(e) => {
+            return End::Finish(Outcome::Failed {
+                reason: format!("the bake thread panicked: {e}"),
+            });
+        }
+    };
+    match (flag.get(), result) {
+        (StopSignal::LeaseLost, _) => End::Lost,
+        (_, Err(e)) => End::Finish(Outcome::Failed {
+            reason: if e.is_bad_input() {
+                format!("bad input: {e}")
+            } else {
+                e.to_string()
+            },
+        }),
+        (why, Ok(r)) if r.summary.stopped_by == StopReason::Cancelled => {
+            if why == StopSignal::Shutdown {
+                End::Release
+            } else {
+                End::Finish(Outcome::Cancelled)
+            }
+        }
+        (_, Ok(r)) => {
+            tracing::info!(
+                step = r.summary.steps,
+                seconds = r.summary.seconds,
+                error = r.summary.error.relative,
+                stopped_by = ?r.summary.stopped_by,
+                "bake finished"
+            );
+            state.metrics.observe_bake(&job.spec.technique, r.summary.seconds);
+            if let Err(e) = store_final(state, &job.id, &r).await {
+                return End::Finish(Outcome::Failed {
+                    reason: format!("cannot store the lightmap: {e}"),
+                });
+            }
+            let progress = Progress::new(
+                r.summary.steps,
+                r.summary.seconds,
+                r.summary.error.relative,
+                &job.spec.stop,
+            );
+            let history = shared.history.lock().map(|h| h.clone()).unwrap_or_default();
+            End::Finish(Outcome::Succeeded {
+                summary: serde_json::to_value(&r.summary).unwrap_or(Value::Null),
+                progress: serde_json::to_value(progress).unwrap_or(Value::Null),
+                history: serde_json::to_value(history).unwrap_or(Value::Null),
+            })
+        }
+    }
+}
+
+/// The parts of the shared state not yet written.
+fn collect(
+    shared: &Shared,
+    written: &mut Option<Progress>,
+    written_plan: &mut Option<Value>,
+    with_history: bool,
+) -> JobUpdate {
+    let mut u = JobUpdate::default();
+    let p = shared.progress.lock().ok().and_then(|p| *p);
+    if p.is_some() && p != *written {
+        u.progress = p.and_then(|p| serde_json::to_value(p).ok());
+        *written = p;
+    }
+    let plan = shared.plan.lock().ok().and_then(|p| p.clone());
+    if plan.is_some() && plan != *written_plan {
+        u.plan = plan.clone();
+        *written_plan = plan;
+    }
+    if with_history {
+        u.history = shared.history.lock().ok().and_then(|h| serde_json::to_value(&*h).ok());
+    }
+    u
+}
+
+/// Writes progress and renews the lease; raises the stop flag on cancel or a lost lease.
+async fn beat(
+    state: &AppState,
+    job: &JobRecord,
+    worker: &str,
+    update: &JobUpdate,
+    flag: &StopFlag,
+    last: &mut Instant,
+) {
+    match state
+        .queue
+        .heartbeat(&job.id, worker, state.config.lease, update, now_ms())
+        .await
+    {
+        Ok(Lease::Held { cancel }) => {
+            *last = Instant::now();
+            if cancel {
+                flag.set(StopSignal::Cancel);
+            }
+            state.hub.job_changed(&job.id);
+        }
+        Ok(Lease::Lost) => flag.set(StopSignal::LeaseLost),
+        // A database hiccup is not a lost lease: try again at the next tick.
+        Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
+    }
+}
+
+async fn store_snapshot(state: &AppState, job: &str, n: u32, files: SnapshotFiles) -> Result<(), object_store::Error> {
+    state
+        .artifacts
+        .put(&store::snapshot_exr(job, n), Bytes::from(files.exr))
+        .await?;
+    state
+        .artifacts
+        .put(&store::snapshot_png(job, n), Bytes::from(files.png))
+        .await
+}
+
+async fn store_final(state: &AppState, job: &str, r: &BakeResult) -> Result<(), object_store::Error> {
+    if r.summary.generated_uvs.is_some() {
+        // The lightmap is only usable with the UVs it was baked for (DESIGN §2).
+        let scene = r.scene.clone();
+        let glb = tokio::task::spawn_blocking(move || crate::engine::scene::export::to_glb(&scene))
+            .await
+            .map_err(|e| e.to_string())
+            .and_then(|r| r)
+            .map_err(|e| object_store::Error::Generic {
+                store: "export",
+                source: format!("cannot export the scene with generated UVs: {e}").into(),
+            })?;
+        state
+            .artifacts
+            .put(&store::generated_scene(job), Bytes::from(glb))
+            .await?;
+    }
+    state
+        .artifacts
+        .put(&store::final_exr(job), Bytes::from(r.exr.clone()))
+        .await?;
+    state
+        .artifacts
+        .put(&store::final_png(job), Bytes::from(r.preview_png.clone()))
+        .await
+}
+
+/// A scene's stored files, ready for import on the bake thread.
+pub enum SceneFiles {
+    Glb(Bytes),
+    /// The main .gltf's name and every file.
+    Gltf(String, Vec<(String, Bytes)>),
+}
+
+async fn load_scene(state: &AppState, scene_id: &str) -> Result<SceneFiles, String> {
+    let rec = match state.queue.scene(scene_id).await {
+        Ok(Some(r)) => r,
+        Ok(None) => return Err(format!("scene {scene_id} no longer exists")),
+        Err(e) => return Err(format!("cannot read scene {scene_id}: {e}")),
+    };
+    let mut files = Vec::new();
+    for f in &rec.files {
+        match state.artifacts.get(&store::scene_file(scene_id, f)).await {
+            Ok(Some(b)) => files.push((f.clone(), b)),
+            Ok(None) => return Err(format!("scene {scene_id}: file {f} is missing from the store")),
+            Err(e) => return Err(format!("scene {scene_id}: cannot read {f}: {e}")),
+        }
+    }
+    if rec.format == "glb" {
+        let bytes = files.pop().map(|(_, b)| b).unwrap_or_default();
+        Ok(SceneFiles::Glb(bytes))
+    } else {
+        Ok(SceneFiles::Gltf(rec.main_file, files))
+    }
+}
+
+/// Imports scene files: a .glb from memory, a .gltf from a temporary folder holding its
+/// files (the importer resolves relative URIs against a folder).
+pub fn import_files(files: &SceneFiles) -> Result<(Scene, scene::ImportReport), String> {
+    match files {
+        SceneFiles::Glb(b) => scene::import_slice(b, None).map_err(|e| e.to_string()),
+        SceneFiles::Gltf(main, parts) => {
+            let dir = tempfile::tempdir().map_err(|e| format!("cannot make a temporary folder: {e}"))?;
+            for (name, bytes) in parts {
+                std::fs::write(dir.path().join(name), bytes).map_err(|e| format!("cannot write {name}: {e}"))?;
+            }
+            scene::import_file(&dir.path().join(main)).map_err(|e| {
+                // The temporary path means nothing to the user; the file name does.
+                e.to_string().replace(&format!("{}/", dir.path().display()), "")
+            })
+        }
+    }
+}
+
+/// What the bake thread is given besides the job.
+struct BakeThread {
+    shared: Arc<Shared>,
+    flag: Arc<StopFlag>,
+    metrics: Arc<crate::service::metrics::Metrics>,
+    /// Unused until a technique needs shared engine state; then handed to `job::bake`.
+    #[allow(dead_code)]
+    engine: Arc<EngineShared>,
+    snapshots: mpsc::UnboundedSender<SnapshotFiles>,
+    snapshot_interval: Duration,
+}
+
+/// The bake thread: import, bake with an observer that shares progress and encodes
+/// snapshots, return the result.
+fn run_bake(
+    files: SceneFiles,
+    spec: &crate::service::model::JobSpec,
+    ctx: &BakeThread,
+) -> Result<BakeResult, EngineError> {
+    let (shared, flag, metrics, snapshots) = (&*ctx.shared, &*ctx.flag, &*ctx.metrics, &ctx.snapshots);
+    let snapshot_interval = ctx.snapshot_interval;
+    let (scene, _report) = import_files(&files).map_err(EngineError::BadInput)?;
+    drop(files);
+    let request = spec.to_request();
+    let options = BakeOptions { snapshot_interval };
+    let atlas: OnceLock<Arc<Atlas>> = OnceLock::new();
+    // The engine's plan (passes run and left out, with reasons) comes first; the texel
+    // set is added to it once it is built.
+    let mut on_plan = |plan: &Plan| {
+        let mut v = serde_json::to_value(plan).unwrap_or_else(|_| json!({}));
+        v["resolution"] = json!(request.resolution);
+        if let Ok(mut p) = shared.plan.lock() {
+            *p = Some(v);
+        }
+    };
+    let mut on_atlas = |a: &Arc<Atlas>| {
+        let _ = atlas.set(a.clone());
+        if let Ok(mut p) = shared.plan.lock() {
+            let plan = p.get_or_insert_with(|| json!({}));
+            plan["texel_set"] = json!(a.report());
+        }
+        tracing::info!(texels = a.report().valid_texels, "texel set built");
+    };
+    let mut last_step_at = Duration::ZERO;
+    let mut last_stored: Option<Duration> = None;
+    let mut latest_error: Option<f32> = None;
+    let mut observer = |e: BakeEvent<'_>| {
+        match e {
+            BakeEvent::Progress { steps, elapsed, .. } => {
+                metrics.observe_step(&request.technique, (elapsed - last_step_at).as_secs_f64());
+                last_step_at = elapsed;
+                if let Ok(mut p) = shared.progress.lock() {
+                    *p = Some(Progress::new(steps, elapsed.as_secs_f64(), latest_error, &spec.stop));
+                }
+            }
+            BakeEvent::Snapshot { estimate, elapsed } => {
+                latest_error = estimate.error.relative;
+                let point = HistoryPoint {
+                    seconds: elapsed.as_secs_f64(),
+                    steps: estimate.steps,
+                    error: estimate.error.relative,
+                };
+                if let Ok(mut h) = shared.history.lock()
+                    && h.len() < MAX_HISTORY
+                {
+                    h.push(point);
+                }
+                if let Ok(mut p) = shared.progress.lock() {
+                    *p = Some(Progress::new(
+                        estimate.steps,
+                        elapsed.as_secs_f64(),
+                        latest_error,
+                        &spec.stop,
+                    ));
+                }
+                let due = last_stored.is_none_or(|t| elapsed >= t + snapshot_interval);
+                if due
+                    && flag.get() == StopSignal::None
+                    && let Some(a) = atlas.get()
+                {
+                    let exr = job::snapshot_exr(a, estimate, &request, &request.params, elapsed);
+                    // The preview shows what the EXR holds (denoised when the job is).
+                    let png = job::preview_png(a, &job::finish(a, estimate, &request));
+                    match (exr, png) {
+                        (Ok(exr), Ok(png)) => {
+                            last_stored = Some(elapsed);
+                            let _ = snapshots.send(SnapshotFiles {
+                                exr,
+                                png,
+                                steps: estimate.steps,
+                                error: estimate.error.relative,
+                            });
+                        }
+                        (Err(e), _) | (_, Err(e)) => tracing::error!(error = %e, "cannot encode a snapshot"),
+                    }
+                }
+            }
+        }
+        if flag.get() == StopSignal::None {
+            ControlFlow::Continue(())
+        } else {
+            ControlFlow::Break(())
+        }
+    };
+    job::bake(
+        Arc::new(scene),
+        &request,
+        &options,
+        &mut observer,
+        &mut on_atlas,
+        &mut on_plan,
+    )
+}

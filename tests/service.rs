@@ -1,0 +1,1078 @@
+//! The bake service over real HTTP on 127.0.0.1 (ephemeral ports, temporary folders):
+//! the happy path with `lightmapd submit`, every error status with its exact
+//! problem+json body, cancel, 50 concurrent submissions with 2 workers, restart recovery
+//! of a real `lightmapd serve` killed with SIGKILL (and handed back on SIGTERM), and the
+//! OpenAPI document against the committed route list.
+//!
+//! Bakes are tiny (the `path` technique on the bundled Cornell box at 16² texels, a few
+//! steps), and every wait polls with a short interval up to a deadline.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use futures_util::StreamExt;
+use lightmapd::engine::technique::TECHNIQUES;
+use lightmapd::service::{self, Config, Running};
+use serde_json::{Value, json};
+
+const DEADLINE: Duration = Duration::from_secs(60);
+
+fn bundled() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb")
+}
+
+fn glb() -> Vec<u8> {
+    std::fs::read(bundled()).unwrap()
+}
+
+struct Server {
+    running: Running,
+    url: String,
+    http: reqwest::Client,
+    _dir: tempfile::TempDir,
+}
+
+async fn start(workers: usize, tweak: impl FnOnce(&mut Config)) -> Server {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = Config {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        data_dir: dir.path().to_path_buf(),
+        workers,
+        snapshot_interval: Duration::from_millis(50),
+        ..Config::default()
+    };
+    tweak(&mut config);
+    let running = service::start(config).await.unwrap();
+    let url = format!("http://{}", running.addr);
+    Server {
+        running,
+        url,
+        http: reqwest::Client::new(),
+        _dir: dir,
+    }
+}
+
+impl Server {
+    async fn upload(&self) -> String {
+        let r = self
+            .http
+            .post(format!("{}/v1/scenes", self.url))
+            .header("content-type", "model/gltf-binary")
+            .body(glb())
+            .send()
+            .await
+            .unwrap();
+        assert!(r.status().is_success(), "{}", r.text().await.unwrap());
+        r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+    }
+
+    async fn submit(&self, body: Value) -> String {
+        let r = self
+            .http
+            .post(format!("{}/v1/jobs", self.url))
+            .json(&body)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+        r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+    }
+
+    async fn job(&self, id: &str) -> Value {
+        get_json(&self.http, &format!("{}/v1/jobs/{id}", self.url)).await
+    }
+
+    /// Polls the job until `pred` holds.
+    async fn wait_job(&self, id: &str, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+        let start = Instant::now();
+        loop {
+            let j = self.job(id).await;
+            if pred(&j) {
+                return j;
+            }
+            assert!(start.elapsed() < DEADLINE, "job {id} never became {what}: {j:#}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+}
+
+async fn get_json(http: &reqwest::Client, url: &str) -> Value {
+    let r = http.get(url).send().await.unwrap();
+    assert!(r.status().is_success(), "GET {url}: {}", r.status());
+    r.json().await.unwrap()
+}
+
+/// Reads server-sent events until a terminal one; returns (name, data) in order.
+async fn read_events(http: &reqwest::Client, url: &str) -> Vec<(String, Value)> {
+    let r = http.get(url).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "text/event-stream");
+    let mut stream = r.bytes_stream();
+    let mut buf = String::new();
+    let mut out = Vec::new();
+    let read = async {
+        while let Some(chunk) = stream.next().await {
+            buf.push_str(&String::from_utf8_lossy(&chunk.unwrap()));
+            while let Some(end) = buf.find("\n\n") {
+                let block: String = buf.drain(..end + 2).collect();
+                let (mut name, mut data) = (String::new(), String::new());
+                for line in block.lines() {
+                    if let Some(v) = line.strip_prefix("event: ") {
+                        name = v.to_string();
+                    } else if let Some(v) = line.strip_prefix("data: ") {
+                        data.push_str(v);
+                    }
+                }
+                if name.is_empty() {
+                    continue; // keep-alive comment
+                }
+                let terminal = matches!(name.as_str(), "done" | "failed" | "cancelled");
+                out.push((name, serde_json::from_str(&data).unwrap()));
+                if terminal {
+                    return;
+                }
+            }
+        }
+    };
+    tokio::time::timeout(DEADLINE, read)
+        .await
+        .expect("events end with done, failed or cancelled");
+    out
+}
+
+fn is_exr(b: &[u8]) -> bool {
+    b.starts_with(&[0x76, 0x2f, 0x31, 0x01])
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn happy_path_upload_bake_follow_download() {
+    let s = start(1, |_| {}).await;
+    let h = &s.http;
+
+    // Upload: 201 the first time, 200 and the same id for the same bytes.
+    let r = h
+        .post(format!("{}/v1/scenes", s.url))
+        .header("content-type", "model/gltf-binary")
+        .body(glb())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let scene: Value = r.json().await.unwrap();
+    let scene_id = scene["id"].as_str().unwrap().to_string();
+    assert!(scene["content_hash"].as_str().unwrap().starts_with("sha256:"));
+    assert_eq!(scene["report"]["has_lightmap_uvs"], true);
+    assert!(scene["report"]["triangles"].as_u64().unwrap() > 0);
+    let again = h.post(format!("{}/v1/scenes", s.url)).body(glb()).send().await.unwrap();
+    assert_eq!(again.status(), 200);
+    assert_eq!(again.json::<Value>().await.unwrap()["id"], scene_id.as_str());
+    let fetched = get_json(h, &format!("{}/v1/scenes/{scene_id}", s.url)).await;
+    assert_eq!(fetched["report"], scene["report"]);
+
+    // Submit and follow the events from the start.
+    let id = s
+        .submit(json!({"scene": scene_id, "resolution": 16, "stop": {"steps": 8}, "outputs": ["validity"]}))
+        .await;
+    let events = read_events(h, &format!("{}/v1/jobs/{id}/events", s.url)).await;
+    let names: Vec<&str> = events.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names[0], "status", "{names:?}");
+    assert_eq!(*names.last().unwrap(), "done", "{names:?}");
+    let done = &events.last().unwrap().1;
+    assert_eq!(done["status"], "succeeded");
+
+    let job = s.job(&id).await;
+    assert_eq!(job["status"], "succeeded");
+    assert_eq!(job["attempts"], 1);
+    assert_eq!(job["progress"]["steps"], 8);
+    assert_eq!(job["progress"]["fraction"], 1.0);
+    assert_eq!(job["spec"]["technique"], "path");
+    assert_eq!(job["plan"]["texel_set"]["width"], 16);
+    assert_eq!(job["plan"]["technique"], "path");
+    assert!(!job["plan"]["passes"].as_array().unwrap().is_empty(), "{job:#}");
+    assert!(job["plan"]["left_out"].is_array(), "{job:#}");
+    assert_eq!(job["summary"]["stopped_by"], "steps");
+    let history = job["history"].as_array().unwrap();
+    assert!(!history.is_empty(), "{job:#}");
+    assert!(history.iter().all(|p| p["steps"].as_u64().unwrap() <= 8));
+    assert!(job["snapshots"].as_u64().unwrap() >= 1, "{job:#}");
+    assert!(job["failure"].is_null());
+
+    // Artifacts: final, latest snapshot, first snapshot, preview.
+    for q in ["", "?snapshot=latest", "?snapshot=1"] {
+        let r = h
+            .get(format!("{}/v1/jobs/{id}/lightmap.exr{q}", s.url))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200, "lightmap.exr{q}");
+        assert_eq!(r.headers()["content-type"], "image/x-exr");
+        assert!(is_exr(&r.bytes().await.unwrap()), "lightmap.exr{q}");
+    }
+    let png = h
+        .get(format!("{}/v1/jobs/{id}/preview.png", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(png.status(), 200);
+    assert!(png.bytes().await.unwrap().starts_with(b"\x89PNG"));
+
+    // A late client gets the current state, then the end.
+    let late = read_events(h, &format!("{}/v1/jobs/{id}/events", s.url)).await;
+    let names: Vec<&str> = late.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names, ["status", "done"]);
+
+    // Listing and filtering.
+    let list = get_json(h, &format!("{}/v1/jobs?status=succeeded&limit=10", s.url)).await;
+    assert_eq!(list["total"], 1);
+    assert_eq!(list["jobs"][0]["id"], id.as_str());
+    let none = get_json(h, &format!("{}/v1/jobs?status=queued", s.url)).await;
+    assert_eq!(none["total"], 0);
+
+    // Health, metrics, dashboard.
+    let health = get_json(h, &format!("{}/healthz", s.url)).await;
+    assert_eq!(health["status"], "ok");
+    let metrics = h
+        .get(format!("{}/metrics", s.url))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    for line in [
+        "lightmapd_queue_depth 0",
+        "lightmapd_jobs{state=\"succeeded\"} 1",
+        "lightmapd_jobs_finished_total{outcome=\"succeeded\"} 1",
+        "lightmapd_step_seconds_count{technique=\"path\"} 8",
+        "lightmapd_bake_seconds_count{technique=\"path\"} 1",
+    ] {
+        assert!(metrics.lines().any(|l| l == line), "missing {line:?} in\n{metrics}");
+    }
+    let dash = h.get(format!("{}/", s.url)).send().await.unwrap();
+    assert_eq!(dash.status(), 200);
+    assert!(dash.text().await.unwrap().contains("/v1/jobs"));
+
+    // The command-line client against the same server: upload (same scene), submit,
+    // wait, download.
+    let out = s._dir.path().join("submitted.exr");
+    let url = s.url.clone();
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+            .arg("submit")
+            .arg(bundled())
+            .args(["--server", &url, "--resolution", "16", "--steps", "4", "--wait", "-o"])
+            .arg(&out)
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stderr.contains("succeeded: 4 steps"), "{stderr}");
+    let printed: Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(printed["status"], "succeeded");
+    assert_eq!(printed["scene"], scene_id.as_str());
+    assert!(is_exr(&std::fs::read(s._dir.path().join("submitted.exr")).unwrap()));
+
+    // A job the server rejects is bad input for the client too: exit code 2, the
+    // server's detail and field on one line.
+    let url = s.url.clone();
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+            .arg("submit")
+            .arg(bundled())
+            .args(["--server", &url, "--technique", "magic"])
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert_eq!(output.status.code(), Some(2));
+    assert_eq!(
+        String::from_utf8_lossy(&output.stderr).lines().last().unwrap(),
+        format!(
+            "error: submit: 422 unknown technique \"magic\"; available: {} (technique)",
+            TECHNIQUES.join(", ")
+        )
+    );
+
+    // The scene is free again: it can be deleted, and is gone.
+    let del = h
+        .delete(format!("{}/v1/scenes/{scene_id}", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(del.status(), 204);
+    let gone = h.get(format!("{}/v1/scenes/{scene_id}", s.url)).send().await.unwrap();
+    assert_eq!(gone.status(), 404);
+    s.running.shutdown().await;
+}
+
+/// Sends a request and checks the status and the whole problem+json body.
+async fn expect_problem(req: reqwest::RequestBuilder, status: u16, body: Value) {
+    let r = req.send().await.unwrap();
+    assert_eq!(r.status().as_u16(), status);
+    assert_eq!(r.headers()["content-type"], "application/problem+json");
+    let got: Value = r.json().await.unwrap();
+    assert_eq!(got, body);
+}
+
+fn problem(status: u16, title: &str, kind: &str, detail: &str, field: Option<&str>) -> Value {
+    let mut v = json!({
+        "type": format!("urn:lightmapd:problem:{kind}"),
+        "title": title,
+        "status": status,
+        "detail": detail,
+    });
+    if let Some(f) = field {
+        v["field"] = json!(f);
+    }
+    v
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_error_status_has_its_problem_body() {
+    // No workers: a job stays queued, which the 409 cases need.
+    let s = start(0, |c| c.max_scene_bytes = 64 << 10).await;
+    let (h, u) = (&s.http, &s.url);
+    let scene = s.upload().await;
+    let job = s
+        .submit(json!({"scene": scene, "resolution": 16, "stop": {"steps": 1}}))
+        .await;
+    let post_job = |body: &str| {
+        h.post(format!("{u}/v1/jobs"))
+            .header("content-type", "application/json")
+            .body(body.to_string())
+    };
+    let invalid =
+        |field: &str, detail: &str| problem(422, "Unprocessable Entity", "invalid-field", detail, Some(field));
+
+    // 400
+    expect_problem(
+        post_job("{\"scene\": "),
+        400,
+        problem(
+            400,
+            "Bad Request",
+            "bad-request",
+            "the body is not valid JSON: EOF while parsing a value at line 1 column 10",
+            None,
+        ),
+    )
+    .await;
+    expect_problem(
+        h.post(format!("{u}/v1/scenes"))
+            .header("content-type", "model/gltf-binary"),
+        400,
+        problem(
+            400,
+            "Bad Request",
+            "bad-request",
+            "empty body: send a .glb (model/gltf-binary) or multipart/form-data with a .gltf and its files",
+            None,
+        ),
+    )
+    .await;
+
+    // 404
+    expect_problem(
+        h.get(format!("{u}/v1/jobs/nope")),
+        404,
+        problem(404, "Not Found", "not-found", "no job with id \"nope\"", None),
+    )
+    .await;
+    expect_problem(
+        h.get(format!("{u}/v1/scenes/nope")),
+        404,
+        problem(404, "Not Found", "not-found", "no scene with id \"nope\"", None),
+    )
+    .await;
+    expect_problem(
+        h.get(format!("{u}/v2/anything")),
+        404,
+        problem(
+            404,
+            "Not Found",
+            "no-route",
+            "no route for GET /v2/anything; see /openapi.json",
+            None,
+        ),
+    )
+    .await;
+    expect_problem(
+        h.get(format!("{u}/v1/jobs/{job}/lightmap.exr?snapshot=3")),
+        404,
+        problem(
+            404,
+            "Not Found",
+            "not-found",
+            &format!("job {job} has 0 snapshot(s); there is no snapshot 3"),
+            None,
+        ),
+    )
+    .await;
+    expect_problem(
+        h.get(format!("{u}/v1/jobs/{job}/preview.png")),
+        404,
+        problem(
+            404,
+            "Not Found",
+            "not-found",
+            &format!("job {job} is queued and has no preview yet"),
+            None,
+        ),
+    )
+    .await;
+
+    // 405
+    expect_problem(
+        h.put(format!("{u}/v1/jobs")),
+        405,
+        problem(
+            405,
+            "Method Not Allowed",
+            "method-not-allowed",
+            "PUT is not allowed on /v1/jobs",
+            None,
+        ),
+    )
+    .await;
+
+    // 409
+    expect_problem(
+        h.delete(format!("{u}/v1/scenes/{scene}")),
+        409,
+        problem(
+            409,
+            "Conflict",
+            "conflict",
+            &format!("scene {scene} is used by 1 queued or running job(s); cancel them or wait for them to finish"),
+            None,
+        ),
+    )
+    .await;
+    expect_problem(
+        h.get(format!("{u}/v1/jobs/{job}/lightmap.exr")),
+        409,
+        problem(
+            409,
+            "Conflict",
+            "conflict",
+            &format!("job {job} is queued and has no final lightmap"),
+            None,
+        ),
+    )
+    .await;
+    expect_problem(
+        h.get(format!("{u}/v1/jobs/{job}/scene.glb")),
+        409,
+        problem(
+            409,
+            "Conflict",
+            "conflict",
+            &format!("job {job} is queued; the scene with generated UVs comes with the final lightmap"),
+            None,
+        ),
+    )
+    .await;
+    let c = h.post(format!("{u}/v1/jobs/{job}/cancel")).send().await.unwrap();
+    assert_eq!(c.status(), 202);
+    assert_eq!(c.json::<Value>().await.unwrap()["status"], "cancelled");
+    expect_problem(
+        h.post(format!("{u}/v1/jobs/{job}/cancel")),
+        409,
+        problem(
+            409,
+            "Conflict",
+            "conflict",
+            &format!("job {job} has already finished (cancelled)"),
+            None,
+        ),
+    )
+    .await;
+
+    // 413
+    expect_problem(
+        h.post(format!("{u}/v1/scenes"))
+            .header("content-type", "model/gltf-binary")
+            .body(vec![0u8; (64 << 10) + 1]),
+        413,
+        problem(
+            413,
+            "Payload Too Large",
+            "too-large",
+            "the scene is larger than this server's limit of 65536 bytes (--max-scene-bytes)",
+            None,
+        ),
+    )
+    .await;
+
+    // 415
+    expect_problem(
+        h.post(format!("{u}/v1/jobs"))
+            .header("content-type", "text/plain")
+            .body("{}"),
+        415,
+        problem(
+            415,
+            "Unsupported Media Type",
+            "unsupported-media-type",
+            "content type \"text/plain\": send the job as application/json",
+            None,
+        ),
+    )
+    .await;
+
+    // 422: the scene, then each job field.
+    expect_problem(
+        h.post(format!("{u}/v1/scenes"))
+            .header("content-type", "model/gltf-binary")
+            .body("not a scene"),
+        422,
+        problem(
+            422,
+            "Unprocessable Entity",
+            "invalid-scene",
+            "not a glTF 2.0 file: neither a GLB header (\"glTF\" magic) nor a JSON document",
+            None,
+        ),
+    )
+    .await;
+    let cases: Vec<(String, &str, String)> = vec![
+        (json!({}).to_string(), "scene", "missing field `scene`".into()),
+        (
+            json!({"scene": scene, "technique": "magic"}).to_string(),
+            "technique",
+            format!("unknown technique \"magic\"; available: {}", TECHNIQUES.join(", ")),
+        ),
+        (
+            json!({"scene": scene, "resolution": 0}).to_string(),
+            "resolution",
+            "resolution must be between 1 and 4096, got 0".into(),
+        ),
+        (
+            json!({"scene": scene, "resolution": 5000}).to_string(),
+            "resolution",
+            "resolution must be between 1 and 4096, got 5000".into(),
+        ),
+        (
+            json!({"scene": scene, "stop": {"steps": -1}}).to_string(),
+            "stop.steps",
+            "invalid value: integer `-1`, expected u64".into(),
+        ),
+        (
+            json!({"scene": scene, "stop": {"seconds": -2.0}}).to_string(),
+            "stop.seconds",
+            "stop.seconds must be a positive number, got -2".into(),
+        ),
+        (
+            json!({"scene": scene, "stop": {"target_error": 0}}).to_string(),
+            "stop.target_error",
+            "stop.target_error must be a positive number, got 0".into(),
+        ),
+        (
+            json!({"scene": scene, "stop": {}}).to_string(),
+            "stop",
+            "stop: give at least one of steps, seconds, target_error".into(),
+        ),
+        (
+            json!({"scene": scene, "samples": 4}).to_string(),
+            "samples",
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `priority`, `seed`".into(),
+        ),
+        (
+            json!({"scene": scene, "outputs": ["ao"]}).to_string(),
+            "outputs[0]",
+            "unknown output layer \"ao\"; available: validity, direct, indirect, sh".into(),
+        ),
+        (
+            json!({"scene": scene, "lighting": {"sky": {"radiance": [1, -1, 1]}}}).to_string(),
+            "lighting.sky.radiance",
+            "lighting.sky.radiance must be finite and >= 0, got [1.0, -1.0, 1.0]".into(),
+        ),
+        (
+            json!({"scene": scene, "lighting": {"sun": {"direction": [0, -1, 0], "radiance": [1, 1, 1], "angular_diameter_deg": 0}}}).to_string(),
+            "lighting.sun.angular_diameter_deg",
+            "lighting.sun.angular_diameter_deg must be in (0, 180), got 0".into(),
+        ),
+        (
+            json!({"scene": "0123456789abcdef"}).to_string(),
+            "scene",
+            "no scene with id \"0123456789abcdef\"; upload it first".into(),
+        ),
+    ];
+    for (body, field, detail) in &cases {
+        expect_problem(post_job(body), 422, invalid(field, detail)).await;
+    }
+    expect_problem(
+        h.get(format!("{u}/v1/jobs?status=done")),
+        422,
+        invalid(
+            "status",
+            "unknown status \"done\"; one of queued, running, succeeded, failed, cancelled",
+        ),
+    )
+    .await;
+    expect_problem(
+        h.get(format!("{u}/v1/jobs/{job}/lightmap.exr?snapshot=first")),
+        422,
+        invalid("snapshot", "snapshot must be `latest` or a number >= 1, got \"first\""),
+    )
+    .await;
+    s.running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_stops_a_running_bake_and_a_queued_job() {
+    let s = start(1, |_| {}).await;
+    let scene = s.upload().await;
+    // Long enough that only a cancel ends it.
+    let running = s
+        .submit(json!({"scene": scene, "resolution": 16, "stop": {"seconds": 60}}))
+        .await;
+    let queued = s
+        .submit(json!({"scene": scene, "resolution": 16, "stop": {"steps": 1}}))
+        .await;
+    s.wait_job(&running, "running with steps", |j| {
+        j["status"] == "running" && j["progress"]["steps"].as_u64().unwrap_or(0) >= 1
+    })
+    .await;
+
+    let c = s
+        .http
+        .post(format!("{}/v1/jobs/{queued}/cancel", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(c.status(), 202);
+    assert_eq!(c.json::<Value>().await.unwrap()["status"], "cancelled");
+
+    let asked = Instant::now();
+    let c = s
+        .http
+        .post(format!("{}/v1/jobs/{running}/cancel", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(c.status(), 202);
+    assert_eq!(c.json::<Value>().await.unwrap()["cancel_requested"], true);
+    let events = read_events(&s.http, &format!("{}/v1/jobs/{running}/events", s.url)).await;
+    assert_eq!(events.last().unwrap().0, "cancelled");
+    let j = s.job(&running).await;
+    assert_eq!(j["status"], "cancelled");
+    // One step of a 16² path bake is milliseconds; the whole round trip stays well
+    // under a second even on a loaded machine.
+    assert!(
+        asked.elapsed() < Duration::from_secs(2),
+        "cancel took {:?}",
+        asked.elapsed()
+    );
+    assert_eq!(s.job(&queued).await["attempts"], 0, "a cancelled queued job never ran");
+    s.running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fifty_concurrent_jobs_two_workers_all_succeed_once() {
+    let s = start(2, |_| {}).await;
+    let scene = s.upload().await;
+    let mut submits = Vec::new();
+    for i in 0..50u64 {
+        let (http, url, scene) = (s.http.clone(), s.url.clone(), scene.clone());
+        submits.push(tokio::spawn(async move {
+            let r = http
+                .post(format!("{url}/v1/jobs"))
+                .json(&json!({"scene": scene, "resolution": 16, "stop": {"steps": 2}, "seed": i}))
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 202);
+            r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+        }));
+    }
+    let mut ids = Vec::new();
+    for t in submits {
+        ids.push(t.await.unwrap());
+    }
+    let start = Instant::now();
+    loop {
+        let list = get_json(&s.http, &format!("{}/v1/jobs?status=succeeded&limit=500", s.url)).await;
+        if list["total"] == 50 {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(120),
+            "not all succeeded: {}",
+            list["total"]
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let list = get_json(&s.http, &format!("{}/v1/jobs?limit=500", s.url)).await;
+    assert_eq!(list["total"], 50, "none lost, none extra");
+    for j in list["jobs"].as_array().unwrap() {
+        assert!(ids.contains(&j["id"].as_str().unwrap().to_string()));
+        assert_eq!(j["status"], "succeeded");
+        // Claimed exactly once: a job taken by two workers would show two attempts.
+        assert_eq!(j["attempts"], 1, "{j:#}");
+        assert_eq!(j["progress"]["steps"], 2);
+    }
+    let metrics = s
+        .http
+        .get(format!("{}/metrics", s.url))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        metrics.contains("lightmapd_jobs_finished_total{outcome=\"succeeded\"} 50"),
+        "{metrics}"
+    );
+    assert!(metrics.contains("lightmapd_workers 2"), "{metrics}");
+    s.running.shutdown().await;
+}
+
+/// A `lightmapd serve` child process; its address is read from its first stdout line.
+struct Process {
+    child: Child,
+    url: String,
+}
+
+fn spawn_serve(dir: &Path, workers: usize) -> Process {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+        .arg("serve")
+        .args(["--listen", "127.0.0.1:0", "--workers", &workers.to_string()])
+        .args(["--lease-seconds", "1", "--snapshot-interval-s", "0.2"])
+        .arg("--data-dir")
+        .arg(dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let url = line
+        .trim()
+        .strip_prefix("lightmapd listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_string();
+    Process { child, url }
+}
+
+/// A job's document, fetched from a plain thread (the process test has no runtime of
+/// its own running).
+fn blocking_job(url: &str, id: &str) -> Value {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let text = rt.block_on(async {
+        reqwest::get(format!("{url}/v1/jobs/{id}"))
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap()
+    });
+    serde_json::from_str(&text).unwrap()
+}
+
+fn wait_for(url: &str, id: &str, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+    let start = Instant::now();
+    loop {
+        let j = blocking_job(url, id);
+        if pred(&j) {
+            return j;
+        }
+        assert!(start.elapsed() < DEADLINE, "job never became {what}: {j:#}");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn sigterm(p: &Child) {
+    let status = Command::new("kill")
+        .args(["-TERM", &p.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
+#[test]
+fn killed_server_recovers_the_job_and_sigterm_hands_it_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+
+    // 1. A bake is running when the server is killed with SIGKILL.
+    let mut p = spawn_serve(dir.path(), 1);
+    let id = rt.block_on(async {
+        let http = reqwest::Client::new();
+        let scene: Value = http
+            .post(format!("{}/v1/scenes", p.url))
+            .body(glb())
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        let job: Value = http
+            .post(format!("{}/v1/jobs", p.url))
+            .json(&json!({"scene": scene["id"], "resolution": 16, "stop": {"seconds": 3}}))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        job["id"].as_str().unwrap().to_string()
+    });
+    wait_for(&p.url, &id, "running", |j| {
+        j["status"] == "running" && j["progress"]["steps"].as_u64().unwrap_or(0) >= 1
+    });
+    p.child.kill().unwrap(); // SIGKILL
+    p.child.wait().unwrap();
+
+    // 2. Restarted with no workers: the dead worker's lease expires and the job is
+    //    queued again, its first attempt counted.
+    let mut p = spawn_serve(dir.path(), 0);
+    let j = wait_for(&p.url, &id, "queued again", |j| j["status"] == "queued");
+    assert_eq!(j["attempts"], 1);
+    assert!(j["worker"].is_null());
+    sigterm(&p.child);
+    assert!(p.child.wait().unwrap().success());
+
+    // 3. With a worker it runs again; SIGTERM mid-bake hands it back at once (the
+    //    attempt is not counted) and the process exits cleanly.
+    let mut p = spawn_serve(dir.path(), 1);
+    wait_for(&p.url, &id, "running again", |j| {
+        j["status"] == "running" && j["attempts"] == 2 && j["progress"]["steps"].as_u64().unwrap_or(0) >= 1
+    });
+    sigterm(&p.child);
+    assert!(p.child.wait().unwrap().success(), "SIGTERM exits 0");
+    let mut p = spawn_serve(dir.path(), 0);
+    let j = blocking_job(&p.url, &id);
+    assert_eq!(j["status"], "queued", "handed back without waiting for a lease: {j:#}");
+    assert_eq!(j["attempts"], 1);
+    sigterm(&p.child);
+    assert!(p.child.wait().unwrap().success());
+
+    // 4. And it completes.
+    let mut p = spawn_serve(dir.path(), 1);
+    let j = wait_for(&p.url, &id, "succeeded", |j| j["status"] == "succeeded");
+    assert_eq!(j["attempts"], 2);
+    let exr = rt.block_on(async {
+        reqwest::get(format!("{}/v1/jobs/{id}/lightmap.exr", p.url))
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap()
+    });
+    assert!(is_exr(&exr));
+    sigterm(&p.child);
+    assert!(p.child.wait().unwrap().success());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn openapi_lists_every_route() {
+    let s = start(0, |_| {}).await;
+    let doc = get_json(&s.http, &format!("{}/openapi.json", s.url)).await;
+    let mut routes: Vec<String> = Vec::new();
+    for (path, item) in doc["paths"].as_object().unwrap() {
+        for method in item.as_object().unwrap().keys() {
+            routes.push(format!("{} {path}", method.to_uppercase()));
+        }
+    }
+    routes.sort();
+    let got = routes.join("\n") + "\n";
+    let snapshot = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/snapshots/openapi-routes.txt");
+    if std::env::var_os("UPDATE_SNAPSHOTS").is_some() {
+        std::fs::write(&snapshot, &got).unwrap();
+    }
+    let want = std::fs::read_to_string(&snapshot).unwrap();
+    assert_eq!(
+        got, want,
+        "routes changed: rerun with UPDATE_SNAPSHOTS=1 and review the diff"
+    );
+    // Every listed route answers something other than "no route" on this server.
+    for r in &routes {
+        let (method, path) = r.split_once(' ').unwrap();
+        let url = format!("{}{}", s.url, path.replace("{id}", "x"));
+        let resp = s.http.request(method.parse().unwrap(), &url).send().await.unwrap();
+        let status = resp.status();
+        let body = resp.text().await.unwrap_or_default();
+        assert!(!body.contains("no-route") && status != 405, "{r}: {status} {body}");
+    }
+    s.running.shutdown().await;
+}
+
+#[test]
+fn worker_process_runs_the_jobs_of_an_api_only_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut api = spawn_serve(dir.path(), 0);
+    let mut worker = Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+        .arg("worker")
+        .arg("--database-url")
+        .arg(format!("sqlite://{}", dir.path().join("lightmapd.db").display()))
+        .arg("--store")
+        .arg(dir.path().join("objects"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let events = rt.block_on(async {
+        let http = reqwest::Client::new();
+        let scene: Value = http
+            .post(format!("{}/v1/scenes", api.url))
+            .body(glb())
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        let job: Value = http
+            .post(format!("{}/v1/jobs", api.url))
+            .json(&json!({"scene": scene["id"], "resolution": 16, "stop": {"steps": 4}}))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        // The API process learns of the other process's progress by polling its database.
+        read_events(
+            &http,
+            &format!("{}/v1/jobs/{}/events", api.url, job["id"].as_str().unwrap()),
+        )
+        .await
+    });
+    let (last, job) = events.last().unwrap();
+    assert_eq!(last, "done");
+    assert_eq!(job["progress"]["steps"], 4);
+    assert_eq!(job["status"], "succeeded");
+    sigterm(&worker);
+    assert!(worker.wait().unwrap().success());
+    sigterm(&api.child);
+    assert!(api.child.wait().unwrap().success());
+
+    // Only SQLite exists so far: another URL is bad input (exit code 2).
+    let out = Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+        .args(["worker", "--database-url", "postgres://db/lightmapd", "--store"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("only sqlite:// is implemented"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn gltf_with_external_buffer_uploads_as_multipart_and_bakes() {
+    let s = start(1, |_| {}).await;
+    let (mut gltf, bin) = lightmapd::engine::scene::build::cornell_box().to_gltf();
+    gltf["buffers"][0]["uri"] = json!("cornell%20box.bin");
+    let gltf_bytes = serde_json::to_vec(&gltf).unwrap();
+    let dir = s._dir.path().join("upload");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("cornell.gltf"), &gltf_bytes).unwrap();
+    std::fs::write(dir.join("cornell box.bin"), &bin).unwrap();
+
+    // A part the .gltf refers to is missing: 422 naming the URI.
+    let form = reqwest::multipart::Form::new().part(
+        "cornell.gltf",
+        reqwest::multipart::Part::bytes(gltf_bytes.clone()).file_name("cornell.gltf"),
+    );
+    expect_problem(
+        s.http.post(format!("{}/v1/scenes", s.url)).multipart(form),
+        422,
+        problem(
+            422,
+            "Unprocessable Entity",
+            "invalid-field",
+            "cornell.gltf refers to \"cornell%20box.bin\", which is not among the uploaded parts",
+            Some("buffers[0].uri"),
+        ),
+    )
+    .await;
+
+    // `lightmapd submit` sends the .gltf and the file it names.
+    let (url, path) = (s.url.clone(), dir.join("cornell.gltf"));
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+            .arg("submit")
+            .arg(path)
+            .args(["--server", &url, "--resolution", "16", "--steps", "2", "--wait"])
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let job: Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(job["status"], "succeeded");
+    let scene = get_json(
+        &s.http,
+        &format!("{}/v1/scenes/{}", s.url, job["scene"].as_str().unwrap()),
+    )
+    .await;
+    assert_eq!(scene["format"], "gltf");
+    assert_eq!(scene["files"], json!(["cornell.gltf", "cornell box.bin"]));
+    assert_eq!(scene["report"]["has_lightmap_uvs"], true);
+    s.running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
+    use lightmapd::engine::scene::build::{cornell_box, write_glb};
+    let s = start(1, |_| {}).await;
+    let (mut gltf, buffer) = cornell_box().to_gltf();
+    for m in gltf["meshes"].as_array_mut().unwrap() {
+        m["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
+    }
+    let r = s
+        .http
+        .post(format!("{}/v1/scenes", s.url))
+        .body(write_glb(&gltf, &buffer))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let scene: Value = r.json().await.unwrap();
+    assert_eq!(scene["report"]["has_lightmap_uvs"], false);
+    let id = s
+        .submit(json!({"scene": scene["id"], "resolution": 32, "stop": {"steps": 2}}))
+        .await;
+    let job = s
+        .wait_job(&id, "finished", |j| j["status"] != "queued" && j["status"] != "running")
+        .await;
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let glb = s
+        .http
+        .get(format!("{}/v1/jobs/{id}/scene.glb", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(glb.status(), 200);
+    let bytes = glb.bytes().await.unwrap();
+    let (_, report) = lightmapd::engine::scene::import_slice(&bytes, None).unwrap();
+    assert!(
+        report.has_lightmap_uvs,
+        "the returned scene carries the generated TEXCOORD_1"
+    );
+    s.running.shutdown().await;
+}
