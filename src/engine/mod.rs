@@ -4,9 +4,9 @@
 //! [`post`] dilation → [`output`] EXR.
 
 pub mod accumulate;
-pub mod gpu;
 pub mod atlas;
 pub mod bake;
+pub mod gpu;
 pub mod job;
 pub mod output;
 pub mod plan;

@@ -49,10 +49,9 @@ const MAX_HISTORY: usize = 2000;
 
 /// Engine resources every worker of a process shares, created once.
 ///
-/// Today it is empty: the `path` technique needs nothing shared. The GPU techniques
-/// (`sdb` first) will keep the process's one wgpu device and queue here, created lazily
-/// by the first job that needs it, and pass it into `engine::job::bake`; a `path` job
-/// never creates it.
+/// Empty: the one wgpu device the GPU techniques share lives in the engine
+/// (`engine::gpu::shared`), created by the first GPU job and reused by every later one
+/// in this process; a `path` job never creates it.
 #[derive(Default)]
 pub struct EngineShared {}
 

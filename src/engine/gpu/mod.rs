@@ -182,6 +182,27 @@ pub fn missing_capabilities(
     missing
 }
 
+/// The process's shared context: created by the first GPU bake that asks, then reused by
+/// every later one (the service's workers share one device instead of creating one per
+/// job, which costs adapter enumeration, device creation and pipeline compilation).
+/// A failed creation is not remembered, so a later job tries again.
+static SHARED: std::sync::Mutex<Option<Arc<GpuContext>>> = std::sync::Mutex::new(None);
+
+/// The shared context with the default adapter choice and `req` (created on first use).
+///
+/// Limits: jobs running at once on a shared device also share its uncaptured-error
+/// slot, so a device error in one can be reported by another's step; errors inside
+/// error scopes (shader creation) stay with their job.
+pub fn shared(req: &Requirements) -> Result<Arc<GpuContext>, GpuError> {
+    let mut slot = SHARED.lock().unwrap_or_else(|p| p.into_inner());
+    if let Some(ctx) = slot.as_ref() {
+        return Ok(ctx.clone());
+    }
+    let ctx = Arc::new(GpuContext::new(req)?);
+    *slot = Some(ctx.clone());
+    Ok(ctx)
+}
+
 /// A headless device and queue.
 pub struct GpuContext {
     pub adapter: wgpu::Adapter,
@@ -433,6 +454,16 @@ pub fn dispatch_size_64(n: u32) -> (u32, u32) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn shared_context_is_created_once() {
+        let Ok(a) = shared(&Requirements::default()) else {
+            eprintln!("no GPU adapter (install mesa-vulkan-drivers): nothing to share");
+            return;
+        };
+        let b = shared(&Requirements::default()).unwrap();
+        assert!(Arc::ptr_eq(&a, &b), "a second GPU job must reuse the first one's device");
+    }
 
     fn info(name: &str, t: wgpu::DeviceType) -> wgpu::AdapterInfo {
         wgpu::AdapterInfo {

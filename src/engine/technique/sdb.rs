@@ -1548,8 +1548,9 @@ impl Sdb {
         for n in &notes {
             tracing::warn!("{n}");
         }
-        let ctx = GpuContext::new(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
-        let engine = SdbEngine::new(Arc::new(ctx), input, params.clone()).map_err(gpu_error)?;
+        // One device per process, shared by every sdb bake (`gpu::shared`).
+        let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
+        let engine = SdbEngine::new(ctx, input, params.clone()).map_err(gpu_error)?;
         Ok(Sdb { engine, params, notes })
     }
 
