@@ -29,6 +29,9 @@ pub struct Plan {
     pub passes: Vec<PlanItem>,
     /// What this scene and job do not need (or this technique cannot do), and why.
     pub left_out: Vec<PlanItem>,
+    /// What the live error estimate measures for this technique (DESIGN §4): all of the
+    /// error for an unbiased technique, only the noise for a biased one.
+    pub error_estimate: String,
 }
 
 impl Plan {

@@ -506,6 +506,7 @@ fn run_bake(
         if let Ok(mut p) = shared.plan.lock() {
             let plan = p.get_or_insert_with(|| json!({}));
             plan["texel_set"] = json!(a.report());
+            plan["validation"] = json!(a.validation);
         }
         tracing::info!(texels = a.report().valid_texels, "texel set built");
     };

@@ -83,6 +83,8 @@ pub struct Atlas {
     pub overlap_pixels: Vec<u32>,
     /// Pixels whose texel validation found inside closed geometry (`debug.inside`).
     pub inside_pixels: Vec<u32>,
+    /// The validation report, once `validate::validate` has run.
+    pub validation: Option<validate::ValidationReport>,
     /// Sample pairs along UV seams, for `post::seams::stitch`.
     pub seams: Vec<crate::engine::post::seams::SeamSample>,
 }
@@ -236,6 +238,7 @@ impl Atlas {
             overlapping_texels: overlapping.iter().filter(|o| **o).count() as u32,
             overlap_pixels: (0..w * h).filter(|p| overlapping[*p]).map(|p| p as u32).collect(),
             inside_pixels: Vec::new(),
+            validation: None,
             surface_offset: offset,
             seams: crate::engine::post::seams::find_seams(scene, width, height),
         })

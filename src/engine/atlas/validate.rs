@@ -122,7 +122,7 @@ pub fn validate(scene: &Scene, atlas: &mut Atlas) -> ValidationReport {
     if density_spread > 4.0 {
         warnings.push(format!("texel density varies {density_spread:.1}x across meshes"));
     }
-    ValidationReport {
+    let report = ValidationReport {
         valid_texels: atlas.texels.len(),
         inside_geometry_texels: inside_count,
         overlapping_texels: atlas.overlapping_texels,
@@ -131,7 +131,9 @@ pub fn validate(scene: &Scene, atlas: &mut Atlas) -> ValidationReport {
         density_spread,
         texel_set_bytes: atlas.texels.len() * std::mem::size_of::<Texel>(),
         warnings,
-    }
+    };
+    atlas.validation = Some(report.clone());
+    report
 }
 
 fn mesh_density(scene: &Scene, atlas: &Atlas) -> Vec<MeshDensity> {

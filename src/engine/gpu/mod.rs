@@ -462,7 +462,10 @@ mod tests {
             return;
         };
         let b = shared(&Requirements::default()).unwrap();
-        assert!(Arc::ptr_eq(&a, &b), "a second GPU job must reuse the first one's device");
+        assert!(
+            Arc::ptr_eq(&a, &b),
+            "a second GPU job must reuse the first one's device"
+        );
     }
 
     fn info(name: &str, t: wgpu::DeviceType) -> wgpu::AdapterInfo {

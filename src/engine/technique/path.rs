@@ -101,6 +101,7 @@ impl PathParams {
 /// the scene and job have.
 pub fn plan(f: &SceneFeatures) -> Plan {
     let mut p = Plan::new("path");
+    p.error_estimate = "all of the error: path is unbiased, so the half-difference estimate covers it".into();
     p.run("bvh", "binary BVH over all triangles, for every ray");
     p.run("path trace", "cosine-sampled paths from every texel, on all CPU cores");
     p.decide(
