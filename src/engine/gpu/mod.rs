@@ -498,8 +498,10 @@ mod tests {
     #[test]
     fn missing_capabilities_are_named() {
         let req = Requirements::default();
-        let mut small = wgpu::Limits::default();
-        small.max_texture_dimension_2d = 2048;
+        let small = wgpu::Limits {
+            max_texture_dimension_2d: 2048,
+            ..Default::default()
+        };
         let down = wgpu::DownlevelCapabilities::default();
         let missing = missing_capabilities(wgpu::Features::empty(), &small, &down, &req);
         assert!(

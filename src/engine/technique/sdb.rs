@@ -794,7 +794,7 @@ impl SdbEngine {
         let (width, height) = (input.width.max(1), input.height.max(1));
         let n_texels = input.texels.len() as u32;
         let storage_need = (width as u64 * height as u64).max(2 * n_texels as u64) * 16;
-        if storage_need > ctx.limits.max_storage_buffer_binding_size as u64 {
+        if storage_need > ctx.limits.max_storage_buffer_binding_size {
             return Err(GpuError::Unsupported {
                 adapter: ctx.info.name.clone(),
                 missing: format!(
