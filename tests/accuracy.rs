@@ -9,17 +9,22 @@ use lightmapd::engine::scene::library::benchmark_scenes;
 use lightmapd::engine::technique::{self, BakeInputs};
 use std::time::Duration;
 
-fn track(scene_name: &str) {
-    let lib = benchmark_scenes().into_iter().find(|s| s.name == scene_name).unwrap();
-    let p = prepare(&lib).unwrap();
-    let cfg = BenchConfig {
+/// A bench configuration for scenes whose reference is a closed form (no bake, no cache).
+fn analytic_only() -> BenchConfig {
+    BenchConfig {
         scenes: vec![],
         techniques: vec![],
         budget: Duration::ZERO,
         reference_budget: Duration::ZERO,
         out_dir: std::env::temp_dir(),
         cache_dir: std::env::temp_dir(),
-    };
+    }
+}
+
+fn track(scene_name: &str) {
+    let lib = benchmark_scenes().into_iter().find(|s| s.name == scene_name).unwrap();
+    let p = prepare(&lib).unwrap();
+    let cfg = analytic_only();
     let r = reference(&lib, &p, &cfg).unwrap();
     assert_eq!(r.kind, "analytic");
     let request = BakeRequest {
@@ -73,14 +78,7 @@ fn denoising_lowers_true_error() {
     for name in ["sphere-over-plane", "parallel-plates", "closed-box-0.9"] {
         let lib = benchmark_scenes().into_iter().find(|s| s.name == name).unwrap();
         let p = prepare(&lib).unwrap();
-        let cfg = BenchConfig {
-            scenes: vec![],
-            techniques: vec![],
-            budget: Duration::ZERO,
-            reference_budget: Duration::ZERO,
-            out_dir: std::env::temp_dir(),
-            cache_dir: std::env::temp_dir(),
-        };
+        let cfg = analytic_only();
         let r = reference(&lib, &p, &cfg).unwrap();
         let request = BakeRequest {
             lighting: lib.lighting,

@@ -1,12 +1,11 @@
 //! The plan leaves out what a scene and job do not need (DESIGN §6), and the technique
 //! honours it: nothing left out is allocated or run.
 
-use std::ops::ControlFlow;
 use std::sync::Arc;
 
 use glam::Vec3;
-use lightmapd::engine::bake::{BakeEvent, StopCriteria};
-use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
+use lightmapd::engine::bake::StopCriteria;
+use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::plan::{self, Plan};
 use lightmapd::engine::scene::build::{LightDesc, cornell_box};
@@ -100,15 +99,7 @@ fn layers_nobody_asked_for_are_not_allocated() {
             outputs,
             ..Default::default()
         };
-        job::bake(
-            scene.clone(),
-            &request,
-            &BakeOptions::default(),
-            &mut |_: BakeEvent<'_>| ControlFlow::Continue(()),
-            &mut |_| {},
-            &mut |_| {},
-        )
-        .unwrap()
+        job::bake_unobserved(scene.clone(), &request).unwrap()
     };
     assert!(bake(vec![]).estimate.direct.is_none());
     assert!(bake(vec![OutputLayer::Validity]).estimate.direct.is_none());

@@ -7,14 +7,13 @@
 
 mod common;
 
-use std::ops::ControlFlow;
 use std::sync::Arc;
 
 use common::{assert_unbiased, bake, import, lum};
 use glam::Vec3;
 use lightmapd::engine::atlas::Texel;
-use lightmapd::engine::bake::{BakeEvent, StopCriteria};
-use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
+use lightmapd::engine::bake::StopCriteria;
+use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box, write_glb};
 use lightmapd::engine::scene::library::{closed_box as closed_box_builder, rect_form_factor};
@@ -234,15 +233,7 @@ pub fn beyond_half_float(row: &Row) {
         outputs: vec![OutputLayer::Validity],
         ..Default::default()
     };
-    let result = job::bake(
-        scene,
-        &request,
-        &BakeOptions::default(),
-        &mut |_: BakeEvent<'_>| ControlFlow::Continue(()),
-        &mut |_| {},
-        &mut |_| {},
-    )
-    .unwrap();
+    let result = job::bake_unobserved(scene, &request).unwrap();
     let peak = result
         .estimate
         .total

@@ -2,12 +2,11 @@
 //! lightmap sampled at the generated UVs matches the closed-form answer at the same
 //! surface points, and the written glTF carries those UVs.
 
-use std::ops::ControlFlow;
 use std::sync::Arc;
 
 use glam::{Vec2, Vec3};
-use lightmapd::engine::bake::{BakeEvent, StopCriteria};
-use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
+use lightmapd::engine::bake::StopCriteria;
+use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::post::{dilate, seams};
 use lightmapd::engine::rng::Rng;
 use lightmapd::engine::scene::build::write_glb;
@@ -58,15 +57,7 @@ fn generated_uvs_bake_and_match_the_closed_form() {
         params: json!({"samples_per_step": 8}),
         ..Default::default()
     };
-    let result = job::bake(
-        Arc::new(scene),
-        &request,
-        &BakeOptions::default(),
-        &mut |_: BakeEvent<'_>| ControlFlow::Continue(()),
-        &mut |_| {},
-        &mut |_| {},
-    )
-    .unwrap();
+    let result = job::bake_unobserved(Arc::new(scene), &request).unwrap();
     let unwrap = result.summary.generated_uvs.clone().expect("UVs were generated");
     eprintln!("generated: {unwrap:?}, {} valid texels", result.atlas.texels.len());
     assert!(unwrap.charts >= 2 && unwrap.utilisation > 0.3, "{unwrap:?}");

@@ -1,13 +1,12 @@
 //! The validation report flags a crafted scene with overlapping charts and texels inside
 //! a closed box, in the bake summary and as debug EXR layers (issue 13).
 
-use std::ops::ControlFlow;
 use std::sync::Arc;
 
 use exr::prelude::{ReadChannels, ReadLayers};
 use glam::Vec3;
-use lightmapd::engine::bake::{BakeEvent, StopCriteria};
-use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
+use lightmapd::engine::bake::StopCriteria;
+use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, import_slice};
@@ -44,15 +43,7 @@ fn overlap_and_inside_texels_are_reported_and_shown() {
         outputs: vec![OutputLayer::Debug, OutputLayer::Validity],
         ..Default::default()
     };
-    let result = job::bake(
-        scene,
-        &request,
-        &BakeOptions::default(),
-        &mut |_: BakeEvent<'_>| ControlFlow::Continue(()),
-        &mut |_| {},
-        &mut |_| {},
-    )
-    .unwrap();
+    let result = job::bake_unobserved(scene, &request).unwrap();
     let v = &result.summary.validation;
     eprintln!("{v:?}");
     assert!(v.inside_geometry_texels > 0, "texels under the crate are inside it");

@@ -166,6 +166,20 @@ pub fn bake(
     })
 }
 
+/// [`bake`] with default options and nobody watching: for tests and tools that only
+/// want the result.
+pub fn bake_unobserved(scene: Arc<Scene>, request: &BakeRequest) -> Result<BakeResult, EngineError> {
+    let mut observer = |_: crate::engine::bake::BakeEvent<'_>| std::ops::ControlFlow::Continue(());
+    bake(
+        scene,
+        request,
+        &BakeOptions::default(),
+        &mut observer,
+        &mut |_| {},
+        &mut |_| {},
+    )
+}
+
 /// The EXR for an estimate (final or snapshot): dilated lightmap, requested layers, and
 /// the header attributes of DESIGN §2.
 pub fn snapshot_exr(
