@@ -3,8 +3,10 @@
 // (the seed's section 7 suggests shadow mapping for exactly this), so each such light
 // gets an ordinary nearest-depth orthographic map along its direction of travel
 // (sdb_illumination.wgsl with DEPTH_NEAREST) and this pass adds
-// E/pi = irradiance/pi * max(<n, -d>, 0) * visibility to the accumulators, where the
-// illumination pass picks it up for the next bounces. The sun's direction is jittered
+// E/pi = irradiance/pi * max(<n, -d>, 0) * visibility to its own accumulators (the
+// gather's are self-normalised by their cosine weights, which a light of one direction
+// has no part in); the resolve pass adds both, so the illumination pass picks this light
+// up for the next bounces. The sun's direction is jittered
 // over its disc per step (on the CPU), so penumbrae converge like everything else.
 // Visibility: 2x2 percentage-closer filtering with a receiver offset along the normal
 // (one shadow-map pixel) and a depth bias (two pixels), both relative to the map's pixel
@@ -12,7 +14,7 @@
 
 struct DirectParams {
     irradiance: vec4<f32>,  // rgb: E/pi on a surface facing the light, unshadowed; w: the direction's blend b (see sdb_gather.wgsl)
-    bias: vec4<f32>,        // x: receiver offset along the normal, y: depth bias (normalised scene units); z: decay of the direct layer: 1 when gather_direct already blended it this direction, else 1 - b for the first light and 1 after; w: unused
+    bias: vec4<f32>,        // x: receiver offset along the normal, y: depth bias (normalised scene units); z: decay: 1 - b for the direction's first light, 1 for the others (they add to the same blend); w: unused
     misc: vec4<u32>,        // x: parity, y: texel count N; z, w: unused
 }
 
@@ -20,8 +22,7 @@ struct DirectParams {
 @group(0) @binding(1) var<uniform> params: DirectParams;
 @group(0) @binding(2) var shadow: texture_2d_array<f32>;  // layer 0 holds the shadow map
 @group(0) @binding(3) var<storage, read> texels: array<TexelGeom>;
-@group(0) @binding(4) var<storage, read_write> acc: array<vec4<f32>>;         // 2N, the full estimate
-@group(0) @binding(5) var<storage, read_write> direct_acc: array<vec4<f32>>;  // 2N, direct light only
+@group(0) @binding(4) var<storage, read_write> sun_acc: array<vec4<f32>>;  // 2N: rgb E/pi from these lights
 
 fn lit(px: vec2<i32>, t: f32) -> f32 {
     let size = i32(view.extent.z);
@@ -60,6 +61,5 @@ fn direct(
     }
     let slot = params.misc.x * n_texels + i;
     let scale = params.irradiance.w;
-    acc[slot] = vec4<f32>(acc[slot].rgb + e * scale, 0.0);
-    direct_acc[slot] = vec4<f32>(direct_acc[slot].rgb * params.bias.z + e * scale, 0.0);
+    sun_acc[slot] = vec4<f32>(sun_acc[slot].rgb * params.bias.z + e * scale, 0.0);
 }

@@ -182,6 +182,7 @@ fn open_plane_under_uniform_sky_sees_the_sky() {
         lights: vec![],
         seed: 7,
         want_direct: false,
+        ambient: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 512);
@@ -236,6 +237,7 @@ fn closed_emissive_box_converges_to_the_furnace_solution() {
         lights: vec![],
         seed: 3,
         want_direct: false,
+        ambient: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 1024);
@@ -266,6 +268,7 @@ fn leaky_mode_reaches_the_same_solution() {
         lights: vec![],
         seed: 5,
         want_direct: false,
+        ambient: None,
     };
     let p = SdbParams {
         mode: AccumulationMode::Leaky,
@@ -309,6 +312,7 @@ fn sun_direct_light_and_shadow() {
         lights: vec![light],
         seed: 1,
         want_direct: true,
+        ambient: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(256, 3)).unwrap();
     let e = run(&mut engine, 8);
@@ -358,6 +362,7 @@ fn random_and_stratified_directions_agree() {
         lights: vec![],
         seed: 11,
         want_direct: false,
+        ambient: None,
     };
     // Sky radiance 3 cos(theta) over the upper hemisphere: E/pi = (1/pi) int 3 cos^2 = 2.
     let p = SdbParams {
@@ -720,6 +725,7 @@ fn depth_layers_recover_surfaces_lost_to_overdraw() {
             lights: vec![],
             seed: 9,
             want_direct: false,
+            ambient: None,
         };
         let p = SdbParams {
             depth_layers: layers,
@@ -776,6 +782,7 @@ fn measure_stratified_vs_random() {
                     lights: vec![],
                     seed,
                     want_direct: false,
+                    ambient: None,
                 };
                 let p = SdbParams {
                     directions: seq,

@@ -93,7 +93,11 @@ use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
-use crate::engine::scene::LightKind;
+use crate::engine::atlas::Atlas;
+use crate::engine::raytrace::{Tracer, cosine_sample};
+use crate::engine::rng::Rng;
+use crate::engine::scene::{LightKind, Lighting, Scene};
+use rayon::prelude::*;
 
 // ---------------------------------------------------------------------------------------
 // Parameters
@@ -288,7 +292,29 @@ pub struct SdbInput {
     /// Keep a direct-light layer: light arriving straight from emitters, the sky, the sun
     /// and directional lights (the `path` reference's definition: first vertex only).
     pub want_direct: bool,
+    /// The coarse-mode (ambient) correction of `average` mode; None runs without it.
+    pub ambient: Option<AmbientMode>,
 }
+
+/// What the ambient-mode correction needs (`shaders/sdb_resolve.wgsl`, `ambient_mode`).
+#[derive(Debug, Clone)]
+pub struct AmbientMode {
+    /// g = <T 1> per channel: the area-weighted mean, over texels and cosine-distributed
+    /// directions, of the albedo of the surface seen (0 for sky and black back faces).
+    pub gain: Vec3,
+    /// <e>: the area-weighted mean of the E/pi that emitters and the sky give directly
+    /// (the sun's is left out: it is only a first guess). The first step feeds
+    /// <e> / (1 - g), the ambient-mode solution, instead of nothing, so a closed room of
+    /// one albedo is exact from the first step.
+    pub direct_mean: Vec3,
+    /// World area of each texel (same order as [`SdbInput::texels`]).
+    pub texel_area: Vec<f32>,
+}
+
+/// Largest ambient gain used: at g = 1 the correction g / (1 - g) is infinite (a closed
+/// white room has no finite answer), and past 0.9999 single-precision sums of the mean
+/// cannot resolve the residual it multiplies.
+const MAX_AMBIENT_GAIN: f32 = 0.9999;
 
 // ---------------------------------------------------------------------------------------
 // GPU-side layouts (must match shaders/common.wgsl and the pass files)
@@ -317,6 +343,8 @@ const EMPTY_T: f32 = 1.0e30;
 struct GpuResolveParams {
     scale: [f32; 4],
     dims: [u32; 4],
+    ambient: [f32; 4],
+    first_guess: [f32; 4],
 }
 
 #[repr(C)]
@@ -674,10 +702,15 @@ pub struct SdbEngine {
     direct_buf: wgpu::Buffer,
     acc_buf: wgpu::Buffer,
     direct_acc_buf: Option<wgpu::Buffer>,
+    sun_acc_buf: Option<wgpu::Buffer>,
+    /// g / (1 - g) per channel, or None without the ambient-mode correction.
+    ambient_factor: Option<Vec3>,
+    /// What the first step feeds: <e> / (1 - g).
+    ambient_first_guess: Vec3,
+    ambient_pipeline: wgpu::ComputePipeline,
     illum_layer_views: Vec<wgpu::TextureView>,
     emission_layer_views: Option<Vec<wgpu::TextureView>>,
     gather_direct_bg: Option<wgpu::BindGroup>,
-    want_direct: bool,
     depth_view: wgpu::TextureView,
     resolve_pipeline: wgpu::ComputePipeline,
     illum_pipeline: wgpu::RenderPipeline,
@@ -866,11 +899,15 @@ impl SdbEngine {
                 geo_normal: t.geo_normal.normalize_or_zero().extend(0.0).to_array(),
             })
             .collect();
+        // The texel's area in normalised units rides in the albedo's spare channel (only
+        // the ambient-mode mean reads it; relative areas are all it needs).
+        let area = |k: usize| input.ambient.as_ref().map_or(0.0, |a| a.texel_area[k] / (scale * scale));
         let shade: Vec<GpuTexelShade> = input
             .texels
             .iter()
-            .map(|t| GpuTexelShade {
-                albedo: t.albedo.extend(0.0).to_array(),
+            .enumerate()
+            .map(|(k, t)| GpuTexelShade {
+                albedo: t.albedo.extend(area(k)).to_array(),
             })
             .collect();
         let fill = fill_map(width, height, &input.texels);
@@ -888,13 +925,35 @@ impl SdbEngine {
             U::STORAGE | U::COPY_SRC,
         );
         let want_direct = input.want_direct;
-        let direct_acc_buf = (want_direct || !input.lights.is_empty()).then(|| {
+        let direct_acc_buf = want_direct.then(|| {
             ctx.buffer_zeroed(
                 "sdb direct accumulators (even, odd)",
                 n_texels as u64 * 2 * 16,
                 U::STORAGE | U::COPY_SRC,
             )
         });
+        let sun_acc_buf = (!input.lights.is_empty()).then(|| {
+            ctx.buffer_zeroed(
+                "sdb sun and directional light accumulators (even, odd)",
+                n_texels as u64 * 2 * 16,
+                U::STORAGE | U::COPY_SRC,
+            )
+        });
+        let ambient_buf = ctx.buffer_zeroed("sdb ambient mode state", 32, U::STORAGE);
+        let fed_buf = ctx.buffer_zeroed("sdb estimate fed per texel", n_texels as u64 * 16, U::STORAGE);
+        let fed_acc_buf = ctx.buffer_zeroed(
+            "sdb fed estimate accumulators (even, odd)",
+            n_texels as u64 * 2 * 16,
+            U::STORAGE,
+        );
+        let (ambient_factor, ambient_first_guess) = match (&input.ambient, params.mode) {
+            (Some(a), AccumulationMode::Average) => {
+                let g = a.gain.clamp(Vec3::ZERO, Vec3::splat(MAX_AMBIENT_GAIN));
+                (Some(g / (Vec3::ONE - g)), a.direct_mean / (Vec3::ONE - g))
+            }
+            // The leaky blend forgets on purpose; a mean of everything fed does not apply.
+            _ => (None, Vec3::ZERO),
+        };
         let view_buf = ctx.uniform("sdb view", &GpuView::zeroed());
         let dims_buf = ctx.uniform(
             "sdb lightmap dims",
@@ -1008,9 +1067,20 @@ impl SdbEngine {
                 storage_entry(2, S::COMPUTE, true),
                 storage_entry(3, S::COMPUTE, true),
                 storage_entry(4, S::COMPUTE, false),
+                storage_entry(5, S::COMPUTE, true),
+                storage_entry(6, S::COMPUTE, false),
+                storage_entry(7, S::COMPUTE, false),
+                storage_entry(8, S::COMPUTE, true),
             ],
         });
         let resolve_pipeline = compute_pipeline(&ctx, "sdb resolve", &resolve_module, "resolve", &resolve_layout);
+        let ambient_pipeline = compute_pipeline(
+            &ctx,
+            "sdb ambient mode",
+            &resolve_module,
+            "ambient_mode",
+            &resolve_layout,
+        );
         let resolve_bg = bind_group(
             &ctx,
             "sdb resolve bindings",
@@ -1021,6 +1091,12 @@ impl SdbEngine {
                 (2, shade_buf.as_entire_binding()),
                 (3, acc_buf.as_entire_binding()),
                 (4, radiance_buf.as_entire_binding()),
+                // Without lights the shader reads no sun accumulators (dims.w = 0); the
+                // binding still needs a buffer, so it aliases the gathered ones.
+                (5, sun_acc_buf.as_ref().unwrap_or(&acc_buf).as_entire_binding()),
+                (6, ambient_buf.as_entire_binding()),
+                (7, fed_buf.as_entire_binding()),
+                (8, fed_acc_buf.as_entire_binding()),
             ],
         );
 
@@ -1113,6 +1189,8 @@ impl SdbEngine {
                 texture_entry(2),
                 storage_entry(3, S::COMPUTE, true),
                 storage_entry(4, S::COMPUTE, false),
+                storage_entry(5, S::COMPUTE, true),
+                storage_entry(6, S::COMPUTE, false),
             ],
         });
         let gather_direct_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
@@ -1158,12 +1236,14 @@ impl SdbEngine {
                 (2, wgpu::BindingResource::TextureView(&illum_view)),
                 (3, geom_buf.as_entire_binding()),
                 (4, acc_buf.as_entire_binding()),
+                (5, fed_buf.as_entire_binding()),
+                (6, fed_acc_buf.as_entire_binding()),
             ],
         );
 
         // Direct light: only with directional lights (DESIGN.md section 6).
-        let (direct_pipeline, direct_bg) = match &direct_acc_buf {
-            Some(direct_acc) if !input.lights.is_empty() => {
+        let (direct_pipeline, direct_bg) = match &sun_acc_buf {
+            Some(sun_acc) => {
                 let module = ctx.shader(&shaders::SDB_DIRECT)?;
                 let layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                     label: Some("sdb direct layout"),
@@ -1173,7 +1253,6 @@ impl SdbEngine {
                         texture_entry(2),
                         storage_entry(3, S::COMPUTE, true),
                         storage_entry(4, S::COMPUTE, false),
-                        storage_entry(5, S::COMPUTE, false),
                     ],
                 });
                 let pipeline = compute_pipeline(&ctx, "sdb direct", &module, "direct", &layout);
@@ -1186,8 +1265,7 @@ impl SdbEngine {
                         (1, direct_buf.as_entire_binding()),
                         (2, wgpu::BindingResource::TextureView(&illum_view)),
                         (3, geom_buf.as_entire_binding()),
-                        (4, acc_buf.as_entire_binding()),
-                        (5, direct_acc.as_entire_binding()),
+                        (4, sun_acc.as_entire_binding()),
                     ],
                 );
                 (Some(pipeline), Some(bg))
@@ -1212,7 +1290,7 @@ impl SdbEngine {
             ctx,
             params,
             n_texels,
-            lm_dims: [width, height, n_texels, 0],
+            lm_dims: [width, height, n_texels, u32::from(!input.lights.is_empty())],
             corners,
             scale,
             environment: input.environment,
@@ -1229,10 +1307,13 @@ impl SdbEngine {
             direct_buf,
             acc_buf,
             direct_acc_buf,
+            sun_acc_buf,
+            ambient_factor,
+            ambient_first_guess,
+            ambient_pipeline,
             illum_layer_views,
             emission_layer_views,
             gather_direct_bg,
-            want_direct,
             depth_view,
             resolve_pipeline,
             illum_pipeline,
@@ -1283,20 +1364,26 @@ impl SdbEngine {
         }
     }
 
-    /// The weights that turn the two accumulators into the current estimate.
-    fn half_scales(&self) -> [f32; 2] {
+    /// The weights that turn the two halves into the current estimate: gathered (x, y),
+    /// sun accumulators (z, w). The gathered halves are ratios, so a leaky half needs no
+    /// start-up correction there; the sun's plain blends do.
+    fn half_scales(&self) -> [f32; 4] {
         match self.params.mode {
             AccumulationMode::Average => {
                 let total = self.weights[0] + self.weights[1];
                 if total == 0.0 {
-                    [0.0, 0.0]
+                    [0.0; 4]
                 } else {
-                    [(self.weights[0] / total) as f32, (self.weights[1] / total) as f32]
+                    let (a, b) = ((self.weights[0] / total) as f32, (self.weights[1] / total) as f32);
+                    [a, b, a, b]
                 }
             }
             AccumulationMode::Leaky => {
                 let live = self.dirs.iter().filter(|&&n| n > 0).count().max(1) as f64;
+                let share = |h: usize| if self.dirs[h] > 0 { (1.0 / live) as f32 } else { 0.0 };
                 [
+                    share(0),
+                    share(1),
                     (self.leaky_correction(self.dirs[0]) / live) as f32,
                     (self.leaky_correction(self.dirs[1]) / live) as f32,
                 ]
@@ -1388,10 +1475,17 @@ impl SdbEngine {
     /// returns without waiting for it; nothing is read back.
     pub fn step(&mut self) -> Result<(), GpuError> {
         let parity = (self.steps_done % 2) as u32;
-        let scales = self.half_scales();
+        let ambient = self.ambient_factor.map_or([0.0; 4], |f| f.extend(0.0).to_array());
+        let first = if self.steps_done == 0 && self.ambient_factor.is_some() {
+            self.ambient_first_guess
+        } else {
+            Vec3::ZERO
+        };
         let resolve = GpuResolveParams {
-            scale: [scales[0], scales[1], 0.0, 0.0],
+            scale: self.half_scales(),
             dims: self.lm_dims,
+            ambient,
+            first_guess: first.extend(0.0).to_array(),
         };
         self.ctx
             .queue
@@ -1399,6 +1493,15 @@ impl SdbEngine {
         let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("sdb resolve"),
         });
+        if self.ambient_factor.is_some() {
+            Self::dispatch(
+                &mut encoder,
+                "sdb ambient mode",
+                &self.ambient_pipeline,
+                &self.resolve_bg,
+                (1, 1),
+            );
+        }
         Self::dispatch(
             &mut encoder,
             "sdb resolve",
@@ -1466,7 +1569,7 @@ impl SdbEngine {
                     bias: [
                         pixel,
                         2.0 * pixel,
-                        if li == 0 && !self.want_direct { 1.0 - blend } else { 1.0 },
+                        if li == 0 { 1.0 - blend } else { 1.0 },
                         0.0,
                     ],
                     misc: [parity, self.n_texels, 0, 0],
@@ -1503,25 +1606,41 @@ impl SdbEngine {
         let n = self.n_texels as usize;
         let acc: Vec<[f32; 4]> = self.ctx.read_buffer("sdb accumulators", &self.acc_buf, 2 * n)?;
         let direct: Option<Vec<[f32; 4]>> = match &self.direct_acc_buf {
-            Some(b) if self.want_direct => Some(self.ctx.read_buffer("sdb direct accumulators", b, 2 * n)?),
-            _ => None,
+            Some(b) => Some(self.ctx.read_buffer("sdb direct accumulators", b, 2 * n)?),
+            None => None,
+        };
+        let sun: Option<Vec<[f32; 4]>> = match &self.sun_acc_buf {
+            Some(b) => Some(self.ctx.read_buffer("sdb sun accumulators", b, 2 * n)?),
+            None => None,
         };
         let half = |h: usize| {
-            let s = match self.params.mode {
-                // The running mean is already normalised (zero while empty).
+            // A running mean is already normalised (zero while empty); a leaky blend of the
+            // sun needs its start-up correction. Gathered light is a ratio of two blends.
+            let sun_scale = match self.params.mode {
                 AccumulationMode::Average => 1.0,
                 AccumulationMode::Leaky => self.leaky_correction(self.dirs[h]) as f32,
             };
-            let pick = |v: &[[f32; 4]]| -> Vec<Vec3> {
-                v[h * n..(h + 1) * n]
-                    .iter()
-                    .map(|a| Vec3::new(a[0], a[1], a[2]) * s)
-                    .collect()
+            let range = h * n..(h + 1) * n;
+            let sun_at = |k: usize| sun.as_ref().map_or(Vec3::ZERO, |s| Vec3::from_slice(&s[h * n + k][..3]) * sun_scale);
+            let weight = |k: usize| acc[h * n + k][3];
+            let over_weight = |v: [f32; 4], k: usize| {
+                let w = weight(k);
+                if w > 0.0 { Vec3::from_slice(&v[..3]) / w } else { Vec3::ZERO }
             };
             SdbHalf {
                 steps: self.half_steps[h],
-                total: pick(&acc),
-                direct: direct.as_deref().map(pick),
+                total: acc[range.clone()]
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &a)| over_weight(a, k) + sun_at(k))
+                    .collect(),
+                direct: direct.as_ref().map(|d| {
+                    d[range.clone()]
+                        .iter()
+                        .enumerate()
+                        .map(|(k, &a)| over_weight(a, k) + sun_at(k))
+                        .collect()
+                }),
             }
         };
         Ok([half(0), half(1)])
@@ -1638,8 +1757,65 @@ pub fn sdb_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
         lights,
         seed: inputs.seed,
         want_direct: inputs.want_direct,
+        ambient: Some(ambient_mode(scene, atlas, &inputs.lighting, inputs.seed)),
     };
     (input, notes)
+}
+
+/// Rays cast to measure the ambient gain: its standard error is at most
+/// 0.5 / sqrt(AMBIENT_RAYS) = 0.2 % where some rays escape, and 0 in a closed room of one
+/// albedo (every ray sees the same albedo), the case where its precision matters.
+const AMBIENT_RAYS: u32 = 65_536;
+
+/// The ambient gain g = <T 1> (see [`AmbientMode`]) by casting cosine-distributed rays
+/// from area-weighted random texels on the CPU, with the `path` reference's rules: the
+/// back of a single-sided surface is black, a double-sided one reflects on both faces.
+/// A few tens of milliseconds at 64k rays.
+pub fn ambient_mode(scene: &Scene, atlas: &Atlas, lighting: &Lighting, seed: u64) -> AmbientMode {
+    let texel_area: Vec<f32> = atlas.texels.iter().map(|t| t.size * t.size).collect();
+    let mut cdf = Vec::with_capacity(texel_area.len());
+    let mut total = 0.0f64;
+    for a in &texel_area {
+        total += *a as f64;
+        cdf.push(total);
+    }
+    if total <= 0.0 || scene.triangles.is_empty() {
+        return AmbientMode {
+            gain: Vec3::ZERO,
+            direct_mean: Vec3::ZERO,
+            texel_area,
+        };
+    }
+    let tracer = Tracer::new(scene);
+    // Per ray: (albedo seen, E/pi seen directly), both as cosine-weighted means.
+    let (gain, direct) = (0..AMBIENT_RAYS)
+        .into_par_iter()
+        .map(|i| {
+            let mut rng = Rng::new(seed, 0xA4B1_E47, i as u64, 0);
+            let pick = rng.next_f32() as f64 * total;
+            let k = cdf.partition_point(|&c| c <= pick).min(cdf.len() - 1);
+            let t = &atlas.texels[k];
+            let dir = cosine_sample(t.normal, rng.next_f32(), rng.next_f32());
+            if dir.dot(t.geo_normal) <= 0.0 {
+                return (Vec3::ZERO, Vec3::ZERO); // below the surface: the surface itself blocks it
+            }
+            let Some(hit) = tracer.trace(scene, t.position, dir, f32::INFINITY) else {
+                return (Vec3::ZERO, lighting.sky_radiance(dir));
+            };
+            let tri = &scene.triangles[hit.triangle as usize];
+            let front = dir.dot(tri.geometric_normal()) < 0.0;
+            if front || scene.material(tri).double_sided {
+                (scene.albedo(tri, hit.bary), scene.emission(tri, hit.bary))
+            } else {
+                (Vec3::ZERO, Vec3::ZERO)
+            }
+        })
+        .reduce(|| (Vec3::ZERO, Vec3::ZERO), |a, b| (a.0 + b.0, a.1 + b.1));
+    AmbientMode {
+        gain: gain / AMBIENT_RAYS as f32,
+        direct_mean: direct / AMBIENT_RAYS as f32,
+        texel_area,
+    }
 }
 
 impl Technique for Sdb {
