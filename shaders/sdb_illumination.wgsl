@@ -3,8 +3,8 @@
 // rgb = outgoing radiance toward the camera, a = t = dot(p, d) (distance along d, used to
 // pick the nearest sample and to rebuild its position).
 //
-// DEPTH_STOCHASTIC: every fragment writes a pseudo-random depth, a PCG hash of its world
-// position bits, its triangle and the step seed, so the depth test keeps a uniformly
+// DEPTH_STOCHASTIC: every fragment writes a pseudo-random depth, a PCG hash of its pixel,
+// its triangle and the step seed, so the depth test keeps a uniformly
 // random one of the surfaces along each pixel's ray. Culling follows the seed's section 6:
 // back faces of closed single-sided meshes are discarded (they can never be the first
 // surface along a ray from a point outside the mesh, so culling only removes overdraw),
@@ -155,8 +155,11 @@ fn shade(in: VsOut, front: bool) -> Shaded {
     // else: back face of open single-sided geometry: a black blocker (seed section 6).
     // The instance index is the depth layer (one draw per layer): each layer is an
     // independent draw of the random depths.
-    let h = pcg(view.params.x ^ pcg(in.layer ^ pcg(in.triangle ^ pcg(bitcast<u32>(in.world.x)
-        ^ pcg(bitcast<u32>(in.world.y) ^ pcg(bitcast<u32>(in.world.z)))))));
+    // Keyed by the pixel, not the position's bits: the same fragment then draws the same
+    // depth whatever the scene's scale or placement (positions in normalised space still
+    // differ in their last bits), so a scaled or moved scene bakes the same lightmap.
+    let px = vec2<u32>(in.clip.xy);
+    let h = pcg(view.params.x ^ pcg(in.layer ^ pcg(in.triangle ^ pcg(px.x ^ pcg(px.y)))));
     out.sample = vec4<f32>(l, t);
     out.depth = unit_float(h);
     return out;

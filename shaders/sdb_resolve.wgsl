@@ -14,16 +14,17 @@
 // transient decays like n^-(1 - rho) directions, hopeless at rho = 0.99. Write M for the
 // mean of the estimates the resolve pass has fed so far, per texel and with the very
 // weights of the estimate x (the gather blends both; any other weighting would put their
-// difference, times 1 / (1 - rho), into the correction); in expectation x = T M + e (T:
+// difference, times 1 / (1 - rho), into the correction). In expectation x = T M + e (T:
 // one bounce, e: emitted and sky light), so the residual r = x - M is what one more
-// bounce adds. On the constant field T acts as the
-// scalar g = <T 1> (the area-weighted mean albedo seen, the "ambient gain", measured on
-// the CPU by ray casting), and the error of x in that mode is g <r> / (1 - g): the pass
-// feeds x + delta with delta = g / (1 - g) <r> (per channel), the Galerkin correction on
-// the one-dimensional space of constants (a two-level method with Jacobi sweeps as the
-// smoother). At convergence <r> = 0 and delta = 0, so the fixed point is unchanged; in a
-// closed room of uniform albedo the constant field is T's dominant mode and the
-// correction is exact. Modes that are not constant converge as before (see docs/sdb.md).
+// bounce adds. Take the coarse space spanned by the current estimate's own shape v = x
+// (a Ritz vector: repeated bounces turn any field toward T's dominant mode, and where no
+// light has arrived, v = 0, nothing is added, so light never spreads into rooms it
+// cannot reach). With T v ~ g v, g the "ambient gain" (the area-weighted mean albedo seen,
+// measured on the CPU by ray casting), the Galerkin correction on span{v} is
+// delta = g / (1 - g) <r> v / <v> per channel: the pass feeds x + delta (a two-level
+// method with the Jacobi-like gathers as the smoother). At convergence <r> = 0 and
+// delta = 0, so the fixed point is unchanged; in a closed room of uniform albedo v is T's
+// dominant mode and the correction is exact. Other modes converge as before (docs/sdb.md).
 
 struct ResolveParams {
     // x, y: weights of the even and odd gathered estimates (ratio of their blends);
@@ -35,9 +36,6 @@ struct ResolveParams {
     dims: vec4<u32>,
     // rgb: g / (1 - g) per channel (0 switches the correction off); w: unused.
     ambient: vec4<f32>,
-    // rgb: added to delta; the first step's guess <e> / (1 - g) (nothing is known yet,
-    // and T 0 + e - 0 = e is the residual), 0 afterwards; w: unused.
-    first_guess: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> params: ResolveParams;
@@ -46,7 +44,8 @@ struct ResolveParams {
 @group(0) @binding(3) var<storage, read> acc: array<vec4<f32>>;     // 2N: even then odd; rgb / a = E/pi
 @group(0) @binding(4) var<storage, read_write> radiance: array<vec4<f32>>;  // W*H: rgb reflected, a coverage
 @group(0) @binding(5) var<storage, read> sun_acc: array<vec4<f32>>;  // 2N: rgb E/pi from the sun and directional lights
-// [0].rgb: delta, the correction fed this step; [1].rgb: <x - M> it came from.
+// [0].rgb: g / (1 - g) <r> / <x>, the correction per unit of estimate fed this step;
+// [1].rgb: <r>, [1].a unused.
 @group(0) @binding(6) var<storage, read_write> ambient: array<vec4<f32>, 2>;
 @group(0) @binding(7) var<storage, read_write> fed: array<vec4<f32>>;      // N: what resolve fed each texel
 @group(0) @binding(8) var<storage, read> fed_acc: array<vec4<f32>>;        // 2N: blends of `fed` (see sdb_gather.wgsl)
@@ -95,14 +94,16 @@ fn resolve(
         return;
     }
     // An overshooting correction must not turn into negative light.
-    let e = max(estimate(src) + ambient[0].rgb, vec3<f32>(0.0));
+    let x = estimate(src);
+    let e = max(x + x * ambient[0].rgb, vec3<f32>(0.0));
     radiance[pixel] = vec4<f32>(shade[src].albedo.rgb * e, 1.0);
     // Every pixel that copies texel src writes the same value.
     fed[src] = vec4<f32>(e, 0.0);
 }
 
 const AMBIENT_THREADS: u32 = 256u;
-var<workgroup> partial: array<vec4<f32>, AMBIENT_THREADS>;
+var<workgroup> partial_r: array<vec4<f32>, AMBIENT_THREADS>;  // rgb: area x r, a: area
+var<workgroup> partial_x: array<vec4<f32>, AMBIENT_THREADS>;  // rgb: area x x
 
 // Dispatched as a single workgroup: each thread sums a strided share of the texels (in
 // f32; at 16M texels a thread adds 65k terms, so the mean residual is good to ~1e-5 of
@@ -112,23 +113,31 @@ var<workgroup> partial: array<vec4<f32>, AMBIENT_THREADS>;
 @compute @workgroup_size(256)
 fn ambient_mode(@builtin(local_invocation_index) lid: u32) {
     let n = params.dims.z;
-    var sum = vec4<f32>(0.0);
+    var sum_r = vec4<f32>(0.0);
+    var sum_x = vec4<f32>(0.0);
     for (var i = lid; i < n; i += AMBIENT_THREADS) {
         let area = shade[i].albedo.a;
-        sum += vec4<f32>((estimate(i) - fed_mean(i)) * area, area);
+        let x = estimate(i);
+        sum_r += vec4<f32>((x - fed_mean(i)) * area, area);
+        sum_x += vec4<f32>(x * area, 0.0);
     }
-    partial[lid] = sum;
+    partial_r[lid] = sum_r;
+    partial_x[lid] = sum_x;
     workgroupBarrier();
     for (var stride = AMBIENT_THREADS / 2u; stride > 0u; stride /= 2u) {
         if lid < stride {
-            partial[lid] += partial[lid + stride];
+            partial_r[lid] += partial_r[lid + stride];
+            partial_x[lid] += partial_x[lid + stride];
         }
         workgroupBarrier();
     }
     if lid == 0u {
-        let total = partial[0];
-        let residual = over_weight(total.rgb, total.w);
-        ambient[0] = vec4<f32>(params.ambient.rgb * residual + params.first_guess.rgb, 0.0);
-        ambient[1] = vec4<f32>(residual, 0.0);
+        let area = partial_r[0].w;
+        let r = over_weight(partial_r[0].rgb, area);
+        let x = over_weight(partial_x[0].rgb, area);
+        // Per channel: no light in a channel yet, no correction in it.
+        let per_unit = select(vec3<f32>(0.0), params.ambient.rgb * r / x, x > vec3<f32>(0.0));
+        ambient[0] = vec4<f32>(per_unit, 0.0);
+        ambient[1] = vec4<f32>(r, 0.0);
     }
 }

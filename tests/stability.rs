@@ -20,14 +20,27 @@ use lightmapd::engine::scene::library::{closed_box as closed_box_builder, rect_f
 use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, import_slice};
 use serde_json::{Value, json};
 
-/// A technique under test: its parameters, a step budget scale, and the relative bias
-/// it is allowed on top of its noise (0 for an unbiased technique).
+/// A technique under test: its parameters, the relative bias it is allowed on top of its
+/// noise (0 for an unbiased technique), and the cases it is known to fail, each documented
+/// with its measured value in `docs/stability.md`. A known failure still runs and still
+/// asserts what must hold whatever the technique (finite values, the light's ordering);
+/// only the comparison with the closed form is reported instead of asserted.
 #[derive(Clone)]
 pub struct Row {
     pub technique: &'static str,
     pub params: Value,
     pub bias: f64,
+    pub open_failures: &'static [&'static str],
 }
+
+impl Row {
+    fn fails(&self, case: &str) -> bool {
+        self.open_failures.contains(&case)
+    }
+}
+
+/// The case names `Row::open_failures` may list.
+pub const TINY_EMITTER: &str = "tiny bright emitter";
 
 fn upper_sky(l: f32) -> Lighting {
     Lighting {
@@ -90,6 +103,25 @@ pub fn tiny_bright_emitter(row: &Row) {
         // The lamp's own square hides that much sky.
         Vec3::splat((1e6 * f + sky as f64 * (1.0 - f)) as f32)
     };
+    if row.fails(TINY_EMITTER) {
+        // Whatever the technique: finite (checked above) and never below the sky's own
+        // light; the comparison with the closed form is reported, not asserted.
+        let ground: Vec<f64> = atlas
+            .texels
+            .iter()
+            .zip(&est.total)
+            .filter(|(t, _)| on_ground(t))
+            .map(|(_, v)| lum(*v))
+            .collect();
+        assert!(ground.iter().all(|&g| g >= 0.99e-3), "ground below the sky's own light");
+        let (dev, _) = common::mean_deviation(&atlas, &est, on_ground, expected);
+        let peak = ground.iter().copied().fold(0.0, f64::max);
+        eprintln!(
+            "{} tiny bright emitter (open failure): mean relative deviation {dev:+.3}, brightest ground texel {peak:.1} (exact 31.8)",
+            row.technique
+        );
+        return;
+    }
     assert_unbiased(
         &atlas,
         &est,
@@ -345,7 +377,23 @@ stability_suite!(
     Row {
         technique: "path",
         params: json!({"samples_per_step": 4}),
-        bias: 0.0
+        bias: 0.0,
+        open_failures: &[],
     },
     leak <= 1e-4
+);
+
+// `sdb` (average mode, 64 directions a step, default 5 x 5 neighbourhood): biased by
+// design (dilation of the neighbourhood, overdraw), so cases that compare with a closed
+// form allow 2 %. A 1 cm² lamp is far below a map pixel (3 cm here): sdb cannot resolve
+// it (docs/stability.md). The thin wall leaks through overdraw, measured 0.7 %.
+stability_suite!(
+    sdb,
+    Row {
+        technique: "sdb",
+        params: json!({"map_size": 128, "directions_per_step": 64}),
+        bias: 0.02,
+        open_failures: &[TINY_EMITTER],
+    },
+    leak <= 1e-2
 );

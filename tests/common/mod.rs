@@ -71,21 +71,9 @@ pub fn assert_unbiased(
     model_bias: f64,
     what: &str,
 ) -> (f64, f64, usize) {
-    let se = est.texel_error.as_ref().expect("both halves have steps");
-    let (mut dev, mut var, mut norm, mut n) = (0.0f64, 0.0f64, 0.0f64, 0usize);
-    for (k, t) in atlas.texels.iter().enumerate() {
-        if !select(t) {
-            continue;
-        }
-        let e = lum(expected(t));
-        dev += lum(est.total[k]) - e;
-        var += (se[k] as f64).powi(2);
-        norm += e;
-        n += 1;
-    }
+    let n = atlas.texels.iter().filter(|t| select(t)).count();
     assert!(n > 0, "{what}: no texel selected");
-    let mean_dev = dev / norm;
-    let mean_se = var.sqrt() / norm;
+    let (mean_dev, mean_se) = mean_deviation(atlas, est, select, expected);
     eprintln!(
         "{what}: {n} texels, mean relative deviation {mean_dev:+.5} (standard error {mean_se:.5}, model bias allowance {model_bias})"
     );
@@ -94,4 +82,26 @@ pub fn assert_unbiased(
         "{what}: mean relative deviation {mean_dev:+.5} exceeds 5 standard errors ({mean_se:.5}) + {model_bias}"
     );
     (mean_dev, mean_se, n)
+}
+
+/// Mean relative luminance deviation from `expected` over the selected texels, and its
+/// standard error (see [`assert_unbiased`]).
+pub fn mean_deviation(
+    atlas: &Atlas,
+    est: &Estimate,
+    select: impl Fn(&Texel) -> bool,
+    expected: impl Fn(&Texel) -> Vec3,
+) -> (f64, f64) {
+    let se = est.texel_error.as_ref().expect("both halves have steps");
+    let (mut dev, mut var, mut norm) = (0.0f64, 0.0f64, 0.0f64);
+    for (k, t) in atlas.texels.iter().enumerate() {
+        if !select(t) {
+            continue;
+        }
+        let e = lum(expected(t));
+        dev += lum(est.total[k]) - e;
+        var += (se[k] as f64).powi(2);
+        norm += e;
+    }
+    (dev / norm, var.sqrt() / norm)
 }

@@ -14,8 +14,8 @@
 //! 2. *Illumination map* (`shaders/sdb_illumination.wgsl`, seed sections 3 and 5,
 //!    Figure 4): an orthographic render of the scene along d covering its bounds. Each
 //!    fragment writes its outgoing radiance (looked up at its lightmap UV in step 1's
-//!    buffer), its distance t = <p, d>, and a pseudo-random depth (PCG hash of its world
-//!    position bits, triangle index and the direction's seed), so each pixel keeps a
+//!    buffer), its distance t = <p, d>, and a pseudo-random depth (PCG hash of its
+//!    pixel, triangle index and the direction's seed), so each pixel keeps a
 //!    uniformly random one of the surfaces along its ray.
 //! 3. *Gather* (`shaders/sdb_gather.wgsl`, seed section 4, Figures 5 and 6): every texel
 //!    projects its sample point, reads a k x k neighbourhood, keeps samples in front of it
@@ -96,7 +96,7 @@ use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::atlas::Atlas;
 use crate::engine::raytrace::{Tracer, cosine_sample};
 use crate::engine::rng::Rng;
-use crate::engine::scene::{LightKind, Lighting, Scene};
+use crate::engine::scene::{LightKind, Scene};
 use rayon::prelude::*;
 
 // ---------------------------------------------------------------------------------------
@@ -302,11 +302,6 @@ pub struct AmbientMode {
     /// g = <T 1> per channel: the area-weighted mean, over texels and cosine-distributed
     /// directions, of the albedo of the surface seen (0 for sky and black back faces).
     pub gain: Vec3,
-    /// <e>: the area-weighted mean of the E/pi that emitters and the sky give directly
-    /// (the sun's is left out: it is only a first guess). The first step feeds
-    /// <e> / (1 - g), the ambient-mode solution, instead of nothing, so a closed room of
-    /// one albedo is exact from the first step.
-    pub direct_mean: Vec3,
     /// World area of each texel (same order as [`SdbInput::texels`]).
     pub texel_area: Vec<f32>,
 }
@@ -344,7 +339,6 @@ struct GpuResolveParams {
     scale: [f32; 4],
     dims: [u32; 4],
     ambient: [f32; 4],
-    first_guess: [f32; 4],
 }
 
 #[repr(C)]
@@ -703,10 +697,9 @@ pub struct SdbEngine {
     acc_buf: wgpu::Buffer,
     direct_acc_buf: Option<wgpu::Buffer>,
     sun_acc_buf: Option<wgpu::Buffer>,
+    fed_acc_buf: wgpu::Buffer,
     /// g / (1 - g) per channel, or None without the ambient-mode correction.
     ambient_factor: Option<Vec3>,
-    /// What the first step feeds: <e> / (1 - g).
-    ambient_first_guess: Vec3,
     ambient_pipeline: wgpu::ComputePipeline,
     illum_layer_views: Vec<wgpu::TextureView>,
     emission_layer_views: Option<Vec<wgpu::TextureView>>,
@@ -922,21 +915,21 @@ impl SdbEngine {
         let acc_buf = ctx.buffer_zeroed(
             "sdb accumulators (even, odd)",
             n_texels as u64 * 2 * 16,
-            U::STORAGE | U::COPY_SRC,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
         let want_direct = input.want_direct;
         let direct_acc_buf = want_direct.then(|| {
             ctx.buffer_zeroed(
                 "sdb direct accumulators (even, odd)",
                 n_texels as u64 * 2 * 16,
-                U::STORAGE | U::COPY_SRC,
+                U::STORAGE | U::COPY_SRC | U::COPY_DST,
             )
         });
         let sun_acc_buf = (!input.lights.is_empty()).then(|| {
             ctx.buffer_zeroed(
                 "sdb sun and directional light accumulators (even, odd)",
                 n_texels as u64 * 2 * 16,
-                U::STORAGE | U::COPY_SRC,
+                U::STORAGE | U::COPY_SRC | U::COPY_DST,
             )
         });
         let ambient_buf = ctx.buffer_zeroed("sdb ambient mode state", 32, U::STORAGE);
@@ -944,15 +937,15 @@ impl SdbEngine {
         let fed_acc_buf = ctx.buffer_zeroed(
             "sdb fed estimate accumulators (even, odd)",
             n_texels as u64 * 2 * 16,
-            U::STORAGE,
+            U::STORAGE | U::COPY_DST,
         );
-        let (ambient_factor, ambient_first_guess) = match (&input.ambient, params.mode) {
+        let ambient_factor = match (&input.ambient, params.mode) {
             (Some(a), AccumulationMode::Average) => {
                 let g = a.gain.clamp(Vec3::ZERO, Vec3::splat(MAX_AMBIENT_GAIN));
-                (Some(g / (Vec3::ONE - g)), a.direct_mean / (Vec3::ONE - g))
+                Some(g / (Vec3::ONE - g))
             }
             // The leaky blend forgets on purpose; a mean of everything fed does not apply.
-            _ => (None, Vec3::ZERO),
+            _ => None,
         };
         let view_buf = ctx.uniform("sdb view", &GpuView::zeroed());
         let dims_buf = ctx.uniform(
@@ -1308,8 +1301,8 @@ impl SdbEngine {
             acc_buf,
             direct_acc_buf,
             sun_acc_buf,
+            fed_acc_buf,
             ambient_factor,
-            ambient_first_guess,
             ambient_pipeline,
             illum_layer_views,
             emission_layer_views,
@@ -1404,6 +1397,25 @@ impl SdbEngine {
         }
     }
 
+    /// With the ambient-mode correction the first step only bootstraps: it gathers with
+    /// nothing fed (so it sees emitters and the sky alone) and gives the correction the
+    /// shape of the light, v = x. Once the second step's resolve has fed x + delta, its
+    /// gathers are cleared from the accumulators: kept, they would weigh in the mean as a
+    /// share of the wrong answer (2 / n^2 of it after n steps with `ramp` 1), which in a
+    /// stiff room is most of the error left.
+    fn drop_bootstrap_step(&mut self, encoder: &mut wgpu::CommandEncoder) {
+        for b in [Some(&self.acc_buf), Some(&self.fed_acc_buf), self.sun_acc_buf.as_ref(), self.direct_acc_buf.as_ref()]
+            .into_iter()
+            .flatten()
+        {
+            encoder.clear_buffer(b, 0, None);
+        }
+        // The other half (odd, about to take this step's directions) is still empty.
+        self.dirs[0] = 0;
+        self.weights[0] = 0.0;
+        self.half_steps[0] = 0;
+    }
+
     /// Render the map along the current view into array layer `layer`; the layer goes to
     /// the shaders as the instance index and into the depth hash, so layers are
     /// independent draws of the stochastic depth.
@@ -1476,16 +1488,10 @@ impl SdbEngine {
     pub fn step(&mut self) -> Result<(), GpuError> {
         let parity = (self.steps_done % 2) as u32;
         let ambient = self.ambient_factor.map_or([0.0; 4], |f| f.extend(0.0).to_array());
-        let first = if self.steps_done == 0 && self.ambient_factor.is_some() {
-            self.ambient_first_guess
-        } else {
-            Vec3::ZERO
-        };
         let resolve = GpuResolveParams {
             scale: self.half_scales(),
             dims: self.lm_dims,
             ambient,
-            first_guess: first.extend(0.0).to_array(),
         };
         self.ctx
             .queue
@@ -1509,6 +1515,9 @@ impl SdbEngine {
             &self.resolve_bg,
             self.pixel_dispatch,
         );
+        if self.ambient_factor.is_some() && self.steps_done == 1 {
+            self.drop_bootstrap_step(&mut encoder);
+        }
         self.ctx.queue.submit([encoder.finish()]);
 
         for _ in 0..self.params.directions_per_step {
@@ -1757,7 +1766,7 @@ pub fn sdb_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
         lights,
         seed: inputs.seed,
         want_direct: inputs.want_direct,
-        ambient: Some(ambient_mode(scene, atlas, &inputs.lighting, inputs.seed)),
+        ambient: Some(ambient_mode(scene, atlas, inputs.seed)),
     };
     (input, notes)
 }
@@ -1771,7 +1780,7 @@ const AMBIENT_RAYS: u32 = 65_536;
 /// from area-weighted random texels on the CPU, with the `path` reference's rules: the
 /// back of a single-sided surface is black, a double-sided one reflects on both faces.
 /// A few tens of milliseconds at 64k rays.
-pub fn ambient_mode(scene: &Scene, atlas: &Atlas, lighting: &Lighting, seed: u64) -> AmbientMode {
+pub fn ambient_mode(scene: &Scene, atlas: &Atlas, seed: u64) -> AmbientMode {
     let texel_area: Vec<f32> = atlas.texels.iter().map(|t| t.size * t.size).collect();
     let mut cdf = Vec::with_capacity(texel_area.len());
     let mut total = 0.0f64;
@@ -1782,13 +1791,11 @@ pub fn ambient_mode(scene: &Scene, atlas: &Atlas, lighting: &Lighting, seed: u64
     if total <= 0.0 || scene.triangles.is_empty() {
         return AmbientMode {
             gain: Vec3::ZERO,
-            direct_mean: Vec3::ZERO,
             texel_area,
         };
     }
     let tracer = Tracer::new(scene);
-    // Per ray: (albedo seen, E/pi seen directly), both as cosine-weighted means.
-    let (gain, direct) = (0..AMBIENT_RAYS)
+    let gain = (0..AMBIENT_RAYS)
         .into_par_iter()
         .map(|i| {
             let mut rng = Rng::new(seed, 0xA4B1_E47, i as u64, 0);
@@ -1797,23 +1804,22 @@ pub fn ambient_mode(scene: &Scene, atlas: &Atlas, lighting: &Lighting, seed: u64
             let t = &atlas.texels[k];
             let dir = cosine_sample(t.normal, rng.next_f32(), rng.next_f32());
             if dir.dot(t.geo_normal) <= 0.0 {
-                return (Vec3::ZERO, Vec3::ZERO); // below the surface: the surface itself blocks it
+                return Vec3::ZERO; // below the surface: the surface itself blocks it
             }
             let Some(hit) = tracer.trace(scene, t.position, dir, f32::INFINITY) else {
-                return (Vec3::ZERO, lighting.sky_radiance(dir));
+                return Vec3::ZERO;
             };
             let tri = &scene.triangles[hit.triangle as usize];
             let front = dir.dot(tri.geometric_normal()) < 0.0;
             if front || scene.material(tri).double_sided {
-                (scene.albedo(tri, hit.bary), scene.emission(tri, hit.bary))
+                scene.albedo(tri, hit.bary)
             } else {
-                (Vec3::ZERO, Vec3::ZERO)
+                Vec3::ZERO
             }
         })
-        .reduce(|| (Vec3::ZERO, Vec3::ZERO), |a, b| (a.0 + b.0, a.1 + b.1));
+        .reduce(|| Vec3::ZERO, |a, b| a + b);
     AmbientMode {
         gain: gain / AMBIENT_RAYS as f32,
-        direct_mean: direct / AMBIENT_RAYS as f32,
         texel_area,
     }
 }
