@@ -21,11 +21,18 @@
 //!    projects its sample point, reads a k x k neighbourhood, keeps samples in front of it
 //!    along d and above its normal plane, takes the nearest, else the environment's
 //!    radiance in direction d, and accumulates 4 L max(<d, n>, 0) (seed Eq. 2 without the
-//!    albedo) into the even or odd half accumulator.
+//!    albedo) and its weight 4 max(<d, n>, 0) into the even or odd half accumulator; the
+//!    estimate is their ratio (self-normalised, so uniform light is exact and the bounce
+//!    series keeps energy).
 //! 4. *Direct light* (`shaders/sdb_direct.wgsl`), only when the job has a sun or the
 //!    scene has directional lights: a nearest-depth shadow map along each such light and
-//!    E/pi = E_perp/pi cos(theta) visibility added to the same accumulators, so these
-//!    lights also feed the bounces (the seed's section 7 suggests exactly this).
+//!    E/pi = E_perp/pi cos(theta) visibility into accumulators of their own, which the
+//!    resolve pass adds, so these lights also feed the bounces (the seed's section 7
+//!    suggests exactly this).
+//! 5. *Ambient mode* (`shaders/sdb_resolve.wgsl`, `average` mode, before step 1): a coarse
+//!    correction of the feedback on the span of the current estimate, with the ambient
+//!    gain g measured by CPU rays ([`ambient_mode`]); it makes stiff rooms (albedo 0.99,
+//!    0.999) converge in a few steps instead of never.
 //!
 //! Bounces come from step 1: each direction gathers light that earlier directions
 //! gathered. `average` mode keeps a running weighted mean over directions (converges to
@@ -69,6 +76,8 @@
 //! - Optional `depth_layers`: several independent stochastic-depth maps per direction,
 //!   gathered together (k^2 x layers samples), against overflow (docs/sdb.md, Figure 8).
 //! - Emitters use their material's exact emission rather than the lightmap's.
+//! - Self-normalised gather and the ambient-mode correction (steps 3 and 5), neither in
+//!   the seed; the first step only bootstraps the correction and is dropped.
 //! - Point and spot lights are not handled: [`SdbEngine`] reports them, and the plan must
 //!   say that `sdb` ignores them.
 //!
@@ -79,9 +88,11 @@
 //! - Lateral resolution: samples come from pixel centres up to (k/2 + 1/2) pixels away
 //!   from the texel's ray, blurring contact shadows over about k pixels of the map.
 //! - Feedback transient (average mode): early directions see an incomplete bounce
-//!   estimate; the bias decays like n^-(1 + ramp)(1 - albedo) in the number of directions
-//!   n (for a closed room of albedo a the estimate starts at 0 and approaches
-//!   L_e / (1 - a)). Albedo near 1 converges slowly, as in every gathering method.
+//!   estimate; without the ambient-mode correction the bias decays like
+//!   n^-(1 + ramp)(1 - albedo) in the number of directions n. The correction removes the
+//!   estimate-shaped part of it; the rest (light distributions unlike the current
+//!   estimate) decays at that rate still.
+//! - Emitters smaller than a map pixel are not resolved (docs/stability.md).
 
 use std::sync::Arc;
 
@@ -666,7 +677,9 @@ pub struct SdbHalf {
     pub direct: Option<Vec<Vec3>>,
 }
 
-/// GPU state of one `sdb` bake.
+/// GPU state of one `sdb` bake. Memory per valid texel: 32 B of geometry and material,
+/// 2 x 16 B accumulators, 2 x 16 B fed-estimate accumulators, 16 B fed estimate, and
+/// 2 x 16 B more for the direct layer and for the sun when they exist.
 pub struct SdbEngine {
     ctx: Arc<GpuContext>,
     params: SdbParams,
