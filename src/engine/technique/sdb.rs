@@ -1890,6 +1890,10 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "orthographic render with stochastic depth along each direction",
     );
     p.run("gather", "k x k neighbourhood lookup for every texel, per direction");
+    p.run(
+        "ambient mode",
+        "coarse correction of the bounce feedback in `average` mode (the default), after 64k CPU rays measure the mean albedo seen",
+    );
     let directional = f.sun || f.directional_lights > 0;
     p.decide(
         "shadow maps + direct pass",
