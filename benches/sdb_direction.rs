@@ -92,7 +92,7 @@ fn main() {
                     neighbourhood: k,
                     ..SdbParams::default()
                 };
-                let mut engine = SdbEngine::new(ctx.clone(), sdb_input(&inputs).0, params).expect("engine");
+                let mut engine = SdbEngine::new(ctx.clone(), sdb_input(&inputs, &params).0, params).expect("engine");
                 for _ in 0..4 {
                     engine.step().expect("step");
                 }

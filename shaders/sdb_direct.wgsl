@@ -63,3 +63,34 @@ fn direct(
     let scale = params.irradiance.w;
     sun_acc[slot] = vec4<f32>(sun_acc[slot].rgb * params.bias.z + e * scale, 0.0);
 }
+
+// `emitter_add`: direct light from emitters smaller than a map pixel, which the map cannot
+// resolve (one pixel, dilated k x k, would stand for them). The CPU samples them per texel
+// once a step (next-event estimation with a shadow ray, `sdb.rs`, `SmallEmitters`); this
+// pass folds the samples into the same accumulators as the sun, as one more blend of the
+// step: acc = acc * decay + sample * weight, where decay is what the step's directions
+// have left of the old blend (already applied when directional lights blended this step)
+// and weight = 1 - prod(1 - b) over the step's directions, the step's share of the mean.
+struct EmitterAddParams {
+    mix: vec4<f32>,   // x: decay, y: weight; z, w: unused
+    misc: vec4<u32>,  // x: parity, y: texel count N; z, w: unused
+}
+
+@group(0) @binding(5) var<storage, read> emitter_samples: array<vec4<f32>>;  // N: rgb E/pi
+@group(0) @binding(6) var<uniform> emitter_params: EmitterAddParams;
+
+@compute @workgroup_size(64)
+fn emitter_add(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let i = invocation_index(wid, nwg, lid);
+    let n_texels = emitter_params.misc.y;
+    if i >= n_texels {
+        return;
+    }
+    let slot = emitter_params.misc.x * n_texels + i;
+    let m = emitter_params.mix;
+    sun_acc[slot] = vec4<f32>(sun_acc[slot].rgb * m.x + emitter_samples[i].rgb * m.y, 0.0);
+}

@@ -183,6 +183,7 @@ fn open_plane_under_uniform_sky_sees_the_sky() {
         seed: 7,
         want_direct: false,
         ambient: None,
+        small_emitters: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 512);
@@ -238,6 +239,7 @@ fn closed_emissive_box_converges_to_the_furnace_solution() {
         seed: 3,
         want_direct: false,
         ambient: None,
+        small_emitters: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 1024);
@@ -269,6 +271,7 @@ fn leaky_mode_reaches_the_same_solution() {
         seed: 5,
         want_direct: false,
         ambient: None,
+        small_emitters: None,
     };
     let p = SdbParams {
         mode: AccumulationMode::Leaky,
@@ -313,6 +316,7 @@ fn sun_direct_light_and_shadow() {
         seed: 1,
         want_direct: true,
         ambient: None,
+        small_emitters: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(256, 3)).unwrap();
     let e = run(&mut engine, 8);
@@ -363,6 +367,7 @@ fn random_and_stratified_directions_agree() {
         seed: 11,
         want_direct: false,
         ambient: None,
+        small_emitters: None,
     };
     // Sky radiance 3 cos(theta) over the upper hemisphere: E/pi = (1/pi) int 3 cos^2 = 2.
     let p = SdbParams {
@@ -726,6 +731,7 @@ fn depth_layers_recover_surfaces_lost_to_overdraw() {
             seed: 9,
             want_direct: false,
             ambient: None,
+            small_emitters: None,
         };
         let p = SdbParams {
             depth_layers: layers,
@@ -783,6 +789,7 @@ fn measure_stratified_vs_random() {
                     seed,
                     want_direct: false,
                     ambient: None,
+                    small_emitters: None,
                 };
                 let p = SdbParams {
                     directions: seq,

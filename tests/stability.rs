@@ -393,7 +393,7 @@ stability_suite!(
         technique: "sdb",
         params: json!({"map_size": 128, "directions_per_step": 64}),
         bias: 0.02,
-        open_failures: &[TINY_EMITTER],
+        open_failures: &[],
     },
     leak <= 1e-2
 );

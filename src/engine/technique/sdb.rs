@@ -92,7 +92,9 @@
 //!   n^-(1 + ramp)(1 - albedo) in the number of directions n. The correction removes the
 //!   estimate-shaped part of it; the rest (light distributions unlike the current
 //!   estimate) decays at that rate still.
-//! - Emitters smaller than a map pixel are not resolved (docs/stability.md).
+//! - Emitters smaller than two map pixels are taken out of the map and sampled on the
+//!   CPU (next-event estimation, one shadow ray per texel per step): the map could not
+//!   show them, and the k x k lookup would widen them k-fold.
 
 use std::sync::Arc;
 
@@ -102,9 +104,9 @@ use serde::{Deserialize, Serialize};
 
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::atlas::Atlas;
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
-use crate::engine::atlas::Atlas;
 use crate::engine::raytrace::{Tracer, cosine_sample};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Scene};
@@ -305,7 +307,14 @@ pub struct SdbInput {
     pub want_direct: bool,
     /// The coarse-mode (ambient) correction of `average` mode; None runs without it.
     pub ambient: Option<AmbientMode>,
+    /// Direct light of emitters too small for the map, sampled on the CPU once a step
+    /// (their triangles must then carry no emission in `triangles`); None: there are none.
+    pub small_emitters: Option<EmitterSampler>,
 }
+
+/// Per step (the argument: the step's index), one estimate of E/pi per valid texel of the
+/// light that emitters too small for the illumination map send it directly.
+pub type EmitterSampler = Box<dyn FnMut(u64) -> Vec<Vec3> + Send>;
 
 /// What the ambient-mode correction needs (`shaders/sdb_resolve.wgsl`, `ambient_mode`).
 #[derive(Debug, Clone)]
@@ -711,6 +720,7 @@ pub struct SdbEngine {
     direct_acc_buf: Option<wgpu::Buffer>,
     sun_acc_buf: Option<wgpu::Buffer>,
     fed_acc_buf: wgpu::Buffer,
+    small_emitters: Option<SmallEmitterPass>,
     /// g / (1 - g) per channel, or None without the ambient-mode correction.
     ambient_factor: Option<Vec3>,
     ambient_pipeline: wgpu::ComputePipeline,
@@ -728,6 +738,22 @@ pub struct SdbEngine {
     direct_bg: Option<wgpu::BindGroup>,
     texel_dispatch: (u32, u32),
     pixel_dispatch: (u32, u32),
+}
+
+/// The CPU-sampled light of small emitters and the pass that folds it in.
+struct SmallEmitterPass {
+    sampler: EmitterSampler,
+    samples: wgpu::Buffer,
+    params: wgpu::Buffer,
+    pipeline: wgpu::ComputePipeline,
+    bg: wgpu::BindGroup,
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuEmitterAddParams {
+    mix: [f32; 4],
+    misc: [u32; 4],
 }
 
 /// Relative epsilons (normalised scene space, radius 1).
@@ -907,7 +933,12 @@ impl SdbEngine {
             .collect();
         // The texel's area in normalised units rides in the albedo's spare channel (only
         // the ambient-mode mean reads it; relative areas are all it needs).
-        let area = |k: usize| input.ambient.as_ref().map_or(0.0, |a| a.texel_area[k] / (scale * scale));
+        let area = |k: usize| {
+            input
+                .ambient
+                .as_ref()
+                .map_or(0.0, |a| a.texel_area[k] / (scale * scale))
+        };
         let shade: Vec<GpuTexelShade> = input
             .texels
             .iter()
@@ -938,7 +969,8 @@ impl SdbEngine {
                 U::STORAGE | U::COPY_SRC | U::COPY_DST,
             )
         });
-        let sun_acc_buf = (!input.lights.is_empty()).then(|| {
+        let has_light_acc = !input.lights.is_empty() || input.small_emitters.is_some();
+        let sun_acc_buf = has_light_acc.then(|| {
             ctx.buffer_zeroed(
                 "sdb sun and directional light accumulators (even, odd)",
                 n_texels as u64 * 2 * 16,
@@ -1278,6 +1310,45 @@ impl SdbEngine {
             }
             _ => (None, None),
         };
+        // Emitters too small for the map: CPU samples folded into the light accumulators.
+        let small_emitters = match (input.small_emitters, &sun_acc_buf) {
+            (Some(sampler), Some(sun_acc)) => {
+                let module = ctx.shader(&shaders::SDB_DIRECT)?;
+                let layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                    label: Some("sdb small emitters layout"),
+                    entries: &[
+                        storage_entry(4, S::COMPUTE, false),
+                        storage_entry(5, S::COMPUTE, true),
+                        uniform_entry(6, S::COMPUTE),
+                    ],
+                });
+                let pipeline = compute_pipeline(&ctx, "sdb small emitters", &module, "emitter_add", &layout);
+                let samples = ctx.buffer_zeroed(
+                    "sdb small-emitter samples",
+                    n_texels as u64 * 16,
+                    U::STORAGE | U::COPY_DST,
+                );
+                let params_buf = ctx.uniform("sdb small emitters params", &GpuEmitterAddParams::zeroed());
+                let bg = bind_group(
+                    &ctx,
+                    "sdb small emitters bindings",
+                    &layout,
+                    &[
+                        (4, sun_acc.as_entire_binding()),
+                        (5, samples.as_entire_binding()),
+                        (6, params_buf.as_entire_binding()),
+                    ],
+                );
+                Some(SmallEmitterPass {
+                    sampler,
+                    samples,
+                    params: params_buf,
+                    pipeline,
+                    bg,
+                })
+            }
+            _ => None,
+        };
         ctx.take_error("sdb setup")?;
 
         let lights = input
@@ -1296,7 +1367,7 @@ impl SdbEngine {
             ctx,
             params,
             n_texels,
-            lm_dims: [width, height, n_texels, u32::from(!input.lights.is_empty())],
+            lm_dims: [width, height, n_texels, u32::from(has_light_acc)],
             corners,
             scale,
             environment: input.environment,
@@ -1315,6 +1386,7 @@ impl SdbEngine {
             direct_acc_buf,
             sun_acc_buf,
             fed_acc_buf,
+            small_emitters,
             ambient_factor,
             ambient_pipeline,
             illum_layer_views,
@@ -1417,9 +1489,14 @@ impl SdbEngine {
     /// share of the wrong answer (2 / n^2 of it after n steps with `ramp` 1), which in a
     /// stiff room is most of the error left.
     fn drop_bootstrap_step(&mut self, encoder: &mut wgpu::CommandEncoder) {
-        for b in [Some(&self.acc_buf), Some(&self.fed_acc_buf), self.sun_acc_buf.as_ref(), self.direct_acc_buf.as_ref()]
-            .into_iter()
-            .flatten()
+        for b in [
+            Some(&self.acc_buf),
+            Some(&self.fed_acc_buf),
+            self.sun_acc_buf.as_ref(),
+            self.direct_acc_buf.as_ref(),
+        ]
+        .into_iter()
+        .flatten()
         {
             encoder.clear_buffer(b, 0, None);
         }
@@ -1533,10 +1610,13 @@ impl SdbEngine {
         }
         self.ctx.queue.submit([encoder.finish()]);
 
+        // What this step's blends leave of the old mean: prod(1 - b).
+        let mut decay = 1.0f64;
         for _ in 0..self.params.directions_per_step {
             let d = self.directions.next_direction();
             let dir_index = self.dirs[0] + self.dirs[1];
             let blend = self.next_blend(parity as usize);
+            decay *= 1.0 - blend as f64;
             let seed = (self.rng.next_u64() >> 32) as u32 ^ dir_index as u32;
             let jitter = self.jitter();
             let view = make_view(d, &self.corners, self.params.map_size, jitter, seed, DEPTH_STOCHASTIC);
@@ -1588,12 +1668,7 @@ impl SdbEngine {
                 let e = light.irradiance_over_pi;
                 let direct = GpuDirectParams {
                     irradiance: [e.x, e.y, e.z, blend],
-                    bias: [
-                        pixel,
-                        2.0 * pixel,
-                        if li == 0 { 1.0 - blend } else { 1.0 },
-                        0.0,
-                    ],
+                    bias: [pixel, 2.0 * pixel, if li == 0 { 1.0 - blend } else { 1.0 }, 0.0],
                     misc: [parity, self.n_texels, 0, 0],
                 };
                 self.ctx
@@ -1617,6 +1692,35 @@ impl SdbEngine {
                 );
                 self.ctx.queue.submit([encoder.finish()]);
             }
+        }
+        if let Some(pass) = &mut self.small_emitters {
+            let samples: Vec<[f32; 4]> = (pass.sampler)(self.steps_done)
+                .into_iter()
+                .map(|v| v.extend(0.0).to_array())
+                .collect();
+            self.ctx
+                .queue
+                .write_buffer(&pass.samples, 0, bytemuck::cast_slice(&samples));
+            // With directional lights their blends already decayed the mean this step.
+            let old = if self.lights.is_empty() { decay } else { 1.0 };
+            let params = GpuEmitterAddParams {
+                mix: [old as f32, (1.0 - decay) as f32, 0.0, 0.0],
+                misc: [parity, self.n_texels, 0, 0],
+            };
+            self.ctx
+                .queue
+                .write_buffer(&pass.params, 0, bytemuck::bytes_of(&params));
+            let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("sdb small emitters"),
+            });
+            Self::dispatch(
+                &mut encoder,
+                "sdb small emitters",
+                &pass.pipeline,
+                &pass.bg,
+                self.texel_dispatch,
+            );
+            self.ctx.queue.submit([encoder.finish()]);
         }
         self.half_steps[parity as usize] += 1;
         self.steps_done += 1;
@@ -1643,11 +1747,18 @@ impl SdbEngine {
                 AccumulationMode::Leaky => self.leaky_correction(self.dirs[h]) as f32,
             };
             let range = h * n..(h + 1) * n;
-            let sun_at = |k: usize| sun.as_ref().map_or(Vec3::ZERO, |s| Vec3::from_slice(&s[h * n + k][..3]) * sun_scale);
+            let sun_at = |k: usize| {
+                sun.as_ref()
+                    .map_or(Vec3::ZERO, |s| Vec3::from_slice(&s[h * n + k][..3]) * sun_scale)
+            };
             let weight = |k: usize| acc[h * n + k][3];
             let over_weight = |v: [f32; 4], k: usize| {
                 let w = weight(k);
-                if w > 0.0 { Vec3::from_slice(&v[..3]) / w } else { Vec3::ZERO }
+                if w > 0.0 {
+                    Vec3::from_slice(&v[..3]) / w
+                } else {
+                    Vec3::ZERO
+                }
             };
             SdbHalf {
                 steps: self.half_steps[h],
@@ -1685,7 +1796,7 @@ impl Sdb {
     pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
         let params: SdbParams = parse_params("sdb", params)?;
         params.validate().map_err(|e| EngineError::BadInput(e.to_string()))?;
-        let (input, notes) = sdb_input(&inputs);
+        let (input, notes) = sdb_input(&inputs, &params);
         for n in &notes {
             tracing::warn!("{n}");
         }
@@ -1710,18 +1821,33 @@ fn gpu_error(e: GpuError) -> EngineError {
 }
 
 /// The scene in `sdb`'s terms, and notes on what it leaves out.
-pub fn sdb_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
+pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<String>) {
     let scene = &inputs.scene;
     let atlas = &inputs.atlas;
+    let small = small_emitter_triangles(scene, params.map_size);
+    let mut notes = Vec::new();
+    if !small.is_empty() {
+        notes.push(format!(
+            "sdb samples {} emitter triangle(s) smaller than two map pixels on the CPU (one shadow ray per texel a step)",
+            small.len()
+        ));
+    }
     let triangles = scene
         .triangles
         .iter()
-        .map(|t| {
+        .enumerate()
+        .map(|(i, t)| {
             let m = scene.material(t);
             SdbTriangle {
                 p: t.p,
                 lm: t.lm,
-                emission: m.emissive,
+                // Small emitters shine through the CPU sampler instead; in the map they
+                // still reflect and block.
+                emission: if small.binary_search(&i).is_ok() {
+                    Vec3::ZERO
+                } else {
+                    m.emissive
+                },
                 emission_textured: m.emissive_texture.is_some(),
                 double_sided: m.double_sided,
                 mesh: t.mesh,
@@ -1741,7 +1867,6 @@ pub fn sdb_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
         })
         .collect();
     let mut lights = Vec::new();
-    let mut notes = Vec::new();
     if let Some(sun) = inputs.lighting.sun {
         lights.push(DirectionalLight {
             direction: sun.direction.normalize(),
@@ -1780,8 +1905,99 @@ pub fn sdb_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
         seed: inputs.seed,
         want_direct: inputs.want_direct,
         ambient: Some(ambient_mode(scene, atlas, inputs.seed)),
+        small_emitters: (!small.is_empty()).then(|| small_emitter_sampler(inputs, small)),
     };
     (input, notes)
+}
+
+/// Emitters whose triangles' longest edge is under two illumination-map pixels: the map
+/// would show each as a pixel or none, and the k x k lookup would make it k pixels wide
+/// (the 1 cm² lamp of the stability suite read 200 times too bright). Untextured only:
+/// a textured emitter's emission varies over it, and it is sampled by the map as before.
+/// Sorted triangle indices.
+fn small_emitter_triangles(scene: &Scene, map_size: u32) -> Vec<usize> {
+    let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+    for t in &scene.triangles {
+        for p in t.p {
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+    }
+    // The map spans the scene's bounding sphere's diameter (about; `make_view`).
+    let pixel = (hi - lo).length() / map_size as f32;
+    scene
+        .triangles
+        .iter()
+        .enumerate()
+        .filter(|(_, t)| {
+            let m = scene.material(t);
+            let edge = (0..3)
+                .map(|k| (t.p[(k + 1) % 3] - t.p[k]).length())
+                .fold(0.0f32, f32::max);
+            m.emissive.max_element() > 0.0 && m.emissive_texture.is_none() && edge < 2.0 * pixel
+        })
+        .map(|(i, _)| i)
+        .collect()
+}
+
+/// Next-event estimation toward the small emitters, one sample per texel per step: a
+/// triangle picked by power, a uniform point on it, a CPU shadow ray (the `path`
+/// reference's rules: a single-sided emitter shines from its front only).
+fn small_emitter_sampler(inputs: &BakeInputs, small: Vec<usize>) -> EmitterSampler {
+    let scene = inputs.scene.clone();
+    let atlas = inputs.atlas.clone();
+    let seed = inputs.seed;
+    let power: Vec<f64> = small
+        .iter()
+        .map(|&i| {
+            let t = &scene.triangles[i];
+            scene.material(t).emissive.dot(Vec3::splat(1.0 / 3.0)) as f64 * t.area() as f64
+        })
+        .collect();
+    let total: f64 = power.iter().sum();
+    let cdf: Vec<f64> = power
+        .iter()
+        .scan(0.0, |acc, p| {
+            *acc += p / total;
+            Some(*acc)
+        })
+        .collect();
+    let tracer = Tracer::new(&scene);
+    Box::new(move |step: u64| {
+        atlas
+            .texels
+            .par_iter()
+            .enumerate()
+            .map(|(k, texel)| {
+                let mut rng = Rng::new(seed, 0x5A11_E417, step, k as u64);
+                let u = rng.next_f32() as f64;
+                let j = cdf.partition_point(|&c| c <= u).min(small.len() - 1);
+                let tri = &scene.triangles[small[j]];
+                let (a, b) = (rng.next_f32().sqrt(), rng.next_f32());
+                let q = tri.point(Vec3::new(1.0 - a, a * (1.0 - b), a * b));
+                let to = q - texel.position;
+                let d2 = to.length_squared();
+                if d2 <= 0.0 {
+                    return Vec3::ZERO;
+                }
+                let dist = d2.sqrt();
+                let w = to / dist;
+                let cos_r = texel.normal.dot(w);
+                let material = scene.material(tri);
+                let cos_e = -tri.geometric_normal().dot(w);
+                let cos_e = if material.double_sided { cos_e.abs() } else { cos_e };
+                if cos_r <= 0.0 || texel.geo_normal.dot(w) <= 0.0 || cos_e <= 0.0 {
+                    return Vec3::ZERO;
+                }
+                if !tracer.unoccluded(&scene, texel.position, w, dist * (1.0 - 1e-4)) {
+                    return Vec3::ZERO;
+                }
+                // pdf over area: (power share) / (triangle area).
+                let pdf = (power[j] / total) as f32 / tri.area();
+                material.emissive * (cos_r * cos_e / (d2 * pdf * std::f32::consts::PI))
+            })
+            .collect()
+    })
 }
 
 /// Rays cast to measure the ambient gain: its standard error is at most
@@ -1811,7 +2027,7 @@ pub fn ambient_mode(scene: &Scene, atlas: &Atlas, seed: u64) -> AmbientMode {
     let gain = (0..AMBIENT_RAYS)
         .into_par_iter()
         .map(|i| {
-            let mut rng = Rng::new(seed, 0xA4B1_E47, i as u64, 0);
+            let mut rng = Rng::new(seed, 0x0A4B_1E47, i as u64, 0);
             let pick = rng.next_f32() as f64 * total;
             let k = cdf.partition_point(|&c| c <= pick).min(cdf.len() - 1);
             let t = &atlas.texels[k];
@@ -1893,6 +2109,12 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     p.run(
         "ambient mode",
         "coarse correction of the bounce feedback in `average` mode (the default), after 64k CPU rays measure the mean albedo seen",
+    );
+    p.decide(
+        "small-emitter sampling (CPU)",
+        f.emissive_triangles > 0,
+        "emitter triangles under two map pixels, if any, shine through CPU shadow rays, one per texel a step",
+        "no emitters",
     );
     let directional = f.sun || f.directional_lights > 0;
     p.decide(
