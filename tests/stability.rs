@@ -349,3 +349,19 @@ stability_suite!(
     },
     leak <= 1e-4
 );
+
+// vpl: unbiased but for the clamp of its VPLs' 1/d^2 (light lost within 0.02 of the scene
+// radius of a VPL, in corners) and shadow-map silhouettes. 256 VPLs a step, smaller VPL
+// maps (32) to keep the suite fast. The closed-box cases fail for vpl at this case's 8
+// steps (measured: rho 0.99 +1.2 % and rho 0.999 -3.0 %, standard errors 0.99 % and
+// 0.91 %, where the case needs 5 standard errors under 2 %); see docs/vpl.md. Thin wall:
+// measured 1.9e-4 (plane-side shadow test; silhouette texels at the wall's edges).
+stability_suite!(
+    vpl,
+    Row {
+        technique: "vpl",
+        params: json!({"vpls_per_step": 256, "vpl_map_size": 32}),
+        bias: 0.02
+    },
+    leak <= 1e-3
+);
