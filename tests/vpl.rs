@@ -442,3 +442,100 @@ fn bad_parameters_are_rejected_by_name() {
         .expect("rejected");
     assert!(err.is_bad_input() && err.to_string().contains("vpl_maps"), "{err}");
 }
+
+/// Milliseconds per step of `vpl` with `params` on `scene` at `res`^2 (2 warm-up steps,
+/// then `steps` steps up to GPU completion, which the snapshot waits for).
+fn ms_per_step(scene: Scene, res: u32, lighting: Lighting, params: serde_json::Value, steps: u32) -> (f64, usize) {
+    use lightmapd::engine::technique::{self, BakeInputs};
+    let scene = std::sync::Arc::new(scene);
+    let atlas = std::sync::Arc::new(Atlas::build(&scene, res, res).expect("atlas"));
+    let request = lightmapd::engine::job::BakeRequest {
+        technique: "vpl".into(),
+        lighting,
+        ..Default::default()
+    };
+    let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");
+    let inputs = BakeInputs {
+        scene,
+        atlas: atlas.clone(),
+        lighting,
+        seed: 1,
+        want_direct: false,
+        plan,
+    };
+    let mut tech = technique::create("vpl", inputs, &params).expect("vpl prepares");
+    for _ in 0..2 {
+        tech.step().unwrap();
+    }
+    tech.snapshot().unwrap();
+    let start = std::time::Instant::now();
+    for _ in 0..steps {
+        tech.step().unwrap();
+    }
+    tech.snapshot().unwrap();
+    (start.elapsed().as_secs_f64() * 1e3 / steps as f64, atlas.texels.len())
+}
+
+#[test]
+#[ignore = "measurement for docs/vpl.md and docs/performance.md: the clamp's bias and milliseconds per step"]
+fn measure_clamp_bias_and_step_times() {
+    if !have_adapter() {
+        return;
+    }
+    // The clamp's bias on the sun-lit floor's bounce onto the black wall, 64^2.
+    let scene = import(&floor_and_wall(0.5));
+    let offset = scene.origin_offset.as_vec3();
+    let sun = Sun {
+        direction: Vec3::NEG_Y,
+        angular_diameter: 0.01f32.to_radians(),
+        radiance: Vec3::ONE,
+    };
+    let lighting = Lighting {
+        sky: None,
+        sun: Some(Sun {
+            radiance: Vec3::splat(std::f32::consts::PI / sun.solid_angle()),
+            ..sun
+        }),
+    };
+    println!("| clamp | wall vs form factor | vs clamped integral | predicted clamp bias | RMS texel se |");
+    for clamp in [0.0, 0.005, 0.02, 0.05, 0.1] {
+        let (atlas, est) = bake(
+            scene.clone(),
+            64,
+            lighting,
+            "vpl",
+            json!({"vpls_per_step": 64, "clamp": clamp}),
+            64,
+        );
+        let w = check_wall(&atlas, &est, offset, &|_, _| 0.5, clamp * radius(&scene));
+        println!(
+            "| {clamp} | {:+.4} | {:+.4} | {:.4} | {:.4} |",
+            w.vs_exact, w.vs_clamped, w.clamp_bias, w.noise
+        );
+    }
+    // Milliseconds per step.
+    let blocks = import(&lightmapd::engine::scene::library::procedural_blocks());
+    let sky = Lighting {
+        sky: Some(lightmapd::engine::scene::Sky {
+            radiance: Vec3::ONE,
+            hemisphere: lightmapd::engine::scene::Hemisphere::Upper,
+        }),
+        sun: None,
+    };
+    println!("| scene | triangles | lightmap | texels | params | ms / step |");
+    for (name, scene, lighting, steps) in [
+        ("cornell-box", import(&cornell_box()), Lighting::default(), 16),
+        ("blocks-25k", blocks, sky, 3),
+    ] {
+        for (res, params) in [
+            (128, json!({})),
+            (128, json!({"visibility": false})),
+            (128, json!({"vpls_per_step": 8})),
+            (512, json!({})),
+        ] {
+            let tris = scene.triangles.len();
+            let (ms, texels) = ms_per_step(scene.clone(), res, lighting, params.clone(), steps);
+            println!("| {name} | {tris} | {res}^2 | {texels} | {params} | {ms:.0} |");
+        }
+    }
+}
