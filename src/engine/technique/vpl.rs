@@ -50,7 +50,11 @@
 //! the GPU in normalised scene space (p - centre) / radius, fluxes and intensities divided
 //! by radius^2 to match, so the clamp, the shadow biases and the near planes are relative
 //! and scaled or translated scenes bake the same. CPU rays run in world space with the
-//! atlas's relative surface offset.
+//! atlas's relative surface offset. Bounds: the shadow atlas is laid out once per bake
+//! and checked against the device's largest texture (a bad-input error names the
+//! parameters to lower); the step's light list (primaries + `vpls_per_step`) and views
+//! are storage buffers sized at preparation; the accumulators (2 x texels x 16 bytes
+//! each) are checked against the storage-binding limit.
 //!
 //! # Departures from the seed
 //! - RSM texels are found by CPU ray casting (the seed's first option) instead of
