@@ -241,6 +241,60 @@ fn spot_light_lights_a_floor_exactly_and_its_bounce_matches_the_form_factor() {
     );
 }
 
+#[test]
+fn point_light_and_its_cube_shadow_are_exact() {
+    // A point light 1 m above the centre of a black floor, a black 0.5 m square at half
+    // height under it, and the black wall: nothing reflects, so every texel is the
+    // light's direct E/pi = I cos / (pi d^2) or 0 in the square's shadow (the square
+    // |x|, |z| < 0.5 on the floor). Texels within 0.1 m of the shadow's edge (a map pixel
+    // there is about 2 mm; PCF and the texel's own size blur it) are not checked.
+    if !have_adapter() {
+        return;
+    }
+    let mut b = floor_and_wall(0.0);
+    let black = b.material(MaterialDesc::diffuse("blocker", [0.0; 3]));
+    b.square("blocker", Vec3::new(0.0, 0.5, 0.0), 0.5, Vec3::Y, black);
+    let intensity = 2.0;
+    b.light(LightDesc::Point {
+        position: Vec3::new(0.0, 1.0, 0.0),
+        color: [1.0; 3],
+        intensity,
+    });
+    let scene = import(&b);
+    let offset = scene.origin_offset.as_vec3();
+    let (atlas, est) = bake(scene, 32, Lighting::default(), "vpl", json!({}), 2);
+    let light = Vec3::new(0.0, 1.0, 0.0);
+    let (mut lit, mut shadowed, mut wall) = (0, 0, 0);
+    for (k, t) in atlas.texels.iter().enumerate() {
+        let p = t.position + offset;
+        let to = light - p;
+        let d2 = to.length_squared();
+        let exact = intensity * (t.geo_normal.dot(to) / d2.sqrt()).max(0.0) / (std::f32::consts::PI * d2);
+        let got = est.total[k].x;
+        if t.geo_normal.y > 0.99 && p.y < 0.1 {
+            let edge = p.x.abs().max(p.z.abs());
+            if edge < 0.4 {
+                assert!(got == 0.0, "in the shadow at {p}: {got}");
+                shadowed += 1;
+            } else if edge > 0.6 {
+                assert!(
+                    (got - exact).abs() < 1e-4 * exact.max(1e-3),
+                    "floor at {p}: {got} vs {exact}"
+                );
+                lit += 1;
+            }
+        } else if t.geo_normal.x > 0.99 {
+            assert!(
+                (got - exact).abs() < 1e-4 * exact.max(1e-3),
+                "wall at {p}: {got} vs {exact}"
+            );
+            wall += 1;
+        }
+    }
+    eprintln!("point light: {lit} lit and {shadowed} shadowed floor texels, {wall} wall texels exact");
+    assert!(lit > 50 && shadowed > 20 && wall > 50);
+}
+
 fn report_and_assert(what: &str, w: &WallCheck) {
     eprintln!(
         "{what}: wall mean vs form factor {:+.4}, vs clamped integral {:+.4}; clamp bias {:.4}; noise (RMS texel se) {:.4}",
