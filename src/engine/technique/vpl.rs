@@ -107,7 +107,7 @@ use crate::engine::gpu::{self, GpuContext, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, basis, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
-use crate::engine::scene::{Hemisphere, LightKind, Scene};
+use crate::engine::scene::{Hemisphere, LightKind, Lighting, Scene};
 
 // ---------------------------------------------------------------------------------------
 // Parameters
@@ -369,9 +369,9 @@ fn spot_falloff(kind: LightKind, axis: Vec3, dir: Vec3) -> f32 {
 pub struct Vpl {
     ctx: Arc<GpuContext>,
     params: VplParams,
-    scene: Arc<crate::engine::scene::Scene>,
+    scene: Arc<Scene>,
     tracer: Tracer,
-    lighting: crate::engine::scene::Lighting,
+    lighting: Lighting,
     seed: u64,
     want_direct: bool,
     /// Normalisation: GPU space is (p - centre) / radius.
