@@ -95,3 +95,24 @@ fn map_sample_position(view: View, px: vec2<i32>, t: f32) -> vec3<f32> {
 fn invocation_index(wid: vec3<u32>, nwg: vec3<u32>, lid: u32) -> u32 {
     return (wid.y * nwg.x + wid.x) * 64u + lid;
 }
+
+// ---- vpl: shadow views (vpl_shadow.wgsl renders them, vpl_gather.wgsl reads them) ------
+// One map in the `vpl` shadow atlas: a perspective cube face (90 degrees) around a point
+// or an orthographic map along a distant light. Normalised scene space.
+struct ShadowView {
+    origin: vec4<f32>,  // xyz: eye (perspective) or the map's near-plane centre (ortho); w: near distance
+    right: vec4<f32>,   // xyz: unit right axis; w: ortho half extent
+    up: vec4<f32>,      // xyz: unit up axis; w: unused
+    fwd: vec4<f32>,     // xyz: unit view axis; w: far distance (perspective) or depth range (ortho)
+    rect: vec4<u32>,    // x, y: the tile's top-left pixel in the atlas; z: tile side; w: VIEW_*
+}
+
+const VIEW_PERSPECTIVE: u32 = 0u;
+const VIEW_ORTHO: u32 = 1u;
+
+// Continuous atlas pixel coordinates (pixel centres at +0.5) of map coordinates (a, b) in
+// [-1, 1]^2 (NDC of the view: a right, b up; row 0 of a tile is its top, b = +1).
+fn shadow_view_pixel(v: ShadowView, ab: vec2<f32>) -> vec2<f32> {
+    let size = f32(v.rect.z);
+    return vec2<f32>(f32(v.rect.x), f32(v.rect.y)) + vec2<f32>(ab.x + 1.0, 1.0 - ab.y) * 0.5 * size;
+}

@@ -48,8 +48,20 @@ pub const SDB_GATHER: PassShader = pass!("sdb_gather.wgsl");
 /// `sdb`: direct light from the sun and directional lights through a shadow map.
 pub const SDB_DIRECT: PassShader = pass!("sdb_direct.wgsl");
 
+/// `vpl`: the step's shadow maps (cube faces and orthographic maps) in one atlas.
+pub const VPL_SHADOW: PassShader = pass!("vpl_shadow.wgsl");
+/// `vpl`: gather the step's lights and VPLs into the lightmap accumulators.
+pub const VPL_GATHER: PassShader = pass!("vpl_gather.wgsl");
+
 /// Every pass shader in the crate.
-pub const ALL: &[PassShader] = &[SDB_RESOLVE, SDB_ILLUMINATION, SDB_GATHER, SDB_DIRECT];
+pub const ALL: &[PassShader] = &[
+    SDB_RESOLVE,
+    SDB_ILLUMINATION,
+    SDB_GATHER,
+    SDB_DIRECT,
+    VPL_SHADOW,
+    VPL_GATHER,
+];
 
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the
 /// diagnostic text on failure. The same checks run again inside wgpu at

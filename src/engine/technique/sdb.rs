@@ -400,10 +400,10 @@ struct GpuTriInfo {
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuTexelGeom {
-    position: [f32; 4],
-    normal: [f32; 4],
-    geo_normal: [f32; 4],
+pub(crate) struct GpuTexelGeom {
+    pub(crate) position: [f32; 4],
+    pub(crate) normal: [f32; 4],
+    pub(crate) geo_normal: [f32; 4],
 }
 
 #[repr(C)]
@@ -760,7 +760,11 @@ struct GpuEmitterAddParams {
 const EPS_NORMAL_PLANE: f32 = 1e-5;
 const EPS_ALONG_D: f32 = 1e-5;
 
-fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn storage_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    read_only: bool,
+) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -773,7 +777,7 @@ fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) 
     }
 }
 
-fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -801,7 +805,7 @@ fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     }
 }
 
-fn bind_group(
+pub(crate) fn bind_group(
     ctx: &GpuContext,
     label: &str,
     layout: &wgpu::BindGroupLayout,
@@ -821,7 +825,7 @@ fn bind_group(
     })
 }
 
-fn compute_pipeline(
+pub(crate) fn compute_pipeline(
     ctx: &GpuContext,
     label: &str,
     module: &wgpu::ShaderModule,
@@ -1812,7 +1816,7 @@ impl Sdb {
     }
 }
 
-fn gpu_error(e: GpuError) -> EngineError {
+pub(crate) fn gpu_error(e: GpuError) -> EngineError {
     match e {
         // Too large a map or lightmap for this device is the job's choice, not a fault.
         GpuError::Unsupported { .. } => EngineError::BadInput(e.to_string()),
