@@ -48,8 +48,23 @@ pub const SDB_GATHER: PassShader = pass!("sdb_gather.wgsl");
 /// `sdb`: direct light from the sun and directional lights through a shadow map.
 pub const SDB_DIRECT: PassShader = pass!("sdb_direct.wgsl");
 
+/// `obscurance`: every depth layer per pixel as fragment lists, and shadow maps.
+pub const OBSCURANCE_LAYERS: PassShader = pass!("obscurance_layers.wgsl");
+/// `obscurance`: obscurance, colour bleeding and direct light along one direction.
+pub const OBSCURANCE_GATHER: PassShader = pass!("obscurance_gather.wgsl");
+/// `obscurance`: direct light from the sun and directional lights through a shadow map.
+pub const OBSCURANCE_DIRECT: PassShader = pass!("obscurance_direct.wgsl");
+
 /// Every pass shader in the crate.
-pub const ALL: &[PassShader] = &[SDB_RESOLVE, SDB_ILLUMINATION, SDB_GATHER, SDB_DIRECT];
+pub const ALL: &[PassShader] = &[
+    SDB_RESOLVE,
+    SDB_ILLUMINATION,
+    SDB_GATHER,
+    SDB_DIRECT,
+    OBSCURANCE_LAYERS,
+    OBSCURANCE_GATHER,
+    OBSCURANCE_DIRECT,
+];
 
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the
 /// diagnostic text on failure. The same checks run again inside wgpu at

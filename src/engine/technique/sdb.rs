@@ -296,20 +296,20 @@ pub struct SdbInput {
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuView {
-    right: [f32; 4],
-    up: [f32; 4],
-    dir: [f32; 4],
-    extent: [f32; 4],
-    params: [u32; 4],
+pub(crate) struct GpuView {
+    pub(crate) right: [f32; 4],
+    pub(crate) up: [f32; 4],
+    pub(crate) dir: [f32; 4],
+    pub(crate) extent: [f32; 4],
+    pub(crate) params: [u32; 4],
 }
 
-const DEPTH_STOCHASTIC: u32 = 0;
-const DEPTH_NEAREST: u32 = 1;
-const TRI_DOUBLE_SIDED: u32 = 1;
+pub(crate) const DEPTH_STOCHASTIC: u32 = 0;
+pub(crate) const DEPTH_NEAREST: u32 = 1;
+pub(crate) const TRI_DOUBLE_SIDED: u32 = 1;
 const TRI_CULL_BACK: u32 = 2;
-const TRI_TEXTURED_EMISSION: u32 = 4;
-const NO_TEXEL: u32 = u32::MAX;
+pub(crate) const TRI_TEXTURED_EMISSION: u32 = 4;
+pub(crate) const NO_TEXEL: u32 = u32::MAX;
 const EMPTY_T: f32 = 1.0e30;
 
 #[repr(C)]
@@ -464,7 +464,7 @@ impl Directions {
 }
 
 /// A unit vector uniformly distributed in the cone of half-angle `half` around `axis`.
-fn sample_cone(axis: Vec3, half: f32, rng: &mut SplitMix64) -> Vec3 {
+pub(crate) fn sample_cone(axis: Vec3, half: f32, rng: &mut SplitMix64) -> Vec3 {
     if half <= 0.0 {
         return axis;
     }
@@ -555,7 +555,7 @@ pub fn cullable_triangles(triangles: &[SdbTriangle]) -> Vec<bool> {
 /// For every lightmap pixel, the valid texel whose values it shows: itself, else the
 /// nearest valid texel within 2 pixels (so bilinear lookups at chart borders fetch
 /// plausible values, not black), else [`NO_TEXEL`].
-fn fill_map(width: u32, height: u32, texels: &[SdbTexel]) -> Vec<u32> {
+pub(crate) fn fill_map(width: u32, height: u32, texels: &[SdbTexel]) -> Vec<u32> {
     let (w, h) = (width as i64, height as i64);
     let mut fill = vec![NO_TEXEL; (w * h) as usize];
     for (i, t) in texels.iter().enumerate() {
@@ -591,7 +591,7 @@ fn fill_map(width: u32, height: u32, texels: &[SdbTexel]) -> Vec<u32> {
 
 /// Orthographic frame for direction `d` over the normalised bounds `corners`, with the
 /// map origin shifted by `jitter` (in pixels, [0, 1)^2).
-fn make_view(d: Vec3, corners: &[Vec3; 8], map_size: u32, jitter: (f32, f32), seed: u32, mode: u32) -> GpuView {
+pub(crate) fn make_view(d: Vec3, corners: &[Vec3; 8], map_size: u32, jitter: (f32, f32), seed: u32, mode: u32) -> GpuView {
     // Right-handed camera looking along +d (as a look-at camera would): screen x = right,
     // screen y = up, so counter-clockwise front faces stay counter-clockwise on screen.
     let helper = if d.y.abs() < 0.9 { Vec3::Y } else { Vec3::X };
@@ -695,7 +695,7 @@ pub struct SdbEngine {
 const EPS_NORMAL_PLANE: f32 = 1e-5;
 const EPS_ALONG_D: f32 = 1e-5;
 
-fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -708,7 +708,7 @@ fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) 
     }
 }
 
-fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -721,7 +721,7 @@ fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGrou
     }
 }
 
-fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility: wgpu::ShaderStages::COMPUTE,
@@ -736,7 +736,7 @@ fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     }
 }
 
-fn bind_group(
+pub(crate) fn bind_group(
     ctx: &GpuContext,
     label: &str,
     layout: &wgpu::BindGroupLayout,
@@ -756,7 +756,7 @@ fn bind_group(
     })
 }
 
-fn compute_pipeline(
+pub(crate) fn compute_pipeline(
     ctx: &GpuContext,
     label: &str,
     module: &wgpu::ShaderModule,
@@ -1560,7 +1560,7 @@ impl Sdb {
     }
 }
 
-fn gpu_error(e: GpuError) -> EngineError {
+pub(crate) fn gpu_error(e: GpuError) -> EngineError {
     match e {
         // Too large a map or lightmap for this device is the job's choice, not a fault.
         GpuError::Unsupported { .. } => EngineError::BadInput(e.to_string()),
