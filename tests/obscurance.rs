@@ -128,8 +128,16 @@ fn open_plane_has_obscurance_one_and_sees_the_sky() {
         for half in &b.halves {
             for k in 0..b.atlas.texels.len() {
                 assert!((half.ao[k] - 1.0).abs() < 1e-5, "ao {}", half.ao[k]);
-                assert!((half.direct[k] - Vec3::splat(2.0)).abs().max_element() < 1e-5, "direct {}", half.direct[k]);
-                assert!((half.w[k] - Vec3::splat(colour)).abs().max_element() < 1e-5, "W {}", half.w[k]);
+                assert!(
+                    (half.direct[k] - Vec3::splat(2.0)).abs().max_element() < 1e-5,
+                    "direct {}",
+                    half.direct[k]
+                );
+                assert!(
+                    (half.w[k] - Vec3::splat(colour)).abs().max_element() < 1e-5,
+                    "W {}",
+                    half.w[k]
+                );
                 assert_eq!(half.hit[k], 0.0);
             }
         }
@@ -268,7 +276,9 @@ fn red_wall_tints_the_floor_near_it() {
             continue;
         }
         let w = (b.halves[0].w[k] + b.halves[1].w[k]) * 0.5;
-        let lm = (total[0].direct[k] + total[0].ambient * total[0].w[k] + total[1].direct[k]
+        let lm = (total[0].direct[k]
+            + total[0].ambient * total[0].w[k]
+            + total[1].direct[k]
             + total[1].ambient * total[1].w[k])
             * 0.5;
         if p.x < -1.7 {
@@ -288,7 +298,10 @@ fn red_wall_tints_the_floor_near_it() {
     let chroma = |v: Vec3| v.x / v.y;
     assert!(chroma(near) > 3.0, "W near the wall is not red: {near}");
     assert!(chroma(far) < 0.5 * chroma(near), "W far from the wall: {far}");
-    assert!(chroma(near_total) > chroma(far_total) * 1.05, "{near_total} vs {far_total}");
+    assert!(
+        chroma(near_total) > chroma(far_total) * 1.05,
+        "{near_total} vs {far_total}"
+    );
 }
 
 #[test]
@@ -310,7 +323,11 @@ fn closed_box_ambient_is_eq5() {
             16,
         );
         for h in &b.halves {
-            assert!((h.ambient - Vec3::ONE).abs().max_element() < 1e-3, "{ambient}: I_A {}", h.ambient);
+            assert!(
+                (h.ambient - Vec3::ONE).abs().max_element() < 1e-3,
+                "{ambient}: I_A {}",
+                h.ambient
+            );
             let n = h.direct.len() as f32;
             let d_mean = h.direct.iter().map(|d| d.x).sum::<f32>() / n;
             assert!((d_mean - 0.5).abs() < 0.01, "direct {d_mean}");
@@ -330,7 +347,10 @@ fn sun_on_a_plane_is_cosine_weighted() {
         angular_diameter: 0.53f32.to_radians(),
         radiance: Vec3::splat(1e4),
     };
-    let lighting = Lighting { sky: None, sun: Some(sun) };
+    let lighting = Lighting {
+        sky: None,
+        sun: Some(sun),
+    };
     let b = bake(import(&sky_plane()), 16, lighting, json!({"map_size": 128}), 8);
     let expected = 1e4 * sun.solid_angle() * 0.5 / std::f32::consts::PI;
     for h in &b.halves {
@@ -392,4 +412,42 @@ fn incremental_update_recomputes_only_influenced_texels() {
     let rel = (diff2 / norm2).sqrt();
     eprintln!("update vs full rebake: relative RMS difference {rel:.2e}");
     assert!(rel < 0.02, "update differs from a full rebake by {rel}");
+}
+
+#[test]
+fn no_light_passes_a_thin_wall() {
+    if !have_adapter() {
+        return;
+    }
+    // Two closed rooms sharing a wall 1 mm thick (a tenth of a texel), one with an
+    // emissive ceiling. The dark room's *direct* light is what passes the wall (its
+    // ambient term I_A W is scene-wide by design, Eq. 1, and is not a leak).
+    let mut sb = SceneBuilder::new();
+    let wall = sb.material(MaterialDesc::diffuse("wall", [0.5; 3]));
+    let lamp = sb.material(MaterialDesc::emissive("lamp", [0.5; 3], [1.0; 3]));
+    for (centre, name, ceiling) in [
+        (Vec3::new(-1.0, 0.0, 0.0), "lit", lamp),
+        (Vec3::new(1.001, 0.0, 0.0), "dark", wall),
+    ] {
+        for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
+            let mat = if n == Vec3::NEG_Y { ceiling } else { wall };
+            sb.square(&format!("{name} {n}"), centre - n, 2.0, n, mat);
+        }
+    }
+    let b = bake(import(&sb), 64, Lighting::default(), json!({"map_size": 256}), 8);
+    let off = b.offset();
+    let (mut lit, mut dark, mut nl, mut nd) = (0.0f64, 0.0f64, 0, 0);
+    for (k, t) in b.atlas.texels.iter().enumerate() {
+        let d = (b.halves[0].direct[k] + b.halves[1].direct[k]).x as f64 * 0.5;
+        if (t.position + off).x < 0.0 {
+            lit += d;
+            nl += 1;
+        } else {
+            dark += d;
+            nd += 1;
+        }
+    }
+    let leak = (dark / nd as f64) / (lit / nl as f64);
+    eprintln!("thin wall: dark / lit direct light = {leak:.2e}");
+    assert!(leak < 1e-3, "direct light through a 1 mm wall: {leak}");
 }

@@ -121,7 +121,10 @@ pub fn lightmap_channels(
         }
     }
     if layers.contains(&OutputLayer::Ao) {
-        let ao = estimate.ao.as_ref().ok_or("the technique kept no obscurance (ao) layer")?;
+        let ao = estimate
+            .ao
+            .as_ref()
+            .ok_or("the technique kept no obscurance (ao) layer")?;
         // Dilated like the lightmap, so gutters hold their chart's value.
         let as_rgb: Vec<Vec3> = ao.iter().map(|a| Vec3::splat(*a)).collect();
         let img = post::dilate(atlas, &as_rgb, rings);

@@ -112,8 +112,8 @@ use serde::{Deserialize, Serialize};
 
 use super::sdb::{
     self, DirectionSequence, DirectionalLight, Directions, Environment, GpuView, NO_TEXEL, SplitMix64,
-    TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, bind_group, compute_pipeline, fill_map, gpu_error, make_view,
-    sample_cone, storage_entry, texture_entry, uniform_entry,
+    TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, bind_group, compute_pipeline, fill_map, gpu_error, make_view, sample_cone,
+    storage_entry, texture_entry, uniform_entry,
 };
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
@@ -555,7 +555,12 @@ impl Obscurance {
 
         // Normalised scene space, as sdb: bounds of triangles and texel points.
         let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
-        for p in input.triangles.iter().flat_map(|t| t.p).chain(input.texels.iter().map(|t| t.position)) {
+        for p in input
+            .triangles
+            .iter()
+            .flat_map(|t| t.p)
+            .chain(input.texels.iter().map(|t| t.position))
+        {
             lo = lo.min(p);
             hi = hi.max(p);
         }
@@ -660,16 +665,36 @@ impl Obscurance {
             .map(|_| pixel_size(probe.next_direction(), &corners, params.map_size))
             .fold(f32::MAX, f32::min)
             * 0.95;
-        let wanted = norm_area / (min_pixel as f64 * min_pixel as f64) * 1.05
-            + input.triangles.len() as f64
-            + 4096.0;
-        let max_nodes = (ctx.limits.max_storage_buffer_binding_size.min(ctx.limits.max_buffer_size) / 16) as f64;
+        let wanted = norm_area / (min_pixel as f64 * min_pixel as f64) * 1.05 + input.triangles.len() as f64 + 4096.0;
+        let max_nodes = (ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size)
+            / 16) as f64;
         let node_capacity = wanted.min(max_nodes) as u32;
         if wanted > max_nodes {
             notes.push(format!(
                 "obscurance: the scene may need {wanted:.0} fragment nodes per direction; the device allows \
                  {max_nodes:.0}, so directions with more depth layers drop fragments (reported at snapshots)"
             ));
+        }
+        // Emitters are found only by the bundles' rays: one smaller than a map pixel is
+        // hit by a ray only when a pixel centre falls on it, so its light is mostly lost.
+        let pixel_area_world = (min_pixel * scale) as f64 * (min_pixel * scale) as f64;
+        let small_emitters = scene
+            .triangles
+            .iter()
+            .filter(|t| scene.material(t).emissive != Vec3::ZERO && (t.area() as f64) < pixel_area_world)
+            .count();
+        if small_emitters > 0 {
+            let note = format!(
+                "obscurance: {small_emitters} emissive triangle(s) are smaller than a map pixel \
+                 ({:.3e} m^2 at map_size {}): their direct light is found only by rays that happen to hit \
+                 them and is mostly missed (raise map_size, or bake with `path`)",
+                pixel_area_world, params.map_size
+            );
+            tracing::warn!("{note}");
+            notes.push(note);
         }
         let n = params.map_size;
         let storage_need = (2 * pix as u64 + 2 * input.triangles.len() as u64).max(4 * n_texels as u64) * 16;
@@ -1220,7 +1245,12 @@ impl Obscurance {
                 "obscurance: some directions had more fragments than the node pool holds; surfaces behind them were missed"
             );
         }
-        let area_sum: f64 = self.texel_area.iter().map(|a| *a as f64).sum::<f64>().max(f64::MIN_POSITIVE);
+        let area_sum: f64 = self
+            .texel_area
+            .iter()
+            .map(|a| *a as f64)
+            .sum::<f64>()
+            .max(f64::MIN_POSITIVE);
         let half = |h: usize| {
             let (mut w, mut ao, mut dir, mut hit) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
             for k in 0..n {
@@ -1369,10 +1399,8 @@ impl Obscurance {
         for (k, t) in atlas.texels.iter().enumerate() {
             let old = old_of_pixel[t.pixel as usize];
             let near = t.position.cmpge(lo).all() && t.position.cmple(hi).all();
-            let recompute = old == u32::MAX
-                || new_meshes.contains(&t.mesh)
-                || near
-                || previous.masks[old as usize] & old_bits != 0;
+            let recompute =
+                old == u32::MAX || new_meshes.contains(&t.mesh) || near || previous.masks[old as usize] & old_bits != 0;
             if recompute {
                 subset.push(k as u32);
             } else {
@@ -1413,12 +1441,7 @@ fn obscurance_snapshot(halves: [ObscuranceHalf; 2], want_direct: bool) -> (Snaps
         .map(|(a, b)| (a * ne + b * no) / total_steps)
         .collect();
     let half = |h: ObscuranceHalf| {
-        let total = h
-            .direct
-            .iter()
-            .zip(&h.w)
-            .map(|(d, w)| *d + h.ambient * *w)
-            .collect();
+        let total = h.direct.iter().zip(&h.w).map(|(d, w)| *d + h.ambient * *w).collect();
         HalfEstimate {
             steps: h.steps,
             total,

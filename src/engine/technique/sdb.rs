@@ -591,7 +591,14 @@ pub(crate) fn fill_map(width: u32, height: u32, texels: &[SdbTexel]) -> Vec<u32>
 
 /// Orthographic frame for direction `d` over the normalised bounds `corners`, with the
 /// map origin shifted by `jitter` (in pixels, [0, 1)^2).
-pub(crate) fn make_view(d: Vec3, corners: &[Vec3; 8], map_size: u32, jitter: (f32, f32), seed: u32, mode: u32) -> GpuView {
+pub(crate) fn make_view(
+    d: Vec3,
+    corners: &[Vec3; 8],
+    map_size: u32,
+    jitter: (f32, f32),
+    seed: u32,
+    mode: u32,
+) -> GpuView {
     // Right-handed camera looking along +d (as a look-at camera would): screen x = right,
     // screen y = up, so counter-clockwise front faces stay counter-clockwise on screen.
     let helper = if d.y.abs() < 0.9 { Vec3::Y } else { Vec3::X };
@@ -695,7 +702,11 @@ pub struct SdbEngine {
 const EPS_NORMAL_PLANE: f32 = 1e-5;
 const EPS_ALONG_D: f32 = 1e-5;
 
-pub(crate) fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn storage_entry(
+    binding: u32,
+    visibility: wgpu::ShaderStages,
+    read_only: bool,
+) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
