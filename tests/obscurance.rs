@@ -451,3 +451,74 @@ fn no_light_passes_a_thin_wall() {
     eprintln!("thin wall: dark / lit direct light = {leak:.2e}");
     assert!(leak < 1e-3, "direct light through a 1 mm wall: {leak}");
 }
+
+#[test]
+fn command_line_bakes_the_bundled_scene_with_ao_and_updates_it() {
+    if !have_adapter() {
+        return;
+    }
+    use exr::prelude::{ReadChannels, ReadLayers};
+    let dir = std::env::temp_dir().join(format!("lightmapd-obscurance-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb");
+    let run = |extra: &[&str], out: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+            .arg("bake")
+            .arg(&scene)
+            .arg("-o")
+            .arg(dir.join(out))
+            .args([
+                "--technique",
+                "obscurance",
+                "--resolution",
+                "32",
+                "--outputs",
+                "ao,direct",
+            ])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let state = dir.join("state.json");
+    let state = state.to_str().unwrap();
+    let first = run(&["--steps", "4", "--save-state", state], "first.exr");
+    assert!(first.status.success(), "{}", String::from_utf8_lossy(&first.stderr));
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_file(dir.join("first.exr"))
+        .unwrap();
+    let ao = image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .find(|c| c.name.to_string() == "ao.Y")
+        .expect("an ao.Y channel");
+    let values: Vec<f32> = ao.sample_data.values_as_f32().collect();
+    assert!(
+        values.iter().all(|v| (0.0..=1.0 + 1e-6).contains(v)),
+        "ao outside [0, 1]"
+    );
+    assert!(values.iter().any(|v| *v > 0.3), "ao all dark");
+    let update = run(
+        &[
+            "--update-from",
+            state,
+            "--changed-meshes",
+            "short block top,short block front",
+        ],
+        "updated.exr",
+    );
+    let stderr = String::from_utf8_lossy(&update.stderr);
+    assert!(update.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("4 steps"),
+        "the update runs the saved bake's step count: {stderr}"
+    );
+    let bad = run(&["--update-from", state, "--changed-meshes", "teapot"], "bad.exr");
+    assert_eq!(bad.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("no mesh named \"teapot\""));
+}
