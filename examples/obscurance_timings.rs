@@ -71,14 +71,20 @@ fn main() {
         .skip(1)
         .find_map(|a| a.strip_prefix("DIRECTIONS=").and_then(|v| v.parse().ok()))
         .unwrap_or(32);
+    let only_update = std::env::args().any(|a| a == "ONLY=update");
     println!("| scene | triangles | lightmap | valid texels | ms / direction | max layers | max fragments |");
     println!("| --- | --- | --- | --- | --- | --- | --- |");
-    for (name, n, segments) in [
-        ("1 sphere", 1, 32),
-        ("25 spheres", 5, 32),
-        ("25 fine spheres", 5, 64),
-        ("25 spheres, 193k", 5, 88),
-    ] {
+    let table = if only_update {
+        &[][..]
+    } else {
+        &[
+            ("1 sphere", 1, 32),
+            ("25 spheres", 5, 32),
+            ("25 fine spheres", 5, 64),
+            ("25 spheres, 193k", 5, 88),
+        ][..]
+    };
+    for &(name, n, segments) in table {
         let scene = Arc::new(import_slice(&spheres(n, segments).to_glb(), None).expect("scene").0);
         for res in [256u32, 1024] {
             let atlas = Arc::new(Atlas::build(&scene, res, res).expect("atlas"));
@@ -148,7 +154,6 @@ fn main() {
     );
     let atlas0 = Arc::new(Atlas::build(&base, res, res).unwrap());
     let atlas1 = Arc::new(Atlas::build(&moved, res, res).unwrap());
-    let params = json!({"map_size": 512});
     let bake = |tech: &mut Obscurance, n: u64| {
         let t = Instant::now();
         for _ in 0..n {
@@ -168,39 +173,47 @@ fn main() {
             .collect();
         (s, lm)
     };
-    let mut first_bake = Obscurance::prepare(inputs(&base, &atlas0), &params).unwrap();
-    let (t_base, _) = bake(&mut first_bake, steps);
-    let state = first_bake.state().unwrap();
-    let t_full0 = Instant::now();
-    let mut full = Obscurance::prepare(inputs(&moved, &atlas1), &params).unwrap();
-    let (t_full, lm_full) = bake(&mut full, steps);
-    let t_full_total = t_full0.elapsed().as_secs_f64();
-    let t_upd0 = Instant::now();
-    let (mut upd, report) = Obscurance::update(inputs(&moved, &atlas1), &state, &moved_names).unwrap();
-    let (t_upd, lm_upd) = bake(&mut upd, report.steps);
-    let t_upd_total = t_upd0.elapsed().as_secs_f64();
-    let rms = |v: &[Vec3]| (v.iter().map(|x| x.length_squared() as f64).sum::<f64>() / v.len() as f64).sqrt();
-    let diff: Vec<Vec3> = lm_full.iter().zip(&lm_upd).map(|(a, b)| *a - *b).collect();
-    let max_rel = lm_full
-        .iter()
-        .zip(&lm_upd)
-        .map(|(a, b)| ((*a - *b).length() / a.length().max(1e-6)) as f64)
-        .fold(0.0, f64::max);
-    println!(
-        "\nincremental update: blocks-25k ({} triangles), lightmap {res}^2 ({} texels), map 512^2, {steps} steps; \
+    let t_atlas = Instant::now();
+    let atlas_check = Atlas::build(&moved, res, res).unwrap();
+    let atlas_seconds = t_atlas.elapsed().as_secs_f64();
+    drop(atlas_check);
+    println!("\n(texel set of the moved scene: {atlas_seconds:.2} s, paid by both the rebake and the update)");
+    for params in [json!({"map_size": 512}), json!({"map_size": 512, "dmax": 1.0})] {
+        println!("\nparams {params}");
+        let mut first_bake = Obscurance::prepare(inputs(&base, &atlas0), &params).unwrap();
+        let (t_base, _) = bake(&mut first_bake, steps);
+        let state = first_bake.state().unwrap();
+        let t_full0 = Instant::now();
+        let mut full = Obscurance::prepare(inputs(&moved, &atlas1), &params).unwrap();
+        let (t_full, lm_full) = bake(&mut full, steps);
+        let t_full_total = t_full0.elapsed().as_secs_f64();
+        let t_upd0 = Instant::now();
+        let (mut upd, report) = Obscurance::update(inputs(&moved, &atlas1), &state, &moved_names).unwrap();
+        let (t_upd, lm_upd) = bake(&mut upd, report.steps);
+        let t_upd_total = t_upd0.elapsed().as_secs_f64();
+        let rms = |v: &[Vec3]| (v.iter().map(|x| x.length_squared() as f64).sum::<f64>() / v.len() as f64).sqrt();
+        let diff: Vec<Vec3> = lm_full.iter().zip(&lm_upd).map(|(a, b)| *a - *b).collect();
+        let max_rel = lm_full
+            .iter()
+            .zip(&lm_upd)
+            .map(|(a, b)| ((*a - *b).length() / a.length().max(1e-6)) as f64)
+            .fold(0.0, f64::max);
+        println!(
+            "\nincremental update: blocks-25k ({} triangles), lightmap {res}^2 ({} texels), map 512^2, {steps} steps; \
          moved {block:?} ({} meshes) by 1 m",
-        moved.triangles.len(),
-        atlas1.texels.len(),
-        moved_names.len()
-    );
-    println!("first bake: {t_base:.2} s");
-    println!("full rebake: {t_full:.2} s steps ({t_full_total:.2} s with preparation)");
-    println!(
-        "update: {t_upd:.2} s steps ({t_upd_total:.2} s with preparation), recomputed {} of {} texels",
-        report.recomputed_texels, report.total_texels
-    );
-    println!(
-        "update vs full rebake: relative RMS difference {:.2e}, largest per-texel relative difference {max_rel:.2e}",
-        rms(&diff) / rms(&lm_full)
-    );
+            moved.triangles.len(),
+            atlas1.texels.len(),
+            moved_names.len()
+        );
+        println!("first bake: {t_base:.2} s");
+        println!("full rebake: {t_full:.2} s steps ({t_full_total:.2} s with preparation)");
+        println!(
+            "update: {t_upd:.2} s steps ({t_upd_total:.2} s with preparation), recomputed {} of {} texels",
+            report.recomputed_texels, report.total_texels
+        );
+        println!(
+            "update vs full rebake: relative RMS difference {:.2e}, largest per-texel relative difference {max_rel:.2e}",
+            rms(&diff) / rms(&lm_full)
+        );
+    }
 }
