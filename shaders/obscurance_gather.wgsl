@@ -27,8 +27,9 @@
 // numerator and denominator, acc = acc (1 - b) + value b with b = 1/k for its k-th
 // direction, so f32 loses no precision over many directions; the CPU divides.
 //
-// Influence record (seed section 5): a hit ORs bit (mesh mod 32) of the mesh hit into the
-// texel's mask, so an incremental update can find the texels a mesh influenced.
+// Influence record (seed section 5): a hit ORs bits for the mesh hit into the texel's
+// mask (16 + mesh mod 16 at any distance, mesh mod 16 within dmax), so an incremental
+// update can find the texels a mesh influenced.
 
 struct Node {
     t: f32,
@@ -177,8 +178,9 @@ fn gather(
             }
             w_value = vec4<f32>(colour, rho) * weight;
             d_value = vec4<f32>(emission, 1.0) * weight;
-            let mesh = bitcast<u32>(rec1.w);
-            atomicOr(&counters[MASK_BASE + i], 1u << (mesh & 31u));
+            // Bit 16 + (mesh mod 16): hit at any distance; bit (mesh mod 16): within dmax.
+            let bit = bitcast<u32>(rec1.w) & 15u;
+            atomicOr(&counters[MASK_BASE + i], (1u << (16u + bit)) | select(0u, 1u << bit, best_dt < dmax));
         } else {
             let env = select(params.env_back.rgb, params.env_fwd.rgb, sgn > 0.0);
             var colour = vec3<f32>(0.0);

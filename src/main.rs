@@ -19,7 +19,7 @@ use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::{OutputLayer, write_atomically};
 use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
 use lightmapd::engine::technique::TECHNIQUES;
-use lightmapd::engine::technique::obscurance::ObscuranceState;
+use lightmapd::engine::technique::obscurance::{ObscuranceState, UpdateReach};
 use lightmapd::service;
 
 #[derive(Parser)]
@@ -233,6 +233,17 @@ struct BakeArgs {
     /// obscurance: names of the meshes that moved or were added (comma separated).
     #[arg(long, value_delimiter = ',')]
     changed_meshes: Vec<String>,
+    /// obscurance --update-from: recompute texels that saw a changed mesh at any
+    /// distance (`all`: obscurance and direct light) or within dmax only (`dmax`: the
+    /// paper's set, faster, misses far sky occlusion).
+    #[arg(long, value_enum, default_value = "all")]
+    update_reach: ReachArg,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum ReachArg {
+    All,
+    Dmax,
 }
 
 fn parse_floats(s: &str, n: usize, what: &str) -> Result<Vec<f32>, String> {
@@ -580,7 +591,11 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             }
             None => None,
         };
-        let update = previous.as_ref().map(|s| (s, args.changed_meshes.as_slice()));
+        let reach = match args.update_reach {
+            ReachArg::All => UpdateReach::All,
+            ReachArg::Dmax => UpdateReach::Dmax,
+        };
+        let update = previous.as_ref().map(|s| (s, args.changed_meshes.as_slice(), reach));
         let (result, state) = job::bake_obscurance(
             Arc::new(scene),
             &request,

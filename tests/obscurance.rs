@@ -21,7 +21,7 @@ use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
 use lightmapd::engine::scene::library::{closed_box, sky_plane, sphere_over_plane};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, Sun};
-use lightmapd::engine::technique::obscurance::{Falloff, Obscurance, ObscuranceHalf, ObscuranceState};
+use lightmapd::engine::technique::obscurance::{Falloff, Obscurance, ObscuranceHalf, ObscuranceState, UpdateReach};
 use lightmapd::engine::technique::{BakeInputs, Technique};
 use serde_json::{Value, json};
 
@@ -389,6 +389,7 @@ fn incremental_update_recomputes_only_influenced_texels() {
         inputs(moved.clone(), atlas.clone(), sky(1.0), 1),
         &state,
         &["top", "front", "back", "left", "right"].map(|f| format!("mover {f}")),
+        UpdateReach::All,
     )
     .unwrap();
     eprintln!("update: {report:?}");

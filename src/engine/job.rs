@@ -20,7 +20,7 @@ use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
 use crate::engine::post::denoise::denoise;
 use crate::engine::scene::{Lighting, Scene};
-use crate::engine::technique::obscurance::{Obscurance, ObscuranceState};
+use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateReach};
 use crate::engine::technique::{self, BakeInputs, EngineError, Technique};
 
 /// What to bake, independent of where the scene came from.
@@ -117,7 +117,8 @@ pub fn bake(
 
 /// An `obscurance` bake that also returns what an incremental update needs
 /// ([`ObscuranceState`]); with `update` = (a finished bake's state, the names of the
-/// meshes that moved or were added), only the texels those meshes influenced are
+/// meshes that moved or were added, which influence to follow), only the texels those
+/// meshes influenced are
 /// recomputed (seed section 5, `technique::obscurance`), for as many steps as the
 /// finished bake ran (`request.stop` is not used then).
 pub fn bake_obscurance(
@@ -125,7 +126,7 @@ pub fn bake_obscurance(
     request: &BakeRequest,
     options: &BakeOptions,
     observer: &mut dyn BakeObserver,
-    update: Option<(&ObscuranceState, &[String])>,
+    update: Option<(&ObscuranceState, &[String], UpdateReach)>,
 ) -> Result<(BakeResult, ObscuranceState), EngineError> {
     if request.technique != "obscurance" {
         return Err(EngineError::BadInput(format!(
@@ -146,7 +147,7 @@ pub fn bake_obscurance(
     Ok((result, state))
 }
 
-type ObscuranceUpdate<'a> = Option<(&'a ObscuranceState, &'a [String])>;
+type ObscuranceUpdate<'a> = Option<(&'a ObscuranceState, &'a [String], UpdateReach)>;
 
 fn bake_impl(
     scene: Arc<Scene>,
@@ -191,8 +192,8 @@ fn bake_impl(
     match obscurance {
         None => boxed = Some(technique::create(&request.technique, inputs, &request.params)?),
         Some(None) => concrete = Some(Obscurance::prepare(inputs, &request.params)?),
-        Some(Some((state, changed))) => {
-            let (tech, report) = Obscurance::update(inputs, state, changed)?;
+        Some(Some((state, changed, reach))) => {
+            let (tech, report) = Obscurance::update(inputs, state, changed, reach)?;
             stop = StopCriteria {
                 steps: Some(report.steps.max(1)),
                 seconds: None,

@@ -50,7 +50,7 @@ pub struct JobSpec {
     #[serde(default)]
     #[schema(value_type = Object)]
     pub params: Value,
-    /// Extra EXR layers: `validity`, `direct`, `indirect`, `sh`.
+    /// Extra EXR layers: `validity`, `direct`, `indirect`, `sh`, `ao` (techniques that compute it).
     #[serde(default)]
     pub outputs: Vec<String>,
     /// Higher runs first; equal priorities run oldest first.

@@ -82,17 +82,21 @@
 //!   left out, never silently dropped.
 //!
 //! # Incremental update (seed section 5)
-//! During a bake every hit ORs bit (mesh index mod 32) of the mesh it hit into the texel's
-//! influence mask. [`Obscurance::state`] saves accumulators, masks and the direction
-//! state; [`Obscurance::update`] prepares a bake of the changed scene that recomputes
-//! only the texels a changed (moved or added) mesh influenced: those whose mask has its
-//! bit (before the move), the mesh's own texels, texels new to the atlas, and texels
-//! within dmax of the mesh's new bounding box (the ones it now occludes or tints); every
-//! other texel keeps its values and is skipped by the gather. Rerunning the same direction
-//! sequence makes a recomputed texel equal to its full-rebake value. What it misses:
-//! texels farther than dmax from the new position whose sky or far field the mesh now
-//! blocks (measured in docs/obscurance.md). Masks are per mesh index mod 32, so with more
-//! than 32 meshes the set is a superset (more work, never fewer texels).
+//! During a bake every hit ORs two bits for the mesh it hit into the texel's influence
+//! mask: 16 + (mesh index mod 16) for a hit at any distance, (mesh index mod 16) for one
+//! within dmax. [`Obscurance::state`] saves accumulators, masks and the direction state;
+//! [`Obscurance::update`] prepares a bake of the changed scene that recomputes only the
+//! texels a changed (moved or added) mesh influenced: those whose mask has its bit
+//! (before the move), the mesh's own texels, texels new to the atlas, and texels within
+//! dmax of the mesh's new bounding box (the ones it now occludes or tints); every other
+//! texel keeps its values and is skipped by the gather. Rerunning the same direction
+//! sequence makes a recomputed texel equal to its full-rebake value. [`UpdateReach`]
+//! picks the mask: `All` (hits at any distance: the direct sky light the mesh blocked
+//! too) or `Dmax` (the seed's set: hits within dmax, i.e. the obscurance it influenced;
+//! much smaller in open scenes). What it misses: texels farther than dmax from the new
+//! position whose sky or far field the mesh now blocks, and with `Dmax` also those it
+//! blocked before from farther than dmax (measured in docs/obscurance.md). Bits alias
+//! mod 16 meshes, so the set is a superset (more work, never fewer texels).
 //!
 //! # Known bias and limits
 //! - Obscurance is not radiosity: I_A is one scene-wide value, so a closed room of
@@ -356,7 +360,8 @@ pub struct ObscuranceState {
     /// weight or sun), both halves (even then odd), texel order.
     pub acc: Vec<[f32; 4]>,
     pub direct: Vec<[f32; 4]>,
-    /// Influence mask per texel: bit (mesh index mod 32) of every mesh a ray hit.
+    /// Influence mask per texel: bit 16 + (mesh index mod 16) of every mesh a ray hit,
+    /// bit (mesh index mod 16) of every mesh hit within dmax.
     pub masks: Vec<u32>,
     /// Mesh names by index when the state was saved.
     pub meshes: Vec<String>,
@@ -366,6 +371,17 @@ impl ObscuranceState {
     pub fn steps(&self) -> u64 {
         self.half_steps[0] + self.half_steps[1]
     }
+}
+
+/// Which recorded influence an incremental update follows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum UpdateReach {
+    /// Texels whose rays hit a changed mesh at any distance (obscurance and direct light).
+    #[default]
+    All,
+    /// Texels whose rays hit it within dmax (the obscurance it influenced: seed section 5).
+    Dmax,
 }
 
 /// What an incremental update recomputes.
@@ -1339,6 +1355,7 @@ impl Obscurance {
         inputs: BakeInputs,
         previous: &ObscuranceState,
         changed: &[String],
+        reach: UpdateReach,
     ) -> Result<(Self, UpdateReport), EngineError> {
         let bad = |m: String| EngineError::BadInput(format!("incremental obscurance update: {m}"));
         if (inputs.atlas.width, inputs.atlas.height) != (previous.width, previous.height) {
@@ -1362,7 +1379,10 @@ impl Obscurance {
                 return Err(bad(format!("no mesh named {name:?} in the scene or the finished bake")));
             }
             if let Some(o) = old {
-                old_bits |= 1 << (o % 32);
+                old_bits |= match reach {
+                    UpdateReach::All => 1 << (16 + o % 16),
+                    UpdateReach::Dmax => 1 << (o % 16),
+                };
             }
             if let Some(k) = new {
                 new_meshes.push(k as u32);
