@@ -394,6 +394,16 @@ fn incremental_update_recomputes_only_influenced_texels() {
     .unwrap();
     eprintln!("update: {report:?}");
     assert!(report.recomputed_texels > 0 && report.recomputed_texels < report.total_texels / 2);
+    // The seed's set (hits within dmax) is a subset of the any-distance one.
+    let (_, near) = Obscurance::update(
+        inputs(moved.clone(), atlas.clone(), sky(1.0), 1),
+        &state,
+        &["top", "front", "back", "left", "right"].map(|f| format!("mover {f}")),
+        UpdateReach::Dmax,
+    )
+    .unwrap();
+    eprintln!("update within dmax: {near:?}");
+    assert!(near.recomputed_texels > 0 && near.recomputed_texels <= report.recomputed_texels);
     for _ in 0..report.steps {
         upd.step().unwrap();
     }
