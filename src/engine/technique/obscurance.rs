@@ -52,7 +52,8 @@
 //! Directions: `stratified` (R2 sequence, randomly rotated per bake) or `random`, shared
 //! with `sdb` ([`super::sdb::Directions`]); the map origin is jittered by a random
 //! sub-pixel offset per direction. Randomness: CPU SplitMix64 from the bake seed only;
-//! the GPU passes are deterministic (no hash). Precision: f32 throughout, in normalised
+//! the GPU passes use no hash (the lists' order depends on fragment scheduling, but the
+//! nearest layer does not, barring exact ties in distance). Precision: f32 throughout, in normalised
 //! scene space ((p - centre) / radius, as `sdb`), so epsilons are relative and scaling or
 //! translating the scene does not change the result; `dmax` is converted to that space.
 //! Bounds: the node pool is capped by the device's storage-binding size; lists are walked
@@ -689,6 +690,7 @@ impl Obscurance {
             / 16) as f64;
         let node_capacity = wanted.min(max_nodes) as u32;
         if wanted > max_nodes {
+            tracing::warn!(wanted, max_nodes, "obscurance: the fragment pool is capped by the device");
             notes.push(format!(
                 "obscurance: the scene may need {wanted:.0} fragment nodes per direction; the device allows \
                  {max_nodes:.0}, so directions with more depth layers drop fragments (reported at snapshots)"
