@@ -690,7 +690,11 @@ impl Obscurance {
             / 16) as f64;
         let node_capacity = wanted.min(max_nodes) as u32;
         if wanted > max_nodes {
-            tracing::warn!(wanted, max_nodes, "obscurance: the fragment pool is capped by the device");
+            tracing::warn!(
+                wanted,
+                max_nodes,
+                "obscurance: the fragment pool is capped by the device"
+            );
             notes.push(format!(
                 "obscurance: the scene may need {wanted:.0} fragment nodes per direction; the device allows \
                  {max_nodes:.0}, so directions with more depth layers drop fragments (reported at snapshots)"
