@@ -304,7 +304,7 @@ pub(crate) struct GpuView {
     pub(crate) params: [u32; 4],
 }
 
-pub(crate) const DEPTH_STOCHASTIC: u32 = 0;
+const DEPTH_STOCHASTIC: u32 = 0;
 pub(crate) const DEPTH_NEAREST: u32 = 1;
 pub(crate) const TRI_DOUBLE_SIDED: u32 = 1;
 const TRI_CULL_BACK: u32 = 2;
