@@ -404,6 +404,19 @@ fn incremental_update_recomputes_only_influenced_texels() {
     .unwrap();
     eprintln!("update within dmax: {near:?}");
     assert!(near.recomputed_texels > 0 && near.recomputed_texels <= report.recomputed_texels);
+    // Other lighting than the finished bake's is refused, naming the reason.
+    let refused = Obscurance::update(
+        inputs(moved.clone(), atlas.clone(), sky(2.0), 1),
+        &state,
+        &["mover top".to_string()],
+        UpdateReach::All,
+    )
+    .err()
+    .expect("an update under another sky is refused");
+    assert!(
+        refused.is_bad_input() && refused.to_string().contains("lighting"),
+        "{refused}"
+    );
     for _ in 0..report.steps {
         upd.step().unwrap();
     }

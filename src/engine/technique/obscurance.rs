@@ -124,6 +124,7 @@ use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
+use crate::engine::scene::Lighting;
 
 // ---------------------------------------------------------------------------------------
 // Parameters
@@ -366,6 +367,9 @@ pub struct ObscuranceState {
     pub masks: Vec<u32>,
     /// Mesh names by index when the state was saved.
     pub meshes: Vec<String>,
+    /// The job's sky and sun: an update under other lighting would leave the texels it
+    /// does not recompute lit by the old one, so it is refused.
+    pub lighting: Lighting,
 }
 
 impl ObscuranceState {
@@ -412,6 +416,7 @@ pub struct Obscurance {
     texel_pixels: Vec<u32>,
     texel_area: Vec<f32>,
     mesh_names: Vec<String>,
+    lighting: Lighting,
     corners: [Vec3; 8],
     /// dmax in normalised scene space.
     dmax_norm: f32,
@@ -1019,6 +1024,7 @@ impl Obscurance {
             texel_pixels: atlas.texels.iter().map(|t| t.pixel).collect(),
             texel_area,
             mesh_names: scene.meshes.iter().map(|m| m.name.clone()).collect(),
+            lighting: inputs.lighting,
             corners,
             dmax_norm,
             r_ave,
@@ -1346,6 +1352,7 @@ impl Obscurance {
             direct,
             masks: counters[MASK_BASE..].to_vec(),
             meshes: self.mesh_names.clone(),
+            lighting: self.lighting,
         })
     }
 
@@ -1369,6 +1376,13 @@ impl Obscurance {
                 "the lightmap is {}x{} but the finished bake's was {}x{}",
                 inputs.atlas.width, inputs.atlas.height, previous.width, previous.height
             )));
+        }
+        if inputs.lighting != previous.lighting {
+            return Err(bad(
+                "the job's lighting (sky, sun) differs from the finished bake's: texels that are not recomputed \
+                 would keep the old light; bake from scratch"
+                    .into(),
+            ));
         }
         let n_old = previous.pixels.len();
         if previous.acc.len() != 4 * n_old || previous.direct.len() != 4 * n_old || previous.masks.len() != n_old {
