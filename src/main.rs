@@ -19,6 +19,7 @@ use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::{OutputLayer, write_atomically};
 use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
 use lightmapd::engine::technique::TECHNIQUES;
+use lightmapd::engine::technique::obscurance::{ObscuranceState, UpdateReach};
 use lightmapd::service;
 
 #[derive(Parser)]
@@ -129,7 +130,7 @@ struct SubmitArgs {
     target_error: Option<f32>,
     #[arg(long)]
     seed: Option<u64>,
-    /// Extra layers: validity, direct, indirect (comma separated).
+    /// Extra layers: validity, direct, indirect, sh, ao (comma separated).
     #[arg(long, value_delimiter = ',')]
     outputs: Vec<String>,
     /// Technique parameters as a JSON object.
@@ -204,7 +205,7 @@ struct BakeArgs {
     target_error: Option<f32>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Extra layers: validity, direct, indirect (comma separated).
+    /// Extra layers: validity, direct, indirect, sh, ao (comma separated).
     #[arg(long, value_delimiter = ',', value_parser = OutputLayer::parse)]
     outputs: Vec<OutputLayer>,
     /// Write the raw estimate, without the edge-aware denoiser.
@@ -220,6 +221,29 @@ struct BakeArgs {
     /// Technique parameters as a JSON object, e.g. '{"samples_per_step": 8}'.
     #[arg(long)]
     params: Option<String>,
+    /// obscurance: also save the bake's state (accumulators and influence masks, JSON)
+    /// here, for a later `--update-from`.
+    #[arg(long)]
+    save_state: Option<PathBuf>,
+    /// obscurance: update the bake saved in this state file for the scene given, where
+    /// the meshes named by --changed-meshes moved or were added: only the texels they
+    /// influence are recomputed (the same step count as the saved bake).
+    #[arg(long, requires = "changed_meshes")]
+    update_from: Option<PathBuf>,
+    /// obscurance: names of the meshes that moved or were added (comma separated).
+    #[arg(long, value_delimiter = ',')]
+    changed_meshes: Vec<String>,
+    /// obscurance --update-from: recompute texels that saw a changed mesh at any
+    /// distance (`all`: obscurance and direct light) or within dmax only (`dmax`: the
+    /// paper's set, faster, misses far sky occlusion).
+    #[arg(long, value_enum, default_value = "all")]
+    update_reach: ReachArg,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum ReachArg {
+    All,
+    Dmax,
 }
 
 fn parse_floats(s: &str, n: usize, what: &str) -> Result<Vec<f32>, String> {
@@ -552,18 +576,56 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             "texel set built"
         );
     };
-    let result = job::bake(
-        Arc::new(scene),
-        &request,
-        &job::BakeOptions::default(),
-        &mut observer,
-        &mut on_atlas,
-        &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
-    )
-    .map_err(|e| Failure {
+    let engine_failure = |e: lightmapd::engine::technique::EngineError| Failure {
         code: if e.is_bad_input() { 2 } else { 1 },
         message: e.to_string(),
-    })?;
+    };
+    let result = if args.save_state.is_some() || args.update_from.is_some() {
+        let previous: Option<ObscuranceState> = match &args.update_from {
+            Some(p) => {
+                let bytes = std::fs::read(p).map_err(|e| bad_input(format!("{}: {e}", p.display())))?;
+                Some(
+                    serde_json::from_slice(&bytes)
+                        .map_err(|e| bad_input(format!("{}: not an obscurance state file: {e}", p.display())))?,
+                )
+            }
+            None => None,
+        };
+        let reach = match args.update_reach {
+            ReachArg::All => UpdateReach::All,
+            ReachArg::Dmax => UpdateReach::Dmax,
+        };
+        let update = previous.as_ref().map(|s| (s, args.changed_meshes.as_slice(), reach));
+        let (result, state) = job::bake_obscurance(
+            Arc::new(scene),
+            &request,
+            &job::BakeOptions::default(),
+            &mut observer,
+            update,
+        )
+        .map_err(engine_failure)?;
+        if let Some(p) = &args.save_state {
+            let bytes = serde_json::to_vec(&state).map_err(|e| Failure {
+                code: 1,
+                message: format!("encoding the bake state: {e}"),
+            })?;
+            write_atomically(p, &bytes).map_err(|e| Failure {
+                code: 1,
+                message: format!("cannot write {}: {e}", p.display()),
+            })?;
+        }
+        result
+    } else {
+        job::bake(
+            Arc::new(scene),
+            &request,
+            &job::BakeOptions::default(),
+            &mut observer,
+            &mut on_atlas,
+            &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
+        )
+        .map_err(engine_failure)?
+    };
     bar.finish_and_clear();
     write_atomically(&args.output, &result.exr).map_err(|e| Failure {
         code: 1,

@@ -584,9 +584,9 @@ async fn every_error_status_has_its_problem_body() {
             "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `priority`, `seed`".into(),
         ),
         (
-            json!({"scene": scene, "outputs": ["ao"]}).to_string(),
+            json!({"scene": scene, "outputs": ["bent_normals"]}).to_string(),
             "outputs[0]",
-            "unknown output layer \"ao\"; available: validity, direct, indirect, sh".into(),
+            "unknown output layer \"bent_normals\"; available: validity, direct, indirect, sh, ao".into(),
         ),
         (
             json!({"scene": scene, "lighting": {"sky": {"radiance": [1, -1, 1]}}}).to_string(),

@@ -423,3 +423,21 @@ stability_suite!(
     },
     leak <= 1e-3
 );
+
+// Obscurance is not a radiosity solver: one scene-wide ambient term I_A (seed Eq. 5)
+// stands in for the bounces. Measured (docs/obscurance.md): the stiff closed boxes read
+// 9.7 % low (corners and edges within dmax), the 1 cm^2 emitter is smaller than a map
+// pixel and is missed, and the dark room of the thin-wall case reads 0.30 of the lit one
+// through the scene-wide I_A W, by design (its direct light, which is what would pass the
+// wall, is checked to be below 1e-3 in tests/obscurance.rs), hence the leak bound. The
+// bias allowance is the lateral map-pixel error of the open cases.
+stability_suite!(
+    obscurance,
+    Row {
+        technique: "obscurance",
+        params: json!({"map_size": 256}),
+        bias: 0.02,
+        open_failures: &[STIFF_BOX, TINY_EMITTER],
+    },
+    leak <= 0.35
+);

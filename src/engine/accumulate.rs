@@ -43,6 +43,9 @@ pub struct Estimate {
     pub total: Vec<Vec3>,
     pub direct: Option<Vec<Vec3>>,
     pub moments: Option<Vec<[Vec3; 3]>>,
+    /// Plain obscurance / sky visibility per valid texel (`ao.Y`), from
+    /// `Technique::ao` (the bake loop fills it in; `None` for techniques without one).
+    pub ao: Option<Vec<f32>>,
     /// Standard error of `total`'s luminance per texel (absolute); `None` before both
     /// halves have a step.
     pub texel_error: Option<Vec<f32>>,
@@ -111,6 +114,7 @@ impl Snapshot {
             total,
             direct,
             moments,
+            ao: None,
             texel_error,
             error: ErrorSummary {
                 relative,

@@ -145,7 +145,8 @@ impl BakeLoop {
                 next_doubling = steps.saturating_mul(2);
             }
             last_snapshot = Instant::now();
-            let estimate = technique.snapshot()?.estimate();
+            let mut estimate = technique.snapshot()?.estimate();
+            estimate.ao = technique.ao();
             check_finite(technique, &estimate)?;
             tracing::debug!(
                 technique = technique.id(),

@@ -20,7 +20,8 @@ use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
 use crate::engine::post::denoise::denoise;
 use crate::engine::scene::{Lighting, Scene};
-use crate::engine::technique::{self, BakeInputs, EngineError};
+use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateReach};
+use crate::engine::technique::{self, BakeInputs, EngineError, Technique};
 
 /// What to bake, independent of where the scene came from.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -111,6 +112,52 @@ pub fn bake(
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
     on_plan: &mut dyn FnMut(&Plan),
 ) -> Result<BakeResult, EngineError> {
+    bake_impl(scene, request, options, observer, on_atlas, on_plan, None).map(|(r, _)| r)
+}
+
+/// An `obscurance` bake that also returns what an incremental update needs
+/// ([`ObscuranceState`]); with `update` = (a finished bake's state, the names of the
+/// meshes that moved or were added, which influence to follow), only the texels those
+/// meshes influenced are
+/// recomputed (seed section 5, `technique::obscurance`), for as many steps as the
+/// finished bake ran (`request.stop` is not used then).
+pub fn bake_obscurance(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    options: &BakeOptions,
+    observer: &mut dyn BakeObserver,
+    update: Option<(&ObscuranceState, &[String], UpdateReach)>,
+) -> Result<(BakeResult, ObscuranceState), EngineError> {
+    if request.technique != "obscurance" {
+        return Err(EngineError::BadInput(format!(
+            "incremental updates and saved bake states are for the obscurance technique, not {:?}",
+            request.technique
+        )));
+    }
+    let (result, state) = bake_impl(
+        scene,
+        request,
+        options,
+        observer,
+        &mut |_| {},
+        &mut |_| {},
+        Some(update),
+    )?;
+    let state = state.ok_or_else(|| EngineError::Internal("obscurance bake kept no state".into()))?;
+    Ok((result, state))
+}
+
+type ObscuranceUpdate<'a> = Option<(&'a ObscuranceState, &'a [String], UpdateReach)>;
+
+fn bake_impl(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    options: &BakeOptions,
+    observer: &mut dyn BakeObserver,
+    on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+    on_plan: &mut dyn FnMut(&Plan),
+    obscurance: Option<ObscuranceUpdate<'_>>,
+) -> Result<(BakeResult, Option<ObscuranceState>), EngineError> {
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
     let plan = crate::engine::plan::build(&scene, request)?;
@@ -138,10 +185,31 @@ pub fn bake(
         want_direct,
         plan: plan.clone(),
     };
-    let mut tech = technique::create(&request.technique, inputs, &request.params)?;
-    let mut bake_loop = BakeLoop::new(request.stop);
+    let mut stop = request.stop;
+    // An obscurance bake whose state is kept is held by its concrete type, so the state
+    // can be read after the loop; every other bake goes through the trait object.
+    let (mut concrete, mut boxed) = (None, None);
+    match obscurance {
+        None => boxed = Some(technique::create(&request.technique, inputs, &request.params)?),
+        Some(None) => concrete = Some(Obscurance::prepare(inputs, &request.params)?),
+        Some(Some((state, changed, reach))) => {
+            let (tech, report) = Obscurance::update(inputs, state, changed, reach)?;
+            stop = StopCriteria {
+                steps: Some(report.steps.max(1)),
+                seconds: None,
+                target_error: None,
+            };
+            concrete = Some(tech);
+        }
+    }
+    let tech: &mut dyn Technique = match (&mut concrete, &mut boxed) {
+        (Some(t), _) => t,
+        (None, Some(t)) => t.as_mut(),
+        (None, None) => return Err(EngineError::Internal("no technique was prepared".into())),
+    };
+    let mut bake_loop = BakeLoop::new(stop);
     bake_loop.snapshot_interval = options.snapshot_interval;
-    let outcome = bake_loop.run(tech.as_mut(), observer)?;
+    let outcome = bake_loop.run(tech, observer)?;
     let exr = snapshot_exr(&atlas, &outcome.estimate, request, &tech.params(), outcome.elapsed)?;
     let finished = finish(&atlas, &outcome.estimate, request);
     let preview_png = preview_png(&atlas, &finished)?;
@@ -156,14 +224,18 @@ pub fn bake(
         validation,
         generated_uvs: unwrap,
     };
-    Ok(BakeResult {
-        scene,
-        exr,
-        preview_png,
-        estimate: finished,
-        atlas,
-        summary,
-    })
+    let state = concrete.map(|t| t.state()).transpose()?;
+    Ok((
+        BakeResult {
+            scene,
+            exr,
+            preview_png,
+            estimate: finished,
+            atlas,
+            summary,
+        },
+        state,
+    ))
 }
 
 /// [`bake`] with default options and nobody watching: for tests and tools that only

@@ -50,7 +50,7 @@ pub struct JobSpec {
     #[serde(default)]
     #[schema(value_type = Object)]
     pub params: Value,
-    /// Extra EXR layers: `validity`, `direct`, `indirect`, `sh`.
+    /// Extra EXR layers: `validity`, `direct`, `indirect`, `sh`, `ao` (techniques that compute it).
     #[serde(default)]
     pub outputs: Vec<String>,
     /// Higher runs first; equal priorities run oldest first.
@@ -522,7 +522,7 @@ mod tests {
         assert_eq!(field(r#"{"scene":"a","resolution":0}"#).as_deref(), Some("resolution"));
         assert_eq!(field(r#"{"scene":"a","technique":"x"}"#).as_deref(), Some("technique"));
         assert_eq!(
-            field(r#"{"scene":"a","outputs":["ao"]}"#).as_deref(),
+            field(r#"{"scene":"a","outputs":["bent_normals"]}"#).as_deref(),
             Some("outputs[0]")
         );
         assert_eq!(

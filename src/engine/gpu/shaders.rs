@@ -52,6 +52,12 @@ pub const SDB_DIRECT: PassShader = pass!("sdb_direct.wgsl");
 pub const VPL_SHADOW: PassShader = pass!("vpl_shadow.wgsl");
 /// `vpl`: gather the step's lights and VPLs into the lightmap accumulators.
 pub const VPL_GATHER: PassShader = pass!("vpl_gather.wgsl");
+/// `obscurance`: every depth layer per pixel as fragment lists, and shadow maps.
+pub const OBSCURANCE_LAYERS: PassShader = pass!("obscurance_layers.wgsl");
+/// `obscurance`: obscurance, colour bleeding and direct light along one direction.
+pub const OBSCURANCE_GATHER: PassShader = pass!("obscurance_gather.wgsl");
+/// `obscurance`: direct light from the sun and directional lights through a shadow map.
+pub const OBSCURANCE_DIRECT: PassShader = pass!("obscurance_direct.wgsl");
 
 /// Every pass shader in the crate.
 pub const ALL: &[PassShader] = &[
@@ -61,6 +67,9 @@ pub const ALL: &[PassShader] = &[
     SDB_DIRECT,
     VPL_SHADOW,
     VPL_GATHER,
+    OBSCURANCE_LAYERS,
+    OBSCURANCE_GATHER,
+    OBSCURANCE_DIRECT,
 ];
 
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the

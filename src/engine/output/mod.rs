@@ -33,6 +33,8 @@ pub enum OutputLayer {
     Indirect,
     /// L1 directional moments of incident light (`sh.x.*`, `sh.y.*`, `sh.z.*`).
     Sh,
+    /// Plain obscurance / sky visibility (`ao.Y`), from techniques that compute it.
+    Ao,
     /// The validation report as images: `debug.inside.Y` (texels inside geometry),
     /// `debug.overlap.Y` (overlapping charts), `debug.density.Y` (texels per metre).
     Debug,
@@ -45,8 +47,9 @@ impl OutputLayer {
             "direct" => Ok(OutputLayer::Direct),
             "indirect" => Ok(OutputLayer::Indirect),
             "sh" => Ok(OutputLayer::Sh),
+            "ao" => Ok(OutputLayer::Ao),
             other => Err(format!(
-                "unknown output layer {other:?}; available: validity, direct, indirect, sh"
+                "unknown output layer {other:?}; available: validity, direct, indirect, sh, ao"
             )),
         }
     }
@@ -114,8 +117,18 @@ pub fn lightmap_channels(
                     rgb(&format!("sh.{axis}"), &values);
                 }
             }
-            OutputLayer::Validity | OutputLayer::Debug => {}
+            OutputLayer::Validity | OutputLayer::Debug | OutputLayer::Ao => {}
         }
+    }
+    if layers.contains(&OutputLayer::Ao) {
+        let ao = estimate
+            .ao
+            .as_ref()
+            .ok_or("the technique kept no obscurance (ao) layer")?;
+        // Dilated like the lightmap, so gutters hold their chart's value.
+        let as_rgb: Vec<Vec3> = ao.iter().map(|a| Vec3::splat(*a)).collect();
+        let img = post::dilate(atlas, &as_rgb, rings);
+        channels.push(("ao.Y".into(), img.iter().map(|v| v.x).collect()));
     }
     if layers.contains(&OutputLayer::Debug) {
         let size = (atlas.width * atlas.height) as usize;

@@ -11,6 +11,7 @@
 //! Every layer holds irradiance / π at the texel's sample point (the outgoing radiance of
 //! a white Lambertian surface), not including the surface's own emission.
 
+pub mod obscurance;
 pub mod path;
 pub mod sdb;
 pub mod vpl;
@@ -25,7 +26,7 @@ use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::{Lighting, Scene};
 
 /// The identifiers [`create`] accepts.
-pub const TECHNIQUES: &[&str] = &["path", "sdb", "vpl"];
+pub const TECHNIQUES: &[&str] = &["path", "sdb", "vpl", "obscurance"];
 
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
@@ -68,6 +69,11 @@ pub trait Technique: Send {
     fn snapshot(&mut self) -> Result<Snapshot, EngineError>;
     /// The pass that writes the accumulators, named when a snapshot is not finite.
     fn accumulating_pass(&self) -> &'static str;
+    /// The plain obscurance / sky visibility per valid texel (the `ao.Y` layer) as of
+    /// the last snapshot, for techniques that compute one.
+    fn ao(&self) -> Option<Vec<f32>> {
+        None
+    }
 }
 
 /// Prepares technique `id` with `params` (a JSON object; unknown fields are rejected).
@@ -76,6 +82,7 @@ pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Te
         "path" => Ok(Box::new(path::PathTracer::prepare(inputs, params)?)),
         "sdb" => Ok(Box::new(sdb::Sdb::prepare(inputs, params)?)),
         "vpl" => Ok(Box::new(vpl::Vpl::prepare(inputs, params)?)),
+        "obscurance" => Ok(Box::new(obscurance::Obscurance::prepare(inputs, params)?)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")
@@ -89,6 +96,7 @@ pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
         "path" => Ok(path::plan(features)),
         "sdb" => Ok(sdb::plan(features)),
         "vpl" => Ok(vpl::plan(features)),
+        "obscurance" => Ok(obscurance::plan(features)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")

@@ -337,20 +337,20 @@ const MAX_AMBIENT_GAIN: f32 = 0.9999;
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuView {
-    right: [f32; 4],
-    up: [f32; 4],
-    dir: [f32; 4],
-    extent: [f32; 4],
-    params: [u32; 4],
+pub(crate) struct GpuView {
+    pub(crate) right: [f32; 4],
+    pub(crate) up: [f32; 4],
+    pub(crate) dir: [f32; 4],
+    pub(crate) extent: [f32; 4],
+    pub(crate) params: [u32; 4],
 }
 
 const DEPTH_STOCHASTIC: u32 = 0;
-const DEPTH_NEAREST: u32 = 1;
-const TRI_DOUBLE_SIDED: u32 = 1;
+pub(crate) const DEPTH_NEAREST: u32 = 1;
+pub(crate) const TRI_DOUBLE_SIDED: u32 = 1;
 const TRI_CULL_BACK: u32 = 2;
-const TRI_TEXTURED_EMISSION: u32 = 4;
-const NO_TEXEL: u32 = u32::MAX;
+pub(crate) const TRI_TEXTURED_EMISSION: u32 = 4;
+pub(crate) const NO_TEXEL: u32 = u32::MAX;
 const EMPTY_T: f32 = 1.0e30;
 
 #[repr(C)]
@@ -506,7 +506,7 @@ impl Directions {
 }
 
 /// A unit vector uniformly distributed in the cone of half-angle `half` around `axis`.
-fn sample_cone(axis: Vec3, half: f32, rng: &mut SplitMix64) -> Vec3 {
+pub(crate) fn sample_cone(axis: Vec3, half: f32, rng: &mut SplitMix64) -> Vec3 {
     if half <= 0.0 {
         return axis;
     }
@@ -597,7 +597,7 @@ pub fn cullable_triangles(triangles: &[SdbTriangle]) -> Vec<bool> {
 /// For every lightmap pixel, the valid texel whose values it shows: itself, else the
 /// nearest valid texel within 2 pixels (so bilinear lookups at chart borders fetch
 /// plausible values, not black), else [`NO_TEXEL`].
-fn fill_map(width: u32, height: u32, texels: &[SdbTexel]) -> Vec<u32> {
+pub(crate) fn fill_map(width: u32, height: u32, texels: &[SdbTexel]) -> Vec<u32> {
     let (w, h) = (width as i64, height as i64);
     let mut fill = vec![NO_TEXEL; (w * h) as usize];
     for (i, t) in texels.iter().enumerate() {
@@ -633,7 +633,14 @@ fn fill_map(width: u32, height: u32, texels: &[SdbTexel]) -> Vec<u32> {
 
 /// Orthographic frame for direction `d` over the normalised bounds `corners`, with the
 /// map origin shifted by `jitter` (in pixels, [0, 1)^2).
-fn make_view(d: Vec3, corners: &[Vec3; 8], map_size: u32, jitter: (f32, f32), seed: u32, mode: u32) -> GpuView {
+pub(crate) fn make_view(
+    d: Vec3,
+    corners: &[Vec3; 8],
+    map_size: u32,
+    jitter: (f32, f32),
+    seed: u32,
+    mode: u32,
+) -> GpuView {
     // Right-handed camera looking along +d (as a look-at camera would): screen x = right,
     // screen y = up, so counter-clockwise front faces stay counter-clockwise on screen.
     let helper = if d.y.abs() < 0.9 { Vec3::Y } else { Vec3::X };
@@ -790,7 +797,7 @@ pub(crate) fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgp
     }
 }
 
-fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility: wgpu::ShaderStages::COMPUTE,
@@ -1826,32 +1833,39 @@ pub(crate) fn gpu_error(e: GpuError) -> EngineError {
 
 /// The scene in `sdb`'s terms, and notes on what it leaves out.
 pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<String>) {
-    let scene = &inputs.scene;
-    let atlas = &inputs.atlas;
-    let small = small_emitter_triangles(scene, params.map_size);
-    let mut notes = Vec::new();
+    let (mut input, mut notes) = scene_input(inputs);
+    let small = small_emitter_triangles(&inputs.scene, params.map_size);
     if !small.is_empty() {
         notes.push(format!(
             "sdb samples {} emitter triangle(s) smaller than two map pixels on the CPU (one shadow ray per texel a step)",
             small.len()
         ));
+        // They shine through the CPU sampler instead; in the map they still reflect and
+        // block.
+        for &i in &small {
+            input.triangles[i].emission = Vec3::ZERO;
+        }
+        input.small_emitters = Some(small_emitter_sampler(inputs, small));
     }
+    input.ambient = Some(ambient_mode(&inputs.scene, &inputs.atlas, inputs.seed));
+    (input, notes)
+}
+
+/// The scene, texel set and lighting in the terms of the map-based GPU passes (shared
+/// with `obscurance`), without `sdb`'s own additions (ambient mode, small emitters).
+pub fn scene_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
+    let scene = &inputs.scene;
+    let atlas = &inputs.atlas;
+    let mut notes = Vec::new();
     let triangles = scene
         .triangles
         .iter()
-        .enumerate()
-        .map(|(i, t)| {
+        .map(|t| {
             let m = scene.material(t);
             SdbTriangle {
                 p: t.p,
                 lm: t.lm,
-                // Small emitters shine through the CPU sampler instead; in the map they
-                // still reflect and block.
-                emission: if small.binary_search(&i).is_ok() {
-                    Vec3::ZERO
-                } else {
-                    m.emissive
-                },
+                emission: m.emissive,
                 emission_textured: m.emissive_texture.is_some(),
                 double_sided: m.double_sided,
                 mesh: t.mesh,
@@ -1908,8 +1922,8 @@ pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<Stri
         lights,
         seed: inputs.seed,
         want_direct: inputs.want_direct,
-        ambient: Some(ambient_mode(scene, atlas, inputs.seed)),
-        small_emitters: (!small.is_empty()).then(|| small_emitter_sampler(inputs, small)),
+        ambient: None,
+        small_emitters: None,
     };
     (input, notes)
 }
