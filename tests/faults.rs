@@ -125,7 +125,7 @@ fn sigkill_at_random_points_loses_no_job() {
             submitted.push(id);
         }
         std::thread::sleep(Duration::from_millis(50 + u64::from(rng.next_u32() % 550)));
-        if rng.next_u32() % 2 == 0 {
+        if rng.next_u32().is_multiple_of(2) {
             serve.kill().unwrap(); // SIGKILL
             serve.wait().unwrap();
             serve_kills += 1;

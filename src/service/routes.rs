@@ -52,7 +52,7 @@ pub const RETRY_AFTER_S: u64 = 10;
 #[openapi(
     info(
         title = "lightmapd",
-        description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7)."
+        description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7). With `serve --auth`, every route but /healthz needs `Authorization: Bearer TOKEN` (401 otherwise) and sees only that token's scenes and jobs. Any route may answer 408 (request timeout) or 413 (body over the limit); every error is application/problem+json."
     ),
     paths(
         upload_scene,
