@@ -437,3 +437,30 @@ async fn tokens_guard_every_route_and_keep_clients_apart() {
     assert_eq!(out.status.code(), Some(2), "revoking twice is bad input");
     s.running.shutdown().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_with_less_memory_fails_a_job_over_its_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    // The API accepts the job (its limit is the default 8 GiB)...
+    let s = Server::start(test_config(dir.path(), 0)).await;
+    let scene = s.upload(None).await;
+    let big = s
+        .submit(None, json!({"scene": scene, "resolution": 1024, "stop": {"steps": 1}}))
+        .await;
+    // ...a worker process with 200 MiB refuses it with the estimate, before baking.
+    let mut config = test_config(dir.path(), 1);
+    config.limits.max_job_memory_bytes = 200 << 20;
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let workers = tokio::spawn(lightmapd::service::run_workers(config, async {
+        let _ = stopped.await;
+    }));
+    let j = s.wait_end(&big).await;
+    assert_eq!(j["status"], "failed");
+    assert_eq!(
+        j["failure"],
+        "the job needs an estimated 272 MiB, more than this worker's limit of 200 MiB (--max-job-memory-mb)"
+    );
+    let _ = stop.send(());
+    workers.await.unwrap().unwrap();
+    s.running.shutdown().await;
+}

@@ -35,7 +35,7 @@ use crate::service::AppState;
 use crate::service::auth::Caller;
 use crate::service::model::{JobStatus, JobView};
 use crate::service::problem::Problem;
-use crate::service::routes::{RETRY_AFTER_S, find_job, job_view};
+use crate::service::routes::{find_job, job_view, retry_later};
 
 const POLL: Duration = Duration::from_millis(500);
 
@@ -60,18 +60,14 @@ pub async fn job_events(
     let changes = state.hub.changed.subscribe();
     let first = find_job(&state, &caller, &id).await?;
     let Ok(permit) = state.streams.clone().try_acquire_owned() else {
-        let mut resp = Problem::new(
+        return Ok(retry_later(
             StatusCode::SERVICE_UNAVAILABLE,
             "too-many-streams",
             format!(
                 "{} event streams are open, this server's limit (--max-event-streams); poll GET /v1/jobs/{id} or retry later",
                 state.config.limits.max_event_streams
             ),
-        )
-        .into_response();
-        resp.headers_mut()
-            .insert(axum::http::header::RETRY_AFTER, RETRY_AFTER_S.into());
-        return Ok(resp);
+        ));
     };
     let (tx, rx) = mpsc::channel::<Event>(16);
     tokio::spawn(async move {

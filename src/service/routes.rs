@@ -158,7 +158,7 @@ async fn problem_bodies(State(state): State<AppState>, resp: Response) -> Respon
 }
 
 /// 429 or 503 with `Retry-After`.
-fn retry_later(status: StatusCode, kind: &str, detail: String) -> Response {
+pub(crate) fn retry_later(status: StatusCode, kind: &str, detail: String) -> Response {
     let mut resp = Problem::new(status, kind, detail).into_response();
     resp.headers_mut()
         .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_S));
@@ -213,7 +213,6 @@ fn too_large(max: usize) -> Problem {
         (status = 201, description = "Stored", body = SceneView),
         (status = 200, description = "The same content was stored before: the same scene", body = SceneView),
         (status = 400, description = "Empty or malformed upload", body = Problem, content_type = "application/problem+json"),
-        (status = 413, description = "Larger than the server's limit", body = Problem, content_type = "application/problem+json"),
         (status = 401, description = "A bearer token is required (`serve --auth`)", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Larger than the server's limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither a .glb nor multipart", body = Problem, content_type = "application/problem+json"),
