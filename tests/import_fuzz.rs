@@ -8,7 +8,8 @@
 //! import with the service's caps, UV generation and the texel set; and the `.gltf` JSON
 //! form is truncated at every length and has whole values swapped for hostile ones.
 //! Every refusal must say something. `scripts/fuzz.sh` runs the same path under
-//! libFuzzer (fuzz/fuzz_targets/import.rs) for longer; inputs it finds belong here.
+//! libFuzzer (fuzz/fuzz_targets/import.rs) for longer; the inputs it found crashing are
+//! kept in tests/fuzz_regressions/ and replayed here.
 
 use std::sync::Arc;
 
@@ -255,4 +256,31 @@ fn truncated_and_rewritten_gltf_json_never_panics() {
     }
     eprintln!("{tried} rewritten .gltf documents");
     assert!(tried > 100);
+}
+
+/// Inputs libFuzzer found crashing (docs/reliability.md), replayed: each must now be
+/// refused with a message.
+#[test]
+fn fuzzer_findings_are_refused_with_a_message() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_regressions");
+    let mut n = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let bytes = std::fs::read(&path).unwrap();
+        assert!(
+            !never_panics(&bytes, &path.display().to_string()),
+            "{} imports",
+            path.display()
+        );
+        n += 1;
+    }
+    assert!(n >= 1);
+    // The first finding: a GLB header declaring a total length below its own 12 bytes,
+    // which gltf 1.4 subtracts from unchecked.
+    let bytes = std::fs::read(dir.join("glb-length-underflow.bin")).unwrap();
+    let err = import_slice(&bytes, None).unwrap_err().to_string();
+    assert_eq!(
+        err,
+        "not a glTF 2.0 file: broken GLB container: the header declares 0 bytes in all, less than the header itself"
+    );
 }

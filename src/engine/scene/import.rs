@@ -253,6 +253,19 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
             "neither a GLB header (\"glTF\" magic) nor a JSON document".into(),
         ));
     }
+    // gltf 1.4 subtracts the 12-byte header from the declared length unchecked (an
+    // overflow panic in builds with overflow checks; found by the fuzzer, issue 12).
+    if looks_binary {
+        let declared = bytes
+            .get(8..12)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .ok_or_else(|| ImportError::NotGltf("broken GLB container: the 12-byte header is cut short".into()))?;
+        if declared < 12 {
+            return Err(ImportError::NotGltf(format!(
+                "broken GLB container: the header declares {declared} bytes in all, less than the header itself"
+            )));
+        }
+    }
     let map_err = |e: gltf::Error| match e {
         gltf::Error::Binary(b) => ImportError::NotGltf(format!("broken GLB container: {b:?}")),
         gltf::Error::Deserialize(d) => ImportError::NotGltf(format!("JSON: {d}")),
