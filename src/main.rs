@@ -1,6 +1,7 @@
 //! `lightmapd`: the command line (DESIGN §9). `bake` runs the engine on one scene with no
 //! server; `example` writes the bundled example scenes; `serve` runs the bake service (API
-//! and workers), `worker` runs workers only, `submit` sends a scene to a server. Exit
+//! and workers), `worker` runs workers only, `submit` sends a scene to a server, `token`
+//! manages the bearer tokens of a server run with `--auth`. Exit
 //! codes: 0 success, 2 bad input (unreadable scene, bad option, a 4xx answer), 1 anything
 //! else.
 
@@ -48,6 +49,34 @@ enum Command {
     Worker(WorkerArgs),
     /// Upload a scene to a server, submit a bake, optionally wait and download the EXR.
     Submit(Box<SubmitArgs>),
+    /// Create, list or revoke the bearer tokens of a server run with `--auth`.
+    Token(TokenArgs),
+}
+
+#[derive(clap::Args)]
+struct TokenArgs {
+    #[command(subcommand)]
+    action: TokenAction,
+    /// The server's data folder (its database is DATA_DIR/lightmapd.db).
+    #[arg(long, default_value = "lightmapd-data", global = true)]
+    data_dir: PathBuf,
+    /// sqlite://FILE, when the server was given --database-url.
+    #[arg(long, global = true)]
+    database_url: Option<String>,
+}
+
+#[derive(Subcommand)]
+enum TokenAction {
+    /// Make a token; its secret is printed once, on stdout.
+    Create {
+        /// A name for people (who or what uses it).
+        #[arg(long)]
+        name: String,
+    },
+    /// Every token: id, name, created, revoked.
+    List,
+    /// Revoke a token by id or name.
+    Revoke { token: String },
 }
 
 #[derive(clap::Args)]
@@ -66,6 +95,9 @@ struct ServeArgs {
     /// Artifact folder (default: DATA_DIR/objects).
     #[arg(long)]
     store: Option<PathBuf>,
+    /// Require a bearer token (`lightmapd token create`) on every route but /healthz.
+    #[arg(long)]
+    auth: bool,
     #[command(flatten)]
     tuning: Tuning,
 }
@@ -86,9 +118,40 @@ struct WorkerArgs {
 
 #[derive(clap::Args)]
 struct Tuning {
-    /// Largest scene upload in bytes.
+    /// Largest scene upload in bytes (413 beyond).
     #[arg(long, default_value_t = 256 << 20)]
     max_scene_bytes: usize,
+    /// Largest other request body (a job) in bytes (413 beyond).
+    #[arg(long, default_value_t = 1 << 20)]
+    max_body_bytes: usize,
+    /// Most triangles in a scene, instances counted once each (422 beyond).
+    #[arg(long, default_value_t = 5_000_000)]
+    max_triangles: usize,
+    /// Largest texture width or height in pixels (422 beyond).
+    #[arg(long, default_value_t = 8192)]
+    max_texture_size: u32,
+    /// Largest lightmap side in texels (422 beyond).
+    #[arg(long, default_value_t = 4096)]
+    max_resolution: u32,
+    /// Longest bake; a job without stop.seconds gets this (422 beyond).
+    #[arg(long, default_value_t = 3600.0)]
+    max_job_seconds: f64,
+    /// Most steps of a bake (422 beyond).
+    #[arg(long, default_value_t = 1 << 20)]
+    max_job_steps: u64,
+    /// Queued jobs one client (token, or IP address without --auth) may have (429 beyond).
+    #[arg(long, default_value_t = 100)]
+    max_queued_per_client: u64,
+    /// Event streams open at once (503 beyond).
+    #[arg(long, default_value_t = 256)]
+    max_event_streams: usize,
+    /// A job's estimated peak memory in MiB; a bigger job is refused at submission, and
+    /// by a worker whose own limit is lower.
+    #[arg(long, default_value_t = 8192)]
+    max_job_memory_mb: u64,
+    /// Time to answer a request, in seconds (an event stream's body is not limited).
+    #[arg(long, default_value_t = 60.0)]
+    request_timeout_s: f64,
     /// A worker's claim on a job lasts this long without renewal; a job whose worker
     /// died is taken up again after it.
     #[arg(long, default_value_t = 30.0)]
@@ -139,6 +202,10 @@ struct SubmitArgs {
     /// Higher runs first.
     #[arg(long)]
     priority: Option<i32>,
+    /// Bearer token for a server run with --auth (default: $LIGHTMAPD_TOKEN, which keeps
+    /// it out of the process list).
+    #[arg(long)]
+    token: Option<String>,
 }
 
 #[derive(clap::Args)]
@@ -321,6 +388,7 @@ fn main() -> ExitCode {
         Command::Serve(args) => serve(args),
         Command::Worker(args) => worker(args),
         Command::Submit(args) => submit(*args),
+        Command::Token(args) => token(args),
         Command::Bake(args) => bake(*args),
         Command::Bench(args) => bench(args),
         Command::Example {
@@ -350,6 +418,34 @@ fn runtime() -> Result<tokio::runtime::Runtime, Failure> {
         })
 }
 
+fn limits(t: &Tuning) -> Result<service::Limits, Failure> {
+    if !(t.max_job_seconds.is_finite() && t.max_job_seconds > 0.0) {
+        return Err(bad_input(format!(
+            "--max-job-seconds must be a positive number, got {}",
+            t.max_job_seconds
+        )));
+    }
+    if !(t.request_timeout_s.is_finite() && t.request_timeout_s > 0.0) {
+        return Err(bad_input(format!(
+            "--request-timeout-s must be a positive number, got {}",
+            t.request_timeout_s
+        )));
+    }
+    Ok(service::Limits {
+        max_scene_bytes: t.max_scene_bytes,
+        max_body_bytes: t.max_body_bytes,
+        max_triangles: t.max_triangles,
+        max_texture_side: t.max_texture_size,
+        max_resolution: t.max_resolution,
+        max_job_seconds: t.max_job_seconds,
+        max_job_steps: t.max_job_steps,
+        max_queued_per_client: t.max_queued_per_client,
+        max_event_streams: t.max_event_streams,
+        max_job_memory_bytes: t.max_job_memory_mb.saturating_mul(1 << 20),
+        request_timeout: Duration::from_secs_f64(t.request_timeout_s),
+    })
+}
+
 fn tuning(t: &Tuning) -> Result<(Duration, Duration), Failure> {
     let positive = |v: f64, name: &str| {
         if v.is_finite() && v > 0.0 {
@@ -374,7 +470,8 @@ fn serve(args: ServeArgs) -> Result<(), Failure> {
         workers: args.workers,
         database_url: args.database_url,
         store: args.store,
-        max_scene_bytes: args.tuning.max_scene_bytes,
+        limits: limits(&args.tuning)?,
+        auth: args.auth,
         lease,
         snapshot_interval,
     };
@@ -407,7 +504,7 @@ fn worker(args: WorkerArgs) -> Result<(), Failure> {
         database_url: Some(args.database_url),
         store: Some(args.store.clone()),
         data_dir: args.store,
-        max_scene_bytes: args.tuning.max_scene_bytes,
+        limits: limits(&args.tuning)?,
         lease,
         snapshot_interval,
         ..service::Config::default()
@@ -485,6 +582,9 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
         job: job.into(),
         wait: args.wait,
         output: args.output,
+        token: args
+            .token
+            .or_else(|| std::env::var("LIGHTMAPD_TOKEN").ok().filter(|t| !t.is_empty())),
     };
     let job = runtime()?
         .block_on(service::client::submit(request))
@@ -495,6 +595,58 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
     // The job document on stdout, for scripts.
     println!("{}", serde_json::to_string(&job).unwrap_or_default());
     Ok(())
+}
+
+fn token(args: TokenArgs) -> Result<(), Failure> {
+    let config = service::Config {
+        data_dir: args.data_dir,
+        database_url: args.database_url,
+        ..service::Config::default()
+    };
+    let fail = |e: &dyn std::fmt::Display| Failure {
+        code: 1,
+        message: format!("token: {e}"),
+    };
+    runtime()?.block_on(async move {
+        let (queue, _) = service::open_backends(&config).await.map_err(|e| fail(&e))?;
+        match args.action {
+            TokenAction::Create { name } => {
+                if name.trim().is_empty() {
+                    return Err(bad_input("--name must not be empty"));
+                }
+                let (record, secret) = service::auth::create_token(&*queue, &name)
+                    .await
+                    .map_err(|e| fail(&e))?;
+                eprintln!("token {} ({name}) created; its secret is shown only now:", record.id);
+                println!("{secret}");
+            }
+            TokenAction::List => {
+                for t in queue.tokens().await.map_err(|e| fail(&e))? {
+                    let revoked = t
+                        .revoked_at
+                        .map(|ms| format!("revoked {}", service::model::rfc3339(ms)))
+                        .unwrap_or_else(|| "active".into());
+                    println!(
+                        "{}\t{}\tcreated {}\t{revoked}",
+                        t.id,
+                        t.name,
+                        service::model::rfc3339(t.created_at)
+                    );
+                }
+            }
+            TokenAction::Revoke { token } => {
+                if !queue
+                    .revoke_token(&token, service::queue::now_ms())
+                    .await
+                    .map_err(|e| fail(&e))?
+                {
+                    return Err(bad_input(format!("no active token with id or name {token:?}")));
+                }
+                eprintln!("token {token} revoked");
+            }
+        }
+        Ok(())
+    })
 }
 
 fn bake(args: BakeArgs) -> Result<(), Failure> {

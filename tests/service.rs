@@ -336,7 +336,7 @@ fn problem(status: u16, title: &str, kind: &str, detail: &str, field: Option<&st
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_error_status_has_its_problem_body() {
     // No workers: a job stays queued, which the 409 cases need.
-    let s = start(0, |c| c.max_scene_bytes = 64 << 10).await;
+    let s = start(0, |c| c.limits.max_scene_bytes = 64 << 10).await;
     let (h, u) = (&s.http, &s.url);
     let scene = s.upload().await;
     let job = s

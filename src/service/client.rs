@@ -33,6 +33,8 @@ pub struct Submit {
     pub wait: bool,
     /// Download the final lightmap here (implies `wait`).
     pub output: Option<PathBuf>,
+    /// A bearer token, for a server run with `--auth`.
+    pub token: Option<String>,
 }
 
 /// A failure and the exit code it earns (2: the server said the input is bad).
@@ -74,8 +76,16 @@ async fn check(resp: reqwest::Response, what: &str) -> Result<reqwest::Response,
 /// Runs the whole submission; returns the finished (or just queued) job.
 pub async fn submit(s: Submit) -> Result<JobView, ClientError> {
     let server = s.server.trim_end_matches('/').to_string();
+    let mut headers = reqwest::header::HeaderMap::new();
+    if let Some(t) = &s.token {
+        let mut v = reqwest::header::HeaderValue::from_str(&format!("Bearer {t}"))
+            .map_err(|_| fail(2, "the token has characters a header cannot carry"))?;
+        v.set_sensitive(true);
+        headers.insert(reqwest::header::AUTHORIZATION, v);
+    }
     let http = reqwest::Client::builder()
         .connect_timeout(Duration::from_secs(10))
+        .default_headers(headers)
         .build()
         .map_err(|e| fail(1, format!("HTTP client: {e}")))?;
 

@@ -14,22 +14,28 @@
 //! worker in another process changes it without telling us), and sends what differs
 //! from what it last sent.
 //!
+//! Each open stream holds one of the server's `max_event_streams` permits until it ends;
+//! past that a new stream is refused with 503 and `Retry-After`.
+//!
 //! Limits: intermediate progress between two reads is not replayed; a client that needs
 //! every snapshot reads `snapshots` from the job and fetches each by number.
 
 use std::convert::Infallible;
 use std::time::Duration;
 
+use axum::Extension;
 use axum::extract::{Path, State};
-use axum::response::IntoResponse;
+use axum::http::StatusCode;
 use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
 use serde_json::json;
 use tokio::sync::{broadcast, mpsc};
 
 use crate::service::AppState;
+use crate::service::auth::Caller;
 use crate::service::model::{JobStatus, JobView};
 use crate::service::problem::Problem;
-use crate::service::routes::job_view;
+use crate::service::routes::{find_job, job_view, retry_later};
 
 const POLL: Duration = Duration::from_millis(500);
 
@@ -41,23 +47,39 @@ const POLL: Duration = Duration::from_millis(500);
     params(("id" = String, Path, description = "Job id")),
     responses(
         (status = 200, description = "Server-sent events: status, progress, snapshot, done, failed, cancelled", content_type = "text/event-stream", body = String),
-        (status = 404, body = Problem, content_type = "application/problem+json")
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Too many event streams are open (`--max-event-streams`); `Retry-After` says when to try again", body = Problem, content_type = "application/problem+json")
     )
 )]
-pub async fn job_events(State(state): State<AppState>, Path(id): Path<String>) -> Result<impl IntoResponse, Problem> {
+pub async fn job_events(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, Problem> {
     // Subscribe before the first read, so no change between the two is missed.
     let changes = state.hub.changed.subscribe();
-    let first = state
-        .queue
-        .job(&id)
-        .await?
-        .ok_or_else(|| Problem::not_found("job", &id))?;
+    let first = find_job(&state, &caller, &id).await?;
+    let Ok(permit) = state.streams.clone().try_acquire_owned() else {
+        return Ok(retry_later(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-streams",
+            format!(
+                "{} event streams are open, this server's limit (--max-event-streams); poll GET /v1/jobs/{id} or retry later",
+                state.config.limits.max_event_streams
+            ),
+        ));
+    };
     let (tx, rx) = mpsc::channel::<Event>(16);
-    tokio::spawn(follow(state, id, job_view(&first), changes, tx));
+    tokio::spawn(async move {
+        follow(state, id, job_view(&first), changes, tx).await;
+        drop(permit);
+    });
     let stream = futures_util::stream::unfold(rx, |mut rx| async move {
         rx.recv().await.map(|e| (Ok::<_, Infallible>(e), rx))
     });
-    Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
+    Ok(Sse::new(stream)
+        .keep_alive(KeepAlive::new().interval(Duration::from_secs(15)))
+        .into_response())
 }
 
 fn event(name: &str, data: serde_json::Value) -> Event {

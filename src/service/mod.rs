@@ -13,9 +13,16 @@
 //! job) make one process react at once; across processes the same things are found by
 //! polling the database, a little later.
 //!
+//! Hostile clients (issue 12): every size and budget a request can ask for is capped by
+//! [`Limits`] (413 for bodies, 422 naming the field, 429 with `Retry-After` for a full
+//! per-client queue, 503 for too many event streams); [`auth`] adds optional bearer
+//! tokens; every request has a time limit; artifacts are written to a temporary file,
+//! synced, then renamed, before the job that made them is marked succeeded.
+//!
 //! Limits: only SQLite and a local directory are wired up (PostgreSQL and S3 are issue 11),
 //! so several processes must share one machine today.
 
+pub mod auth;
 pub mod client;
 pub mod events;
 pub mod metrics;
@@ -52,8 +59,10 @@ pub struct Config {
     pub database_url: Option<String>,
     /// A directory for artifacts (S3 URLs follow with issue 11).
     pub store: Option<PathBuf>,
-    /// Largest scene upload, in bytes (413 beyond).
-    pub max_scene_bytes: usize,
+    /// What one client may ask of the server.
+    pub limits: Limits,
+    /// Require a bearer token on every route but `/healthz` (`lightmapd token create`).
+    pub auth: bool,
     /// How long a worker's claim on a job lasts without renewal.
     pub lease: Duration,
     /// Longest time between stored snapshot EXRs of a running bake.
@@ -68,9 +77,56 @@ impl Default for Config {
             workers: 1,
             database_url: None,
             store: None,
-            max_scene_bytes: 256 << 20,
+            limits: Limits::default(),
+            auth: false,
             lease: Duration::from_secs(30),
             snapshot_interval: Duration::from_secs(2),
+        }
+    }
+}
+
+/// Caps on what a request may ask for; each is a `serve` flag (docs/service.md).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Limits {
+    /// Largest scene upload, in bytes (413 beyond).
+    pub max_scene_bytes: usize,
+    /// Largest other request body (a job), in bytes (413 beyond).
+    pub max_body_bytes: usize,
+    /// Triangles of an uploaded scene after flattening its node tree (422 `triangles`).
+    pub max_triangles: usize,
+    /// Width and height of each texture (422 `textures`).
+    pub max_texture_side: u32,
+    /// Lightmap side (422 `resolution`).
+    pub max_resolution: u32,
+    /// A job's `stop.seconds`; a job without one gets this (422 `stop.seconds` beyond).
+    pub max_job_seconds: f64,
+    /// A job's `stop.steps` (422 `stop.steps` beyond).
+    pub max_job_steps: u64,
+    /// Queued jobs one client may have (429 beyond).
+    pub max_queued_per_client: u64,
+    /// Event streams open at once on this server (503 beyond).
+    pub max_event_streams: usize,
+    /// A job's estimated peak memory (`engine::footprint`); more is refused at submission
+    /// (422 `resolution`) and by a worker whose own limit is lower.
+    pub max_job_memory_bytes: u64,
+    /// Time to answer a request (the headers; an event stream's body is not limited).
+    pub request_timeout: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_scene_bytes: 256 << 20,
+            max_body_bytes: 1 << 20,
+            max_triangles: 5_000_000,
+            max_texture_side: 8192,
+            max_resolution: model::MAX_SERVICE_RESOLUTION,
+            max_job_seconds: 3600.0,
+            max_job_steps: 1 << 20,
+            max_queued_per_client: 100,
+            max_event_streams: 256,
+            max_job_memory_bytes: 8 << 30,
+            request_timeout: Duration::from_secs(60),
         }
     }
 }
@@ -170,6 +226,22 @@ pub struct AppState {
     pub config: Arc<Config>,
     /// Becomes `true` when the process is shutting down.
     pub shutdown: watch::Receiver<bool>,
+    /// One permit per open event stream (`Limits::max_event_streams`).
+    pub streams: Arc<tokio::sync::Semaphore>,
+}
+
+impl AppState {
+    fn new(queue: Arc<dyn Queue>, artifacts: Artifacts, config: &Config, shutdown: watch::Receiver<bool>) -> AppState {
+        AppState {
+            queue,
+            artifacts,
+            metrics: Arc::new(Metrics::default()),
+            hub: Arc::new(Hub::default()),
+            streams: Arc::new(tokio::sync::Semaphore::new(config.limits.max_event_streams)),
+            config: Arc::new(config.clone()),
+            shutdown,
+        }
+    }
 }
 
 /// Opens the queue and the store the configuration names.
@@ -216,15 +288,13 @@ impl Running {
 /// Starts the API and `config.workers` workers; returns once the socket is bound.
 pub async fn start(config: Config) -> anyhow::Result<Running> {
     let (queue, artifacts) = open_backends(&config).await?;
+    start_with(config, queue, artifacts).await
+}
+
+/// [`start`] over a queue and store made by the caller (fault-injection tests wrap them).
+pub async fn start_with(config: Config, queue: Arc<dyn Queue>, artifacts: Artifacts) -> anyhow::Result<Running> {
     let (tx, rx) = watch::channel(false);
-    let state = AppState {
-        queue,
-        artifacts,
-        metrics: Arc::new(Metrics::default()),
-        hub: Arc::new(Hub::default()),
-        config: Arc::new(config.clone()),
-        shutdown: rx.clone(),
-    };
+    let state = AppState::new(queue, artifacts, &config, rx.clone());
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
     tasks.extend(worker::spawn_pool(
         &state,
@@ -236,7 +306,8 @@ pub async fn start(config: Config) -> anyhow::Result<Running> {
     let app = routes::router(state.clone());
     let mut stop = rx.clone();
     tasks.push(tokio::spawn(async move {
-        let served = axum::serve(listener, app)
+        // The peer address feeds the per-client queue limit when tokens are off.
+        let served = axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>())
             .with_graceful_shutdown(async move { shutting_down(&mut stop).await })
             .await;
         if let Err(e) = served {
@@ -255,14 +326,7 @@ pub async fn start(config: Config) -> anyhow::Result<Running> {
 pub async fn run_workers(config: Config, shutdown: impl std::future::Future<Output = ()>) -> anyhow::Result<()> {
     let (queue, artifacts) = open_backends(&config).await?;
     let (tx, rx) = watch::channel(false);
-    let state = AppState {
-        queue,
-        artifacts,
-        metrics: Arc::new(Metrics::default()),
-        hub: Arc::new(Hub::default()),
-        config: Arc::new(config.clone()),
-        shutdown: rx,
-    };
+    let state = AppState::new(queue, artifacts, &config, rx);
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
     tasks.extend(worker::spawn_pool(
         &state,

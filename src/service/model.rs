@@ -7,6 +7,10 @@
 //! The service types are separate from the engine's so the wire format (degrees, plain
 //! arrays) can stay fixed while the engine changes, and so the engine needs no OpenAPI.
 //!
+//! The server's [`Limits`] apply on top of the engine's ranges: `resolution`,
+//! `stop.steps` and `stop.seconds` are capped, and a job whose `stop` has no `seconds`
+//! gets the server's budget as its `seconds`, so no job can run unbounded.
+//!
 //! Limits: technique parameters (`params`) are checked by the technique when the job
 //! runs, not at submission; a bad one fails the job with the technique's message.
 
@@ -20,6 +24,7 @@ use crate::engine::job::BakeRequest;
 use crate::engine::output::OutputLayer;
 use crate::engine::scene::{Hemisphere, Lighting, Sky, Sun};
 use crate::engine::technique::TECHNIQUES;
+use crate::service::Limits;
 use crate::service::problem::Problem;
 
 /// The largest lightmap side the service accepts (the engine's own limit is higher, but
@@ -131,9 +136,15 @@ fn default_sun_diameter() -> f32 {
 }
 
 impl JobSpec {
-    /// Parses a request body: malformed JSON is 400, anything else wrong is 422 naming the
-    /// field.
+    /// Parses a request body under the default limits.
     pub fn parse(body: &[u8]) -> Result<JobSpec, Problem> {
+        JobSpec::parse_with(body, &Limits::default())
+    }
+
+    /// Parses a request body: malformed JSON is 400, anything else wrong (a range, a
+    /// server limit) is 422 naming the field. A `stop` without `seconds` gets
+    /// `limits.max_job_seconds`.
+    pub fn parse_with(body: &[u8], limits: &Limits) -> Result<JobSpec, Problem> {
         let de = &mut serde_json::Deserializer::from_slice(body);
         let spec: JobSpec = serde_path_to_error::deserialize(de).map_err(|e| {
             let path = e.path().to_string();
@@ -158,12 +169,16 @@ impl JobSpec {
             };
             Problem::invalid_field(field, msg)
         })?;
-        spec.validate()?;
+        let mut spec = spec;
+        spec.validate(limits)?;
+        if spec.stop.seconds.is_none() {
+            spec.stop.seconds = Some(limits.max_job_seconds);
+        }
         Ok(spec)
     }
 
-    /// The engine's ranges, each failure naming its field.
-    pub fn validate(&self) -> Result<(), Problem> {
+    /// The engine's ranges and the server's limits, each failure naming its field.
+    pub fn validate(&self, limits: &Limits) -> Result<(), Problem> {
         if self.scene.trim().is_empty() {
             return Err(Problem::invalid_field("scene", "scene must be a scene id"));
         }
@@ -177,13 +192,11 @@ impl JobSpec {
                 ),
             ));
         }
-        if !(1..=MAX_SERVICE_RESOLUTION).contains(&self.resolution) {
+        let max_res = limits.max_resolution.min(crate::engine::atlas::MAX_RESOLUTION);
+        if !(1..=max_res).contains(&self.resolution) {
             return Err(Problem::invalid_field(
                 "resolution",
-                format!(
-                    "resolution must be between 1 and {MAX_SERVICE_RESOLUTION}, got {}",
-                    self.resolution
-                ),
+                format!("resolution must be between 1 and {max_res}, got {}", self.resolution),
             ));
         }
         for (i, o) in self.outputs.iter().enumerate() {
@@ -203,6 +216,28 @@ impl JobSpec {
             .stop
             .validate()
             .map_err(|e| Problem::invalid_field(leading_field(&e.to_string()), e.to_string()))?;
+        if let Some(n) = self.stop.steps
+            && n > limits.max_job_steps
+        {
+            return Err(Problem::invalid_field(
+                "stop.steps",
+                format!(
+                    "stop.steps must be at most {} on this server (--max-job-steps), got {n}",
+                    limits.max_job_steps
+                ),
+            ));
+        }
+        if let Some(t) = self.stop.seconds
+            && t > limits.max_job_seconds
+        {
+            return Err(Problem::invalid_field(
+                "stop.seconds",
+                format!(
+                    "stop.seconds must be at most {} on this server (--max-job-seconds), got {t}",
+                    limits.max_job_seconds
+                ),
+            ));
+        }
         Ok(())
     }
 
@@ -502,6 +537,32 @@ mod tests {
         assert_eq!(s.resolution, 256);
         assert_eq!(s.stop.steps, Some(4096));
         assert_eq!(s.priority, 0);
+    }
+
+    #[test]
+    fn server_limits_cap_the_budget_and_fill_in_seconds() {
+        let limits = Limits {
+            max_job_steps: 100,
+            max_job_seconds: 10.0,
+            max_resolution: 64,
+            ..Limits::default()
+        };
+        let parse = |b: &str| JobSpec::parse_with(b.as_bytes(), &limits);
+        let s = parse(r#"{"scene":"a","resolution":64,"stop":{"steps":100}}"#).unwrap();
+        assert_eq!((s.stop.steps, s.stop.seconds), (Some(100), Some(10.0)));
+        let s = parse(r#"{"scene":"a","resolution":8,"stop":{"target_error":0.1,"seconds":2}}"#).unwrap();
+        assert_eq!(s.stop.seconds, Some(2.0));
+        for (body, field) in [
+            (r#"{"scene":"a","resolution":8,"stop":{"steps":101}}"#, "stop.steps"),
+            (
+                r#"{"scene":"a","resolution":8,"stop":{"seconds":10.5}}"#,
+                "stop.seconds",
+            ),
+            (r#"{"scene":"a","resolution":65}"#, "resolution"),
+        ] {
+            let p = parse(body).unwrap_err();
+            assert_eq!((p.status, p.field.as_deref()), (422, Some(field)), "{body}");
+        }
     }
 
     #[test]

@@ -9,12 +9,23 @@
 //! after). The scene is imported before it is stored: a bad one gets 422 with the
 //! importer's message and nothing is kept.
 //!
+//! Every route gets a [`Caller`] from [`auth::authenticate`]; with tokens on, a scene or
+//! job of another token is answered exactly like a missing one (404). Scene ids come
+//! from the content (and the owning token), job ids are random UUIDs: nothing a client
+//! sends becomes a filesystem path, and part names of a multipart upload must be plain
+//! file names (no folders, no leading dot, no control characters, at most 255 bytes).
+//!
+//! Every error leaves as problem+json: handlers return [`Problem`], and
+//! [`problem_bodies`] rewrites the plain-text answers axum and tower-http produce on
+//! their own (a malformed path or query, a body over the limit, a timeout).
+//!
 //! Limits: uploads are buffered in memory up to `max_scene_bytes`; `.gltf` URIs must be
 //! data URIs or the plain names of uploaded parts (no folders), so an upload can never
 //! make the server read its own files.
 
 use std::collections::HashMap;
 
+use axum::Extension;
 use axum::Router;
 use axum::body::Body;
 use axum::extract::{DefaultBodyLimit, FromRequest, Multipart, Path, Query, Request, State};
@@ -25,19 +36,23 @@ use bytes::Bytes;
 use sha2::{Digest, Sha256};
 use utoipa::OpenApi;
 
+use crate::service::auth::{self, Caller};
 use crate::service::model::{
     Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339, uri_file_name,
 };
-use crate::service::problem::Problem;
-use crate::service::queue::{Cancellation, JobRecord, SceneDeletion, SceneRecord, now_ms};
-use crate::service::worker::{SceneFiles, import_files};
+use crate::service::problem::{PROBLEM_JSON, Problem};
+use crate::service::queue::{Cancellation, Enqueued, JobRecord, SceneDeletion, SceneRecord, now_ms};
+use crate::service::worker::{ImportFailure, SceneFiles, import_files, job_memory};
 use crate::service::{AppState, StopSignal, events, store};
+
+/// What a client told to come back later is told to wait, in seconds.
+pub const RETRY_AFTER_S: u64 = 10;
 
 #[derive(OpenApi)]
 #[openapi(
     info(
         title = "lightmapd",
-        description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7)."
+        description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7). With `serve --auth`, every route but /healthz needs `Authorization: Bearer TOKEN` (401 otherwise) and sees only that token's scenes and jobs. Any route may answer 408 (request timeout) or 413 (body over the limit); every error is application/problem+json."
     ),
     paths(
         upload_scene,
@@ -63,12 +78,13 @@ use crate::service::{AppState, StopSignal, events, store};
 pub struct ApiDoc;
 
 pub fn router(state: AppState) -> Router {
-    let max = state.config.max_scene_bytes;
+    let limits = &state.config.limits;
+    let max = limits.max_scene_bytes;
     Router::new()
         .route(
             "/v1/scenes",
-            // The limit is enforced (as a 413 problem) by the handler; axum's own default
-            // of 2 MiB must not cut in first.
+            // The limit is enforced (as a 413 problem) by the handler; the general body
+            // limit below must not cut in first.
             post(upload_scene).layer(DefaultBodyLimit::max(max.saturating_add(1 << 20))),
         )
         .route("/v1/scenes/{id}", get(get_scene).delete(delete_scene))
@@ -85,7 +101,68 @@ pub fn router(state: AppState) -> Router {
         .route("/", get(dashboard))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
+        // Innermost first: body limit, caller, time limit, then plain-text errors of
+        // any of them (or of axum's extractors) rewritten as problem+json.
+        .layer(DefaultBodyLimit::max(limits.max_body_bytes))
+        .layer(axum::middleware::from_fn_with_state(state.clone(), auth::authenticate))
+        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            limits.request_timeout,
+        ))
+        .layer(axum::middleware::map_response_with_state(state.clone(), problem_bodies))
         .with_state(state)
+}
+
+/// Rewrites an error answer that is not problem+json (axum's extractor rejections, the
+/// body limit, the timeout) into one, keeping its status and saying what it was.
+async fn problem_bodies(State(state): State<AppState>, resp: Response) -> Response {
+    let status = resp.status();
+    let is_problem = resp
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(PROBLEM_JSON.as_bytes()));
+    if !(status.is_client_error() || status.is_server_error()) || is_problem {
+        return resp;
+    }
+    let limits = &state.config.limits;
+    let (_, body) = resp.into_parts();
+    let text = axum::body::to_bytes(body, 16 << 10).await.unwrap_or_default();
+    let text = String::from_utf8_lossy(&text).trim().to_string();
+    let (kind, detail) = match status {
+        StatusCode::PAYLOAD_TOO_LARGE => (
+            "too-large",
+            format!(
+                "the request body is larger than this server's limit of {} bytes (--max-body-bytes)",
+                limits.max_body_bytes
+            ),
+        ),
+        StatusCode::REQUEST_TIMEOUT => (
+            "timeout",
+            format!(
+                "the request took longer than this server's limit of {} s (--request-timeout-s)",
+                limits.request_timeout.as_secs_f64()
+            ),
+        ),
+        StatusCode::BAD_REQUEST => ("bad-request", text),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => ("unsupported-media-type", text),
+        StatusCode::UNPROCESSABLE_ENTITY => ("invalid-field", text),
+        s if s.is_server_error() => ("internal", text),
+        _ => ("client-error", text),
+    };
+    let detail = if detail.is_empty() {
+        status.canonical_reason().unwrap_or("error").to_string()
+    } else {
+        detail
+    };
+    Problem::new(status, kind, detail).into_response()
+}
+
+/// 429 or 503 with `Retry-After`.
+pub(crate) fn retry_later(status: StatusCode, kind: &str, detail: String) -> Response {
+    let mut resp = Problem::new(status, kind, detail).into_response();
+    resp.headers_mut()
+        .insert(header::RETRY_AFTER, HeaderValue::from(RETRY_AFTER_S));
+    resp
 }
 
 async fn not_found(req: Request) -> Problem {
@@ -136,13 +213,18 @@ fn too_large(max: usize) -> Problem {
         (status = 201, description = "Stored", body = SceneView),
         (status = 200, description = "The same content was stored before: the same scene", body = SceneView),
         (status = 400, description = "Empty or malformed upload", body = Problem, content_type = "application/problem+json"),
+        (status = 401, description = "A bearer token is required (`serve --auth`)", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Larger than the server's limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither a .glb nor multipart", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "The importer rejected the scene", body = Problem, content_type = "application/problem+json")
+        (status = 422, description = "The importer rejected the scene, or it is over a limit (`field`: `triangles`, `textures`)", body = Problem, content_type = "application/problem+json")
     )
 )]
-async fn upload_scene(State(state): State<AppState>, req: Request) -> Result<Response, Problem> {
-    let max = state.config.max_scene_bytes;
+async fn upload_scene(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    req: Request,
+) -> Result<Response, Problem> {
+    let max = state.config.limits.max_scene_bytes;
     if let Some(len) = req
         .headers()
         .get(header::CONTENT_LENGTH)
@@ -192,7 +274,18 @@ async fn upload_scene(State(state): State<AppState>, req: Request) -> Result<Res
         h.update(bytes);
     }
     let digest: String = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
-    let id = digest[..32].to_string();
+    // With tokens, each token has its own scenes: the id also hashes the owner, so the
+    // same bytes from two tokens are two scenes and neither learns of the other's.
+    let id = match &caller.token {
+        None => digest[..32].to_string(),
+        Some(t) => {
+            let owned: String = Sha256::digest(format!("{t}:{digest}").as_bytes())
+                .iter()
+                .map(|b| format!("{b:02x}"))
+                .collect();
+            owned[..32].to_string()
+        }
+    };
 
     if let Some(existing) = state.queue.scene(&id).await? {
         return Ok((StatusCode::OK, axum::Json(scene_view(&existing))).into_response());
@@ -204,10 +297,20 @@ async fn upload_scene(State(state): State<AppState>, req: Request) -> Result<Res
         SceneFiles::Gltf(main.clone(), files.clone())
     };
     // Import is CPU work: off the runtime's threads.
-    let imported = tokio::task::spawn_blocking(move || import_files(&scene_files).map(|(_, report)| report))
+    let limits = state.config.limits.clone();
+    let imported = tokio::task::spawn_blocking(move || import_files(&scene_files, &limits).map(|(_, r)| r))
         .await
         .map_err(Problem::internal)?;
-    let report = imported.map_err(|msg| Problem::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid-scene", msg))?;
+    let report = imported.map_err(|e| match e {
+        ImportFailure::Limit { what, detail } => {
+            let (field, flag) = match what {
+                "triangles" => ("triangles", "--max-triangles"),
+                _ => ("textures", "--max-texture-size"),
+            };
+            Problem::invalid_field(field, format!("{detail} of this server ({flag})"))
+        }
+        ImportFailure::Invalid(msg) => Problem::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid-scene", msg),
+    })?;
 
     for (name, bytes) in &files {
         state
@@ -224,6 +327,7 @@ async fn upload_scene(State(state): State<AppState>, req: Request) -> Result<Res
         size_bytes: files.iter().map(|(_, b)| b.len() as u64).sum(),
         report: serde_json::to_value(&report).map_err(Problem::internal)?,
         created_at: now_ms(),
+        client: caller.token.clone(),
     };
     let created = state.queue.insert_scene(&rec).await?;
     tracing::info!(scene = %id, format, triangles = report.triangles, "scene stored");
@@ -256,7 +360,13 @@ async fn read_gltf_parts(mut mp: Multipart, max: usize) -> Result<(Vec<(String, 
             .or(field.name())
             .map(str::to_string)
             .unwrap_or_default();
-        if name.is_empty() || name.contains(['/', '\\']) || name.starts_with('.') {
+        // The name becomes a file in a temporary folder at import: a plain name only.
+        if name.is_empty()
+            || name.len() > 255
+            || name.contains(['/', '\\', ':'])
+            || name.starts_with('.')
+            || name.chars().any(char::is_control)
+        {
             return Err(Problem::invalid_field(
                 "files",
                 format!("part name {name:?}: give each part the plain file name the .gltf uses"),
@@ -344,10 +454,19 @@ fn scene_view(s: &SceneRecord) -> SceneView {
         (status = 404, body = Problem, content_type = "application/problem+json")
     )
 )]
-async fn get_scene(State(state): State<AppState>, Path(id): Path<String>) -> Result<axum::Json<SceneView>, Problem> {
-    match state.queue.scene(&id).await? {
-        Some(s) => Ok(axum::Json(scene_view(&s))),
-        None => Err(Problem::not_found("scene", &id)),
+async fn get_scene(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<axum::Json<SceneView>, Problem> {
+    Ok(axum::Json(scene_view(&find_scene(&state, &caller, &id).await?)))
+}
+
+/// The scene, if it exists and the caller may see it (else 404 either way).
+async fn find_scene(state: &AppState, caller: &Caller, id: &str) -> Result<SceneRecord, Problem> {
+    match state.queue.scene(id).await? {
+        Some(s) if caller.owns(s.client.as_deref()) => Ok(s),
+        _ => Err(Problem::not_found("scene", id)),
     }
 }
 
@@ -363,7 +482,12 @@ async fn get_scene(State(state): State<AppState>, Path(id): Path<String>) -> Res
         (status = 409, description = "A queued or running job uses it", body = Problem, content_type = "application/problem+json")
     )
 )]
-async fn delete_scene(State(state): State<AppState>, Path(id): Path<String>) -> Result<StatusCode, Problem> {
+async fn delete_scene(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, Problem> {
+    find_scene(&state, &caller, &id).await?;
     match state.queue.delete_scene(&id).await? {
         SceneDeletion::Deleted => {
             state.artifacts.delete_prefix(&store::scene_prefix(&id)).await?;
@@ -385,11 +509,18 @@ async fn delete_scene(State(state): State<AppState>, Path(id): Path<String>) -> 
     responses(
         (status = 202, description = "Queued", body = JobCreated),
         (status = 400, description = "Not JSON", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "The body is over `--max-body-bytes`", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Not application/json", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "A field is invalid (`field` names it), or the scene does not exist", body = Problem, content_type = "application/problem+json")
+        (status = 422, description = "A field is invalid or over a server limit (`field` names it; an estimated memory over the limit names `resolution`), or the scene does not exist", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "The client already has `--max-queued-per-client` queued jobs; `Retry-After` says when to try again", body = Problem, content_type = "application/problem+json")
     )
 )]
-async fn create_job(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Response, Problem> {
+async fn create_job(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Response, Problem> {
     let ct = content_type(&headers);
     if !(ct.is_empty() || ct == "application/json") {
         return Err(Problem::new(
@@ -398,11 +529,44 @@ async fn create_job(State(state): State<AppState>, headers: HeaderMap, body: Byt
             format!("content type {ct:?}: send the job as application/json"),
         ));
     }
-    let spec = JobSpec::parse(&body)?;
+    let limits = &state.config.limits;
+    let spec = JobSpec::parse_with(&body, limits)?;
+    let no_scene = || Problem::invalid_field("scene", format!("no scene with id {:?}; upload it first", spec.scene));
+    let scene = match state.queue.scene(&spec.scene).await? {
+        Some(s) if caller.owns(s.client.as_deref()) => s,
+        _ => return Err(no_scene()),
+    };
+    let need = job_memory(&scene.report, &spec);
+    if need > limits.max_job_memory_bytes {
+        return Err(Problem::invalid_field(
+            "resolution",
+            format!(
+                "the job needs an estimated {} MiB ({}² texels, {} triangles), more than this server's limit of {} MiB per job (--max-job-memory-mb): lower the resolution",
+                need >> 20,
+                spec.resolution,
+                scene.report["triangles"],
+                limits.max_job_memory_bytes >> 20
+            ),
+        ));
+    }
     let id = uuid::Uuid::new_v4().to_string();
-    let job = state.queue.enqueue(&id, &spec, now_ms()).await?.ok_or_else(|| {
-        Problem::invalid_field("scene", format!("no scene with id {:?}; upload it first", spec.scene))
-    })?;
+    let job = match state
+        .queue
+        .enqueue(&id, &spec, &caller.client, limits.max_queued_per_client, now_ms())
+        .await?
+    {
+        Enqueued::Queued(job) => job,
+        Enqueued::NoScene => return Err(no_scene()),
+        Enqueued::QueueFull(n) => {
+            return Ok(retry_later(
+                StatusCode::TOO_MANY_REQUESTS,
+                "too-many-jobs",
+                format!(
+                    "{n} of your jobs are queued, this server's limit per client (--max-queued-per-client); retry when one has started"
+                ),
+            ));
+        }
+    };
     state.hub.work.notify_one();
     tracing::info!(job = %id, technique = %spec.technique, scene = %spec.scene, "job queued");
     let mut resp = (
@@ -458,6 +622,7 @@ pub fn job_view(j: &JobRecord) -> JobView {
 )]
 async fn list_jobs(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Query(q): Query<HashMap<String, String>>,
 ) -> Result<axum::Json<JobList>, Problem> {
     for k in q.keys() {
@@ -491,7 +656,7 @@ async fn list_jobs(
             .parse::<u64>()
             .map_err(|_| Problem::invalid_field("offset", format!("offset must be a whole number >= 0, got {s:?}")))?,
     };
-    let (jobs, total) = state.queue.list(status, limit, offset).await?;
+    let (jobs, total) = state.queue.list(status, caller.token.as_deref(), limit, offset).await?;
     Ok(axum::Json(JobList {
         jobs: jobs.iter().map(job_view).collect(),
         total,
@@ -500,8 +665,12 @@ async fn list_jobs(
     }))
 }
 
-async fn find_job(state: &AppState, id: &str) -> Result<JobRecord, Problem> {
-    state.queue.job(id).await?.ok_or_else(|| Problem::not_found("job", id))
+/// The job, if it exists and the caller may see it (else 404 either way).
+pub async fn find_job(state: &AppState, caller: &Caller, id: &str) -> Result<JobRecord, Problem> {
+    match state.queue.job(id).await? {
+        Some(j) if caller.owns(j.client.as_deref()) => Ok(j),
+        _ => Err(Problem::not_found("job", id)),
+    }
 }
 
 /// A job's status, progress, plan, error history and failure reason.
@@ -515,8 +684,12 @@ async fn find_job(state: &AppState, id: &str) -> Result<JobRecord, Problem> {
         (status = 404, body = Problem, content_type = "application/problem+json")
     )
 )]
-async fn get_job(State(state): State<AppState>, Path(id): Path<String>) -> Result<axum::Json<JobView>, Problem> {
-    Ok(axum::Json(job_view(&find_job(&state, &id).await?)))
+async fn get_job(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<axum::Json<JobView>, Problem> {
+    Ok(axum::Json(job_view(&find_job(&state, &caller, &id).await?)))
 }
 
 /// Cancel a job: a queued one at once, a running one within one bake step.
@@ -531,7 +704,12 @@ async fn get_job(State(state): State<AppState>, Path(id): Path<String>) -> Resul
         (status = 409, description = "The job has already finished", body = Problem, content_type = "application/problem+json")
     )
 )]
-async fn cancel_job(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
+async fn cancel_job(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, Problem> {
+    find_job(&state, &caller, &id).await?;
     match state.queue.cancel(&id, now_ms()).await? {
         Cancellation::NotFound => return Err(Problem::not_found("job", &id)),
         Cancellation::AlreadyFinished(s) => {
@@ -547,7 +725,7 @@ async fn cancel_job(State(state): State<AppState>, Path(id): Path<String>) -> Re
         }
     }
     state.hub.job_changed(&id);
-    let job = find_job(&state, &id).await?;
+    let job = find_job(&state, &caller, &id).await?;
     Ok((StatusCode::ACCEPTED, axum::Json(job_view(&job))).into_response())
 }
 
@@ -581,10 +759,11 @@ fn binary(bytes: Bytes, content_type: &'static str, filename: Option<String>) ->
 )]
 async fn get_lightmap(
     State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
     Query(q): Query<HashMap<String, String>>,
 ) -> Result<Response, Problem> {
-    let job = find_job(&state, &id).await?;
+    let job = find_job(&state, &caller, &id).await?;
     let key = match q.get("snapshot").map(String::as_str) {
         None => {
             if job.status != JobStatus::Succeeded {
@@ -640,8 +819,12 @@ async fn get_lightmap(
         (status = 404, description = "No such job, or no snapshot yet", body = Problem, content_type = "application/problem+json")
     )
 )]
-async fn get_preview(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
-    let job = find_job(&state, &id).await?;
+async fn get_preview(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, Problem> {
+    let job = find_job(&state, &caller, &id).await?;
     let key = if job.status == JobStatus::Succeeded {
         store::final_png(&id)
     } else if job.snapshots > 0 {
@@ -674,8 +857,12 @@ async fn get_preview(State(state): State<AppState>, Path(id): Path<String>) -> R
         (status = 409, description = "The job has not succeeded", body = Problem, content_type = "application/problem+json")
     )
 )]
-async fn get_generated_scene(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
-    let job = find_job(&state, &id).await?;
+async fn get_generated_scene(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, Problem> {
+    let job = find_job(&state, &caller, &id).await?;
     if job.status != JobStatus::Succeeded {
         return Err(Problem::conflict(format!(
             "job {id} is {}; the scene with generated UVs comes with the final lightmap",

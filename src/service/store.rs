@@ -13,6 +13,12 @@
 //! jobs/{job}/scene.glb             the scene with generated lightmap UVs (when it had none)
 //! ```
 //!
+//! Durability: the local store writes each object to a temporary file beside it
+//! (`NAME#N`), syncs it, renames it over the name and syncs the folder
+//! (`LocalFileSystem::with_fsync`), so an object is either absent or whole, even after a
+//! crash or a power cut; workers store the final EXR before they mark a job succeeded.
+//! A crash between write and rename can leave a `NAME#N` file, never a short `NAME`.
+//!
 //! Limits: whole objects are buffered in memory (lightmaps are megabytes, not gigabytes).
 //! Only the local filesystem is wired up; `--store` takes a directory today.
 
@@ -38,7 +44,9 @@ impl Artifacts {
             source: Box::new(e),
         })?;
         // Automatic cleanup removes emptied directories, so a deleted scene leaves nothing.
-        let fs = LocalFileSystem::new_with_prefix(dir)?.with_automatic_cleanup(true);
+        let fs = LocalFileSystem::new_with_prefix(dir)?
+            .with_automatic_cleanup(true)
+            .with_fsync(true);
         Ok(Artifacts { store: Arc::new(fs) })
     }
 

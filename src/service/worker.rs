@@ -200,7 +200,7 @@ async fn supervise(
     flag: Arc<StopFlag>,
     engine: Arc<EngineShared>,
 ) -> End {
-    let scene = match load_scene(state, &job.scene_id).await {
+    let scene = match load_scene(state, job).await {
         Ok(s) => s,
         Err(reason) => return End::Finish(Outcome::Failed { reason }),
     };
@@ -214,6 +214,7 @@ async fn supervise(
             engine,
             snapshots: snap_tx,
             snapshot_interval: state.config.snapshot_interval,
+            limits: state.config.limits.clone(),
         };
         let spec = job.spec.clone();
         let span = tracing::Span::current();
@@ -426,12 +427,23 @@ pub enum SceneFiles {
     Gltf(String, Vec<(String, Bytes)>),
 }
 
-async fn load_scene(state: &AppState, scene_id: &str) -> Result<SceneFiles, String> {
+async fn load_scene(state: &AppState, job: &JobRecord) -> Result<SceneFiles, String> {
+    let scene_id = job.scene_id.as_str();
     let rec = match state.queue.scene(scene_id).await {
         Ok(Some(r)) => r,
         Ok(None) => return Err(format!("scene {scene_id} no longer exists")),
         Err(e) => return Err(format!("cannot read scene {scene_id}: {e}")),
     };
+    // A worker process may have less memory than the server that accepted the job.
+    let need = job_memory(&rec.report, &job.spec);
+    let limit = state.config.limits.max_job_memory_bytes;
+    if need > limit {
+        return Err(format!(
+            "the job needs an estimated {} MiB, more than this worker's limit of {} MiB (--max-job-memory-mb)",
+            need >> 20,
+            limit >> 20
+        ));
+    }
     let mut files = Vec::new();
     for f in &rec.files {
         match state.artifacts.get(&store::scene_file(scene_id, f)).await {
@@ -448,22 +460,72 @@ async fn load_scene(state: &AppState, scene_id: &str) -> Result<SceneFiles, Stri
     }
 }
 
-/// Imports scene files: a .glb from memory, a .gltf from a temporary folder holding its
-/// files (the importer resolves relative URIs against a folder).
-pub fn import_files(files: &SceneFiles) -> Result<(Scene, scene::ImportReport), String> {
-    match files {
-        SceneFiles::Glb(b) => scene::import_slice(b, None).map_err(|e| e.to_string()),
-        SceneFiles::Gltf(main, parts) => {
-            let dir = tempfile::tempdir().map_err(|e| format!("cannot make a temporary folder: {e}"))?;
-            for (name, bytes) in parts {
-                std::fs::write(dir.path().join(name), bytes).map_err(|e| format!("cannot write {name}: {e}"))?;
-            }
-            scene::import_file(&dir.path().join(main)).map_err(|e| {
-                // The temporary path means nothing to the user; the file name does.
-                e.to_string().replace(&format!("{}/", dir.path().display()), "")
-            })
+/// Why scene files did not import.
+#[derive(Debug)]
+pub enum ImportFailure {
+    /// Over one of the server's caps: `what` is the importer's name for it.
+    Limit { what: &'static str, detail: String },
+    /// Anything else: the importer's message.
+    Invalid(String),
+}
+
+impl std::fmt::Display for ImportFailure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ImportFailure::Limit { detail, .. } => f.write_str(detail),
+            ImportFailure::Invalid(m) => f.write_str(m),
         }
     }
+}
+
+/// Imports scene files under the server's caps: a .glb from memory, a .gltf from a
+/// temporary folder holding its files (the importer resolves relative URIs against a
+/// folder; the names were checked to be plain file names when they were uploaded).
+pub fn import_files(
+    files: &SceneFiles,
+    limits: &crate::service::Limits,
+) -> Result<(Scene, scene::ImportReport), ImportFailure> {
+    let caps = scene::ImportLimits {
+        max_triangles: limits.max_triangles,
+        max_texture_side: limits.max_texture_side,
+    };
+    let failure = |e: scene::ImportError, tmp: Option<&std::path::Path>| match e {
+        scene::ImportError::Limit { what, detail } => ImportFailure::Limit { what, detail },
+        other => {
+            let msg = other.to_string();
+            // The temporary path means nothing to the user; the file name does.
+            ImportFailure::Invalid(match tmp {
+                Some(dir) => msg.replace(&format!("{}/", dir.display()), ""),
+                None => msg,
+            })
+        }
+    };
+    match files {
+        SceneFiles::Glb(b) => scene::import_slice_limited(b, None, &caps).map_err(|e| failure(e, None)),
+        SceneFiles::Gltf(main, parts) => {
+            let dir = tempfile::tempdir()
+                .map_err(|e| ImportFailure::Invalid(format!("cannot make a temporary folder: {e}")))?;
+            for (name, bytes) in parts {
+                std::fs::write(dir.path().join(name), bytes)
+                    .map_err(|e| ImportFailure::Invalid(format!("cannot write {name}: {e}")))?;
+            }
+            let bytes = std::fs::read(dir.path().join(main))
+                .map_err(|e| ImportFailure::Invalid(format!("cannot read {main}: {e}")))?;
+            scene::import_slice_limited(&bytes, Some(dir.path()), &caps).map_err(|e| failure(e, Some(dir.path())))
+        }
+    }
+}
+
+/// A job's estimated peak memory (`engine::footprint`) from its scene's import report.
+pub fn job_memory(report: &Value, spec: &crate::service::model::JobSpec) -> u64 {
+    let count = |k: &str| report.get(k).and_then(Value::as_u64).unwrap_or(0);
+    let request = spec.to_request();
+    crate::engine::footprint::estimate_bytes(&crate::engine::footprint::JobShape::new(
+        count("triangles"),
+        count("texture_texels"),
+        spec.resolution,
+        &request.outputs,
+    ))
 }
 
 /// What the bake thread is given besides the job.
@@ -476,6 +538,7 @@ struct BakeThread {
     engine: Arc<EngineShared>,
     snapshots: mpsc::UnboundedSender<SnapshotFiles>,
     snapshot_interval: Duration,
+    limits: crate::service::Limits,
 }
 
 /// The bake thread: import, bake with an observer that shares progress and encodes
@@ -487,7 +550,7 @@ fn run_bake(
 ) -> Result<BakeResult, EngineError> {
     let (shared, flag, metrics, snapshots) = (&*ctx.shared, &*ctx.flag, &*ctx.metrics, &ctx.snapshots);
     let snapshot_interval = ctx.snapshot_interval;
-    let (scene, _report) = import_files(&files).map_err(EngineError::BadInput)?;
+    let (scene, _report) = import_files(&files, &ctx.limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
     drop(files);
     let request = spec.to_request();
     let options = BakeOptions { snapshot_interval };

@@ -50,4 +50,8 @@ pub enum ImportError {
     Material(String),
     #[error("the scene has no triangles to bake{0}")]
     NoTriangles(String),
+    /// Over a cap of [`super::import::ImportLimits`]; `what` names it (`triangles`,
+    /// `texture size`).
+    #[error("{detail}")]
+    Limit { what: &'static str, detail: String },
 }

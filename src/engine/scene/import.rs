@@ -14,6 +14,12 @@
 //! zero-area lightmap-UV footprint are kept for transport but counted, since they get no
 //! texel of their own.
 //!
+//! Hostile input: [`ImportLimits`] caps what one import may allocate. The triangle cap is
+//! checked while the node tree is flattened (a small file can instance one mesh from
+//! millions of nodes), and a texture's size is read from its header before it is decoded
+//! (a small PNG can claim 100 000² pixels). `import_slice` has no caps; the service calls
+//! [`import_slice_limited`] with its configured ones.
+//!
 //! Limits: sparse accessors, morph targets, skins and texture transforms are not read
 //! (sparse position or UV accessors are an error; the others are ignored with a warning).
 
@@ -47,7 +53,26 @@ pub struct ImportReport {
     pub bounds_max: [f64; 3],
     /// Every mesh has TEXCOORD_1.
     pub has_lightmap_uvs: bool,
+    /// Pixels of every decoded texture together (each is kept as four f32).
+    #[serde(default)]
+    pub texture_texels: u64,
     pub warnings: Vec<String>,
+}
+
+/// Caps on one import, for input nobody vetted (module doc).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImportLimits {
+    /// Triangles after the node tree is flattened (instances count once each).
+    pub max_triangles: usize,
+    /// Width and height of each texture, read from the image header before decoding.
+    pub max_texture_side: u32,
+}
+
+impl ImportLimits {
+    pub const NONE: ImportLimits = ImportLimits {
+        max_triangles: usize::MAX,
+        max_texture_side: u32::MAX,
+    };
 }
 
 /// Imports a `.glb` or `.gltf` file; relative URIs resolve against its folder.
@@ -62,10 +87,20 @@ pub fn import_file(path: &Path) -> Result<(Scene, ImportReport), ImportError> {
 /// Imports glTF from memory. `base_dir` resolves relative URIs; `None` allows only
 /// embedded data (GLB binary chunk and data URIs), which is what the service wants.
 pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, ImportReport), ImportError> {
+    import_slice_limited(bytes, base_dir, &ImportLimits::NONE)
+}
+
+/// [`import_slice`] with caps: over one, [`ImportError::Limit`] names it.
+pub fn import_slice_limited(
+    bytes: &[u8],
+    base_dir: Option<&Path>,
+    limits: &ImportLimits,
+) -> Result<(Scene, ImportReport), ImportError> {
     let gltf = parse(bytes)?;
     let buffers = load_buffers(&gltf, base_dir)?;
     let mut report = ImportReport::default();
-    let textures = load_textures(&gltf, &buffers, base_dir)?;
+    let textures = load_textures(&gltf, &buffers, base_dir, limits.max_texture_side)?;
+    report.texture_texels = textures.iter().map(|t| u64::from(t.width) * u64::from(t.height)).sum();
     let materials = load_materials(&gltf)?;
 
     for ext in gltf.extensions_required() {
@@ -93,6 +128,7 @@ pub fn import_slice(bytes: &[u8], base_dir: Option<&Path>) -> Result<(Scene, Imp
         materials_len: materials.len() - 1,
         missing_lightmap_uvs: Vec::new(),
         visited_meshes: HashSet::new(),
+        max_triangles: limits.max_triangles,
     };
     let roots: Vec<gltf::Node> = match gltf.default_scene().or_else(|| gltf.scenes().next()) {
         Some(s) => s.nodes().collect(),
@@ -216,6 +252,19 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
         return Err(ImportError::NotGltf(
             "neither a GLB header (\"glTF\" magic) nor a JSON document".into(),
         ));
+    }
+    // gltf 1.4 subtracts the 12-byte header from the declared length unchecked (an
+    // overflow panic in builds with overflow checks; found by the fuzzer, issue 12).
+    if looks_binary {
+        let declared = bytes
+            .get(8..12)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .ok_or_else(|| ImportError::NotGltf("broken GLB container: the 12-byte header is cut short".into()))?;
+        if declared < 12 {
+            return Err(ImportError::NotGltf(format!(
+                "broken GLB container: the header declares {declared} bytes in all, less than the header itself"
+            )));
+        }
     }
     let map_err = |e: gltf::Error| match e {
         gltf::Error::Binary(b) => ImportError::NotGltf(format!("broken GLB container: {b:?}")),
@@ -352,7 +401,12 @@ fn view_bytes<'b>(view: &gltf::buffer::View, buffers: &'b [Vec<u8>]) -> Result<&
     Ok(&buf[view.offset()..end])
 }
 
-fn load_textures(gltf: &gltf::Gltf, buffers: &[Vec<u8>], base_dir: Option<&Path>) -> Result<Vec<Texture>, ImportError> {
+fn load_textures(
+    gltf: &gltf::Gltf,
+    buffers: &[Vec<u8>],
+    base_dir: Option<&Path>,
+    max_side: u32,
+) -> Result<Vec<Texture>, ImportError> {
     // Which images hold colour (sRGB-encoded by glTF's rules); others would be linear,
     // but only base colour and emissive textures are read here, and both are colour.
     let mut textures = Vec::new();
@@ -367,6 +421,22 @@ fn load_textures(gltf: &gltf::Gltf, buffers: &[Vec<u8>], base_dir: Option<&Path>
                 resolve_uri(uri, base_dir, "uri").map_err(|problem| ImportError::Image { image: i, problem })?
             }
         };
+        let undecodable = |e: image::ImageError| ImportError::Image {
+            image: i,
+            problem: format!("cannot decode (PNG and JPEG are supported): {e}"),
+        };
+        // The header first: a decompression bomb is refused before anything is allocated.
+        let (w, h) = image::ImageReader::new(std::io::Cursor::new(&bytes))
+            .with_guessed_format()
+            .map_err(|e| undecodable(e.into()))?
+            .into_dimensions()
+            .map_err(undecodable)?;
+        if w > max_side || h > max_side {
+            return Err(ImportError::Limit {
+                what: "texture size",
+                detail: format!("image {i} is {w}x{h} pixels, more than the limit of {max_side} per side"),
+            });
+        }
         let decoded = image::load_from_memory(&bytes)
             .map_err(|e| ImportError::Image {
                 image: i,
@@ -481,6 +551,7 @@ struct Flatten<'a> {
     materials_len: usize,
     missing_lightmap_uvs: Vec<String>,
     visited_meshes: HashSet<usize>,
+    max_triangles: usize,
 }
 
 impl Flatten<'_> {
@@ -725,6 +796,15 @@ impl Flatten<'_> {
                     self.report.zero_uv_area_triangles += 1;
                 }
                 let uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);
+                if self.triangles.len() >= self.max_triangles {
+                    return Err(ImportError::Limit {
+                        what: "triangles",
+                        detail: format!(
+                            "the scene has more than {} triangles (instances counted once each), the limit",
+                            self.max_triangles
+                        ),
+                    });
+                }
                 self.triangles.push(RawTriangle {
                     world: w,
                     n: n3,

@@ -26,7 +26,7 @@ pub mod import;
 pub mod library;
 
 pub use error::ImportError;
-pub use import::{ImportReport, import_file, import_slice};
+pub use import::{ImportLimits, ImportReport, import_file, import_slice, import_slice_limited};
 
 use glam::{DVec3, Vec2, Vec3, Vec4};
 use serde::{Deserialize, Serialize};

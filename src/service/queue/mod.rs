@@ -11,6 +11,11 @@
 //! [`Queue::release`], which does not count the attempt. Every transition is one
 //! statement (or one transaction), so two workers can never hold the same job.
 //!
+//! Clients: every scene and job records the client that made it (a token id when the
+//! server requires tokens, else `ip:ADDR`). [`Queue::enqueue`] refuses a job when its
+//! client already has `max_queued` jobs waiting, in the same statement that inserts it,
+//! so concurrent submissions cannot overshoot. Tokens live in the same database, hashed.
+//!
 //! Limits: a re-run starts the bake again from step 0 (the engine cannot resume from a
 //! snapshot); snapshots of earlier attempts stay, numbered on.
 
@@ -38,6 +43,8 @@ pub struct SceneRecord {
     pub size_bytes: u64,
     pub report: Value,
     pub created_at: i64,
+    /// The token id that uploaded it (when tokens are required), else `None`.
+    pub client: Option<String>,
 }
 
 #[derive(Clone, Debug)]
@@ -61,6 +68,29 @@ pub struct JobRecord {
     pub summary: Option<Value>,
     pub failure: Option<String>,
     pub updated_at: i64,
+    /// Who submitted it: a token id, or `ip:ADDR` when tokens are not required.
+    pub client: Option<String>,
+}
+
+/// The answer to [`Queue::enqueue`].
+#[derive(Clone, Debug)]
+pub enum Enqueued {
+    Queued(Box<JobRecord>),
+    /// No scene with that id.
+    NoScene,
+    /// The client already has this many jobs queued (the limit).
+    QueueFull(u64),
+}
+
+/// A bearer token as stored: only the SHA-256 of the secret.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TokenRecord {
+    pub id: String,
+    pub name: String,
+    /// Hex SHA-256 of the secret.
+    pub hash: String,
+    pub created_at: i64,
+    pub revoked_at: Option<i64>,
 }
 
 /// What a running worker writes with a heartbeat (each part only when it changed).
@@ -130,11 +160,19 @@ pub trait Queue: Send + Sync + 'static {
     /// Deletes the scene's row unless a queued or running job uses it.
     async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion>;
 
-    /// Stores a queued job; `None` when its scene does not exist.
-    async fn enqueue(&self, id: &str, spec: &JobSpec, now: i64) -> QueueResult<Option<JobRecord>>;
+    /// Stores a queued job for `client`, unless its scene does not exist or the client
+    /// already has `max_queued` queued jobs (checked in the same statement).
+    async fn enqueue(&self, id: &str, spec: &JobSpec, client: &str, max_queued: u64, now: i64)
+    -> QueueResult<Enqueued>;
     async fn job(&self, id: &str) -> QueueResult<Option<JobRecord>>;
-    /// Newest first.
-    async fn list(&self, status: Option<JobStatus>, limit: u32, offset: u64) -> QueueResult<(Vec<JobRecord>, u64)>;
+    /// Newest first; only `client`'s jobs when it is given.
+    async fn list(
+        &self,
+        status: Option<JobStatus>,
+        client: Option<&str>,
+        limit: u32,
+        offset: u64,
+    ) -> QueueResult<(Vec<JobRecord>, u64)>;
     async fn counts(&self) -> QueueResult<Vec<(JobStatus, u64)>>;
     async fn cancel(&self, id: &str, now: i64) -> QueueResult<Cancellation>;
 
@@ -155,6 +193,14 @@ pub trait Queue: Send + Sync + 'static {
     async fn release(&self, id: &str, worker: &str, now: i64) -> QueueResult<bool>;
     /// Re-queues (or fails, or cancels) running jobs whose lease has lapsed.
     async fn recover_expired(&self, now: i64) -> QueueResult<Recovered>;
+
+    async fn insert_token(&self, token: &TokenRecord) -> QueueResult<()>;
+    /// Every token, oldest first (revoked ones too).
+    async fn tokens(&self) -> QueueResult<Vec<TokenRecord>>;
+    /// Revokes the token with this id or name; `false` when there is no such live token.
+    async fn revoke_token(&self, id_or_name: &str, now: i64) -> QueueResult<bool>;
+    /// The live (not revoked) token whose secret hashes to `hash`.
+    async fn token_by_hash(&self, hash: &str) -> QueueResult<Option<TokenRecord>>;
 }
 
 /// Milliseconds since the Unix epoch.

@@ -23,8 +23,8 @@ use sqlx::sqlite::{
 };
 
 use super::{
-    Cancellation, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult, Recovered, SceneDeletion,
-    SceneRecord,
+    Cancellation, Enqueued, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult, Recovered,
+    SceneDeletion, SceneRecord, TokenRecord,
 };
 use crate::service::model::{JobSpec, JobStatus};
 
@@ -92,6 +92,7 @@ fn job_from_row(row: &SqliteRow) -> QueueResult<JobRecord> {
         summary: json_col(row, "summary")?,
         failure: row.try_get("failure")?,
         updated_at: row.try_get("updated_at")?,
+        client: row.try_get("client")?,
     })
 }
 
@@ -106,6 +107,17 @@ fn scene_from_row(row: &SqliteRow) -> QueueResult<SceneRecord> {
         size_bytes: row.try_get::<i64, _>("size_bytes")? as u64,
         report: json_col(row, "report")?.unwrap_or(Value::Null),
         created_at: row.try_get("created_at")?,
+        client: row.try_get("client")?,
+    })
+}
+
+fn token_from_row(row: &SqliteRow) -> QueueResult<TokenRecord> {
+    Ok(TokenRecord {
+        id: row.try_get("id")?,
+        name: row.try_get("name")?,
+        hash: row.try_get("hash")?,
+        created_at: row.try_get("created_at")?,
+        revoked_at: row.try_get("revoked_at")?,
     })
 }
 
@@ -117,8 +129,8 @@ fn lease_until(now: i64, lease: Duration) -> i64 {
 impl Queue for SqliteQueue {
     async fn insert_scene(&self, s: &SceneRecord) -> QueueResult<bool> {
         let r = sqlx::query(
-            "INSERT INTO scenes (id, content_hash, format, main_file, files, size_bytes, report, created_at)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (id) DO NOTHING",
+            "INSERT INTO scenes (id, content_hash, format, main_file, files, size_bytes, report, created_at, client)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (id) DO NOTHING",
         )
         .bind(&s.id)
         .bind(&s.content_hash)
@@ -128,6 +140,7 @@ impl Queue for SqliteQueue {
         .bind(s.size_bytes as i64)
         .bind(s.report.to_string())
         .bind(s.created_at)
+        .bind(&s.client)
         .execute(&self.pool)
         .await?;
         Ok(r.rows_affected() == 1)
@@ -169,11 +182,21 @@ impl Queue for SqliteQueue {
         })
     }
 
-    async fn enqueue(&self, id: &str, spec: &JobSpec, now: i64) -> QueueResult<Option<JobRecord>> {
-        // One statement: the scene check and the insert cannot be split by a DELETE.
+    async fn enqueue(
+        &self,
+        id: &str,
+        spec: &JobSpec,
+        client: &str,
+        max_queued: u64,
+        now: i64,
+    ) -> QueueResult<Enqueued> {
+        // One statement: the scene check, the client's queue length and the insert
+        // cannot be split by a DELETE or by the same client's other submissions.
         let row = sqlx::query(
-            "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at)
-             SELECT ?1, ?2, ?3, 'queued', ?4, ?5, ?5 WHERE EXISTS (SELECT 1 FROM scenes WHERE id = ?2)
+            "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client)
+             SELECT ?1, ?2, ?3, 'queued', ?4, ?5, ?5, ?6
+             WHERE EXISTS (SELECT 1 FROM scenes WHERE id = ?2)
+               AND (SELECT COUNT(*) FROM jobs WHERE client = ?6 AND status = 'queued') < ?7
              RETURNING *",
         )
         .bind(id)
@@ -181,9 +204,25 @@ impl Queue for SqliteQueue {
         .bind(serde_json::to_string(spec).unwrap_or_default())
         .bind(spec.priority)
         .bind(now)
+        .bind(client)
+        .bind(i64::try_from(max_queued).unwrap_or(i64::MAX))
         .fetch_optional(&self.pool)
         .await?;
-        row.as_ref().map(job_from_row).transpose()
+        if let Some(row) = row {
+            return Ok(Enqueued::Queued(Box::new(job_from_row(&row)?)));
+        }
+        let scene: Option<i64> = sqlx::query_scalar("SELECT 1 FROM scenes WHERE id = ?")
+            .bind(&spec.scene)
+            .fetch_optional(&self.pool)
+            .await?;
+        if scene.is_none() {
+            return Ok(Enqueued::NoScene);
+        }
+        let queued: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE client = ? AND status = 'queued'")
+            .bind(client)
+            .fetch_one(&self.pool)
+            .await?;
+        Ok(Enqueued::QueueFull(queued as u64))
     }
 
     async fn job(&self, id: &str) -> QueueResult<Option<JobRecord>> {
@@ -194,21 +233,31 @@ impl Queue for SqliteQueue {
         row.as_ref().map(job_from_row).transpose()
     }
 
-    async fn list(&self, status: Option<JobStatus>, limit: u32, offset: u64) -> QueueResult<(Vec<JobRecord>, u64)> {
+    async fn list(
+        &self,
+        status: Option<JobStatus>,
+        client: Option<&str>,
+        limit: u32,
+        offset: u64,
+    ) -> QueueResult<(Vec<JobRecord>, u64)> {
         let status = status.map(JobStatus::as_str);
         let rows = sqlx::query(
-            "SELECT * FROM jobs WHERE (?1 IS NULL OR status = ?1)
+            "SELECT * FROM jobs WHERE (?1 IS NULL OR status = ?1) AND (?4 IS NULL OR client = ?4)
              ORDER BY created_at DESC, rowid DESC LIMIT ?2 OFFSET ?3",
         )
         .bind(status)
         .bind(limit as i64)
-        .bind(offset as i64)
+        .bind(i64::try_from(offset).unwrap_or(i64::MAX))
+        .bind(client)
         .fetch_all(&self.pool)
         .await?;
-        let total: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE (?1 IS NULL OR status = ?1)")
-            .bind(status)
-            .fetch_one(&self.pool)
-            .await?;
+        let total: i64 = sqlx::query_scalar(
+            "SELECT COUNT(*) FROM jobs WHERE (?1 IS NULL OR status = ?1) AND (?2 IS NULL OR client = ?2)",
+        )
+        .bind(status)
+        .bind(client)
+        .fetch_one(&self.pool)
+        .await?;
         let jobs = rows.iter().map(job_from_row).collect::<QueueResult<Vec<_>>>()?;
         Ok((jobs, total as u64))
     }
@@ -390,6 +439,42 @@ impl Queue for SqliteQueue {
             cancelled,
         })
     }
+
+    async fn insert_token(&self, t: &TokenRecord) -> QueueResult<()> {
+        sqlx::query("INSERT INTO tokens (id, name, hash, created_at, revoked_at) VALUES (?, ?, ?, ?, ?)")
+            .bind(&t.id)
+            .bind(&t.name)
+            .bind(&t.hash)
+            .bind(t.created_at)
+            .bind(t.revoked_at)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    async fn tokens(&self) -> QueueResult<Vec<TokenRecord>> {
+        let rows = sqlx::query("SELECT * FROM tokens ORDER BY created_at, rowid")
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(token_from_row).collect()
+    }
+
+    async fn revoke_token(&self, id_or_name: &str, now: i64) -> QueueResult<bool> {
+        let r = sqlx::query("UPDATE tokens SET revoked_at = ?2 WHERE (id = ?1 OR name = ?1) AND revoked_at IS NULL")
+            .bind(id_or_name)
+            .bind(now)
+            .execute(&self.pool)
+            .await?;
+        Ok(r.rows_affected() > 0)
+    }
+
+    async fn token_by_hash(&self, hash: &str) -> QueueResult<Option<TokenRecord>> {
+        let row = sqlx::query("SELECT * FROM tokens WHERE hash = ? AND revoked_at IS NULL")
+            .bind(hash)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.as_ref().map(token_from_row).transpose()
+    }
 }
 
 #[cfg(test)]
@@ -411,17 +496,61 @@ mod tests {
             size_bytes: 1,
             report: Value::Null,
             created_at: 0,
+            client: None,
         };
         assert!(q.insert_scene(&scene).await.unwrap());
         assert!(!q.insert_scene(&scene).await.unwrap(), "same id twice is one scene");
         q
     }
 
+    async fn enqueue(q: &SqliteQueue, id: &str, scene: &str) {
+        let r = q.enqueue(id, &spec(scene), "c", 10, 0).await.unwrap();
+        assert!(matches!(r, Enqueued::Queued(_)), "{r:?}");
+    }
+
+    #[tokio::test]
+    async fn per_client_queue_limit_and_tokens() {
+        let dir = tempfile::tempdir().unwrap();
+        let q = queue_with_scene(dir.path()).await;
+        for i in 0..2 {
+            let r = q.enqueue(&format!("a{i}"), &spec("s"), "alice", 2, 0).await.unwrap();
+            assert!(matches!(r, Enqueued::Queued(_)));
+        }
+        assert!(matches!(
+            q.enqueue("a2", &spec("s"), "alice", 2, 0).await.unwrap(),
+            Enqueued::QueueFull(2)
+        ));
+        // Another client is not held back by alice's queue.
+        assert!(matches!(
+            q.enqueue("b0", &spec("s"), "bob", 2, 0).await.unwrap(),
+            Enqueued::Queued(_)
+        ));
+        // A running job no longer counts as queued.
+        q.claim("w", Duration::from_secs(30), 1).await.unwrap().unwrap();
+        let (alice, total) = q.list(None, Some("alice"), 10, 0).await.unwrap();
+        assert_eq!((alice.len(), total), (2, 2));
+        assert!(alice.iter().all(|j| j.client.as_deref() == Some("alice")));
+
+        let t = TokenRecord {
+            id: "tok_1".into(),
+            name: "ci".into(),
+            hash: "ab".into(),
+            created_at: 5,
+            revoked_at: None,
+        };
+        q.insert_token(&t).await.unwrap();
+        assert_eq!(q.token_by_hash("ab").await.unwrap(), Some(t.clone()));
+        assert!(q.revoke_token("ci", 6).await.unwrap());
+        assert!(!q.revoke_token("ci", 7).await.unwrap(), "already revoked");
+        assert_eq!(q.token_by_hash("ab").await.unwrap(), None);
+        assert_eq!(q.tokens().await.unwrap()[0].revoked_at, Some(6));
+    }
+
     #[tokio::test]
     async fn lease_expiry_requeues_then_fails_after_three_attempts() {
         let dir = tempfile::tempdir().unwrap();
         let q = queue_with_scene(dir.path()).await;
-        q.enqueue("j", &spec("s"), 0).await.unwrap().unwrap();
+        enqueue(&q, "j", "s").await;
         let lease = Duration::from_millis(100);
         let mut now = 1000;
         for attempt in 1..=MAX_ATTEMPTS {
@@ -458,8 +587,11 @@ mod tests {
     async fn release_does_not_count_the_attempt_and_scene_in_use_is_kept() {
         let dir = tempfile::tempdir().unwrap();
         let q = queue_with_scene(dir.path()).await;
-        assert!(q.enqueue("j", &spec("missing"), 0).await.unwrap().is_none());
-        q.enqueue("j", &spec("s"), 0).await.unwrap().unwrap();
+        assert!(matches!(
+            q.enqueue("j", &spec("missing"), "c", 10, 0).await.unwrap(),
+            Enqueued::NoScene
+        ));
+        enqueue(&q, "j", "s").await;
         assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::InUse(1));
         q.claim("w", Duration::from_secs(30), 1).await.unwrap().unwrap();
         assert!(q.release("j", "w", 2).await.unwrap());

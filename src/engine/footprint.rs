@@ -1,0 +1,105 @@
+//! How much memory a bake will need, estimated before it starts from what the importer
+//! reported and what the job asks for, so a server can refuse a job its workers cannot
+//! hold instead of being killed by the kernel half-way through it.
+//!
+//! How: a sum of the big allocations, each bounded from above. Every pixel of the
+//! lightmap is counted as a valid texel (the real texel set is smaller: chart gutters and
+//! empty space hold none), each with its [`Texel`] record and its accumulators: two
+//! halves, the combined estimate, the step's samples and the denoiser's input and output
+//! (six copies of every kept layer). Output images (one f32 RGB image per EXR layer plus
+//! its encoding) and the PNG preview are per pixel. Triangles are counted at the import's
+//! f64 staging copy plus the scene's own and the BVH's, 512 bytes each; textures at four
+//! f32 per pixel plus the 8-bit image they were decoded from. A fixed 64 MiB covers the
+//! process itself.
+//!
+//! Limits: an estimate, not a measurement: it is meant to err high (docs/reliability.md
+//! compares it with the peak resident size of real bakes). GPU techniques' device memory
+//! is not counted; their host-side copies are the same as `path`'s.
+
+use crate::engine::atlas::Texel;
+use crate::engine::output::OutputLayer;
+
+/// Bytes per triangle: import staging (f64 positions), the scene's triangle, the BVH.
+pub const BYTES_PER_TRIANGLE: u64 = 512;
+/// Bytes per texture pixel: four f32 kept, four u8 while decoding.
+pub const BYTES_PER_TEXTURE_TEXEL: u64 = 20;
+/// The process before any job: runtime, code, buffers.
+pub const BASE_BYTES: u64 = 64 << 20;
+/// Copies of every accumulated layer a bake holds at once (module doc).
+const ACCUMULATOR_COPIES: u64 = 6;
+
+/// What a job's memory depends on.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct JobShape {
+    pub triangles: u64,
+    pub texture_texels: u64,
+    /// Lightmap side in texels.
+    pub resolution: u32,
+    pub direct: bool,
+    pub indirect: bool,
+    pub sh: bool,
+    pub debug: bool,
+}
+
+impl JobShape {
+    /// The shape of a job over a scene of `triangles` and `texture_texels` with these
+    /// extra output layers.
+    pub fn new(triangles: u64, texture_texels: u64, resolution: u32, outputs: &[OutputLayer]) -> JobShape {
+        JobShape {
+            triangles,
+            texture_texels,
+            resolution,
+            direct: outputs.contains(&OutputLayer::Direct) || outputs.contains(&OutputLayer::Indirect),
+            indirect: outputs.contains(&OutputLayer::Indirect),
+            sh: outputs.contains(&OutputLayer::Sh),
+            debug: outputs.contains(&OutputLayer::Debug),
+        }
+    }
+}
+
+/// The estimated peak memory of a bake of this shape, in bytes (an upper bound by
+/// intent; module doc).
+pub fn estimate_bytes(s: &JobShape) -> u64 {
+    let pixels = u64::from(s.resolution) * u64::from(s.resolution);
+    const RGB: u64 = 12;
+    // Accumulated per texel: the total, the direct part when split, three moment vectors.
+    let accumulated = RGB + if s.direct { RGB } else { 0 } + if s.sh { 3 * RGB } else { 0 };
+    let per_texel = std::mem::size_of::<Texel>() as u64 + 4 + ACCUMULATOR_COPIES * accumulated + 4;
+    // Written per pixel: R,G,B, the optional layers (validity and debug are one channel
+    // each, counted as RGB to stay on the high side), and the encoded file.
+    let layers = 2 + u64::from(s.direct) + u64::from(s.indirect) + 3 * u64::from(s.sh) + 3 * u64::from(s.debug);
+    let per_pixel = per_texel + 2 * layers * RGB + 4;
+    BASE_BYTES
+        .saturating_add(pixels.saturating_mul(per_pixel))
+        .saturating_add(s.triangles.saturating_mul(BYTES_PER_TRIANGLE))
+        .saturating_add(s.texture_texels.saturating_mul(BYTES_PER_TEXTURE_TEXEL))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn estimate_grows_with_each_input_and_has_a_floor() {
+        let base = JobShape::new(0, 0, 1, &[]);
+        assert!(estimate_bytes(&base) >= BASE_BYTES);
+        let map = JobShape::new(0, 0, 1024, &[]);
+        let sh = JobShape::new(0, 0, 1024, &[OutputLayer::Sh]);
+        let tris = JobShape::new(1_000_000, 0, 1, &[]);
+        let tex = JobShape::new(0, 4096 * 4096, 1, &[]);
+        // 1024² texels cost at least the texel records and two accumulator halves.
+        let texel_floor = (1u64 << 20) * (std::mem::size_of::<Texel>() as u64 + 2 * 12);
+        assert!(estimate_bytes(&map) - BASE_BYTES >= texel_floor);
+        assert!(estimate_bytes(&sh) > estimate_bytes(&map));
+        assert_eq!(estimate_bytes(&tris) - estimate_bytes(&base), 512_000_000);
+        assert_eq!(
+            estimate_bytes(&tex) - estimate_bytes(&base),
+            4096 * 4096 * BYTES_PER_TEXTURE_TEXEL
+        );
+        // No overflow for absurd shapes.
+        assert_eq!(
+            estimate_bytes(&JobShape::new(u64::MAX, u64::MAX, u32::MAX, &[])),
+            u64::MAX
+        );
+    }
+}

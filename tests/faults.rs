@@ -1,0 +1,473 @@
+//! Fault injection (issue 12, item 5): whatever breaks, every job ends `succeeded` with a
+//! whole lightmap, `failed` with a reason, or `queued` again; none is lost and none is
+//! marked succeeded without its EXR.
+//!
+//! - SIGKILL loop: a `lightmapd serve` (API and a worker) and a `lightmapd worker` bake
+//!   tiny jobs (two more each round) while one of the two is killed at a random moment,
+//!   24 times (a fixed seed,
+//!   so a failure replays); then a fresh server drains the queue and every job and every
+//!   stored EXR is checked (decoded whole).
+//! - A full disk: an artifact store whose writes under `jobs/` fail ("no space left on
+//!   device", injected by a wrapper: a real tmpfs needs root) fails the job with that
+//!   reason and no lightmap; once writes work again a job succeeds.
+//! - A dropped database: a queue wrapper that answers every call with a connection error
+//!   for longer than a lease, while a bake runs and finishes: the API answers 500
+//!   problem+json meanwhile, and afterwards every job ends.
+//!
+//! Bakes are the `path` technique on the bundled Cornell box at 16² texels for a few
+//! tenths of a second, so the whole file runs in well under a minute.
+
+mod service_common;
+
+use std::process::Child;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use async_trait::async_trait;
+use futures_util::stream::BoxStream;
+use lightmapd::engine::rng::Rng;
+use lightmapd::service::model::{JobSpec, JobStatus};
+use lightmapd::service::queue::sqlite::SqliteQueue;
+use lightmapd::service::queue::{
+    Cancellation, Enqueued, JobRecord, JobUpdate, Lease, Outcome, Queue, QueueResult, Recovered, SceneDeletion,
+    SceneRecord, TokenRecord,
+};
+use lightmapd::service::store::Artifacts;
+use object_store::local::LocalFileSystem;
+use object_store::path::Path as StorePath;
+use object_store::{
+    CopyOptions, GetOptions, GetResult, ListResult, MultipartUpload, ObjectMeta, ObjectStore, PutMultipartOptions,
+    PutOptions, PutPayload, PutResult,
+};
+use serde_json::{Value, json};
+use service_common::*;
+
+/// Fetches JSON from a plain thread's own small runtime (the process test has none).
+fn get_json(rt: &tokio::runtime::Runtime, url: &str) -> Value {
+    rt.block_on(async { reqwest::get(url).await.unwrap().json().await.unwrap() })
+}
+
+/// Checks the end state of every job of a drained server: what the module doc promises.
+async fn check_every_job(http: &reqwest::Client, url: &str, submitted: &[String]) -> (usize, usize) {
+    let list: Value = http
+        .get(format!("{url}/v1/jobs?limit=500"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(list["total"], submitted.len(), "none lost, none extra");
+    let (mut succeeded, mut failed) = (0, 0);
+    for j in list["jobs"].as_array().unwrap() {
+        let id = j["id"].as_str().unwrap();
+        assert!(submitted.iter().any(|s| s == id), "unknown job {id}");
+        match j["status"].as_str().unwrap() {
+            "succeeded" => {
+                let r = http
+                    .get(format!("{url}/v1/jobs/{id}/lightmap.exr"))
+                    .send()
+                    .await
+                    .unwrap();
+                assert_eq!(r.status(), 200, "succeeded job {id} has no lightmap: {j:#}");
+                let bytes = r.bytes().await.unwrap();
+                exr_is_whole(&bytes).unwrap_or_else(|e| panic!("job {id}'s lightmap is not whole: {e}"));
+                assert!(j["summary"].is_object(), "{j:#}");
+                succeeded += 1;
+            }
+            "failed" => {
+                let reason = j["failure"].as_str().unwrap_or("");
+                assert!(!reason.is_empty(), "failed without a reason: {j:#}");
+                eprintln!("job {id} failed: {reason}");
+                failed += 1;
+            }
+            other => panic!("job {id} is still {other} after the queue drained: {j:#}"),
+        }
+    }
+    (succeeded, failed)
+}
+
+#[test]
+fn sigkill_at_random_points_loses_no_job() {
+    const KILLS: usize = 24;
+    let dir = tempfile::tempdir().unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let http = reqwest::Client::new();
+    let fast = ["--lease-seconds", "0.5", "--snapshot-interval-s", "0.1"];
+    let (mut serve, mut url) = spawn_serve(dir.path(), 1, &fast);
+    let mut worker: Child = spawn_worker(dir.path(), &fast);
+    let scene = rt.block_on(async {
+        let r = http
+            .post(format!("{url}/v1/scenes"))
+            .body(cornell_glb())
+            .send()
+            .await
+            .unwrap();
+        r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+    });
+    let mut rng = Rng::new(12, 0, 0, 0);
+    let mut submitted = Vec::new();
+    let (mut serve_kills, mut worker_kills) = (0, 0);
+    for kill in 0..KILLS {
+        // Two new jobs each round keep both workers busy, so kills land on claims,
+        // bakes, snapshot and final writes, and finishes alike.
+        for n in 0..2 {
+            let body = json!({"scene": scene, "resolution": 16, "stop": {"seconds": 0.3}, "seed": 2 * kill + n});
+            let id = rt.block_on(async {
+                let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+                assert_eq!(r.status(), 202);
+                r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+            });
+            submitted.push(id);
+        }
+        std::thread::sleep(Duration::from_millis(50 + u64::from(rng.next_u32() % 550)));
+        if rng.next_u32().is_multiple_of(2) {
+            serve.kill().unwrap(); // SIGKILL
+            serve.wait().unwrap();
+            serve_kills += 1;
+            (serve, url) = spawn_serve(dir.path(), 1, &fast);
+        } else {
+            worker.kill().unwrap();
+            worker.wait().unwrap();
+            worker_kills += 1;
+            worker = spawn_worker(dir.path(), &fast);
+        }
+    }
+    eprintln!("{serve_kills} server kills, {worker_kills} worker kills");
+    assert_eq!(serve_kills + worker_kills, KILLS);
+    // Drain with the last server and worker alive.
+    let start = Instant::now();
+    loop {
+        let queued = get_json(&rt, &format!("{url}/v1/jobs?status=queued"))["total"].clone();
+        let running = get_json(&rt, &format!("{url}/v1/jobs?status=running"))["total"].clone();
+        if queued == 0 && running == 0 {
+            break;
+        }
+        assert!(
+            start.elapsed() < DEADLINE,
+            "the queue never drained: {queued} queued, {running} running"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let (succeeded, failed) = rt.block_on(check_every_job(&http, &url, &submitted));
+    let list = get_json(&rt, &format!("{url}/v1/jobs?limit=500"));
+    let retried = list["jobs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|j| j["attempts"].as_u64().unwrap_or(0) >= 2)
+        .count();
+    eprintln!(
+        "{} jobs: {succeeded} succeeded, {failed} failed, {retried} taken up again after a kill",
+        submitted.len()
+    );
+    assert!(retried > 0, "no kill landed on a running bake: the test tested nothing");
+    assert!(succeeded > 0);
+    // Every final EXR in the store is whole, and only succeeded jobs have one.
+    let jobs_dir = store_dir(dir.path()).join("jobs");
+    for entry in std::fs::read_dir(&jobs_dir).unwrap() {
+        let path = entry.unwrap().path().join("lightmap.exr");
+        if let Ok(bytes) = std::fs::read(&path) {
+            exr_is_whole(&bytes).unwrap_or_else(|e| panic!("{} is not whole: {e}", path.display()));
+        }
+    }
+    for mut child in [serve, worker] {
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
+}
+
+/// An artifact store whose writes under `jobs/` fail while `full` is set.
+#[derive(Debug)]
+struct FullDisk {
+    inner: LocalFileSystem,
+    full: Arc<AtomicBool>,
+}
+
+impl std::fmt::Display for FullDisk {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "FullDisk({})", self.inner)
+    }
+}
+
+#[async_trait]
+impl ObjectStore for FullDisk {
+    async fn put_opts(
+        &self,
+        location: &StorePath,
+        payload: PutPayload,
+        opts: PutOptions,
+    ) -> object_store::Result<PutResult> {
+        if self.full.load(Ordering::SeqCst) && location.as_ref().starts_with("jobs/") {
+            return Err(object_store::Error::Generic {
+                store: "FullDisk",
+                source: Box::new(std::io::Error::new(
+                    std::io::ErrorKind::StorageFull,
+                    "No space left on device (injected)",
+                )),
+            });
+        }
+        self.inner.put_opts(location, payload, opts).await
+    }
+
+    async fn put_multipart_opts(
+        &self,
+        location: &StorePath,
+        opts: PutMultipartOptions,
+    ) -> object_store::Result<Box<dyn MultipartUpload>> {
+        self.inner.put_multipart_opts(location, opts).await
+    }
+
+    async fn get_opts(&self, location: &StorePath, options: GetOptions) -> object_store::Result<GetResult> {
+        self.inner.get_opts(location, options).await
+    }
+
+    fn delete_stream(
+        &self,
+        locations: BoxStream<'static, object_store::Result<StorePath>>,
+    ) -> BoxStream<'static, object_store::Result<StorePath>> {
+        self.inner.delete_stream(locations)
+    }
+
+    fn list(&self, prefix: Option<&StorePath>) -> BoxStream<'static, object_store::Result<ObjectMeta>> {
+        self.inner.list(prefix)
+    }
+
+    async fn list_with_delimiter(&self, prefix: Option<&StorePath>) -> object_store::Result<ListResult> {
+        self.inner.list_with_delimiter(prefix).await
+    }
+
+    async fn copy_opts(&self, from: &StorePath, to: &StorePath, options: CopyOptions) -> object_store::Result<()> {
+        self.inner.copy_opts(from, to, options).await
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_artifact_disk_fails_the_job_with_its_reason_and_no_lightmap() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = test_config(dir.path(), 1);
+    let queue: Arc<dyn Queue> = Arc::new(SqliteQueue::open(&dir.path().join("lightmapd.db")).await.unwrap());
+    let full = Arc::new(AtomicBool::new(true));
+    std::fs::create_dir_all(dir.path().join("objects")).unwrap();
+    let store = FullDisk {
+        inner: LocalFileSystem::new_with_prefix(dir.path().join("objects")).unwrap(),
+        full: full.clone(),
+    };
+    let running = lightmapd::service::start_with(config, queue, Artifacts::from_store(Arc::new(store)))
+        .await
+        .unwrap();
+    let s = Server::wrap(running);
+    let scene = s.upload(None).await;
+    let body = json!({"scene": scene, "resolution": 16, "stop": {"steps": 8}});
+
+    let id = s.submit(None, body.clone()).await;
+    let j = s.wait_end(&id).await;
+    assert_eq!(j["status"], "failed", "{j:#}");
+    assert_eq!(
+        j["failure"],
+        "cannot store the lightmap: Generic FullDisk error: No space left on device (injected)"
+    );
+    assert_eq!(j["snapshots"], 0, "no snapshot could be stored either");
+    expect_problem(
+        s.get(&format!("/v1/jobs/{id}/lightmap.exr")),
+        409,
+        problem(
+            409,
+            "Conflict",
+            "conflict",
+            &format!("job {id} is failed and has no final lightmap"),
+            None,
+        ),
+    )
+    .await;
+    assert!(!dir.path().join(format!("objects/jobs/{id}/lightmap.exr")).exists());
+
+    // Space again: the same job body succeeds, with a whole lightmap.
+    full.store(false, Ordering::SeqCst);
+    let id = s.submit(None, body).await;
+    let j = s.wait_end(&id).await;
+    assert_eq!(j["status"], "succeeded", "{j:#}");
+    let exr = s.get(&format!("/v1/jobs/{id}/lightmap.exr")).send().await.unwrap();
+    exr_is_whole(&exr.bytes().await.unwrap()).unwrap();
+    s.running.shutdown().await;
+}
+
+/// A queue whose every call fails with a dropped connection while `down` is set.
+struct DroppedDb {
+    inner: SqliteQueue,
+    down: Arc<AtomicBool>,
+}
+
+impl DroppedDb {
+    fn check(&self) -> QueueResult<()> {
+        if self.down.load(Ordering::SeqCst) {
+            Err(sqlx::Error::Io(std::io::Error::new(
+                std::io::ErrorKind::ConnectionReset,
+                "connection dropped (injected)",
+            )))
+        } else {
+            Ok(())
+        }
+    }
+}
+
+#[async_trait]
+impl Queue for DroppedDb {
+    async fn insert_scene(&self, scene: &SceneRecord) -> QueueResult<bool> {
+        self.check()?;
+        self.inner.insert_scene(scene).await
+    }
+    async fn scene(&self, id: &str) -> QueueResult<Option<SceneRecord>> {
+        self.check()?;
+        self.inner.scene(id).await
+    }
+    async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion> {
+        self.check()?;
+        self.inner.delete_scene(id).await
+    }
+    async fn enqueue(&self, id: &str, spec: &JobSpec, client: &str, max: u64, now: i64) -> QueueResult<Enqueued> {
+        self.check()?;
+        self.inner.enqueue(id, spec, client, max, now).await
+    }
+    async fn job(&self, id: &str) -> QueueResult<Option<JobRecord>> {
+        self.check()?;
+        self.inner.job(id).await
+    }
+    async fn list(
+        &self,
+        status: Option<JobStatus>,
+        client: Option<&str>,
+        limit: u32,
+        offset: u64,
+    ) -> QueueResult<(Vec<JobRecord>, u64)> {
+        self.check()?;
+        self.inner.list(status, client, limit, offset).await
+    }
+    async fn counts(&self) -> QueueResult<Vec<(JobStatus, u64)>> {
+        self.check()?;
+        self.inner.counts().await
+    }
+    async fn cancel(&self, id: &str, now: i64) -> QueueResult<Cancellation> {
+        self.check()?;
+        self.inner.cancel(id, now).await
+    }
+    async fn claim(&self, worker: &str, lease: Duration, now: i64) -> QueueResult<Option<JobRecord>> {
+        self.check()?;
+        self.inner.claim(worker, lease, now).await
+    }
+    async fn heartbeat(&self, id: &str, w: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
+        self.check()?;
+        self.inner.heartbeat(id, w, lease, u, now).await
+    }
+    async fn finish(&self, id: &str, worker: &str, outcome: &Outcome, now: i64) -> QueueResult<bool> {
+        self.check()?;
+        self.inner.finish(id, worker, outcome, now).await
+    }
+    async fn release(&self, id: &str, worker: &str, now: i64) -> QueueResult<bool> {
+        self.check()?;
+        self.inner.release(id, worker, now).await
+    }
+    async fn recover_expired(&self, now: i64) -> QueueResult<Recovered> {
+        self.check()?;
+        self.inner.recover_expired(now).await
+    }
+    async fn insert_token(&self, token: &TokenRecord) -> QueueResult<()> {
+        self.check()?;
+        self.inner.insert_token(token).await
+    }
+    async fn tokens(&self) -> QueueResult<Vec<TokenRecord>> {
+        self.check()?;
+        self.inner.tokens().await
+    }
+    async fn revoke_token(&self, id_or_name: &str, now: i64) -> QueueResult<bool> {
+        self.check()?;
+        self.inner.revoke_token(id_or_name, now).await
+    }
+    async fn token_by_hash(&self, hash: &str) -> QueueResult<Option<TokenRecord>> {
+        self.check()?;
+        self.inner.token_by_hash(hash).await
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dropped_database_connection_loses_no_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = test_config(dir.path(), 1);
+    config.lease = Duration::from_millis(600);
+    let down = Arc::new(AtomicBool::new(false));
+    let queue = DroppedDb {
+        inner: SqliteQueue::open(&dir.path().join("lightmapd.db")).await.unwrap(),
+        down: down.clone(),
+    };
+    let artifacts = Artifacts::local(&dir.path().join("objects")).unwrap();
+    let running = lightmapd::service::start_with(config, Arc::new(queue), artifacts)
+        .await
+        .unwrap();
+    let s = Server::wrap(running);
+    let scene = s.upload(None).await;
+    let mut ids = Vec::new();
+    for seed in 0..3 {
+        let body = json!({"scene": scene, "resolution": 16, "stop": {"seconds": 0.5}, "seed": seed});
+        ids.push(s.submit(None, body).await);
+    }
+    // The first bake is under way when the connection drops, and ends during the outage
+    // (its end cannot be recorded), and its lease lapses meanwhile.
+    let start = Instant::now();
+    loop {
+        let j: Value = s
+            .get(&format!("/v1/jobs/{}", ids[0]))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if j["status"] == "running" && j["progress"]["steps"].as_u64().unwrap_or(0) >= 1 {
+            break;
+        }
+        assert!(start.elapsed() < DEADLINE, "never ran: {j:#}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    down.store(true, Ordering::SeqCst);
+    let database_down = |what: &str| {
+        problem(
+            500,
+            "Internal Server Error",
+            "internal",
+            &format!("database: error communicating with database: connection dropped (injected){what}"),
+            None,
+        )
+    };
+    expect_problem(s.get("/healthz"), 500, database_down("")).await;
+    expect_problem(
+        s.post("/v1/jobs").json(&json!({"scene": scene, "resolution": 16})),
+        500,
+        database_down(""),
+    )
+    .await;
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    down.store(false, Ordering::SeqCst);
+
+    for id in &ids {
+        s.wait_end(id).await;
+    }
+    let (succeeded, failed) = check_every_job(&s.http, &s.url, &ids).await;
+    assert_eq!((succeeded, failed), (3, 0), "a lost connection is not the job's fault");
+    let first: Value = s
+        .get(&format!("/v1/jobs/{}", ids[0]))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(
+        first["attempts"], 2,
+        "the bake that ended during the outage ran again once its lease lapsed: {first:#}"
+    );
+    s.running.shutdown().await;
+}

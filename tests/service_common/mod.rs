@@ -1,0 +1,185 @@
+//! Helpers the hardening and fault-injection tests share: start an in-process server or
+//! a `lightmapd serve` / `lightmapd worker` child, and check problem+json answers.
+#![allow(dead_code)]
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use lightmapd::service::{self, Config, Running};
+use serde_json::{Value, json};
+
+pub const DEADLINE: Duration = Duration::from_secs(60);
+
+pub fn cornell_glb() -> Vec<u8> {
+    std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb")).unwrap()
+}
+
+pub fn test_config(dir: &Path, workers: usize) -> Config {
+    Config {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        data_dir: dir.to_path_buf(),
+        workers,
+        snapshot_interval: Duration::from_millis(50),
+        ..Config::default()
+    }
+}
+
+/// An in-process server, its URL and a client.
+pub struct Server {
+    pub running: Running,
+    pub url: String,
+    pub http: reqwest::Client,
+}
+
+impl Server {
+    pub async fn start(config: Config) -> Server {
+        Server::wrap(service::start(config).await.unwrap())
+    }
+
+    pub fn wrap(running: Running) -> Server {
+        let url = format!("http://{}", running.addr);
+        Server {
+            running,
+            url,
+            http: reqwest::Client::new(),
+        }
+    }
+
+    pub fn get(&self, path: &str) -> reqwest::RequestBuilder {
+        self.http.get(format!("{}{path}", self.url))
+    }
+
+    pub fn post(&self, path: &str) -> reqwest::RequestBuilder {
+        self.http.post(format!("{}{path}", self.url))
+    }
+
+    pub async fn upload(&self, token: Option<&str>) -> String {
+        let mut r = self.post("/v1/scenes").body(cornell_glb());
+        if let Some(t) = token {
+            r = r.bearer_auth(t);
+        }
+        let r = r.send().await.unwrap();
+        assert!(r.status().is_success(), "{}", r.text().await.unwrap());
+        r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+    }
+
+    pub async fn submit(&self, token: Option<&str>, body: Value) -> String {
+        let mut r = self.post("/v1/jobs").json(&body);
+        if let Some(t) = token {
+            r = r.bearer_auth(t);
+        }
+        let r = r.send().await.unwrap();
+        assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+        r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+    }
+
+    /// Polls a job until it has ended (succeeded, failed, cancelled).
+    pub async fn wait_end(&self, id: &str) -> Value {
+        let start = Instant::now();
+        loop {
+            let j: Value = self
+                .get(&format!("/v1/jobs/{id}"))
+                .send()
+                .await
+                .unwrap()
+                .json()
+                .await
+                .unwrap();
+            if ["succeeded", "failed", "cancelled"].contains(&j["status"].as_str().unwrap_or("")) {
+                return j;
+            }
+            assert!(start.elapsed() < DEADLINE, "job {id} never ended: {j:#}");
+            tokio::time::sleep(Duration::from_millis(25)).await;
+        }
+    }
+}
+
+/// Checks the status, the content type and the whole problem+json body.
+pub async fn expect_problem(req: reqwest::RequestBuilder, status: u16, body: Value) -> reqwest::header::HeaderMap {
+    let r = req.send().await.unwrap();
+    let headers = r.headers().clone();
+    let got_status = r.status().as_u16();
+    let text = r.text().await.unwrap();
+    assert_eq!(got_status, status, "{text}");
+    assert_eq!(headers["content-type"], "application/problem+json", "{text}");
+    let got: Value = serde_json::from_str(&text).unwrap();
+    assert_eq!(got, body);
+    headers
+}
+
+pub fn problem(status: u16, title: &str, kind: &str, detail: &str, field: Option<&str>) -> Value {
+    let mut v = json!({
+        "type": format!("urn:lightmapd:problem:{kind}"),
+        "title": title,
+        "status": status,
+        "detail": detail,
+    });
+    if let Some(f) = field {
+        v["field"] = json!(f);
+    }
+    v
+}
+
+pub fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_lightmapd")
+}
+
+/// A `lightmapd serve` child; the address comes from its first stdout line.
+pub fn spawn_serve(dir: &Path, workers: usize, extra: &[&str]) -> (Child, String) {
+    let mut child = Command::new(bin())
+        .arg("serve")
+        .args(["--listen", "127.0.0.1:0", "--workers", &workers.to_string()])
+        .arg("--data-dir")
+        .arg(dir)
+        .args(extra)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let url = line
+        .trim()
+        .strip_prefix("lightmapd listening on ")
+        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+        .to_string();
+    (child, url)
+}
+
+/// A `lightmapd worker` child on the database and store of a `serve` in `dir`.
+pub fn spawn_worker(dir: &Path, extra: &[&str]) -> Child {
+    Command::new(bin())
+        .arg("worker")
+        .arg("--database-url")
+        .arg(format!("sqlite://{}", dir.join("lightmapd.db").display()))
+        .arg("--store")
+        .arg(dir.join("objects"))
+        .args(extra)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+pub fn store_dir(dir: &Path) -> PathBuf {
+    dir.join("objects")
+}
+
+/// Decodes every channel of every layer of an EXR: a truncated or half-written file
+/// fails here.
+pub fn exr_is_whole(bytes: &[u8]) -> Result<(), String> {
+    use exr::prelude::*;
+    read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .map(|_: Image<Layers<AnyChannels<FlatSamples>>>| ())
+        .map_err(|e| e.to_string())
+}
