@@ -48,8 +48,29 @@ pub const SDB_GATHER: PassShader = pass!("sdb_gather.wgsl");
 /// `sdb`: direct light from the sun and directional lights through a shadow map.
 pub const SDB_DIRECT: PassShader = pass!("sdb_direct.wgsl");
 
+/// `sdf`: seed the voxels each triangle touches.
+pub const SDF_VOXELIZE: PassShader = pass!("sdf_voxelize.wgsl");
+/// `sdf`: jump flooding and the signed distance of the nearest seed triangle.
+pub const SDF_FLOOD: PassShader = pass!("sdf_flood.wgsl");
+/// `sdf`: analytic dynamic shapes composited into the volume with min.
+pub const SDF_DYNAMIC: PassShader = pass!("sdf_dynamic.wgsl");
+/// `sdf`: the pre-blurred mip chain.
+pub const SDF_MIPS: PassShader = pass!("sdf_mips.wgsl");
+/// `sdf`: sky visibility along the bent normal, and the calibration sums.
+pub const SDF_SKY: PassShader = pass!("sdf_sky.wgsl");
+
 /// Every pass shader in the crate.
-pub const ALL: &[PassShader] = &[SDB_RESOLVE, SDB_ILLUMINATION, SDB_GATHER, SDB_DIRECT];
+pub const ALL: &[PassShader] = &[
+    SDB_RESOLVE,
+    SDB_ILLUMINATION,
+    SDB_GATHER,
+    SDB_DIRECT,
+    SDF_VOXELIZE,
+    SDF_FLOOD,
+    SDF_DYNAMIC,
+    SDF_MIPS,
+    SDF_SKY,
+];
 
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the
 /// diagnostic text on failure. The same checks run again inside wgpu at

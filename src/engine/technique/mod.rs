@@ -13,6 +13,7 @@
 
 pub mod path;
 pub mod sdb;
+pub mod sdf;
 
 use std::sync::Arc;
 
@@ -24,7 +25,7 @@ use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::{Lighting, Scene};
 
 /// The identifiers [`create`] accepts.
-pub const TECHNIQUES: &[&str] = &["path", "sdb"];
+pub const TECHNIQUES: &[&str] = &["path", "sdb", "sdf"];
 
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
@@ -74,6 +75,7 @@ pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Te
     match id {
         "path" => Ok(Box::new(path::PathTracer::prepare(inputs, params)?)),
         "sdb" => Ok(Box::new(sdb::Sdb::prepare(inputs, params)?)),
+        "sdf" => Ok(Box::new(sdf::Sdf::prepare(inputs, params)?)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")
@@ -86,6 +88,7 @@ pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
     match id {
         "path" => Ok(path::plan(features)),
         "sdb" => Ok(sdb::plan(features)),
+        "sdf" => Ok(sdf::plan(features)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")

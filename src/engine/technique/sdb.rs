@@ -734,7 +734,7 @@ pub struct SdbEngine {
 const EPS_NORMAL_PLANE: f32 = 1e-5;
 const EPS_ALONG_D: f32 = 1e-5;
 
-fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -747,7 +747,7 @@ fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) 
     }
 }
 
-fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
+pub(crate) fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -775,7 +775,7 @@ fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     }
 }
 
-fn bind_group(
+pub(crate) fn bind_group(
     ctx: &GpuContext,
     label: &str,
     layout: &wgpu::BindGroupLayout,
@@ -795,7 +795,7 @@ fn bind_group(
     })
 }
 
-fn compute_pipeline(
+pub(crate) fn compute_pipeline(
     ctx: &GpuContext,
     label: &str,
     module: &wgpu::ShaderModule,
@@ -1701,7 +1701,7 @@ impl Sdb {
     }
 }
 
-fn gpu_error(e: GpuError) -> EngineError {
+pub(crate) fn gpu_error(e: GpuError) -> EngineError {
     match e {
         // Too large a map or lightmap for this device is the job's choice, not a fault.
         GpuError::Unsupported { .. } => EngineError::BadInput(e.to_string()),
