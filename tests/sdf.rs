@@ -56,7 +56,12 @@ fn open_plane_reads_the_whole_sky() {
     assert!(worst < 1e-4, "inner plane texel off the open sky by {worst}");
     // The direct layer is the sky visibility times the radiance: the same here.
     let direct = est.direct.as_ref().expect("direct kept");
-    assert!(direct.iter().zip(&est.total).all(|(d, t)| (*d - *t).abs().max_element() < 1e-6));
+    assert!(
+        direct
+            .iter()
+            .zip(&est.total)
+            .all(|(d, t)| (*d - *t).abs().max_element() < 1e-6)
+    );
 }
 
 /// Sphere r = 1 centred 2 m over a black plane: ground texels against the closed form
@@ -99,7 +104,10 @@ fn sphere_over_plane_against_the_analytic_visibility() {
     // leaves room for the ray noise of the calibration's 256 x 64 rays.
     assert!(rms < 0.04, "RMS error {rms}");
     // The darkest point is under the sphere: the model must see the occluder there.
-    let (got, exact) = under.iter().copied().fold((2.0, 0.0), |a, b| if b.0 < a.0 { b } else { a });
+    let (got, exact) = under
+        .iter()
+        .copied()
+        .fold((2.0, 0.0), |a, b| if b.0 < a.0 { b } else { a });
     assert!((got - exact).abs() < 0.1, "under the sphere: {got} against {exact}");
 }
 
@@ -174,9 +182,7 @@ fn dynamic_box_matches_the_same_box_as_geometry_and_moves() {
         .iter()
         .map(|t| t.geo_normal.y > 0.99 && (t.position + offset).y.abs() < 0.01)
         .collect();
-    let world_box = |c: Vec3| {
-        json!([{"box": {"centre": [c.x, c.y, c.z], "half": [half.x, half.y, half.z]}}])
-    };
+    let world_box = |c: Vec3| json!([{"box": {"centre": [c.x, c.y, c.z], "half": [half.x, half.y, half.z]}}]);
 
     let mut as_geometry = prepare(geometry, Arc::new(atlas.clone()), params.clone());
     let reference = run(&mut as_geometry, 4);
@@ -192,7 +198,9 @@ fn dynamic_box_matches_the_same_box_as_geometry_and_moves() {
             n += 1;
         }
     }
-    eprintln!("dynamic box vs geometry box: {n} ground texels, worst difference {worst:.2e}, darkest ground {darkest:.3}");
+    eprintln!(
+        "dynamic box vs geometry box: {n} ground texels, worst difference {worst:.2e}, darkest ground {darkest:.3}"
+    );
     assert!(darkest < 0.9, "the box must darken the ground under it ({darkest})");
     assert!(worst < 0.01, "dynamic box differs from the geometry box by {worst}");
 
@@ -236,7 +244,12 @@ fn no_sky_is_zero_and_the_plan_names_what_is_not_baked() {
         ..Default::default()
     };
     let p = plan::build(&scene, &request).unwrap();
-    assert!(p.left_out.iter().any(|i| i.name == "emitters" && i.why.contains("NOT baked")), "{p:?}");
+    assert!(
+        p.left_out
+            .iter()
+            .any(|i| i.name == "emitters" && i.why.contains("NOT baked")),
+        "{p:?}"
+    );
     assert!(p.left_out.iter().any(|i| i.name == "distance volume"), "{p:?}");
     let (_, est) = bake(scene, 16, Lighting::default(), "sdf", json!({}), 2);
     assert!(est.total.iter().all(|v| *v == Vec3::ZERO));
@@ -249,7 +262,10 @@ fn bad_params_name_the_parameter() {
     let atlas = Arc::new(Atlas::build(&scene, 16, 16).unwrap());
     for (params, name) in [
         (json!({"resolution": 4}), "resolution"),
-        (json!({"dynamic": [{"ellipsoid": {"centre": [0, 0, 0], "radii": [1, -1, 1]}}]}), "radii"),
+        (
+            json!({"dynamic": [{"ellipsoid": {"centre": [0, 0, 0], "radii": [1, -1, 1]}}]}),
+            "radii",
+        ),
         (json!({"unknown": 1}), "unknown"),
     ] {
         let inputs = BakeInputs {
@@ -262,5 +278,58 @@ fn bad_params_name_the_parameter() {
         };
         let e = Sdf::prepare(inputs, &params).err().expect("rejected");
         assert!(e.is_bad_input() && e.to_string().contains(name), "{e}");
+    }
+}
+
+/// Timings for docs/performance.md (ignored: run with
+/// `cargo test --release --test sdf -- --ignored --nocapture`): volume build, calibration
+/// and milliseconds per step at the default parameters, with the fit and the memory.
+#[test]
+#[ignore]
+fn timings_for_the_docs() {
+    use lightmapd::engine::scene::library::benchmark_scenes;
+    for s in benchmark_scenes() {
+        if !["sky-plane", "sphere-over-plane", "blocks-25k"].contains(&s.name) {
+            continue;
+        }
+        let scene = Arc::new(import(&s.builder));
+        let atlas = Arc::new(Atlas::build(&scene, s.resolution, s.resolution).unwrap());
+        let request = lightmapd::engine::job::BakeRequest {
+            technique: "sdf".into(),
+            lighting: s.lighting,
+            ..Default::default()
+        };
+        let inputs = BakeInputs {
+            scene: scene.clone(),
+            atlas: atlas.clone(),
+            lighting: s.lighting,
+            seed: 1,
+            want_direct: false,
+            plan: plan::build(&scene, &request).unwrap(),
+        };
+        let t = std::time::Instant::now();
+        let mut sdf = Sdf::prepare(inputs, &json!({})).unwrap();
+        let prepare = t.elapsed().as_secs_f64();
+        sdf.step().unwrap();
+        sdf.snapshot().unwrap();
+        let t = std::time::Instant::now();
+        let steps = 32;
+        for _ in 0..steps {
+            sdf.step().unwrap();
+        }
+        sdf.snapshot().unwrap();
+        let per_step = t.elapsed().as_secs_f64() * 1e3 / steps as f64;
+        let layout = sdf.layout().unwrap();
+        eprintln!(
+            "{}: {} triangles, {} texels, volume {:?} ({:.1} MiB), prepare {prepare:.2} s (volume {:.2} s, calibration {:.2} s), {per_step:.1} ms/step; params {}",
+            s.name,
+            scene.triangles.len(),
+            atlas.texels.len(),
+            layout.dims,
+            layout.bytes() as f64 / (1 << 20) as f64,
+            sdf.timings().volume,
+            sdf.timings().calibration,
+            sdf.params()
+        );
     }
 }

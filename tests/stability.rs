@@ -458,7 +458,13 @@ stability_suite!(
         technique: "sdf",
         params: json!({"resolution": 32}),
         bias: 0.01,
-        open_failures: &[STIFF_BOX, TINY_EMITTER, EMITTER_SCALE, THIN_WALL_EMITTER, HALF_FLOAT_EMITTER],
+        open_failures: &[
+            STIFF_BOX,
+            TINY_EMITTER,
+            EMITTER_SCALE,
+            THIN_WALL_EMITTER,
+            HALF_FLOAT_EMITTER
+        ],
     },
     leak <= 1e-2
 );

@@ -260,7 +260,10 @@ impl SdfParams {
             return bad(format!("calibration_texels: {} is above 4096", self.calibration_texels));
         }
         if !(1..=4096).contains(&self.calibration_rays) {
-            return bad(format!("calibration_rays: {} is outside 1..=4096", self.calibration_rays));
+            return bad(format!(
+                "calibration_rays: {} is outside 1..=4096",
+                self.calibration_rays
+            ));
         }
         if self.dynamic.len() > MAX_DYNAMIC {
             return bad(format!("dynamic: {} shapes, at most {MAX_DYNAMIC}", self.dynamic.len()));
@@ -272,7 +275,10 @@ impl SdfParams {
             let size = s.size();
             if !(size.is_finite() && size.min_element() > 0.0) {
                 let name = if s.is_box() { "half" } else { "radii" };
-                return bad(format!("dynamic[{i}].{name} must be finite and > 0, got {:?}", size.to_array()));
+                return bad(format!(
+                    "dynamic[{i}].{name} must be finite and > 0, got {:?}",
+                    size.to_array()
+                ));
             }
             let a = s.albedo();
             if !(a.is_finite() && a.min_element() >= 0.0 && a.max_element() <= 1.0) {
@@ -753,7 +759,13 @@ impl Sdf {
             from = 1 - from;
         }
         let resolve_bg = flood_bg("sdf resolve", from, 0);
-        run_pass(&mut encoder, "sdf resolve", &resolve_pipeline, &resolve_bg, voxel_groups);
+        run_pass(
+            &mut encoder,
+            "sdf resolve",
+            &resolve_pipeline,
+            &resolve_bg,
+            voxel_groups,
+        );
         ctx.queue.submit([encoder.finish()]);
 
         // Dynamic composite and mips.
@@ -886,7 +898,13 @@ impl Sdf {
         let scene = &inputs.scene;
         let atlas = &inputs.atlas;
         let upper = self.upper;
-        let open = |n: Vec3| if upper { (0.5 * (1.0 + n.y)).clamp(0.0, 1.0) } else { 1.0 };
+        let open = |n: Vec3| {
+            if upper {
+                (0.5 * (1.0 + n.y)).clamp(0.0, 1.0)
+            } else {
+                1.0
+            }
+        };
         // Texels that can see sky at all, picked in a seeded random order.
         let mut order: Vec<(u64, u32)> = atlas
             .texels
@@ -1041,8 +1059,7 @@ impl Sdf {
         self.k = best_k;
         self.alpha = alphas[best_a];
         let fitted = model(best_a, best_k);
-        let mean_bias =
-            fitted.iter().zip(&reference).map(|(a, b)| (a - b) as f64).sum::<f64>() as f32 / n as f32;
+        let mean_bias = fitted.iter().zip(&reference).map(|(a, b)| (a - b) as f64).sum::<f64>() as f32 / n as f32;
         let noise = (reference
             .iter()
             .map(|v| (v * (1.0 - v) / rays as f32) as f64)
@@ -1229,7 +1246,10 @@ impl Technique for Sdf {
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let n = self.n_texels as usize;
         let acc: Vec<[f32; 4]> = match &self.gpu {
-            Some(g) => g.ctx.read_buffer("sdf accumulators", &g.acc_buf, 2 * n).map_err(gpu_error)?,
+            Some(g) => g
+                .ctx
+                .read_buffer("sdf accumulators", &g.acc_buf, 2 * n)
+                .map_err(gpu_error)?,
             None => vec![[0.0; 4]; 2 * n],
         };
         let half = |h: usize| {
