@@ -99,16 +99,17 @@ fn sphere_over_plane_against_the_analytic_visibility() {
         under.first()
     );
     assert!(n > 200);
-    // Measured RMS 0.02-0.03 with the fit (docs/sdf.md); the visibility ranges from 0.75
-    // to 1, so a model that ignored the sphere would have RMS about 0.06. The bound
-    // leaves room for the ray noise of the calibration's 256 x 64 rays.
+    // Measured RMS 0.017 with the fit (docs/sdf.md); a model that ignored the sphere
+    // (C = 1) would have RMS 0.10 over this plane. The bound leaves room for the ray
+    // noise of the calibration's 256 x 64 rays, which moves the fitted k and alpha.
     assert!(rms < 0.04, "RMS error {rms}");
     // The darkest point is under the sphere: the model must see the occluder there.
     let (got, exact) = under
         .iter()
         .copied()
         .fold((2.0, 0.0), |a, b| if b.0 < a.0 { b } else { a });
-    assert!((got - exact).abs() < 0.1, "under the sphere: {got} against {exact}");
+    // Measured 0.781 against 0.754: the model is too bright under an occluder.
+    assert!((got - exact).abs() < 0.06, "under the sphere: {got} against {exact}");
 }
 
 fn box_faces(b: &mut SceneBuilder, centre: Vec3, half: Vec3, m: usize) {
@@ -147,7 +148,8 @@ fn run(sdf: &mut Sdf, steps: u64) -> Vec<Vec3> {
 /// triangles. Same atlas (the geometry scene's), same k and alpha, the ground-only scene
 /// plus the dynamic box against the scene with the box's faces: the distance fields
 /// differ only where the voxelised box's sign or the flood's choice of triangle differ
-/// from the exact box distance, so the ground must agree to 1 % of the sky.
+/// from the exact box distance, so the ground must agree to 1 % of the sky (measured
+/// 0.7 %).
 /// Then moving the box with `set_dynamic` (no new voxelisation) bakes what a fresh bake
 /// with the box at the new place bakes.
 #[test]

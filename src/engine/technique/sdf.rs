@@ -891,8 +891,8 @@ impl Sdf {
         Ok(())
     }
 
-    /// Sky visibility F C per calibration texel for given k, alpha: the model the
-    /// calibration fits (exposed for tests).
+    /// Fits k and alpha (whichever the job left out) against CPU ray-cast sky
+    /// visibility at a seeded random set of texels, and reports the fit.
     fn calibrate(&mut self, inputs: &BakeInputs) -> Result<CalibrationReport, GpuError> {
         let g = self.gpu.as_ref().expect("calibration runs after the volume");
         let scene = &inputs.scene;
