@@ -37,13 +37,20 @@ fn flood(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     if (best != SDF_NO_SEED) { best_d = sdf_triangle_distance(p, tris[best]); }
     let step = i32(fp.misc.x);
     let dims = vec3<i32>(vol.dims.xyz);
+    // Neighbouring seeds repeat (a triangle is nearest over whole regions): the last four
+    // seeds evaluated are remembered so a repeated one costs a compare, not a distance.
+    var seen = array<u32, 4>(best, SDF_NO_SEED, SDF_NO_SEED, SDF_NO_SEED);
+    var slot = 1u;
     for (var dz = -1; dz <= 1; dz++) {
         for (var dy = -1; dy <= 1; dy++) {
             for (var dx = -1; dx <= 1; dx++) {
                 let q = v + vec3<i32>(dx, dy, dz) * step;
                 if (any(q < vec3<i32>(0)) || any(q >= dims)) { continue; }
                 let s = seeds_in[(u32(q.z) * vol.dims.y + u32(q.y)) * vol.dims.x + u32(q.x)];
-                if (s == SDF_NO_SEED || s == best) { continue; }
+                if (s == SDF_NO_SEED || s == best || s == seen[0] || s == seen[1] || s == seen[2] ||
+                    s == seen[3]) { continue; }
+                seen[slot] = s;
+                slot = (slot + 1u) % 4u;
                 let d = sdf_triangle_distance(p, tris[s]);
                 if (d < best_d) {
                     best_d = d;
