@@ -20,7 +20,8 @@
 //!    the seed triangle (not a voxel-quantised or chamfer distance), so an open plane
 //!    reads its exact distance and C = 1 there. Jump flooding can miss the true nearest
 //!    triangle in rare configurations; the error is then the gap between two triangles'
-//!    distances, small next to the voxel size.
+//!    distances, small next to the voxel size. Each voxel remembers the last four seeds
+//!    it evaluated, since neighbouring seeds repeat (1.15-1.2x faster, same field).
 //!    Sign: negative behind the nearest triangle's plane (its geometric normal). Correct
 //!    at convex edges (a point outside an edge is in front of both faces), exact for a
 //!    plane (the field stays linear across it, so trilinear lookups and box-filtered mips
@@ -35,13 +36,14 @@
 //! 4. *Mips* (`shaders/sdf_mips.wgsl`, seed section 9.6): box-filtered 2x2x2 means,
 //!    levels up to the sample count (at most 8).
 //! 5. *Sky* (`shaders/sdf_sky.wgsl`, seed section 9.6): per texel, samples at
-//!    d_i = h 2^(i + u) along N' = normalize(N + alpha U), sample i from mip i, and
+//!    d_i = h 2^(i + u) along N' = normalize(N + alpha U), sample i from mip
+//!    min(i, levels - 1), and
 //!    C = min(exp(k S), 1) with S = sum_i min(D_i - d_i, 0) / w_i: the seed's
 //!    C = exp(k sum SDF + d_i) in our sign convention (outside positive). The texel gets
 //!    L_sky F(N) C, F the unoccluded fraction of a cosine-weighted hemisphere that sees the
 //!    sky. u in [-1/2, 1/2) is jittered per texel and step, so even and odd steps are two
 //!    estimates of the jitter-averaged C (DESIGN section 4).
-//! 6. *Calibration* ([`calibrate`]): `calibration_texels` texels, each with
+//! 6. *Calibration* (`Sdf::calibrate`): `calibration_texels` texels, each with
 //!    `calibration_rays` cosine-distributed CPU rays (the `path` reference's sky
 //!    visibility, dynamic shapes included), against the GPU's sums S for 9 alphas x 8
 //!    fixed jitters; k is fitted per alpha by least squares, the best pair is kept and
@@ -56,8 +58,9 @@
 //! - Each term is clamped to <= 0: free space cannot make a point "more open than open"
 //!   (trilinear and mip errors near edges would otherwise cancel real occlusion).
 //! - k and alpha are fitted per scene against ray-cast visibility, not chosen by eye.
-//! - `weighting`: `voxel` divides each term by the voxel size (the seed's plain sum,
-//!   dimensionless); `distance` divides term i by d_i (every scale counts alike).
+//! - `weighting`: `distance` (default) divides term i by d_i, so every scale counts
+//!   alike; `voxel` divides by the voxel size (the seed's plain sum). Fitted RMS on the
+//!   sphere over a plane: 0.014 against 0.024.
 //! - Colour bleed (section 9.9) scales each channel's terms by (1 - bleed albedo) of the
 //!   surface nearest the sample instead of adding a per-object constant; off by default.
 //!
@@ -69,7 +72,12 @@
 //!   occluders outside the volume (dynamic shapes moved out) are not seen.
 //! - The model is a heuristic: its error against the true visibility is what the
 //!   calibration reports (docs/sdf.md has the measured figures).
+//! - No `ao.Y` output layer: `engine::output` has none yet; the bleed-free visibility is
+//!   kept per texel and written as the `direct` layer (L_sky times it).
 //!
+//! Memory: 24 B a voxel (two u32 seed grids, the f32x4 static field) plus 16 B per mip
+//! element (about 1.14 x the voxels): 85 MiB at 128^3, far less for flat scenes; the
+//! whole mip chain must fit one storage binding (checked, a clear error otherwise).
 //! Randomness: PCG hash per texel and step on the GPU (common.wgsl); the calibration's
 //! rays use [`Rng`] streams keyed by the bake seed. Precision: f32 everywhere, geometry in
 //! normalised scene space (p - centre) / radius as in `sdb`, so scale and translation do
