@@ -41,7 +41,14 @@ impl Row {
 
 /// The case names `Row::open_failures` may list.
 pub const TINY_EMITTER: &str = "tiny bright emitter";
+/// The closed boxes, lit by their own emission only.
 pub const STIFF_BOX: &str = "stiff closed box";
+/// Scale and translation of the Cornell box, lit by its emitter only.
+pub const EMITTER_SCALE: &str = "scale and translation of an emitter-lit scene";
+/// The thin wall between two rooms, lit by an emissive ceiling only.
+pub const THIN_WALL_EMITTER: &str = "thin wall lit by an emitter";
+/// Values beyond half-float range, from a 1e6 emitter.
+pub const HALF_FLOAT_EMITTER: &str = "beyond half float from an emitter";
 
 fn upper_sky(l: f32) -> Lighting {
     Lighting {
@@ -70,6 +77,9 @@ pub fn stiff_closed_box(row: &Row, rho: f32) {
     );
     assert!(est.total.iter().all(|v| v.is_finite()), "non-finite texel");
     if row.fails(STIFF_BOX) {
+        // Whatever the technique: finite and never negative; the comparison with the
+        // closed form (1) is reported, not asserted.
+        assert!(est.total.iter().all(|v| v.min_element() >= 0.0), "negative texel");
         let (dev, se) = common::mean_deviation(&atlas, &est, |_| true, |_| Vec3::ONE);
         eprintln!(
             "{} closed box rho={rho} (open failure): mean relative deviation {dev:+.4}, standard error {se:.4}",
@@ -167,7 +177,14 @@ pub fn scale_and_translation_invariance(row: &Row) {
             json["scenes"][0]["nodes"] = json!([n]);
         }
         let scene = import_slice(&write_glb(&json, &bin), None).unwrap().0;
-        bake(scene, 32, Lighting::default(), row.technique, row.params.clone(), 4).1
+        // A technique that cannot bake the emitter is checked under a sky instead (the
+        // box is open at the front), which it can bake: invariance must hold there.
+        let lighting = if row.fails(EMITTER_SCALE) {
+            upper_sky(1.0)
+        } else {
+            Lighting::default()
+        };
+        bake(scene, 32, lighting, row.technique, row.params.clone(), 4).1
     };
     let base = bake_with(None);
     let rms = |v: &[Vec3]| (v.iter().map(|x| lum(*x).powi(2)).sum::<f64>() / v.len() as f64).sqrt();
@@ -248,6 +265,18 @@ pub fn thin_wall_leak(row: &Row) -> f64 {
             nd += 1;
         }
     }
+    if row.fails(THIN_WALL_EMITTER) {
+        // Whatever the technique: finite and never negative; no leak can be measured
+        // when the lit room itself reads nothing.
+        assert!(est.total.iter().all(|v| v.is_finite() && v.min_element() >= 0.0));
+        eprintln!(
+            "{} thin wall (open failure): lit room mean {:.3e}, dark room mean {:.3e}",
+            row.technique,
+            lit / nl as f64,
+            dark / nd as f64
+        );
+        return 0.0;
+    }
     let leak = (dark / nd as f64) / (lit / nl as f64);
     eprintln!(
         "{} thin wall: dark room / lit room = {leak:.2e} ({nd} and {nl} texels)",
@@ -262,10 +291,21 @@ pub fn beyond_half_float(row: &Row) {
     let grey = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
     let lamp = b.material(MaterialDesc::emissive("lamp", [0.0; 3], [1e6; 3]));
     b.square("ground", Vec3::ZERO, 1.0, Vec3::Y, grey);
-    b.square("lamp", Vec3::new(0.0, 0.05, 0.0), 1.0, Vec3::NEG_Y, lamp);
+    // A technique that cannot bake the emitter gets the same radiance from a sky over
+    // the open ground instead, which still reads far beyond half-float range: what this
+    // case checks is that such values reach the EXR unclamped.
+    if !row.fails(HALF_FLOAT_EMITTER) {
+        b.square("lamp", Vec3::new(0.0, 0.05, 0.0), 1.0, Vec3::NEG_Y, lamp);
+    }
     let scene = Arc::new(import(&b));
+    let lighting = if row.fails(HALF_FLOAT_EMITTER) {
+        upper_sky(1e6)
+    } else {
+        Lighting::default()
+    };
     let request = BakeRequest {
         technique: row.technique.into(),
+        lighting,
         resolution: 32,
         stop: StopCriteria {
             steps: Some(4),
@@ -440,4 +480,26 @@ stability_suite!(
         open_failures: &[STIFF_BOX, TINY_EMITTER],
     },
     leak <= 0.35
+);
+
+// `sdf` bakes sky light only: every case lit by emitters alone is outside its domain
+// (open failures, reported with their values in docs/stability.md; the scale and
+// half-float cases run under a sky instead). The one closed-form comparison left, the
+// open coplanar ground, measured -3e-5; the 1 % allowance is the model's error on open
+// geometry far from borders (docs/sdf.md).
+stability_suite!(
+    sdf,
+    Row {
+        technique: "sdf",
+        params: json!({"resolution": 32}),
+        bias: 0.01,
+        open_failures: &[
+            STIFF_BOX,
+            TINY_EMITTER,
+            EMITTER_SCALE,
+            THIN_WALL_EMITTER,
+            HALF_FLOAT_EMITTER
+        ],
+    },
+    leak <= 1e-2
 );

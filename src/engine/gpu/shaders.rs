@@ -58,6 +58,16 @@ pub const OBSCURANCE_LAYERS: PassShader = pass!("obscurance_layers.wgsl");
 pub const OBSCURANCE_GATHER: PassShader = pass!("obscurance_gather.wgsl");
 /// `obscurance`: direct light from the sun and directional lights through a shadow map.
 pub const OBSCURANCE_DIRECT: PassShader = pass!("obscurance_direct.wgsl");
+/// `sdf`: seed the voxels each triangle touches.
+pub const SDF_VOXELIZE: PassShader = pass!("sdf_voxelize.wgsl");
+/// `sdf`: jump flooding and the signed distance of the nearest seed triangle.
+pub const SDF_FLOOD: PassShader = pass!("sdf_flood.wgsl");
+/// `sdf`: analytic dynamic shapes composited into the volume with min.
+pub const SDF_DYNAMIC: PassShader = pass!("sdf_dynamic.wgsl");
+/// `sdf`: the pre-blurred mip chain.
+pub const SDF_MIPS: PassShader = pass!("sdf_mips.wgsl");
+/// `sdf`: sky visibility along the bent normal, and the calibration sums.
+pub const SDF_SKY: PassShader = pass!("sdf_sky.wgsl");
 
 /// Every pass shader in the crate.
 pub const ALL: &[PassShader] = &[
@@ -70,6 +80,11 @@ pub const ALL: &[PassShader] = &[
     OBSCURANCE_LAYERS,
     OBSCURANCE_GATHER,
     OBSCURANCE_DIRECT,
+    SDF_VOXELIZE,
+    SDF_FLOOD,
+    SDF_DYNAMIC,
+    SDF_MIPS,
+    SDF_SKY,
 ];
 
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the

@@ -14,6 +14,7 @@
 pub mod obscurance;
 pub mod path;
 pub mod sdb;
+pub mod sdf;
 pub mod vpl;
 
 use std::sync::Arc;
@@ -26,7 +27,7 @@ use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::{Lighting, Scene};
 
 /// The identifiers [`create`] accepts.
-pub const TECHNIQUES: &[&str] = &["path", "sdb", "vpl", "obscurance"];
+pub const TECHNIQUES: &[&str] = &["path", "sdb", "vpl", "obscurance", "sdf"];
 
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
@@ -83,6 +84,7 @@ pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Te
         "sdb" => Ok(Box::new(sdb::Sdb::prepare(inputs, params)?)),
         "vpl" => Ok(Box::new(vpl::Vpl::prepare(inputs, params)?)),
         "obscurance" => Ok(Box::new(obscurance::Obscurance::prepare(inputs, params)?)),
+        "sdf" => Ok(Box::new(sdf::Sdf::prepare(inputs, params)?)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")
@@ -97,6 +99,7 @@ pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
         "sdb" => Ok(sdb::plan(features)),
         "vpl" => Ok(vpl::plan(features)),
         "obscurance" => Ok(obscurance::plan(features)),
+        "sdf" => Ok(sdf::plan(features)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")
