@@ -335,3 +335,24 @@ fn timings_for_the_docs() {
         );
     }
 }
+
+/// The `ao` layer is the plain sky visibility: under a white sky of radiance 1 with the
+/// bleed off (the default) the lightmap is that visibility, so the two agree texel by
+/// texel, and under the sphere they are well below 1.
+#[test]
+fn ao_layer_is_the_sky_visibility() {
+    let scene = import(&sphere_over_plane());
+    let atlas = Arc::new(Atlas::build(&scene, 32, 32).expect("atlas"));
+    let mut sdf = prepare(scene, atlas, json!({"resolution": 48}));
+    let total = run(&mut sdf, 2);
+    let ao = sdf.ao().expect("sdf keeps the ao layer");
+    assert_eq!(ao.len(), total.len());
+    let worst = ao
+        .iter()
+        .zip(&total)
+        .map(|(a, t)| (*a as f64 - lum(*t)).abs())
+        .fold(0.0, f64::max);
+    assert!(worst < 1e-5, "ao differs from the white-sky lightmap by {worst}");
+    let darkest = ao.iter().copied().fold(1.0f32, f32::min);
+    assert!(darkest < 0.9, "the sphere darkens some texel's sky: darkest {darkest}");
+}

@@ -72,8 +72,8 @@
 //!   occluders outside the volume (dynamic shapes moved out) are not seen.
 //! - The model is a heuristic: its error against the true visibility is what the
 //!   calibration reports (docs/sdf.md has the measured figures).
-//! - No `ao.Y` output layer: `engine::output` has none yet; the bleed-free visibility is
-//!   kept per texel and written as the `direct` layer (L_sky times it).
+//! - The bleed-free visibility is the `ao.Y` layer (`Technique::ao`) and, times L_sky,
+//!   the `direct` layer.
 //!
 //! Memory: 24 B a voxel (two u32 seed grids, the f32x4 static field) plus 16 B per mip
 //! element (about 1.14 x the voxels): 85 MiB at 128^3, far less for flat scenes; the
@@ -477,6 +477,8 @@ pub struct Sdf {
     seed: u64,
     steps_done: u64,
     half_steps: [u64; 2],
+    /// Sky visibility per valid texel as of the last snapshot (the `ao.Y` layer).
+    last_ao: Option<Vec<f32>>,
     k: f32,
     alpha: f32,
     gpu: Option<SdfGpu>,
@@ -537,6 +539,7 @@ impl Sdf {
             seed: inputs.seed,
             steps_done: 0,
             half_steps: [0, 0],
+            last_ao: None,
             gpu: None,
             timings: BuildTimings::default(),
             notes,
@@ -1275,10 +1278,22 @@ impl Technique for Sdf {
                 moments: None,
             }
         };
+        // Both halves' visibility sums over all steps: the plain sky visibility, without
+        // the sky's colour or the bleed (DESIGN's `ao.Y`).
+        let steps = (self.half_steps[0] + self.half_steps[1]) as f32;
+        self.last_ao = Some(
+            (0..n)
+                .map(|k| if steps > 0.0 { (acc[k][3] + acc[n + k][3]) / steps } else { 0.0 })
+                .collect(),
+        );
         Ok(Snapshot {
             even: half(0),
             odd: half(1),
         })
+    }
+
+    fn ao(&self) -> Option<Vec<f32>> {
+        self.last_ao.clone()
     }
 
     fn accumulating_pass(&self) -> &'static str {
