@@ -1283,7 +1283,13 @@ impl Technique for Sdf {
         let steps = (self.half_steps[0] + self.half_steps[1]) as f32;
         self.last_ao = Some(
             (0..n)
-                .map(|k| if steps > 0.0 { (acc[k][3] + acc[n + k][3]) / steps } else { 0.0 })
+                .map(|k| {
+                    if steps > 0.0 {
+                        (acc[k][3] + acc[n + k][3]) / steps
+                    } else {
+                        0.0
+                    }
+                })
                 .collect(),
         );
         Ok(Snapshot {
