@@ -23,6 +23,7 @@ use serde_json::Value;
 
 use crate::engine::accumulate::Snapshot;
 use crate::engine::atlas::Atlas;
+use crate::engine::gpu::GpuError;
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::{Lighting, Scene};
 
@@ -104,6 +105,16 @@ pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")
         ))),
+    }
+}
+
+/// A GPU error as the engine reports it: too large a map or lightmap for this device is
+/// the job's choice (bad input), anything else a GPU fault.
+pub fn gpu_error(e: GpuError) -> EngineError {
+    match e {
+        // Too large a map or lightmap for this device is the job's choice, not a fault.
+        GpuError::Unsupported { .. } => EngineError::BadInput(e.to_string()),
+        other => EngineError::Gpu(other.to_string()),
     }
 }
 

@@ -115,13 +115,14 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+use super::gpu_error;
 use super::sdb::{
     self, DirectionSequence, DirectionalLight, Directions, Environment, GpuView, NO_TEXEL, SplitMix64,
-    TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, bind_group, compute_pipeline, fill_map, gpu_error, make_view, sample_cone,
-    storage_entry, texture_entry, uniform_entry,
+    TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view, sample_cone,
 };
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, texture_entry, uniform_entry};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::Lighting;

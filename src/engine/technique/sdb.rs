@@ -102,9 +102,10 @@ use bytemuck::{Pod, Zeroable};
 use glam::{Quat, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 
-use super::{BakeInputs, EngineError, Technique, parse_params};
+use super::{BakeInputs, EngineError, Technique, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::atlas::Atlas;
+use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, texture_entry, uniform_entry};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cosine_sample};
@@ -766,93 +767,6 @@ struct GpuEmitterAddParams {
 /// Relative epsilons (normalised scene space, radius 1).
 const EPS_NORMAL_PLANE: f32 = 1e-5;
 const EPS_ALONG_D: f32 = 1e-5;
-
-pub(crate) fn storage_entry(
-    binding: u32,
-    visibility: wgpu::ShaderStages,
-    read_only: bool,
-) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
-pub(crate) fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Uniform,
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
-pub(crate) fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Texture {
-            // Read with textureLoad only: no filtering, so Rgba32Float needs no
-            // FLOAT32_FILTERABLE.
-            sample_type: wgpu::TextureSampleType::Float { filterable: false },
-            view_dimension: wgpu::TextureViewDimension::D2Array,
-            multisampled: false,
-        },
-        count: None,
-    }
-}
-
-pub(crate) fn bind_group(
-    ctx: &GpuContext,
-    label: &str,
-    layout: &wgpu::BindGroupLayout,
-    entries: &[(u32, wgpu::BindingResource<'_>)],
-) -> wgpu::BindGroup {
-    let entries: Vec<wgpu::BindGroupEntry> = entries
-        .iter()
-        .map(|(b, r)| wgpu::BindGroupEntry {
-            binding: *b,
-            resource: r.clone(),
-        })
-        .collect();
-    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some(label),
-        layout,
-        entries: &entries,
-    })
-}
-
-pub(crate) fn compute_pipeline(
-    ctx: &GpuContext,
-    label: &str,
-    module: &wgpu::ShaderModule,
-    entry: &str,
-    layout: &wgpu::BindGroupLayout,
-) -> wgpu::ComputePipeline {
-    let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-        label: Some(label),
-        bind_group_layouts: &[Some(layout)],
-        immediate_size: 0,
-    });
-    ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some(label),
-        layout: Some(&pl),
-        module,
-        entry_point: Some(entry),
-        compilation_options: Default::default(),
-        cache: None,
-    })
-}
 
 impl SdbEngine {
     /// Upload the scene and build the passes. Only the passes the input needs are
@@ -1820,14 +1734,6 @@ impl Sdb {
     /// What this bake leaves out of the scene's light, for the job's plan.
     pub fn notes(&self) -> &[String] {
         &self.notes
-    }
-}
-
-pub(crate) fn gpu_error(e: GpuError) -> EngineError {
-    match e {
-        // Too large a map or lightmap for this device is the job's choice, not a fault.
-        GpuError::Unsupported { .. } => EngineError::BadInput(e.to_string()),
-        other => EngineError::Gpu(other.to_string()),
     }
 }
 

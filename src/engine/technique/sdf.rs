@@ -91,9 +91,10 @@ use glam::{DVec3, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::sdb::{bind_group, compute_pipeline, gpu_error, storage_entry, uniform_entry};
+use super::gpu_error;
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, uniform_entry};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cosine_sample};

@@ -96,13 +96,12 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::sdb::{
-    DirectionSequence, Directions, GpuTexelGeom, SplitMix64, bind_group, compute_pipeline, gpu_error, storage_entry,
-    uniform_entry,
-};
+use super::gpu_error;
+use super::sdb::{DirectionSequence, Directions, GpuTexelGeom, SplitMix64};
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
+use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, uniform_entry};
 use crate::engine::gpu::{self, GpuContext, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, basis, cone_sample, cosine_sample, inset};
