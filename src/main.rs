@@ -818,7 +818,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         .map(|e| format!("{:.2}%", e * 100.0))
         .unwrap_or_else(|| "n/a".into());
     eprintln!(
-        "baked {} ({}x{}, {} texels) with {}: {} steps in {:.1} s, estimated error {} (stopped by {:?}) -> {}",
+        "baked {} ({}x{}, {} texels) with {}: {} steps in {:.2} s ({:.2} ms a step), estimated error {} (stopped by {:?}) -> {}",
         args.scene.display(),
         s.atlas.width,
         s.atlas.height,
@@ -826,6 +826,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         s.technique,
         s.steps,
         s.seconds,
+        1e3 * s.seconds / s.steps.max(1) as f64,
         err,
         s.stopped_by,
         args.output.display()

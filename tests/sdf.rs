@@ -323,7 +323,7 @@ fn timings_for_the_docs() {
         let per_step = t.elapsed().as_secs_f64() * 1e3 / steps as f64;
         let layout = sdf.layout().unwrap();
         eprintln!(
-            "{}: {} triangles, {} texels, volume {:?} ({:.1} MiB), prepare {prepare:.2} s (volume {:.2} s, calibration {:.2} s), {per_step:.1} ms/step; params {}",
+            "{}: {} triangles, {} texels, volume {:?} ({:.1} MiB), prepare {prepare:.2} s (volume {:.2} s, calibration {:.2} s), {per_step:.2} ms/step; params {}",
             s.name,
             scene.triangles.len(),
             atlas.texels.len(),

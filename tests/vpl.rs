@@ -619,7 +619,7 @@ fn measure_clamp_bias_and_step_times() {
         ] {
             let tris = scene.triangles.len();
             let (ms, texels) = ms_per_step(scene.clone(), res, lighting, params.clone(), steps);
-            println!("| {name} | {tris} | {res}^2 | {texels} | {params} | {ms:.0} |");
+            println!("| {name} | {tris} | {res}^2 | {texels} | {params} | {ms:.2} |");
         }
     }
 }
