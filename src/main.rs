@@ -206,6 +206,10 @@ struct SubmitArgs {
     /// it out of the process list).
     #[arg(long)]
     token: Option<String>,
+    /// When the server is busy (429: too many of your jobs queued; 503), wait as its
+    /// `Retry-After` says and try again, for at most this many seconds (0: fail at once).
+    #[arg(long, default_value_t = 600.0)]
+    retry_for: f64,
 }
 
 #[derive(clap::Args)]
@@ -585,6 +589,13 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
         token: args
             .token
             .or_else(|| std::env::var("LIGHTMAPD_TOKEN").ok().filter(|t| !t.is_empty())),
+        retry_for: std::time::Duration::try_from_secs_f64(args.retry_for).map_err(|_| Failure {
+            code: 2,
+            message: format!(
+                "--retry-for must be a non-negative number of seconds, not {}",
+                args.retry_for
+            ),
+        })?,
     };
     let job = runtime()?
         .block_on(service::client::submit(request))

@@ -464,3 +464,63 @@ async fn a_worker_with_less_memory_fails_a_job_over_its_limit() {
     workers.await.unwrap().unwrap();
     s.running.shutdown().await;
 }
+
+/// `lightmapd submit` against a full queue: 429 is "busy", not bad input. With
+/// `--retry-for 0` the client fails at once with exit code 1; with time to wait it follows
+/// `Retry-After` (10 s) and gets in once a slot frees.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn submit_waits_out_a_full_queue() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = test_config(dir.path(), 0);
+    config.limits = Limits {
+        max_queued_per_client: 1,
+        ..Limits::default()
+    };
+    let s = Server::start(config).await;
+    let scene = s.upload(None).await;
+    let first = s
+        .submit(None, json!({"scene": scene, "resolution": 16, "stop": {"steps": 2}}))
+        .await;
+    let submit = |retry_for: &str| {
+        Command::new(bin())
+            .arg("submit")
+            .arg(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb"))
+            .args(["--server", &s.url, "--resolution", "16", "--steps", "2"])
+            .args(["--retry-for", retry_for])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+
+    let refused = tokio::task::spawn_blocking({
+        let child = submit("0");
+        move || child.wait_with_output().unwrap()
+    })
+    .await
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert_eq!(refused.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("submit: 429 "), "{stderr}");
+
+    let waiting = submit("60");
+    // The client's first try is refused; cancelling the queued job frees the slot.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let resp = s.post(&format!("/v1/jobs/{first}/cancel")).send().await.unwrap();
+    assert!(resp.status().is_success(), "{}", resp.status());
+    let started = std::time::Instant::now();
+    let out = tokio::task::spawn_blocking(move || waiting.wait_with_output().unwrap())
+        .await
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+    assert!(
+        stderr.contains("submit: the server is busy (429); trying again in 10 s"),
+        "{stderr}"
+    );
+    assert!(started.elapsed() < Duration::from_secs(20), "{stderr}");
+    let printed: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(printed["status"], "queued");
+    let list: Value = s.get("/v1/jobs").send().await.unwrap().json().await.unwrap();
+    assert_eq!(list["total"], 2, "the cancelled job and the one that waited");
+}

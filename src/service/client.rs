@@ -6,6 +6,11 @@
 //! server-sent events; if the stream breaks (the server restarted), the client
 //! reconnects and is sent the current state first, so waiting survives a restart.
 //!
+//! Exit codes: 2 when the server refuses the input (a 4xx other than 408 and 429), 1 for
+//! everything else. A busy server (429: the client's queue is full; 503) is not bad
+//! input: the upload and the submission wait as the server's `Retry-After` says (at
+//! most a minute at a time) and try again, for up to `retry_for` in all.
+//!
 //! Limits: plain HTTP only (reqwest is built without TLS to keep the build small; put a
 //! TLS-terminating proxy in front of a remote server and reach it over a tunnel, or add
 //! reqwest's `rustls` feature).
@@ -35,6 +40,8 @@ pub struct Submit {
     pub output: Option<PathBuf>,
     /// A bearer token, for a server run with `--auth`.
     pub token: Option<String>,
+    /// How long to keep retrying while the server answers 429 or 503.
+    pub retry_for: Duration,
 }
 
 /// A failure and the exit code it earns (2: the server said the input is bad).
@@ -69,8 +76,46 @@ async fn check(resp: reqwest::Response, what: &str) -> Result<reqwest::Response,
         },
         Err(_) => text,
     };
-    let code = if status.is_client_error() { 2 } else { 1 };
+    let bad_input = status.is_client_error()
+        && status != reqwest::StatusCode::TOO_MANY_REQUESTS
+        && status != reqwest::StatusCode::REQUEST_TIMEOUT;
+    let code = if bad_input { 2 } else { 1 };
     Err(fail(code, format!("{what}: {} {detail}", status.as_u16())))
+}
+
+/// Sends the request `make` builds, again while the server answers 429 or 503 and
+/// `retry_for` has not run out, waiting as its `Retry-After` says (1 to 60 s).
+async fn send_retrying(
+    make: impl Fn() -> Result<reqwest::RequestBuilder, ClientError>,
+    server: &str,
+    what: &str,
+    retry_for: Duration,
+) -> Result<reqwest::Response, ClientError> {
+    let give_up = std::time::Instant::now() + retry_for;
+    loop {
+        let resp = make()?.send().await.map_err(|e| http_err(server, e))?;
+        let busy = matches!(
+            resp.status(),
+            reqwest::StatusCode::TOO_MANY_REQUESTS | reqwest::StatusCode::SERVICE_UNAVAILABLE
+        );
+        let wait = resp
+            .headers()
+            .get(reqwest::header::RETRY_AFTER)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .unwrap_or(5)
+            .clamp(1, 60);
+        let wait = Duration::from_secs(wait);
+        if !busy || std::time::Instant::now() + wait > give_up {
+            return check(resp, what).await;
+        }
+        eprintln!(
+            "{what}: the server is busy ({}); trying again in {} s",
+            resp.status().as_u16(),
+            wait.as_secs()
+        );
+        tokio::time::sleep(wait).await;
+    }
 }
 
 /// Runs the whole submission; returns the finished (or just queued) job.
@@ -89,8 +134,13 @@ pub async fn submit(s: Submit) -> Result<JobView, ClientError> {
         .build()
         .map_err(|e| fail(1, format!("HTTP client: {e}")))?;
 
-    let upload = scene_request(&http, &server, &s.scene)?;
-    let resp = check(upload.send().await.map_err(|e| http_err(&server, e))?, "upload").await?;
+    let resp = send_retrying(
+        || scene_request(&http, &server, &s.scene),
+        &server,
+        "upload",
+        s.retry_for,
+    )
+    .await?;
     let scene: Value = resp.json().await.map_err(|e| fail(1, format!("upload: {e}")))?;
     let scene_id = scene["id"].as_str().unwrap_or_default().to_string();
     for w in scene["report"]["warnings"].as_array().into_iter().flatten() {
@@ -99,17 +149,14 @@ pub async fn submit(s: Submit) -> Result<JobView, ClientError> {
 
     let mut body = s.job.clone();
     body["scene"] = json!(scene_id);
-    let resp = http
-        .post(format!("{server}/v1/jobs"))
-        .json(&body)
-        .send()
-        .await
-        .map_err(|e| http_err(&server, e))?;
-    let created: Value = check(resp, "submit")
-        .await?
-        .json()
-        .await
-        .map_err(|e| fail(1, format!("submit: {e}")))?;
+    let resp = send_retrying(
+        || Ok(http.post(format!("{server}/v1/jobs")).json(&body)),
+        &server,
+        "submit",
+        s.retry_for,
+    )
+    .await?;
+    let created: Value = resp.json().await.map_err(|e| fail(1, format!("submit: {e}")))?;
     let job_id = created["id"].as_str().unwrap_or_default().to_string();
     eprintln!("job {job_id} queued (scene {scene_id})");
 
