@@ -1,7 +1,7 @@
 //! Issue 12 over real HTTP: every limit answers with its status and exact problem+json
 //! body (413, 422 naming the field, 429 and 503 with `Retry-After`, 408), plain-text
 //! errors of axum itself come back as problem+json, multipart names cannot be paths, and
-//! bearer tokens guard every route but `/healthz` and keep one token's scenes and jobs
+//! bearer tokens guard every route but `/healthz` and the dashboard page and keep one token's scenes and jobs
 //! invisible (404) to another. Servers run without workers: nothing here needs a bake.
 
 mod service_common;
@@ -295,7 +295,8 @@ async fn tokens_guard_every_route_and_keep_clients_apart() {
     config.auth = true;
     let s = Server::start(config).await;
 
-    // Without a token (or with a wrong one) every route but /healthz is 401.
+    // Without a token (or with a wrong one) every route but /healthz and the dashboard's
+    // page is 401.
     let needs = problem(
         401,
         "Unauthorized",
@@ -309,7 +310,6 @@ async fn tokens_guard_every_route_and_keep_clients_apart() {
         "/v1/scenes/x",
         "/metrics",
         "/openapi.json",
-        "/",
         "/nope",
     ] {
         let h = expect_problem(s.get(path), 401, needs.clone()).await;
@@ -323,6 +323,12 @@ async fn tokens_guard_every_route_and_keep_clients_apart() {
     )
     .await;
     assert_eq!(s.get("/healthz").send().await.unwrap().status(), 200);
+    // The page is static; what it shows comes from the API, with the token it asks for.
+    let page = s.get("/").send().await.unwrap();
+    assert_eq!(page.status(), 200);
+    let html = page.text().await.unwrap();
+    assert!(html.contains("'Authorization': 'Bearer ' + token"), "the page sends the token");
+    expect_problem(s.post("/"), 401, needs.clone()).await;
     assert_eq!(
         s.get("/metrics").bearer_auth(&alice).send().await.unwrap().status(),
         200

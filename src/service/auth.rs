@@ -3,7 +3,8 @@
 //! How: `lightmapd token create` makes a secret (`lmd_` and 64 hex digits from the OS's
 //! random source, through UUID v4) and stores only its SHA-256 with a name and an id
 //! (`tok_…`); the secret is printed once. With `serve --auth`, every request but
-//! `GET /healthz` must carry `Authorization: Bearer SECRET`; the middleware hashes it,
+//! `GET /healthz` and `GET /` (the dashboard page: static HTML holding no data) must carry
+//! `Authorization: Bearer SECRET`; the middleware hashes it,
 //! looks the hash up (revoked tokens do not match) and hands the route a [`Caller`].
 //! Scenes and jobs record the token id that made them, and a caller asking for another
 //! token's scene or job is answered 404, exactly as for one that does not exist, so ids
@@ -14,8 +15,11 @@
 //! people, so there is nothing to slow a guesser down for; a fast hash keeps the lookup
 //! one indexed query per request.
 //!
-//! Limits: no scopes or expiry; a revoked token stops working at its next request. The
-//! dashboard page cannot send a header, so with `--auth` it is for API clients only.
+//! The dashboard asks for a token when the API answers 401, keeps it in the tab's
+//! `sessionStorage` (gone when the tab closes) and sends it as the header on every fetch,
+//! previews and downloads included, so the secret never appears in a URL or a log.
+//!
+//! Limits: no scopes or expiry; a revoked token stops working at its next request.
 
 use std::net::SocketAddr;
 
@@ -93,7 +97,7 @@ pub async fn authenticate(State(state): State<AppState>, mut req: Request, next:
         });
         return next.run(req).await;
     }
-    if req.uri().path() == "/healthz" {
+    if req.method() == axum::http::Method::GET && matches!(req.uri().path(), "/healthz" | "/") {
         return next.run(req).await;
     }
     let Some(value) = req.headers().get(header::AUTHORIZATION) else {
