@@ -327,7 +327,10 @@ async fn tokens_guard_every_route_and_keep_clients_apart() {
     let page = s.get("/").send().await.unwrap();
     assert_eq!(page.status(), 200);
     let html = page.text().await.unwrap();
-    assert!(html.contains("'Authorization': 'Bearer ' + token"), "the page sends the token");
+    assert!(
+        html.contains("'Authorization': 'Bearer ' + token"),
+        "the page sends the token"
+    );
     expect_problem(s.post("/"), 401, needs.clone()).await;
     assert_eq!(
         s.get("/metrics").bearer_auth(&alice).send().await.unwrap().status(),

@@ -557,7 +557,7 @@ fn imported_sun_on_a_plane() {
 }
 
 #[test]
-fn plan_reports_ignored_point_lights() {
+fn plan_reports_point_lights_and_the_sh_layer() {
     use lightmapd::engine::plan::SceneFeatures;
     let f = SceneFeatures {
         punctual_lights: 3,
@@ -574,17 +574,99 @@ fn plan_reports_ignored_point_lights() {
     };
     let plan = lightmapd::engine::technique::plan("sdb", &f).unwrap();
     assert!(plan.runs("shadow maps + direct pass"));
-    let left = plan
-        .left_out
+    assert!(plan.runs("point and spot lights (CPU)"));
+    let item = plan
+        .passes
         .iter()
-        .find(|i| i.name == "point and spot lights")
-        .expect("point lights reported");
-    assert!(left.why.contains('2'), "{}", left.why);
+        .find(|i| i.name == "point and spot lights (CPU)")
+        .unwrap();
+    assert!(item.why.starts_with("2 point/spot"), "{}", item.why);
     // Asking sdb for the sh layer is reported, not silently dropped.
     assert!(
         plan.left_out
             .iter()
             .any(|i| i.name == "directional (sh) layer" && i.why.starts_with("asked for"))
+    );
+}
+
+#[test]
+fn point_and_spot_lights_with_a_hard_shadow() {
+    // A black floor (no bounce anywhere) under a point light and a spot, with a black
+    // 0.6 m square 0.5 m up casting the point light's shadow. Per texel, in closed form:
+    // point: I h / (pi d^3), and no light where the segment to the light crosses the
+    // square; spot: I cos / (pi d^2) times glTF's cone falloff (clamp((cos a - cos outer)
+    // / (cos inner - cos outer))^2). One shadow ray per texel at its centre, so the answer
+    // is exact up to float rounding (tolerance 1e-4 relative) away from the shadow's edge
+    // (texels whose segment passes within 2 cm of it are skipped: a texel's centre is not
+    // the same point as the texel in the map).
+    use lightmapd::engine::scene::build::LightDesc;
+    if !have_adapter() {
+        return;
+    }
+    let mut b = SceneBuilder::new();
+    let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
+    b.square("floor", Vec3::ZERO, 4.0, Vec3::Y, black);
+    b.square("blocker", Vec3::new(-0.7, 0.5, 0.0), 0.6, Vec3::Y, black);
+    let point = Vec3::new(-0.7, 1.0, 0.1);
+    b.light(LightDesc::Point {
+        position: point,
+        color: [1.0, 0.8, 0.6],
+        intensity: 5.0,
+    });
+    let spot = Vec3::new(1.0, 1.5, 0.0);
+    let (inner, outer) = (0.3f32, 0.6f32);
+    b.light(LightDesc::Spot {
+        position: spot,
+        direction: Vec3::NEG_Y,
+        color: [0.5, 0.5, 1.0],
+        intensity: 20.0,
+        inner,
+        outer,
+    });
+    let scene = import(&b);
+    let offset = scene.origin_offset.as_vec3();
+    let (atlas, est) = bake(scene, 64, Lighting::default(), "sdb", json!({"map_size": 64}), 4);
+    let (mut checked, mut shadowed) = (0, 0);
+    for (k, texel) in atlas.texels.iter().enumerate() {
+        // The importer re-centres the scene (`origin_offset`); the closed forms are in
+        // the file's frame.
+        let p = texel.position + offset;
+        if p.y > 0.25 {
+            continue; // the blocker's own texels
+        }
+        // Where the segment to the point light crosses y = 0.5, against the square.
+        let q = p + (point - p) * ((0.5 - p.y) / (point.y - p.y));
+        let inside = (q.x + 0.7).abs().max(q.z.abs());
+        if (inside - 0.3).abs() < 0.02 {
+            continue;
+        }
+        let mut want = Vec3::ZERO;
+        if inside > 0.3 {
+            let d = point.distance(p);
+            want += Vec3::new(1.0, 0.8, 0.6) * (5.0 * (point.y - p.y) / (PI as f32 * d * d * d));
+        } else {
+            shadowed += 1;
+        }
+        let to = spot - p;
+        let d = to.length();
+        let cos_axis = (-to / d).dot(Vec3::NEG_Y);
+        let cone = ((cos_axis - outer.cos()) / (inner.cos() - outer.cos())).clamp(0.0, 1.0);
+        want += Vec3::new(0.5, 0.5, 1.0) * (20.0 * cone * cone * (to.y / d) / (PI as f32 * d * d));
+        let got = est.total[k];
+        assert!(
+            (got - want).abs().max_element() <= 1e-4 * want.max_element().max(1e-3),
+            "texel at {p}: {got} vs {want}"
+        );
+        let direct = est.direct.as_ref().expect("direct layer")[k];
+        assert!(
+            (got - direct).abs().max_element() <= 1e-5,
+            "all of it is direct: {got} vs {direct}"
+        );
+        checked += 1;
+    }
+    assert!(
+        checked > 600 && shadowed > 40,
+        "{checked} texels checked, {shadowed} in shadow"
     );
 }
 

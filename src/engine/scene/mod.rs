@@ -181,6 +181,30 @@ pub struct PunctualLight {
     pub range: Option<f32>,
 }
 
+impl PunctualLight {
+    /// The share of a point or spot light's intensity that leaves it along `dir` (unit,
+    /// pointing away from the light) and reaches distance `dist`, without the 1/d²:
+    /// `KHR_lights_punctual`'s recommended range window `clamp(1 - (d/range)^4)^2`, so a
+    /// light ends at its range, times a spot's smooth edge, the square of the linear ramp
+    /// from the outer cone (0) to the inner cone (1). Every technique that bakes punctual
+    /// lights uses this, so they agree with `path`. 1 for a directional light.
+    pub fn attenuation(&self, dist: f32, dir: Vec3) -> f32 {
+        let window = self
+            .range
+            .map_or(1.0, |r| (1.0 - (dist / r).powi(4)).clamp(0.0, 1.0).powi(2));
+        let cone = match self.kind {
+            LightKind::Spot { inner_cone, outer_cone } => {
+                let scale = 1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3);
+                let a = ((dir.dot(self.direction) - outer_cone.cos()) * scale).clamp(0.0, 1.0);
+                a * a
+            }
+            LightKind::Point => 1.0,
+            LightKind::Directional => return 1.0,
+        };
+        window * cone
+    }
+}
+
 /// A mesh as the report and error messages name it.
 #[derive(Clone, Debug, Serialize)]
 pub struct MeshInfo {

@@ -454,17 +454,7 @@ impl PathContext<'_> {
                     if !front(d) {
                         continue;
                     }
-                    let mut falloff = 1.0 / dist2;
-                    if let Some(range) = light.range {
-                        // KHR_lights_punctual's recommended window, so lights end at range.
-                        falloff *= (1.0 - (dist / range).powi(4)).clamp(0.0, 1.0).powi(2);
-                    }
-                    if let LightKind::Spot { inner_cone, outer_cone } = light.kind {
-                        let cd = (-d).dot(light.direction);
-                        let scale = 1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3);
-                        let a = ((cd - outer_cone.cos()) * scale).clamp(0.0, 1.0);
-                        falloff *= a * a;
-                    }
+                    let falloff = light.attenuation(dist, -d) / dist2;
                     if falloff > 0.0 && self.tracer.unoccluded(self.scene, x, d, dist * (1.0 - 1e-4)) {
                         let c = light.intensity * falloff * d.dot(n) * FRAC_1_PI;
                         sum += c;

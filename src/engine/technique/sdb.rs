@@ -78,8 +78,11 @@
 //! - Emitters use their material's exact emission rather than the lightmap's.
 //! - Self-normalised gather and the ambient-mode correction (steps 3 and 5), neither in
 //!   the seed; the first step only bootstraps the correction and is dropped.
-//! - Point and spot lights are not handled: [`SdbEngine`] reports them, and the plan must
-//!   say that `sdb` ignores them.
+//! - Point and spot lights (no map direction sees a point): their direct light is
+//!   computed once at preparation with one CPU shadow ray per texel and light
+//!   ([`punctual_direct`], `path`'s rules: hard shadows, KHR_lights_punctual range and cone
+//!   falloff) and fed every step through the same light accumulators as the small
+//!   emitters, so it bounces like every other light.
 //!
 //! # Known bias (what the tests' tolerances follow from)
 //! - Overdraw: with K surfaces along a ray, a k x k neighbourhood misses the nearest one
@@ -110,7 +113,7 @@ use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cosine_sample};
 use crate::engine::rng::Rng;
-use crate::engine::scene::{LightKind, Scene};
+use crate::engine::scene::{LightKind, PunctualLight, Scene};
 use rayon::prelude::*;
 
 // ---------------------------------------------------------------------------------------
@@ -308,13 +311,15 @@ pub struct SdbInput {
     pub want_direct: bool,
     /// The coarse-mode (ambient) correction of `average` mode; None runs without it.
     pub ambient: Option<AmbientMode>,
-    /// Direct light of emitters too small for the map, sampled on the CPU once a step
-    /// (their triangles must then carry no emission in `triangles`); None: there are none.
+    /// Direct light the map cannot carry, computed on the CPU once a step: emitters too
+    /// small for the map (their triangles must then carry no emission in `triangles`) and
+    /// point and spot lights; None: there are none.
     pub small_emitters: Option<EmitterSampler>,
 }
 
 /// Per step (the argument: the step's index), one estimate of E/pi per valid texel of the
-/// light that emitters too small for the illumination map send it directly.
+/// light that reaches it directly from emitters too small for the illumination map and
+/// from point and spot lights.
 pub type EmitterSampler = Box<dyn FnMut(u64) -> Vec<Vec3> + Send>;
 
 /// What the ambient-mode correction needs (`shaders/sdb_resolve.wgsl`, `ambient_mode`).
@@ -1753,6 +1758,26 @@ pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<Stri
         }
         input.small_emitters = Some(small_emitter_sampler(inputs, small));
     }
+    let punctual = inputs
+        .scene
+        .lights
+        .iter()
+        .filter(|l| l.kind != LightKind::Directional)
+        .count();
+    if punctual > 0 {
+        notes.push(format!(
+            "sdb bakes {punctual} point/spot light(s) by one CPU shadow ray per texel and light, once"
+        ));
+        let direct = punctual_direct(inputs);
+        input.small_emitters = Some(match input.small_emitters.take() {
+            Some(mut sampler) => Box::new(move |step| {
+                let mut v = sampler(step);
+                v.iter_mut().zip(&direct).for_each(|(a, b)| *a += *b);
+                v
+            }),
+            None => Box::new(move |_| direct.clone()),
+        });
+    }
     input.ambient = Some(ambient_mode(&inputs.scene, &inputs.atlas, inputs.seed));
     (input, notes)
 }
@@ -1762,7 +1787,7 @@ pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<Stri
 pub fn scene_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
     let scene = &inputs.scene;
     let atlas = &inputs.atlas;
-    let mut notes = Vec::new();
+    let notes = Vec::new();
     let triangles = scene
         .triangles
         .iter()
@@ -1798,22 +1823,16 @@ pub fn scene_input(inputs: &BakeInputs) -> (SdbInput, Vec<String>) {
             cone_half_angle: 0.5 * sun.angular_diameter,
         });
     }
-    let mut ignored = 0;
+    // Point and spot lights are each technique's own business (sdb: `punctual_direct`);
+    // every technique's plan says what it does with them.
     for l in &scene.lights {
-        match l.kind {
-            LightKind::Directional => lights.push(DirectionalLight {
+        if l.kind == LightKind::Directional {
+            lights.push(DirectionalLight {
                 direction: l.direction.normalize(),
                 irradiance_over_pi: l.intensity / std::f32::consts::PI,
                 cone_half_angle: 0.0,
-            }),
-            LightKind::Point | LightKind::Spot { .. } => ignored += 1,
+            });
         }
-    }
-    if ignored > 0 {
-        notes.push(format!(
-            "sdb ignores {ignored} point/spot light(s) of the scene: it has shadow maps for the sun and \
-             directional lights only; bake with `path` for their light"
-        ));
     }
     let environment: Option<Environment> = inputs.lighting.sky.map(|_| {
         let lighting = inputs.lighting;
@@ -1922,6 +1941,46 @@ fn small_emitter_sampler(inputs: &BakeInputs, small: Vec<usize>) -> EmitterSampl
             })
             .collect()
     })
+}
+
+/// E/pi per valid texel from the scene's point and spot lights: one shadow ray per texel
+/// and light, with `path`'s rules (the light must be in front of both the shading and the
+/// geometric normal; [`PunctualLight::attenuation`] for range and cone). Exact for a
+/// point source, so it is computed once, not per step.
+fn punctual_direct(inputs: &BakeInputs) -> Vec<Vec3> {
+    let scene = &inputs.scene;
+    let tracer = Tracer::new(scene);
+    let lights: Vec<&PunctualLight> = scene
+        .lights
+        .iter()
+        .filter(|l| l.kind != LightKind::Directional)
+        .collect();
+    inputs
+        .atlas
+        .texels
+        .par_iter()
+        .map(|texel| {
+            let mut sum = Vec3::ZERO;
+            for l in &lights {
+                let to = l.position - texel.position;
+                let d2 = to.length_squared();
+                if d2 <= 0.0 {
+                    continue;
+                }
+                let dist = d2.sqrt();
+                let w = to / dist;
+                let cos = texel.normal.dot(w);
+                if cos <= 0.0 || texel.geo_normal.dot(w) <= 0.0 {
+                    continue;
+                }
+                let falloff = l.attenuation(dist, -w) / d2;
+                if falloff > 0.0 && tracer.unoccluded(scene, texel.position, w, dist * (1.0 - 1e-4)) {
+                    sum += l.intensity * (falloff * cos / std::f32::consts::PI);
+                }
+            }
+            sum
+        })
+        .collect()
 }
 
 /// Rays cast to measure the ambient gain: its standard error is at most
@@ -2040,6 +2099,13 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "emitter triangles under two map pixels, if any, shine through CPU shadow rays, one per texel a step",
         "no emitters",
     );
+    let punctual = f.punctual_lights.saturating_sub(f.directional_lights);
+    p.decide(
+        "point and spot lights (CPU)",
+        punctual > 0,
+        &format!("{punctual} point/spot light(s): one CPU shadow ray per texel and light, once; they feed the bounces"),
+        "no point or spot light",
+    );
     let directional = f.sun || f.directional_lights > 0;
     p.decide(
         "shadow maps + direct pass",
@@ -2061,15 +2127,6 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         );
     } else {
         p.leave_out(SH_LAYER, "not asked for in outputs");
-    }
-    let ignored = f.punctual_lights.saturating_sub(f.directional_lights);
-    if ignored > 0 {
-        p.leave_out(
-            "point and spot lights",
-            &format!(
-                "sdb has shadow maps only for the sun and directional lights: the scene's {ignored} point/spot                  light(s) are NOT baked (use `path`)"
-            ),
-        );
     }
     if f.glossy_materials > 0 {
         p.leave_out(

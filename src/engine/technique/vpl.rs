@@ -345,22 +345,6 @@ fn surface_hit(scene: &Scene, tracer: &Tracer, origin: Vec3, dir: Vec3, tmax: f3
     Some((tri.point(b), if front { ng } else { -ng }, scene.albedo(tri, b)))
 }
 
-/// KHR_lights_punctual's range window (as `path` uses).
-fn range_window(dist: f32, range: Option<f32>) -> f32 {
-    range.map_or(1.0, |r| (1.0 - (dist / r).powi(4)).clamp(0.0, 1.0).powi(2))
-}
-
-fn spot_falloff(kind: LightKind, axis: Vec3, dir: Vec3) -> f32 {
-    match kind {
-        LightKind::Spot { inner_cone, outer_cone } => {
-            let scale = 1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3);
-            let a = ((dir.dot(axis) - outer_cone.cos()) * scale).clamp(0.0, 1.0);
-            a * a
-        }
-        _ => 1.0,
-    }
-}
-
 // ---------------------------------------------------------------------------------------
 // The technique
 // ---------------------------------------------------------------------------------------
@@ -820,15 +804,15 @@ impl Vpl {
                     let w = fwd + right * u + up * v;
                     let len2 = w.length_squared();
                     let dir = w / len2.sqrt();
-                    let cone = spot_falloff(l.kind, l.direction, dir);
-                    if cone <= 0.0 {
+                    // The cone alone first: most of a spot's cube misses it.
+                    if l.attenuation(0.0, dir) <= 0.0 {
                         continue;
                     }
                     // Solid angle of a pixel of a unit-distance face at (u, v).
                     let d_omega = pixel * pixel / (len2 * len2.sqrt());
                     if let Some((p, nn, albedo)) = surface_hit(scene, tracer, l.position, dir, f32::INFINITY) {
-                        let window = range_window(p.distance(l.position), l.range);
-                        let flux = l.intensity * (d_omega * cone * window) * albedo;
+                        let falloff = l.attenuation(p.distance(l.position), dir);
+                        let flux = l.intensity * (d_omega * falloff) * albedo;
                         if lum(flux) > 0.0 {
                             row.push(SurfacePoint {
                                 p,
