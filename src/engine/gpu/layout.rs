@@ -91,3 +91,85 @@ pub fn compute_pipeline(
         cache: None,
     })
 }
+
+/// One binding of a pass, listed in binding order (0, 1, 2, …): the layout entry and the
+/// bind-group entry are both made from the same list, so they cannot disagree.
+#[derive(Clone, Copy)]
+pub enum Bind<'a> {
+    Uniform(&'a wgpu::Buffer),
+    /// A read-only storage buffer.
+    Read(&'a wgpu::Buffer),
+    /// A read-write storage buffer.
+    Write(&'a wgpu::Buffer),
+    /// A 2D-array float texture read with `textureLoad` (see [`texture_entry`]).
+    Texture(&'a wgpu::TextureView),
+    /// A plain 2D float texture read with `textureLoad`.
+    Texture2d(&'a wgpu::TextureView),
+}
+
+impl Bind<'_> {
+    fn layout_entry(&self, binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
+        match self {
+            Bind::Uniform(_) => uniform_entry(binding, visibility),
+            Bind::Read(_) => storage_entry(binding, visibility, true),
+            Bind::Write(_) => storage_entry(binding, visibility, false),
+            Bind::Texture(_) => wgpu::BindGroupLayoutEntry {
+                visibility,
+                ..texture_entry(binding)
+            },
+            Bind::Texture2d(_) => wgpu::BindGroupLayoutEntry {
+                binding,
+                visibility,
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                    multisampled: false,
+                },
+                count: None,
+            },
+        }
+    }
+
+    fn resource(&self) -> wgpu::BindingResource<'_> {
+        match self {
+            Bind::Uniform(b) | Bind::Read(b) | Bind::Write(b) => b.as_entire_binding(),
+            Bind::Texture(v) | Bind::Texture2d(v) => wgpu::BindingResource::TextureView(v),
+        }
+    }
+}
+
+/// The layout of `binds`, visible to `visibility`.
+pub fn layout_of(
+    ctx: &GpuContext,
+    label: &str,
+    visibility: wgpu::ShaderStages,
+    binds: &[Bind<'_>],
+) -> wgpu::BindGroupLayout {
+    let entries: Vec<wgpu::BindGroupLayoutEntry> = binds
+        .iter()
+        .enumerate()
+        .map(|(i, b)| b.layout_entry(i as u32, visibility))
+        .collect();
+    ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some(label),
+        entries: &entries,
+    })
+}
+
+/// A bind group of `binds` on `layout` (made by [`layout_of`] from a list of the same
+/// kinds; another list of the same kinds may be bound on it, e.g. ping-pong buffers).
+pub fn group_of(ctx: &GpuContext, label: &str, layout: &wgpu::BindGroupLayout, binds: &[Bind<'_>]) -> wgpu::BindGroup {
+    let entries: Vec<wgpu::BindGroupEntry> = binds
+        .iter()
+        .enumerate()
+        .map(|(i, b)| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: b.resource(),
+        })
+        .collect();
+    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: Some(label),
+        layout,
+        entries: &entries,
+    })
+}

@@ -122,7 +122,9 @@ use super::sdb::{
 };
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
-use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, texture_entry, uniform_entry};
+use crate::engine::gpu::layout::{
+    Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, uniform_entry,
+};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::Lighting;
@@ -886,39 +888,21 @@ impl Obscurance {
         );
 
         let gather_module = ctx.shader(&shaders::OBSCURANCE_GATHER).map_err(gpu_error)?;
-        let gather_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("obscurance gather layout"),
-            entries: &[
-                uniform_entry(0, S::COMPUTE),
-                uniform_entry(1, S::COMPUTE),
-                storage_entry(2, S::COMPUTE, true),
-                storage_entry(3, S::COMPUTE, true),
-                storage_entry(4, S::COMPUTE, true),
-                storage_entry(5, S::COMPUTE, true),
-                storage_entry(6, S::COMPUTE, false),
-                storage_entry(7, S::COMPUTE, false),
-                storage_entry(8, S::COMPUTE, false),
-                storage_entry(9, S::COMPUTE, true),
-            ],
-        });
+        let gather_binds = [
+            Bind::Uniform(&view_buf),
+            Bind::Uniform(&gather_buf),
+            Bind::Read(&heads_buf),
+            Bind::Read(&nodes_buf),
+            Bind::Read(&geom_buf),
+            Bind::Read(&materials_buf),
+            Bind::Write(&acc_buf),
+            Bind::Write(&direct_acc_buf),
+            Bind::Write(&counters_buf),
+            Bind::Read(&subset_buf),
+        ];
+        let gather_layout = layout_of(&ctx, "obscurance gather layout", S::COMPUTE, &gather_binds);
         let gather_pipeline = compute_pipeline(&ctx, "obscurance gather", &gather_module, "gather", &gather_layout);
-        let gather_bg = bind_group(
-            &ctx,
-            "obscurance gather bindings",
-            &gather_layout,
-            &[
-                (0, view_buf.as_entire_binding()),
-                (1, gather_buf.as_entire_binding()),
-                (2, heads_buf.as_entire_binding()),
-                (3, nodes_buf.as_entire_binding()),
-                (4, geom_buf.as_entire_binding()),
-                (5, materials_buf.as_entire_binding()),
-                (6, acc_buf.as_entire_binding()),
-                (7, direct_acc_buf.as_entire_binding()),
-                (8, counters_buf.as_entire_binding()),
-                (9, subset_buf.as_entire_binding()),
-            ],
-        );
+        let gather_bg = group_of(&ctx, "obscurance gather bindings", &gather_layout, &gather_binds);
 
         // Sun and directional lights: only when there are some (DESIGN section 6).
         let shadow = if input.lights.is_empty() {
@@ -968,31 +952,17 @@ impl Obscurance {
                 ..Default::default()
             });
             let direct_module = ctx.shader(&shaders::OBSCURANCE_DIRECT).map_err(gpu_error)?;
-            let direct_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some("obscurance direct layout"),
-                entries: &[
-                    uniform_entry(0, S::COMPUTE),
-                    uniform_entry(1, S::COMPUTE),
-                    texture_entry(2),
-                    storage_entry(3, S::COMPUTE, true),
-                    storage_entry(4, S::COMPUTE, false),
-                    storage_entry(5, S::COMPUTE, true),
-                ],
-            });
+            let direct_binds = [
+                Bind::Uniform(&shadow_view_buf),
+                Bind::Uniform(&direct_buf),
+                Bind::Texture(&array_view),
+                Bind::Read(&geom_buf),
+                Bind::Write(&direct_acc_buf),
+                Bind::Read(&subset_buf),
+            ];
+            let direct_layout = layout_of(&ctx, "obscurance direct layout", S::COMPUTE, &direct_binds);
             let direct_pipeline = compute_pipeline(&ctx, "obscurance direct", &direct_module, "direct", &direct_layout);
-            let direct_bg = bind_group(
-                &ctx,
-                "obscurance direct bindings",
-                &direct_layout,
-                &[
-                    (0, shadow_view_buf.as_entire_binding()),
-                    (1, direct_buf.as_entire_binding()),
-                    (2, wgpu::BindingResource::TextureView(&array_view)),
-                    (3, geom_buf.as_entire_binding()),
-                    (4, direct_acc_buf.as_entire_binding()),
-                    (5, subset_buf.as_entire_binding()),
-                ],
-            );
+            let direct_bg = group_of(&ctx, "obscurance direct bindings", &direct_layout, &direct_binds);
             Some(ShadowPass {
                 color_view: color.create_view(&wgpu::TextureViewDescriptor {
                     label: Some("obscurance shadow map view"),

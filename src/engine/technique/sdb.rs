@@ -108,7 +108,9 @@ use serde::{Deserialize, Serialize};
 use super::{BakeInputs, EngineError, Technique, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::atlas::Atlas;
-use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, texture_entry, uniform_entry};
+use crate::engine::gpu::layout::{
+    Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, texture_entry, uniform_entry,
+};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cosine_sample};
@@ -1027,20 +1029,20 @@ impl SdbEngine {
         use wgpu::ShaderStages as S;
         // Resolve.
         let resolve_module = ctx.shader(&shaders::SDB_RESOLVE)?;
-        let resolve_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdb resolve layout"),
-            entries: &[
-                uniform_entry(0, S::COMPUTE),
-                storage_entry(1, S::COMPUTE, true),
-                storage_entry(2, S::COMPUTE, true),
-                storage_entry(3, S::COMPUTE, true),
-                storage_entry(4, S::COMPUTE, false),
-                storage_entry(5, S::COMPUTE, true),
-                storage_entry(6, S::COMPUTE, false),
-                storage_entry(7, S::COMPUTE, false),
-                storage_entry(8, S::COMPUTE, true),
-            ],
-        });
+        let resolve_binds = [
+            Bind::Uniform(&resolve_buf),
+            Bind::Read(&fill_buf),
+            Bind::Read(&shade_buf),
+            Bind::Read(&acc_buf),
+            Bind::Write(&radiance_buf),
+            // Without lights the shader reads no sun accumulators (dims.w = 0); the
+            // binding still needs a buffer, so it aliases the gathered ones.
+            Bind::Read(sun_acc_buf.as_ref().unwrap_or(&acc_buf)),
+            Bind::Write(&ambient_buf),
+            Bind::Write(&fed_buf),
+            Bind::Read(&fed_acc_buf),
+        ];
+        let resolve_layout = layout_of(&ctx, "sdb resolve layout", S::COMPUTE, &resolve_binds);
         let resolve_pipeline = compute_pipeline(&ctx, "sdb resolve", &resolve_module, "resolve", &resolve_layout);
         let ambient_pipeline = compute_pipeline(
             &ctx,
@@ -1049,37 +1051,18 @@ impl SdbEngine {
             "ambient_mode",
             &resolve_layout,
         );
-        let resolve_bg = bind_group(
-            &ctx,
-            "sdb resolve bindings",
-            &resolve_layout,
-            &[
-                (0, resolve_buf.as_entire_binding()),
-                (1, fill_buf.as_entire_binding()),
-                (2, shade_buf.as_entire_binding()),
-                (3, acc_buf.as_entire_binding()),
-                (4, radiance_buf.as_entire_binding()),
-                // Without lights the shader reads no sun accumulators (dims.w = 0); the
-                // binding still needs a buffer, so it aliases the gathered ones.
-                (5, sun_acc_buf.as_ref().unwrap_or(&acc_buf).as_entire_binding()),
-                (6, ambient_buf.as_entire_binding()),
-                (7, fed_buf.as_entire_binding()),
-                (8, fed_acc_buf.as_entire_binding()),
-            ],
-        );
+        let resolve_bg = group_of(&ctx, "sdb resolve bindings", &resolve_layout, &resolve_binds);
 
         // Illumination map (and shadow maps).
         let illum_module = ctx.shader(&shaders::SDB_ILLUMINATION)?;
-        let illum_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdb illumination layout"),
-            entries: &[
-                uniform_entry(0, S::VERTEX_FRAGMENT),
-                uniform_entry(1, S::FRAGMENT),
-                storage_entry(2, S::FRAGMENT, true),
-                storage_entry(3, S::FRAGMENT, true),
-                storage_entry(4, S::FRAGMENT, true),
-            ],
-        });
+        let illum_binds = [
+            Bind::Uniform(&view_buf),
+            Bind::Uniform(&dims_buf),
+            Bind::Read(&tris_buf),
+            Bind::Read(&radiance_buf),
+            Bind::Read(&emission_px_buf),
+        ];
+        let illum_layout = layout_of(&ctx, "sdb illumination layout", S::VERTEX_FRAGMENT, &illum_binds);
         let illum_groups: Vec<Option<&wgpu::BindGroupLayout>> = vec![Some(&illum_layout)];
         let illum_pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("sdb illumination pipeline layout"),
@@ -1134,33 +1117,20 @@ impl SdbEngine {
             multiview_mask: None,
             cache: None,
         });
-        let illum_bg = bind_group(
-            &ctx,
-            "sdb illumination bindings",
-            &illum_layout,
-            &[
-                (0, view_buf.as_entire_binding()),
-                (1, dims_buf.as_entire_binding()),
-                (2, tris_buf.as_entire_binding()),
-                (3, radiance_buf.as_entire_binding()),
-                (4, emission_px_buf.as_entire_binding()),
-            ],
-        );
+        let illum_bg = group_of(&ctx, "sdb illumination bindings", &illum_layout, &illum_binds);
 
         // Gather.
         let gather_module = ctx.shader(&shaders::SDB_GATHER)?;
-        let gather_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdb gather layout"),
-            entries: &[
-                uniform_entry(0, S::COMPUTE),
-                uniform_entry(1, S::COMPUTE),
-                texture_entry(2),
-                storage_entry(3, S::COMPUTE, true),
-                storage_entry(4, S::COMPUTE, false),
-                storage_entry(5, S::COMPUTE, true),
-                storage_entry(6, S::COMPUTE, false),
-            ],
-        });
+        let gather_binds = [
+            Bind::Uniform(&view_buf),
+            Bind::Uniform(&gather_buf),
+            Bind::Texture(&illum_view),
+            Bind::Read(&geom_buf),
+            Bind::Write(&acc_buf),
+            Bind::Read(&fed_buf),
+            Bind::Write(&fed_acc_buf),
+        ];
+        let gather_layout = layout_of(&ctx, "sdb gather layout", S::COMPUTE, &gather_binds);
         let gather_direct_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("sdb gather direct layout"),
             entries: &[texture_entry(0), storage_entry(1, S::COMPUTE, false)],
@@ -1194,48 +1164,22 @@ impl SdbEngine {
             )),
             _ => None,
         };
-        let gather_bg = bind_group(
-            &ctx,
-            "sdb gather bindings",
-            &gather_layout,
-            &[
-                (0, view_buf.as_entire_binding()),
-                (1, gather_buf.as_entire_binding()),
-                (2, wgpu::BindingResource::TextureView(&illum_view)),
-                (3, geom_buf.as_entire_binding()),
-                (4, acc_buf.as_entire_binding()),
-                (5, fed_buf.as_entire_binding()),
-                (6, fed_acc_buf.as_entire_binding()),
-            ],
-        );
+        let gather_bg = group_of(&ctx, "sdb gather bindings", &gather_layout, &gather_binds);
 
         // Direct light: only with directional lights (DESIGN.md section 6).
         let (direct_pipeline, direct_bg) = match &sun_acc_buf {
             Some(sun_acc) => {
                 let module = ctx.shader(&shaders::SDB_DIRECT)?;
-                let layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                    label: Some("sdb direct layout"),
-                    entries: &[
-                        uniform_entry(0, S::COMPUTE),
-                        uniform_entry(1, S::COMPUTE),
-                        texture_entry(2),
-                        storage_entry(3, S::COMPUTE, true),
-                        storage_entry(4, S::COMPUTE, false),
-                    ],
-                });
+                let binds = [
+                    Bind::Uniform(&view_buf),
+                    Bind::Uniform(&direct_buf),
+                    Bind::Texture(&illum_view),
+                    Bind::Read(&geom_buf),
+                    Bind::Write(sun_acc),
+                ];
+                let layout = layout_of(&ctx, "sdb direct layout", S::COMPUTE, &binds);
                 let pipeline = compute_pipeline(&ctx, "sdb direct", &module, "direct", &layout);
-                let bg = bind_group(
-                    &ctx,
-                    "sdb direct bindings",
-                    &layout,
-                    &[
-                        (0, view_buf.as_entire_binding()),
-                        (1, direct_buf.as_entire_binding()),
-                        (2, wgpu::BindingResource::TextureView(&illum_view)),
-                        (3, geom_buf.as_entire_binding()),
-                        (4, sun_acc.as_entire_binding()),
-                    ],
-                );
+                let bg = group_of(&ctx, "sdb direct bindings", &layout, &binds);
                 (Some(pipeline), Some(bg))
             }
             _ => (None, None),

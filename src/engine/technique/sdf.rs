@@ -94,7 +94,7 @@ use serde::{Deserialize, Serialize};
 use super::gpu_error;
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
-use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, uniform_entry};
+use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::{self, GpuContext, GpuError, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cosine_sample};
@@ -685,15 +685,6 @@ impl Sdf {
 
         // Voxelise.
         let vox_module = ctx.shader(&shaders::SDF_VOXELIZE)?;
-        let vox_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdf voxelize"),
-            entries: &[
-                uniform_entry(0, CS),
-                storage_entry(1, CS, true),
-                storage_entry(2, CS, false),
-                uniform_entry(3, CS),
-            ],
-        });
         let vox_groups = {
             let x = n_tris.clamp(1, 65535);
             (x, n_tris.div_ceil(x).max(1))
@@ -704,33 +695,33 @@ impl Sdf {
                 misc: [n_tris, vox_groups.0, 0, 0],
             },
         );
-        let vox_bg = bind_group(
-            &ctx,
-            "sdf voxelize",
-            &vox_layout,
-            &[
-                (0, vol_buf.as_entire_binding()),
-                (1, tri_buf.as_entire_binding()),
-                (2, seed_bufs[0].as_entire_binding()),
-                (3, vox_params.as_entire_binding()),
-            ],
-        );
+        let vox_binds = [
+            Bind::Uniform(&vol_buf),
+            Bind::Read(&tri_buf),
+            Bind::Write(&seed_bufs[0]),
+            Bind::Uniform(&vox_params),
+        ];
+        let vox_layout = layout_of(&ctx, "sdf voxelize", CS, &vox_binds);
+        let vox_bg = group_of(&ctx, "sdf voxelize", &vox_layout, &vox_binds);
         let clear_pipeline = compute_pipeline(&ctx, "sdf clear seeds", &vox_module, "clear_seeds", &vox_layout);
         let vox_pipeline = compute_pipeline(&ctx, "sdf voxelize", &vox_module, "voxelize", &vox_layout);
 
         // Flood: steps N/2 .. 1, then 1 again (JFA+1), ping-ponging between the seed grids.
         let flood_module = ctx.shader(&shaders::SDF_FLOOD)?;
-        let flood_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdf flood"),
-            entries: &[
-                uniform_entry(0, CS),
-                storage_entry(1, CS, true),
-                storage_entry(2, CS, true),
-                storage_entry(3, CS, false),
-                uniform_entry(4, CS),
-                storage_entry(5, CS, false),
+        // The same kinds as every flood bind group below (the step uniform is a stand-in).
+        let flood_layout = layout_of(
+            &ctx,
+            "sdf flood",
+            CS,
+            &[
+                Bind::Uniform(&vol_buf),
+                Bind::Read(&tri_buf),
+                Bind::Read(&seed_bufs[0]),
+                Bind::Write(&seed_bufs[1]),
+                Bind::Uniform(&vol_buf),
+                Bind::Write(&base_buf),
             ],
-        });
+        );
         let flood_pipeline = compute_pipeline(&ctx, "sdf flood", &flood_module, "flood", &flood_layout);
         let resolve_pipeline = compute_pipeline(&ctx, "sdf resolve", &flood_module, "resolve", &flood_layout);
         let max_dim = layout.dims.into_iter().max().unwrap_or(1);
@@ -743,17 +734,17 @@ impl Sdf {
         steps.push(1);
         let flood_bg = |label: &str, from: usize, step: u32| {
             let u = ctx.uniform(label, &GpuMisc { misc: [step, 0, 0, 0] });
-            bind_group(
+            group_of(
                 &ctx,
                 label,
                 &flood_layout,
                 &[
-                    (0, vol_buf.as_entire_binding()),
-                    (1, tri_buf.as_entire_binding()),
-                    (2, seed_bufs[from].as_entire_binding()),
-                    (3, seed_bufs[1 - from].as_entire_binding()),
-                    (4, u.as_entire_binding()),
-                    (5, base_buf.as_entire_binding()),
+                    Bind::Uniform(&vol_buf),
+                    Bind::Read(&tri_buf),
+                    Bind::Read(&seed_bufs[from]),
+                    Bind::Write(&seed_bufs[1 - from]),
+                    Bind::Uniform(&u),
+                    Bind::Write(&base_buf),
                 ],
             )
         };
@@ -782,78 +773,55 @@ impl Sdf {
 
         // Dynamic composite and mips.
         let dyn_module = ctx.shader(&shaders::SDF_DYNAMIC)?;
-        let dyn_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdf dynamic"),
-            entries: &[
-                uniform_entry(0, CS),
-                storage_entry(1, CS, true),
-                storage_entry(2, CS, false),
-                storage_entry(3, CS, true),
-                uniform_entry(4, CS),
-            ],
-        });
+        let dyn_binds = [
+            Bind::Uniform(&vol_buf),
+            Bind::Read(&base_buf),
+            Bind::Write(&levels_buf),
+            Bind::Read(&shapes_buf),
+            Bind::Uniform(&dyn_params),
+        ];
+        let dyn_layout = layout_of(&ctx, "sdf dynamic", CS, &dyn_binds);
         let dyn_pipeline = compute_pipeline(&ctx, "sdf dynamic composite", &dyn_module, "composite", &dyn_layout);
-        let dyn_bg = bind_group(
+        let dyn_bg = group_of(&ctx, "sdf dynamic composite", &dyn_layout, &dyn_binds);
+        let mips_module = ctx.shader(&shaders::SDF_MIPS)?;
+        // The level uniform is a stand-in: each mip's bind group below has its own.
+        let mips_layout = layout_of(
             &ctx,
-            "sdf dynamic composite",
-            &dyn_layout,
+            "sdf mips",
+            CS,
             &[
-                (0, vol_buf.as_entire_binding()),
-                (1, base_buf.as_entire_binding()),
-                (2, levels_buf.as_entire_binding()),
-                (3, shapes_buf.as_entire_binding()),
-                (4, dyn_params.as_entire_binding()),
+                Bind::Uniform(&vol_buf),
+                Bind::Write(&levels_buf),
+                Bind::Uniform(&vol_buf),
             ],
         );
-        let mips_module = ctx.shader(&shaders::SDF_MIPS)?;
-        let mips_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdf mips"),
-            entries: &[uniform_entry(0, CS), storage_entry(1, CS, false), uniform_entry(2, CS)],
-        });
         let mips_pipeline = compute_pipeline(&ctx, "sdf mips", &mips_module, "downsample", &mips_layout);
         let mips_bgs = (1..layout.levels)
             .map(|l| {
                 let label = format!("sdf mip {l}");
                 let u = ctx.uniform(&label, &GpuMisc { misc: [l, 0, 0, 0] });
-                bind_group(
+                group_of(
                     &ctx,
                     &label,
                     &mips_layout,
-                    &[
-                        (0, vol_buf.as_entire_binding()),
-                        (1, levels_buf.as_entire_binding()),
-                        (2, u.as_entire_binding()),
-                    ],
+                    &[Bind::Uniform(&vol_buf), Bind::Write(&levels_buf), Bind::Uniform(&u)],
                 )
             })
             .collect();
 
         // Sky gather and calibration share one layout.
         let sky_module = ctx.shader(&shaders::SDF_SKY)?;
-        let cal_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdf sky"),
-            entries: &[
-                uniform_entry(0, CS),
-                storage_entry(1, CS, true),
-                storage_entry(2, CS, true),
-                storage_entry(3, CS, false),
-                uniform_entry(4, CS),
-            ],
-        });
+        let sky_binds = [
+            Bind::Uniform(&vol_buf),
+            Bind::Read(&levels_buf),
+            Bind::Read(&texel_buf),
+            Bind::Write(&acc_buf),
+            Bind::Uniform(&sky_params),
+        ];
+        let cal_layout = layout_of(&ctx, "sdf sky", CS, &sky_binds);
         let sky_pipeline = compute_pipeline(&ctx, "sdf sky", &sky_module, "sky_step", &cal_layout);
         let cal_pipeline = compute_pipeline(&ctx, "sdf calibrate", &sky_module, "calibrate", &cal_layout);
-        let sky_bg = bind_group(
-            &ctx,
-            "sdf sky",
-            &cal_layout,
-            &[
-                (0, vol_buf.as_entire_binding()),
-                (1, levels_buf.as_entire_binding()),
-                (2, texel_buf.as_entire_binding()),
-                (3, acc_buf.as_entire_binding()),
-                (4, sky_params.as_entire_binding()),
-            ],
-        );
+        let sky_bg = group_of(&ctx, "sdf sky", &cal_layout, &sky_binds);
         let g = SdfGpu {
             ctx,
             layout,
@@ -1014,16 +982,16 @@ impl Sdf {
                 alphas: a4,
             },
         );
-        let bg = bind_group(
+        let bg = group_of(
             ctx,
             "sdf calibrate",
             &g.cal_layout,
             &[
-                (0, g.vol_buf.as_entire_binding()),
-                (1, g.levels_buf.as_entire_binding()),
-                (2, tex_buf.as_entire_binding()),
-                (3, out_buf.as_entire_binding()),
-                (4, params.as_entire_binding()),
+                Bind::Uniform(&g.vol_buf),
+                Bind::Read(&g.levels_buf),
+                Bind::Read(&tex_buf),
+                Bind::Write(&out_buf),
+                Bind::Uniform(&params),
             ],
         );
         let mut encoder = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {

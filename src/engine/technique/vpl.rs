@@ -101,7 +101,7 @@ use super::sdb::{DirectionSequence, Directions, GpuTexelGeom, SplitMix64};
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
-use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, uniform_entry};
+use crate::engine::gpu::layout::{Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry};
 use crate::engine::gpu::{self, GpuContext, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, basis, cone_sample, cosine_sample, inset};
@@ -628,43 +628,19 @@ impl Vpl {
             &[(0, views_buf.as_entire_binding())],
         );
         let gather_module = ctx.shader(&shaders::VPL_GATHER).map_err(gpu_error)?;
-        let gather_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("vpl gather layout"),
-            entries: &[
-                uniform_entry(0, S::COMPUTE),
-                storage_entry(1, S::COMPUTE, true),
-                storage_entry(2, S::COMPUTE, true),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 3,
-                    visibility: S::COMPUTE,
-                    ty: wgpu::BindingType::Texture {
-                        // textureLoad only: Rgba32Float needs no filtering.
-                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-                storage_entry(4, S::COMPUTE, true),
-                storage_entry(5, S::COMPUTE, false),
-                storage_entry(6, S::COMPUTE, false),
-            ],
-        });
+        let gather_binds = [
+            Bind::Uniform(&gather_buf),
+            Bind::Read(&lights_buf),
+            Bind::Read(&views_buf),
+            // textureLoad only: Rgba32Float needs no filtering.
+            Bind::Texture2d(&plane_view),
+            Bind::Read(&geom_buf),
+            Bind::Write(&acc_buf),
+            Bind::Write(&direct_acc_buf),
+        ];
+        let gather_layout = layout_of(&ctx, "vpl gather layout", S::COMPUTE, &gather_binds);
         let gather_pipeline = compute_pipeline(&ctx, "vpl gather", &gather_module, "gather", &gather_layout);
-        let gather_bg = bind_group(
-            &ctx,
-            "vpl gather bindings",
-            &gather_layout,
-            &[
-                (0, gather_buf.as_entire_binding()),
-                (1, lights_buf.as_entire_binding()),
-                (2, views_buf.as_entire_binding()),
-                (3, wgpu::BindingResource::TextureView(&plane_view)),
-                (4, geom_buf.as_entire_binding()),
-                (5, acc_buf.as_entire_binding()),
-                (6, direct_acc_buf.as_entire_binding()),
-            ],
-        );
+        let gather_bg = group_of(&ctx, "vpl gather bindings", &gather_layout, &gather_binds);
         ctx.take_error("vpl setup").map_err(gpu_error)?;
 
         let tracer = Tracer::new(&scene);
