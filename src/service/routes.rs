@@ -20,7 +20,10 @@
 //! their own (a malformed path or query, a body over the limit, a timeout).
 //!
 //! Limits: uploads are buffered in memory up to `max_scene_bytes`, once (the importer
-//! parses from memory, and the store writes from the same buffer: [`store`]); `.gltf` URIs must be
+//! parses from memory, and the store writes from the same buffer: [`store`]); a `.glb`
+//! goes into one buffer sized from `Content-Length`, while multipart parts are gathered
+//! by multer into buffers that grow as each part arrives (a reallocation briefly holds a
+//! part twice); `.gltf` URIs must be
 //! data URIs or the plain names of uploaded parts (no folders), so an upload can never
 //! make the server read its own files.
 
