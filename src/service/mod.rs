@@ -19,8 +19,8 @@
 //! tokens; every request has a time limit; artifacts are written to a temporary file,
 //! synced, then renamed, before the job that made them is marked succeeded.
 //!
-//! Limits: only SQLite and a local directory are wired up (PostgreSQL and S3 are issue 11),
-//! so several processes must share one machine today.
+//! Limits: the queue is SQLite only (PostgreSQL is issue 11), so several processes must
+//! share one machine today even though artifacts can live in an S3 bucket ([`store`]).
 
 pub mod auth;
 pub mod client;
@@ -46,7 +46,7 @@ use tokio::task::JoinHandle;
 use crate::service::metrics::Metrics;
 use crate::service::queue::Queue;
 use crate::service::queue::sqlite::SqliteQueue;
-use crate::service::store::Artifacts;
+use crate::service::store::{Artifacts, StoreUrl};
 
 /// Everything `serve` and `worker` are configured with.
 #[derive(Clone, Debug)]
@@ -57,8 +57,8 @@ pub struct Config {
     pub workers: usize,
     /// `sqlite://…` (PostgreSQL follows with issue 11).
     pub database_url: Option<String>,
-    /// A directory for artifacts (S3 URLs follow with issue 11).
-    pub store: Option<PathBuf>,
+    /// Where artifacts go: a directory or an S3 bucket (default: `data_dir/objects`).
+    pub store: Option<StoreUrl>,
     /// What one client may ask of the server.
     pub limits: Limits,
     /// Require a bearer token on every route but `/healthz` (`lightmapd token create`).
@@ -246,16 +246,23 @@ impl AppState {
 
 /// Opens the queue and the store the configuration names.
 pub async fn open_backends(config: &Config) -> anyhow::Result<(Arc<dyn Queue>, Artifacts)> {
-    std::fs::create_dir_all(&config.data_dir)?;
     let queue: Arc<dyn Queue> = match &config.database_url {
-        None => Arc::new(SqliteQueue::open(&config.data_dir.join("lightmapd.db")).await?),
+        // The data folder is made only when something goes in it: a worker with a
+        // database URL and an S3 store has none.
+        None => {
+            std::fs::create_dir_all(&config.data_dir)?;
+            Arc::new(SqliteQueue::open(&config.data_dir.join("lightmapd.db")).await?)
+        }
         Some(url) if url.starts_with("sqlite:") => Arc::new(SqliteQueue::open_url(url).await?),
         Some(url) => anyhow::bail!(
             "unsupported database URL {url:?}: only sqlite:// is implemented (PostgreSQL comes with issue 11)"
         ),
     };
-    let store_dir = config.store.clone().unwrap_or_else(|| config.data_dir.join("objects"));
-    let artifacts = Artifacts::local(&store_dir)?;
+    let store = config
+        .store
+        .clone()
+        .unwrap_or_else(|| StoreUrl::Local(config.data_dir.join("objects")));
+    let artifacts = Artifacts::open(&store, &[]).await?;
     Ok((queue, artifacts))
 }
 
