@@ -481,7 +481,11 @@ impl Hemicube {
             if cpu_light { texel_bytes } else { 16 },
             U::STORAGE | U::COPY_DST,
         );
-        let acc_buf = ctx.buffer_zeroed("hemicube accumulators (even, odd)", texel_bytes, U::STORAGE | U::COPY_SRC);
+        let acc_buf = ctx.buffer_zeroed(
+            "hemicube accumulators (even, odd)",
+            texel_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
         let direct_acc_buf = ctx.buffer_zeroed(
             "hemicube direct accumulators (even, odd)",
             if inputs.want_direct { texel_bytes } else { 16 },
@@ -806,7 +810,10 @@ impl Hemicube {
             .map(|k| {
                 let mut rng = Rng::new(self.seed, 0x4E17_0E11, step, k as u64);
                 let u = rng.next_f32() as f64;
-                let j = self.emitter_cdf.partition_point(|&c| c <= u).min(self.emitters.len() - 1);
+                let j = self
+                    .emitter_cdf
+                    .partition_point(|&c| c <= u)
+                    .min(self.emitters.len() - 1);
                 let e = self.emitters[j];
                 let p_tri = e.weight / self.emitters.iter().map(|e| e.weight).sum::<f64>();
                 let tri = &scene.triangles[e.triangle as usize];
@@ -931,7 +938,11 @@ impl Hemicube {
         // an unbiased transfer of all the light.
         let (k_emit, k_texel, share_emit, share_texel) = if self.params.shooters_per_step == 1 && self.k_emit == 1 {
             let mut rng = Rng::new(self.seed, 0xC0_14, step, 0);
-            if rng.next_f32() < 0.5 { (1, 0, 0.5, 1.0) } else { (0, 1, 1.0, 0.5) }
+            if rng.next_f32() < 0.5 {
+                (1, 0, 0.5, 1.0)
+            } else {
+                (0, 1, 1.0, 0.5)
+            }
         } else {
             (self.k_emit, self.k_texel, self.k_emit as f64, self.k_texel as f64)
         };
@@ -1134,7 +1145,10 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "no sky, sun or punctual light",
     );
     p.run("hemicube depth maps", "five faces per shooter, one render pass");
-    p.run("transfer", "every texel takes every shooter's light (Eq. 4 with Eq. 8's disc term)");
+    p.run(
+        "transfer",
+        "every texel takes every shooter's light (Eq. 4 with Eq. 8's disc term)",
+    );
     p.decide(
         GLOSSY_PASS,
         f.glossy_materials > 0,
