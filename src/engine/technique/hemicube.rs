@@ -52,8 +52,8 @@
 //! n = 2 / r^4 - 2 (the Blinn-Phong equivalent of α = r², clamped to [1, 1e5]), and the
 //! Neumann-Neumann-Szirmay-Kalos modification of Phong the seed cites,
 //! f_s = k_s (n + 1) / (2π) cos^n α / max(cos θ_i, cos θ_o): reciprocal, its directional
-//! albedo at most k_s (n + 1)/(n + 1) = k_s, and a mirror of reflectance k_s (n+1)/(n+2) in the
-//! limit. The incoming direction of a texel's irradiance is the luminance-weighted mean of
+//! albedo at most k_s (the unit test integrates it), and a mirror of reflectance
+//! k_s (n + 1)/(n + 2) in the limit. The incoming direction of a texel's irradiance is the luminance-weighted mean of
 //! the directions it came from in the previous step (exact with one shooter a step, as in
 //! the seed; an approximation with several). An all-diffuse scene runs the diffuse-only
 //! variant: no lobe data, no direction buffers (the plan says which).
@@ -70,7 +70,8 @@
 //! # Departures from the seed
 //! - Emitters shoot from their triangles (exact area and emission, CPU-sampled) rather than
 //!   from their texels, so a 1 cm² lamp is as exact as a large one; the pyramid holds
-//!   reflected power only. The sky, the sun and punctual lights, which are not surfaces,
+//!   reflected power only. Their disc (Eq. 8) is a quarter of a lightmap texel
+//!   ([`EMITTER_DISC`]). The sky, the sun and punctual lights, which are not surfaces,
 //!   are estimated on the CPU per texel per step (one cosine-sampled sky ray, one sun-cone
 //!   ray, one shadow ray per punctual light) and added to I_m.
 //! - Several shooters per step (`shooters_per_step`, half of them emitter samples when the
