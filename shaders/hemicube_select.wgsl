@@ -194,9 +194,9 @@ fn select_shooters(@builtin(global_invocation_id) gid: vec3<u32>) {
                 s.diffuse = vec4<f32>(kd_i / (area * 3.14159265), 0.0);
                 let has_dir = dot(dir, dir) > 0.0;
                 s.in_dir = vec4<f32>(select(s.nrm.xyz, normalize(dir), has_dir), 0.0);
-                // Without a known incoming direction the lobe cannot be aimed: its light
-                // goes out diffusely (only the first step of a glossy surface lit by ...
-                // nothing directional can hit this).
+                // Without a known incoming direction (the diffuse-only variant keeps none,
+                // and a glossy texel whose light cancelled out has a zero sum) the lobe
+                // cannot be aimed: its light goes out diffusely, energy kept.
                 let spec_i = ks_i / area;
                 if has_dir {
                     s.spec = vec4<f32>(spec_i, mc.ks.w);
