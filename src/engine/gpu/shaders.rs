@@ -69,6 +69,13 @@ pub const SDF_MIPS: PassShader = pass!("sdf_mips.wgsl");
 /// `sdf`: sky visibility along the bent normal, and the calibration sums.
 pub const SDF_SKY: PassShader = pass!("sdf_sky.wgsl");
 
+/// `hemicube`: the power pyramid (level 0 and the 2 x 2 sums).
+pub const HEMICUBE_PYRAMID: PassShader = pass!("hemicube_pyramid.wgsl");
+/// `hemicube`: the step's shooters (pyramid descent, texel merging) and their views.
+pub const HEMICUBE_SELECT: PassShader = pass!("hemicube_select.wgsl");
+/// `hemicube`: every receiver takes the shooters' light; the half accumulators.
+pub const HEMICUBE_TRANSFER: PassShader = pass!("hemicube_transfer.wgsl");
+
 /// Every pass shader in the crate.
 pub const ALL: &[PassShader] = &[
     SDB_RESOLVE,
@@ -85,6 +92,9 @@ pub const ALL: &[PassShader] = &[
     SDF_DYNAMIC,
     SDF_MIPS,
     SDF_SKY,
+    HEMICUBE_PYRAMID,
+    HEMICUBE_SELECT,
+    HEMICUBE_TRANSFER,
 ];
 
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the

@@ -22,6 +22,10 @@ pub struct MaterialDesc {
     /// `KHR_materials_emissive_strength`.
     pub emission: [f32; 3],
     pub double_sided: bool,
+    /// glTF `metallicFactor` (0: dielectric).
+    pub metallic: f32,
+    /// glTF `roughnessFactor` (1: fully rough, Lambertian for every technique).
+    pub roughness: f32,
 }
 
 impl MaterialDesc {
@@ -31,6 +35,8 @@ impl MaterialDesc {
             base_color: [albedo[0], albedo[1], albedo[2], 1.0],
             emission: [0.0; 3],
             double_sided: false,
+            metallic: 0.0,
+            roughness: 1.0,
         }
     }
 
@@ -39,6 +45,14 @@ impl MaterialDesc {
             emission,
             ..Self::diffuse(name, albedo)
         }
+    }
+
+    /// The same material with glTF `metallic` and `roughness` (a glossy lobe where a
+    /// technique supports one).
+    pub fn glossy(mut self, metallic: f32, roughness: f32) -> Self {
+        self.metallic = metallic;
+        self.roughness = roughness;
+        self
     }
 
     pub fn two_sided(mut self) -> Self {
@@ -351,7 +365,7 @@ impl SceneBuilder {
                 let peak = m.emission.iter().cloned().fold(0.0f32, f32::max);
                 let mut v = json!({
                     "name": m.name,
-                    "pbrMetallicRoughness": {"baseColorFactor": m.base_color, "metallicFactor": 0.0, "roughnessFactor": 1.0},
+                    "pbrMetallicRoughness": {"baseColorFactor": m.base_color, "metallicFactor": m.metallic, "roughnessFactor": m.roughness},
                     "doubleSided": m.double_sided
                 });
                 if peak > 0.0 {

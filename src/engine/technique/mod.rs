@@ -11,6 +11,7 @@
 //! Every layer holds irradiance / π at the texel's sample point (the outgoing radiance of
 //! a white Lambertian surface), not including the surface's own emission.
 
+pub mod hemicube;
 pub mod obscurance;
 pub mod path;
 pub mod sdb;
@@ -28,7 +29,7 @@ use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::{Lighting, Scene};
 
 /// The identifiers [`create`] accepts.
-pub const TECHNIQUES: &[&str] = &["path", "sdb", "vpl", "obscurance", "sdf"];
+pub const TECHNIQUES: &[&str] = &["path", "sdb", "vpl", "obscurance", "sdf", "hemicube"];
 
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
@@ -86,6 +87,7 @@ pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Te
         "vpl" => Ok(Box::new(vpl::Vpl::prepare(inputs, params)?)),
         "obscurance" => Ok(Box::new(obscurance::Obscurance::prepare(inputs, params)?)),
         "sdf" => Ok(Box::new(sdf::Sdf::prepare(inputs, params)?)),
+        "hemicube" => Ok(Box::new(hemicube::Hemicube::prepare(inputs, params)?)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")
@@ -101,6 +103,7 @@ pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
         "vpl" => Ok(vpl::plan(features)),
         "obscurance" => Ok(obscurance::plan(features)),
         "sdf" => Ok(sdf::plan(features)),
+        "hemicube" => Ok(hemicube::plan(features)),
         other => Err(EngineError::BadInput(format!(
             "unknown technique {other:?}; available: {}",
             TECHNIQUES.join(", ")
