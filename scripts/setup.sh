@@ -17,3 +17,6 @@ if ((${#need[@]})); then
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
 fi
 command -v cargo >/dev/null || { echo "setup: cargo not found; install the Rust toolchain (rustup) first" >&2; exit 1; }
+
+# --- PostgreSQL for the shared-queue tests (issue 11): its own script, see there. ---
+bash "$(dirname "$0")/setup-postgres.sh"

@@ -10,8 +10,9 @@
 //! Processes: `lightmapd serve` runs the API and N workers in one process ([`start`]);
 //! `lightmapd worker` runs workers only ([`run_workers`]), sharing the database and the
 //! store with a `serve`. In-process notifications (a new job, a cancel, a change to a
-//! job) make one process react at once; across processes the same things are found by
-//! polling the database, a little later.
+//! job) make one process react at once; across processes PostgreSQL's LISTEN/NOTIFY
+//! feeds the same [`Hub`] signals ([`queue::Queue::listen`]), and with SQLite the same
+//! things are found by polling the database, a little later.
 //!
 //! Hostile clients (issue 12): every size and budget a request can ask for is capped by
 //! [`Limits`] (413 for bodies, 422 naming the field, 429 with `Retry-After` for a full
@@ -19,8 +20,8 @@
 //! tokens; every request has a time limit; artifacts are written to a temporary file,
 //! synced, then renamed, before the job that made them is marked succeeded.
 //!
-//! Limits: only SQLite and a local directory are wired up (PostgreSQL and S3 are issue 11),
-//! so several processes must share one machine today.
+//! Limits: the artifact store is a local directory (S3 is issue 11, point 2), so API and
+//! worker processes must share a filesystem.
 
 pub mod auth;
 pub mod client;
@@ -45,7 +46,6 @@ use tokio::task::JoinHandle;
 
 use crate::service::metrics::Metrics;
 use crate::service::queue::Queue;
-use crate::service::queue::sqlite::SqliteQueue;
 use crate::service::store::Artifacts;
 
 /// Everything `serve` and `worker` are configured with.
@@ -55,7 +55,7 @@ pub struct Config {
     /// Holds `lightmapd.db` and `objects/` unless `database_url` / `store` say otherwise.
     pub data_dir: PathBuf,
     pub workers: usize,
-    /// `sqlite://…` (PostgreSQL follows with issue 11).
+    /// `sqlite://FILE` or `postgres://USER:PASSWORD@HOST/DB` ([`queue::open`]).
     pub database_url: Option<String>,
     /// A directory for artifacts (S3 URLs follow with issue 11).
     pub store: Option<PathBuf>,
@@ -247,13 +247,7 @@ impl AppState {
 /// Opens the queue and the store the configuration names.
 pub async fn open_backends(config: &Config) -> anyhow::Result<(Arc<dyn Queue>, Artifacts)> {
     std::fs::create_dir_all(&config.data_dir)?;
-    let queue: Arc<dyn Queue> = match &config.database_url {
-        None => Arc::new(SqliteQueue::open(&config.data_dir.join("lightmapd.db")).await?),
-        Some(url) if url.starts_with("sqlite:") => Arc::new(SqliteQueue::open_url(url).await?),
-        Some(url) => anyhow::bail!(
-            "unsupported database URL {url:?}: only sqlite:// is implemented (PostgreSQL comes with issue 11)"
-        ),
-    };
+    let queue = queue::open(config.database_url.as_deref(), &config.data_dir.join("lightmapd.db")).await?;
     let store_dir = config.store.clone().unwrap_or_else(|| config.data_dir.join("objects"));
     let artifacts = Artifacts::local(&store_dir)?;
     Ok((queue, artifacts))
@@ -296,6 +290,7 @@ pub async fn start_with(config: Config, queue: Arc<dyn Queue>, artifacts: Artifa
     let (tx, rx) = watch::channel(false);
     let state = AppState::new(queue, artifacts, &config, rx.clone());
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
+    tasks.extend(state.queue.listen(state.hub.clone(), rx.clone()));
     tasks.extend(worker::spawn_pool(
         &state,
         config.workers,
@@ -326,8 +321,9 @@ pub async fn start_with(config: Config, queue: Arc<dyn Queue>, artifacts: Artifa
 pub async fn run_workers(config: Config, shutdown: impl std::future::Future<Output = ()>) -> anyhow::Result<()> {
     let (queue, artifacts) = open_backends(&config).await?;
     let (tx, rx) = watch::channel(false);
-    let state = AppState::new(queue, artifacts, &config, rx);
+    let state = AppState::new(queue, artifacts, &config, rx.clone());
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
+    tasks.extend(state.queue.listen(state.hub.clone(), rx));
     tasks.extend(worker::spawn_pool(
         &state,
         config.workers,
