@@ -70,9 +70,13 @@ impl Db {
         })
     }
 
+    /// Drops the schema. A failure here is reported, not fatal: the checks have passed,
+    /// and a left-over schema only takes space in a test database.
     async fn drop(self) {
         self.pool.close().await;
-        self.queue.drop_schema(&self.schema).await.unwrap();
+        if let Err(e) = self.queue.drop_schema(&self.schema).await {
+            eprintln!("warning: cannot drop test schema {}: {e}", self.schema);
+        }
     }
 }
 
@@ -167,7 +171,7 @@ async fn one_api_three_workers_survive_two_sigkills() {
     };
     let started = Instant::now();
     for sql in AUDIT {
-        sqlx::query(sql).execute(&db.pool).await.unwrap();
+        sqlx::query(*sql).execute(&db.pool).await.unwrap();
     }
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("objects");
