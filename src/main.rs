@@ -22,6 +22,7 @@ use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
 use lightmapd::engine::technique::TECHNIQUES;
 use lightmapd::engine::technique::obscurance::{ObscuranceState, UpdateReach};
 use lightmapd::service;
+use lightmapd::service::store::StoreUrl;
 
 #[derive(Parser)]
 #[command(name = "lightmapd", version, about = "Bakes lightmaps from glTF scenes")]
@@ -43,7 +44,7 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Run the bake service: HTTP API and a pool of workers, SQLite and a local folder.
+    /// Run the bake service: HTTP API and a pool of workers, SQLite and a local folder or S3.
     Serve(ServeArgs),
     /// Run workers only, against the database and store of a `serve`.
     Worker(WorkerArgs),
@@ -92,9 +93,10 @@ struct ServeArgs {
     /// postgres://USER:PASSWORD@HOST/DB or sqlite://FILE (default: DATA_DIR/lightmapd.db).
     #[arg(long)]
     database_url: Option<String>,
-    /// Artifact folder (default: DATA_DIR/objects).
-    #[arg(long)]
-    store: Option<PathBuf>,
+    /// Artifact store: s3://BUCKET/PREFIX (endpoint, region and keys from AWS_* variables),
+    /// file://DIR or a directory (default: DATA_DIR/objects).
+    #[arg(long, value_parser = StoreUrl::parse)]
+    store: Option<StoreUrl>,
     /// Require a bearer token (`lightmapd token create`) on every route but /healthz.
     #[arg(long)]
     auth: bool,
@@ -108,9 +110,9 @@ struct WorkerArgs {
     /// (workers on other machines) or sqlite://FILE (the same machine).
     #[arg(long)]
     database_url: String,
-    /// The artifact folder of that `serve`.
-    #[arg(long)]
-    store: PathBuf,
+    /// The artifact store of that `serve`: s3://BUCKET/PREFIX, file://DIR or a directory.
+    #[arg(long, value_parser = StoreUrl::parse)]
+    store: StoreUrl,
     #[arg(long, default_value_t = 1)]
     workers: usize,
     #[command(flatten)]
@@ -500,8 +502,7 @@ fn worker(args: WorkerArgs) -> Result<(), Failure> {
     let config = service::Config {
         workers: args.workers,
         database_url: Some(args.database_url),
-        store: Some(args.store.clone()),
-        data_dir: args.store,
+        store: Some(args.store),
         limits: limits(&args.tuning)?,
         lease,
         snapshot_interval,

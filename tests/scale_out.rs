@@ -18,7 +18,11 @@
 //! PostgreSQL comes from `LIGHTMAPD_TEST_POSTGRES`; without it the tests print a loud
 //! skip line and pass, unless `LIGHTMAPD_REQUIRE_SERVICES=1` (CI). Each test works in a
 //! schema of its own (`?options=-csearch_path=…` on the URL the processes get), dropped
-//! when it passes. Artifacts: a local directory shared by the processes.
+//! when it passes. Artifacts: the first test stores them in the S3-protocol server
+//! (`service_common::S3`: moto on 127.0.0.1:9000, started by `scripts/setup.sh`) under a
+//! fresh `s3://lightmapd-test/scale-out-…` prefix, passing `AWS_*` to every process, and
+//! skips (fails under `LIGHTMAPD_REQUIRE_SERVICES=1`) without it; the second uses a local
+//! directory, since only the queue matters there.
 //!
 //! Time on the development machine (2 cores, no GPU, Debian, lavapipe; shared with two
 //! other builds): see docs/scaling.md.
@@ -26,7 +30,6 @@
 mod service_common;
 
 use std::collections::HashMap;
-use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -35,7 +38,7 @@ use lightmapd::service::queue::postgres::{PostgresQueue, test_url};
 use lightmapd::service::queue::{Enqueued, Queue, SceneRecord};
 use lightmapd::service::store::{self, Artifacts};
 use serde_json::{Value, json};
-use service_common::{bin, cornell_glb, exr_is_whole, spawn_serve};
+use service_common::{S3, bin, cornell_glb, exr_is_whole, spawn_serve_env};
 use sqlx::Row;
 
 /// A test's own schema on the test database.
@@ -100,12 +103,11 @@ impl Children {
     }
 }
 
-fn spawn_worker(db: &str, store: &Path, lease_s: &str) -> Child {
+fn spawn_worker(db: &str, store: &str, env: &[(&str, String)], lease_s: &str) -> Child {
     Command::new(bin())
         .args(["worker", "--database-url", db, "--lease-seconds", lease_s])
-        .args(["--snapshot-interval-s", "60"])
-        .arg("--store")
-        .arg(store)
+        .args(["--snapshot-interval-s", "60", "--store", store])
+        .envs(env.iter().map(|(k, v)| (k, v)))
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -166,34 +168,39 @@ async fn get_json(http: &reqwest::Client, url: &str) -> Value {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_api_three_workers_survive_two_sigkills() {
-    let Some(db) = Db::new("scale_out::one_api_three_workers_survive_two_sigkills").await else {
+    let test = "scale_out::one_api_three_workers_survive_two_sigkills";
+    let Some(db) = Db::new(test).await else {
         return;
     };
+    let Some(s3) = S3::find(test).await else {
+        return;
+    };
+    let store = s3.fresh_url("scale-out");
     let started = Instant::now();
     for sql in AUDIT {
         sqlx::query(*sql).execute(&db.pool).await.unwrap();
     }
     let dir = tempfile::tempdir().unwrap();
-    let store = dir.path().join("objects");
     // A short lease, so a killed worker's job is back in the queue within 3-4.5 s.
     let lease = "3";
-    let (api, url) = spawn_serve(
+    let (api, url) = spawn_serve_env(
         dir.path(),
         0,
         &[
             "--database-url",
             &db.url,
             "--store",
-            store.to_str().unwrap(),
+            &store,
             "--lease-seconds",
             lease,
             "--max-queued-per-client",
             "1000",
         ],
+        &s3.env,
     );
     let mut procs = Children(vec![api]);
     for _ in 0..3 {
-        procs.0.push(spawn_worker(&db.url, &store, lease));
+        procs.0.push(spawn_worker(&db.url, &store, &s3.env, lease));
     }
     let http = reqwest::Client::new();
     let r = http
@@ -238,7 +245,7 @@ async fn one_api_three_workers_survive_two_sigkills() {
         victim.kill().unwrap(); // SIGKILL
         victim.wait().unwrap();
         killed.insert(job.clone(), worker);
-        procs.0.push(spawn_worker(&db.url, &store, lease));
+        procs.0.push(spawn_worker(&db.url, &store, &s3.env, lease));
     }
 
     // Every job ends; none fails.
@@ -364,7 +371,7 @@ async fn worker_sigterm_hands_the_job_back() {
         client: None,
     };
     assert!(db.queue.insert_scene(&scene).await.unwrap());
-    let mut procs = Children(vec![spawn_worker(&db.url, &store, "30")]);
+    let mut procs = Children(vec![spawn_worker(&db.url, store.to_str().unwrap(), &[], "30")]);
     let spec = JobSpec::parse(br#"{"scene": "s", "resolution": 16, "stop": {"seconds": 30}}"#).unwrap();
     let queued = db.queue.enqueue("j", &spec, "test", 10, 1).await.unwrap();
     assert!(matches!(queued, Enqueued::Queued(_)));

@@ -20,8 +20,8 @@
 //! tokens; every request has a time limit; artifacts are written to a temporary file,
 //! synced, then renamed, before the job that made them is marked succeeded.
 //!
-//! Limits: the artifact store is a local directory (S3 is issue 11, point 2), so API and
-//! worker processes must share a filesystem.
+//! Limits: API and worker processes on several machines need PostgreSQL and an artifact
+//! store they all reach (an S3 bucket, [`store`], or a shared filesystem).
 
 pub mod auth;
 pub mod client;
@@ -46,7 +46,7 @@ use tokio::task::JoinHandle;
 
 use crate::service::metrics::Metrics;
 use crate::service::queue::Queue;
-use crate::service::store::Artifacts;
+use crate::service::store::{Artifacts, StoreUrl};
 
 /// Everything `serve` and `worker` are configured with.
 #[derive(Clone, Debug)]
@@ -57,8 +57,8 @@ pub struct Config {
     pub workers: usize,
     /// `sqlite://FILE` or `postgres://USER:PASSWORD@HOST/DB` ([`queue::open`]).
     pub database_url: Option<String>,
-    /// A directory for artifacts (S3 URLs follow with issue 11).
-    pub store: Option<PathBuf>,
+    /// Where artifacts go: a directory or an S3 bucket (default: `data_dir/objects`).
+    pub store: Option<StoreUrl>,
     /// What one client may ask of the server.
     pub limits: Limits,
     /// Require a bearer token on every route but `/healthz` (`lightmapd token create`).
@@ -246,10 +246,17 @@ impl AppState {
 
 /// Opens the queue and the store the configuration names.
 pub async fn open_backends(config: &Config) -> anyhow::Result<(Arc<dyn Queue>, Artifacts)> {
-    std::fs::create_dir_all(&config.data_dir)?;
+    if config.database_url.is_none() {
+        // The data folder is made only when something goes in it: a worker with a
+        // database URL and an S3 store has none.
+        std::fs::create_dir_all(&config.data_dir)?;
+    }
     let queue = queue::open(config.database_url.as_deref(), &config.data_dir.join("lightmapd.db")).await?;
-    let store_dir = config.store.clone().unwrap_or_else(|| config.data_dir.join("objects"));
-    let artifacts = Artifacts::local(&store_dir)?;
+    let store = config
+        .store
+        .clone()
+        .unwrap_or_else(|| StoreUrl::Local(config.data_dir.join("objects")));
+    let artifacts = Artifacts::open(&store, &[]).await?;
     Ok((queue, artifacts))
 }
 

@@ -19,7 +19,8 @@
 //! [`problem_bodies`] rewrites the plain-text answers axum and tower-http produce on
 //! their own (a malformed path or query, a body over the limit, a timeout).
 //!
-//! Limits: uploads are buffered in memory up to `max_scene_bytes`; `.gltf` URIs must be
+//! Limits: uploads are buffered in memory up to `max_scene_bytes`, once (the importer
+//! parses from memory, and the store writes from the same buffer: [`store`]); `.gltf` URIs must be
 //! data URIs or the plain names of uploaded parts (no folders), so an upload can never
 //! make the server read its own files.
 
@@ -225,13 +226,12 @@ async fn upload_scene(
     req: Request,
 ) -> Result<Response, Problem> {
     let max = state.config.limits.max_scene_bytes;
-    if let Some(len) = req
+    let declared = req
         .headers()
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok())
-        && len > max as u64
-    {
+        .and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|len| len > max as u64) {
         return Err(too_large(max));
     }
     let ct = content_type(req.headers());
@@ -242,9 +242,7 @@ async fn upload_scene(
         let (files, main) = read_gltf_parts(mp, max).await?;
         (files, main, "gltf")
     } else if ct.is_empty() || ct == "model/gltf-binary" || ct == "application/octet-stream" {
-        let body = axum::body::to_bytes(req.into_body(), max)
-            .await
-            .map_err(|_| too_large(max))?;
+        let body = read_glb_body(req.into_body(), max, declared).await?;
         if body.is_empty() {
             return Err(Problem::bad_request(
                 "empty body: send a .glb (model/gltf-binary) or multipart/form-data with a .gltf and its files",
@@ -337,6 +335,26 @@ async fn upload_scene(
         resp.headers_mut().insert(header::LOCATION, loc);
     }
     Ok(resp)
+}
+
+/// Reads a .glb body into one buffer, sized from `Content-Length` when the client sent
+/// one. `axum::body::to_bytes` would gather the chunks and then copy them into a
+/// contiguous buffer, holding the scene twice at the end; here each chunk is copied in
+/// and dropped as it arrives, so the peak is the scene plus one chunk (DESIGN §8: uploads
+/// never buffer a whole scene twice).
+async fn read_glb_body(body: Body, max: usize, declared: Option<u64>) -> Result<Bytes, Problem> {
+    use futures_util::StreamExt;
+    let mut stream = body.into_data_stream();
+    // A lying Content-Length costs at most `max` of reserved memory, which the limit allows.
+    let mut buf = bytes::BytesMut::with_capacity(declared.map_or(0, |n| n.min(max as u64) as usize));
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk.map_err(|e| Problem::bad_request(format!("the upload was cut short: {e}")))?;
+        if buf.len() + chunk.len() > max {
+            return Err(too_large(max));
+        }
+        buf.extend_from_slice(&chunk);
+    }
+    Ok(buf.freeze())
 }
 
 /// Reads a multipart .gltf upload: the parts, and the name of the one .gltf among them.

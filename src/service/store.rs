@@ -13,30 +13,211 @@
 //! jobs/{job}/scene.glb             the scene with generated lightmap UVs (when it had none)
 //! ```
 //!
+//! Where (`--store`, [`StoreUrl`]): `s3://BUCKET/PREFIX` is a bucket of any S3-compatible
+//! server (AWS, MinIO, Ceph, moto...), the keys above under PREFIX; `file://DIR` or a plain
+//! directory is the local store. The S3 endpoint, region and credentials come from the
+//! usual environment variables through `AmazonS3Builder::from_env` (`AWS_ENDPOINT_URL`,
+//! `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`,
+//! `AWS_ALLOW_HTTP`...), never from the URL, so no secret lands in a process list or a
+//! log line. Requests are path-style (`ENDPOINT/BUCKET/KEY`) unless
+//! `AWS_VIRTUAL_HOSTED_STYLE_REQUEST=true`, which is what self-hosted servers expect.
+//! [`Artifacts::open`] makes one cheap request (a listing of a prefix that holds nothing)
+//! so a wrong endpoint, bucket or key fails at start-up, not at the first upload.
+//!
 //! Durability: the local store writes each object to a temporary file beside it
 //! (`NAME#N`), syncs it, renames it over the name and syncs the folder
 //! (`LocalFileSystem::with_fsync`), so an object is either absent or whole, even after a
 //! crash or a power cut; workers store the final EXR before they mark a job succeeded.
 //! A crash between write and rename can leave a `NAME#N` file, never a short `NAME`.
+//! On S3 an object appears whole when its `PUT` (or the multipart upload's completion)
+//! returns, which is S3's own guarantee; a failed multipart upload is aborted so its parts
+//! do not linger (a crash mid-upload leaves parts that only a bucket lifecycle rule for
+//! incomplete multipart uploads removes: docs/deploy.md says so).
 //!
-//! Limits: whole objects are buffered in memory (lightmaps are megabytes, not gigabytes).
-//! Only the local filesystem is wired up; `--store` takes a directory today.
+//! What is buffered, and why: [`Artifacts::put`] takes the object as one `Bytes`, because
+//! every caller already holds it whole: a scene upload must be imported (validated) before
+//! it is kept, and the importer parses from memory; an EXR is encoded in memory by the
+//! engine. Nothing is copied on the way out: on S3, an object larger than
+//! [`MULTIPART_THRESHOLD`] goes up as a multipart upload of [`PART_SIZE`] parts that are
+//! slices of the caller's buffer (at most [`PART_CONCURRENCY`] in flight), so a 256 MiB
+//! scene is neither copied into request bodies nor sent as one request that a network
+//! hiccup restarts from byte 0. The local store writes the buffer to its temporary file.
+//!
+//! Limits: objects are held whole in memory while they are written and read (scenes up
+//! to `--max-scene-bytes`, lightmaps are megabytes); downloads are read whole before they
+//! are answered. Only S3 and local directories are wired up (object_store's GCS and Azure
+//! back-ends are not compiled in). Listing a prefix to delete a scene is eventually
+//! consistent on some S3-compatible servers (AWS itself is strongly consistent).
 
-use std::path::Path as FsPath;
+use std::fmt;
+use std::path::{Path as FsPath, PathBuf};
 use std::sync::Arc;
 
 use bytes::Bytes;
 use futures_util::TryStreamExt;
+use object_store::aws::{AmazonS3Builder, AmazonS3ConfigKey};
 use object_store::local::LocalFileSystem;
 use object_store::path::Path;
-use object_store::{ObjectStore, ObjectStoreExt, PutPayload};
+use object_store::prefix::PrefixStore;
+use object_store::{ClientConfigKey, ObjectStore, ObjectStoreExt, PutPayload, WriteMultipart};
+
+/// On S3, objects larger than this go up as a multipart upload.
+pub const MULTIPART_THRESHOLD: usize = 16 << 20;
+/// Part size of a multipart upload (S3's minimum is 5 MiB for all parts but the last).
+pub const PART_SIZE: usize = 8 << 20;
+/// Parts of one upload in flight at once.
+pub const PART_CONCURRENCY: usize = 4;
+
+/// Where artifacts live, as `--store` spells it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum StoreUrl {
+    /// A local directory: `file://DIR` or a plain path.
+    Local(PathBuf),
+    /// `s3://BUCKET/PREFIX`: keys go under PREFIX (empty: the bucket's root).
+    S3 { bucket: String, prefix: String },
+}
+
+impl StoreUrl {
+    /// Parses `s3://BUCKET[/PREFIX]`, `file://DIR` or a plain directory; the error says
+    /// what is wrong and what is accepted.
+    pub fn parse(s: &str) -> Result<StoreUrl, String> {
+        const FORMS: &str = "use s3://BUCKET/PREFIX, file://DIR or a directory";
+        if s.trim().is_empty() {
+            return Err(format!("the store is empty: {FORMS}"));
+        }
+        let Some((scheme, rest)) = s.split_once("://") else {
+            return Ok(StoreUrl::Local(PathBuf::from(s)));
+        };
+        match scheme.to_ascii_lowercase().as_str() {
+            "file" => {
+                if rest.is_empty() {
+                    return Err(format!("{s:?} names no directory: {FORMS}"));
+                }
+                Ok(StoreUrl::Local(PathBuf::from(rest)))
+            }
+            "s3" => {
+                if rest.contains(['?', '#']) {
+                    return Err(format!(
+                        "{s:?}: an s3:// store takes no query or fragment; endpoint, region and \
+                         credentials come from AWS_ENDPOINT_URL, AWS_REGION, AWS_ACCESS_KEY_ID and \
+                         AWS_SECRET_ACCESS_KEY"
+                    ));
+                }
+                let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+                check_bucket(bucket).map_err(|why| format!("{s:?}: bucket {bucket:?} {why}"))?;
+                let prefix = prefix.trim_end_matches('/');
+                if !prefix.is_empty() {
+                    Path::parse(prefix).map_err(|e| format!("{s:?}: prefix {prefix:?} is not a valid key: {e}"))?;
+                }
+                Ok(StoreUrl::S3 {
+                    bucket: bucket.to_string(),
+                    prefix: prefix.to_string(),
+                })
+            }
+            other => Err(format!("{s:?}: unsupported store scheme {other:?}: {FORMS}")),
+        }
+    }
+}
+
+impl std::str::FromStr for StoreUrl {
+    type Err = String;
+    fn from_str(s: &str) -> Result<StoreUrl, String> {
+        StoreUrl::parse(s)
+    }
+}
+
+impl fmt::Display for StoreUrl {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            StoreUrl::Local(dir) => write!(f, "{}", dir.display()),
+            StoreUrl::S3 { bucket, prefix } if prefix.is_empty() => write!(f, "s3://{bucket}"),
+            StoreUrl::S3 { bucket, prefix } => write!(f, "s3://{bucket}/{prefix}"),
+        }
+    }
+}
+
+/// S3's bucket naming rules (3 to 63 characters of lower-case letters, digits, dots and
+/// hyphens, a letter or digit at each end), checked here so a typo is named at start-up
+/// rather than answered by the server as a bare 400.
+fn check_bucket(b: &str) -> Result<(), &'static str> {
+    if !(3..=63).contains(&b.len()) {
+        return Err("must be 3 to 63 characters long");
+    }
+    if !b
+        .bytes()
+        .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == b'.' || c == b'-')
+    {
+        return Err("may hold only lower-case letters, digits, '.' and '-'");
+    }
+    let alnum = |c: u8| c.is_ascii_lowercase() || c.is_ascii_digit();
+    if !alnum(b.as_bytes()[0]) || !alnum(b.as_bytes()[b.len() - 1]) {
+        return Err("must begin and end with a letter or a digit");
+    }
+    if b.contains("..") {
+        return Err("must not hold two dots in a row");
+    }
+    Ok(())
+}
 
 #[derive(Clone)]
 pub struct Artifacts {
     store: Arc<dyn ObjectStore>,
+    /// Objects larger than this go up in parts (S3 only; `None` for the local store, whose
+    /// `put` is the durable write-sync-rename).
+    multipart_above: Option<usize>,
 }
 
 impl Artifacts {
+    /// The store `url` names. S3 settings come from the environment, then `overrides`
+    /// (tests pass their endpoint and keys here rather than changing the process's
+    /// environment); a store that cannot be reached is an error here.
+    pub async fn open(
+        url: &StoreUrl,
+        overrides: &[(AmazonS3ConfigKey, String)],
+    ) -> Result<Artifacts, object_store::Error> {
+        let artifacts = match url {
+            StoreUrl::Local(dir) => return Artifacts::local(dir),
+            StoreUrl::S3 { bucket, prefix } => {
+                let mut b = AmazonS3Builder::from_env().with_bucket_name(bucket);
+                for (k, v) in overrides {
+                    b = b.with_config(*k, v);
+                }
+                // `AWS_ENDPOINT_URL_S3` wins over `AWS_ENDPOINT_URL`, as in the builder.
+                let endpoint = b
+                    .get_config_value(&AmazonS3ConfigKey::S3Endpoint)
+                    .or_else(|| b.get_config_value(&AmazonS3ConfigKey::Endpoint))
+                    .unwrap_or_default();
+                let allow_http = b
+                    .get_config_value(&AmazonS3ConfigKey::Client(ClientConfigKey::AllowHttp))
+                    .is_some_and(|v| ["true", "1", "yes", "on"].contains(&v.to_ascii_lowercase().as_str()));
+                if endpoint.starts_with("http://") && !allow_http {
+                    return Err(generic(
+                        "S3",
+                        format!("the endpoint {endpoint} is plain HTTP: set AWS_ALLOW_HTTP=true to allow it"),
+                    ));
+                }
+                let s3 = b.build()?;
+                let store: Arc<dyn ObjectStore> = if prefix.is_empty() {
+                    Arc::new(s3)
+                } else {
+                    Arc::new(PrefixStore::new(s3, prefix.as_str()))
+                };
+                Artifacts {
+                    store,
+                    multipart_above: Some(MULTIPART_THRESHOLD),
+                }
+            }
+        };
+        // A listing, not a HEAD: a HEAD's 404 has no body, so a missing bucket would look
+        // like a missing key. Any error (no bucket, refused keys, nothing listening) stops
+        // the process before it accepts work it could not store.
+        let probe = Path::from("lightmapd-store-check");
+        match artifacts.store.list(Some(&probe)).try_next().await {
+            Ok(_) => Ok(artifacts),
+            Err(e) => Err(generic("S3", format!("cannot reach the artifact store {url}: {e}"))),
+        }
+    }
+
     /// A store rooted at `dir` (created if missing).
     pub fn local(dir: &FsPath) -> Result<Artifacts, object_store::Error> {
         std::fs::create_dir_all(dir).map_err(|e| object_store::Error::Generic {
@@ -47,15 +228,42 @@ impl Artifacts {
         let fs = LocalFileSystem::new_with_prefix(dir)?
             .with_automatic_cleanup(true)
             .with_fsync(true);
-        Ok(Artifacts { store: Arc::new(fs) })
+        Ok(Artifacts {
+            store: Arc::new(fs),
+            multipart_above: None,
+        })
     }
 
     pub fn from_store(store: Arc<dyn ObjectStore>) -> Artifacts {
-        Artifacts { store }
+        Artifacts {
+            store,
+            multipart_above: None,
+        }
     }
 
+    /// Stores `bytes` at `key`, replacing what was there; the object is whole or absent.
     pub async fn put(&self, key: &Path, bytes: Bytes) -> Result<(), object_store::Error> {
-        self.store.put(key, PutPayload::from_bytes(bytes)).await.map(|_| ())
+        match self.multipart_above {
+            Some(t) if bytes.len() > t => self.put_in_parts(key, bytes).await,
+            _ => self.store.put(key, PutPayload::from_bytes(bytes)).await.map(|_| ()),
+        }
+    }
+
+    /// A multipart upload whose parts are slices of `bytes` (no copy).
+    async fn put_in_parts(&self, key: &Path, mut bytes: Bytes) -> Result<(), object_store::Error> {
+        let upload = self.store.put_multipart(key).await?;
+        let mut w = WriteMultipart::new_with_chunk_size(upload, PART_SIZE);
+        while !bytes.is_empty() {
+            if let Err(e) = w.wait_for_capacity(PART_CONCURRENCY - 1).await {
+                // The upload's own error is the one worth reporting.
+                let _ = w.abort().await;
+                return Err(e);
+            }
+            let part = bytes.split_to(PART_SIZE.min(bytes.len()));
+            w.put(part);
+        }
+        // `finish` aborts the upload itself when a part or the completion fails.
+        w.finish().await.map(|_| ())
     }
 
     /// The object, or `None` when there is none.
@@ -116,4 +324,78 @@ pub fn final_png(job: &str) -> Path {
 
 pub fn generated_scene(job: &str) -> Path {
     Path::from(format!("jobs/{job}/scene.glb"))
+}
+
+fn generic(store: &'static str, message: String) -> object_store::Error {
+    object_store::Error::Generic {
+        store,
+        source: message.into(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn store_urls_parse() {
+        assert_eq!(
+            StoreUrl::parse("s3://lightmaps/studio/a").unwrap(),
+            StoreUrl::S3 {
+                bucket: "lightmaps".into(),
+                prefix: "studio/a".into()
+            }
+        );
+        assert_eq!(
+            StoreUrl::parse("s3://lightmaps/").unwrap(),
+            StoreUrl::S3 {
+                bucket: "lightmaps".into(),
+                prefix: String::new()
+            }
+        );
+        assert_eq!(
+            StoreUrl::parse("file:///srv/objects").unwrap(),
+            StoreUrl::Local("/srv/objects".into())
+        );
+        assert_eq!(
+            StoreUrl::parse("data/objects").unwrap(),
+            StoreUrl::Local("data/objects".into())
+        );
+        assert_eq!(
+            StoreUrl::parse("s3://lightmaps/studio/a/").unwrap().to_string(),
+            "s3://lightmaps/studio/a"
+        );
+    }
+
+    #[test]
+    fn bad_store_urls_are_named() {
+        for (url, says) in [
+            ("", "the store is empty"),
+            ("gs://bucket/x", "unsupported store scheme \"gs\""),
+            ("s3://", "must be 3 to 63 characters"),
+            ("s3://Light_Maps/x", "may hold only lower-case letters"),
+            ("s3://-maps", "must begin and end with a letter or a digit"),
+            ("s3://a..b", "two dots"),
+            ("s3://maps/a//b", "prefix \"a//b\" is not a valid key"),
+            ("s3://maps/x?region=eu", "takes no query"),
+            ("file://", "names no directory"),
+        ] {
+            let e = StoreUrl::parse(url).unwrap_err();
+            assert!(e.contains(says), "{url:?}: {e}");
+        }
+    }
+
+    #[tokio::test]
+    async fn plain_http_endpoint_needs_allow_http() {
+        let url = StoreUrl::parse("s3://maps").unwrap();
+        let overrides = [
+            (AmazonS3ConfigKey::Endpoint, "http://127.0.0.1:1".to_string()),
+            (
+                AmazonS3ConfigKey::Client(ClientConfigKey::AllowHttp),
+                "false".to_string(),
+            ),
+        ];
+        let e = Artifacts::open(&url, &overrides).await.err().expect("refused");
+        assert!(e.to_string().contains("AWS_ALLOW_HTTP"), "{e}");
+    }
 }
