@@ -2,10 +2,11 @@
 //! sharing one PostgreSQL database and one artifact store.
 //!
 //! - `one_api_three_workers_survive_two_sigkills`: one API process (`serve --workers 0`)
-//!   and three `worker` processes; 100 small jobs, two of them longer and of higher
-//!   priority so they are claimed first and are surely mid-bake when their worker is
-//!   killed with SIGKILL (twice, two different workers, each replaced by a fresh worker so
-//!   three keep running). Checks: every job succeeded exactly once, observed by an audit
+//!   and three `worker` processes; 100 small jobs, two of them longer (2.5 s) and of
+//!   higher priority so they are claimed next and are surely mid-bake when their worker
+//!   is killed with SIGKILL (twice, two different worker processes, each replaced by a
+//!   fresh worker at once so three keep running; the second long job is submitted after
+//!   the first kill). Checks: every job succeeded exactly once, observed by an audit
 //!   trigger the test installs on `jobs` (every status transition is recorded, so a second
 //!   `succeeded` or a job run to the end by two workers would show), the two killed jobs
 //!   went back to `queued` by lease expiry and succeeded at their second attempt on another
@@ -160,6 +161,12 @@ const AUDIT: &[&str] = &[
          WHEN (OLD.status IS DISTINCT FROM NEW.status) EXECUTE FUNCTION audit_jobs()",
 ];
 
+async fn submit(http: &reqwest::Client, url: &str, body: Value) -> String {
+    let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+    assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+    r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+}
+
 async fn get_json(http: &reqwest::Client, url: &str) -> Value {
     let r = http.get(url).send().await.unwrap();
     assert!(r.status().is_success(), "GET {url}: {}", r.status());
@@ -212,24 +219,37 @@ async fn one_api_three_workers_survive_two_sigkills() {
     assert!(r.status().is_success());
     let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
 
-    // Two long jobs first in line (priority), then 98 small ones.
-    let mut ids = Vec::new();
-    for i in 0..100u64 {
-        let body = if i < 2 {
-            json!({"scene": scene, "resolution": 16, "stop": {"seconds": 2.5}, "priority": 5, "seed": i})
-        } else {
-            json!({"scene": scene, "resolution": 16, "stop": {"steps": 2}, "seed": i})
-        };
-        let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
-        assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
-        ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
-    }
-    let long = [ids[0].clone(), ids[1].clone()];
+    // A long job first in line (priority), then 98 small ones; the second long job is
+    // submitted once the first kill is done, so each long job is surely mid-bake (it runs
+    // 2.5 s) when its worker is killed, however the workers are scheduled.
+    let long_job =
+        |seed: u64| json!({"scene": scene, "resolution": 16, "stop": {"seconds": 2.5}, "priority": 5, "seed": seed});
+    let mut ids = vec![submit(&http, &url, long_job(0)).await];
+    // Submitted meanwhile (98 requests take seconds on a loaded machine: the first long
+    // job could end before they do).
+    let short = {
+        let (http, url, scene) = (http.clone(), url.clone(), scene.clone());
+        tokio::spawn(async move {
+            let mut ids = Vec::new();
+            for i in 2..100u64 {
+                let body = json!({"scene": scene, "resolution": 16, "stop": {"steps": 2}, "seed": i});
+                ids.push(submit(&http, &url, body).await);
+            }
+            ids
+        })
+    };
+    let mut short = Some(short);
 
-    // Kill the worker of each long job once it has made progress (so it is mid-bake: the
-    // bake runs 2.5 s), and start a replacement.
+    // Kill the worker of each long job once it has made progress, and start a replacement.
     let mut killed: HashMap<String, String> = HashMap::new();
-    for job in &long {
+    for round in 0..2 {
+        if round == 1 {
+            if let Some(short) = short.take() {
+                ids.extend(short.await.unwrap());
+            }
+            ids.push(submit(&http, &url, long_job(1)).await);
+        }
+        let job = ids.last().filter(|_| round == 1).unwrap_or(&ids[0]).clone();
         let t = Instant::now();
         let worker = loop {
             let j = get_json(&http, &format!("{url}/v1/jobs/{job}")).await;
@@ -244,7 +264,7 @@ async fn one_api_three_workers_survive_two_sigkills() {
             .unwrap_or_else(|| panic!("{worker} is not one of this test's workers"));
         victim.kill().unwrap(); // SIGKILL
         victim.wait().unwrap();
-        killed.insert(job.clone(), worker);
+        killed.insert(job, worker);
         procs.0.push(spawn_worker(&db.url, &store, &s3.env, lease));
     }
 

@@ -208,7 +208,10 @@ impl S3 {
         let var = |k: &str, d: &str| std::env::var(k).ok().filter(|v| !v.is_empty()).unwrap_or(d.into());
         let endpoint = var("AWS_ENDPOINT_URL", "http://127.0.0.1:9000");
         let bucket = var("LIGHTMAPD_TEST_BUCKET", "lightmapd-test");
-        let http = reqwest::Client::builder().timeout(Duration::from_secs(10)).build().unwrap();
+        let http = reqwest::Client::builder()
+            .timeout(Duration::from_secs(10))
+            .build()
+            .unwrap();
         let made = match http.put(format!("{endpoint}/{bucket}")).send().await {
             Ok(r) => r.status().as_u16(),
             Err(e) => {
@@ -221,7 +224,10 @@ impl S3 {
             }
         };
         // 200: made; 409: it exists already.
-        assert!(made == 200 || made == 409, "creating bucket {bucket} at {endpoint}: HTTP {made}");
+        assert!(
+            made == 200 || made == 409,
+            "creating bucket {bucket} at {endpoint}: HTTP {made}"
+        );
         let env = vec![
             ("AWS_ENDPOINT_URL", endpoint.clone()),
             ("AWS_ACCESS_KEY_ID", var("AWS_ACCESS_KEY_ID", "test")),
