@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Installs what lightmapd needs on a fresh Debian machine with the Rust toolchain:
-# Mesa's software Vulkan driver (GPU techniques run on lavapipe when there is no GPU)
-# and OpenEXR's command-line tools (tests read the EXR back with `exrheader`).
+# Mesa's software Vulkan driver (GPU techniques run on lavapipe when there is no GPU),
+# OpenEXR's command-line tools (tests read the EXR back with `exrheader`), and an
+# S3-protocol server on loopback for the S3 store tests (scripts/setup-s3.sh).
 # Idempotent: installs only what is missing.
 set -euo pipefail
 
@@ -20,3 +21,6 @@ command -v cargo >/dev/null || { echo "setup: cargo not found; install the Rust 
 
 # --- PostgreSQL for the shared-queue tests (issue 11): its own script, see there. ---
 bash "$(dirname "$0")/setup-postgres.sh"
+
+# --- S3-compatible object store for tests/s3_store.rs (moto on 127.0.0.1:9000) ---
+bash "$(dirname "$0")/setup-s3.sh"

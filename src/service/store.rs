@@ -19,8 +19,8 @@
 //! usual environment variables through `AmazonS3Builder::from_env` (`AWS_ENDPOINT_URL`,
 //! `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`,
 //! `AWS_ALLOW_HTTP`...), never from the URL, so no secret lands in a process list or a
-//! log line. Requests are path-style (`ENDPOINT/BUCKET/KEY`) unless
-//! `AWS_VIRTUAL_HOSTED_STYLE_REQUEST=true`, which is what self-hosted servers expect.
+//! log line. Requests are path-style (`ENDPOINT/BUCKET/KEY`, what self-hosted servers
+//! expect) unless `AWS_VIRTUAL_HOSTED_STYLE_REQUEST=true`.
 //! [`Artifacts::open`] makes one cheap request (a listing of a prefix that holds nothing)
 //! so a wrong endpoint, bucket or key fails at start-up, not at the first upload.
 //!
@@ -171,12 +171,9 @@ impl Artifacts {
     /// The store `url` names. S3 settings come from the environment, then `overrides`
     /// (tests pass their endpoint and keys here rather than changing the process's
     /// environment); a store that cannot be reached is an error here.
-    pub async fn open(
-        url: &StoreUrl,
-        overrides: &[(AmazonS3ConfigKey, String)],
-    ) -> Result<Artifacts, object_store::Error> {
+    pub async fn open(url: &StoreUrl, overrides: &[(AmazonS3ConfigKey, String)]) -> anyhow::Result<Artifacts> {
         let artifacts = match url {
-            StoreUrl::Local(dir) => return Artifacts::local(dir),
+            StoreUrl::Local(dir) => return Ok(Artifacts::local(dir)?),
             StoreUrl::S3 { bucket, prefix } => {
                 let mut b = AmazonS3Builder::from_env().with_bucket_name(bucket);
                 for (k, v) in overrides {
@@ -191,10 +188,7 @@ impl Artifacts {
                     .get_config_value(&AmazonS3ConfigKey::Client(ClientConfigKey::AllowHttp))
                     .is_some_and(|v| ["true", "1", "yes", "on"].contains(&v.to_ascii_lowercase().as_str()));
                 if endpoint.starts_with("http://") && !allow_http {
-                    return Err(generic(
-                        "S3",
-                        format!("the endpoint {endpoint} is plain HTTP: set AWS_ALLOW_HTTP=true to allow it"),
-                    ));
+                    anyhow::bail!("the S3 endpoint {endpoint} is plain HTTP: set AWS_ALLOW_HTTP=true to allow it");
                 }
                 let s3 = b.build()?;
                 let store: Arc<dyn ObjectStore> = if prefix.is_empty() {
@@ -212,10 +206,17 @@ impl Artifacts {
         // like a missing key. Any error (no bucket, refused keys, nothing listening) stops
         // the process before it accepts work it could not store.
         let probe = Path::from("lightmapd-store-check");
-        match artifacts.store.list(Some(&probe)).try_next().await {
-            Ok(_) => Ok(artifacts),
-            Err(e) => Err(generic("S3", format!("cannot reach the artifact store {url}: {e}"))),
-        }
+        artifacts.store.list(Some(&probe)).try_next().await.map_err(|e| {
+            // object_store repeats each cause inside its parent's message, so the chain
+            // is not kept: its top message and its root cause (say, "Connection
+            // refused") say it all.
+            let root = std::iter::successors(Some(&e as &dyn std::error::Error), |e| e.source())
+                .last()
+                .map(ToString::to_string)
+                .unwrap_or_default();
+            anyhow::anyhow!("cannot reach the artifact store {url}: {e} (cause: {root})")
+        })?;
+        Ok(artifacts)
     }
 
     /// A store rooted at `dir` (created if missing).
@@ -324,13 +325,6 @@ pub fn final_png(job: &str) -> Path {
 
 pub fn generated_scene(job: &str) -> Path {
     Path::from(format!("jobs/{job}/scene.glb"))
-}
-
-fn generic(store: &'static str, message: String) -> object_store::Error {
-    object_store::Error::Generic {
-        store,
-        source: message.into(),
-    }
 }
 
 #[cfg(test)]
