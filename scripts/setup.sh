@@ -19,5 +19,8 @@ if ((${#need[@]})); then
 fi
 command -v cargo >/dev/null || { echo "setup: cargo not found; install the Rust toolchain (rustup) first" >&2; exit 1; }
 
+# --- PostgreSQL for the shared-queue tests (issue 11): its own script, see there. ---
+bash "$(dirname "$0")/setup-postgres.sh"
+
 # --- S3-compatible object store for tests/s3_store.rs (moto on 127.0.0.1:9000) ---
 bash "$(dirname "$0")/setup-s3.sh"

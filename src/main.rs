@@ -61,7 +61,7 @@ struct TokenArgs {
     /// The server's data folder (its database is DATA_DIR/lightmapd.db).
     #[arg(long, default_value = "lightmapd-data", global = true)]
     data_dir: PathBuf,
-    /// sqlite://FILE, when the server was given --database-url.
+    /// postgres://… or sqlite://FILE, when the server was given --database-url.
     #[arg(long, global = true)]
     database_url: Option<String>,
 }
@@ -90,7 +90,7 @@ struct ServeArgs {
     /// Bakes run at once in this process (0: API only).
     #[arg(long, default_value_t = 1)]
     workers: usize,
-    /// sqlite://FILE (default: DATA_DIR/lightmapd.db).
+    /// postgres://USER:PASSWORD@HOST/DB or sqlite://FILE (default: DATA_DIR/lightmapd.db).
     #[arg(long)]
     database_url: Option<String>,
     /// Artifact store: s3://BUCKET/PREFIX (endpoint, region and keys from AWS_* variables),
@@ -106,7 +106,8 @@ struct ServeArgs {
 
 #[derive(clap::Args)]
 struct WorkerArgs {
-    /// sqlite://FILE, the database of the `serve` this worker helps.
+    /// The database of the `serve` this worker helps: postgres://USER:PASSWORD@HOST/DB
+    /// (workers on other machines) or sqlite://FILE (the same machine).
     #[arg(long)]
     database_url: String,
     /// The artifact store of that `serve`: s3://BUCKET/PREFIX, file://DIR or a directory.
@@ -499,11 +500,8 @@ fn serve(args: ServeArgs) -> Result<(), Failure> {
 
 fn worker(args: WorkerArgs) -> Result<(), Failure> {
     let (lease, snapshot_interval) = tuning(&args.tuning)?;
-    if !args.database_url.starts_with("sqlite:") {
-        return Err(bad_input(format!(
-            "--database-url {:?}: only sqlite:// is implemented so far (PostgreSQL comes with issue 11)",
-            args.database_url
-        )));
+    if !service::queue::supported_url(&args.database_url) {
+        return Err(bad_input(service::queue::unsupported_url(&args.database_url)));
     }
     let config = service::Config {
         workers: args.workers,

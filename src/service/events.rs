@@ -10,9 +10,10 @@
 //!   document): the last event; the stream then ends.
 //!
 //! How: the job's database row is the only source. The stream re-reads it when this
-//! process announces a change to the job, and at least every half second otherwise (a
-//! worker in another process changes it without telling us), and sends what differs
-//! from what it last sent.
+//! process hears of a change to the job (`Hub::changed`: from its own workers, or, with
+//! PostgreSQL, from a `lightmapd_job` NOTIFY sent by whichever process changed it), and
+//! at least every half second otherwise (with SQLite a worker in another process changes
+//! it without telling us), and sends what differs from what it last sent.
 //!
 //! Each open stream holds one of the server's `max_event_streams` permits until it ends;
 //! past that a new stream is refused with 503 and `Retry-After`.

@@ -10,8 +10,9 @@
 //! Processes: `lightmapd serve` runs the API and N workers in one process ([`start`]);
 //! `lightmapd worker` runs workers only ([`run_workers`]), sharing the database and the
 //! store with a `serve`. In-process notifications (a new job, a cancel, a change to a
-//! job) make one process react at once; across processes the same things are found by
-//! polling the database, a little later.
+//! job) make one process react at once; across processes PostgreSQL's LISTEN/NOTIFY
+//! feeds the same [`Hub`] signals ([`queue::Queue::listen`]), and with SQLite the same
+//! things are found by polling the database, a little later.
 //!
 //! Hostile clients (issue 12): every size and budget a request can ask for is capped by
 //! [`Limits`] (413 for bodies, 422 naming the field, 429 with `Retry-After` for a full
@@ -19,8 +20,8 @@
 //! tokens; every request has a time limit; artifacts are written to a temporary file,
 //! synced, then renamed, before the job that made them is marked succeeded.
 //!
-//! Limits: the queue is SQLite only (PostgreSQL is issue 11), so several processes must
-//! share one machine today even though artifacts can live in an S3 bucket ([`store`]).
+//! Limits: API and worker processes on several machines need PostgreSQL and an artifact
+//! store they all reach (an S3 bucket, [`store`], or a shared filesystem).
 
 pub mod auth;
 pub mod client;
@@ -45,7 +46,6 @@ use tokio::task::JoinHandle;
 
 use crate::service::metrics::Metrics;
 use crate::service::queue::Queue;
-use crate::service::queue::sqlite::SqliteQueue;
 use crate::service::store::{Artifacts, StoreUrl};
 
 /// Everything `serve` and `worker` are configured with.
@@ -55,7 +55,7 @@ pub struct Config {
     /// Holds `lightmapd.db` and `objects/` unless `database_url` / `store` say otherwise.
     pub data_dir: PathBuf,
     pub workers: usize,
-    /// `sqlite://…` (PostgreSQL follows with issue 11).
+    /// `sqlite://FILE` or `postgres://USER:PASSWORD@HOST/DB` ([`queue::open`]).
     pub database_url: Option<String>,
     /// Where artifacts go: a directory or an S3 bucket (default: `data_dir/objects`).
     pub store: Option<StoreUrl>,
@@ -246,18 +246,12 @@ impl AppState {
 
 /// Opens the queue and the store the configuration names.
 pub async fn open_backends(config: &Config) -> anyhow::Result<(Arc<dyn Queue>, Artifacts)> {
-    let queue: Arc<dyn Queue> = match &config.database_url {
+    if config.database_url.is_none() {
         // The data folder is made only when something goes in it: a worker with a
         // database URL and an S3 store has none.
-        None => {
-            std::fs::create_dir_all(&config.data_dir)?;
-            Arc::new(SqliteQueue::open(&config.data_dir.join("lightmapd.db")).await?)
-        }
-        Some(url) if url.starts_with("sqlite:") => Arc::new(SqliteQueue::open_url(url).await?),
-        Some(url) => anyhow::bail!(
-            "unsupported database URL {url:?}: only sqlite:// is implemented (PostgreSQL comes with issue 11)"
-        ),
-    };
+        std::fs::create_dir_all(&config.data_dir)?;
+    }
+    let queue = queue::open(config.database_url.as_deref(), &config.data_dir.join("lightmapd.db")).await?;
     let store = config
         .store
         .clone()
@@ -303,6 +297,7 @@ pub async fn start_with(config: Config, queue: Arc<dyn Queue>, artifacts: Artifa
     let (tx, rx) = watch::channel(false);
     let state = AppState::new(queue, artifacts, &config, rx.clone());
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
+    tasks.extend(state.queue.listen(state.hub.clone(), rx.clone()));
     tasks.extend(worker::spawn_pool(
         &state,
         config.workers,
@@ -333,8 +328,9 @@ pub async fn start_with(config: Config, queue: Arc<dyn Queue>, artifacts: Artifa
 pub async fn run_workers(config: Config, shutdown: impl std::future::Future<Output = ()>) -> anyhow::Result<()> {
     let (queue, artifacts) = open_backends(&config).await?;
     let (tx, rx) = watch::channel(false);
-    let state = AppState::new(queue, artifacts, &config, rx);
+    let state = AppState::new(queue, artifacts, &config, rx.clone());
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
+    tasks.extend(state.queue.listen(state.hub.clone(), rx));
     tasks.extend(worker::spawn_pool(
         &state,
         config.workers,

@@ -42,7 +42,8 @@ use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
 
 /// How often a running job's progress is written and its lease checked.
 const TICK: Duration = Duration::from_millis(250);
-/// How long an idle worker waits for a wake-up before asking the queue again.
+/// How long an idle worker waits for a wake-up (`Hub::work`: a job queued in this
+/// process, or a PostgreSQL `lightmapd_work` NOTIFY from any) before asking again.
 const IDLE_POLL: Duration = Duration::from_millis(500);
 /// The most history points kept per job (one per snapshot; the schedule makes few).
 const MAX_HISTORY: usize = 2000;

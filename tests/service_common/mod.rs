@@ -128,12 +128,18 @@ pub fn bin() -> &'static str {
 
 /// A `lightmapd serve` child; the address comes from its first stdout line.
 pub fn spawn_serve(dir: &Path, workers: usize, extra: &[&str]) -> (Child, String) {
+    spawn_serve_env(dir, workers, extra, &[])
+}
+
+/// [`spawn_serve`] with extra environment variables (an S3 store's `AWS_*`).
+pub fn spawn_serve_env(dir: &Path, workers: usize, extra: &[&str], env: &[(&str, String)]) -> (Child, String) {
     let mut child = Command::new(bin())
         .arg("serve")
         .args(["--listen", "127.0.0.1:0", "--workers", &workers.to_string()])
         .arg("--data-dir")
         .arg(dir)
         .args(extra)
+        .envs(env.iter().map(|(k, v)| (k, v)))
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -182,4 +188,58 @@ pub fn exr_is_whole(bytes: &[u8]) -> Result<(), String> {
         .from_buffered(std::io::Cursor::new(bytes))
         .map(|_: Image<Layers<AnyChannels<FlatSamples>>>| ())
         .map_err(|e| e.to_string())
+}
+
+/// An S3-protocol server for tests (`scripts/setup.sh` starts moto's server mode on
+/// 127.0.0.1:9000): the endpoint (`AWS_ENDPOINT_URL`, default `http://127.0.0.1:9000`),
+/// a bucket (`LIGHTMAPD_TEST_BUCKET`, default `lightmapd-test`, created with an unsigned
+/// `PUT`, which moto accepts), and the `AWS_*` settings child processes get (keys
+/// `test`/`test` and region us-east-1 unless the environment says otherwise).
+pub struct S3 {
+    pub endpoint: String,
+    pub bucket: String,
+    pub env: Vec<(&'static str, String)>,
+}
+
+impl S3 {
+    /// The server, or `None` after a loud skip line naming `test` when nothing answers
+    /// there; a failure instead under `LIGHTMAPD_REQUIRE_SERVICES=1`.
+    pub async fn find(test: &str) -> Option<S3> {
+        let var = |k: &str, d: &str| std::env::var(k).ok().filter(|v| !v.is_empty()).unwrap_or(d.into());
+        let endpoint = var("AWS_ENDPOINT_URL", "http://127.0.0.1:9000");
+        let bucket = var("LIGHTMAPD_TEST_BUCKET", "lightmapd-test");
+        let http = reqwest::Client::builder()
+            .timeout(Duration::from_secs(10))
+            .build()
+            .unwrap();
+        let made = match http.put(format!("{endpoint}/{bucket}")).send().await {
+            Ok(r) => r.status().as_u16(),
+            Err(e) => {
+                let msg = format!("{test}: no S3-protocol server at {endpoint} ({e}); run `bash scripts/setup.sh`");
+                if std::env::var("LIGHTMAPD_REQUIRE_SERVICES").as_deref() == Ok("1") {
+                    panic!("{msg}; LIGHTMAPD_REQUIRE_SERVICES=1 makes this a failure");
+                }
+                eprintln!("\n==== SKIPPED {msg} ====\n");
+                return None;
+            }
+        };
+        // 200: made; 409: it exists already.
+        assert!(
+            made == 200 || made == 409,
+            "creating bucket {bucket} at {endpoint}: HTTP {made}"
+        );
+        let env = vec![
+            ("AWS_ENDPOINT_URL", endpoint.clone()),
+            ("AWS_ACCESS_KEY_ID", var("AWS_ACCESS_KEY_ID", "test")),
+            ("AWS_SECRET_ACCESS_KEY", var("AWS_SECRET_ACCESS_KEY", "test")),
+            ("AWS_REGION", var("AWS_REGION", "us-east-1")),
+            ("AWS_ALLOW_HTTP", "true".to_string()),
+        ];
+        Some(S3 { endpoint, bucket, env })
+    }
+
+    /// A fresh `s3://BUCKET/PREFIX` for one test, so runs and tests do not meet.
+    pub fn fresh_url(&self, test: &str) -> String {
+        format!("s3://{}/{test}-{}", self.bucket, uuid::Uuid::new_v4().simple())
+    }
 }

@@ -1,6 +1,8 @@
 //! The durable job queue and scene registry, behind one trait so the embedded SQLite
-//! implementation and a PostgreSQL one (issue 11) are interchangeable for routes and
-//! workers.
+//! implementation ([`sqlite`]) and the shared PostgreSQL one ([`postgres`], issue 11) are
+//! interchangeable for routes and workers; [`open`] picks one from the URL's scheme, the
+//! only place that does. Both run the same test suite (`tests.rs`, every test once per
+//! store).
 //!
 //! The model (DESIGN §7): a job is `queued` until a worker claims it, which makes it
 //! `running` with a lease (worker id, expiry) and counts an attempt. The worker renews
@@ -19,13 +21,21 @@
 //! Limits: a re-run starts the bake again from step 0 (the engine cannot resume from a
 //! snapshot); snapshots of earlier attempts stay, numbered on.
 
+pub mod postgres;
 pub mod sqlite;
+#[cfg(test)]
+mod tests;
 
+use std::path::Path;
+use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
 use serde_json::Value;
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
 
+use crate::service::Hub;
 use crate::service::model::{JobSpec, JobStatus};
 
 /// A job that has lost its lease this many times fails instead of being re-queued.
@@ -154,6 +164,14 @@ pub struct Recovered {
 
 #[async_trait]
 pub trait Queue: Send + Sync + 'static {
+    /// Starts forwarding other processes' changes into `hub` as they commit (a job became
+    /// queued: `Hub::work`; a job changed: `Hub::job_changed`) until `shutdown`. `None`
+    /// when the store has no such channel (SQLite): other processes' changes are then
+    /// found by polling only.
+    fn listen(&self, _hub: Arc<Hub>, _shutdown: watch::Receiver<bool>) -> Option<JoinHandle<()>> {
+        None
+    }
+
     /// Stores a scene; `false` when one with the same id (same content) already exists.
     async fn insert_scene(&self, scene: &SceneRecord) -> QueueResult<bool>;
     async fn scene(&self, id: &str) -> QueueResult<Option<SceneRecord>>;
@@ -201,6 +219,34 @@ pub trait Queue: Send + Sync + 'static {
     async fn revoke_token(&self, id_or_name: &str, now: i64) -> QueueResult<bool>;
     /// The live (not revoked) token whose secret hashes to `hash`.
     async fn token_by_hash(&self, hash: &str) -> QueueResult<Option<TokenRecord>>;
+}
+
+/// Opens the queue a `--database-url` names: `postgres://` or `postgresql://` (the shared
+/// store), `sqlite://FILE` (the embedded one), or, without a URL, the SQLite file
+/// `default_sqlite`. Any other scheme is an error naming the ones supported.
+pub async fn open(url: Option<&str>, default_sqlite: &Path) -> anyhow::Result<Arc<dyn Queue>> {
+    Ok(match url {
+        None => Arc::new(sqlite::SqliteQueue::open(default_sqlite).await?),
+        Some(u) if u.starts_with("sqlite:") => Arc::new(sqlite::SqliteQueue::open_url(u).await?),
+        Some(u) if u.starts_with("postgres://") || u.starts_with("postgresql://") => {
+            Arc::new(postgres::PostgresQueue::open(u).await?)
+        }
+        Some(u) => anyhow::bail!("{}", unsupported_url(u)),
+    })
+}
+
+/// The message for a `--database-url` whose scheme no store handles.
+pub fn unsupported_url(url: &str) -> String {
+    // The URL may carry a password: name the scheme only.
+    let scheme = url.split_once("://").map_or(url, |(s, _)| s);
+    format!("unsupported --database-url scheme {scheme:?}: use postgres://USER:PASSWORD@HOST/DB or sqlite://FILE")
+}
+
+/// Whether [`open`] knows the URL's scheme (the CLI checks before starting anything).
+pub fn supported_url(url: &str) -> bool {
+    ["sqlite:", "postgres://", "postgresql://"]
+        .iter()
+        .any(|p| url.starts_with(p))
 }
 
 /// Milliseconds since the Unix epoch.

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# PostgreSQL for the queue tests (issue 11): installs Debian's `postgresql` if missing,
+# starts its cluster with `pg_ctlcluster`, and makes the role and database that
+# LIGHTMAPD_TEST_POSTGRES names (default
+# postgres://lightmapd:lightmapd@127.0.0.1:5432/lightmapd). Each test then makes its own
+# schema inside that database, so tests run in parallel.
+# Idempotent: installs only what is missing, starts only a stopped cluster, creates only
+# a missing role or database. Runs as root or through sudo. Called from scripts/setup.sh.
+set -euo pipefail
+
+SUDO=""
+[ "$(id -u)" -eq 0 ] || SUDO="sudo"
+
+if ! dpkg-query -W -f='${Status}' postgresql 2>/dev/null | grep -q "install ok installed"; then
+    echo "setup-postgres: installing postgresql" >&2
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends postgresql >/dev/null
+fi
+
+# The newest installed major version's `main` cluster (Debian creates it on install).
+ver=$(ls /usr/lib/postgresql | sort -n | tail -1)
+if ! pg_lsclusters -h | awk -v v="$ver" '$1 == v && $2 == "main"' | grep -q .; then
+    $SUDO pg_createcluster "$ver" main >/dev/null
+fi
+if ! pg_lsclusters -h | awk -v v="$ver" '$1 == v && $2 == "main" && $4 == "online"' | grep -q .; then
+    echo "setup-postgres: starting cluster $ver/main" >&2
+    $SUDO pg_ctlcluster "$ver" main start
+fi
+
+# Wait for it to accept connections (a fresh start takes a moment).
+for _ in $(seq 1 50); do
+    pg_isready -q -h 127.0.0.1 -p 5432 && break
+    sleep 0.2
+done
+
+# psql as the cluster's superuser (peer authentication over the local socket).
+psql_su() {
+    if [ "$(id -u)" -eq 0 ]; then
+        runuser -u postgres -- psql -X -q -v ON_ERROR_STOP=1 "$@"
+    else
+        sudo -u postgres psql -X -q -v ON_ERROR_STOP=1 "$@"
+    fi
+}
+if [ "$(psql_su -tAc "SELECT 1 FROM pg_roles WHERE rolname = 'lightmapd'")" != "1" ]; then
+    psql_su -c "CREATE ROLE lightmapd LOGIN PASSWORD 'lightmapd'"
+fi
+if [ "$(psql_su -tAc "SELECT 1 FROM pg_database WHERE datname = 'lightmapd'")" != "1" ]; then
+    psql_su -c "CREATE DATABASE lightmapd OWNER lightmapd"
+fi
+echo "setup-postgres: ready at postgres://lightmapd:lightmapd@127.0.0.1:5432/lightmapd" >&2

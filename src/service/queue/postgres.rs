@@ -1,0 +1,630 @@
+//! The shared queue: PostgreSQL, for API and worker processes on several machines
+//! (DESIGN §8, issue 11). Migrations from `migrations/postgres/` are applied at start-up
+//! by whichever process comes first (sqlx's migrator holds an advisory lock while it
+//! runs, so processes starting together do not race).
+//!
+//! How each [`Queue`] operation keeps the guarantees the SQLite store gets from its
+//! single writer:
+//! - **claim** is one `UPDATE … WHERE id = (SELECT … ORDER BY priority DESC, created_at,
+//!   seq LIMIT 1 FOR UPDATE SKIP LOCKED) RETURNING *`: a claimer skips the row another
+//!   claimer has locked instead of waiting for it, so N workers take N different jobs in
+//!   one round trip each, and no job is taken twice (the row lock is held until the
+//!   update commits; a claimer that looks after that sees `running`).
+//! - **heartbeat / finish / release** are single `UPDATE`s guarded by `worker = $me AND
+//!   status = 'running'`; PostgreSQL re-checks that guard on the newest row version after
+//!   waiting for a lock, so a worker whose lease was recovered and re-claimed writes
+//!   nothing.
+//! - **recover_expired** takes expired rows with `FOR UPDATE SKIP LOCKED`, so the
+//!   recovery loops of several processes split the work instead of deadlocking.
+//! - **enqueue** runs in a transaction holding a per-client advisory lock
+//!   (`pg_advisory_xact_lock(KEY_CLASS, hashtext(client))`): the count of the client's
+//!   queued jobs and the insert cannot interleave with the same client's other
+//!   submissions on other API processes, so the per-client limit cannot be overshot. It
+//!   also reads the scene `FOR SHARE`, and **delete_scene** reads it `FOR UPDATE` before
+//!   counting the jobs that use it, so a job cannot be queued for a scene being deleted.
+//!
+//! LISTEN/NOTIFY: a trigger on `jobs` (in the migration) sends, on commit,
+//! - `lightmapd_work` with the job id when a job becomes `queued` (submitted, recovered,
+//!   handed back): [`Queue::listen`] turns it into `Hub::work`, which wakes this process's
+//!   idle workers at once instead of at their next poll;
+//! - `lightmapd_job` with the job id when its status, progress, plan, snapshot count or
+//!   cancel flag changed: turned into `Hub::job_changed`, the same signal the event
+//!   streams of `events.rs` already wait on, so an API process follows a bake run by a
+//!   worker on another machine within a round trip, not at its next 500 ms poll.
+//!
+//! Each process holds one extra connection for LISTEN. Notifications are a latency
+//! optimisation only: a lost one (the connection dropped, or the listener is restarting)
+//! costs at most one poll interval, since workers still poll every 500 ms and event
+//! streams still re-read the row every 500 ms. Channels are per database, not per schema:
+//! processes using different schemas of one database (the tests do) see each other's
+//! notifications, which only causes a spurious re-read or claim attempt.
+//!
+//! Schemas: `open` uses the URL's `search_path` (`?options=-csearch_path%3Dname`), and
+//! [`PostgresQueue::open_in_schema`] creates a schema and uses it; the tests give each
+//! test its own schema so they run in parallel on one database.
+//!
+//! Limits: times are the callers' clocks (`now` arguments, Unix milliseconds), as with
+//! SQLite; machines must keep their clocks in step (NTP) to well within a lease. The pool
+//! holds at most [`MAX_CONNECTIONS`] connections per process (a worker needs one at a
+//! time per running job, an API process one per request in flight).
+
+use std::str::FromStr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use async_trait::async_trait;
+use serde_json::Value;
+use sqlx::postgres::{PgConnectOptions, PgListener, PgPool, PgPoolOptions, PgRow};
+use sqlx::{AssertSqlSafe, Row};
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+
+use super::{
+    Cancellation, Enqueued, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult, Recovered,
+    SceneDeletion, SceneRecord, TokenRecord,
+};
+use crate::service::model::{JobSpec, JobStatus};
+use crate::service::{Hub, shutting_down};
+
+static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("migrations/postgres");
+
+/// Connections per process, besides the one LISTEN holds.
+pub const MAX_CONNECTIONS: u32 = 8;
+/// Channel of "a job became queued" (payload: its id).
+pub const WORK_CHANNEL: &str = "lightmapd_work";
+/// Channel of "a job's visible state changed" (payload: its id).
+pub const JOB_CHANNEL: &str = "lightmapd_job";
+/// The first half of the two-part advisory-lock key of the per-client enqueue lock
+/// ("lmdq"); two-part keys never collide with sqlx's one-part migration lock.
+const KEY_CLASS: i32 = 0x6c6d_6471;
+
+/// The environment variable the tests read a PostgreSQL URL from.
+pub const TEST_URL_VAR: &str = "LIGHTMAPD_TEST_POSTGRES";
+/// Set to `1` in CI: a test that cannot reach its service fails instead of skipping.
+pub const REQUIRE_SERVICES_VAR: &str = "LIGHTMAPD_REQUIRE_SERVICES";
+
+/// For tests: the PostgreSQL URL from [`TEST_URL_VAR`], or `None` after printing a loud
+/// skip line naming `test`. Panics instead when [`REQUIRE_SERVICES_VAR`] is `1`, so CI
+/// cannot pass by skipping.
+pub fn test_url(test: &str) -> Option<String> {
+    match std::env::var(TEST_URL_VAR) {
+        Ok(url) if !url.is_empty() => Some(url),
+        _ => {
+            if std::env::var(REQUIRE_SERVICES_VAR).is_ok_and(|v| v == "1") {
+                panic!("{test}: {TEST_URL_VAR} is not set but {REQUIRE_SERVICES_VAR}=1 (run scripts/setup.sh)");
+            }
+            eprintln!(
+                "\n==== SKIPPED {test}: PostgreSQL variant, {TEST_URL_VAR} is not set (bash scripts/setup-postgres.sh, then export {TEST_URL_VAR}=postgres://lightmapd:lightmapd@127.0.0.1:5432/lightmapd) ====\n"
+            );
+            None
+        }
+    }
+}
+
+#[derive(Clone)]
+pub struct PostgresQueue {
+    pool: PgPool,
+}
+
+impl PostgresQueue {
+    /// Connects to a `postgres://` URL and migrates the database.
+    pub async fn open(url: &str) -> QueueResult<PostgresQueue> {
+        Self::connect(PgConnectOptions::from_str(url)?).await
+    }
+
+    /// Connects, creates `schema` if it does not exist, and keeps every table there.
+    pub async fn open_in_schema(url: &str, schema: &str) -> QueueResult<PostgresQueue> {
+        let schema = plain_identifier(schema)?;
+        let opts = PgConnectOptions::from_str(url)?;
+        let admin = PgPoolOptions::new()
+            .max_connections(1)
+            .connect_with(opts.clone())
+            .await?;
+        sqlx::query(AssertSqlSafe(format!("CREATE SCHEMA IF NOT EXISTS {schema}")))
+            .execute(&admin)
+            .await?;
+        admin.close().await;
+        Self::connect(opts.options([("search_path", schema)])).await
+    }
+
+    async fn connect(opts: PgConnectOptions) -> QueueResult<PostgresQueue> {
+        let pool = PgPoolOptions::new()
+            .max_connections(MAX_CONNECTIONS + 1)
+            .acquire_timeout(Duration::from_secs(10))
+            .connect_with(opts)
+            .await?;
+        MIGRATOR.run(&pool).await?;
+        Ok(PostgresQueue { pool })
+    }
+
+    /// Drops `schema` and everything in it (tests clean up with this).
+    pub async fn drop_schema(&self, schema: &str) -> QueueResult<()> {
+        let schema = plain_identifier(schema)?;
+        sqlx::query(AssertSqlSafe(format!("DROP SCHEMA IF EXISTS {schema} CASCADE")))
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+}
+
+/// A schema name is spliced into DDL (it cannot be a bind parameter): only letters,
+/// digits and `_` pass, so it can neither quote nor inject.
+fn plain_identifier(name: &str) -> QueueResult<&str> {
+    if name.is_empty() || name.len() > 63 || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+        return Err(sqlx::Error::Configuration(
+            format!("schema name {name:?}: use 1 to 63 letters, digits and '_'").into(),
+        ));
+    }
+    Ok(name)
+}
+
+fn job_from_row(row: &PgRow) -> QueueResult<JobRecord> {
+    let spec: Value = row.try_get("spec")?;
+    let spec: JobSpec = serde_json::from_value(spec).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
+    let status: String = row.try_get("status")?;
+    let status = JobStatus::parse(&status)
+        .ok_or_else(|| sqlx::Error::Decode(format!("unknown job status {status:?}").into()))?;
+    Ok(JobRecord {
+        id: row.try_get("id")?,
+        scene_id: row.try_get("scene_id")?,
+        spec,
+        status,
+        priority: row.try_get("priority")?,
+        created_at: row.try_get("created_at")?,
+        started_at: row.try_get("started_at")?,
+        finished_at: row.try_get("finished_at")?,
+        attempts: row.try_get::<i32, _>("attempts")?.max(0) as u32,
+        worker: row.try_get("worker")?,
+        lease_expires_at: row.try_get("lease_expires_at")?,
+        cancel_requested: row.try_get("cancel_requested")?,
+        progress: row.try_get("progress")?,
+        history: row
+            .try_get::<Option<Value>, _>("history")?
+            .unwrap_or(Value::Array(vec![])),
+        plan: row.try_get("plan")?,
+        snapshots: row.try_get::<i32, _>("snapshots")?.max(0) as u32,
+        summary: row.try_get("summary")?,
+        failure: row.try_get("failure")?,
+        updated_at: row.try_get("updated_at")?,
+        client: row.try_get("client")?,
+    })
+}
+
+fn scene_from_row(row: &PgRow) -> QueueResult<SceneRecord> {
+    let files: Value = row.try_get("files")?;
+    Ok(SceneRecord {
+        id: row.try_get("id")?,
+        content_hash: row.try_get("content_hash")?,
+        format: row.try_get("format")?,
+        main_file: row.try_get("main_file")?,
+        files: serde_json::from_value(files).unwrap_or_default(),
+        size_bytes: row.try_get::<i64, _>("size_bytes")?.max(0) as u64,
+        report: row.try_get("report")?,
+        created_at: row.try_get("created_at")?,
+        client: row.try_get("client")?,
+    })
+}
+
+fn token_from_row(row: &PgRow) -> QueueResult<TokenRecord> {
+    Ok(TokenRecord {
+        id: row.try_get("id")?,
+        name: row.try_get("name")?,
+        hash: row.try_get("hash")?,
+        created_at: row.try_get("created_at")?,
+        revoked_at: row.try_get("revoked_at")?,
+    })
+}
+
+fn lease_until(now: i64, lease: Duration) -> i64 {
+    now + lease.as_millis() as i64
+}
+
+fn clamp_i64(v: u64) -> i64 {
+    i64::try_from(v).unwrap_or(i64::MAX)
+}
+
+/// Forwards notifications into `hub` until shutdown; reconnects after a lost connection.
+async fn forward_notifications(pool: PgPool, hub: Arc<Hub>, mut shutdown: watch::Receiver<bool>) {
+    loop {
+        let listener = async {
+            let mut l = PgListener::connect_with(&pool).await?;
+            l.listen_all([WORK_CHANNEL, JOB_CHANNEL]).await?;
+            Ok::<_, sqlx::Error>(l)
+        };
+        let mut listener = tokio::select! {
+            l = listener => match l {
+                Ok(l) => l,
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot LISTEN; polling only, trying again in 1 s");
+                    tokio::select! {
+                        _ = tokio::time::sleep(Duration::from_secs(1)) => continue,
+                        _ = shutting_down(&mut shutdown) => return,
+                    }
+                }
+            },
+            _ = shutting_down(&mut shutdown) => return,
+        };
+        loop {
+            tokio::select! {
+                n = listener.try_recv() => match n {
+                    Ok(Some(n)) if n.channel() == WORK_CHANNEL => hub.work.notify_waiters(),
+                    Ok(Some(n)) => hub.job_changed(n.payload()),
+                    // The connection dropped (the listener reconnects on the next call);
+                    // what was sent meanwhile is lost, so idle workers look now.
+                    Ok(None) => hub.work.notify_waiters(),
+                    Err(e) => {
+                        tracing::warn!(error = %e, "LISTEN connection failed; reconnecting");
+                        break;
+                    }
+                },
+                _ = shutting_down(&mut shutdown) => return,
+            }
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+            _ = shutting_down(&mut shutdown) => return,
+        }
+    }
+}
+
+#[async_trait]
+impl Queue for PostgresQueue {
+    fn listen(&self, hub: Arc<Hub>, shutdown: watch::Receiver<bool>) -> Option<JoinHandle<()>> {
+        Some(tokio::spawn(forward_notifications(self.pool.clone(), hub, shutdown)))
+    }
+
+    async fn insert_scene(&self, s: &SceneRecord) -> QueueResult<bool> {
+        let r = sqlx::query(
+            "INSERT INTO scenes (id, content_hash, format, main_file, files, size_bytes, report, created_at, client)
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) ON CONFLICT (id) DO NOTHING",
+        )
+        .bind(&s.id)
+        .bind(&s.content_hash)
+        .bind(&s.format)
+        .bind(&s.main_file)
+        .bind(serde_json::to_value(&s.files).unwrap_or(Value::Array(vec![])))
+        .bind(clamp_i64(s.size_bytes))
+        .bind(&s.report)
+        .bind(s.created_at)
+        .bind(&s.client)
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    async fn scene(&self, id: &str) -> QueueResult<Option<SceneRecord>> {
+        let row = sqlx::query("SELECT * FROM scenes WHERE id = $1")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.as_ref().map(scene_from_row).transpose()
+    }
+
+    async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion> {
+        let mut tx = self.pool.begin().await?;
+        // The row lock makes a concurrent enqueue (which reads the scene FOR SHARE) either
+        // finish first, so its job is counted below, or wait and find no scene.
+        let exists: Option<i32> = sqlx::query_scalar("SELECT 1 FROM scenes WHERE id = $1 FOR UPDATE")
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?;
+        if exists.is_none() {
+            return Ok(SceneDeletion::NotFound);
+        }
+        let in_use: i64 =
+            sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE scene_id = $1 AND status IN ('queued', 'running')")
+                .bind(id)
+                .fetch_one(&mut *tx)
+                .await?;
+        if in_use > 0 {
+            return Ok(SceneDeletion::InUse(in_use as u64));
+        }
+        sqlx::query("DELETE FROM scenes WHERE id = $1")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(SceneDeletion::Deleted)
+    }
+
+    async fn enqueue(
+        &self,
+        id: &str,
+        spec: &JobSpec,
+        client: &str,
+        max_queued: u64,
+        now: i64,
+    ) -> QueueResult<Enqueued> {
+        let mut tx = self.pool.begin().await?;
+        // Serialises this client's submissions (on every API process) until commit.
+        sqlx::query("SELECT pg_advisory_xact_lock($1, hashtext($2))")
+            .bind(KEY_CLASS)
+            .bind(client)
+            .execute(&mut *tx)
+            .await?;
+        let scene: Option<i32> = sqlx::query_scalar("SELECT 1 FROM scenes WHERE id = $1 FOR SHARE")
+            .bind(&spec.scene)
+            .fetch_optional(&mut *tx)
+            .await?;
+        if scene.is_none() {
+            return Ok(Enqueued::NoScene);
+        }
+        let queued: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE client = $1 AND status = 'queued'")
+            .bind(client)
+            .fetch_one(&mut *tx)
+            .await?;
+        if queued >= clamp_i64(max_queued) {
+            return Ok(Enqueued::QueueFull(queued as u64));
+        }
+        let row = sqlx::query(
+            "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client)
+             VALUES ($1, $2, $3, 'queued', $4, $5, $5, $6)
+             RETURNING *",
+        )
+        .bind(id)
+        .bind(&spec.scene)
+        .bind(serde_json::to_value(spec).map_err(|e| sqlx::Error::Encode(Box::new(e)))?)
+        .bind(spec.priority)
+        .bind(now)
+        .bind(client)
+        .fetch_one(&mut *tx)
+        .await?;
+        let job = job_from_row(&row)?;
+        tx.commit().await?;
+        Ok(Enqueued::Queued(Box::new(job)))
+    }
+
+    async fn job(&self, id: &str) -> QueueResult<Option<JobRecord>> {
+        let row = sqlx::query("SELECT * FROM jobs WHERE id = $1")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.as_ref().map(job_from_row).transpose()
+    }
+
+    async fn list(
+        &self,
+        status: Option<JobStatus>,
+        client: Option<&str>,
+        limit: u32,
+        offset: u64,
+    ) -> QueueResult<(Vec<JobRecord>, u64)> {
+        let status = status.map(JobStatus::as_str);
+        let rows = sqlx::query(
+            "SELECT * FROM jobs WHERE ($1::text IS NULL OR status = $1) AND ($4::text IS NULL OR client = $4)
+             ORDER BY created_at DESC, seq DESC LIMIT $2 OFFSET $3",
+        )
+        .bind(status)
+        .bind(i64::from(limit))
+        .bind(clamp_i64(offset))
+        .bind(client)
+        .fetch_all(&self.pool)
+        .await?;
+        let total: i64 = sqlx::query_scalar(
+            "SELECT COUNT(*) FROM jobs WHERE ($1::text IS NULL OR status = $1) AND ($2::text IS NULL OR client = $2)",
+        )
+        .bind(status)
+        .bind(client)
+        .fetch_one(&self.pool)
+        .await?;
+        let jobs = rows.iter().map(job_from_row).collect::<QueueResult<Vec<_>>>()?;
+        Ok((jobs, total as u64))
+    }
+
+    async fn counts(&self) -> QueueResult<Vec<(JobStatus, u64)>> {
+        let rows = sqlx::query("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status")
+            .fetch_all(&self.pool)
+            .await?;
+        let mut out: Vec<(JobStatus, u64)> = JobStatus::ALL.iter().map(|s| (*s, 0)).collect();
+        for row in rows {
+            let s: String = row.try_get("status")?;
+            let n: i64 = row.try_get("n")?;
+            if let Some(slot) = out.iter_mut().find(|(st, _)| st.as_str() == s) {
+                slot.1 = n as u64;
+            }
+        }
+        Ok(out)
+    }
+
+    async fn cancel(&self, id: &str, now: i64) -> QueueResult<Cancellation> {
+        let r = sqlx::query(
+            "UPDATE jobs SET status = 'cancelled', finished_at = $2, updated_at = $2
+             WHERE id = $1 AND status = 'queued'",
+        )
+        .bind(id)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        if r.rows_affected() == 1 {
+            return Ok(Cancellation::Cancelled);
+        }
+        let r = sqlx::query(
+            "UPDATE jobs SET cancel_requested = TRUE, updated_at = $2 WHERE id = $1 AND status = 'running'",
+        )
+        .bind(id)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        if r.rows_affected() == 1 {
+            return Ok(Cancellation::Requested);
+        }
+        let status: Option<String> = sqlx::query_scalar("SELECT status FROM jobs WHERE id = $1")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(match status.as_deref().and_then(JobStatus::parse) {
+            None => Cancellation::NotFound,
+            Some(s) => Cancellation::AlreadyFinished(s),
+        })
+    }
+
+    async fn claim(&self, worker: &str, lease: Duration, now: i64) -> QueueResult<Option<JobRecord>> {
+        let row = sqlx::query(
+            "UPDATE jobs SET status = 'running', worker = $1, attempts = attempts + 1, lease_expires_at = $2,
+                 started_at = $3, updated_at = $3, progress = NULL, history = '[]', plan = NULL
+             WHERE id = (SELECT id FROM jobs WHERE status = 'queued'
+                         ORDER BY priority DESC, created_at, seq LIMIT 1
+                         FOR UPDATE SKIP LOCKED)
+             RETURNING *",
+        )
+        .bind(worker)
+        .bind(lease_until(now, lease))
+        .bind(now)
+        .fetch_optional(&self.pool)
+        .await?;
+        row.as_ref().map(job_from_row).transpose()
+    }
+
+    async fn heartbeat(&self, id: &str, worker: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
+        let cancel: Option<bool> = sqlx::query_scalar(
+            "UPDATE jobs SET lease_expires_at = $3, updated_at = $4,
+                 progress = COALESCE($5, progress), history = COALESCE($6, history),
+                 plan = COALESCE($7, plan), snapshots = COALESCE($8, snapshots)
+             WHERE id = $1 AND worker = $2 AND status = 'running'
+             RETURNING cancel_requested",
+        )
+        .bind(id)
+        .bind(worker)
+        .bind(lease_until(now, lease))
+        .bind(now)
+        .bind(&u.progress)
+        .bind(&u.history)
+        .bind(&u.plan)
+        .bind(u.snapshots.map(|n| i32::try_from(n).unwrap_or(i32::MAX)))
+        .fetch_optional(&self.pool)
+        .await?;
+        Ok(match cancel {
+            Some(cancel) => Lease::Held { cancel },
+            None => Lease::Lost,
+        })
+    }
+
+    async fn finish(&self, id: &str, worker: &str, outcome: &Outcome, now: i64) -> QueueResult<bool> {
+        let (status, summary, progress, history, failure) = match outcome {
+            Outcome::Succeeded {
+                summary,
+                progress,
+                history,
+            } => ("succeeded", Some(summary), Some(progress), Some(history), None),
+            Outcome::Failed { reason } => ("failed", None, None, None, Some(reason.as_str())),
+            Outcome::Cancelled => ("cancelled", None, None, None, None),
+        };
+        let r = sqlx::query(
+            "UPDATE jobs SET status = $3, finished_at = $4, updated_at = $4, lease_expires_at = NULL,
+                 summary = COALESCE($5, summary), progress = COALESCE($6, progress),
+                 history = COALESCE($7, history), failure = $8
+             WHERE id = $1 AND worker = $2 AND status = 'running'",
+        )
+        .bind(id)
+        .bind(worker)
+        .bind(status)
+        .bind(now)
+        .bind(summary)
+        .bind(progress)
+        .bind(history)
+        .bind(failure)
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    async fn release(&self, id: &str, worker: &str, now: i64) -> QueueResult<bool> {
+        // A cancel that arrived during shutdown wins over the hand-back.
+        let r = sqlx::query(
+            "UPDATE jobs SET
+                 status = CASE WHEN cancel_requested THEN 'cancelled' ELSE 'queued' END,
+                 finished_at = CASE WHEN cancel_requested THEN $3 ELSE NULL END,
+                 attempts = GREATEST(attempts - 1, 0), worker = NULL, lease_expires_at = NULL, updated_at = $3
+             WHERE id = $1 AND worker = $2 AND status = 'running'",
+        )
+        .bind(id)
+        .bind(worker)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    async fn recover_expired(&self, now: i64) -> QueueResult<Recovered> {
+        let mut tx = self.pool.begin().await?;
+        // Same order as SQLite: cancelled, failed, then re-queued; each statement changes
+        // the status, so no row is taken twice. SKIP LOCKED: a row another process is
+        // recovering (or its late heartbeat is renewing) is left to that process.
+        let cancelled: Vec<String> = sqlx::query_scalar(
+            "UPDATE jobs SET status = 'cancelled', finished_at = $1, updated_at = $1, worker = NULL,
+                 lease_expires_at = NULL
+             WHERE id IN (SELECT id FROM jobs
+                          WHERE status = 'running' AND lease_expires_at < $1 AND cancel_requested
+                          FOR UPDATE SKIP LOCKED)
+             RETURNING id",
+        )
+        .bind(now)
+        .fetch_all(&mut *tx)
+        .await?;
+        let failed: Vec<String> = sqlx::query_scalar(
+            "UPDATE jobs SET status = 'failed', finished_at = $1, updated_at = $1, lease_expires_at = NULL,
+                 failure = 'gave up after ' || attempts || ' attempts: the lease of worker ' || COALESCE(worker, '?')
+                     || ' expired (the worker stopped renewing it: crashed, killed or cut off)'
+             WHERE id IN (SELECT id FROM jobs
+                          WHERE status = 'running' AND lease_expires_at < $1 AND attempts >= $2
+                          FOR UPDATE SKIP LOCKED)
+             RETURNING id",
+        )
+        .bind(now)
+        .bind(MAX_ATTEMPTS as i32)
+        .fetch_all(&mut *tx)
+        .await?;
+        let requeued: Vec<String> = sqlx::query_scalar(
+            "UPDATE jobs SET status = 'queued', updated_at = $1, worker = NULL, lease_expires_at = NULL
+             WHERE id IN (SELECT id FROM jobs
+                          WHERE status = 'running' AND lease_expires_at < $1
+                          FOR UPDATE SKIP LOCKED)
+             RETURNING id",
+        )
+        .bind(now)
+        .fetch_all(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Recovered {
+            requeued,
+            failed,
+            cancelled,
+        })
+    }
+
+    async fn insert_token(&self, t: &TokenRecord) -> QueueResult<()> {
+        sqlx::query("INSERT INTO tokens (id, name, hash, created_at, revoked_at) VALUES ($1, $2, $3, $4, $5)")
+            .bind(&t.id)
+            .bind(&t.name)
+            .bind(&t.hash)
+            .bind(t.created_at)
+            .bind(t.revoked_at)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    async fn tokens(&self) -> QueueResult<Vec<TokenRecord>> {
+        let rows = sqlx::query("SELECT * FROM tokens ORDER BY created_at, seq")
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(token_from_row).collect()
+    }
+
+    async fn revoke_token(&self, id_or_name: &str, now: i64) -> QueueResult<bool> {
+        let r = sqlx::query("UPDATE tokens SET revoked_at = $2 WHERE (id = $1 OR name = $1) AND revoked_at IS NULL")
+            .bind(id_or_name)
+            .bind(now)
+            .execute(&self.pool)
+            .await?;
+        Ok(r.rows_affected() > 0)
+    }
+
+    async fn token_by_hash(&self, hash: &str) -> QueueResult<Option<TokenRecord>> {
+        let row = sqlx::query("SELECT * FROM tokens WHERE hash = $1 AND revoked_at IS NULL")
+            .bind(hash)
+            .fetch_optional(&self.pool)
+            .await?;
+        row.as_ref().map(token_from_row).transpose()
+    }
+}

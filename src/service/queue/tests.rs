@@ -1,0 +1,455 @@
+//! The queue's behaviour, once per store: every test below runs against SQLite (always)
+//! and against PostgreSQL (when `LIGHTMAPD_TEST_POSTGRES` names a server; a loud skip
+//! line otherwise, a failure under `LIGHTMAPD_REQUIRE_SERVICES=1`). The [`on_both_stores`]
+//! macro makes the two variants, so a new test is written once.
+//!
+//! Each PostgreSQL variant works in a schema of its own (dropped when it passes), so the
+//! variants run in parallel on one database. "Another process" is a second handle on the
+//! same store (a second SQLite connection pool on the file, a second PostgreSQL pool on the
+//! schema), which shares nothing in memory with the first.
+
+use std::collections::HashSet;
+use std::sync::Arc;
+use std::time::Duration;
+
+use serde_json::json;
+
+use super::postgres::{PostgresQueue, test_url};
+use super::sqlite::SqliteQueue;
+use super::*;
+use crate::service::Hub;
+use crate::service::model::{JobSpec, JobStatus};
+
+/// One store under test, and how to open a second, independent handle on it.
+struct Fixture {
+    queue: Arc<dyn Queue>,
+    store: Store,
+}
+
+enum Store {
+    Sqlite(tempfile::TempDir),
+    Postgres {
+        url: String,
+        schema: String,
+        queue: PostgresQueue,
+    },
+}
+
+impl Fixture {
+    async fn sqlite() -> Fixture {
+        let dir = tempfile::tempdir().unwrap();
+        let q = SqliteQueue::open(&dir.path().join("q.db")).await.unwrap();
+        Fixture {
+            queue: Arc::new(q),
+            store: Store::Sqlite(dir),
+        }
+    }
+
+    async fn postgres(test: &str) -> Option<Fixture> {
+        let url = test_url(test)?;
+        let schema = format!("test_{}", uuid::Uuid::new_v4().simple());
+        let q = PostgresQueue::open_in_schema(&url, &schema)
+            .await
+            .unwrap_or_else(|e| panic!("{test}: cannot open PostgreSQL at {url}: {e}"));
+        Some(Fixture {
+            queue: Arc::new(q.clone()),
+            store: Store::Postgres { url, schema, queue: q },
+        })
+    }
+
+    /// A handle that shares nothing with `self.queue` but the database.
+    async fn other_process(&self) -> Arc<dyn Queue> {
+        match &self.store {
+            Store::Sqlite(dir) => Arc::new(SqliteQueue::open(&dir.path().join("q.db")).await.unwrap()),
+            Store::Postgres { url, schema, .. } => Arc::new(PostgresQueue::open_in_schema(url, schema).await.unwrap()),
+        }
+    }
+
+    async fn cleanup(self) {
+        if let Store::Postgres { schema, queue, .. } = self.store {
+            queue.drop_schema(&schema).await.unwrap();
+        }
+    }
+}
+
+macro_rules! on_both_stores {
+    ($($name:ident),* $(,)?) => {
+        mod sqlite_store {
+            $(
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn $name() {
+                    let f = super::Fixture::sqlite().await;
+                    super::$name(&f).await;
+                    f.cleanup().await;
+                }
+            )*
+        }
+        mod postgres_store {
+            $(
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn $name() {
+                    let test = concat!("queue::tests::postgres_store::", stringify!($name));
+                    let Some(f) = super::Fixture::postgres(test).await else { return };
+                    super::$name(&f).await;
+                    f.cleanup().await;
+                }
+            )*
+        }
+    };
+}
+
+on_both_stores!(
+    per_client_queue_limit_and_tokens,
+    lease_expiry_requeues_then_fails_after_three_attempts,
+    release_does_not_count_the_attempt_and_scene_in_use_is_kept,
+    claims_follow_priority_then_age,
+    concurrent_claimers_never_share_a_job,
+    concurrent_submissions_never_overshoot_the_client_limit,
+    heartbeat_progress_cancel_and_finish,
+    other_processes_hear_of_new_work_and_job_changes,
+);
+
+fn spec(scene: &str) -> JobSpec {
+    JobSpec::parse(format!(r#"{{"scene": "{scene}"}}"#).as_bytes()).unwrap()
+}
+
+fn spec_with_priority(scene: &str, priority: i32) -> JobSpec {
+    JobSpec::parse(format!(r#"{{"scene": "{scene}", "priority": {priority}}}"#).as_bytes()).unwrap()
+}
+
+async fn with_scene(q: &dyn Queue) {
+    let scene = SceneRecord {
+        id: "s".into(),
+        content_hash: "sha256:00".into(),
+        format: "glb".into(),
+        main_file: "scene.glb".into(),
+        files: vec!["scene.glb".into()],
+        size_bytes: 1,
+        report: json!({"triangles": 12}),
+        created_at: 0,
+        client: None,
+    };
+    assert!(q.insert_scene(&scene).await.unwrap());
+    assert!(!q.insert_scene(&scene).await.unwrap(), "same id twice is one scene");
+    let back = q.scene("s").await.unwrap().unwrap();
+    assert_eq!((back.files, back.report), (scene.files, scene.report));
+}
+
+async fn enqueue(q: &dyn Queue, id: &str, spec: &JobSpec, now: i64) {
+    let r = q.enqueue(id, spec, "c", 1000, now).await.unwrap();
+    assert!(matches!(r, Enqueued::Queued(_)), "{r:?}");
+}
+
+async fn per_client_queue_limit_and_tokens(f: &Fixture) {
+    let q = &*f.queue;
+    with_scene(q).await;
+    for i in 0..2 {
+        let r = q.enqueue(&format!("a{i}"), &spec("s"), "alice", 2, 0).await.unwrap();
+        assert!(matches!(r, Enqueued::Queued(_)));
+    }
+    assert!(matches!(
+        q.enqueue("a2", &spec("s"), "alice", 2, 0).await.unwrap(),
+        Enqueued::QueueFull(2)
+    ));
+    // Another client is not held back by alice's queue.
+    assert!(matches!(
+        q.enqueue("b0", &spec("s"), "bob", 2, 0).await.unwrap(),
+        Enqueued::Queued(_)
+    ));
+    // A running job no longer counts as queued.
+    q.claim("w", Duration::from_secs(30), 1).await.unwrap().unwrap();
+    let (alice, total) = q.list(None, Some("alice"), 10, 0).await.unwrap();
+    assert_eq!((alice.len(), total), (2, 2));
+    assert!(alice.iter().all(|j| j.client.as_deref() == Some("alice")));
+    assert!(matches!(
+        q.enqueue("a2", &spec("s"), "alice", 2, 0).await.unwrap(),
+        Enqueued::Queued(_)
+    ));
+
+    let t = TokenRecord {
+        id: "tok_1".into(),
+        name: "ci".into(),
+        hash: "ab".into(),
+        created_at: 5,
+        revoked_at: None,
+    };
+    q.insert_token(&t).await.unwrap();
+    assert_eq!(q.token_by_hash("ab").await.unwrap(), Some(t.clone()));
+    assert!(q.revoke_token("ci", 6).await.unwrap());
+    assert!(!q.revoke_token("ci", 7).await.unwrap(), "already revoked");
+    assert_eq!(q.token_by_hash("ab").await.unwrap(), None);
+    assert_eq!(q.tokens().await.unwrap()[0].revoked_at, Some(6));
+}
+
+async fn lease_expiry_requeues_then_fails_after_three_attempts(f: &Fixture) {
+    let q = &*f.queue;
+    with_scene(q).await;
+    enqueue(q, "j", &spec("s"), 0).await;
+    let lease = Duration::from_millis(100);
+    let mut now = 1000;
+    for attempt in 1..=MAX_ATTEMPTS {
+        let job = q.claim("w", lease, now).await.unwrap().expect("queued job is claimed");
+        assert_eq!(job.attempts, attempt);
+        assert!(
+            q.claim("w2", lease, now).await.unwrap().is_none(),
+            "one job, one holder"
+        );
+        // Renewed in time: nothing is recovered.
+        let held = q
+            .heartbeat("j", "w", lease, &JobUpdate::default(), now + 50)
+            .await
+            .unwrap();
+        assert_eq!(held, Lease::Held { cancel: false });
+        assert_eq!(q.recover_expired(now + 140).await.unwrap(), Recovered::default());
+        now += 1000;
+        let r = q.recover_expired(now).await.unwrap();
+        if attempt < MAX_ATTEMPTS {
+            assert_eq!(r.requeued, vec!["j".to_string()]);
+        } else {
+            assert_eq!(r.failed, vec!["j".to_string()]);
+        }
+        // The old holder finds out at its next heartbeat and writes nothing more.
+        let lost = q.heartbeat("j", "w", lease, &JobUpdate::default(), now).await.unwrap();
+        assert_eq!(lost, Lease::Lost);
+    }
+    let job = q.job("j").await.unwrap().unwrap();
+    assert_eq!(job.status, JobStatus::Failed);
+    assert!(job.failure.unwrap().starts_with("gave up after 3 attempts"));
+}
+
+async fn release_does_not_count_the_attempt_and_scene_in_use_is_kept(f: &Fixture) {
+    let q = &*f.queue;
+    with_scene(q).await;
+    assert!(matches!(
+        q.enqueue("j", &spec("missing"), "c", 10, 0).await.unwrap(),
+        Enqueued::NoScene
+    ));
+    enqueue(q, "j", &spec("s"), 0).await;
+    assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::InUse(1));
+    q.claim("w", Duration::from_secs(30), 1).await.unwrap().unwrap();
+    assert!(
+        !q.release("j", "someone-else", 2).await.unwrap(),
+        "only the holder hands back"
+    );
+    assert!(q.release("j", "w", 2).await.unwrap());
+    let job = q.job("j").await.unwrap().unwrap();
+    assert_eq!((job.status, job.attempts, job.worker), (JobStatus::Queued, 0, None));
+    assert_eq!(q.cancel("j", 3).await.unwrap(), Cancellation::Cancelled);
+    assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::Deleted);
+    assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::NotFound);
+    assert!(matches!(
+        q.enqueue("k", &spec("s"), "c", 10, 4).await.unwrap(),
+        Enqueued::NoScene
+    ));
+}
+
+async fn claims_follow_priority_then_age(f: &Fixture) {
+    let q = &*f.queue;
+    with_scene(q).await;
+    // Made in this order; "b1" and "b2" in the same millisecond (submission order breaks
+    // the tie).
+    enqueue(q, "a", &spec_with_priority("s", 0), 10).await;
+    enqueue(q, "b1", &spec_with_priority("s", 5), 20).await;
+    enqueue(q, "b2", &spec_with_priority("s", 5), 20).await;
+    enqueue(q, "c", &spec_with_priority("s", -3), 5).await;
+    enqueue(q, "d", &spec_with_priority("s", 0), 30).await;
+    let mut order = Vec::new();
+    while let Some(j) = q.claim("w", Duration::from_secs(30), 100).await.unwrap() {
+        order.push(j.id);
+    }
+    assert_eq!(order, ["b1", "b2", "a", "d", "c"]);
+    let (listed, total) = q.list(Some(JobStatus::Running), None, 2, 1).await.unwrap();
+    assert_eq!(total, 5);
+    // Newest first: d (30), b2, b1 (20, later submission first), a, c; offset 1, limit 2.
+    let listed: Vec<_> = listed.iter().map(|j| j.id.as_str()).collect();
+    assert_eq!(listed, ["b2", "b1"]);
+    let counts = q.counts().await.unwrap();
+    assert!(counts.contains(&(JobStatus::Running, 5)) && counts.contains(&(JobStatus::Queued, 0)));
+}
+
+async fn concurrent_claimers_never_share_a_job(f: &Fixture) {
+    let q = &*f.queue;
+    with_scene(q).await;
+    const JOBS: usize = 40;
+    for i in 0..JOBS {
+        enqueue(q, &format!("j{i:02}"), &spec("s"), i as i64).await;
+    }
+    // Eight claimers over two independent handles ("processes"), each claiming until the
+    // queue is empty.
+    let handles = [f.queue.clone(), f.other_process().await];
+    let mut tasks = Vec::new();
+    for w in 0..8 {
+        let q = handles[w % 2].clone();
+        tasks.push(tokio::spawn(async move {
+            let me = format!("w{w}");
+            let mut got = Vec::new();
+            while let Some(j) = q.claim(&me, Duration::from_secs(30), 1000).await.unwrap() {
+                assert_eq!(j.worker.as_deref(), Some(me.as_str()));
+                got.push(j.id);
+            }
+            (me, got)
+        }));
+    }
+    let mut seen = HashSet::new();
+    for t in tasks {
+        let (me, got) = t.await.unwrap();
+        for id in got {
+            assert!(seen.insert(id.clone()), "{id} was claimed twice (second time by {me})");
+            // Only the holder can finish it.
+            let other = if me == "w0" { "w1" } else { "w0" };
+            let done = Outcome::Failed { reason: "test".into() };
+            assert!(!q.finish(&id, other, &done, 2000).await.unwrap());
+            assert!(q.finish(&id, &me, &done, 2000).await.unwrap());
+            assert!(!q.finish(&id, &me, &done, 2001).await.unwrap(), "finished once only");
+        }
+    }
+    assert_eq!(seen.len(), JOBS);
+    for j in q.list(None, None, 100, 0).await.unwrap().0 {
+        assert_eq!((j.status, j.attempts), (JobStatus::Failed, 1), "{}", j.id);
+    }
+}
+
+async fn concurrent_submissions_never_overshoot_the_client_limit(f: &Fixture) {
+    let q = &*f.queue;
+    with_scene(q).await;
+    const LIMIT: u64 = 5;
+    let handles = [f.queue.clone(), f.other_process().await];
+    let mut tasks = Vec::new();
+    for i in 0..16 {
+        let q = handles[i % 2].clone();
+        tasks.push(tokio::spawn(async move {
+            q.enqueue(&format!("e{i}"), &spec("s"), "eve", LIMIT, i as i64)
+                .await
+                .unwrap()
+        }));
+    }
+    let (mut queued, mut refused) = (0, 0);
+    for t in tasks {
+        match t.await.unwrap() {
+            Enqueued::Queued(_) => queued += 1,
+            Enqueued::QueueFull(n) => {
+                assert_eq!(n, LIMIT);
+                refused += 1;
+            }
+            Enqueued::NoScene => panic!("the scene exists"),
+        }
+    }
+    assert_eq!((queued, refused), (LIMIT, 16 - LIMIT));
+    assert_eq!(
+        q.list(Some(JobStatus::Queued), Some("eve"), 100, 0).await.unwrap().1,
+        LIMIT
+    );
+}
+
+async fn heartbeat_progress_cancel_and_finish(f: &Fixture) {
+    let q = &*f.queue;
+    with_scene(q).await;
+    enqueue(q, "j", &spec("s"), 0).await;
+    let lease = Duration::from_secs(10);
+    q.claim("w", lease, 1).await.unwrap().unwrap();
+    let update = JobUpdate {
+        progress: Some(json!({"steps": 3, "fraction": 0.25})),
+        history: Some(json!([{"seconds": 0.5, "steps": 3, "error": 0.1}])),
+        plan: Some(json!({"passes": ["direct"]})),
+        snapshots: Some(2),
+    };
+    assert_eq!(
+        q.heartbeat("j", "w", lease, &update, 50).await.unwrap(),
+        Lease::Held { cancel: false }
+    );
+    // An empty update renews the lease and keeps what was written.
+    q.heartbeat("j", "w", lease, &JobUpdate::default(), 60).await.unwrap();
+    let j = q.job("j").await.unwrap().unwrap();
+    assert_eq!(j.progress, update.progress);
+    assert_eq!(Some(j.history), update.history);
+    assert_eq!(j.plan, update.plan);
+    assert_eq!(
+        (j.snapshots, j.lease_expires_at, j.started_at),
+        (2, Some(10_060), Some(1))
+    );
+
+    assert_eq!(q.cancel("j", 70).await.unwrap(), Cancellation::Requested);
+    assert_eq!(
+        q.heartbeat("j", "w", lease, &JobUpdate::default(), 80).await.unwrap(),
+        Lease::Held { cancel: true }
+    );
+    assert!(q.finish("j", "w", &Outcome::Cancelled, 90).await.unwrap());
+    assert_eq!(
+        q.cancel("j", 95).await.unwrap(),
+        Cancellation::AlreadyFinished(JobStatus::Cancelled)
+    );
+    assert_eq!(q.cancel("nope", 95).await.unwrap(), Cancellation::NotFound);
+
+    enqueue(q, "k", &spec("s"), 100).await;
+    q.claim("w", lease, 101).await.unwrap().unwrap();
+    let summary = json!({"steps": 8, "seconds": 1.5});
+    let done = Outcome::Succeeded {
+        summary: summary.clone(),
+        progress: json!({"steps": 8, "fraction": 1.0}),
+        history: json!([]),
+    };
+    assert!(q.finish("k", "w", &done, 200).await.unwrap());
+    let k = q.job("k").await.unwrap().unwrap();
+    assert_eq!(
+        (k.status, k.summary, k.finished_at),
+        (JobStatus::Succeeded, Some(summary), Some(200))
+    );
+    assert_eq!(k.lease_expires_at, None);
+}
+
+async fn other_processes_hear_of_new_work_and_job_changes(f: &Fixture) {
+    let listener = f.other_process().await;
+    let hub = Arc::new(Hub::default());
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let Some(task) = listener.listen(hub.clone(), stop_rx) else {
+        assert!(matches!(f.store, Store::Sqlite(_)), "PostgreSQL must notify");
+        return;
+    };
+    let q = &*f.queue;
+    with_scene(q).await;
+    let mut changes = hub.changed.subscribe();
+    // LISTEN is issued by the task: wait until it is in place (a first enqueue may come
+    // before it; the retry loop covers that).
+    let wait = Duration::from_secs(5);
+    let mut n = 0;
+    let woke = tokio::time::timeout(wait, async {
+        loop {
+            let notified = hub.work.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            n += 1;
+            enqueue(q, &format!("n{n}"), &spec("s"), n).await;
+            if tokio::time::timeout(Duration::from_millis(500), notified).await.is_ok() {
+                break;
+            }
+        }
+    })
+    .await;
+    assert!(woke.is_ok(), "no lightmapd_work notification within {wait:?}");
+    // A progress write by the holder reaches the other process's event streams.
+    let job = q.claim("w", Duration::from_secs(30), 1000).await.unwrap().unwrap();
+    let update = JobUpdate {
+        progress: Some(json!({"steps": 1})),
+        ..JobUpdate::default()
+    };
+    q.heartbeat(&job.id, "w", Duration::from_secs(30), &update, 1001)
+        .await
+        .unwrap();
+    let heard = tokio::time::timeout(wait, async {
+        loop {
+            match changes.recv().await {
+                Ok(id) if id == job.id => return,
+                Ok(_) => continue,
+                Err(e) => panic!("{e}"),
+            }
+        }
+    })
+    .await;
+    assert!(
+        heard.is_ok(),
+        "no lightmapd_job notification for {} within {wait:?}",
+        job.id
+    );
+    let _ = stop_tx.send(true);
+    task.await.unwrap();
+}
