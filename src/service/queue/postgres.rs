@@ -83,22 +83,33 @@ pub const TEST_URL_VAR: &str = "LIGHTMAPD_TEST_POSTGRES";
 /// Set to `1` in CI: a test that cannot reach its service fails instead of skipping.
 pub const REQUIRE_SERVICES_VAR: &str = "LIGHTMAPD_REQUIRE_SERVICES";
 
-/// For tests: the PostgreSQL URL from [`TEST_URL_VAR`], or `None` after printing a loud
-/// skip line naming `test`. Panics instead when [`REQUIRE_SERVICES_VAR`] is `1`, so CI
-/// cannot pass by skipping.
+/// Where `scripts/setup-postgres.sh` makes the test database.
+pub const DEFAULT_TEST_URL: &str = "postgres://lightmapd:lightmapd@127.0.0.1:5432/lightmapd";
+
+/// For tests: the PostgreSQL URL from [`TEST_URL_VAR`], else [`DEFAULT_TEST_URL`] when
+/// something listens on its port (so the README's test command, after
+/// `scripts/setup.sh`, runs the PostgreSQL variants too), else `None` after printing a
+/// loud skip line naming `test`. Panics instead of skipping when
+/// [`REQUIRE_SERVICES_VAR`] is `1`, so CI cannot pass by skipping.
 pub fn test_url(test: &str) -> Option<String> {
-    match std::env::var(TEST_URL_VAR) {
-        Ok(url) if !url.is_empty() => Some(url),
-        _ => {
-            if std::env::var(REQUIRE_SERVICES_VAR).is_ok_and(|v| v == "1") {
-                panic!("{test}: {TEST_URL_VAR} is not set but {REQUIRE_SERVICES_VAR}=1 (run scripts/setup.sh)");
-            }
-            eprintln!(
-                "\n==== SKIPPED {test}: PostgreSQL variant, {TEST_URL_VAR} is not set (bash scripts/setup-postgres.sh, then export {TEST_URL_VAR}=postgres://lightmapd:lightmapd@127.0.0.1:5432/lightmapd) ====\n"
-            );
-            None
-        }
+    if let Ok(url) = std::env::var(TEST_URL_VAR)
+        && !url.is_empty()
+    {
+        return Some(url);
     }
+    let port = std::net::SocketAddr::from(([127, 0, 0, 1], 5432));
+    if std::net::TcpStream::connect_timeout(&port, Duration::from_millis(300)).is_ok() {
+        return Some(DEFAULT_TEST_URL.into());
+    }
+    if std::env::var(REQUIRE_SERVICES_VAR).is_ok_and(|v| v == "1") {
+        panic!(
+            "{test}: {TEST_URL_VAR} is not set and nothing listens on 127.0.0.1:5432, but {REQUIRE_SERVICES_VAR}=1 (run scripts/setup.sh)"
+        );
+    }
+    eprintln!(
+        "\n==== SKIPPED {test}: PostgreSQL variant: {TEST_URL_VAR} is not set and nothing listens on 127.0.0.1:5432 (run scripts/setup.sh, or export {TEST_URL_VAR}=postgres://…) ====\n"
+    );
+    None
 }
 
 #[derive(Clone)]
