@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Installs what lightmapd needs on a fresh Debian machine with the Rust toolchain:
-# Mesa's software Vulkan driver (GPU techniques run on lavapipe when there is no GPU),
-# OpenEXR's command-line tools (tests read the EXR back with `exrheader`), and an
-# S3-protocol server on loopback for the S3 store tests (scripts/setup-s3.sh).
+# Mesa's software Vulkan driver (GPU techniques run on lavapipe when there is no GPU) and
+# OpenEXR's command-line tools (tests read the EXR back with `exrheader`). With the
+# argument `test`, also the services the tests run against: PostgreSQL
+# (scripts/setup-postgres.sh) and an S3-protocol server on loopback (scripts/setup-s3.sh);
+# the embedded service (SQLite, local files) needs neither.
 # Idempotent: installs only what is missing.
 set -euo pipefail
 
@@ -18,6 +20,8 @@ if ((${#need[@]})); then
     DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
 fi
 command -v cargo >/dev/null || { echo "setup: cargo not found; install the Rust toolchain (rustup) first" >&2; exit 1; }
+
+[ "${1:-}" = "test" ] || exit 0
 
 # --- PostgreSQL for the shared-queue tests (issue 11): its own script, see there. ---
 bash "$(dirname "$0")/setup-postgres.sh"

@@ -15,8 +15,6 @@
 
 mod service_common;
 
-use std::net::{SocketAddr, TcpStream, ToSocketAddrs};
-use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
@@ -27,127 +25,28 @@ use object_store::aws::AmazonS3ConfigKey;
 use serde_json::{Value, json};
 use service_common::*;
 
-/// The S3 server the tests use, or `None` (after a loud message) when there is none.
-struct S3 {
-    endpoint: String,
-    bucket: String,
-    /// `AWS_*` settings, as environment variables for child processes.
-    env: Vec<(&'static str, String)>,
-}
-
-impl S3 {
-    fn find() -> Option<S3> {
-        let var = |k: &str, d: &str| std::env::var(k).ok().filter(|v| !v.is_empty()).unwrap_or(d.into());
-        let endpoint = var("AWS_ENDPOINT_URL", "http://127.0.0.1:9000");
-        let bucket = var("LIGHTMAPD_TEST_BUCKET", "lightmapd-test");
-        if !reachable(&endpoint) {
-            let msg =
-                format!("no S3-protocol server at {endpoint} (run `bash scripts/setup.sh`, which starts moto there)");
-            if std::env::var("LIGHTMAPD_REQUIRE_SERVICES").as_deref() == Ok("1") {
-                panic!("{msg}; LIGHTMAPD_REQUIRE_SERVICES=1 makes this a failure");
-            }
-            // Straight to the stderr handle: libtest captures `eprintln!` of passing tests.
-            use std::io::Write;
-            let _ = writeln!(std::io::stderr(), "\n######## SKIPPED: {msg} ########\n");
-            return None;
-        }
-        let env = vec![
-            ("AWS_ENDPOINT_URL", endpoint.clone()),
-            ("AWS_ACCESS_KEY_ID", var("AWS_ACCESS_KEY_ID", "test")),
-            ("AWS_SECRET_ACCESS_KEY", var("AWS_SECRET_ACCESS_KEY", "test")),
-            ("AWS_REGION", var("AWS_REGION", "us-east-1")),
-            ("AWS_ALLOW_HTTP", "true".to_string()),
-        ];
-        let s3 = S3 { endpoint, bucket, env };
-        s3.create_bucket();
-        Some(s3)
-    }
-
-    fn create_bucket(&self) {
-        let status = put_unsigned(&self.endpoint, &self.bucket);
-        // 200: made; 409: it exists (BucketAlreadyOwnedByYou / BucketAlreadyExists).
-        assert!(
-            status == 200 || status == 409,
-            "creating bucket {} at {}: HTTP {status}",
-            self.bucket,
-            self.endpoint
-        );
-    }
-
-    /// The same settings as `AmazonS3Builder` options, for an in-process store.
-    fn overrides(&self) -> Vec<(AmazonS3ConfigKey, String)> {
-        self.env
-            .iter()
-            .map(|(k, v)| {
-                let key = match *k {
-                    "AWS_ENDPOINT_URL" => AmazonS3ConfigKey::Endpoint,
-                    "AWS_ACCESS_KEY_ID" => AmazonS3ConfigKey::AccessKeyId,
-                    "AWS_SECRET_ACCESS_KEY" => AmazonS3ConfigKey::SecretAccessKey,
-                    "AWS_REGION" => AmazonS3ConfigKey::Region,
-                    _ => AmazonS3ConfigKey::Client(ClientConfigKey::AllowHttp),
-                };
-                (key, v.clone())
-            })
-            .collect()
-    }
-
-    /// A fresh `s3://BUCKET/PREFIX` for one test.
-    fn fresh_url(&self, test: &str) -> String {
-        format!("s3://{}/{test}-{}", self.bucket, uuid::Uuid::new_v4().simple())
-    }
-
-    async fn open(&self, url: &str) -> Artifacts {
-        Artifacts::open(&StoreUrl::parse(url).unwrap(), &self.overrides())
-            .await
-            .unwrap_or_else(|e| panic!("opening {url}: {e}"))
-    }
-}
-
-/// `PUT /BUCKET` with no signature, which moto takes as "create the bucket": one plain
-/// HTTP/1.1 exchange, so it works from sync and async tests alike.
-fn put_unsigned(endpoint: &str, bucket: &str) -> u16 {
-    use std::io::{Read, Write};
-    let host = host_port(endpoint);
-    let mut s = TcpStream::connect(&host).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    write!(
-        s,
-        "PUT /{bucket} HTTP/1.1\r\nHost: {host}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut answer = String::new();
-    let _ = s.read_to_string(&mut answer);
-    answer
-        .split_whitespace()
-        .nth(1)
-        .and_then(|c| c.parse().ok())
-        .unwrap_or_else(|| panic!("not an HTTP answer: {answer:?}"))
-}
-
-/// `host:port` of an endpoint URL.
-fn host_port(endpoint: &str) -> String {
-    let hostport = endpoint
-        .split_once("://")
-        .map_or(endpoint, |(_, r)| r)
-        .split('/')
-        .next()
-        .unwrap_or_default();
-    if hostport.contains(':') {
-        hostport.to_string()
-    } else {
-        let port = if endpoint.starts_with("https://") { 443 } else { 80 };
-        format!("{hostport}:{port}")
-    }
-}
-
-fn reachable(endpoint: &str) -> bool {
-    let addrs: Vec<SocketAddr> = host_port(endpoint)
-        .to_socket_addrs()
-        .map(Iterator::collect)
-        .unwrap_or_default();
-    addrs
+/// The settings of `s3` (`service_common::S3`) as `AmazonS3Builder` options, for an
+/// in-process store.
+fn overrides(s3: &S3) -> Vec<(AmazonS3ConfigKey, String)> {
+    s3.env
         .iter()
-        .any(|a| TcpStream::connect_timeout(a, Duration::from_secs(1)).is_ok())
+        .map(|(k, v)| {
+            let key = match *k {
+                "AWS_ENDPOINT_URL" => AmazonS3ConfigKey::Endpoint,
+                "AWS_ACCESS_KEY_ID" => AmazonS3ConfigKey::AccessKeyId,
+                "AWS_SECRET_ACCESS_KEY" => AmazonS3ConfigKey::SecretAccessKey,
+                "AWS_REGION" => AmazonS3ConfigKey::Region,
+                _ => AmazonS3ConfigKey::Client(ClientConfigKey::AllowHttp),
+            };
+            (key, v.clone())
+        })
+        .collect()
+}
+
+async fn open(s3: &S3, url: &str) -> Artifacts {
+    Artifacts::open(&StoreUrl::parse(url).unwrap(), &overrides(s3))
+        .await
+        .unwrap_or_else(|e| panic!("opening {url}: {e}"))
 }
 
 /// Bytes that differ from part to part, so a part stored in the wrong place is caught.
@@ -166,10 +65,12 @@ fn pattern(len: usize) -> Bytes {
 
 #[tokio::test]
 async fn artifacts_round_trip_on_s3() {
-    let Some(s3) = S3::find() else { return };
+    let Some(s3) = S3::find("artifacts_round_trip_on_s3").await else {
+        return;
+    };
     let url = s3.fresh_url("round-trip");
     let prefix = url.rsplit_once('/').unwrap().1.to_string();
-    let a = s3.open(&url).await;
+    let a = open(&s3, &url).await;
 
     let small = Bytes::from_static(b"glTF and more");
     let a_key = store::scene_file("s1", "scene.glb");
@@ -187,7 +88,7 @@ async fn artifacts_round_trip_on_s3() {
     assert!(back == big, "the multipart object differs from what was put");
 
     // The keys live under the URL's prefix in the bucket: the bucket's root sees them there.
-    let root = s3.open(&format!("s3://{}", s3.bucket)).await;
+    let root = open(&s3, &format!("s3://{}", s3.bucket)).await;
     let under_prefix = object_store::path::Path::from(format!("{prefix}/scenes/s1/scene.glb"));
     assert_eq!(root.get(&under_prefix).await.unwrap(), Some(small.clone()));
 
@@ -218,9 +119,11 @@ async fn artifacts_round_trip_on_s3() {
 
 #[tokio::test]
 async fn a_missing_bucket_fails_at_open() {
-    let Some(s3) = S3::find() else { return };
+    let Some(s3) = S3::find("a_missing_bucket_fails_at_open").await else {
+        return;
+    };
     let url = format!("s3://lightmapd-no-such-bucket-{}", uuid::Uuid::new_v4().simple());
-    let e = Artifacts::open(&StoreUrl::parse(&url).unwrap(), &s3.overrides())
+    let e = Artifacts::open(&StoreUrl::parse(&url).unwrap(), &overrides(&s3))
         .await
         .err()
         .expect("a bucket that does not exist is refused at start-up");
@@ -236,28 +139,6 @@ fn lightmapd(args: &[&str], env: &[(&'static str, String)]) -> Command {
     c
 }
 
-/// `lightmapd serve --workers 0` with the S3 store; the address from its first line.
-fn spawn_api(dir: &Path, store: &str, env: &[(&'static str, String)]) -> (Child, String) {
-    let mut child = lightmapd(
-        &["serve", "--listen", "127.0.0.1:0", "--workers", "0", "--store", store],
-        env,
-    )
-    .arg("--data-dir")
-    .arg(dir)
-    .stdout(Stdio::piped())
-    .stderr(Stdio::inherit())
-    .spawn()
-    .unwrap();
-    let mut line = String::new();
-    std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();
-    let url = line
-        .trim()
-        .strip_prefix("lightmapd listening on ")
-        .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
-        .to_string();
-    (child, url)
-}
-
 /// Ends a child this test started, whatever the assertions did.
 struct Reap(Child);
 
@@ -270,10 +151,16 @@ impl Drop for Reap {
 
 #[test]
 fn service_bakes_through_an_s3_store() {
-    let Some(s3) = S3::find() else { return };
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let Some(s3) = rt.block_on(S3::find("service_bakes_through_an_s3_store")) else {
+        return;
+    };
     let dir = tempfile::tempdir().unwrap();
     let store = s3.fresh_url("service");
-    let (api, url) = spawn_api(dir.path(), &store, &s3.env);
+    let (api, url) = spawn_serve_env(dir.path(), 0, &["--store", &store], &s3.env);
     let _api = Reap(api);
     let db = format!("sqlite://{}", dir.path().join("lightmapd.db").display());
     let worker = lightmapd(
@@ -294,10 +181,6 @@ fn service_bakes_through_an_s3_store() {
     .unwrap();
     let _worker = Reap(worker);
 
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
     let http = reqwest::Client::new();
     let glb = cornell_glb();
     let (scene, job, exr) = rt.block_on(async {
@@ -344,7 +227,7 @@ fn service_bakes_through_an_s3_store() {
     // What the API served is what the worker stored in the bucket, and the scene the API
     // stored is the upload, byte for byte; nothing went to a local folder.
     rt.block_on(async {
-        let a = s3.open(&store).await;
+        let a = open(&s3, &store).await;
         assert_eq!(a.get(&store::final_exr(&job)).await.unwrap(), Some(exr.clone()));
         assert_eq!(
             a.get(&store::scene_file(&scene, "scene.glb")).await.unwrap().as_deref(),

@@ -20,7 +20,7 @@
 //! skip line and pass, unless `LIGHTMAPD_REQUIRE_SERVICES=1` (CI). Each test works in a
 //! schema of its own (`?options=-csearch_path=…` on the URL the processes get), dropped
 //! when it passes. Artifacts: the first test stores them in the S3-protocol server
-//! (`service_common::S3`: moto on 127.0.0.1:9000, started by `scripts/setup.sh`) under a
+//! (`service_common::S3`: moto on 127.0.0.1:9000, started by `scripts/setup.sh test`) under a
 //! fresh `s3://lightmapd-test/scale-out-…` prefix, passing `AWS_*` to every process, and
 //! skips (fails under `LIGHTMAPD_REQUIRE_SERVICES=1`) without it; the second uses a local
 //! directory, since only the queue matters there.

@@ -190,7 +190,7 @@ pub fn exr_is_whole(bytes: &[u8]) -> Result<(), String> {
         .map_err(|e| e.to_string())
 }
 
-/// An S3-protocol server for tests (`scripts/setup.sh` starts moto's server mode on
+/// An S3-protocol server for tests (`scripts/setup.sh test` starts moto's server mode on
 /// 127.0.0.1:9000): the endpoint (`AWS_ENDPOINT_URL`, default `http://127.0.0.1:9000`),
 /// a bucket (`LIGHTMAPD_TEST_BUCKET`, default `lightmapd-test`, created with an unsigned
 /// `PUT`, which moto accepts), and the `AWS_*` settings child processes get (keys
@@ -215,7 +215,8 @@ impl S3 {
         let made = match http.put(format!("{endpoint}/{bucket}")).send().await {
             Ok(r) => r.status().as_u16(),
             Err(e) => {
-                let msg = format!("{test}: no S3-protocol server at {endpoint} ({e}); run `bash scripts/setup.sh`");
+                let msg =
+                    format!("{test}: no S3-protocol server at {endpoint} ({e}); run `bash scripts/setup.sh test`");
                 if std::env::var("LIGHTMAPD_REQUIRE_SERVICES").as_deref() == Ok("1") {
                     panic!("{msg}; LIGHTMAPD_REQUIRE_SERVICES=1 makes this a failure");
                 }

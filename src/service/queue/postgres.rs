@@ -103,11 +103,11 @@ pub fn test_url(test: &str) -> Option<String> {
     }
     if std::env::var(REQUIRE_SERVICES_VAR).is_ok_and(|v| v == "1") {
         panic!(
-            "{test}: {TEST_URL_VAR} is not set and nothing listens on 127.0.0.1:5432, but {REQUIRE_SERVICES_VAR}=1 (run scripts/setup.sh)"
+            "{test}: {TEST_URL_VAR} is not set and nothing listens on 127.0.0.1:5432, but {REQUIRE_SERVICES_VAR}=1 (run `bash scripts/setup.sh test`)"
         );
     }
     eprintln!(
-        "\n==== SKIPPED {test}: PostgreSQL variant: {TEST_URL_VAR} is not set and nothing listens on 127.0.0.1:5432 (run scripts/setup.sh, or export {TEST_URL_VAR}=postgres://…) ====\n"
+        "\n==== SKIPPED {test}: PostgreSQL variant: {TEST_URL_VAR} is not set and nothing listens on 127.0.0.1:5432 (run `bash scripts/setup.sh test`, or export {TEST_URL_VAR}=postgres://…) ====\n"
     );
     None
 }
