@@ -27,11 +27,25 @@ if ! pg_lsclusters -h | awk -v v="$ver" '$1 == v && $2 == "main" && $4 == "onlin
     $SUDO pg_ctlcluster "$ver" main start
 fi
 
-# Wait for it to accept connections (a fresh start takes a moment).
-for _ in $(seq 1 50); do
-    pg_isready -q -h 127.0.0.1 -p 5432 && break
+# The tests expect port 5432. Debian gives a new cluster the next free port when 5432 is
+# taken (e.g. by a cluster that was still shutting down during a reinstall): move it back.
+port=$(pg_lsclusters -h | awk -v v="$ver" '$1 == v && $2 == "main" {print $3}')
+if [ "$port" != 5432 ]; then
+    echo "setup-postgres: cluster $ver/main listens on $port; moving it to 5432" >&2
+    $SUDO pg_conftool "$ver" main set port 5432
+    $SUDO pg_ctlcluster "$ver" main restart
+fi
+
+# Wait for it to accept connections (a fresh start takes a moment); fail loudly if not.
+ready=""
+for _ in $(seq 1 100); do
+    if pg_isready -q -h 127.0.0.1 -p 5432; then ready=1; break; fi
     sleep 0.2
 done
+if [ -z "$ready" ]; then
+    echo "setup-postgres: nothing accepts connections on 127.0.0.1:5432 after 20 s (pg_lsclusters: $(pg_lsclusters -h | tr '\n' ' '))" >&2
+    exit 1
+fi
 
 # psql as the cluster's superuser (peer authentication over the local socket).
 psql_su() {

@@ -108,7 +108,9 @@ use super::sdb::GpuTexelGeom;
 use super::{BakeInputs, EngineError, Technique, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
-use crate::engine::gpu::layout::{bind_group, compute_pipeline, storage_entry, uniform_entry};
+use crate::engine::gpu::layout::{
+    Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, uniform_entry,
+};
 use crate::engine::gpu::{self, GpuContext, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cone_sample, cosine_sample};
@@ -556,26 +558,18 @@ impl Hemicube {
         });
 
         use wgpu::ShaderStages as S;
-        let ro = |b| storage_entry(b, S::COMPUTE, true);
         let rw = |b| storage_entry(b, S::COMPUTE, false);
         // Pyramid.
         let pyr_module = ctx.shader(&shaders::HEMICUBE_PYRAMID).map_err(gpu_error)?;
-        let power_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("hemicube power layout"),
-            entries: &[uniform_entry(0, S::COMPUTE), ro(1), ro(2), rw(3)],
-        });
+        let power_binds = [
+            Bind::Uniform(&params_buf),
+            Bind::Read(&mats_buf),
+            Bind::Read(&irr_buf),
+            Bind::Write(&pyramid_buf),
+        ];
+        let power_layout = layout_of(&ctx, "hemicube power layout", S::COMPUTE, &power_binds);
         let power_pipeline = compute_pipeline(&ctx, "hemicube power", &pyr_module, "power", &power_layout);
-        let power_bg = bind_group(
-            &ctx,
-            "hemicube power bindings",
-            &power_layout,
-            &[
-                (0, params_buf.as_entire_binding()),
-                (1, mats_buf.as_entire_binding()),
-                (2, irr_buf.as_entire_binding()),
-                (3, pyramid_buf.as_entire_binding()),
-            ],
-        );
+        let power_bg = group_of(&ctx, "hemicube power bindings", &power_layout, &power_binds);
         let reduce_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("hemicube reduce layout"),
             entries: &[rw(3), uniform_entry(4, S::COMPUTE)],
@@ -600,22 +594,20 @@ impl Hemicube {
             .collect();
         // Shooter selection.
         let select_module = ctx.shader(&shaders::HEMICUBE_SELECT).map_err(gpu_error)?;
-        let select_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("hemicube select layout"),
-            entries: &[
-                uniform_entry(0, S::COMPUTE),
-                ro(1),
-                ro(2),
-                ro(3),
-                ro(4),
-                ro(5),
-                ro(6),
-                ro(7),
-                rw(8),
-                rw(9),
-                ro(10),
-            ],
-        });
+        let select_binds = [
+            Bind::Uniform(&params_buf),
+            Bind::Read(&mats_buf),
+            Bind::Read(&irr_buf),
+            Bind::Read(&dirs_buf),
+            Bind::Read(&pyramid_buf),
+            Bind::Read(&pixel_texel_buf),
+            Bind::Read(&geom_buf),
+            Bind::Read(&emitters_buf),
+            Bind::Write(&shooters_buf),
+            Bind::Write(&views_buf),
+            Bind::Read(&tiles_buf),
+        ];
+        let select_layout = layout_of(&ctx, "hemicube select layout", S::COMPUTE, &select_binds);
         let select_pipeline = compute_pipeline(
             &ctx,
             "hemicube select",
@@ -623,108 +615,25 @@ impl Hemicube {
             "select_shooters",
             &select_layout,
         );
-        let select_bg = bind_group(
-            &ctx,
-            "hemicube select bindings",
-            &select_layout,
-            &[
-                (0, params_buf.as_entire_binding()),
-                (1, mats_buf.as_entire_binding()),
-                (2, irr_buf.as_entire_binding()),
-                (3, dirs_buf.as_entire_binding()),
-                (4, pyramid_buf.as_entire_binding()),
-                (5, pixel_texel_buf.as_entire_binding()),
-                (6, geom_buf.as_entire_binding()),
-                (7, emitters_buf.as_entire_binding()),
-                (8, shooters_buf.as_entire_binding()),
-                (9, views_buf.as_entire_binding()),
-                (10, tiles_buf.as_entire_binding()),
-            ],
-        );
+        let select_bg = group_of(&ctx, "hemicube select bindings", &select_layout, &select_binds);
         // Depth maps: vpl's plane-storing shadow pass, views from the select pass.
-        let shadow_module = ctx.shader(&shaders::VPL_SHADOW).map_err(gpu_error)?;
-        let shadow_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("hemicube depth-map layout"),
-            entries: &[storage_entry(0, S::VERTEX_FRAGMENT, true)],
-        });
-        let shadow_pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("hemicube depth-map pipeline layout"),
-            bind_group_layouts: &[Some(&shadow_layout)],
-            immediate_size: 0,
-        });
-        let shadow_pipeline = ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("hemicube depth maps"),
-            layout: Some(&shadow_pl),
-            vertex: wgpu::VertexState {
-                module: &shadow_module,
-                entry_point: Some("vs_shadow"),
-                compilation_options: Default::default(),
-                buffers: &[Some(wgpu::VertexBufferLayout {
-                    array_stride: 28,
-                    step_mode: wgpu::VertexStepMode::Vertex,
-                    attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x4],
-                })],
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                // Every face blocks light, single-sided back faces included.
-                cull_mode: None,
-                ..Default::default()
-            },
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: wgpu::TextureFormat::Depth32Float,
-                depth_write_enabled: Some(true),
-                depth_compare: Some(wgpu::CompareFunction::Less),
-                stencil: Default::default(),
-                bias: Default::default(),
-            }),
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shadow_module,
-                entry_point: Some("fs_shadow"),
-                compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: wgpu::TextureFormat::Rgba32Float,
-                    blend: None,
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
-        let shadow_bg = bind_group(
-            &ctx,
-            "hemicube depth-map bindings",
-            &shadow_layout,
-            &[(0, views_buf.as_entire_binding())],
-        );
+        let (shadow_pipeline, shadow_bg) = super::vpl::shadow_pass(&ctx, "hemicube depth maps", &views_buf)?;
         // Transfer and accumulation.
         let transfer_module = ctx.shader(&shaders::HEMICUBE_TRANSFER).map_err(gpu_error)?;
-        let transfer_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("hemicube transfer layout"),
-            entries: &[
-                uniform_entry(0, S::COMPUTE),
-                ro(1),
-                rw(2),
-                rw(3),
-                ro(4),
-                ro(5),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 6,
-                    visibility: S::COMPUTE,
-                    ty: wgpu::BindingType::Texture {
-                        // textureLoad only: Rgba32Float needs no filtering.
-                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-                rw(7),
-                rw(8),
-                ro(9),
-            ],
-        });
+        let transfer_binds = [
+            Bind::Uniform(&params_buf),
+            Bind::Read(&geom_buf),
+            Bind::Write(&irr_buf),
+            Bind::Write(&dirs_buf),
+            Bind::Read(&cpu_light_buf),
+            Bind::Read(&shooters_buf),
+            // textureLoad only: Rgba32Float needs no filtering.
+            Bind::Texture2d(&plane_view),
+            Bind::Write(&acc_buf),
+            Bind::Write(&direct_acc_buf),
+            Bind::Read(&tiles_buf),
+        ];
+        let transfer_layout = layout_of(&ctx, "hemicube transfer layout", S::COMPUTE, &transfer_binds);
         let transfer_pipeline = compute_pipeline(
             &ctx,
             "hemicube transfer",
@@ -732,23 +641,7 @@ impl Hemicube {
             "transfer",
             &transfer_layout,
         );
-        let transfer_bg = bind_group(
-            &ctx,
-            "hemicube transfer bindings",
-            &transfer_layout,
-            &[
-                (0, params_buf.as_entire_binding()),
-                (1, geom_buf.as_entire_binding()),
-                (2, irr_buf.as_entire_binding()),
-                (3, dirs_buf.as_entire_binding()),
-                (4, cpu_light_buf.as_entire_binding()),
-                (5, shooters_buf.as_entire_binding()),
-                (6, wgpu::BindingResource::TextureView(&plane_view)),
-                (7, acc_buf.as_entire_binding()),
-                (8, direct_acc_buf.as_entire_binding()),
-                (9, tiles_buf.as_entire_binding()),
-            ],
-        );
+        let transfer_bg = group_of(&ctx, "hemicube transfer bindings", &transfer_layout, &transfer_binds);
         ctx.take_error("hemicube setup").map_err(gpu_error)?;
 
         let tracer = cpu_light.then(|| Tracer::new(&scene));

@@ -101,7 +101,7 @@ use super::sdb::{DirectionSequence, Directions, GpuTexelGeom, SplitMix64};
 use super::{BakeInputs, EngineError, Technique, parse_params};
 use crate::engine::accumulate::{HalfEstimate, LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
-use crate::engine::gpu::layout::{Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry};
+use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::{self, GpuContext, shaders};
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::raytrace::{Tracer, basis, cone_sample, cosine_sample, inset};
@@ -349,6 +349,73 @@ fn surface_hit(scene: &Scene, tracer: &Tracer, origin: Vec3, dir: Vec3, tmax: f3
 // The technique
 // ---------------------------------------------------------------------------------------
 
+/// The plane-storing shadow-map pass (`shaders/vpl_shadow.wgsl`): a render pipeline that
+/// draws the scene into one tile of an Rgba32Float + Depth32Float atlas per view (each
+/// pixel keeps the plane of the nearest surface, both faces of every triangle drawn),
+/// and its bind group on `views` (each view's matrix and tile). `hemicube` draws its
+/// hemicube faces with the same pass.
+pub(crate) fn shadow_pass(
+    ctx: &GpuContext,
+    label: &str,
+    views: &wgpu::Buffer,
+) -> Result<(wgpu::RenderPipeline, wgpu::BindGroup), EngineError> {
+    let module = ctx.shader(&shaders::VPL_SHADOW).map_err(gpu_error)?;
+    let binds = [Bind::Read(views)];
+    let layout = layout_of(
+        ctx,
+        &format!("{label} layout"),
+        wgpu::ShaderStages::VERTEX_FRAGMENT,
+        &binds,
+    );
+    let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(&format!("{label} pipeline layout")),
+        bind_group_layouts: &[Some(&layout)],
+        immediate_size: 0,
+    });
+    let pipeline = ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout: Some(&pl),
+        vertex: wgpu::VertexState {
+            module: &module,
+            entry_point: Some("vs_shadow"),
+            compilation_options: Default::default(),
+            buffers: &[Some(wgpu::VertexBufferLayout {
+                array_stride: 28,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x4],
+            })],
+        },
+        primitive: wgpu::PrimitiveState {
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            // Every face blocks light, single-sided back faces included.
+            cull_mode: None,
+            ..Default::default()
+        },
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: wgpu::TextureFormat::Depth32Float,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::Less),
+            stencil: Default::default(),
+            bias: Default::default(),
+        }),
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: &module,
+            entry_point: Some("fs_shadow"),
+            compilation_options: Default::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format: wgpu::TextureFormat::Rgba32Float,
+                blend: None,
+                write_mask: wgpu::ColorWrites::ALL,
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    });
+    let bg = group_of(ctx, &format!("{label} bindings"), &layout, &binds);
+    Ok((pipeline, bg))
+}
+
 pub struct Vpl {
     ctx: Arc<GpuContext>,
     params: VplParams,
@@ -571,62 +638,7 @@ impl Vpl {
         });
 
         use wgpu::ShaderStages as S;
-        let shadow_module = ctx.shader(&shaders::VPL_SHADOW).map_err(gpu_error)?;
-        let shadow_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("vpl shadow layout"),
-            entries: &[storage_entry(0, S::VERTEX_FRAGMENT, true)],
-        });
-        let shadow_pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("vpl shadow pipeline layout"),
-            bind_group_layouts: &[Some(&shadow_layout)],
-            immediate_size: 0,
-        });
-        let shadow_pipeline = ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("vpl shadow maps"),
-            layout: Some(&shadow_pl),
-            vertex: wgpu::VertexState {
-                module: &shadow_module,
-                entry_point: Some("vs_shadow"),
-                compilation_options: Default::default(),
-                buffers: &[Some(wgpu::VertexBufferLayout {
-                    array_stride: 28,
-                    step_mode: wgpu::VertexStepMode::Vertex,
-                    attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x4],
-                })],
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                // Every face blocks light, single-sided back faces included.
-                cull_mode: None,
-                ..Default::default()
-            },
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: wgpu::TextureFormat::Depth32Float,
-                depth_write_enabled: Some(true),
-                depth_compare: Some(wgpu::CompareFunction::Less),
-                stencil: Default::default(),
-                bias: Default::default(),
-            }),
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shadow_module,
-                entry_point: Some("fs_shadow"),
-                compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format: wgpu::TextureFormat::Rgba32Float,
-                    blend: None,
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
-        let shadow_bg = bind_group(
-            &ctx,
-            "vpl shadow bindings",
-            &shadow_layout,
-            &[(0, views_buf.as_entire_binding())],
-        );
+        let (shadow_pipeline, shadow_bg) = shadow_pass(&ctx, "vpl shadow", &views_buf)?;
         let gather_module = ctx.shader(&shaders::VPL_GATHER).map_err(gpu_error)?;
         let gather_binds = [
             Bind::Uniform(&gather_buf),
