@@ -35,6 +35,33 @@ pub struct Snapshot {
     pub odd: HalfEstimate,
 }
 
+impl Snapshot {
+    /// The two halves from GPU accumulators read back as one buffer of 2n texels (the
+    /// even half first, then the odd), rgb of each `[f32; 4]` (the fourth lane is the
+    /// shader's own); `direct` likewise when kept. No directional moments.
+    pub fn from_gpu_halves(acc: &[[f32; 4]], direct: Option<&[[f32; 4]]>, half_steps: [u64; 2]) -> Snapshot {
+        let n = acc.len() / 2;
+        let half = |h: usize| {
+            let pick = |v: &[[f32; 4]]| -> Vec<Vec3> {
+                v[h * n..(h + 1) * n]
+                    .iter()
+                    .map(|a| Vec3::new(a[0], a[1], a[2]))
+                    .collect()
+            };
+            HalfEstimate {
+                steps: half_steps[h],
+                total: pick(acc),
+                direct: direct.map(pick),
+                moments: None,
+            }
+        };
+        Snapshot {
+            even: half(0),
+            odd: half(1),
+        }
+    }
+}
+
 /// The combined estimate with its error.
 #[derive(Clone, Debug)]
 pub struct Estimate {

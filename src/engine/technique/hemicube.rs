@@ -106,7 +106,7 @@ use serde::{Deserialize, Serialize};
 
 use super::sdb::GpuTexelGeom;
 use super::{BakeInputs, EngineError, Technique, gpu_error, parse_params};
-use crate::engine::accumulate::{HalfEstimate, LUMINANCE, Snapshot};
+use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::gpu::layout::{
     Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, uniform_entry,
@@ -983,25 +983,8 @@ impl Technique for Hemicube {
         } else {
             None
         };
-        let half = |h: usize| {
-            let pick = |v: &[[f32; 4]]| -> Vec<Vec3> {
-                v[h * n..(h + 1) * n]
-                    .iter()
-                    .map(|a| Vec3::new(a[0], a[1], a[2]))
-                    .collect()
-            };
-            HalfEstimate {
-                steps: self.half_steps[h],
-                total: pick(&acc),
-                direct: direct.as_deref().map(pick),
-                // No directional layer: the plan lists it as left out.
-                moments: None,
-            }
-        };
-        Ok(Snapshot {
-            even: half(0),
-            odd: half(1),
-        })
+        // No directional layer: the plan lists it as left out.
+        Ok(Snapshot::from_gpu_halves(&acc, direct.as_deref(), self.half_steps))
     }
 
     fn accumulating_pass(&self) -> &'static str {

@@ -99,7 +99,7 @@ use serde::{Deserialize, Serialize};
 use super::gpu_error;
 use super::sdb::{DirectionSequence, Directions, GpuTexelGeom, SplitMix64};
 use super::{BakeInputs, EngineError, Technique, parse_params};
-use crate::engine::accumulate::{HalfEstimate, LUMINANCE, Snapshot};
+use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::{self, GpuContext, shaders};
@@ -1163,25 +1163,8 @@ impl Technique for Vpl {
         } else {
             None
         };
-        let half = |h: usize| {
-            let pick = |v: &[[f32; 4]]| -> Vec<Vec3> {
-                v[h * n..(h + 1) * n]
-                    .iter()
-                    .map(|a| Vec3::new(a[0], a[1], a[2]))
-                    .collect()
-            };
-            HalfEstimate {
-                steps: self.half_steps[h],
-                total: pick(&acc),
-                direct: direct.as_deref().map(pick),
-                // No directional layer: the plan lists it as left out.
-                moments: None,
-            }
-        };
-        Ok(Snapshot {
-            even: half(0),
-            odd: half(1),
-        })
+        // No directional layer: the plan lists it as left out.
+        Ok(Snapshot::from_gpu_halves(&acc, direct.as_deref(), self.half_steps))
     }
 
     fn accumulating_pass(&self) -> &'static str {
