@@ -77,7 +77,7 @@ fn main() {
                 lighting,
                 ..Default::default()
             };
-            let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");
+            let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
             let inputs = BakeInputs {
                 scene: scene.clone(),
                 atlas: atlas.clone(),

@@ -62,7 +62,7 @@ fn inputs(scene: &Arc<Scene>, atlas: &Arc<Atlas>) -> BakeInputs {
         lighting: lighting(),
         seed: 1,
         want_direct: false,
-        plan: lightmapd::engine::plan::build(scene, &request).expect("plan"),
+        plan: lightmapd::engine::job::plan_for(scene, &request).expect("plan"),
     }
 }
 

@@ -65,7 +65,7 @@ fn bake(scene: &Arc<Scene>, atlas: &Arc<Atlas>, technique: &str, params: serde_j
         lighting,
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(scene, &request).expect("plan");
+    let plan = lightmapd::engine::job::plan_for(scene, &request).expect("plan");
     let inputs = BakeInputs {
         scene: scene.clone(),
         atlas: atlas.clone(),

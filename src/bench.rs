@@ -110,7 +110,7 @@ fn inputs(p: &PreparedScene, lib: &LibraryScene, technique: &str, seed: u64) -> 
         seed,
         ..Default::default()
     };
-    let plan = crate::engine::plan::build(&p.scene, &request)?;
+    let plan = crate::engine::job::plan_for(&p.scene, &request)?;
     Ok(BakeInputs {
         scene: p.scene.clone(),
         atlas: p.atlas.clone(),
@@ -256,9 +256,7 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
         }
     }
     for t in &cfg.techniques {
-        if !technique::TECHNIQUES.contains(&t.as_str()) {
-            return Err(EngineError::BadInput(format!("unknown technique {t:?}")));
-        }
+        technique::entry(t)?;
     }
     let io = |e: std::io::Error| EngineError::Internal(format!("writing bench results: {e}"));
     std::fs::create_dir_all(&cfg.out_dir).map_err(io)?;

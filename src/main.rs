@@ -19,7 +19,6 @@ use lightmapd::engine::bake::{BakeEvent, StopCriteria};
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::{OutputLayer, write_atomically};
 use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
-use lightmapd::engine::technique::TECHNIQUES;
 use lightmapd::engine::technique::obscurance::{ObscuranceState, UpdateReach};
 use lightmapd::service;
 use lightmapd::service::store::StoreUrl;
@@ -660,13 +659,7 @@ fn token(args: TokenArgs) -> Result<(), Failure> {
 }
 
 fn bake(args: BakeArgs) -> Result<(), Failure> {
-    if !TECHNIQUES.contains(&args.technique.as_str()) {
-        return Err(bad_input(format!(
-            "unknown technique {:?}; available: {}",
-            args.technique,
-            TECHNIQUES.join(", ")
-        )));
-    }
+    lightmapd::engine::technique::entry(&args.technique).map_err(|e| bad_input(e.to_string()))?;
     let params = match &args.params {
         Some(p) => serde_json::from_str(p).map_err(|e| bad_input(format!("--params is not JSON: {e}")))?,
         None => serde_json::Value::Null,

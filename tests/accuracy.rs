@@ -31,7 +31,7 @@ fn track(scene_name: &str) {
         lighting: lib.lighting,
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&p.scene, &request).unwrap();
+    let plan = lightmapd::engine::job::plan_for(&p.scene, &request).unwrap();
     let inputs = BakeInputs {
         scene: p.scene.clone(),
         atlas: p.atlas.clone(),
@@ -84,7 +84,7 @@ fn denoising_lowers_true_error() {
             lighting: lib.lighting,
             ..Default::default()
         };
-        let plan = lightmapd::engine::plan::build(&p.scene, &request).unwrap();
+        let plan = lightmapd::engine::job::plan_for(&p.scene, &request).unwrap();
         let inputs = BakeInputs {
             scene: p.scene.clone(),
             atlas: p.atlas.clone(),

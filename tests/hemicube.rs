@@ -323,7 +323,7 @@ fn glossy_floor_reflects_the_lamp_onto_the_wall_as_its_lobe_predicts() {
 #[test]
 fn plan_names_the_variant_and_the_lights() {
     let scene = import(&cornell_box());
-    let plan = lightmapd::engine::plan::build(
+    let plan = lightmapd::engine::job::plan_for(
         &scene,
         &BakeRequest {
             technique: "hemicube".into(),
@@ -341,7 +341,7 @@ fn plan_names_the_variant_and_the_lights() {
         color: [1.0; 3],
         intensity: 10.0,
     });
-    let plan = lightmapd::engine::plan::build(
+    let plan = lightmapd::engine::job::plan_for(
         &import(&b),
         &BakeRequest {
             technique: "hemicube".into(),
@@ -424,7 +424,7 @@ fn ms_per_step(
         lighting,
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
     let inputs = BakeInputs {
         scene,
         atlas: atlas.clone(),

@@ -48,7 +48,7 @@ fn mutated_glb_files_never_panic() {
                 validate::validate(&scene, &mut atlas);
                 let scene = Arc::new(scene);
                 let request = BakeRequest::default();
-                let plan = lightmapd::engine::plan::build(&scene, &request).unwrap();
+                let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
                 let inputs = BakeInputs {
                     scene,
                     atlas: Arc::new(atlas),

@@ -53,7 +53,7 @@ fn inputs(scene: Arc<Scene>, atlas: Arc<Atlas>, lighting: Lighting, seed: u64) -
         outputs: vec![OutputLayer::Direct, OutputLayer::Ao],
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
     BakeInputs {
         scene,
         atlas,

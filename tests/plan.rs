@@ -25,7 +25,7 @@ fn plan_for(request: &BakeRequest, with_light: bool) -> Plan {
         });
     }
     let scene = import_slice(&b.to_glb(), None).unwrap().0;
-    plan::build(&scene, request).unwrap()
+    lightmapd::engine::job::plan_for(&scene, request).unwrap()
 }
 
 #[test]
@@ -113,7 +113,7 @@ fn unknown_technique_is_refused_before_any_work() {
         ..Default::default()
     };
     let scene = import_slice(&cornell_box().to_glb(), None).unwrap().0;
-    let err = plan::build(&scene, &request).unwrap_err();
+    let err = lightmapd::engine::job::plan_for(&scene, &request).unwrap_err();
     assert!(err.is_bad_input());
     assert!(err.to_string().starts_with("unknown technique \"radiosity9000\""));
 }

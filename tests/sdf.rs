@@ -125,7 +125,7 @@ fn prepare(scene: Scene, atlas: Arc<Atlas>, params: serde_json::Value) -> Sdf {
         lighting,
         ..Default::default()
     };
-    let plan = plan::build(&scene, &request).expect("plan");
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
     let inputs = BakeInputs {
         scene,
         atlas,
@@ -245,7 +245,7 @@ fn no_sky_is_zero_and_the_plan_names_what_is_not_baked() {
         technique: "sdf".into(),
         ..Default::default()
     };
-    let p = plan::build(&scene, &request).unwrap();
+    let p = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
     assert!(
         p.left_out
             .iter()
@@ -307,7 +307,7 @@ fn timings_for_the_docs() {
             lighting: s.lighting,
             seed: 1,
             want_direct: false,
-            plan: plan::build(&scene, &request).unwrap(),
+            plan: lightmapd::engine::job::plan_for(&scene, &request).unwrap(),
         };
         let t = std::time::Instant::now();
         let mut sdf = Sdf::prepare(inputs, &json!({})).unwrap();

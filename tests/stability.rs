@@ -370,7 +370,7 @@ pub fn no_light_at_all(row: &Row) {
         technique: row.technique.into(),
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&scene, &request).unwrap();
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
     assert!(plan.left_out.iter().any(|p| p.name == "light"), "{plan:?}");
 }
 

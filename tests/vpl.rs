@@ -448,7 +448,7 @@ fn plan_lists_what_the_scene_needs() {
         technique: "vpl".into(),
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&scene, &request).unwrap();
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
     assert!(plan.runs("emitter sampling") && plan.runs("VPL shadow maps") && plan.runs("gather"));
     for absent in [
         "cube RSMs + cube shadow maps (point and spot lights)",
@@ -466,7 +466,7 @@ fn plan_lists_what_the_scene_needs() {
         color: [1.0; 3],
         intensity: 1.0,
     });
-    let plan = lightmapd::engine::plan::build(&import(&b), &request).unwrap();
+    let plan = lightmapd::engine::job::plan_for(&import(&b), &request).unwrap();
     assert!(plan.runs("cube RSMs + cube shadow maps (point and spot lights)"));
     assert!(plan.left_out.iter().any(|p| p.name == "emitter sampling"));
 }
@@ -538,7 +538,7 @@ fn ms_per_step(scene: Scene, res: u32, lighting: Lighting, params: serde_json::V
         lighting,
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
     let inputs = BakeInputs {
         scene,
         atlas: atlas.clone(),

@@ -14,7 +14,8 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 use crate::engine::accumulate::Estimate;
-use crate::engine::technique::{EngineError, Technique};
+use crate::engine::error::EngineError;
+use crate::engine::technique::api::Technique;
 
 /// A target error is not trusted before this many steps: with few steps per half the
 /// half-difference is itself too noisy, and a lucky early estimate could stop a bake

@@ -24,6 +24,15 @@ use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateRe
 use crate::engine::technique::{self, BakeInputs, EngineError, Technique};
 
 /// What to bake, independent of where the scene came from.
+
+/// The plan for `request` on `scene` (DESIGN §6): the scene's features read off, then the
+/// technique's own `plan()` through the technique table; an unknown technique is a
+/// bad-input error.
+pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineError> {
+    let features = crate::engine::plan::SceneFeatures::of(scene, &request.lighting, &request.outputs);
+    technique::plan(&request.technique, &features)
+}
+
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct BakeRequest {
     pub technique: String,
@@ -160,7 +169,7 @@ fn bake_impl(
 ) -> Result<(BakeResult, Option<ObscuranceState>), EngineError> {
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
-    let plan = crate::engine::plan::build(&scene, request)?;
+    let plan = plan_for(&scene, request)?;
     on_plan(&plan);
     let (scene, unwrap) = if scene.needs_lightmap_uvs {
         let mut generated = (*scene).clone();

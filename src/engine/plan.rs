@@ -3,7 +3,9 @@
 //! How: [`SceneFeatures`] reads off the scene and the job what light and material data
 //! exist (punctual lights, emitters, sky, sun, glossy materials, textures, layers asked
 //! for); each technique turns those into its [`Plan`] in its own module (`plan()` next
-//! to the technique, so a reader finds a technique's passes in one place). A technique
+//! to the technique, so a reader finds a technique's passes in one place; the technique
+//! table dispatches, and `job::plan_for` is the entry point for a job, so this module
+//! depends on no technique and no job). A technique
 //! creates only the passes, buffers and shader variants its plan lists; everything it
 //! leaves out is listed with the reason, and the plan is shown in `bake`'s summary and
 //! in a job's status. A technique that cannot handle something the scene has (a light
@@ -11,10 +13,8 @@
 
 use serde::Serialize;
 
-use crate::engine::job::BakeRequest;
 use crate::engine::output::OutputLayer;
 use crate::engine::scene::{Lighting, Scene};
-use crate::engine::technique::{self, EngineError};
 
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct PlanItem {
@@ -153,10 +153,4 @@ impl SceneFeatures {
     pub fn has_light(&self) -> bool {
         self.punctual_lights > 0 || self.emissive_triangles > 0 || self.sky || self.sun
     }
-}
-
-/// The plan for `request` on `scene`; an unknown technique is a bad-input error.
-pub fn build(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineError> {
-    let features = SceneFeatures::of(scene, &request.lighting, &request.outputs);
-    technique::plan(&request.technique, &features)
 }

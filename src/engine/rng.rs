@@ -3,7 +3,7 @@
 //!
 //! How: the key is folded through SplitMix64 into the state of a PCG32 (XSH-RR)
 //! generator (O'Neill 2014). Written here rather than taken from `rand_pcg` because the
-//! GPU techniques hash the same way in WGSL (`shaders/common.wgsl`), and the two sides
+//! GPU techniques hash the same way in WGSL (`shaders/gpu/common.wgsl`), and the two sides
 //! must be documented together; it is a dozen lines.
 //!
 //! Limits: 2^64 period per stream, far beyond any path length; floats have 24 random bits.

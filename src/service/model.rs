@@ -23,7 +23,7 @@ use crate::engine::bake::StopCriteria;
 use crate::engine::job::BakeRequest;
 use crate::engine::output::OutputLayer;
 use crate::engine::scene::{Hemisphere, Lighting, Sky, Sun};
-use crate::engine::technique::TECHNIQUES;
+use crate::engine::technique;
 use crate::service::Limits;
 use crate::service::problem::Problem;
 
@@ -182,15 +182,8 @@ impl JobSpec {
         if self.scene.trim().is_empty() {
             return Err(Problem::invalid_field("scene", "scene must be a scene id"));
         }
-        if !TECHNIQUES.contains(&self.technique.as_str()) {
-            return Err(Problem::invalid_field(
-                "technique",
-                format!(
-                    "unknown technique {:?}; available: {}",
-                    self.technique,
-                    TECHNIQUES.join(", ")
-                ),
-            ));
+        if let Err(e) = technique::entry(&self.technique) {
+            return Err(Problem::invalid_field("technique", e.to_string()));
         }
         let max_res = limits.max_resolution.min(crate::engine::atlas::MAX_RESOLUTION);
         if !(1..=max_res).contains(&self.resolution) {

@@ -36,7 +36,7 @@ pub fn bake(
         ],
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&scene, &request).expect("plan");
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
     let inputs = BakeInputs {
         scene,
         atlas: atlas.clone(),

@@ -23,6 +23,7 @@
 //! texel whose sample point lies inside closed geometry is still valid here (techniques
 //! see back faces from it).
 
+pub mod seams;
 pub mod unwrap;
 pub mod validate;
 
@@ -86,7 +87,7 @@ pub struct Atlas {
     /// The validation report, once `validate::validate` has run.
     pub validation: Option<validate::ValidationReport>,
     /// Sample pairs along UV seams, for `post::seams::stitch`.
-    pub seams: Vec<crate::engine::post::seams::SeamSample>,
+    pub seams: Vec<seams::SeamSample>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -240,7 +241,7 @@ impl Atlas {
             inside_pixels: Vec::new(),
             validation: None,
             surface_offset: offset,
-            seams: crate::engine::post::seams::find_seams(scene, width, height),
+            seams: seams::find_seams(scene, width, height),
         })
     }
 

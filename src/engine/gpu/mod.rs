@@ -21,13 +21,20 @@
 //! [`GpuContext::take_error`] turns it into an error for the bake step that caused it.
 //!
 //! Precision and randomness are the techniques' business; see their module docs and
-//! `shaders/common.wgsl`.
+//! `shaders/gpu/common.wgsl`.
 //!
 //! Readback ([`GpuContext::read_buffer`]) blocks on the device and is meant for
 //! snapshots only, never once per step.
 
+pub mod directions;
+pub mod frame;
+pub mod halves;
 pub mod layout;
+pub mod map_scene;
 pub mod shaders;
+pub mod shadow;
+pub mod texels;
+pub mod view;
 
 use std::sync::{Arc, Mutex};
 
@@ -380,6 +387,23 @@ impl GpuContext {
         )
     }
 
+    /// Whether one storage binding of `bytes` fits this device; `what` names the buffer's
+    /// owner and content for the error (e.g. "vpl: 40000 texels' accumulators"). Every
+    /// technique checks its per-texel buffers with this before creating them, so a too
+    /// large lightmap is a clear bad-input error instead of a wgpu validation panic.
+    pub fn check_storage(&self, what: &str, bytes: u64) -> Result<(), GpuError> {
+        let limit = self.limits.max_storage_buffer_binding_size;
+        if bytes > limit {
+            return Err(GpuError::Unsupported {
+                adapter: self.info.name.clone(),
+                missing: format!(
+                    "{what} needs {bytes} bytes in one storage buffer; the device allows {limit}: lower the resolution"
+                ),
+            });
+        }
+        Ok(())
+    }
+
     /// Copy `count` elements of `T` from the start of `buffer` (which needs COPY_SRC) to
     /// the host. Submits, then blocks until the GPU is done: snapshot time only.
     pub fn read_buffer<T: Pod>(&self, label: &str, buffer: &wgpu::Buffer, count: usize) -> Result<Vec<T>, GpuError> {
@@ -441,7 +465,7 @@ impl GpuContext {
 }
 
 /// Workgroup counts for a 64-wide 1D kernel over `n` items, laid out in 2D because one
-/// dimension is capped at 65535 workgroups (`invocation_index` in common.wgsl undoes it).
+/// dimension is capped at 65535 workgroups (`invocation_index` in gpu/common.wgsl undoes it).
 pub fn dispatch_size_64(n: u32) -> (u32, u32) {
     let groups = n.div_ceil(64).max(1);
     if groups <= 65535 {

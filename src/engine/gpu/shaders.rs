@@ -1,101 +1,107 @@
-//! WGSL sources, compiled into the binary.
+//! WGSL sources, compiled into the binary, and their composition.
 //!
-//! Every pass lives in its own file under `shaders/`; helpers and layouts that several
-//! passes share live in `shaders/common.wgsl`, which is concatenated in front of each pass
-//! (WGSL has no include directive). [`ALL`] lists every pass so that the validation test
-//! (below, no GPU needed) cannot forget one.
+//! Layout (docs/architecture.md): every pass lives in its own file, `shaders/<id>/` for the
+//! passes of technique `<id>` and `shaders/gpu/` for the WGSL that several techniques
+//! share. WGSL has no include directive, so a pass is compiled as a concatenation:
+//! [`COMMON`] (randomness, the orthographic map views, the per-texel and per-triangle
+//! layouts that every pass uses), then the pass's own preludes (for example the shadow
+//! atlas's view layout, or a technique's own shared structs), then the pass.
+//!
+//! A technique names its passes with [`pass!`] in its own folder (the technique table
+//! lists them); the passes of the shared GPU layer are below ([`SHADOW_ATLAS`]). The
+//! validation test that walks `shaders/` lives beside the technique table
+//! (`technique/table.rs`), because only the table knows every pass; [`validate_wgsl`]
+//! is here so that it needs no device.
 
-/// Shared helpers: PCG hash, view layout, per-texel and per-triangle structs.
-pub const COMMON: &str = include_str!("../../../shaders/common.wgsl");
-
-/// One WGSL pass file.
+/// One WGSL file under `shaders/`.
 #[derive(Debug, Clone, Copy)]
-pub struct PassShader {
-    /// File name under `shaders/`, also the label of the shader module.
+pub struct WgslFile {
+    /// Path under `shaders/` (e.g. `gpu/common.wgsl`).
     pub name: &'static str,
-    /// The pass source, without the common prelude.
     pub source: &'static str,
 }
 
+/// One WGSL pass file and the preludes it needs besides [`COMMON`].
+#[derive(Debug, Clone, Copy)]
+pub struct PassShader {
+    /// Path under `shaders/`, also the label of the shader module.
+    pub name: &'static str,
+    /// The pass source, without any prelude.
+    pub source: &'static str,
+    /// Prepended after [`COMMON`], in this order.
+    pub preludes: &'static [WgslFile],
+}
+
+/// Includes `shaders/$name` as a [`WgslFile`].
+#[macro_export]
+macro_rules! wgsl_file {
+    ($name:literal) => {
+        $crate::engine::gpu::shaders::WgslFile {
+            name: $name,
+            source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/", $name)),
+        }
+    };
+}
+
+/// Includes `shaders/$name` as a [`PassShader`], with optional preludes.
+#[macro_export]
+macro_rules! pass_shader {
+    ($name:literal) => {
+        $crate::pass_shader!($name, [])
+    };
+    ($name:literal, [$($prelude:expr),*]) => {
+        $crate::engine::gpu::shaders::PassShader {
+            name: $name,
+            source: include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders/", $name)),
+            preludes: &[$($prelude),*],
+        }
+    };
+}
+pub use crate::{pass_shader as pass, wgsl_file};
+
+/// Shared by every pass: PCG hash, view layout, per-texel and per-triangle structs.
+pub const COMMON_FILE: WgslFile = wgsl_file!("gpu/common.wgsl");
+pub const COMMON: &str = COMMON_FILE.source;
+
+/// The layout of one map of the shared shadow atlas ([`crate::engine::gpu::shadow`]):
+/// prelude of every pass that renders or reads the atlas.
+pub const SHADOW_VIEW: WgslFile = wgsl_file!("gpu/shadow_view.wgsl");
+
+/// The shared shadow atlas: cube faces and orthographic maps of one step in one render
+/// pass (used by `vpl` for lights and VPLs, `hemicube` for its shooters).
+pub const SHADOW_ATLAS: PassShader = pass!("gpu/shadow_atlas.wgsl", [SHADOW_VIEW]);
+
+/// The passes of the shared GPU layer (the technique table adds every technique's).
+pub const SHARED_PASSES: &[PassShader] = &[SHADOW_ATLAS];
+
 impl PassShader {
-    /// The full source handed to the compiler: common prelude, then the pass.
+    /// The full source handed to the compiler: common prelude, the pass's preludes, then
+    /// the pass.
     pub fn composed(&self) -> String {
-        let mut s = String::with_capacity(COMMON.len() + self.source.len() + 64);
+        let mut s = String::with_capacity(
+            COMMON.len() + self.preludes.iter().map(|p| p.source.len() + 64).sum::<usize>() + self.source.len() + 64,
+        );
         s.push_str(COMMON);
+        for p in self.preludes {
+            s.push_str("\n// ---- ");
+            s.push_str(p.name);
+            s.push_str(" ----\n");
+            s.push_str(p.source);
+        }
         s.push_str("\n// ---- ");
         s.push_str(self.name);
         s.push_str(" ----\n");
         s.push_str(self.source);
         s
     }
+
+    /// Every file this pass is composed of, [`COMMON`] first.
+    pub fn files(&self) -> impl Iterator<Item = &'static str> + '_ {
+        std::iter::once(COMMON_FILE.name)
+            .chain(self.preludes.iter().map(|p| p.name))
+            .chain(std::iter::once(self.name))
+    }
 }
-
-macro_rules! pass {
-    ($name:literal) => {
-        PassShader {
-            name: $name,
-            source: include_str!(concat!("../../../shaders/", $name)),
-        }
-    };
-}
-
-/// `sdb`: outgoing radiance of every lightmap pixel from the running estimate.
-pub const SDB_RESOLVE: PassShader = pass!("sdb_resolve.wgsl");
-/// `sdb`: the illumination map (stochastic depth) and the shadow maps (nearest depth).
-pub const SDB_ILLUMINATION: PassShader = pass!("sdb_illumination.wgsl");
-/// `sdb`: gather one direction into the lightmap accumulators.
-pub const SDB_GATHER: PassShader = pass!("sdb_gather.wgsl");
-/// `sdb`: direct light from the sun and directional lights through a shadow map.
-pub const SDB_DIRECT: PassShader = pass!("sdb_direct.wgsl");
-
-/// `vpl`: the step's shadow maps (cube faces and orthographic maps) in one atlas.
-pub const VPL_SHADOW: PassShader = pass!("vpl_shadow.wgsl");
-/// `vpl`: gather the step's lights and VPLs into the lightmap accumulators.
-pub const VPL_GATHER: PassShader = pass!("vpl_gather.wgsl");
-/// `obscurance`: every depth layer per pixel as fragment lists, and shadow maps.
-pub const OBSCURANCE_LAYERS: PassShader = pass!("obscurance_layers.wgsl");
-/// `obscurance`: obscurance, colour bleeding and direct light along one direction.
-pub const OBSCURANCE_GATHER: PassShader = pass!("obscurance_gather.wgsl");
-/// `obscurance`: direct light from the sun and directional lights through a shadow map.
-pub const OBSCURANCE_DIRECT: PassShader = pass!("obscurance_direct.wgsl");
-/// `sdf`: seed the voxels each triangle touches.
-pub const SDF_VOXELIZE: PassShader = pass!("sdf_voxelize.wgsl");
-/// `sdf`: jump flooding and the signed distance of the nearest seed triangle.
-pub const SDF_FLOOD: PassShader = pass!("sdf_flood.wgsl");
-/// `sdf`: analytic dynamic shapes composited into the volume with min.
-pub const SDF_DYNAMIC: PassShader = pass!("sdf_dynamic.wgsl");
-/// `sdf`: the pre-blurred mip chain.
-pub const SDF_MIPS: PassShader = pass!("sdf_mips.wgsl");
-/// `sdf`: sky visibility along the bent normal, and the calibration sums.
-pub const SDF_SKY: PassShader = pass!("sdf_sky.wgsl");
-
-/// `hemicube`: the power pyramid (level 0 and the 2 x 2 sums).
-pub const HEMICUBE_PYRAMID: PassShader = pass!("hemicube_pyramid.wgsl");
-/// `hemicube`: the step's shooters (pyramid descent, texel merging) and their views.
-pub const HEMICUBE_SELECT: PassShader = pass!("hemicube_select.wgsl");
-/// `hemicube`: every receiver takes the shooters' light; the half accumulators.
-pub const HEMICUBE_TRANSFER: PassShader = pass!("hemicube_transfer.wgsl");
-
-/// Every pass shader in the crate.
-pub const ALL: &[PassShader] = &[
-    SDB_RESOLVE,
-    SDB_ILLUMINATION,
-    SDB_GATHER,
-    SDB_DIRECT,
-    VPL_SHADOW,
-    VPL_GATHER,
-    OBSCURANCE_LAYERS,
-    OBSCURANCE_GATHER,
-    OBSCURANCE_DIRECT,
-    SDF_VOXELIZE,
-    SDF_FLOOD,
-    SDF_DYNAMIC,
-    SDF_MIPS,
-    SDF_SKY,
-    HEMICUBE_PYRAMID,
-    HEMICUBE_SELECT,
-    HEMICUBE_TRANSFER,
-];
 
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the
 /// diagnostic text on failure. The same checks run again inside wgpu at
@@ -117,37 +123,20 @@ mod tests {
     use super::*;
 
     #[test]
-    fn every_wgsl_pass_parses_and_validates_without_a_device() {
-        let mut failures = Vec::new();
-        for pass in ALL {
-            if let Err(e) = validate_wgsl(pass.name, &pass.composed()) {
-                failures.push(e);
-            }
-        }
-        assert!(failures.is_empty(), "WGSL validation failed:\n{}", failures.join("\n"));
-    }
-
-    #[test]
-    fn every_shader_file_is_listed() {
-        // A new file in shaders/ that is not in ALL would escape the validation test.
-        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/shaders");
-        let mut on_disk: Vec<String> = std::fs::read_dir(dir)
-            .expect("shaders/ exists")
-            .filter_map(|e| e.ok()?.file_name().into_string().ok())
-            .filter(|n| n.ends_with(".wgsl") && n != "common.wgsl")
-            .collect();
-        on_disk.sort();
-        let mut listed: Vec<String> = ALL.iter().map(|p| p.name.to_string()).collect();
-        listed.sort();
-        assert_eq!(on_disk, listed);
-    }
-
-    #[test]
     fn validation_rejects_a_broken_shader() {
         // The validator must actually catch errors: a type mismatch naga parses but
         // rejects, and a syntax error.
         let bad = format!("{COMMON}\nfn f() -> f32 {{ return pcg(1u); }}");
         assert!(validate_wgsl("bad.wgsl", &bad).is_err());
         assert!(validate_wgsl("bad2.wgsl", "fn f( {").is_err());
+    }
+
+    #[test]
+    fn shared_passes_validate() {
+        for pass in SHARED_PASSES {
+            if let Err(e) = validate_wgsl(pass.name, &pass.composed()) {
+                panic!("{e}");
+            }
+        }
     }
 }

@@ -1,0 +1,54 @@
+// shadow_atlas.wgsl: the shared shadow-map atlas (src/engine/gpu/shadow.rs): the maps of one
+// step, all in one atlas (one render pass, one draw per map, its viewport and scissor set to the
+// map's tile on the CPU). Used by vpl (lights and VPLs) and hemicube (its shooters' depth maps).
+//
+// A map ("shadow view") is either a perspective face of a cube around a point (a VPL:
+// five faces, the one behind its surface is never needed; a point or spot light: six) or
+// an orthographic map along a distant light's direction (sun, directional light, one
+// sampled sky direction). The vertex shader reads its view from the instance index (the
+// draw's first instance is the view's index), so one vertex buffer serves every map.
+// The target is Rgba32Float and holds the *plane* of the nearest surface: its unit
+// geometric normal n and offset c = <n, p> (flat per triangle), not its distance.
+// vpl/gather.wgsl then asks whether the light and the receiver lie on opposite sides of
+// that plane, which is exact for a receiver behind the surface however thin the surface
+// is and however far it is from the light (a distance compare needs a bias of a fraction
+// of a pixel's footprint, centimetres for a distant wall, and leaked through 1 mm walls
+// here). Every face of every triangle is drawn (no culling): single-sided back faces are
+// black but still block light. Depth32Float orders the fragments.
+
+@group(0) @binding(0) var<storage, read> views: array<ShadowView>;
+
+struct ShadowVsOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) @interpolate(flat) plane: vec4<f32>,
+}
+
+@vertex
+fn vs_shadow(
+    @location(0) position: vec3<f32>,
+    @location(1) plane: vec4<f32>,  // the triangle's unit normal and <n, p>, same at its three corners
+    @builtin(instance_index) view_index: u32,
+) -> ShadowVsOut {
+    let v = views[view_index];
+    let q = position - v.origin.xyz;
+    let x = dot(q, v.right.xyz);
+    let y = dot(q, v.up.xyz);
+    let z = dot(q, v.fwd.xyz);
+    var out: ShadowVsOut;
+    if v.rect.w == VIEW_ORTHO {
+        let half = v.right.w;
+        out.clip = vec4<f32>(x / half, y / half, z / v.fwd.w, 1.0);
+    } else {
+        // 90-degree frustum: x/z and y/z in [-1, 1]; depth 0 at near .. 1 at far.
+        let near = v.origin.w;
+        let far = v.fwd.w;
+        out.clip = vec4<f32>(x, y, (z - near) * far / (far - near), z);
+    }
+    out.plane = plane;
+    return out;
+}
+
+@fragment
+fn fs_shadow(in: ShadowVsOut) -> @location(0) vec4<f32> {
+    return in.plane;
+}

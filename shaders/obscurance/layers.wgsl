@@ -1,0 +1,88 @@
+// obscurance/layers.wgsl: every depth layer of a bundle of parallel rays in one raster
+// pass (seed section 4.1, with a per-pixel fragment list in place of depth peeling).
+//
+// An orthographic render of the whole scene along the direction d (the `View` of
+// gpu/common.wgsl: the camera looks along +d, so `front_facing` means the surface's normal
+// points back toward smaller t = <p, d>). No depth test and no culling: every fragment
+// is appended to its pixel's singly linked list (head pointer swapped in atomically),
+// so each list holds all the surfaces the pixel's ray crosses, unsorted. The gather
+// (obscurance/gather.wgsl) walks a list to find the layer next to a texel.
+//
+// A node stores what the seed's RGBA pixel stored (patch id, orientation, depth): the
+// distance t along d, the triangle index with the front-facing bit, and the lightmap
+// pixel under the fragment (for textured albedo or emission). Nodes come from one pool
+// of fixed capacity; a fragment past it is dropped (the counter still counts it, so the
+// CPU can report the overflow) and its surface is missing from that direction only.
+//
+// `fs_shadow`: an ordinary nearest-depth map along a sun or directional light, t in the
+// colour target (obscurance/direct.wgsl reads it).
+
+struct Vertex {
+    @location(0) position: vec3<f32>,
+    @location(1) lightmap_uv: vec2<f32>,
+    @location(2) triangle: u32,
+}
+
+struct VsOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) lightmap_uv: vec2<f32>,
+    @location(2) @interpolate(flat) triangle: u32,
+}
+
+// Must match obscurance/gather.wgsl and `GpuNode` in obscurance.rs.
+struct Node {
+    t: f32,         // distance along d (normalised scene units)
+    tri: u32,       // triangle index << 1 | 1 when front-facing (normal toward -d)
+    lightmap: u32,  // lightmap pixel index under the fragment
+    next: u32,      // next node + 1, 0 ends the list
+}
+
+struct LayerParams {
+    dims: vec4<u32>,  // x: lightmap width, y: height, z: node capacity, w: map size N
+}
+
+@group(0) @binding(0) var<uniform> view: View;
+@group(0) @binding(1) var<uniform> layer_params: LayerParams;
+@group(0) @binding(2) var<storage, read_write> heads: array<atomic<u32>>;     // N*N, node + 1 or 0
+@group(0) @binding(3) var<storage, read_write> nodes: array<Node>;            // capacity
+@group(0) @binding(4) var<storage, read_write> counters: array<atomic<u32>>;  // [0]: fragments this direction
+
+@vertex
+fn vs_main(v: Vertex) -> VsOut {
+    let a = dot(v.position, view.right.xyz) - view.right.w;
+    let b = dot(v.position, view.up.xyz) - view.up.w;
+    let t = dot(v.position, view.dir.xyz) - view.dir.w;
+    var out: VsOut;
+    // NDC x right, y up, z = 0 at t0 .. 1 at t1: the bounds lie inside, nothing clips.
+    out.clip = vec4<f32>(a / view.extent.x * 2.0 - 1.0, b / view.extent.x * 2.0 - 1.0,
+                         t / view.extent.y, 1.0);
+    out.world = v.position;
+    out.lightmap_uv = v.lightmap_uv;
+    out.triangle = v.triangle;
+    return out;
+}
+
+@fragment
+fn fs_layers(in: VsOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
+    let idx = atomicAdd(&counters[0], 1u);
+    if idx < layer_params.dims.z {
+        let n = layer_params.dims.w;
+        let px = min(vec2<u32>(floor(in.clip.xy)), vec2<u32>(n - 1u));
+        let w = layer_params.dims.x;
+        let h = layer_params.dims.y;
+        let lm = min(vec2<u32>(max(floor(in.lightmap_uv * vec2<f32>(f32(w), f32(h))), vec2<f32>(0.0))),
+                     vec2<u32>(w - 1u, h - 1u));
+        nodes[idx].t = dot(in.world, view.dir.xyz);
+        nodes[idx].tri = (in.triangle << 1u) | select(0u, 1u, front);
+        nodes[idx].lightmap = lm.y * w + lm.x;
+        nodes[idx].next = atomicExchange(&heads[px.y * n + px.x], idx + 1u);
+    }
+    // The colour target is a write-masked dummy (a render pass needs an attachment).
+    return vec4<f32>(0.0);
+}
+
+@fragment
+fn fs_shadow(in: VsOut) -> @location(0) vec4<f32> {
+    return vec4<f32>(dot(in.world, view.dir.xyz), 0.0, 0.0, 0.0);
+}

@@ -1,0 +1,295 @@
+//! The shadow-map atlas shared by the techniques that shadow lights or VPLs with depth
+//! maps: every map of one step (perspective cube faces around points, orthographic maps
+//! along distant lights) packed into one Rgba32Float + Depth32Float texture and drawn in
+//! one render pass (`shaders/gpu/shadow_atlas.wgsl`). Each pixel keeps the *plane* of the
+//! nearest surface (unit geometric normal and offset), so a reader asks which side of that
+//! plane a receiver lies on: exact behind thin walls at any distance, where a depth compare
+//! needs a bias (the module doc of `vpl` measures it).
+//!
+//! `vpl` renders its lights' and VPLs' maps with it; `hemicube` its shooters' hemicube
+//! faces (their views written on the GPU). The layout is fixed for a bake: shelves of
+//! equal-height tiles, largest first.
+//!
+//! Limits: the atlas must fit the device's largest 2D texture; [`pack`] says how large it
+//! would have been when it does not, and the technique names its own parameters to lower.
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+
+use crate::engine::gpu::layout::{Bind, group_of, layout_of};
+use crate::engine::gpu::{GpuContext, GpuError, shaders};
+
+/// A perspective cube face (90 degrees) around a point.
+pub const VIEW_PERSPECTIVE: u32 = 0;
+/// An orthographic map along a distant light.
+pub const VIEW_ORTHO: u32 = 1;
+
+/// One map of the atlas (`ShadowView` in `shaders/gpu/shadow_view.wgsl`), in the
+/// normalised scene frame.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct ShadowView {
+    pub origin: [f32; 4],
+    pub right: [f32; 4],
+    pub up: [f32; 4],
+    pub fwd: [f32; 4],
+    pub rect: [u32; 4],
+}
+
+/// The six faces of a cube in the frame (t, b, n): +t, -t, +b, -b, +n, -n (the order
+/// vpl/gather.wgsl's face selection uses), as (forward, right, up).
+pub fn cube_faces(t: Vec3, b: Vec3, n: Vec3) -> [(Vec3, Vec3, Vec3); 6] {
+    [(t, b, n), (-t, b, n), (b, n, t), (-b, n, t), (n, t, b), (-n, t, b)]
+}
+
+/// The atlas would exceed the device's largest texture.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AtlasTooLarge {
+    pub maps: usize,
+    pub width: u32,
+    pub height: u32,
+    pub max_dim: u32,
+}
+
+// Shadow atlas layout
+// ---------------------------------------------------------------------------------------
+
+/// Tile rectangles of every shadow view, fixed for the bake: shelves of equal-height
+/// tiles, largest first.
+#[derive(Debug, Clone)]
+pub struct ShadowShadowAtlasLayout {
+    pub width: u32,
+    pub height: u32,
+    /// Per view: x, y of its top-left pixel and its side.
+    pub rects: Vec<[u32; 3]>,
+}
+
+pub fn pack(sizes: &[u32], max_dim: u32) -> Result<ShadowAtlasLayout, AtlasTooLarge> {
+    if sizes.is_empty() {
+        return Ok(ShadowAtlasLayout {
+            width: 1,
+            height: 1,
+            rects: vec![],
+        });
+    }
+    let area: u64 = sizes.iter().map(|&s| s as u64 * s as u64).sum();
+    let largest = *sizes.iter().max().expect("non-empty");
+    let width = ((area as f64).sqrt().ceil() as u32)
+        .next_power_of_two()
+        .max(largest)
+        .min(max_dim);
+    let mut order: Vec<usize> = (0..sizes.len()).collect();
+    order.sort_by_key(|&i| std::cmp::Reverse(sizes[i]));
+    let mut rects = vec![[0u32; 3]; sizes.len()];
+    let (mut x, mut y, mut row) = (0u32, 0u32, 0u32);
+    for i in order {
+        let s = sizes[i];
+        if x + s > width {
+            x = 0;
+            y += row;
+            row = 0;
+        }
+        rects[i] = [x, y, s];
+        x += s;
+        row = row.max(s);
+    }
+    let height = y + row;
+    if height > max_dim || largest > max_dim {
+        return Err(AtlasTooLarge { maps: sizes.len(), width, height, max_dim });
+    }
+    Ok(ShadowAtlasLayout { width, height, rects })
+}
+
+/// The plane-storing shadow-map pass (`shaders/gpu/shadow_atlas.wgsl`): a render pipeline that
+/// draws the scene into one tile of an Rgba32Float + Depth32Float atlas per view (each
+/// pixel keeps the plane of the nearest surface, both faces of every triangle drawn),
+/// and its bind group on `views` (each view's matrix and tile). `hemicube` draws its
+/// hemicube faces with the same pass.
+pub fn shadow_pass(
+    ctx: &GpuContext,
+    label: &str,
+    views: &wgpu::Buffer,
+) -> Result<(wgpu::RenderPipeline, wgpu::BindGroup), GpuError> {
+    let module = ctx.shader(&shaders::SHADOW_ATLAS)?;
+    let binds = [Bind::Read(views)];
+    let layout = layout_of(
+        ctx,
+        &format!("{label} layout"),
+        wgpu::ShaderStages::VERTEX_FRAGMENT,
+        &binds,
+    );
+    let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(&format!("{label} pipeline layout")),
+        bind_group_layouts: &[Some(&layout)],
+        immediate_size: 0,
+    });
+    let pipeline = ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout: Some(&pl),
+        vertex: wgpu::VertexState {
+            module: &module,
+            entry_point: Some("vs_shadow"),
+            compilation_options: Default::default(),
+            buffers: &[Some(wgpu::VertexBufferLayout {
+                array_stride: 28,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x4],
+            })],
+        },
+        primitive: wgpu::PrimitiveState {
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            // Every face blocks light, single-sided back faces included.
+            cull_mode: None,
+            ..Default::default()
+        },
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: wgpu::TextureFormat::Depth32Float,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::Less),
+            stencil: Default::default(),
+            bias: Default::default(),
+        }),
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: &module,
+            entry_point: Some("fs_shadow"),
+            compilation_options: Default::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format: wgpu::TextureFormat::Rgba32Float,
+                blend: None,
+                write_mask: wgpu::ColorWrites::ALL,
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    });
+    let bg = group_of(ctx, &format!("{label} bindings"), &layout, &binds);
+    Ok((pipeline, bg))
+}
+
+/// The atlas's textures and its render pass, owned by the technique that draws into it.
+pub struct ShadowAtlas {
+    /// Rgba32Float: per pixel the plane (unit normal, offset) of the nearest surface;
+    /// read by the technique's gather pass.
+    pub plane_view: wgpu::TextureView,
+    depth_view: wgpu::TextureView,
+    pipeline: wgpu::RenderPipeline,
+    bind_group: wgpu::BindGroup,
+    label: String,
+}
+
+/// One map to draw: the index of its view in the views buffer (the instance index the
+/// vertex shader reads), its tile (x, y, side) and how many of its rows to draw (a
+/// hemicube side face needs only its upper half).
+#[derive(Debug, Clone, Copy)]
+pub struct ShadowDraw {
+    pub view: u32,
+    pub tile: [u32; 3],
+    pub rows: u32,
+}
+
+impl ShadowAtlas {
+    /// A `width` x `height` atlas whose maps are described by `views` (an array of
+    /// [`ShadowView`], written by the technique on the CPU or the GPU). Labels start with
+    /// `label` ("vpl shadow", "hemicube depth").
+    pub fn new(ctx: &GpuContext, label: &str, width: u32, height: u32, views: &wgpu::Buffer) -> Result<Self, GpuError> {
+        let size = wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        };
+        let texture = |what: &str, format, usage| {
+            ctx.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(&format!("{label} atlas {what}")),
+                size,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        let plane = texture(
+            "(plane of the nearest surface)",
+            wgpu::TextureFormat::Rgba32Float,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
+        let depth = texture("depth", wgpu::TextureFormat::Depth32Float, wgpu::TextureUsages::RENDER_ATTACHMENT);
+        let plane_view = plane.create_view(&wgpu::TextureViewDescriptor {
+            label: Some(&format!("{label} atlas view")),
+            ..Default::default()
+        });
+        let depth_view = depth.create_view(&wgpu::TextureViewDescriptor {
+            label: Some(&format!("{label} atlas depth view")),
+            ..Default::default()
+        });
+        let (pipeline, bind_group) = shadow_pass(ctx, &format!("{label} maps"), views)?;
+        Ok(ShadowAtlas {
+            plane_view,
+            depth_view,
+            pipeline,
+            bind_group,
+            label: label.to_string(),
+        })
+    }
+
+    /// Records one render pass that clears the atlas and draws every map of `draws` with
+    /// the scene's vertices (`vertices`: position and plane per corner, 28 bytes).
+    pub fn render(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        vertices: &wgpu::Buffer,
+        vertex_count: u32,
+        draws: impl IntoIterator<Item = ShadowDraw>,
+    ) {
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some(&format!("{} maps", self.label)),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: &self.plane_view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    // n = 0: an empty pixel blocks nothing.
+                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &self.depth_view,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(1.0),
+                    store: wgpu::StoreOp::Discard,
+                }),
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &self.bind_group, &[]);
+        pass.set_vertex_buffer(0, vertices.slice(..));
+        for d in draws {
+            let [x, y, s] = d.tile;
+            pass.set_viewport(x as f32, y as f32, s as f32, s as f32, 0.0, 1.0);
+            pass.set_scissor_rect(x, y, s, d.rows);
+            pass.draw(0..vertex_count, d.view..d.view + 1);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cube_faces_cover_every_axis() {
+        let f = cube_faces(Vec3::X, Vec3::Y, Vec3::Z);
+        for (fwd, right, up) in f {
+            assert!(fwd.dot(right).abs() < 1e-6 && fwd.dot(up).abs() < 1e-6 && right.dot(up).abs() < 1e-6);
+        }
+        let fwds: Vec<Vec3> = f.iter().map(|x| x.0).collect();
+        assert_eq!(fwds, vec![Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z]);
+    }
+}

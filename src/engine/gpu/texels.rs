@@ -1,0 +1,40 @@
+//! The valid texels' geometry as every GPU technique uploads it (`TexelGeom` in
+//! `shaders/gpu/common.wgsl`): sample point in the normalised frame, unit shading normal
+//! (the hemisphere the texel integrates) and unit geometric normal (the plane below which
+//! samples are rejected), compact over valid texels in atlas order.
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+
+use crate::engine::gpu::frame::SceneFrame;
+
+/// One texel's geometry, 48 bytes (three vec4 in WGSL's storage layout).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuTexelGeom {
+    pub position: [f32; 4],
+    pub normal: [f32; 4],
+    pub geo_normal: [f32; 4],
+}
+
+impl GpuTexelGeom {
+    /// A texel at world-space `position` with its normals, in `frame`.
+    pub fn new(frame: &SceneFrame, position: Vec3, normal: Vec3, geo_normal: Vec3) -> Self {
+        GpuTexelGeom {
+            position: frame.norm(position).extend(0.0).to_array(),
+            normal: normal.normalize_or_zero().extend(0.0).to_array(),
+            geo_normal: geo_normal.normalize_or_zero().extend(0.0).to_array(),
+        }
+    }
+}
+
+/// Every texel of `texels` (position, shading normal, geometric normal) in `frame`.
+pub fn texel_geometry<'a>(
+    frame: &SceneFrame,
+    texels: impl IntoIterator<Item = (Vec3, Vec3, Vec3)> + 'a,
+) -> Vec<GpuTexelGeom> {
+    texels
+        .into_iter()
+        .map(|(p, n, g)| GpuTexelGeom::new(frame, p, n, g))
+        .collect()
+}

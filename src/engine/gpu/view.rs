@@ -1,0 +1,191 @@
+//! Orthographic views of the whole scene along one global direction, over the lightmap's
+//! texel map: the layout every map-based GPU pass shares (`View` in `shaders/gpu/common.wgsl`,
+//! [`GpuView`] here), the per-triangle flags, the texel fill map that lets bilinear lookups
+//! at chart borders find a valid texel, and the closed-surface test that decides which back
+//! faces may be culled (stochastic-depth-buffering seed, section 6).
+//!
+//! Used by `sdb` (illumination and shadow maps) and `obscurance` (depth layers, shadow
+//! maps). Precision: f32 in the normalised scene frame ([`crate::engine::gpu::frame`]), so
+//! the map's pixel size is relative to the scene and scale-invariant.
+
+use glam::Vec3;
+use bytemuck::{Pod, Zeroable};
+
+use crate::engine::gpu::map_scene::{MapTexel, MapTriangle};
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuView {
+    pub right: [f32; 4],
+    pub up: [f32; 4],
+    pub dir: [f32; 4],
+    pub extent: [f32; 4],
+    pub params: [u32; 4],
+}
+
+pub const DEPTH_STOCHASTIC: u32 = 0;
+pub const DEPTH_NEAREST: u32 = 1;
+pub const TRI_DOUBLE_SIDED: u32 = 1;
+pub const TRI_CULL_BACK: u32 = 2;
+pub const TRI_TEXTURED_EMISSION: u32 = 4;
+pub const NO_TEXEL: u32 = u32::MAX;
+pub const EMPTY_T: f32 = 1.0e30;
+
+/// Which triangles may have their back faces culled (seed section 6): single-sided
+/// triangles in a closed surface. Vertices are welded by exact position across the whole
+/// scene (a room built from separate wall meshes counts), triangles sharing an edge are
+/// joined into components, and a component is closed when every directed edge (a, b) of
+/// it is matched by exactly one (b, a) and used once. Only then is a back face never the
+/// first surface a point outside the surface sees, so culling it removes overdraw and
+/// nothing else. Double-sided triangles take no part (they are never culled).
+pub fn cullable_triangles(triangles: &[MapTriangle]) -> Vec<bool> {
+    use std::collections::HashMap;
+    // Weld on a grid of 1e-6 of the scene size: exact bits would split corners that two
+    // meshes computed with different rounding.
+    let extent = triangles
+        .iter()
+        .flat_map(|t| t.p)
+        .fold(0.0f32, |m, p| m.max(p.abs().max_element()))
+        .max(f32::MIN_POSITIVE);
+    let cell = extent * 1e-6;
+    let key = |v: Vec3| {
+        let q = (v / cell).round();
+        (q.x as i64, q.y as i64, q.z as i64)
+    };
+    let mut ids: HashMap<(i64, i64, i64), u32> = HashMap::new();
+    let mut tri_vertices: Vec<Option<[u32; 3]>> = Vec::with_capacity(triangles.len());
+    for t in triangles {
+        if t.double_sided {
+            tri_vertices.push(None);
+            continue;
+        }
+        let mut v = [0u32; 3];
+        for (k, p) in t.p.iter().enumerate() {
+            let next = ids.len() as u32;
+            v[k] = *ids.entry(key(*p)).or_insert(next);
+        }
+        // Degenerate triangles have no area and no edges that matter.
+        tri_vertices.push((v[0] != v[1] && v[1] != v[2] && v[0] != v[2]).then_some(v));
+    }
+    // Directed edge -> (use count, first triangle using it).
+    let mut edges: HashMap<(u32, u32), (u32, usize)> = HashMap::new();
+    for (i, v) in tri_vertices.iter().enumerate() {
+        if let Some(v) = v {
+            for k in 0..3 {
+                let e = edges.entry((v[k], v[(k + 1) % 3])).or_insert((0, i));
+                e.0 += 1;
+            }
+        }
+    }
+    // Union-find over triangles joined by an edge pair.
+    let mut parent: Vec<usize> = (0..triangles.len()).collect();
+    fn find(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    for (&(a, b), &(_, t)) in &edges {
+        if let Some(&(_, u)) = edges.get(&(b, a)) {
+            let (ra, rb) = (find(&mut parent, t), find(&mut parent, u));
+            if ra != rb {
+                parent[ra] = rb;
+            }
+        }
+    }
+    let mut open = vec![false; triangles.len()];
+    for (&(a, b), &(count, t)) in &edges {
+        let matched = edges.get(&(b, a)).is_some_and(|&(c, _)| c == 1);
+        if count != 1 || !matched {
+            let r = find(&mut parent, t);
+            open[r] = true;
+        }
+    }
+    (0..triangles.len())
+        .map(|i| tri_vertices[i].is_some() && !open[find(&mut parent, i)])
+        .collect()
+}
+
+/// For every lightmap pixel, the valid texel whose values it shows: itself, else the
+/// nearest valid texel within 2 pixels (so bilinear lookups at chart borders fetch
+/// plausible values, not black), else [`NO_TEXEL`].
+pub fn fill_map(width: u32, height: u32, texels: &[MapTexel]) -> Vec<u32> {
+    let (w, h) = (width as i64, height as i64);
+    let mut fill = vec![NO_TEXEL; (w * h) as usize];
+    for (i, t) in texels.iter().enumerate() {
+        fill[t.pixel as usize] = i as u32;
+    }
+    let direct = fill.clone();
+    // Offsets by increasing distance, radius 2.
+    let mut offsets: Vec<(i64, i64)> = (-2..=2)
+        .flat_map(|dy| (-2..=2).map(move |dx| (dx, dy)))
+        .filter(|&(dx, dy)| (dx, dy) != (0, 0))
+        .collect();
+    offsets.sort_by_key(|&(dx, dy)| dx * dx + dy * dy);
+    for y in 0..h {
+        for x in 0..w {
+            let idx = (y * w + x) as usize;
+            if direct[idx] != NO_TEXEL {
+                continue;
+            }
+            for &(dx, dy) in &offsets {
+                let (sx, sy) = (x + dx, y + dy);
+                if sx >= 0 && sy >= 0 && sx < w && sy < h {
+                    let s = direct[(sy * w + sx) as usize];
+                    if s != NO_TEXEL {
+                        fill[idx] = s;
+                        break;
+                    }
+                }
+            }
+        }
+    }
+    fill
+}
+
+/// Orthographic frame for direction `d` over the normalised bounds `corners`, with the
+/// map origin shifted by `jitter` (in pixels, [0, 1)^2).
+pub fn make_view(
+    d: Vec3,
+    corners: &[Vec3; 8],
+    map_size: u32,
+    jitter: (f32, f32),
+    seed: u32,
+    mode: u32,
+) -> GpuView {
+    // Right-handed camera looking along +d (as a look-at camera would): screen x = right,
+    // screen y = up, so counter-clockwise front faces stay counter-clockwise on screen.
+    let helper = if d.y.abs() < 0.9 { Vec3::Y } else { Vec3::X };
+    let right = d.cross(helper).normalize();
+    let up = right.cross(d).normalize();
+    let (mut amin, mut amax, mut bmin, mut bmax, mut tmin, mut tmax) =
+        (f32::MAX, f32::MIN, f32::MAX, f32::MIN, f32::MAX, f32::MIN);
+    for c in corners {
+        let (a, b, t) = (c.dot(right), c.dot(up), c.dot(d));
+        amin = amin.min(a);
+        amax = amax.max(a);
+        bmin = bmin.min(b);
+        bmax = bmax.max(b);
+        tmin = tmin.min(t);
+        tmax = tmax.max(t);
+    }
+    // Square pixels; one spare pixel so the jittered map still covers the bounds.
+    let n = map_size as f32;
+    let span = (amax - amin).max(bmax - bmin).max(1e-6) * 1.0001;
+    let pixel = span / (n - 1.0);
+    let s = pixel * n;
+    let a0 = amin - jitter.0 * pixel;
+    let b0 = bmin - jitter.1 * pixel;
+    // Depth range with a margin so nothing is clipped by the near/far planes.
+    let margin = 0.01 * (tmax - tmin).max(1e-3);
+    let t0 = tmin - margin;
+    let range = (tmax - tmin) + 2.0 * margin;
+    GpuView {
+        right: [right.x, right.y, right.z, a0],
+        up: [up.x, up.y, up.z, b0],
+        dir: [d.x, d.y, d.z, t0],
+        extent: [s, range, n, 0.0],
+        params: [seed, mode, 0, 0],
+    }
+}

@@ -1,0 +1,1057 @@
+//! `hemicube`: stochastic iteration by random hemicube shooting, with glossy transport
+//! (`shared/seeds/stochastic-glossy-gi-hemicube-shooting.md`, Barsi, Szirmay-Kalos and
+//! Szijártó; docs/hemicube.md has the measurements).
+//!
+//! # What
+//! Multi-bounce light at every valid lightmap texel as incident irradiance / π (DESIGN
+//! §2), from emissive surfaces, the sky, the sun and punctual lights, with glossy
+//! (Phong-type) reflection at the shooters. Receivers store irradiance, which is what a
+//! lightmap holds whatever the BRDF; the lobe only shapes where a shooter's light goes.
+//!
+//! # How (one step = one iteration of the seed's random transport operator)
+//! 1. *Power pyramid* (`shaders/hemicube/pyramid.wgsl`, seed §4.1): level 0 holds, per
+//!    lightmap pixel, the luminance of the power the texel reflects, lum(I (k_d + k_s)) A,
+//!    from the previous step's irradiance I; `reduce` sums 2 x 2 cells up to one cell,
+//!    the total. Sums instead of the seed's averages, so no rescaling while descending.
+//! 2. *Shooters* (`shaders/hemicube/select.wgsl`): K_r texel shooters, each drawn by
+//!    descending the pyramid with a GPU random number (PCG hash of the step and the
+//!    shooter's index) and merged with the texels of the same surface in its 2^L x 2^L
+//!    block at the shooter level L (seed §5): the group's probability is its summed
+//!    power over the total, its weight A / (p K_r). K_e emitter shooters are drawn on the
+//!    CPU: a triangle by power, a uniform point on it, its exact emission (textures
+//!    included). Nothing is read back.
+//! 3. *Depth maps* (`shaders/gpu/shadow_atlas.wgsl`, reused): a hemicube per shooter, the top
+//!    face and the upper halves of four side faces, `depth_map_size`^2 each, all the
+//!    step's shooters in one render pass into tiles of one atlas.
+//! 4. *Transfer* (`shaders/hemicube/transfer.wgsl`, seed §4.2.2): every receiver texel
+//!    adds, for every shooter it sees, L_s(w) cos_s cos_x / (d^2 + A/π) W (Eq. 4 with the
+//!    disc term of Eq. 8); the sum (plus the CPU's estimate of the sky, sun and punctual
+//!    light) is this step's irradiance I_m, kept for the next step's pyramid, and I_m / π
+//!    goes into the half accumulator of the step's parity.
+//!
+//! ## Why a hemicube
+//! Rasterisation keeps straight edges straight only under perspective projection: a
+//! single-pass paraboloid or octahedral map bends every edge, so large triangles (a
+//! Cornell box wall is two) would be drawn with wrong silhouettes unless the scene were
+//! tessellated first. The hemicube costs five draws per shooter instead of one, which is
+//! cheap next to the transfer pass for the scenes lightmaps are baked for, and exact.
+//! The side faces are drawn with a scissor over their upper half only.
+//!
+//! ## Visibility
+//! Each map pixel stores the *plane* of the nearest surface (as `vpl`'s maps); a receiver
+//! is hidden when it and the shooter lie on opposite sides of it by more than a tolerance
+//! that grows at grazing angles as the seed's §4.2.1 asks: `grazing_tolerance` times the
+//! pixel's footprint on the occluder, d (2 / side) / |cos θ| (|cos θ| ≥ 0.05). A plane
+//! test is exact for planar occluders of any thickness; the tolerance only absorbs the
+//! facets of tessellated curved surfaces.
+//!
+//! ## Glossy lobe (Deliver 3)
+//! From glTF metallic m and roughness r: roughness 1 is Lambertian with the base colour as
+//! albedo (so an all-diffuse scene bakes exactly what the other techniques bake); below 1,
+//! k_s = mix(0.04, base, m), k_d = base (1 - m)(1 - 0.04), Phong exponent
+//! n = 2 / r^4 - 2 (the Blinn-Phong equivalent of α = r², clamped to [1, 1e5]), and the
+//! Neumann-Neumann-Szirmay-Kalos modification of Phong the seed cites,
+//! f_s = k_s (n + 1) / (2π) cos^n α / max(cos θ_i, cos θ_o): reciprocal, its directional
+//! albedo at most k_s (the unit test integrates it), and a mirror of reflectance
+//! k_s (n + 1)/(n + 2) in the limit. The incoming direction of a texel's irradiance is the luminance-weighted mean of
+//! the directions it came from in the previous step (exact with one shooter a step, as in
+//! the seed; an approximation with several). An all-diffuse scene runs the diffuse-only
+//! variant: no lobe data, no direction buffers (the plan says which).
+//!
+//! ## Progressive estimate (DESIGN §4)
+//! The seed's stochastic iteration averages I_m over iterations. Step m's estimate is
+//! I_m / π, a random transfer of the previous step's light; the expected value of I_m
+//! holds the bounces up to m, so the plain average carries a transient that decays like
+//! 1/M. Step i of a half gets weight i^`ramp` (default 1, as `sdb`): the transient then
+//! decays like 1/M², for 4/3 the variance. Limits of the error estimate: consecutive
+//! steps are correlated through I_{m-1}, so the half difference under-reports the noise
+//! (measured in docs/hemicube.md), and the transient is a bias it cannot see.
+//!
+//! # Departures from the seed
+//! - Emitters shoot from their triangles (exact area and emission, CPU-sampled) rather than
+//!   from their texels, so a 1 cm² lamp is as exact as a large one; the pyramid holds
+//!   reflected power only. Their disc (Eq. 8) is a quarter of a lightmap texel
+//!   ([`EMITTER_DISC`]). The sky, the sun and punctual lights, which are not surfaces,
+//!   are estimated on the CPU per texel per step (one cosine-sampled sky ray, one sun-cone
+//!   ray, one shadow ray per punctual light) and added to I_m.
+//! - Several shooters per step (`shooters_per_step`, half of them emitter samples when the
+//!   scene has emitters), all rendered in one pass and transferred in one dispatch.
+//! - Plane-side visibility (above) instead of depth difference; a merged shooter's group
+//!   is checked by mesh, material, normal and distance (the seed used a patch-id texture).
+//! - Two half accumulators with weights i^ramp instead of one running mean.
+//!
+//! # Limits
+//! - Double-sided surfaces receive and shoot from their front face only (a lightmap
+//!   stores one side).
+//! - A texel's glossy reflection uses one mean incoming direction per step.
+//! - Stiff scenes (albedo near 1, closed): the iteration adds one bounce a step, so a
+//!   closed box of albedo ρ needs many times 1/(1 - ρ) steps (docs/stability.md).
+//! - Memory: per texel 3 to 7 vec4 (irradiance, directions, accumulators); the depth atlas
+//!   is 6 `depth_map_size`^2 Rgba32Float + depth texels per shooter. Both are checked
+//!   against the device's limits with a bad-input error naming the parameters.
+//!
+//! Randomness: GPU PCG hash (`shaders/gpu/common.wgsl`) of the step's CPU-drawn hash and the
+//! shooter's index for the pyramid descent; CPU `engine::rng` streams keyed by (seed, step,
+//! index) for emitter samples and the direct light, so a bake is reproducible from its
+//! seed. Precision: f32 everywhere; geometry in normalised scene space (p - centre) / radius
+//! and areas divided by radius², so scaled and translated scenes bake the same.
+
+use std::f32::consts::PI;
+use std::sync::Arc;
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
+use crate::engine::accumulate::{LUMINANCE, Snapshot};
+use crate::engine::atlas::Atlas;
+use crate::engine::gpu::layout::{
+    Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, uniform_entry,
+};
+use crate::engine::gpu::frame::SceneFrame;
+use crate::engine::gpu::halves::read_halves;
+use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw};
+use crate::engine::gpu::texels::GpuTexelGeom;
+use crate::engine::gpu::{self, GpuContext};
+use crate::engine::plan::{Plan, SceneFeatures};
+use crate::engine::raytrace::{Tracer, cone_sample, cosine_sample};
+use crate::engine::rng::Rng;
+use crate::engine::scene::{LightKind, Lighting, Material, Scene};
+
+// ---------------------------------------------------------------------------------------
+// Parameters
+// ---------------------------------------------------------------------------------------
+
+/// `hemicube` parameters (the job's `params` object). Unknown fields are rejected.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct HemicubeParams {
+    /// Side of each hemicube face in pixels. Range 16..=2048; default 256 (the seed's).
+    pub depth_map_size: u32,
+    /// Pyramid level shooters are merged at: a shooter is the same-surface part of a
+    /// 2^L x 2^L block of texels (seed §5). Range 0..=4; default 0: merging lowers the
+    /// noise but its larger disc (Eq. 8) darkens corners, and on the Cornell box up to
+    /// 64^2 the bias outweighed the noise it saved (docs/hemicube.md).
+    pub shooter_level: u32,
+    /// Shooters per step (each its own hemicube). Range 1..=64; default 8. With emitters
+    /// in the scene, half of them (rounded up) are emitter samples.
+    pub shooters_per_step: u32,
+    /// Step i of a half gets weight i^ramp in the mean. Range 0..=4; default 1.
+    pub ramp: f32,
+    /// Visibility tolerance in pixel footprints on the occluder (grows as 1/cos at
+    /// grazing angles). Range 0..=2; default 0.1.
+    pub grazing_tolerance: f32,
+}
+
+impl Default for HemicubeParams {
+    fn default() -> Self {
+        HemicubeParams {
+            depth_map_size: 256,
+            shooter_level: 0,
+            shooters_per_step: 8,
+            ramp: 1.0,
+            grazing_tolerance: 0.1,
+        }
+    }
+}
+
+impl HemicubeParams {
+    pub fn validate(&self) -> Result<(), EngineError> {
+        let bad = |name: &str, v: String, range: &str| {
+            Err(EngineError::BadInput(format!(
+                "hemicube: params.{name} must be in {range}, got {v}"
+            )))
+        };
+        if !(16..=2048).contains(&self.depth_map_size) {
+            return bad("depth_map_size", self.depth_map_size.to_string(), "16..=2048");
+        }
+        if self.shooter_level > 4 {
+            return bad("shooter_level", self.shooter_level.to_string(), "0..=4");
+        }
+        if !(1..=64).contains(&self.shooters_per_step) {
+            return bad("shooters_per_step", self.shooters_per_step.to_string(), "1..=64");
+        }
+        if !(0.0..=4.0).contains(&self.ramp) {
+            return bad("ramp", self.ramp.to_string(), "0..=4");
+        }
+        if !(0.0..=2.0).contains(&self.grazing_tolerance) {
+            return bad("grazing_tolerance", self.grazing_tolerance.to_string(), "0..=2");
+        }
+        Ok(())
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The lobe
+// ---------------------------------------------------------------------------------------
+
+/// The hemicube lobe of a material at a texel of diffuse colour `base`: (k_d, k_s,
+/// exponent). See the module doc; roughness 1 is Lambertian with albedo `base`.
+pub fn lobe(material: &Material, base: Vec3) -> (Vec3, Vec3, f32) {
+    let r = material.roughness.clamp(0.0, 1.0);
+    if r >= 1.0 {
+        return (base, Vec3::ZERO, 0.0);
+    }
+    let m = material.metallic.clamp(0.0, 1.0);
+    let ks = Vec3::splat(0.04).lerp(base, m);
+    let kd = base * ((1.0 - m) * (1.0 - 0.04));
+    let exponent = (2.0 / r.powi(4).max(1e-12) - 2.0).clamp(1.0, 1e5);
+    (kd, ks, exponent)
+}
+
+// ---------------------------------------------------------------------------------------
+// GPU layouts (must match shaders/gpu/common.wgsl, hemicube_*.wgsl)
+// ---------------------------------------------------------------------------------------
+
+const HC_GLOSSY: u32 = 1;
+const HC_DIRECT: u32 = 2;
+const HC_CPU_LIGHT: u32 = 4;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuParams {
+    dims: [u32; 4],
+    shoot: [u32; 4],
+    step: [u32; 4],
+    f: [f32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuTexelMat {
+    kd: [f32; 4],
+    ks: [f32; 4],
+    ids: [u32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuShooter {
+    pos: [f32; 4],
+    nrm: [f32; 4],
+    diffuse: [f32; 4],
+    spec: [f32; 4],
+    in_dir: [f32; 4],
+    frame_t: [f32; 4],
+    frame_b: [f32; 4],
+}
+
+/// `ShadowView` of gpu/common.wgsl (written by the select pass, read by gpu/shadow_atlas.wgsl).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuShadowView {
+    origin: [f32; 4],
+    right: [f32; 4],
+    up: [f32; 4],
+    fwd: [f32; 4],
+    rect: [u32; 4],
+}
+
+fn v4(v: Vec3, w: f32) -> [f32; 4] {
+    [v.x, v.y, v.z, w]
+}
+
+fn lum(v: Vec3) -> f32 {
+    v.dot(LUMINANCE)
+}
+
+/// Disc area of an emitter sample in lightmap-texel areas. A point sample stands for no
+/// group of texels, so Eq. 8's term is only there to bound the 1/d^2 of receivers next
+/// to the emitter; its bias, d^2 / (d^2 + A/π), is what a receiver loses. Measured in the
+/// closed box at 48^2 (docs/hemicube.md): a whole texel's area lost 3.4 % of the direct
+/// light, none lost 0.3 % (noise); a quarter keeps the loss under 1 %.
+const EMITTER_DISC: f32 = 0.25;
+
+/// An emissive triangle as the CPU samples it.
+#[derive(Debug, Clone, Copy)]
+struct Emitter {
+    triangle: u32,
+    /// Luminance power over π (lum(Le) A, both faces of a double-sided one).
+    weight: f64,
+    /// Disc area of its samples: [`EMITTER_DISC`] of the area one lightmap texel covers on
+    /// it, at most the triangle's.
+    disc_area: f32,
+}
+
+pub struct Hemicube {
+    ctx: Arc<GpuContext>,
+    params: HemicubeParams,
+    scene: Arc<Scene>,
+    atlas: Arc<Atlas>,
+    lighting: Lighting,
+    seed: u64,
+    flags: u32,
+    centre: Vec3,
+    radius: f32,
+    tracer: Option<Tracer>,
+    emitters: Vec<Emitter>,
+    emitter_cdf: Vec<f64>,
+    k_emit: u32,
+    k_texel: u32,
+    steps_done: u64,
+    half_steps: [u64; 2],
+    half_weight: [f64; 2],
+    n_texels: u32,
+    pyr_side: u32,
+    top_level: u32,
+    /// Per shooter and face: the tile's (x, y, side).
+    tiles: Vec<[u32; 4]>,
+    vertex_count: u32,
+
+    params_buf: wgpu::Buffer,
+    emitters_buf: wgpu::Buffer,
+    cpu_light_buf: wgpu::Buffer,
+    pyramid_buf: wgpu::Buffer,
+    acc_buf: wgpu::Buffer,
+    direct_acc_buf: wgpu::Buffer,
+    vertex_buf: wgpu::Buffer,
+    shadow: ShadowAtlas,
+    power_pipeline: wgpu::ComputePipeline,
+    power_bg: wgpu::BindGroup,
+    reduce_pipeline: wgpu::ComputePipeline,
+    reduce_bgs: Vec<(wgpu::BindGroup, u32)>,
+    select_pipeline: wgpu::ComputePipeline,
+    select_bg: wgpu::BindGroup,
+    transfer_pipeline: wgpu::ComputePipeline,
+    transfer_bg: wgpu::BindGroup,
+}
+
+/// Lightmap-texel area on a triangle (world units), from its lightmap UV area.
+fn texel_area_on(t: &crate::engine::scene::Triangle, width: u32, height: u32) -> f32 {
+    let uv = (t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs() * 0.5 * width as f32 * height as f32;
+    if uv > 0.0 { t.area() / uv } else { t.area() }
+}
+
+impl Hemicube {
+    pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
+        let params: HemicubeParams = parse_params("hemicube", params)?;
+        params.validate()?;
+        let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
+        let scene = inputs.scene.clone();
+        let atlas = inputs.atlas.clone();
+        let lighting = inputs.lighting;
+        let plan = &inputs.plan;
+        let glossy = plan.runs(GLOSSY_PASS);
+        let cpu_light = plan.runs(CPU_LIGHT_PASS);
+        let mut flags = 0;
+        if glossy {
+            flags |= HC_GLOSSY;
+        }
+        if inputs.want_direct {
+            flags |= HC_DIRECT;
+        }
+        if cpu_light {
+            flags |= HC_CPU_LIGHT;
+        }
+
+        // Normalised space: the bounds of triangles and texel points together.
+        let frame = SceneFrame::of(&scene, &atlas);
+        let (lo, hi, centre, radius) = (frame.lo, frame.hi, frame.centre, frame.radius);
+        let norm = |p: Vec3| frame.norm(p);
+        let area_scale = 1.0 / (radius * radius);
+
+        // Emitters, sampled on the CPU by power.
+        let emitters: Vec<Emitter> = scene
+            .triangles
+            .iter()
+            .enumerate()
+            .filter_map(|(i, t)| {
+                let m = scene.material(t);
+                let sides = if m.double_sided { 2.0 } else { 1.0 };
+                // Textured emitters: the factor bounds the texture (glTF multiplies them),
+                // and any positive weight keeps the estimator unbiased.
+                let w = lum(m.emissive).max(m.emissive.max_element() * 1e-3) as f64 * t.area() as f64 * sides;
+                (w > 0.0 && w.is_finite()).then(|| Emitter {
+                    triangle: i as u32,
+                    weight: w,
+                    disc_area: (EMITTER_DISC * texel_area_on(t, atlas.width, atlas.height)).min(t.area()),
+                })
+            })
+            .collect();
+        let total: f64 = emitters.iter().map(|e| e.weight).sum();
+        let emitter_cdf: Vec<f64> = emitters
+            .iter()
+            .scan(0.0, |acc, e| {
+                *acc += e.weight / total;
+                Some(*acc)
+            })
+            .collect();
+        let k = params.shooters_per_step;
+        // With one shooter a step and emitters, each step tosses a coin between the kinds
+        // (`run_step`); otherwise half the shooters (rounded up) are emitter samples.
+        let k_emit = match (emitters.is_empty(), k) {
+            (true, _) => 0,
+            (false, 1) => 1,
+            (false, k) => k.div_ceil(2),
+        };
+        let k_texel = if k == 1 { 1 } else { k - k_emit };
+        let shooters = k;
+
+        // GPU resources.
+        let n_texels = atlas.texels.len() as u32;
+        let max_binding = ctx.limits.max_storage_buffer_binding_size;
+        let need = 2 * n_texels.max(1) as u64 * 16;
+        ctx.check_storage(&format!("hemicube: the per-texel buffers of {n_texels} texels"), need)
+            .map_err(gpu_error)?;
+        let pyr_side = atlas.width.max(atlas.height).max(1).next_power_of_two();
+        let top_level = pyr_side.trailing_zeros();
+        let pyramid_len: u64 = (0..=top_level).map(|l| ((pyr_side >> l) as u64).pow(2)).sum();
+        if pyramid_len * 4 > max_binding {
+            return Err(EngineError::BadInput(format!(
+                "hemicube: a {}x{} lightmap needs a {}-byte power pyramid; the device allows {max_binding}",
+                atlas.width,
+                atlas.height,
+                pyramid_len * 4
+            )));
+        }
+        // Depth atlas: per shooter a 3N x 2N block (top face and four side faces).
+        let n = params.depth_map_size;
+        let max_dim = ctx.limits.max_texture_dimension_2d;
+        let cols = (max_dim / (3 * n)).min(shooters).max(1);
+        let rows = shooters.div_ceil(cols);
+        let (atlas_w, atlas_h) = (cols * 3 * n, rows * 2 * n);
+        if atlas_w > max_dim || atlas_h > max_dim {
+            return Err(EngineError::BadInput(format!(
+                "hemicube: {shooters} shooters with depth_map_size {n} need a {atlas_w}x{atlas_h} depth atlas; \
+                 the device allows {max_dim}: lower params.depth_map_size or params.shooters_per_step"
+            )));
+        }
+        let mut tiles = Vec::with_capacity(5 * shooters as usize);
+        for s in 0..shooters {
+            let (bx, by) = ((s % cols) * 3 * n, (s / cols) * 2 * n);
+            for (fx, fy) in [(0, 0), (1, 0), (2, 0), (0, 1), (1, 1)] {
+                tiles.push([bx + fx * n, by + fy * n, n, 0]);
+            }
+        }
+
+        use wgpu::BufferUsages as U;
+        let geom: Vec<GpuTexelGeom> = atlas
+            .texels
+            .iter()
+            .map(|t| GpuTexelGeom::new(&frame, t.position, t.normal, t.geo_normal))
+            .collect();
+        let mats: Vec<GpuTexelMat> = atlas
+            .texels
+            .iter()
+            .map(|t| {
+                let tri = &scene.triangles[t.triangle as usize];
+                let (kd, ks, e) = if glossy {
+                    lobe(scene.material(tri), t.albedo)
+                } else {
+                    (t.albedo, Vec3::ZERO, 0.0)
+                };
+                GpuTexelMat {
+                    kd: v4(kd, t.size * t.size * area_scale),
+                    ks: v4(ks, e),
+                    ids: [t.mesh, tri.material, t.pixel, 0],
+                }
+            })
+            .collect();
+        let geom_buf = ctx.buffer_init("hemicube texel geometry", &geom, U::STORAGE);
+        let mats_buf = ctx.buffer_init("hemicube texel lobes", &mats, U::STORAGE);
+        let pixel_texel_buf = ctx.buffer_init("hemicube pixel to texel", &atlas.pixel_texel, U::STORAGE);
+        let texel_bytes = 2 * n_texels as u64 * 16;
+        let irr_buf = ctx.buffer_zeroed("hemicube irradiance (two steps)", texel_bytes, U::STORAGE);
+        let dirs_buf = ctx.buffer_zeroed(
+            "hemicube incoming directions (two steps)",
+            if glossy { texel_bytes } else { 16 },
+            U::STORAGE,
+        );
+        let cpu_light_buf = ctx.buffer_zeroed(
+            "hemicube sky/sun/punctual estimate",
+            if cpu_light { texel_bytes } else { 16 },
+            U::STORAGE | U::COPY_DST,
+        );
+        let acc_buf = ctx.buffer_zeroed(
+            "hemicube accumulators (even, odd)",
+            texel_bytes,
+            U::STORAGE | U::COPY_SRC,
+        );
+        let direct_acc_buf = ctx.buffer_zeroed(
+            "hemicube direct accumulators (even, odd)",
+            if inputs.want_direct { texel_bytes } else { 16 },
+            U::STORAGE | U::COPY_SRC,
+        );
+        let pyramid_buf = ctx.buffer_zeroed("hemicube power pyramid", pyramid_len * 4, U::STORAGE | U::COPY_DST);
+        let params_buf = ctx.uniform("hemicube step params", &GpuParams::zeroed());
+        let shooter_size = std::mem::size_of::<GpuShooter>() as u64;
+        let emitters_buf = ctx.buffer_zeroed(
+            "hemicube emitter samples",
+            k_emit.max(1) as u64 * shooter_size,
+            U::STORAGE | U::COPY_DST,
+        );
+        let shooters_buf = ctx.buffer_zeroed("hemicube shooters", shooters as u64 * shooter_size, U::STORAGE);
+        let views_buf = ctx.buffer_zeroed(
+            "hemicube views",
+            5 * shooters as u64 * std::mem::size_of::<GpuShadowView>() as u64,
+            U::STORAGE,
+        );
+        let tiles_buf = ctx.buffer_init("hemicube depth tiles", &tiles, U::STORAGE);
+        // Per corner: normalised position and the triangle's plane (unit normal, <n, p>).
+        let vertices: Vec<[f32; 7]> = scene
+            .triangles
+            .iter()
+            .flat_map(|t| {
+                let nrm = t.geometric_normal();
+                let c = nrm.dot(norm(t.p[0]));
+                t.p.map(|p| {
+                    let q = norm(p);
+                    [q.x, q.y, q.z, nrm.x, nrm.y, nrm.z, c]
+                })
+            })
+            .collect();
+        let vertex_buf = ctx.buffer_init("hemicube vertices (normalised, with planes)", &vertices, U::VERTEX);
+
+        use wgpu::ShaderStages as S;
+        let rw = |b| storage_entry(b, S::COMPUTE, false);
+        // Pyramid.
+        let pyr_module = ctx.shader(&shaders::HEMICUBE_PYRAMID).map_err(gpu_error)?;
+        let power_binds = [
+            Bind::Uniform(&params_buf),
+            Bind::Read(&mats_buf),
+            Bind::Read(&irr_buf),
+            Bind::Write(&pyramid_buf),
+        ];
+        let power_layout = layout_of(&ctx, "hemicube power layout", S::COMPUTE, &power_binds);
+        let power_pipeline = compute_pipeline(&ctx, "hemicube power", &pyr_module, "power", &power_layout);
+        let power_bg = group_of(&ctx, "hemicube power bindings", &power_layout, &power_binds);
+        let reduce_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("hemicube reduce layout"),
+            entries: &[rw(3), uniform_entry(4, S::COMPUTE)],
+        });
+        let reduce_pipeline = compute_pipeline(&ctx, "hemicube reduce", &pyr_module, "reduce", &reduce_layout);
+        let level_offset = |l: u32| -> u32 { (0..l).map(|k| (pyr_side >> k) * (pyr_side >> k)).sum() };
+        let reduce_bgs: Vec<(wgpu::BindGroup, u32)> = (1..=top_level)
+            .map(|l| {
+                let side = pyr_side >> l;
+                let buf = ctx.uniform(
+                    &format!("hemicube pyramid level {l}"),
+                    &[side, level_offset(l - 1), level_offset(l), 0u32],
+                );
+                let bg = bind_group(
+                    &ctx,
+                    &format!("hemicube reduce level {l}"),
+                    &reduce_layout,
+                    &[(3, pyramid_buf.as_entire_binding()), (4, buf.as_entire_binding())],
+                );
+                (bg, side * side)
+            })
+            .collect();
+        // Shooter selection.
+        let select_module = ctx.shader(&shaders::HEMICUBE_SELECT).map_err(gpu_error)?;
+        let select_binds = [
+            Bind::Uniform(&params_buf),
+            Bind::Read(&mats_buf),
+            Bind::Read(&irr_buf),
+            Bind::Read(&dirs_buf),
+            Bind::Read(&pyramid_buf),
+            Bind::Read(&pixel_texel_buf),
+            Bind::Read(&geom_buf),
+            Bind::Read(&emitters_buf),
+            Bind::Write(&shooters_buf),
+            Bind::Write(&views_buf),
+            Bind::Read(&tiles_buf),
+        ];
+        let select_layout = layout_of(&ctx, "hemicube select layout", S::COMPUTE, &select_binds);
+        let select_pipeline = compute_pipeline(
+            &ctx,
+            "hemicube select",
+            &select_module,
+            "select_shooters",
+            &select_layout,
+        );
+        let select_bg = group_of(&ctx, "hemicube select bindings", &select_layout, &select_binds);
+        // Depth maps: the shared shadow atlas (gpu::shadow), views from the select pass.
+        let shadow = ShadowAtlas::new(&ctx, "hemicube depth", atlas_w, atlas_h, &views_buf).map_err(gpu_error)?;
+        // Transfer and accumulation.
+        let transfer_module = ctx.shader(&shaders::HEMICUBE_TRANSFER).map_err(gpu_error)?;
+        let transfer_binds = [
+            Bind::Uniform(&params_buf),
+            Bind::Read(&geom_buf),
+            Bind::Write(&irr_buf),
+            Bind::Write(&dirs_buf),
+            Bind::Read(&cpu_light_buf),
+            Bind::Read(&shooters_buf),
+            // textureLoad only: Rgba32Float needs no filtering.
+            Bind::Texture2d(&shadow.plane_view),
+            Bind::Write(&acc_buf),
+            Bind::Write(&direct_acc_buf),
+            Bind::Read(&tiles_buf),
+        ];
+        let transfer_layout = layout_of(&ctx, "hemicube transfer layout", S::COMPUTE, &transfer_binds);
+        let transfer_pipeline = compute_pipeline(
+            &ctx,
+            "hemicube transfer",
+            &transfer_module,
+            "transfer",
+            &transfer_layout,
+        );
+        let transfer_bg = group_of(&ctx, "hemicube transfer bindings", &transfer_layout, &transfer_binds);
+        ctx.take_error("hemicube setup").map_err(gpu_error)?;
+
+        let tracer = cpu_light.then(|| Tracer::new(&scene));
+        Ok(Hemicube {
+            ctx,
+            params,
+            scene,
+            atlas,
+            lighting,
+            seed: inputs.seed,
+            flags,
+            centre,
+            radius,
+            tracer,
+            emitters,
+            emitter_cdf,
+            k_emit,
+            k_texel,
+            steps_done: 0,
+            half_steps: [0, 0],
+            half_weight: [0.0, 0.0],
+            n_texels,
+            pyr_side,
+            top_level,
+            tiles,
+            vertex_count: vertices.len() as u32,
+            params_buf,
+            emitters_buf,
+            cpu_light_buf,
+            pyramid_buf,
+            acc_buf,
+            direct_acc_buf,
+            vertex_buf,
+            shadow,
+            power_pipeline,
+            power_bg,
+            reduce_pipeline,
+            reduce_bgs,
+            select_pipeline,
+            select_bg,
+            transfer_pipeline,
+            transfer_bg,
+        })
+    }
+
+    fn norm(&self, p: Vec3) -> Vec3 {
+        (p - self.centre) / self.radius
+    }
+
+    /// The step's emitter shooters: a triangle by power, a uniform point, its emission.
+    /// `count` of them, each weighted 1 / `share` (the expected number of emitter samples
+    /// a step).
+    fn emitter_samples(&self, step: u64, count: u32, share: f64) -> Vec<GpuShooter> {
+        let scene = &self.scene;
+        let r2 = self.radius * self.radius;
+        (0..count)
+            .map(|k| {
+                let mut rng = Rng::new(self.seed, 0x4E17_0E11, step, k as u64);
+                let u = rng.next_f32() as f64;
+                let j = self
+                    .emitter_cdf
+                    .partition_point(|&c| c <= u)
+                    .min(self.emitters.len() - 1);
+                let e = self.emitters[j];
+                let p_tri = e.weight / self.emitters.iter().map(|e| e.weight).sum::<f64>();
+                let tri = &scene.triangles[e.triangle as usize];
+                let material = scene.material(tri);
+                let (mut b1, mut b2) = (rng.next_f32(), rng.next_f32());
+                if b1 + b2 > 1.0 {
+                    b1 = 1.0 - b1;
+                    b2 = 1.0 - b2;
+                }
+                let bary = Vec3::new(1.0 - b1 - b2, b1, b2);
+                let mut normal = tri.geometric_normal();
+                let mut sides = 1.0;
+                if material.double_sided {
+                    sides = 2.0;
+                    if rng.next_f32() < 0.5 {
+                        normal = -normal;
+                    }
+                }
+                let p = tri.point(bary) + normal * self.atlas.surface_offset;
+                let weight = (tri.area() as f64 * sides / (p_tri * share)) as f32 / r2;
+                GpuShooter {
+                    pos: v4(self.norm(p), e.disc_area / r2),
+                    nrm: v4(normal, weight),
+                    diffuse: v4(scene.emission(tri, bary), 1.0),
+                    spec: [0.0; 4],
+                    in_dir: v4(normal, 0.0),
+                    frame_t: [0.0; 4],
+                    frame_b: [0.0; 4],
+                }
+            })
+            .collect()
+    }
+
+    /// Per texel, one-sample irradiance estimates of the sky, the sun and punctual lights
+    /// (first N entries: rgb), and their luminance-weighted direction sums (next N).
+    fn cpu_light(&self, step: u64) -> Vec<[f32; 4]> {
+        let Some(tracer) = &self.tracer else {
+            return Vec::new();
+        };
+        let scene = &self.scene;
+        let lighting = &self.lighting;
+        let seed = self.seed;
+        let per: Vec<(Vec3, Vec3)> = self
+            .atlas
+            .texels
+            .par_iter()
+            .enumerate()
+            .map(|(k, t)| {
+                let mut rng = Rng::new(seed, 0xC9_11_6E, step, k as u64);
+                let (x, n, ng) = (t.position, t.normal, t.geo_normal);
+                let front = |d: Vec3| d.dot(n) > 0.0 && d.dot(ng) > 0.0;
+                let (mut sum, mut dir) = (Vec3::ZERO, Vec3::ZERO);
+                let mut add = |c: Vec3, d: Vec3| {
+                    sum += c;
+                    dir += d * lum(c);
+                };
+                if lighting.sky.is_some() {
+                    // Cosine sampling: E = π L is the irradiance estimate.
+                    let d = cosine_sample(n, rng.next_f32(), rng.next_f32());
+                    let l = lighting.sky_radiance(d);
+                    if l != Vec3::ZERO && d.dot(ng) > 0.0 && tracer.unoccluded(scene, x, d, f32::INFINITY) {
+                        add(l * PI, d);
+                    }
+                }
+                if let Some(sun) = &lighting.sun {
+                    let axis = -sun.direction.normalize();
+                    let d = cone_sample(axis, sun.cos_half_angle(), rng.next_f32(), rng.next_f32());
+                    if front(d) && tracer.unoccluded(scene, x, d, f32::INFINITY) {
+                        add(sun.radiance * (d.dot(n) * sun.solid_angle()), d);
+                    }
+                }
+                for light in &scene.lights {
+                    match light.kind {
+                        LightKind::Directional => {
+                            let d = -light.direction;
+                            if front(d) && tracer.unoccluded(scene, x, d, f32::INFINITY) {
+                                add(light.intensity * d.dot(n), d);
+                            }
+                        }
+                        LightKind::Point | LightKind::Spot { .. } => {
+                            let to = light.position - x;
+                            let dist2 = to.length_squared();
+                            if dist2 <= 0.0 {
+                                continue;
+                            }
+                            let dist = dist2.sqrt();
+                            let d = to / dist;
+                            if !front(d) {
+                                continue;
+                            }
+                            // The same falloff and cone as `path` (KHR_lights_punctual).
+                            let mut falloff = 1.0 / dist2;
+                            if let Some(range) = light.range {
+                                falloff *= (1.0 - (dist / range).powi(4)).clamp(0.0, 1.0).powi(2);
+                            }
+                            if let LightKind::Spot { inner_cone, outer_cone } = light.kind {
+                                let cd = (-d).dot(light.direction);
+                                let scale = 1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3);
+                                let a = ((cd - outer_cone.cos()) * scale).clamp(0.0, 1.0);
+                                falloff *= a * a;
+                            }
+                            if falloff > 0.0 && tracer.unoccluded(scene, x, d, dist * (1.0 - 1e-4)) {
+                                add(light.intensity * (falloff * d.dot(n)), d);
+                            }
+                        }
+                    }
+                }
+                (sum, dir)
+            })
+            .collect();
+        per.iter()
+            .map(|(s, _)| v4(*s, 0.0))
+            .chain(per.iter().map(|(_, d)| v4(*d, 0.0)))
+            .collect()
+    }
+
+    fn run_step(&mut self) -> Result<(), EngineError> {
+        let step = self.steps_done;
+        let parity = (step % 2) as usize;
+        // One shooter a step with emitters: a fair coin picks the kind, and the shooter
+        // counts as half a shooter of that kind (weight x 2), so every step's estimate is
+        // an unbiased transfer of all the light.
+        let (k_emit, k_texel, share_emit, share_texel) = if self.params.shooters_per_step == 1 && self.k_emit == 1 {
+            let mut rng = Rng::new(self.seed, 0xC0_14, step, 0);
+            if rng.next_f32() < 0.5 {
+                (1, 0, 0.5, 1.0)
+            } else {
+                (0, 1, 1.0, 0.5)
+            }
+        } else {
+            (self.k_emit, self.k_texel, self.k_emit as f64, self.k_texel as f64)
+        };
+        let q = &self.ctx.queue;
+        if k_emit > 0 {
+            let samples = self.emitter_samples(step, k_emit, share_emit);
+            q.write_buffer(&self.emitters_buf, 0, bytemuck::cast_slice(&samples));
+        }
+        if self.flags & HC_CPU_LIGHT != 0 {
+            let light = self.cpu_light(step);
+            q.write_buffer(&self.cpu_light_buf, 0, bytemuck::cast_slice(&light));
+        }
+        let i = (self.half_steps[parity] + 1) as f64;
+        let w = i.powf(self.params.ramp as f64);
+        self.half_weight[parity] += w;
+        self.half_steps[parity] += 1;
+        let blend = (w / self.half_weight[parity]) as f32;
+        let hash = (crate::engine::rng::splitmix64(self.seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) >> 32) as u32;
+        let gp = GpuParams {
+            dims: [self.n_texels, self.atlas.width, self.atlas.height, self.pyr_side],
+            shoot: [self.top_level, self.params.shooter_level, k_emit, k_texel],
+            step: [(step % 2) as u32, parity as u32, hash, self.flags],
+            f: [
+                blend,
+                self.params.depth_map_size as f32,
+                self.params.grazing_tolerance,
+                share_texel as f32,
+            ],
+        };
+        q.write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&gp));
+        let shooters = k_emit + k_texel;
+        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("hemicube step"),
+        });
+        if k_texel > 0 {
+            let level0 = (self.pyr_side as u64).pow(2) * 4;
+            encoder.clear_buffer(&self.pyramid_buf, 0, Some(level0));
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("hemicube power pyramid"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.power_pipeline);
+            pass.set_bind_group(0, &self.power_bg, &[]);
+            let (x, y) = gpu::dispatch_size_64(self.n_texels);
+            pass.dispatch_workgroups(x, y, 1);
+            pass.set_pipeline(&self.reduce_pipeline);
+            for (bg, cells) in &self.reduce_bgs {
+                pass.set_bind_group(0, bg, &[]);
+                let (x, y) = gpu::dispatch_size_64(*cells);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+        }
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("hemicube select shooters"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.select_pipeline);
+            pass.set_bind_group(0, &self.select_bg, &[]);
+            pass.dispatch_workgroups(shooters.div_ceil(64).max(1), 1, 1);
+        }
+        if shooters > 0 {
+            let draws = (0..5 * shooters).map(|v| {
+                let [x, y, side, _] = self.tiles[v as usize];
+                // Side faces: only the half above the shooter's plane is ever looked up.
+                let rows = if v % 5 == 0 { side } else { side / 2 };
+                ShadowDraw { view: v, tile: [x, y, side], rows }
+            });
+            self.shadow.render(&mut encoder, &self.vertex_buf, self.vertex_count, draws);
+        }
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("hemicube transfer"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.transfer_pipeline);
+            pass.set_bind_group(0, &self.transfer_bg, &[]);
+            let (x, y) = gpu::dispatch_size_64(self.n_texels);
+            pass.dispatch_workgroups(x, y, 1);
+        }
+        q.submit([encoder.finish()]);
+        self.steps_done += 1;
+        self.ctx.take_error("hemicube step").map_err(gpu_error)
+    }
+}
+
+impl Technique for Hemicube {
+    fn id(&self) -> &'static str {
+        "hemicube"
+    }
+
+    fn params(&self) -> serde_json::Value {
+        serde_json::to_value(&self.params).expect("params serialise")
+    }
+
+    fn step(&mut self) -> Result<(), EngineError> {
+        self.run_step()
+    }
+
+    fn steps_done(&self) -> u64 {
+        self.steps_done
+    }
+
+    fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
+        let direct = (self.flags & HC_DIRECT != 0).then_some(&self.direct_acc_buf);
+        // No directional layer: the plan lists it as left out.
+        read_halves(&self.ctx, "hemicube", &self.acc_buf, direct, self.n_texels as usize, self.half_steps).map_err(gpu_error)
+    }
+
+    fn accumulating_pass(&self) -> &'static str {
+        "hemicube transfer (shaders/hemicube/transfer.wgsl)"
+    }
+}
+
+const GLOSSY_PASS: &str = "glossy lobes";
+const CPU_LIGHT_PASS: &str = "sky, sun and punctual lights (CPU rays)";
+
+/// `hemicube`'s passes, WGSL in `shaders/hemicube/`.
+pub mod shaders {
+    use crate::engine::gpu::shaders::{PassShader, SHADOW_VIEW, WgslFile, pass, wgsl_file};
+
+    /// Layouts and the lobe shared by the hemicube passes.
+    pub const HEMICUBE_COMMON: WgslFile = wgsl_file!("hemicube/common.wgsl");
+    /// The power pyramid (level 0 and the 2 x 2 sums).
+    pub const HEMICUBE_PYRAMID: PassShader = pass!("hemicube/pyramid.wgsl", [HEMICUBE_COMMON]);
+    /// The step's shooters (pyramid descent, texel merging) and their views.
+    pub const HEMICUBE_SELECT: PassShader = pass!("hemicube/select.wgsl", [SHADOW_VIEW, HEMICUBE_COMMON]);
+    /// Every receiver takes the shooters' light; the half accumulators.
+    pub const HEMICUBE_TRANSFER: PassShader = pass!("hemicube/transfer.wgsl", [HEMICUBE_COMMON]);
+    /// Every pass of `hemicube`.
+    pub const ALL: &[PassShader] = &[HEMICUBE_PYRAMID, HEMICUBE_SELECT, HEMICUBE_TRANSFER];
+}
+
+/// `hemicube` in the technique table (`technique/table.rs`).
+pub const ENTRY: TechniqueEntry = TechniqueEntry {
+    id: "hemicube",
+    summary: "stochastic iteration by random hemicube shooting with glossy (Phong-type) transport and texel merging (GPU)",
+    plan,
+    prepare: |inputs, params| Ok(Box::new(Hemicube::prepare(inputs, params)?)),
+    shaders: shaders::ALL,
+};
+
+/// What `hemicube` runs for a scene and job, and what it leaves out (DESIGN §6).
+pub fn plan(f: &SceneFeatures) -> Plan {
+    let mut p = Plan::new("hemicube");
+    p.run(
+        "power pyramid",
+        "reflected power per texel summed 2 x 2 up to the total, for shooter selection",
+    );
+    p.run(
+        "shooter selection",
+        "pyramid descent with a GPU random number, texel merging at the shooter level",
+    );
+    p.decide(
+        "emitter sampling (CPU)",
+        f.emissive_triangles > 0,
+        &format!(
+            "{} emissive triangle(s) shoot from exact points, chosen by power",
+            f.emissive_triangles
+        ),
+        "no emissive surface",
+    );
+    p.decide(
+        CPU_LIGHT_PASS,
+        f.sky || f.sun || f.punctual_lights > 0,
+        "one shadow ray per texel a step for the sky, the sun and each punctual light (point, spot, directional)",
+        "no sky, sun or punctual light",
+    );
+    p.run("hemicube depth maps", "five faces per shooter, one render pass");
+    p.run(
+        "transfer",
+        "every texel takes every shooter's light (Eq. 4 with Eq. 8's disc term)",
+    );
+    p.decide(
+        GLOSSY_PASS,
+        f.glossy_materials > 0,
+        &format!(
+            "{} material(s) with metallic > 0 or roughness < 1: Phong lobes at shooters, incoming directions kept",
+            f.glossy_materials
+        ),
+        "every material is a fully rough dielectric: the diffuse-only variant runs (no lobe data, no direction buffers)",
+    );
+    p.decide(
+        "direct-light layer",
+        f.want_direct,
+        "direct or indirect output asked for (direct accumulators)",
+        "not asked for in outputs",
+    );
+    if f.want_sh {
+        p.leave_out(
+            "directional (sh) layer",
+            "asked for, but hemicube keeps no directional moments: `sh` outputs fail with hemicube (use `path`)",
+        );
+    } else {
+        p.leave_out("directional (sh) layer", "not asked for in outputs");
+    }
+    if !f.has_light() {
+        p.leave_out(
+            "light",
+            "the scene and job have no light at all: the lightmap is exactly zero",
+        );
+    }
+    p.error_estimate = "noise only, and low: consecutive steps are correlated through the light they reflect, and \
+                        the iteration's start-up transient is a bias (docs/hemicube.md)"
+        .into();
+    p
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn params_defaults_and_ranges() {
+        let p: HemicubeParams = parse_params("hemicube", &serde_json::Value::Null).unwrap();
+        assert_eq!(p, HemicubeParams::default());
+        p.validate().unwrap();
+        for bad in [
+            serde_json::json!({"depth_map_size": 8}),
+            serde_json::json!({"shooter_level": 5}),
+            serde_json::json!({"shooters_per_step": 0}),
+            serde_json::json!({"ramp": -1}),
+            serde_json::json!({"grazing_tolerance": 3}),
+        ] {
+            let p: HemicubeParams = parse_params("hemicube", &bad).unwrap();
+            let e = p.validate().unwrap_err().to_string();
+            let name = bad.as_object().unwrap().keys().next().unwrap().clone();
+            assert!(e.contains(&name), "{e} does not name {name}");
+        }
+        assert!(parse_params::<HemicubeParams>("hemicube", &serde_json::json!({"iterations": 3})).is_err());
+    }
+
+    #[test]
+    fn lobe_is_lambertian_at_full_roughness_and_energy_bounded() {
+        let base = Vec3::new(0.8, 0.5, 0.2);
+        let rough = Material {
+            roughness: 1.0,
+            metallic: 1.0,
+            ..Default::default()
+        };
+        assert_eq!(lobe(&rough, base), (base, Vec3::ZERO, 0.0));
+        // Directional albedo of the specular lobe (numerically, over the hemisphere) is at
+        // most k_s for every incidence, and close to k_s at normal incidence for a sharp lobe.
+        let shiny = Material {
+            roughness: 0.3,
+            metallic: 1.0,
+            ..Default::default()
+        };
+        let (kd, ks, e) = lobe(&shiny, base);
+        assert_eq!(kd, Vec3::ZERO);
+        assert!((ks - base).length() < 1e-6);
+        for cos_i in [1.0f32, 0.7, 0.3] {
+            let wi = Vec3::new((1.0 - cos_i * cos_i).sqrt(), 0.0, cos_i);
+            let r = Vec3::new(-wi.x, 0.0, wi.z);
+            let (nt, np) = (400, 400);
+            let mut albedo = 0.0f64;
+            for a in 0..nt {
+                let ct = (a as f32 + 0.5) / nt as f32; // cos θ_o, uniform in cos: dω = dcos dφ
+                let st = (1.0 - ct * ct).sqrt();
+                for b in 0..np {
+                    let phi = 2.0 * PI * (b as f32 + 0.5) / np as f32;
+                    let wo = Vec3::new(st * phi.cos(), st * phi.sin(), ct);
+                    let c = r.dot(wo).max(0.0);
+                    let f = (e + 1.0) / (2.0 * PI) * c.powf(e) / cos_i.max(ct);
+                    albedo += (f * ct) as f64 * (1.0 / nt as f64) * (2.0 * PI as f64 / np as f64);
+                }
+            }
+            assert!(albedo <= 1.0 + 2e-3, "cos_i {cos_i}: albedo {albedo}");
+            if cos_i == 1.0 {
+                assert!(albedo > 0.97, "normal incidence albedo {albedo}");
+            }
+        }
+    }
+}

@@ -1,0 +1,1534 @@
+//! `obscurance`: obscurances with colour bleeding along global parallel directions, with
+//! every depth layer per pixel, and incremental updates for moved objects (Méndez-Feliu,
+//! Sbert, Catà, Sunyer & Funtané, "Real-time obscurances with color bleeding",
+//! `shared/seeds/obscurances-color-bleeding-depth-peeling.md`).
+//!
+//! # What
+//! For every valid texel P, with s = direction, d = distance to the surface Q seen,
+//! rho = the falloff (sqrt(d/dmax) by default, 1 from dmax on):
+//! - the plain obscurance W0(P) = 1/pi * integral of rho(d) cos (seed Eq. 2), written to
+//!   the `ao.Y` layer;
+//! - the colour-bleeding obscurance W(P) = 1/pi * integral of R(Q) rho(d) cos (Eq. 4), with
+//!   R_ave, the area-weighted mean reflectivity, where no surface lies within dmax;
+//! - the direct light: emitters and the sky seen along the same rays, the sun and
+//!   directional lights through shadow maps.
+//!
+//! The lightmap (incident irradiance / pi, DESIGN section 2) is direct + I_A W(P): Eq. 1
+//! with I(P) = R(P) I_A W(P) and W carrying the 1/pi, so a renderer's albedo * lightmap is
+//! the seed's indirect term plus the direct light.
+//!
+//! # How (per direction d, uniform on the sphere; one step = `directions_per_step` of them)
+//! 1. *Layers* (`shaders/obscurance/layers.wgsl`, seed section 4.1): one orthographic
+//!    raster pass of the whole scene along d appends every fragment to its pixel's linked
+//!    list (atomic head swap into a fixed node pool): all depth layers of every pixel in a
+//!    single pass. Chosen over depth peeling because peeling renders the scene once per
+//!    layer (L + 1 passes for L layers, and the vertex-bound software rasteriser this runs
+//!    on in CI pays the whole scene each time), while the list costs one pass, the layer
+//!    count is not needed in advance, and the gather needs no sorting: it only wants the
+//!    layer next to each texel. The node pool is sized from the scene (sum of triangle
+//!    areas over the smallest pixel area of any direction, plus slack) so every fragment
+//!    fits; a fragment past the pool is dropped and counted ([`LayerStats`]), and the
+//!    texels behind it see the next surface instead for that direction.
+//! 2. *Gather* (`shaders/obscurance/gather.wgsl`, section 4.2): each texel projects its
+//!    sample point into the map and walks its pixel's list for the layer consecutive to
+//!    it along +d (if it faces +d) or -d (if it faces -d): the seed's transfer between
+//!    consecutive layers in both directions in one pass. The seed's facing tests: the
+//!    texel must face the layer (its normal's sign against d picks the direction) and the
+//!    layer must face the texel (its front-facing bit) or be double-sided.
+//! 3. *Direct* (`shaders/obscurance/direct.wgsl`): a nearest-depth shadow map per sun or
+//!    directional light per direction step, with E/pi cos visibility added to the direct
+//!    accumulator.
+//! 4. *Ambient* (on the CPU, at a snapshot): R_ave and I_A (below), and the lightmap
+//!    direct + I_A W for each half.
+//!
+//! Estimator: the seed's "added and averaged" ratio, sum of f(s) |<n, d>| over sum of
+//! |<n, d>| across directions (both signs of d used): consistent for the cosine-weighted
+//! hemisphere integrals, and exact for a constant f, so an open plane reads exactly its
+//! sky and a closed room's hit fraction is exactly 1 (the plain unbiased form,
+//! 2 |<n, d>| f, carries the noise of the cosine weight itself into every term, and into
+//! I_A's ratio). Each half accumulator keeps running means of numerator and denominator
+//! (DESIGN section 4: even and odd steps); the CPU divides at a snapshot.
+//!
+//! Directions: `stratified` (R2 sequence, randomly rotated per bake) or `random`, shared
+//! with `sdb` ([`super::sdb::Directions`]); the map origin is jittered by a random
+//! sub-pixel offset per direction. Randomness: CPU SplitMix64 from the bake seed only;
+//! the GPU passes use no hash (the lists' order depends on fragment scheduling, but the
+//! nearest layer does not, barring exact ties in distance). Precision: f32 throughout, in normalised
+//! scene space ((p - centre) / radius, as `sdb`), so epsilons are relative and scaling or
+//! translating the scene does not change the result; `dmax` is converted to that space.
+//! Bounds: the node pool is capped by the device's storage-binding size; lists are walked
+//! to their end (no fixed k).
+//!
+//! # Departures from the seed
+//! - A per-pixel fragment list in one pass instead of depth peeling (above), and a
+//!   texel-driven gather (each texel looks up its own pixel) instead of point streams
+//!   writing into the obscurance map, so every texel gets exactly one sample per direction.
+//! - A layer showing the texel its back face (single-sided) is a black blocker (R = 0,
+//!   no emission, rho counts), where the seed dropped the pair: dropping would let light
+//!   through the back of open geometry.
+//! - Rays that leave the scene (no surface at any distance): the seed gives them R_ave
+//!   like any open direction; here that is `background = ambient`, and the default
+//!   `none` gives them 0 because the environment they see is already counted as direct
+//!   light (an open plane under a sky would otherwise get R_ave I_A on top of the sky).
+//!   Surfaces beyond dmax still give R_ave (the seed's "open directions").
+//! - I_A: Eq. 5 holds for a closed scene lit only by emitters. The default `ambient =
+//!   measured` generalises it with quantities the bake measures: I_A = D_ave / (1 - c
+//!   R_ave), D_ave the area-weighted mean direct light (emitters, sky, sun) and c the
+//!   area-weighted fraction of directions that hit a surface. In a closed scene c = 1 and
+//!   D_ave is the mean emission (every emitted photon lands once), so this is Eq. 5; in an
+//!   open one it accounts for the sky and for the reflected light that escapes.
+//!   `ambient = emitters` is Eq. 5 as printed.
+//! - Two half accumulators (even and odd steps) for the error estimate.
+//! - Point and spot lights are not handled (no cube shadow maps): the plan lists them as
+//!   left out, never silently dropped.
+//!
+//! # Incremental update (seed section 5)
+//! During a bake every hit ORs two bits for the mesh it hit into the texel's influence
+//! mask: 16 + (mesh index mod 16) for a hit at any distance, (mesh index mod 16) for one
+//! within dmax. [`Obscurance::state`] saves accumulators, masks and the direction state;
+//! [`Obscurance::update`] prepares a bake of the changed scene that recomputes only the
+//! texels a changed (moved or added) mesh influenced: those whose mask has its bit
+//! (before the move), the mesh's own texels, texels new to the atlas, and texels within
+//! dmax of the mesh's new bounding box (the ones it now occludes or tints); every other
+//! texel keeps its values and is skipped by the gather. Rerunning the same direction
+//! sequence makes a recomputed texel equal to its full-rebake value. [`UpdateReach`]
+//! picks the mask: `All` (hits at any distance: the direct sky light the mesh blocked
+//! too) or `Dmax` (the seed's set: hits within dmax, i.e. the obscurance it influenced;
+//! much smaller in open scenes). What it misses: texels farther than dmax from the new
+//! position whose sky or far field the mesh now blocks, and with `Dmax` also those it
+//! blocked before from farther than dmax (measured in docs/obscurance.md). Bits alias
+//! mod 16 meshes, so the set is a superset (more work, never fewer texels).
+//!
+//! # Known bias and limits
+//! - Obscurance is not radiosity: I_A is one scene-wide value, so a closed room of
+//!   albedo near 1 does not converge to Le / (1 - rho) near its corners (rho < 1 there),
+//!   and light from a bright corner does not reach a dark one. Measured in
+//!   docs/obscurance.md and docs/stability.md.
+//! - Lateral resolution: list samples sit at pixel centres, up to half a pixel from the
+//!   texel's ray, which blurs contact shadows over a map pixel.
+//! - Small emitters are found only by the rays that hit them (noisy); point and spot
+//!   lights are not baked.
+
+use std::sync::Arc;
+
+use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
+use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::gpu::layout::{
+    Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, uniform_entry,
+};
+use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, sample_cone};
+use crate::engine::gpu::frame::SceneFrame;
+use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene};
+use crate::engine::gpu::texels::GpuTexelGeom;
+use crate::engine::gpu::view::{GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view};
+use crate::engine::gpu::{self, GpuContext, GpuError};
+use crate::engine::plan::{Plan, SceneFeatures};
+use crate::engine::scene::Lighting;
+
+// ---------------------------------------------------------------------------------------
+// Parameters
+// ---------------------------------------------------------------------------------------
+
+/// rho(d / dmax) below dmax (1 from dmax on).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Falloff {
+    /// sqrt(d / dmax): the seed's function.
+    #[default]
+    Sqrt,
+    /// d / dmax.
+    Linear,
+    /// 0: classic ambient occlusion within dmax.
+    Step,
+    /// (1 - exp(-4 d/dmax)) / (1 - exp(-4)): saturates sooner than sqrt.
+    Exp,
+}
+
+impl Falloff {
+    fn code(self) -> u32 {
+        match self {
+            Falloff::Sqrt => 0,
+            Falloff::Linear => 1,
+            Falloff::Step => 2,
+            Falloff::Exp => 3,
+        }
+    }
+
+    /// rho(x) for x = d / dmax (the WGSL `falloff` in double precision, for tests).
+    pub fn rho(self, x: f64) -> f64 {
+        if x >= 1.0 {
+            return 1.0;
+        }
+        let x = x.max(0.0);
+        match self {
+            Falloff::Sqrt => x.sqrt(),
+            Falloff::Linear => x,
+            Falloff::Step => 0.0,
+            Falloff::Exp => (1.0 - (-4.0 * x).exp()) / (1.0 - (-4.0f64).exp()),
+        }
+    }
+}
+
+/// What the colour-bleeding term takes for rays that leave the scene.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Background {
+    /// 0: what such a ray sees (the sky) is direct light already.
+    #[default]
+    None,
+    /// R_ave, like any direction with no surface within dmax (the seed).
+    Ambient,
+}
+
+/// Where the ambient intensity I_A comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum AmbientSource {
+    /// D_ave / (1 - c R_ave) from the bake's own direct light and hit fraction.
+    #[default]
+    Measured,
+    /// Eq. 5: mean emission over all triangles / (1 - R_ave) (closed scenes, emitters only).
+    Emitters,
+}
+
+/// `obscurance` parameters (the job's `params` object). Unknown fields are rejected.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ObscuranceParams {
+    /// dmax in scene units (metres): occlusions farther away do not count. Default: a
+    /// quarter of the scene's bounding-box diagonal (so the default does not depend on the
+    /// scene's scale); `params()` reports the value used. Finite and > 0.
+    pub dmax: Option<f32>,
+    /// rho: `sqrt` (default, the seed), `linear`, `step` or `exp`.
+    pub falloff: Falloff,
+    /// Map size in pixels (square) per direction: 64..=4096, default 512 (as `sdb`).
+    pub map_size: u32,
+    /// Directions per step: 1..=256, default 1.
+    pub directions_per_step: u32,
+    /// `stratified` (default) or `random`.
+    pub directions: DirectionSequence,
+    /// Rays leaving the scene: `none` (default) or `ambient` (the seed).
+    pub background: Background,
+    /// I_A: `measured` (default) or `emitters` (Eq. 5 as printed).
+    pub ambient: AmbientSource,
+}
+
+impl Default for ObscuranceParams {
+    fn default() -> Self {
+        ObscuranceParams {
+            dmax: None,
+            falloff: Falloff::Sqrt,
+            map_size: 512,
+            directions_per_step: 1,
+            directions: DirectionSequence::Stratified,
+            background: Background::None,
+            ambient: AmbientSource::Measured,
+        }
+    }
+}
+
+impl ObscuranceParams {
+    pub fn from_json(v: &serde_json::Value) -> Result<Self, EngineError> {
+        let p: ObscuranceParams = parse_params("obscurance", v)?;
+        p.validate()?;
+        Ok(p)
+    }
+
+    pub fn validate(&self) -> Result<(), EngineError> {
+        let bad = |m: String| Err(EngineError::BadInput(format!("obscurance parameter {m}")));
+        if let Some(d) = self.dmax
+            && !(d.is_finite() && d > 0.0)
+        {
+            return bad(format!("dmax: {d} is not a positive finite distance"));
+        }
+        if !(64..=4096).contains(&self.map_size) {
+            return bad(format!("map_size: {} is outside 64..=4096", self.map_size));
+        }
+        if !(1..=256).contains(&self.directions_per_step) {
+            return bad(format!(
+                "directions_per_step: {} is outside 1..=256",
+                self.directions_per_step
+            ));
+        }
+        Ok(())
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// GPU-side layouts (must match the shaders)
+// ---------------------------------------------------------------------------------------
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuVertex {
+    position: [f32; 3],
+    lightmap_uv: [f32; 2],
+    triangle: u32,
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuNode {
+    t: f32,
+    tri: u32,
+    lightmap: u32,
+    next: u32,
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuDims {
+    dims: [u32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuGatherParams {
+    env_fwd: [f32; 4],
+    env_back: [f32; 4],
+    r_ave: [f32; 4],
+    misc: [u32; 4],
+    dims: [u32; 4],
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+struct GpuDirectParams {
+    irradiance: [f32; 4],
+    bias: [f32; 4],
+    misc: [u32; 4],
+}
+
+const TRI_TEXTURED_ALBEDO: u32 = 8;
+const FLAG_BACKGROUND_AMBIENT: u32 = 1;
+const FLAG_SUBSET: u32 = 2;
+/// counters[0..4] in obscurance/gather.wgsl; influence masks follow.
+const MASK_BASE: usize = 4;
+const EPS_NORMAL_PLANE: f32 = 1e-5;
+const EPS_ALONG_D: f32 = 1e-5;
+/// Guard on 1 - c R_ave: an albedo-1 closed scene has no finite ambient.
+const MIN_ABSORPTION: f32 = 1e-6;
+
+/// Per-pixel list statistics since the bake started (read at a snapshot).
+#[derive(Debug, Clone, Copy, Default, Serialize, PartialEq, Eq)]
+pub struct LayerStats {
+    /// Node pool size.
+    pub capacity: u32,
+    /// Most fragments any direction produced.
+    pub max_fragments: u32,
+    /// Longest list a texel walked: the depth complexity (layer count) the scene needs.
+    pub max_layers: u32,
+    /// Directions whose fragments did not all fit in the pool.
+    pub overflowing_directions: u32,
+}
+
+/// One half's per-texel means, as read back.
+#[derive(Debug, Clone, Default)]
+pub struct ObscuranceHalf {
+    pub steps: u64,
+    /// Colour-bleeding obscurance W (Eq. 4).
+    pub w: Vec<Vec3>,
+    /// Plain obscurance (Eq. 2).
+    pub ao: Vec<f32>,
+    /// Direct E/pi (emitters, sky, sun, directional lights).
+    pub direct: Vec<Vec3>,
+    /// Fraction (cosine-weighted) of directions that hit a surface.
+    pub hit: Vec<f32>,
+    /// The ambient intensity this half's lightmap used.
+    pub ambient: Vec3,
+}
+
+/// Everything a finished bake leaves for an incremental update.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ObscuranceState {
+    pub width: u32,
+    pub height: u32,
+    pub seed: u64,
+    pub params: ObscuranceParams,
+    pub half_steps: [u64; 2],
+    pub dirs: [u64; 2],
+    /// Lightmap pixel of each valid texel (the texel order of the arrays below).
+    pub pixels: Vec<u32>,
+    /// The accumulators as the GPU keeps them: for each of two regions (numerators;
+    /// weight or sun), both halves (even then odd), texel order.
+    pub acc: Vec<[f32; 4]>,
+    pub direct: Vec<[f32; 4]>,
+    /// Influence mask per texel: bit 16 + (mesh index mod 16) of every mesh a ray hit,
+    /// bit (mesh index mod 16) of every mesh hit within dmax.
+    pub masks: Vec<u32>,
+    /// Mesh names by index when the state was saved.
+    pub meshes: Vec<String>,
+    /// The job's sky and sun: an update under other lighting would leave the texels it
+    /// does not recompute lit by the old one, so it is refused.
+    pub lighting: Lighting,
+}
+
+impl ObscuranceState {
+    pub fn steps(&self) -> u64 {
+        self.half_steps[0] + self.half_steps[1]
+    }
+}
+
+/// Which recorded influence an incremental update follows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum UpdateReach {
+    /// Texels whose rays hit a changed mesh at any distance (obscurance and direct light).
+    #[default]
+    All,
+    /// Texels whose rays hit it within dmax (the obscurance it influenced: seed section 5).
+    Dmax,
+}
+
+/// What an incremental update recomputes.
+#[derive(Debug, Clone, Serialize)]
+pub struct UpdateReport {
+    pub recomputed_texels: usize,
+    pub total_texels: usize,
+    /// Steps to run (the finished bake's count) for the recomputed texels to match.
+    pub steps: u64,
+}
+
+// ---------------------------------------------------------------------------------------
+// The technique
+// ---------------------------------------------------------------------------------------
+
+/// GPU state of one `obscurance` bake.
+pub struct Obscurance {
+    ctx: Arc<GpuContext>,
+    params: ObscuranceParams,
+    seed: u64,
+    notes: Vec<String>,
+    want_direct: bool,
+    n_texels: u32,
+    lm_pixels: u32,
+    width: u32,
+    height: u32,
+    texel_pixels: Vec<u32>,
+    texel_area: Vec<f32>,
+    mesh_names: Vec<String>,
+    lighting: Lighting,
+    corners: [Vec3; 8],
+    /// dmax in normalised scene space.
+    dmax_norm: f32,
+    r_ave: Vec3,
+    /// Eq. 5's I_A (for `ambient = emitters`).
+    eq5_ambient: Vec3,
+    environment: Option<Environment>,
+    lights: Vec<DirectionalLight>,
+    directions: Directions,
+    rng: SplitMix64,
+    steps_done: u64,
+    half_steps: [u64; 2],
+    dirs: [u64; 2],
+    subset_len: Option<u32>,
+    node_capacity: u32,
+    last_ao: Option<Vec<f32>>,
+    last_stats: LayerStats,
+
+    vertex_count: u32,
+    vertex_buf: wgpu::Buffer,
+    view_buf: wgpu::Buffer,
+    shadow_view_buf: wgpu::Buffer,
+    gather_buf: wgpu::Buffer,
+    direct_buf: wgpu::Buffer,
+    heads_buf: wgpu::Buffer,
+    counters_buf: wgpu::Buffer,
+    acc_buf: wgpu::Buffer,
+    direct_acc_buf: wgpu::Buffer,
+    subset_buf: wgpu::Buffer,
+    dummy_view: wgpu::TextureView,
+    shadow: Option<ShadowPass>,
+    layers_pipeline: wgpu::RenderPipeline,
+    gather_pipeline: wgpu::ComputePipeline,
+    layers_bg: wgpu::BindGroup,
+    gather_bg: wgpu::BindGroup,
+}
+
+/// The sun / directional-light passes, created only when the job has such a light.
+struct ShadowPass {
+    color_view: wgpu::TextureView,
+    depth_view: wgpu::TextureView,
+    pipeline: wgpu::RenderPipeline,
+    bg: wgpu::BindGroup,
+    direct_pipeline: wgpu::ComputePipeline,
+    direct_bg: wgpu::BindGroup,
+}
+
+/// `obscurance`'s passes, WGSL in `shaders/obscurance/`.
+pub mod shaders {
+    use crate::engine::gpu::shaders::{PassShader, pass};
+
+    /// Every depth layer per pixel as fragment lists, and shadow maps.
+    pub const OBSCURANCE_LAYERS: PassShader = pass!("obscurance/layers.wgsl");
+    /// Obscurance, colour bleeding and direct light along one direction.
+    pub const OBSCURANCE_GATHER: PassShader = pass!("obscurance/gather.wgsl");
+    /// Direct light from the sun and directional lights through a shadow map.
+    pub const OBSCURANCE_DIRECT: PassShader = pass!("obscurance/direct.wgsl");
+    /// Every pass of `obscurance`.
+    pub const ALL: &[PassShader] = &[OBSCURANCE_LAYERS, OBSCURANCE_GATHER, OBSCURANCE_DIRECT];
+}
+
+/// `obscurance` in the technique table (`technique/table.rs`).
+pub const ENTRY: TechniqueEntry = TechniqueEntry {
+    id: "obscurance",
+    summary: "obscurances with colour bleeding along random directions with all depth layers, an ao layer and incremental updates (GPU)",
+    plan,
+    prepare: |inputs, params| Ok(Box::new(Obscurance::prepare(inputs, params)?)),
+    shaders: shaders::ALL,
+};
+
+/// What `obscurance` runs for a scene and job, and what it leaves out (DESIGN section 6).
+pub fn plan(f: &SceneFeatures) -> Plan {
+    let mut p = Plan::new("obscurance");
+    p.run(
+        "depth layers",
+        "one raster pass per direction appending every fragment to per-pixel lists (all layers)",
+    );
+    p.run(
+        "gather",
+        "consecutive-layer transfer for every texel along +d and -d: obscurance, colour bleeding, direct",
+    );
+    p.run(
+        "ambient term",
+        "R_ave and I_A from scene averages at each snapshot (CPU)",
+    );
+    let directional = f.sun || f.directional_lights > 0;
+    p.decide(
+        "shadow maps + direct pass",
+        directional,
+        "the job has a sun or the scene has directional lights",
+        "no sun and no directional light",
+    );
+    p.decide(
+        "sky lookups",
+        f.sky,
+        "the job has a sky: rays leaving the scene bring it as direct light",
+        "the job has no sky",
+    );
+    p.decide(
+        "direct-light layer",
+        f.want_direct,
+        "direct or indirect output asked for (kept anyway for I_A; costs only a readback)",
+        "not asked for in outputs",
+    );
+    if f.want_sh {
+        p.leave_out(
+            "directional (sh) layer",
+            "asked for, but obscurance keeps no directional moments: `sh` outputs fail with obscurance (use `path`)",
+        );
+    } else {
+        p.leave_out("directional (sh) layer", "not asked for in outputs");
+    }
+    let ignored = f.punctual_lights.saturating_sub(f.directional_lights);
+    if ignored > 0 {
+        p.leave_out(
+            "point and spot lights",
+            &format!(
+                "obscurance has shadow maps only for the sun and directional lights: the scene's {ignored} \
+                 point/spot light(s) are NOT baked (use `path`)"
+            ),
+        );
+    }
+    if f.glossy_materials > 0 {
+        p.leave_out(
+            "glossy transport",
+            "obscurance is diffuse only; metallic/roughness are ignored",
+        );
+    } else {
+        p.leave_out("glossy data", "every material is a fully rough dielectric");
+    }
+    p.leave_out(
+        "multi-bounce transport",
+        "by design: indirect light is R(Q) I_A with one scene-wide I_A (Eq. 1), not a radiosity solution",
+    );
+    if !f.has_light() {
+        p.leave_out(
+            "light",
+            "the scene and job have no light at all: the lightmap is exactly zero",
+        );
+    }
+    p.error_estimate = "noise only: the obscurance model's bias (one scene-wide ambient term) is not in it".into();
+    p
+}
+
+/// Pixel side of the map along `d` (normalised units), as `make_view` sizes it.
+fn pixel_size(d: Vec3, corners: &[Vec3; 8], map_size: u32) -> f32 {
+    let v = make_view(d, corners, map_size, (0.0, 0.0), 0, sdb::DEPTH_NEAREST);
+    v.extent[0] / v.extent[2]
+}
+
+impl Obscurance {
+    pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
+        let params = ObscuranceParams::from_json(params)?;
+        Self::with_params(inputs, params)
+    }
+
+    fn with_params(inputs: BakeInputs, mut params: ObscuranceParams) -> Result<Self, EngineError> {
+        params.validate()?;
+        let input = MapScene::new(&inputs.scene, &inputs.atlas, &inputs.lighting, inputs.seed, inputs.want_direct);
+        let mut notes: Vec<String> = Vec::new();
+        for n in &mut notes {
+            *n = n.replace("sdb ignores", "obscurance ignores");
+            tracing::warn!("{n}");
+        }
+        let scene = &inputs.scene;
+        let atlas = &inputs.atlas;
+        let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
+        if params.map_size > ctx.limits.max_texture_dimension_2d {
+            return Err(EngineError::BadInput(format!(
+                "obscurance parameter map_size: {} exceeds the device's max texture size {}",
+                params.map_size, ctx.limits.max_texture_dimension_2d
+            )));
+        }
+        if ctx.limits.max_storage_buffers_per_shader_stage < 8 {
+            return Err(gpu_error(GpuError::Unsupported {
+                adapter: ctx.info.name.clone(),
+                missing: "8 storage buffers per shader stage (the obscurance gather)".into(),
+            }));
+        }
+        let (width, height) = (atlas.width.max(1), atlas.height.max(1));
+        let n_texels = input.texels.len() as u32;
+
+        // Normalised scene space, as sdb: bounds of triangles and texel points.
+        let frame = SceneFrame::of_points(
+            input
+                .triangles
+                .iter()
+                .flat_map(|t| t.p)
+                .chain(input.texels.iter().map(|t| t.position)),
+        );
+        let (lo, hi, centre, scale) = (frame.lo, frame.hi, frame.centre, frame.radius);
+        let norm = |p: Vec3| frame.norm(p);
+        let corners: [Vec3; 8] = frame.corners();
+        let dmax = params.dmax.unwrap_or(0.25 * (hi - lo).length()).max(f32::MIN_POSITIVE);
+        params.dmax = Some(dmax);
+        let dmax_norm = dmax / scale;
+
+        // Scene averages: R_ave over texels (texture-aware), weighted by texel area;
+        // Eq. 5's emission over triangles (exact for small emitters without texels).
+        let texel_area: Vec<f32> = atlas.texels.iter().map(|t| t.size * t.size).collect();
+        let area_sum: f64 = texel_area.iter().map(|a| *a as f64).sum::<f64>().max(f64::MIN_POSITIVE);
+        let r_ave = (atlas
+            .texels
+            .iter()
+            .zip(&texel_area)
+            .map(|(t, a)| t.albedo.as_dvec3() * *a as f64)
+            .sum::<glam::DVec3>()
+            / area_sum)
+            .as_vec3();
+        let (mut tri_area, mut emitted) = (0.0f64, glam::DVec3::ZERO);
+        for t in &scene.triangles {
+            let a = t.area() as f64;
+            tri_area += a;
+            emitted += scene.material(t).emissive.as_dvec3() * a;
+        }
+        let e_ave = (emitted / tri_area.max(f64::MIN_POSITIVE)).as_vec3();
+        let eq5_ambient = e_ave / (Vec3::ONE - r_ave).max(Vec3::splat(MIN_ABSORPTION));
+
+        // Geometry and materials.
+        let mut vertices = Vec::with_capacity(input.triangles.len() * 3);
+        let pix = (width * height) as usize;
+        let fill = fill_map(width, height, &input.texels);
+        let mut materials: Vec<[f32; 4]> = Vec::with_capacity(2 * pix + 2 * input.triangles.len());
+        for &k in &fill {
+            materials.push(if k == NO_TEXEL {
+                [0.0; 4]
+            } else {
+                input.texels[k as usize].albedo.extend(1.0).to_array()
+            });
+        }
+        for &k in &fill {
+            materials.push(if k == NO_TEXEL {
+                [0.0; 4]
+            } else {
+                input.texels[k as usize].emission.extend(1.0).to_array()
+            });
+        }
+        let mut norm_area = 0.0f64;
+        for (i, (t, st)) in input.triangles.iter().zip(&scene.triangles).enumerate() {
+            for k in 0..3 {
+                vertices.push(GpuVertex {
+                    position: norm(t.p[k]).to_array(),
+                    lightmap_uv: t.lm[k].to_array(),
+                    triangle: i as u32,
+                });
+            }
+            norm_area += (st.area() / (scale * scale)) as f64;
+            let m = scene.material(st);
+            let mut flags = 0;
+            if t.double_sided {
+                flags |= TRI_DOUBLE_SIDED;
+            }
+            if t.emission_textured {
+                flags |= TRI_TEXTURED_EMISSION;
+            }
+            if m.base_color_texture.is_some() {
+                flags |= TRI_TEXTURED_ALBEDO;
+            }
+            let albedo = m.base_color.truncate();
+            materials.push([albedo.x, albedo.y, albedo.z, f32::from_bits(flags)]);
+            materials.push([t.emission.x, t.emission.y, t.emission.z, f32::from_bits(t.mesh)]);
+        }
+        let geom: Vec<GpuTexelGeom> = input
+            .texels
+            .iter()
+            .map(|t| GpuTexelGeom::new(&frame, t.position, t.normal, t.geo_normal))
+            .collect();
+
+        // Node pool: fragments along d <= sum of projected areas / pixel area <= sum of
+        // areas / smallest pixel area over directions, plus one per triangle (a triangle
+        // smaller than a pixel may still cover one centre) and a margin.
+        let mut probe = Directions::new(DirectionSequence::Stratified, 7);
+        let min_pixel = (0..256)
+            .map(|_| pixel_size(probe.next_direction(), &corners, params.map_size))
+            .fold(f32::MAX, f32::min)
+            * 0.95;
+        let wanted = norm_area / (min_pixel as f64 * min_pixel as f64) * 1.05 + input.triangles.len() as f64 + 4096.0;
+        let max_nodes = (ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size)
+            / 16) as f64;
+        let node_capacity = wanted.min(max_nodes) as u32;
+        if wanted > max_nodes {
+            tracing::warn!(
+                wanted,
+                max_nodes,
+                "obscurance: the fragment pool is capped by the device"
+            );
+            notes.push(format!(
+                "obscurance: the scene may need {wanted:.0} fragment nodes per direction; the device allows \
+                 {max_nodes:.0}, so directions with more depth layers drop fragments (reported at snapshots)"
+            ));
+        }
+        // Emitters are found only by the bundles' rays: one smaller than a map pixel is
+        // hit by a ray only when a pixel centre falls on it, so its light is mostly lost.
+        let pixel_area_world = (min_pixel * scale) as f64 * (min_pixel * scale) as f64;
+        let small_emitters = scene
+            .triangles
+            .iter()
+            .filter(|t| scene.material(t).emissive != Vec3::ZERO && (t.area() as f64) < pixel_area_world)
+            .count();
+        if small_emitters > 0 {
+            let note = format!(
+                "obscurance: {small_emitters} emissive triangle(s) are smaller than a map pixel \
+                 ({:.3e} m^2 at map_size {}): their direct light is found only by rays that happen to hit \
+                 them and is mostly missed (raise map_size, or bake with `path`)",
+                pixel_area_world, params.map_size
+            );
+            tracing::warn!("{note}");
+            notes.push(note);
+        }
+        let n = params.map_size;
+        let storage_need = (2 * pix as u64 + 2 * input.triangles.len() as u64).max(4 * n_texels as u64) * 16;
+        ctx.check_storage(&format!("obscurance: a {width}x{height} lightmap"), storage_need)
+            .map_err(gpu_error)?;
+
+        use wgpu::BufferUsages as U;
+        let vertex_buf = ctx.buffer_init("obscurance vertices", &vertices, U::VERTEX);
+        let materials_buf = ctx.buffer_init("obscurance materials (per pixel, per triangle)", &materials, U::STORAGE);
+        let geom_buf = ctx.buffer_init("obscurance texel geometry", &geom, U::STORAGE);
+        let heads_buf = ctx.buffer_zeroed(
+            "obscurance list heads",
+            n as u64 * n as u64 * 4,
+            U::STORAGE | U::COPY_DST,
+        );
+        let nodes_buf = ctx.buffer_zeroed(
+            "obscurance fragment nodes",
+            node_capacity as u64 * std::mem::size_of::<GpuNode>() as u64,
+            U::STORAGE,
+        );
+        let counters_buf = ctx.buffer_zeroed(
+            "obscurance counters and influence masks",
+            (MASK_BASE as u64 + n_texels as u64) * 4,
+            U::STORAGE | U::COPY_DST | U::COPY_SRC,
+        );
+        let acc_buf = ctx.buffer_zeroed(
+            "obscurance W/ao and weight accumulators (even, odd)",
+            n_texels as u64 * 4 * 16,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
+        );
+        let direct_acc_buf = ctx.buffer_zeroed(
+            "obscurance direct/hit and sun accumulators (even, odd)",
+            n_texels as u64 * 4 * 16,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
+        );
+        let subset_buf = ctx.buffer_zeroed(
+            "obscurance texel subset (incremental update)",
+            n_texels.max(1) as u64 * 4,
+            U::STORAGE | U::COPY_DST,
+        );
+        let view_buf = ctx.uniform("obscurance view", &GpuView::zeroed());
+        let shadow_view_buf = ctx.uniform("obscurance shadow view", &GpuView::zeroed());
+        let layer_params = ctx.uniform(
+            "obscurance layer params",
+            &GpuDims {
+                dims: [width, height, node_capacity, n],
+            },
+        );
+        let gather_buf = ctx.uniform("obscurance gather params", &GpuGatherParams::zeroed());
+        let direct_buf = ctx.uniform("obscurance direct params", &GpuDirectParams::zeroed());
+
+        let extent = wgpu::Extent3d {
+            width: n,
+            height: n,
+            depth_or_array_layers: 1,
+        };
+        let dummy = ctx.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("obscurance layers dummy target (write-masked)"),
+            size: extent,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::R8Unorm,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            view_formats: &[],
+        });
+        let dummy_view = dummy.create_view(&wgpu::TextureViewDescriptor {
+            label: Some("obscurance layers dummy target view"),
+            ..Default::default()
+        });
+
+        use wgpu::ShaderStages as S;
+        let layers_module = ctx.shader(&shaders::OBSCURANCE_LAYERS).map_err(gpu_error)?;
+        let layers_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("obscurance layers layout"),
+            entries: &[
+                uniform_entry(0, S::VERTEX_FRAGMENT),
+                uniform_entry(1, S::FRAGMENT),
+                storage_entry(2, S::FRAGMENT, false),
+                storage_entry(3, S::FRAGMENT, false),
+                storage_entry(4, S::FRAGMENT, false),
+            ],
+        });
+        let vertex_layout = wgpu::VertexBufferLayout {
+            array_stride: std::mem::size_of::<GpuVertex>() as u64,
+            step_mode: wgpu::VertexStepMode::Vertex,
+            attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x2, 2 => Uint32],
+        };
+        let raster_pipeline = |label: &str,
+                               layout: &wgpu::BindGroupLayout,
+                               entry: &str,
+                               format: wgpu::TextureFormat,
+                               writes: wgpu::ColorWrites,
+                               depth: bool| {
+            let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some(label),
+                bind_group_layouts: &[Some(layout)],
+                immediate_size: 0,
+            });
+            ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some(label),
+                layout: Some(&pl),
+                vertex: wgpu::VertexState {
+                    module: &layers_module,
+                    entry_point: Some("vs_main"),
+                    compilation_options: Default::default(),
+                    buffers: &[Some(vertex_layout.clone())],
+                },
+                primitive: wgpu::PrimitiveState {
+                    topology: wgpu::PrimitiveTopology::TriangleList,
+                    front_face: wgpu::FrontFace::Ccw,
+                    // Both faces: texels on either side look for them (section 4.2).
+                    cull_mode: None,
+                    ..Default::default()
+                },
+                depth_stencil: depth.then(|| wgpu::DepthStencilState {
+                    format: wgpu::TextureFormat::Depth32Float,
+                    depth_write_enabled: Some(true),
+                    depth_compare: Some(wgpu::CompareFunction::Less),
+                    stencil: Default::default(),
+                    bias: Default::default(),
+                }),
+                multisample: Default::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module: &layers_module,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    targets: &[Some(wgpu::ColorTargetState {
+                        format,
+                        blend: None,
+                        write_mask: writes,
+                    })],
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        let layers_pipeline = raster_pipeline(
+            "obscurance depth layers",
+            &layers_layout,
+            "fs_layers",
+            wgpu::TextureFormat::R8Unorm,
+            wgpu::ColorWrites::empty(),
+            false,
+        );
+        let layers_bg = bind_group(
+            &ctx,
+            "obscurance layers bindings",
+            &layers_layout,
+            &[
+                (0, view_buf.as_entire_binding()),
+                (1, layer_params.as_entire_binding()),
+                (2, heads_buf.as_entire_binding()),
+                (3, nodes_buf.as_entire_binding()),
+                (4, counters_buf.as_entire_binding()),
+            ],
+        );
+
+        let gather_module = ctx.shader(&shaders::OBSCURANCE_GATHER).map_err(gpu_error)?;
+        let gather_binds = [
+            Bind::Uniform(&view_buf),
+            Bind::Uniform(&gather_buf),
+            Bind::Read(&heads_buf),
+            Bind::Read(&nodes_buf),
+            Bind::Read(&geom_buf),
+            Bind::Read(&materials_buf),
+            Bind::Write(&acc_buf),
+            Bind::Write(&direct_acc_buf),
+            Bind::Write(&counters_buf),
+            Bind::Read(&subset_buf),
+        ];
+        let gather_layout = layout_of(&ctx, "obscurance gather layout", S::COMPUTE, &gather_binds);
+        let gather_pipeline = compute_pipeline(&ctx, "obscurance gather", &gather_module, "gather", &gather_layout);
+        let gather_bg = group_of(&ctx, "obscurance gather bindings", &gather_layout, &gather_binds);
+
+        // Sun and directional lights: only when there are some (DESIGN section 6).
+        let shadow = if input.lights.is_empty() {
+            None
+        } else {
+            let color = ctx.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("obscurance shadow map (t)"),
+                size: extent,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::R32Float,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            });
+            let depth = ctx.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some("obscurance shadow map depth"),
+                size: extent,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::Depth32Float,
+                usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+                view_formats: &[],
+            });
+            let shadow_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some("obscurance shadow layout"),
+                entries: &[uniform_entry(0, S::VERTEX_FRAGMENT)],
+            });
+            let pipeline = raster_pipeline(
+                "obscurance shadow map",
+                &shadow_layout,
+                "fs_shadow",
+                wgpu::TextureFormat::R32Float,
+                wgpu::ColorWrites::ALL,
+                true,
+            );
+            let bg = bind_group(
+                &ctx,
+                "obscurance shadow bindings",
+                &shadow_layout,
+                &[(0, shadow_view_buf.as_entire_binding())],
+            );
+            let array_view = color.create_view(&wgpu::TextureViewDescriptor {
+                label: Some("obscurance shadow map array view"),
+                dimension: Some(wgpu::TextureViewDimension::D2Array),
+                ..Default::default()
+            });
+            let direct_module = ctx.shader(&shaders::OBSCURANCE_DIRECT).map_err(gpu_error)?;
+            let direct_binds = [
+                Bind::Uniform(&shadow_view_buf),
+                Bind::Uniform(&direct_buf),
+                Bind::Texture(&array_view),
+                Bind::Read(&geom_buf),
+                Bind::Write(&direct_acc_buf),
+                Bind::Read(&subset_buf),
+            ];
+            let direct_layout = layout_of(&ctx, "obscurance direct layout", S::COMPUTE, &direct_binds);
+            let direct_pipeline = compute_pipeline(&ctx, "obscurance direct", &direct_module, "direct", &direct_layout);
+            let direct_bg = group_of(&ctx, "obscurance direct bindings", &direct_layout, &direct_binds);
+            Some(ShadowPass {
+                color_view: color.create_view(&wgpu::TextureViewDescriptor {
+                    label: Some("obscurance shadow map view"),
+                    ..Default::default()
+                }),
+                depth_view: depth.create_view(&wgpu::TextureViewDescriptor {
+                    label: Some("obscurance shadow depth view"),
+                    ..Default::default()
+                }),
+                pipeline,
+                bg,
+                direct_pipeline,
+                direct_bg,
+            })
+        };
+        ctx.take_error("obscurance setup").map_err(gpu_error)?;
+
+        Ok(Obscurance {
+            directions: Directions::new(params.directions, inputs.seed),
+            rng: SplitMix64::new(inputs.seed ^ 0x0B5C_0A4C_E000_0001),
+            seed: inputs.seed,
+            ctx,
+            params,
+            notes,
+            want_direct: inputs.want_direct,
+            n_texels,
+            lm_pixels: width * height,
+            width,
+            height,
+            texel_pixels: atlas.texels.iter().map(|t| t.pixel).collect(),
+            texel_area,
+            mesh_names: scene.meshes.iter().map(|m| m.name.clone()).collect(),
+            lighting: inputs.lighting,
+            corners,
+            dmax_norm,
+            r_ave,
+            eq5_ambient,
+            environment: input.environment,
+            lights: input.lights,
+            steps_done: 0,
+            half_steps: [0, 0],
+            dirs: [0, 0],
+            subset_len: None,
+            node_capacity,
+            last_ao: None,
+            last_stats: LayerStats::default(),
+            vertex_count: vertices.len() as u32,
+            vertex_buf,
+            view_buf,
+            shadow_view_buf,
+            gather_buf,
+            direct_buf,
+            heads_buf,
+            counters_buf,
+            acc_buf,
+            direct_acc_buf,
+            subset_buf,
+            dummy_view,
+            shadow,
+            layers_pipeline,
+            gather_pipeline,
+            layers_bg,
+            gather_bg,
+        })
+    }
+
+    /// What this bake leaves out of the scene's light.
+    pub fn notes(&self) -> &[String] {
+        &self.notes
+    }
+
+    /// Area-weighted mean reflectivity of the scene.
+    pub fn r_ave(&self) -> Vec3 {
+        self.r_ave
+    }
+
+    /// dmax in scene units.
+    pub fn dmax(&self) -> f32 {
+        self.params.dmax.unwrap_or(0.0)
+    }
+
+    /// List statistics as of the last snapshot.
+    pub fn layer_stats(&self) -> LayerStats {
+        self.last_stats
+    }
+
+    fn texels_to_process(&self) -> u32 {
+        self.subset_len.unwrap_or(self.n_texels)
+    }
+
+    /// One step: `directions_per_step` directions (layers, gather, then a shadow map and
+    /// direct pass per sun or directional light). Submits and returns; nothing is read.
+    fn step_gpu(&mut self) -> Result<(), GpuError> {
+        let parity = (self.steps_done % 2) as usize;
+        let n = self.params.map_size;
+        let count = self.texels_to_process();
+        let dispatch = gpu::dispatch_size_64(count);
+        let mut flags = 0;
+        if self.params.background == Background::Ambient {
+            flags |= FLAG_BACKGROUND_AMBIENT;
+        }
+        if self.subset_len.is_some() {
+            flags |= FLAG_SUBSET;
+        }
+        for _ in 0..self.params.directions_per_step {
+            let d = self.directions.next_direction();
+            self.dirs[parity] += 1;
+            let b = 1.0 / self.dirs[parity] as f32;
+            let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
+            let view = make_view(d, &self.corners, n, jitter, 0, sdb::DEPTH_NEAREST);
+            let env = |w: Vec3| self.environment.as_ref().map_or(Vec3::ZERO, |e| e(w));
+            let (fwd, back) = (env(d), env(-d));
+            let gather = GpuGatherParams {
+                env_fwd: [fwd.x, fwd.y, fwd.z, b],
+                env_back: [back.x, back.y, back.z, self.dmax_norm],
+                r_ave: [self.r_ave.x, self.r_ave.y, self.r_ave.z, EPS_ALONG_D],
+                misc: [parity as u32, count, self.params.falloff.code(), flags],
+                dims: [
+                    self.lm_pixels,
+                    self.n_texels,
+                    self.node_capacity,
+                    EPS_NORMAL_PLANE.to_bits(),
+                ],
+            };
+            self.ctx
+                .queue
+                .write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
+            self.ctx
+                .queue
+                .write_buffer(&self.gather_buf, 0, bytemuck::bytes_of(&gather));
+            let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("obscurance direction"),
+            });
+            encoder.clear_buffer(&self.heads_buf, 0, None);
+            encoder.clear_buffer(&self.counters_buf, 0, Some(4));
+            {
+                let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                    label: Some("obscurance depth layers"),
+                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                        view: &self.dummy_view,
+                        depth_slice: None,
+                        resolve_target: None,
+                        ops: wgpu::Operations {
+                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                            store: wgpu::StoreOp::Discard,
+                        },
+                    })],
+                    depth_stencil_attachment: None,
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                });
+                pass.set_pipeline(&self.layers_pipeline);
+                pass.set_bind_group(0, &self.layers_bg, &[]);
+                pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
+                pass.draw(0..self.vertex_count, 0..1);
+            }
+            {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("obscurance gather"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&self.gather_pipeline);
+                pass.set_bind_group(0, &self.gather_bg, &[]);
+                pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
+            }
+            // Uniform writes land before the next submit: one submission per view.
+            self.ctx.queue.submit([encoder.finish()]);
+
+            if let Some(shadow) = &self.shadow {
+                for li in 0..self.lights.len() {
+                    let light = self.lights[li];
+                    let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
+                    let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
+                    let view = make_view(ld, &self.corners, n, jitter, 0, sdb::DEPTH_NEAREST);
+                    let pixel = view.extent[0] / view.extent[2];
+                    let e = light.irradiance_over_pi;
+                    let direct = GpuDirectParams {
+                        irradiance: [e.x, e.y, e.z, b],
+                        bias: [pixel, 2.0 * pixel, 0.0, 0.0],
+                        misc: [
+                            parity as u32,
+                            count,
+                            self.n_texels,
+                            u32::from(self.subset_len.is_some()),
+                        ],
+                    };
+                    self.ctx
+                        .queue
+                        .write_buffer(&self.shadow_view_buf, 0, bytemuck::bytes_of(&view));
+                    self.ctx
+                        .queue
+                        .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
+                    let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("obscurance direct light"),
+                    });
+                    {
+                        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                            label: Some("obscurance shadow map"),
+                            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                                view: &shadow.color_view,
+                                depth_slice: None,
+                                resolve_target: None,
+                                ops: wgpu::Operations {
+                                    load: wgpu::LoadOp::Clear(wgpu::Color {
+                                        r: 1.0e30,
+                                        g: 0.0,
+                                        b: 0.0,
+                                        a: 0.0,
+                                    }),
+                                    store: wgpu::StoreOp::Store,
+                                },
+                            })],
+                            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                                view: &shadow.depth_view,
+                                depth_ops: Some(wgpu::Operations {
+                                    load: wgpu::LoadOp::Clear(1.0),
+                                    store: wgpu::StoreOp::Discard,
+                                }),
+                                stencil_ops: None,
+                            }),
+                            timestamp_writes: None,
+                            occlusion_query_set: None,
+                            multiview_mask: None,
+                        });
+                        pass.set_pipeline(&shadow.pipeline);
+                        pass.set_bind_group(0, &shadow.bg, &[]);
+                        pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
+                        pass.draw(0..self.vertex_count, 0..1);
+                    }
+                    {
+                        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("obscurance direct"),
+                            timestamp_writes: None,
+                        });
+                        pass.set_pipeline(&shadow.direct_pipeline);
+                        pass.set_bind_group(0, &shadow.direct_bg, &[]);
+                        pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
+                    }
+                    self.ctx.queue.submit([encoder.finish()]);
+                }
+            }
+        }
+        self.half_steps[parity] += 1;
+        self.steps_done += 1;
+        self.ctx.take_error("obscurance step")
+    }
+
+    /// Block until every submitted step is done (timings).
+    pub fn finish(&self) -> Result<(), EngineError> {
+        self.ctx.wait_idle().map_err(gpu_error)?;
+        self.ctx.take_error("obscurance step").map_err(gpu_error)
+    }
+
+    /// Both halves read back, with the ambient term each uses (blocks on the GPU).
+    pub fn halves(&mut self) -> Result<[ObscuranceHalf; 2], EngineError> {
+        let n = self.n_texels as usize;
+        let acc: Vec<[f32; 4]> = self
+            .ctx
+            .read_buffer("obscurance accumulators", &self.acc_buf, 4 * n)
+            .map_err(gpu_error)?;
+        let direct: Vec<[f32; 4]> = self
+            .ctx
+            .read_buffer("obscurance direct accumulators", &self.direct_acc_buf, 4 * n)
+            .map_err(gpu_error)?;
+        let counters: Vec<u32> = self
+            .ctx
+            .read_buffer("obscurance counters", &self.counters_buf, MASK_BASE)
+            .map_err(gpu_error)?;
+        self.last_stats = LayerStats {
+            capacity: self.node_capacity,
+            max_fragments: counters[1],
+            max_layers: counters[2],
+            overflowing_directions: counters[3],
+        };
+        if counters[3] > 0 {
+            tracing::warn!(
+                stats = ?self.last_stats,
+                "obscurance: some directions had more fragments than the node pool holds; surfaces behind them were missed"
+            );
+        }
+        let area_sum: f64 = self
+            .texel_area
+            .iter()
+            .map(|a| *a as f64)
+            .sum::<f64>()
+            .max(f64::MIN_POSITIVE);
+        let half = |h: usize| {
+            let (mut w, mut ao, mut dir, mut hit) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            for k in 0..n {
+                let (a, d) = (acc[h * n + k], direct[h * n + k]);
+                let weight = acc[2 * n + h * n + k][0];
+                let sun = direct[2 * n + h * n + k];
+                // The ratio estimator's denominator; 0 only before any direction reached
+                // the texel's side.
+                let inv = if weight > 0.0 { 1.0 / weight } else { 0.0 };
+                w.push(Vec3::new(a[0], a[1], a[2]) * inv);
+                ao.push(a[3] * inv);
+                dir.push(Vec3::new(d[0], d[1], d[2]) * inv + Vec3::new(sun[0], sun[1], sun[2]));
+                hit.push(d[3] * inv);
+            }
+            let ambient = match self.params.ambient {
+                AmbientSource::Emitters => self.eq5_ambient,
+                AmbientSource::Measured => {
+                    let (mut d_ave, mut c) = (glam::DVec3::ZERO, 0.0f64);
+                    for k in 0..n {
+                        let wgt = self.texel_area[k] as f64;
+                        d_ave += dir[k].as_dvec3() * wgt;
+                        c += hit[k] as f64 * wgt;
+                    }
+                    let (d_ave, c) = ((d_ave / area_sum).as_vec3(), (c / area_sum) as f32);
+                    d_ave / (Vec3::ONE - c.clamp(0.0, 1.0) * self.r_ave).max(Vec3::splat(MIN_ABSORPTION))
+                }
+            };
+            ObscuranceHalf {
+                steps: self.half_steps[h],
+                w,
+                ao,
+                direct: dir,
+                hit,
+                ambient,
+            }
+        };
+        Ok([half(0), half(1)])
+    }
+
+    /// The plain obscurance (Eq. 2) per valid texel, both halves combined, as of the last
+    /// snapshot.
+    pub fn ao(&self) -> Option<&[f32]> {
+        self.last_ao.as_deref()
+    }
+
+    /// Saves what an incremental update needs (reads back; call after the last step).
+    pub fn state(&self) -> Result<ObscuranceState, EngineError> {
+        let n = self.n_texels as usize;
+        let acc = self
+            .ctx
+            .read_buffer("obscurance accumulators", &self.acc_buf, 4 * n)
+            .map_err(gpu_error)?;
+        let direct = self
+            .ctx
+            .read_buffer("obscurance direct accumulators", &self.direct_acc_buf, 4 * n)
+            .map_err(gpu_error)?;
+        let counters: Vec<u32> = self
+            .ctx
+            .read_buffer("obscurance influence masks", &self.counters_buf, MASK_BASE + n)
+            .map_err(gpu_error)?;
+        let (width, height) = self.dims();
+        Ok(ObscuranceState {
+            width,
+            height,
+            seed: self.seed,
+            params: self.params.clone(),
+            half_steps: self.half_steps,
+            dirs: self.dirs,
+            pixels: self.texel_pixels.clone(),
+            acc,
+            direct,
+            masks: counters[MASK_BASE..].to_vec(),
+            meshes: self.mesh_names.clone(),
+            lighting: self.lighting,
+        })
+    }
+
+    fn dims(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    /// Prepares an incremental update of the bake `previous` (seed section 5) for the
+    /// scene in `inputs`, where the meshes named in `changed` moved or were added: only
+    /// the texels they influenced are recomputed (see the module doc for the set). Run
+    /// [`UpdateReport::steps`] steps, then snapshot as usual.
+    pub fn update(
+        inputs: BakeInputs,
+        previous: &ObscuranceState,
+        changed: &[String],
+        reach: UpdateReach,
+    ) -> Result<(Self, UpdateReport), EngineError> {
+        let bad = |m: String| EngineError::BadInput(format!("incremental obscurance update: {m}"));
+        if (inputs.atlas.width, inputs.atlas.height) != (previous.width, previous.height) {
+            return Err(bad(format!(
+                "the lightmap is {}x{} but the finished bake's was {}x{}",
+                inputs.atlas.width, inputs.atlas.height, previous.width, previous.height
+            )));
+        }
+        if inputs.lighting != previous.lighting {
+            return Err(bad(
+                "the job's lighting (sky, sun) differs from the finished bake's: texels that are not recomputed \
+                 would keep the old light; bake from scratch"
+                    .into(),
+            ));
+        }
+        let n_old = previous.pixels.len();
+        if previous.acc.len() != 4 * n_old || previous.direct.len() != 4 * n_old || previous.masks.len() != n_old {
+            return Err(bad("the saved state is inconsistent (array lengths differ)".into()));
+        }
+        let scene = inputs.scene.clone();
+        let atlas = inputs.atlas.clone();
+        let mut old_bits = 0u32;
+        let mut new_meshes = Vec::new();
+        for name in changed {
+            let new = scene.meshes.iter().position(|m| &m.name == name);
+            let old = previous.meshes.iter().position(|m| m == name);
+            if new.is_none() && old.is_none() {
+                return Err(bad(format!("no mesh named {name:?} in the scene or the finished bake")));
+            }
+            if let Some(o) = old {
+                old_bits |= match reach {
+                    UpdateReach::All => 1 << (16 + o % 16),
+                    UpdateReach::Dmax => 1 << (o % 16),
+                };
+            }
+            if let Some(k) = new {
+                new_meshes.push(k as u32);
+            }
+        }
+        let mut tech = Self::with_params(
+            BakeInputs {
+                seed: previous.seed,
+                ..inputs
+            },
+            previous.params.clone(),
+        )?;
+        // The changed meshes' new bounds, grown by dmax: texels there may now see them.
+        let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+        for t in scene.triangles.iter().filter(|t| new_meshes.contains(&t.mesh)) {
+            for p in t.p {
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        let reach = tech.dmax();
+        let (lo, hi) = (lo - Vec3::splat(reach), hi + Vec3::splat(reach));
+        let mut old_of_pixel = vec![u32::MAX; (previous.width * previous.height) as usize];
+        for (k, p) in previous.pixels.iter().enumerate() {
+            if let Some(slot) = old_of_pixel.get_mut(*p as usize) {
+                *slot = k as u32;
+            }
+        }
+        let n = atlas.texels.len();
+        let mut acc = vec![[0.0f32; 4]; 4 * n];
+        let mut direct = vec![[0.0f32; 4]; 4 * n];
+        let mut masks = vec![0u32; n];
+        let mut subset = Vec::new();
+        for (k, t) in atlas.texels.iter().enumerate() {
+            let old = old_of_pixel[t.pixel as usize];
+            let near = t.position.cmpge(lo).all() && t.position.cmple(hi).all();
+            let recompute =
+                old == u32::MAX || new_meshes.contains(&t.mesh) || near || previous.masks[old as usize] & old_bits != 0;
+            if recompute {
+                subset.push(k as u32);
+            } else {
+                let o = old as usize;
+                for h in 0..4 {
+                    acc[h * n + k] = previous.acc[h * n_old + o];
+                    direct[h * n + k] = previous.direct[h * n_old + o];
+                }
+                masks[k] = previous.masks[o];
+            }
+        }
+        let q = &tech.ctx.queue;
+        q.write_buffer(&tech.acc_buf, 0, bytemuck::cast_slice(&acc));
+        q.write_buffer(&tech.direct_acc_buf, 0, bytemuck::cast_slice(&direct));
+        q.write_buffer(&tech.counters_buf, (MASK_BASE * 4) as u64, bytemuck::cast_slice(&masks));
+        if !subset.is_empty() {
+            q.write_buffer(&tech.subset_buf, 0, bytemuck::cast_slice(&subset));
+        }
+        tech.subset_len = Some(subset.len() as u32);
+        let report = UpdateReport {
+            recomputed_texels: subset.len(),
+            total_texels: n,
+            steps: previous.steps(),
+        };
+        tracing::info!(?report, "obscurance incremental update");
+        Ok((tech, report))
+    }
+}
+
+fn obscurance_snapshot(halves: [ObscuranceHalf; 2], want_direct: bool) -> (Snapshot, Vec<f32>) {
+    let [even, odd] = halves;
+    let (ne, no) = (even.steps as f32, odd.steps as f32);
+    let total_steps = (ne + no).max(1.0);
+    let ao: Vec<f32> = even
+        .ao
+        .iter()
+        .zip(&odd.ao)
+        .map(|(a, b)| (a * ne + b * no) / total_steps)
+        .collect();
+    let half = |h: ObscuranceHalf| {
+        let total = h.direct.iter().zip(&h.w).map(|(d, w)| *d + h.ambient * *w).collect();
+        HalfEstimate {
+            steps: h.steps,
+            total,
+            direct: want_direct.then_some(h.direct),
+            moments: None,
+        }
+    };
+    (
+        Snapshot {
+            even: half(even),
+            odd: half(odd),
+        },
+        ao,
+    )
+}
+
+impl Technique for Obscurance {
+    fn id(&self) -> &'static str {
+        "obscurance"
+    }
+
+    fn params(&self) -> serde_json::Value {
+        serde_json::to_value(&self.params).expect("params serialise")
+    }
+
+    fn step(&mut self) -> Result<(), EngineError> {
+        self.step_gpu().map_err(gpu_error)
+    }
+
+    fn steps_done(&self) -> u64 {
+        self.steps_done
+    }
+
+    fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
+        let halves = self.halves()?;
+        let (snapshot, ao) = obscurance_snapshot(halves, self.want_direct);
+        self.last_ao = Some(ao);
+        Ok(snapshot)
+    }
+
+    fn ao(&self) -> Option<Vec<f32>> {
+        self.last_ao.clone()
+    }
+
+    fn accumulating_pass(&self) -> &'static str {
+        "obscurance gather (shaders/obscurance/gather.wgsl)"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn params_defaults_and_ranges() {
+        let p = ObscuranceParams::from_json(&serde_json::Value::Null).unwrap();
+        assert_eq!(p, ObscuranceParams::default());
+        let p = ObscuranceParams::from_json(&serde_json::json!({"dmax": 2.5, "falloff": "linear"})).unwrap();
+        assert_eq!((p.dmax, p.falloff), (Some(2.5), Falloff::Linear));
+        for bad in [
+            serde_json::json!({"dmax": 0.0}),
+            serde_json::json!({"dmax": -1.0}),
+            serde_json::json!({"map_size": 32}),
+            serde_json::json!({"directions_per_step": 0}),
+            serde_json::json!({"falloff": "cubic"}),
+            serde_json::json!({"background": "sky"}),
+            serde_json::json!({"unknown": 1}),
+        ] {
+            let e = ObscuranceParams::from_json(&bad).expect_err("accepted");
+            assert!(e.is_bad_input(), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn falloffs_rise_from_0_to_1() {
+        for f in [Falloff::Sqrt, Falloff::Linear, Falloff::Exp] {
+            assert_eq!(f.rho(0.0), 0.0);
+            assert!((f.rho(0.999_999) - 1.0).abs() < 1e-5, "{f:?}");
+            assert!(f.rho(0.3) < f.rho(0.6));
+        }
+        assert_eq!(Falloff::Sqrt.rho(0.25), 0.5);
+        assert_eq!(Falloff::Step.rho(0.5), 0.0);
+        assert_eq!(Falloff::Step.rho(1.0), 1.0);
+    }
+}

@@ -1,0 +1,140 @@
+//! The technique table: the one place a technique is registered. Each technique's folder
+//! exports a [`TechniqueEntry`] (`ENTRY`: id, summary, plan, prepare, its shaders); this
+//! table lists them, and the CLI, the service, the bench and the docs read it
+//! ([`TECHNIQUES`], [`create`], [`plan`], [`entry`]). Adding a technique touches its folder
+//! and one line here (docs/architecture.md walks through it).
+
+use serde_json::Value;
+
+pub use super::api::TechniqueEntry;
+use super::api::{EngineError, Technique};
+use super::api::BakeInputs;
+use super::{hemicube, obscurance, path, sdb, sdf, vpl};
+use crate::engine::plan::{Plan, SceneFeatures};
+
+/// Every technique, in the order the CLI and docs list them.
+pub const TABLE: &[TechniqueEntry] = &[path::ENTRY, sdb::ENTRY, vpl::ENTRY, obscurance::ENTRY, sdf::ENTRY, hemicube::ENTRY];
+
+/// The identifiers [`create`] accepts, in table order.
+pub const TECHNIQUES: &[&str] = &{
+    let mut ids = [""; TABLE.len()];
+    let mut i = 0;
+    while i < TABLE.len() {
+        ids[i] = TABLE[i].id;
+        i += 1;
+    }
+    ids
+};
+
+/// The entry of technique `id`; an unknown id is a bad-input error listing the known ones.
+pub fn entry(id: &str) -> Result<&'static TechniqueEntry, EngineError> {
+    TABLE.iter().find(|e| e.id == id).ok_or_else(|| {
+        EngineError::BadInput(format!(
+            "unknown technique {id:?}; available: {}",
+            TECHNIQUES.join(", ")
+        ))
+    })
+}
+
+/// Prepares technique `id` with `params` (a JSON object; unknown fields are rejected).
+pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Technique>, EngineError> {
+    (entry(id)?.prepare)(inputs, params)
+}
+
+/// The plan technique `id` makes for a scene with `features` (see `engine::plan`).
+pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
+    Ok((entry(id)?.plan)(features))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeSet;
+    use std::path::Path;
+
+    use super::*;
+    use crate::engine::gpu::shaders::{SHARED_PASSES, validate_wgsl};
+
+    /// Every WGSL file under `shaders/`, as paths relative to it.
+    fn wgsl_on_disk() -> BTreeSet<String> {
+        fn walk(dir: &Path, root: &Path, out: &mut BTreeSet<String>) {
+            for e in std::fs::read_dir(dir).expect("shaders/ is readable") {
+                let p = e.expect("a directory entry").path();
+                if p.is_dir() {
+                    walk(&p, root, out);
+                } else if p.extension().is_some_and(|x| x == "wgsl") {
+                    out.insert(p.strip_prefix(root).unwrap().to_string_lossy().replace('\\', "/"));
+                }
+            }
+        }
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("shaders");
+        let mut out = BTreeSet::new();
+        walk(&root, &root, &mut out);
+        out
+    }
+
+    #[test]
+    fn every_wgsl_pass_parses_and_validates_without_a_device() {
+        let mut failures = Vec::new();
+        let mut count = 0;
+        for pass in TABLE.iter().flat_map(|e| e.shaders).chain(SHARED_PASSES) {
+            count += 1;
+            if let Err(e) = validate_wgsl(pass.name, &pass.composed()) {
+                failures.push(e);
+            }
+        }
+        assert!(count >= 18, "only {count} passes listed");
+        assert!(failures.is_empty(), "WGSL validation failed:\n{}", failures.join("\n"));
+    }
+
+    #[test]
+    fn every_wgsl_file_is_reachable_from_a_pipeline() {
+        // A file no pass is composed of would escape validation (and is dead code).
+        let used: BTreeSet<String> = TABLE
+            .iter()
+            .flat_map(|e| e.shaders)
+            .chain(SHARED_PASSES)
+            .flat_map(|p| p.files())
+            .map(String::from)
+            .collect();
+        let on_disk = wgsl_on_disk();
+        let unreachable: Vec<&String> = on_disk.difference(&used).collect();
+        assert!(unreachable.is_empty(), "WGSL files no pipeline uses: {unreachable:?}");
+        let missing: Vec<&String> = used.difference(&on_disk).collect();
+        assert!(missing.is_empty(), "passes name files that do not exist: {missing:?}");
+    }
+
+    #[test]
+    fn a_technique_loads_only_its_own_and_shared_shaders() {
+        let ids: BTreeSet<&str> = TABLE.iter().map(|e| e.id).collect();
+        for e in TABLE {
+            for pass in e.shaders {
+                for file in pass.files() {
+                    let folder = file.split('/').next().unwrap_or("");
+                    assert!(
+                        folder == e.id || folder == "gpu",
+                        "technique {} loads {file} (only shaders/{}/ and shaders/gpu/ are its own)",
+                        e.id,
+                        e.id
+                    );
+                    assert!(!ids.contains(folder) || folder == e.id);
+                }
+            }
+        }
+        // The shared layer's own passes use nothing of any technique.
+        for pass in SHARED_PASSES {
+            assert!(pass.files().all(|f| f.starts_with("gpu/")), "{} uses a technique's WGSL", pass.name);
+        }
+    }
+
+    #[test]
+    fn ids_are_unique_and_lookups_agree_with_the_table() {
+        let ids: BTreeSet<&str> = TECHNIQUES.iter().copied().collect();
+        assert_eq!(ids.len(), TABLE.len());
+        for e in TABLE {
+            assert_eq!(entry(e.id).unwrap().id, e.id);
+        }
+        let err = entry("nope").err().expect("an unknown id is rejected");
+        assert!(err.is_bad_input());
+        assert!(err.to_string().contains("path, sdb, vpl, obscurance, sdf, hemicube"), "{err}");
+    }
+}
