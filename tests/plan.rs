@@ -7,7 +7,7 @@ use glam::Vec3;
 use lightmapd::engine::bake::StopCriteria;
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::OutputLayer;
-use lightmapd::engine::plan::{self, Plan};
+use lightmapd::engine::plan::Plan;
 use lightmapd::engine::scene::build::{LightDesc, cornell_box};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, Sun, import_slice};
 

@@ -14,7 +14,6 @@ use std::sync::Arc;
 use common::{bake, import, lum};
 use glam::Vec3;
 use lightmapd::engine::atlas::{Atlas, Texel};
-use lightmapd::engine::plan;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
 use lightmapd::engine::scene::library::{sky_plane, sphere_occlusion, sphere_over_plane};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky};

@@ -185,7 +185,7 @@ fn bake_impl(
     let atlas = Arc::new(atlas);
     let report = atlas.report();
     on_atlas(&atlas);
-    let want_direct = plan.runs("direct-light layer");
+    let want_direct = plan.runs(crate::engine::plan::DIRECT_LAYER);
     let inputs = BakeInputs {
         scene: scene.clone(),
         atlas: atlas.clone(),

@@ -16,6 +16,12 @@ use serde::Serialize;
 use crate::engine::output::OutputLayer;
 use crate::engine::scene::{Lighting, Scene};
 
+/// The plan item of the separate direct-light layer (`direct` / `indirect` outputs):
+/// every technique's plan decides it, and the job reads it to keep the layer.
+pub const DIRECT_LAYER: &str = "direct-light layer";
+/// The plan item of the directional (`sh`) layer.
+pub const SH_LAYER: &str = "directional (sh) layer";
+
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct PlanItem {
     pub name: String,

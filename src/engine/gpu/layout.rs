@@ -1,11 +1,15 @@
 //! Bind-group layouts, bind groups and compute pipelines with one bind group, as every
 //! technique's GPU passes build them: the wgpu descriptors are long and the same in every
-//! pass, so the passes name only what differs (binding number, kind, label).
+//! pass, so the passes name only what differs. One binding API: a pass lists its bindings
+//! once as [`Bind`]s, in binding order, and gets both the layout ([`layout_of`]) and the
+//! bind group ([`group_of`]) from that list, so the two cannot disagree. A group whose
+//! bindings do not start at 0 uses [`layout_at`] / [`group_at`]; a binding seen by other
+//! stages than the rest of its group is wrapped in [`Bind::In`].
 
 use super::GpuContext;
 
 /// A storage buffer at `binding`.
-pub fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bool) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -19,7 +23,7 @@ pub fn storage_entry(binding: u32, visibility: wgpu::ShaderStages, read_only: bo
 }
 
 /// A uniform buffer at `binding`.
-pub fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
+fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility,
@@ -33,7 +37,7 @@ pub fn uniform_entry(binding: u32, visibility: wgpu::ShaderStages) -> wgpu::Bind
 }
 
 /// A 2D-array float texture read with `textureLoad` by a compute pass.
-pub fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
+fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
         visibility: wgpu::ShaderStages::COMPUTE,
@@ -46,27 +50,6 @@ pub fn texture_entry(binding: u32) -> wgpu::BindGroupLayoutEntry {
         },
         count: None,
     }
-}
-
-/// A bind group from (binding, resource) pairs.
-pub fn bind_group(
-    ctx: &GpuContext,
-    label: &str,
-    layout: &wgpu::BindGroupLayout,
-    entries: &[(u32, wgpu::BindingResource<'_>)],
-) -> wgpu::BindGroup {
-    let entries: Vec<wgpu::BindGroupEntry> = entries
-        .iter()
-        .map(|(b, r)| wgpu::BindGroupEntry {
-            binding: *b,
-            resource: r.clone(),
-        })
-        .collect();
-    ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some(label),
-        layout,
-        entries: &entries,
-    })
 }
 
 /// A compute pipeline whose only bind group has `layout`.
@@ -105,6 +88,8 @@ pub enum Bind<'a> {
     Texture(&'a wgpu::TextureView),
     /// A plain 2D float texture read with `textureLoad`.
     Texture2d(&'a wgpu::TextureView),
+    /// The binding, visible to these stages instead of the group's.
+    In(wgpu::ShaderStages, &'a Bind<'a>),
 }
 
 impl Bind<'_> {
@@ -117,6 +102,7 @@ impl Bind<'_> {
                 visibility,
                 ..texture_entry(binding)
             },
+            Bind::In(stages, inner) => inner.layout_entry(binding, *stages),
             Bind::Texture2d(_) => wgpu::BindGroupLayoutEntry {
                 binding,
                 visibility,
@@ -134,21 +120,33 @@ impl Bind<'_> {
         match self {
             Bind::Uniform(b) | Bind::Read(b) | Bind::Write(b) => b.as_entire_binding(),
             Bind::Texture(v) | Bind::Texture2d(v) => wgpu::BindingResource::TextureView(v),
+            Bind::In(_, inner) => inner.resource(),
         }
     }
 }
 
-/// The layout of `binds`, visible to `visibility`.
+/// The layout of `binds` (bindings 0, 1, …), visible to `visibility`.
 pub fn layout_of(
     ctx: &GpuContext,
     label: &str,
     visibility: wgpu::ShaderStages,
     binds: &[Bind<'_>],
 ) -> wgpu::BindGroupLayout {
+    layout_at(ctx, label, 0, visibility, binds)
+}
+
+/// The layout of `binds` at bindings `first`, `first + 1`, …, visible to `visibility`.
+pub fn layout_at(
+    ctx: &GpuContext,
+    label: &str,
+    first: u32,
+    visibility: wgpu::ShaderStages,
+    binds: &[Bind<'_>],
+) -> wgpu::BindGroupLayout {
     let entries: Vec<wgpu::BindGroupLayoutEntry> = binds
         .iter()
         .enumerate()
-        .map(|(i, b)| b.layout_entry(i as u32, visibility))
+        .map(|(i, b)| b.layout_entry(first + i as u32, visibility))
         .collect();
     ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
         label: Some(label),
@@ -159,11 +157,22 @@ pub fn layout_of(
 /// A bind group of `binds` on `layout` (made by [`layout_of`] from a list of the same
 /// kinds; another list of the same kinds may be bound on it, e.g. ping-pong buffers).
 pub fn group_of(ctx: &GpuContext, label: &str, layout: &wgpu::BindGroupLayout, binds: &[Bind<'_>]) -> wgpu::BindGroup {
+    group_at(ctx, label, layout, 0, binds)
+}
+
+/// [`group_of`] for a layout made by [`layout_at`] with the same `first`.
+pub fn group_at(
+    ctx: &GpuContext,
+    label: &str,
+    layout: &wgpu::BindGroupLayout,
+    first: u32,
+    binds: &[Bind<'_>],
+) -> wgpu::BindGroup {
     let entries: Vec<wgpu::BindGroupEntry> = binds
         .iter()
         .enumerate()
         .map(|(i, b)| wgpu::BindGroupEntry {
-            binding: i as u32,
+            binding: first + i as u32,
             resource: b.resource(),
         })
         .collect();

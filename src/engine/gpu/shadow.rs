@@ -57,13 +57,14 @@ pub struct AtlasTooLarge {
 /// Tile rectangles of every shadow view, fixed for the bake: shelves of equal-height
 /// tiles, largest first.
 #[derive(Debug, Clone)]
-pub struct ShadowShadowAtlasLayout {
+pub struct ShadowAtlasLayout {
     pub width: u32,
     pub height: u32,
     /// Per view: x, y of its top-left pixel and its side.
     pub rects: Vec<[u32; 3]>,
 }
 
+/// Packs maps of the given sides into one atlas no larger than `max_dim` on a side.
 pub fn pack(sizes: &[u32], max_dim: u32) -> Result<ShadowAtlasLayout, AtlasTooLarge> {
     if sizes.is_empty() {
         return Ok(ShadowAtlasLayout {

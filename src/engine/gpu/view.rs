@@ -13,6 +13,25 @@ use bytemuck::{Pod, Zeroable};
 
 use crate::engine::gpu::map_scene::{MapTexel, MapTriangle};
 
+/// One corner of a triangle as the map passes rasterise it: normalised position, lightmap
+/// UV, the triangle's index (for per-triangle data). `vertex_attr_array![0 => Float32x3,
+/// 1 => Float32x2, 2 => Uint32]`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuVertex {
+    pub position: [f32; 3],
+    pub lightmap_uv: [f32; 2],
+    pub triangle: u32,
+}
+
+/// A lightmap's size and counts as one uniform (`dims.x` width, `dims.y` height, the rest
+/// pass-specific).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct GpuDims {
+    pub dims: [u32; 4],
+}
+
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub struct GpuView {

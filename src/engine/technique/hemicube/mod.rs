@@ -108,14 +108,14 @@ use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, 
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::gpu::layout::{
-    Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, uniform_entry,
+    Bind, compute_pipeline, group_at, group_of, layout_at, layout_of,
 };
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
-use crate::engine::plan::{Plan, SceneFeatures};
+use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cone_sample, cosine_sample};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Lighting, Material, Scene};
@@ -348,7 +348,7 @@ impl Hemicube {
 
         // Normalised space: the bounds of triangles and texel points together.
         let frame = SceneFrame::of(&scene, &atlas);
-        let (lo, hi, centre, radius) = (frame.lo, frame.hi, frame.centre, frame.radius);
+        let (centre, radius) = (frame.centre, frame.radius);
         let norm = |p: Vec3| frame.norm(p);
         let area_scale = 1.0 / (radius * radius);
 
@@ -505,7 +505,6 @@ impl Hemicube {
         let vertex_buf = ctx.buffer_init("hemicube vertices (normalised, with planes)", &vertices, U::VERTEX);
 
         use wgpu::ShaderStages as S;
-        let rw = |b| storage_entry(b, S::COMPUTE, false);
         // Pyramid.
         let pyr_module = ctx.shader(&shaders::HEMICUBE_PYRAMID).map_err(gpu_error)?;
         let power_binds = [
@@ -517,10 +516,14 @@ impl Hemicube {
         let power_layout = layout_of(&ctx, "hemicube power layout", S::COMPUTE, &power_binds);
         let power_pipeline = compute_pipeline(&ctx, "hemicube power", &pyr_module, "power", &power_layout);
         let power_bg = group_of(&ctx, "hemicube power bindings", &power_layout, &power_binds);
-        let reduce_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("hemicube reduce layout"),
-            entries: &[rw(3), uniform_entry(4, S::COMPUTE)],
-        });
+        // Bindings 3 and 4 of hemicube/pyramid.wgsl (0..2 belong to its `power` entry point).
+        let reduce_layout = layout_at(
+            &ctx,
+            "hemicube reduce layout",
+            3,
+            S::COMPUTE,
+            &[Bind::Write(&pyramid_buf), Bind::Uniform(&params_buf)],
+        );
         let reduce_pipeline = compute_pipeline(&ctx, "hemicube reduce", &pyr_module, "reduce", &reduce_layout);
         let level_offset = |l: u32| -> u32 { (0..l).map(|k| (pyr_side >> k) * (pyr_side >> k)).sum() };
         let reduce_bgs: Vec<(wgpu::BindGroup, u32)> = (1..=top_level)
@@ -530,11 +533,12 @@ impl Hemicube {
                     &format!("hemicube pyramid level {l}"),
                     &[side, level_offset(l - 1), level_offset(l), 0u32],
                 );
-                let bg = bind_group(
+                let bg = group_at(
                     &ctx,
                     &format!("hemicube reduce level {l}"),
                     &reduce_layout,
-                    &[(3, pyramid_buf.as_entire_binding()), (4, buf.as_entire_binding())],
+                    3,
+                    &[Bind::Write(&pyramid_buf), Bind::Uniform(&buf)],
                 );
                 (bg, side * side)
             })
@@ -964,18 +968,18 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "every material is a fully rough dielectric: the diffuse-only variant runs (no lobe data, no direction buffers)",
     );
     p.decide(
-        "direct-light layer",
+        DIRECT_LAYER,
         f.want_direct,
         "direct or indirect output asked for (direct accumulators)",
         "not asked for in outputs",
     );
     if f.want_sh {
         p.leave_out(
-            "directional (sh) layer",
+            SH_LAYER,
             "asked for, but hemicube keeps no directional moments: `sh` outputs fail with hemicube (use `path`)",
         );
     } else {
-        p.leave_out("directional (sh) layer", "not asked for in outputs");
+        p.leave_out(SH_LAYER, "not asked for in outputs");
     }
     if !f.has_light() {
         p.leave_out(

@@ -115,18 +115,22 @@ use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+mod update;
+
+pub use update::{ObscuranceState, UpdateReach, UpdateReport};
+
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::layout::{
-    Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, uniform_entry,
+    Bind, compute_pipeline, group_of, layout_of,
 };
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, sample_cone};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene};
 use crate::engine::gpu::texels::GpuTexelGeom;
-use crate::engine::gpu::view::{GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view};
+use crate::engine::gpu::view::{DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view};
 use crate::engine::gpu::{self, GpuContext, GpuError};
-use crate::engine::plan::{Plan, SceneFeatures};
+use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::scene::Lighting;
 
 // ---------------------------------------------------------------------------------------
@@ -264,25 +268,11 @@ impl ObscuranceParams {
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuVertex {
-    position: [f32; 3],
-    lightmap_uv: [f32; 2],
-    triangle: u32,
-}
-
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct GpuNode {
     t: f32,
     tri: u32,
     lightmap: u32,
     next: u32,
-}
-
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuDims {
-    dims: [u32; 4],
 }
 
 #[repr(C)]
@@ -340,57 +330,6 @@ pub struct ObscuranceHalf {
     pub hit: Vec<f32>,
     /// The ambient intensity this half's lightmap used.
     pub ambient: Vec3,
-}
-
-/// Everything a finished bake leaves for an incremental update.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct ObscuranceState {
-    pub width: u32,
-    pub height: u32,
-    pub seed: u64,
-    pub params: ObscuranceParams,
-    pub half_steps: [u64; 2],
-    pub dirs: [u64; 2],
-    /// Lightmap pixel of each valid texel (the texel order of the arrays below).
-    pub pixels: Vec<u32>,
-    /// The accumulators as the GPU keeps them: for each of two regions (numerators;
-    /// weight or sun), both halves (even then odd), texel order.
-    pub acc: Vec<[f32; 4]>,
-    pub direct: Vec<[f32; 4]>,
-    /// Influence mask per texel: bit 16 + (mesh index mod 16) of every mesh a ray hit,
-    /// bit (mesh index mod 16) of every mesh hit within dmax.
-    pub masks: Vec<u32>,
-    /// Mesh names by index when the state was saved.
-    pub meshes: Vec<String>,
-    /// The job's sky and sun: an update under other lighting would leave the texels it
-    /// does not recompute lit by the old one, so it is refused.
-    pub lighting: Lighting,
-}
-
-impl ObscuranceState {
-    pub fn steps(&self) -> u64 {
-        self.half_steps[0] + self.half_steps[1]
-    }
-}
-
-/// Which recorded influence an incremental update follows.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum UpdateReach {
-    /// Texels whose rays hit a changed mesh at any distance (obscurance and direct light).
-    #[default]
-    All,
-    /// Texels whose rays hit it within dmax (the obscurance it influenced: seed section 5).
-    Dmax,
-}
-
-/// What an incremental update recomputes.
-#[derive(Debug, Clone, Serialize)]
-pub struct UpdateReport {
-    pub recomputed_texels: usize,
-    pub total_texels: usize,
-    /// Steps to run (the finished bake's count) for the recomputed texels to match.
-    pub steps: u64,
 }
 
 // ---------------------------------------------------------------------------------------
@@ -511,18 +450,18 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "the job has no sky",
     );
     p.decide(
-        "direct-light layer",
+        DIRECT_LAYER,
         f.want_direct,
         "direct or indirect output asked for (kept anyway for I_A; costs only a readback)",
         "not asked for in outputs",
     );
     if f.want_sh {
         p.leave_out(
-            "directional (sh) layer",
+            SH_LAYER,
             "asked for, but obscurance keeps no directional moments: `sh` outputs fail with obscurance (use `path`)",
         );
     } else {
-        p.leave_out("directional (sh) layer", "not asked for in outputs");
+        p.leave_out(SH_LAYER, "not asked for in outputs");
     }
     let ignored = f.punctual_lights.saturating_sub(f.directional_lights);
     if ignored > 0 {
@@ -558,7 +497,7 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 /// Pixel side of the map along `d` (normalised units), as `make_view` sizes it.
 fn pixel_size(d: Vec3, corners: &[Vec3; 8], map_size: u32) -> f32 {
-    let v = make_view(d, corners, map_size, (0.0, 0.0), 0, sdb::DEPTH_NEAREST);
+    let v = make_view(d, corners, map_size, (0.0, 0.0), 0, DEPTH_NEAREST);
     v.extent[0] / v.extent[2]
 }
 
@@ -602,7 +541,7 @@ impl Obscurance {
                 .flat_map(|t| t.p)
                 .chain(input.texels.iter().map(|t| t.position)),
         );
-        let (lo, hi, centre, scale) = (frame.lo, frame.hi, frame.centre, frame.radius);
+        let (lo, hi, scale) = (frame.lo, frame.hi, frame.radius);
         let norm = |p: Vec3| frame.norm(p);
         let corners: [Vec3; 8] = frame.corners();
         let dmax = params.dmax.unwrap_or(0.25 * (hi - lo).length()).max(f32::MIN_POSITIVE);
@@ -796,16 +735,15 @@ impl Obscurance {
 
         use wgpu::ShaderStages as S;
         let layers_module = ctx.shader(&shaders::OBSCURANCE_LAYERS).map_err(gpu_error)?;
-        let layers_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("obscurance layers layout"),
-            entries: &[
-                uniform_entry(0, S::VERTEX_FRAGMENT),
-                uniform_entry(1, S::FRAGMENT),
-                storage_entry(2, S::FRAGMENT, false),
-                storage_entry(3, S::FRAGMENT, false),
-                storage_entry(4, S::FRAGMENT, false),
-            ],
-        });
+        let view_bind = Bind::Uniform(&view_buf);
+        let layers_binds = [
+            Bind::In(S::VERTEX_FRAGMENT, &view_bind),
+            Bind::Uniform(&layer_params),
+            Bind::Write(&heads_buf),
+            Bind::Write(&nodes_buf),
+            Bind::Write(&counters_buf),
+        ];
+        let layers_layout = layout_of(&ctx, "obscurance layers layout", S::FRAGMENT, &layers_binds);
         let vertex_layout = wgpu::VertexBufferLayout {
             array_stride: std::mem::size_of::<GpuVertex>() as u64,
             step_mode: wgpu::VertexStepMode::Vertex,
@@ -868,18 +806,7 @@ impl Obscurance {
             wgpu::ColorWrites::empty(),
             false,
         );
-        let layers_bg = bind_group(
-            &ctx,
-            "obscurance layers bindings",
-            &layers_layout,
-            &[
-                (0, view_buf.as_entire_binding()),
-                (1, layer_params.as_entire_binding()),
-                (2, heads_buf.as_entire_binding()),
-                (3, nodes_buf.as_entire_binding()),
-                (4, counters_buf.as_entire_binding()),
-            ],
-        );
+        let layers_bg = group_of(&ctx, "obscurance layers bindings", &layers_layout, &layers_binds);
 
         let gather_module = ctx.shader(&shaders::OBSCURANCE_GATHER).map_err(gpu_error)?;
         let gather_binds = [
@@ -922,10 +849,8 @@ impl Obscurance {
                 usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
                 view_formats: &[],
             });
-            let shadow_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some("obscurance shadow layout"),
-                entries: &[uniform_entry(0, S::VERTEX_FRAGMENT)],
-            });
+            let shadow_binds = [Bind::Uniform(&shadow_view_buf)];
+            let shadow_layout = layout_of(&ctx, "obscurance shadow layout", S::VERTEX_FRAGMENT, &shadow_binds);
             let pipeline = raster_pipeline(
                 "obscurance shadow map",
                 &shadow_layout,
@@ -934,12 +859,7 @@ impl Obscurance {
                 wgpu::ColorWrites::ALL,
                 true,
             );
-            let bg = bind_group(
-                &ctx,
-                "obscurance shadow bindings",
-                &shadow_layout,
-                &[(0, shadow_view_buf.as_entire_binding())],
-            );
+            let bg = group_of(&ctx, "obscurance shadow bindings", &shadow_layout, &shadow_binds);
             let array_view = color.create_view(&wgpu::TextureViewDescriptor {
                 label: Some("obscurance shadow map array view"),
                 dimension: Some(wgpu::TextureViewDimension::D2Array),
@@ -1066,7 +986,7 @@ impl Obscurance {
             self.dirs[parity] += 1;
             let b = 1.0 / self.dirs[parity] as f32;
             let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
-            let view = make_view(d, &self.corners, n, jitter, 0, sdb::DEPTH_NEAREST);
+            let view = make_view(d, &self.corners, n, jitter, 0, DEPTH_NEAREST);
             let env = |w: Vec3| self.environment.as_ref().map_or(Vec3::ZERO, |e| e(w));
             let (fwd, back) = (env(d), env(-d));
             let gather = GpuGatherParams {
@@ -1131,7 +1051,7 @@ impl Obscurance {
                     let light = self.lights[li];
                     let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
                     let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
-                    let view = make_view(ld, &self.corners, n, jitter, 0, sdb::DEPTH_NEAREST);
+                    let view = make_view(ld, &self.corners, n, jitter, 0, DEPTH_NEAREST);
                     let pixel = view.extent[0] / view.extent[2];
                     let e = light.irradiance_over_pi;
                     let direct = GpuDirectParams {
@@ -1289,150 +1209,10 @@ impl Obscurance {
         self.last_ao.as_deref()
     }
 
-    /// Saves what an incremental update needs (reads back; call after the last step).
-    pub fn state(&self) -> Result<ObscuranceState, EngineError> {
-        let n = self.n_texels as usize;
-        let acc = self
-            .ctx
-            .read_buffer("obscurance accumulators", &self.acc_buf, 4 * n)
-            .map_err(gpu_error)?;
-        let direct = self
-            .ctx
-            .read_buffer("obscurance direct accumulators", &self.direct_acc_buf, 4 * n)
-            .map_err(gpu_error)?;
-        let counters: Vec<u32> = self
-            .ctx
-            .read_buffer("obscurance influence masks", &self.counters_buf, MASK_BASE + n)
-            .map_err(gpu_error)?;
-        let (width, height) = self.dims();
-        Ok(ObscuranceState {
-            width,
-            height,
-            seed: self.seed,
-            params: self.params.clone(),
-            half_steps: self.half_steps,
-            dirs: self.dirs,
-            pixels: self.texel_pixels.clone(),
-            acc,
-            direct,
-            masks: counters[MASK_BASE..].to_vec(),
-            meshes: self.mesh_names.clone(),
-            lighting: self.lighting,
-        })
-    }
-
     fn dims(&self) -> (u32, u32) {
         (self.width, self.height)
     }
 
-    /// Prepares an incremental update of the bake `previous` (seed section 5) for the
-    /// scene in `inputs`, where the meshes named in `changed` moved or were added: only
-    /// the texels they influenced are recomputed (see the module doc for the set). Run
-    /// [`UpdateReport::steps`] steps, then snapshot as usual.
-    pub fn update(
-        inputs: BakeInputs,
-        previous: &ObscuranceState,
-        changed: &[String],
-        reach: UpdateReach,
-    ) -> Result<(Self, UpdateReport), EngineError> {
-        let bad = |m: String| EngineError::BadInput(format!("incremental obscurance update: {m}"));
-        if (inputs.atlas.width, inputs.atlas.height) != (previous.width, previous.height) {
-            return Err(bad(format!(
-                "the lightmap is {}x{} but the finished bake's was {}x{}",
-                inputs.atlas.width, inputs.atlas.height, previous.width, previous.height
-            )));
-        }
-        if inputs.lighting != previous.lighting {
-            return Err(bad(
-                "the job's lighting (sky, sun) differs from the finished bake's: texels that are not recomputed \
-                 would keep the old light; bake from scratch"
-                    .into(),
-            ));
-        }
-        let n_old = previous.pixels.len();
-        if previous.acc.len() != 4 * n_old || previous.direct.len() != 4 * n_old || previous.masks.len() != n_old {
-            return Err(bad("the saved state is inconsistent (array lengths differ)".into()));
-        }
-        let scene = inputs.scene.clone();
-        let atlas = inputs.atlas.clone();
-        let mut old_bits = 0u32;
-        let mut new_meshes = Vec::new();
-        for name in changed {
-            let new = scene.meshes.iter().position(|m| &m.name == name);
-            let old = previous.meshes.iter().position(|m| m == name);
-            if new.is_none() && old.is_none() {
-                return Err(bad(format!("no mesh named {name:?} in the scene or the finished bake")));
-            }
-            if let Some(o) = old {
-                old_bits |= match reach {
-                    UpdateReach::All => 1 << (16 + o % 16),
-                    UpdateReach::Dmax => 1 << (o % 16),
-                };
-            }
-            if let Some(k) = new {
-                new_meshes.push(k as u32);
-            }
-        }
-        let mut tech = Self::with_params(
-            BakeInputs {
-                seed: previous.seed,
-                ..inputs
-            },
-            previous.params.clone(),
-        )?;
-        // The changed meshes' new bounds, grown by dmax: texels there may now see them.
-        let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
-        for t in scene.triangles.iter().filter(|t| new_meshes.contains(&t.mesh)) {
-            for p in t.p {
-                lo = lo.min(p);
-                hi = hi.max(p);
-            }
-        }
-        let reach = tech.dmax();
-        let (lo, hi) = (lo - Vec3::splat(reach), hi + Vec3::splat(reach));
-        let mut old_of_pixel = vec![u32::MAX; (previous.width * previous.height) as usize];
-        for (k, p) in previous.pixels.iter().enumerate() {
-            if let Some(slot) = old_of_pixel.get_mut(*p as usize) {
-                *slot = k as u32;
-            }
-        }
-        let n = atlas.texels.len();
-        let mut acc = vec![[0.0f32; 4]; 4 * n];
-        let mut direct = vec![[0.0f32; 4]; 4 * n];
-        let mut masks = vec![0u32; n];
-        let mut subset = Vec::new();
-        for (k, t) in atlas.texels.iter().enumerate() {
-            let old = old_of_pixel[t.pixel as usize];
-            let near = t.position.cmpge(lo).all() && t.position.cmple(hi).all();
-            let recompute =
-                old == u32::MAX || new_meshes.contains(&t.mesh) || near || previous.masks[old as usize] & old_bits != 0;
-            if recompute {
-                subset.push(k as u32);
-            } else {
-                let o = old as usize;
-                for h in 0..4 {
-                    acc[h * n + k] = previous.acc[h * n_old + o];
-                    direct[h * n + k] = previous.direct[h * n_old + o];
-                }
-                masks[k] = previous.masks[o];
-            }
-        }
-        let q = &tech.ctx.queue;
-        q.write_buffer(&tech.acc_buf, 0, bytemuck::cast_slice(&acc));
-        q.write_buffer(&tech.direct_acc_buf, 0, bytemuck::cast_slice(&direct));
-        q.write_buffer(&tech.counters_buf, (MASK_BASE * 4) as u64, bytemuck::cast_slice(&masks));
-        if !subset.is_empty() {
-            q.write_buffer(&tech.subset_buf, 0, bytemuck::cast_slice(&subset));
-        }
-        tech.subset_len = Some(subset.len() as u32);
-        let report = UpdateReport {
-            recomputed_texels: subset.len(),
-            total_texels: n,
-            steps: previous.steps(),
-        };
-        tracing::info!(?report, "obscurance incremental update");
-        Ok((tech, report))
-    }
 }
 
 fn obscurance_snapshot(halves: [ObscuranceHalf; 2], want_direct: bool) -> (Snapshot, Vec<f32>) {

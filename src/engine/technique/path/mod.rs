@@ -47,7 +47,7 @@ use serde_json::Value;
 
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, parse_params};
 use crate::engine::accumulate::{HalfAccumulator, LUMINANCE, Snapshot};
-use crate::engine::plan::{Plan, SceneFeatures};
+use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Scene};
@@ -128,13 +128,13 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     p.decide("light sampling: sun", f.sun, "the job has a sun", "the job has no sun");
     p.decide("sky lookups", f.sky, "the job has a sky", "the job has no sky");
     p.decide(
-        "direct-light layer",
+        DIRECT_LAYER,
         f.want_direct,
         "direct or indirect output asked for",
         "not asked for in outputs",
     );
     p.decide(
-        "directional (sh) layer",
+        SH_LAYER,
         f.want_sh,
         "sh output asked for",
         "not asked for in outputs",
@@ -171,7 +171,7 @@ impl PathTracer {
         let tracer = Tracer::new(&inputs.scene);
         let emitters = EmitterTable::new(&inputs.scene);
         let acc = HalfAccumulator::new(inputs.atlas.texels.len(), inputs.want_direct)
-            .with_moments(inputs.plan.runs("directional (sh) layer"));
+            .with_moments(inputs.plan.runs(SH_LAYER));
         Ok(PathTracer {
             inputs,
             params,
@@ -242,7 +242,7 @@ impl Technique for PathTracer {
         let moments: Option<Vec<[Vec3; 3]>> = self
             .inputs
             .plan
-            .runs("directional (sh) layer")
+            .runs(SH_LAYER)
             .then(|| results.iter().map(|r| r.moment.0).collect());
         self.acc.add_with_moments(&total, direct.as_deref(), moments.as_deref());
         Ok(())

@@ -4,8 +4,6 @@
 //! and the ambient-mode gain of `average` mode ([`ambient_mode`], stochastic-depth-buffering
 //! seed, section 5's coarse mode).
 
-use std::sync::Arc;
-
 use glam::Vec3;
 use rayon::prelude::*;
 

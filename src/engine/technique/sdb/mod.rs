@@ -102,7 +102,7 @@
 use std::sync::Arc;
 
 use bytemuck::{Pod, Zeroable};
-use glam::{Quat, Vec2, Vec3};
+use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 mod lights;
@@ -111,9 +111,8 @@ pub use lights::{ambient_mode, sdb_input};
 
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
-use crate::engine::atlas::Atlas;
 use crate::engine::gpu::layout::{
-    Bind, bind_group, compute_pipeline, group_of, layout_of, storage_entry, texture_entry, uniform_entry,
+    Bind, compute_pipeline, group_at, group_of, layout_at, layout_of,
 };
 pub use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, random_rotation, square_to_sphere};
 use crate::engine::gpu::directions::sample_cone;
@@ -121,16 +120,12 @@ use crate::engine::gpu::frame::SceneFrame;
 pub use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene, MapTexel, MapTriangle};
 use crate::engine::gpu::texels::GpuTexelGeom;
 pub use crate::engine::gpu::view::cullable_triangles;
-use crate::engine::gpu::view::{
+use crate::engine::gpu::view::{GpuDims, GpuVertex, 
     DEPTH_NEAREST, DEPTH_STOCHASTIC, EMPTY_T, GpuView, NO_TEXEL, TRI_CULL_BACK, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION,
     fill_map, make_view,
 };
 use crate::engine::gpu::{self, GpuContext, GpuError};
-use crate::engine::plan::{Plan, SceneFeatures};
-use crate::engine::raytrace::{Tracer, cosine_sample};
-use crate::engine::rng::Rng;
-use crate::engine::scene::{LightKind, PunctualLight, Scene};
-use rayon::prelude::*;
+use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 
 // ---------------------------------------------------------------------------------------
 // Parameters
@@ -351,20 +346,6 @@ struct GpuDirectParams {
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuDims {
-    dims: [u32; 4],
-}
-
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuVertex {
-    position: [f32; 3],
-    lightmap_uv: [f32; 2],
-    triangle: u32,
-}
-
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct GpuTriInfo {
     emission: [f32; 3],
     flags: u32,
@@ -493,7 +474,7 @@ impl SdbEngine {
                 .flat_map(|t| t.p)
                 .chain(input.texels.iter().map(|t| t.position)),
         );
-        let (centre, scale) = (frame.centre, frame.radius);
+        let scale = frame.radius;
         let norm = |p: Vec3| frame.norm(p);
         let corners = frame.corners();
 
@@ -795,10 +776,14 @@ impl SdbEngine {
             Bind::Write(&fed_acc_buf),
         ];
         let gather_layout = layout_of(&ctx, "sdb gather layout", S::COMPUTE, &gather_binds);
-        let gather_direct_layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-            label: Some("sdb gather direct layout"),
-            entries: &[texture_entry(0), storage_entry(1, S::COMPUTE, false)],
-        });
+        // Group 1 of the direct-layer gather: the emission map and the direct accumulators
+        // (placeholders of the same kinds when there is no direct layer: the layout only).
+        let gather_direct_layout = layout_of(
+            &ctx,
+            "sdb gather direct layout",
+            S::COMPUTE,
+            &[Bind::Texture(&illum_view), Bind::Write(&acc_buf)],
+        );
         let gather_pipeline = if want_direct {
             let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some("sdb gather (direct layer)"),
@@ -817,14 +802,11 @@ impl SdbEngine {
             compute_pipeline(&ctx, "sdb gather", &gather_module, "gather", &gather_layout)
         };
         let gather_direct_bg = match (&emission_view, &direct_acc_buf) {
-            (Some(view), Some(direct_acc)) if want_direct => Some(bind_group(
+            (Some(view), Some(direct_acc)) if want_direct => Some(group_of(
                 &ctx,
                 "sdb gather direct bindings",
                 &gather_direct_layout,
-                &[
-                    (0, wgpu::BindingResource::TextureView(view)),
-                    (1, direct_acc.as_entire_binding()),
-                ],
+                &[Bind::Texture(view), Bind::Write(direct_acc)],
             )),
             _ => None,
         };
@@ -852,31 +834,17 @@ impl SdbEngine {
         let small_emitters = match (input.small_emitters, &sun_acc_buf) {
             (Some(sampler), Some(sun_acc)) => {
                 let module = ctx.shader(&shaders::SDB_DIRECT)?;
-                let layout = ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                    label: Some("sdb small emitters layout"),
-                    entries: &[
-                        storage_entry(4, S::COMPUTE, false),
-                        storage_entry(5, S::COMPUTE, true),
-                        uniform_entry(6, S::COMPUTE),
-                    ],
-                });
-                let pipeline = compute_pipeline(&ctx, "sdb small emitters", &module, "emitter_add", &layout);
                 let samples = ctx.buffer_zeroed(
                     "sdb small-emitter samples",
                     n_texels as u64 * 16,
                     U::STORAGE | U::COPY_DST,
                 );
                 let params_buf = ctx.uniform("sdb small emitters params", &GpuEmitterAddParams::zeroed());
-                let bg = bind_group(
-                    &ctx,
-                    "sdb small emitters bindings",
-                    &layout,
-                    &[
-                        (4, sun_acc.as_entire_binding()),
-                        (5, samples.as_entire_binding()),
-                        (6, params_buf.as_entire_binding()),
-                    ],
-                );
+                // Bindings 4..6 of sdb/direct.wgsl (0..3 belong to its `direct` entry point).
+                let binds = [Bind::Write(sun_acc), Bind::Read(&samples), Bind::Uniform(&params_buf)];
+                let layout = layout_at(&ctx, "sdb small emitters layout", 4, S::COMPUTE, &binds);
+                let pipeline = compute_pipeline(&ctx, "sdb small emitters", &module, "emitter_add", &layout);
+                let bg = group_at(&ctx, "sdb small emitters bindings", &layout, 4, &binds);
                 Some(SmallEmitterPass {
                     sampler,
                     samples,
@@ -1388,7 +1356,6 @@ impl Technique for Sdb {
     }
 }
 
-const SH_LAYER: &str = "directional (sh) layer";
 const SH_ASKED: &str = "asked for";
 
 /// `sdb`'s passes, WGSL in `shaders/sdb/`.
@@ -1454,7 +1421,7 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     );
     p.decide("sky lookups", f.sky, "the job has a sky", "the job has no sky");
     p.decide(
-        "direct-light layer",
+        DIRECT_LAYER,
         f.want_direct,
         "direct or indirect output asked for (emission target + direct accumulators)",
         "not asked for in outputs",
@@ -1487,6 +1454,7 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use glam::Vec2;
 
     fn quad_tris(corners: [Vec3; 4], mesh: u32) -> [SdbTriangle; 2] {
         let t = |a: usize, b: usize, c: usize| SdbTriangle {

@@ -108,7 +108,7 @@ use crate::engine::gpu::shadow::{
 };
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
-use crate::engine::plan::{Plan, SceneFeatures};
+use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, basis, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{Hemisphere, LightKind, Lighting, Scene};
@@ -358,7 +358,7 @@ impl Vpl {
 
         // Normalised space: the bounds of triangles and texel points together.
         let frame = SceneFrame::of(&scene, &atlas);
-        let (lo, hi, centre, radius) = (frame.lo, frame.hi, frame.centre, frame.radius);
+        let (centre, radius) = (frame.centre, frame.radius);
         let norm = |p: Vec3| frame.norm(p);
 
         // Primary lights, fixed for the bake.
@@ -461,11 +461,6 @@ impl Vpl {
             storage_need,
             U::STORAGE | U::COPY_SRC,
         );
-        let extent = wgpu::Extent3d {
-            width: layout.width,
-            height: layout.height,
-            depth_or_array_layers: 1,
-        };
 
         use wgpu::ShaderStages as S;
         let shadow = ShadowAtlas::new(&ctx, "vpl shadow", layout.width, layout.height, &views_buf).map_err(gpu_error)?;
@@ -1019,18 +1014,18 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     );
     p.run("gather", "every texel sums the step's lights and VPLs");
     p.decide(
-        "direct-light layer",
+        DIRECT_LAYER,
         f.want_direct,
         "direct or indirect output asked for (direct accumulators)",
         "not asked for in outputs",
     );
     if f.want_sh {
         p.leave_out(
-            "directional (sh) layer",
+            SH_LAYER,
             "asked for, but vpl keeps no directional moments: `sh` outputs fail with vpl (use `path`)",
         );
     } else {
-        p.leave_out("directional (sh) layer", "not asked for in outputs");
+        p.leave_out(SH_LAYER, "not asked for in outputs");
     }
     if f.glossy_materials > 0 {
         p.leave_out(
