@@ -49,9 +49,13 @@ if [ "$ssl" != "on" ] && [ "$ssl" != "true" ]; then
         DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends openssl >/dev/null
     fi
     conf="/etc/postgresql/$ver/main"
-    $SUDO openssl req -x509 -newkey rsa:2048 -nodes -days 3650 -subj "/CN=localhost" \
-        -addext "subjectAltName=DNS:localhost,IP:127.0.0.1" \
+    # Not a CA certificate (rustls refuses a CA certificate as a server's own), like
+    # Debian's snakeoil one.
+    ext=$(mktemp)
+    printf '[req]\ndistinguished_name = dn\nx509_extensions = ext\n[dn]\n[ext]\nbasicConstraints = critical, CA:FALSE\nsubjectAltName = DNS:localhost, IP:127.0.0.1\n' > "$ext"
+    $SUDO openssl req -x509 -newkey rsa:2048 -nodes -days 3650 -subj "/CN=localhost" -config "$ext" \
         -keyout "$conf/lightmapd-test.key" -out "$conf/lightmapd-test.crt" 2>/dev/null
+    rm -f "$ext"
     $SUDO chown postgres:postgres "$conf/lightmapd-test.key" "$conf/lightmapd-test.crt"
     $SUDO chmod 0600 "$conf/lightmapd-test.key"
     $SUDO chmod 0644 "$conf/lightmapd-test.crt"
