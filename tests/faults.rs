@@ -542,8 +542,9 @@ async fn a_worker_without_its_database_exits_after_the_timeout() {
         e.to_string(),
         "the database has not answered for 0.8 s (--database-timeout-s): error communicating with database: connection dropped (injected)"
     );
-    // Checked every timeout/4: it gives up between the timeout and one check later.
-    assert!(took >= Duration::from_millis(800) && took < Duration::from_millis(2000), "{took:?}");
+    // Checked every timeout/4: it gives up at the timeout, then waits for its workers to
+    // stop (a worker whose claim failed sleeps 1 s before it looks again).
+    assert!(took >= Duration::from_millis(800) && took < Duration::from_secs(5), "{took:?}");
 }
 
 #[test]
