@@ -36,6 +36,35 @@ if [ "$port" != 5432 ]; then
     $SUDO pg_ctlcluster "$ver" main restart
 fi
 
+# TLS (issue 24: the queue connects with rustls and honours sslmode; tests/hardening.rs
+# checks it): Debian turns ssl on with the ssl-cert package's self-signed "snakeoil"
+# certificate. Where ssl is off, make a self-signed certificate for the cluster and turn
+# it on. The certificate is world-readable (the test verifies against it); the key is the
+# postgres user's only.
+ssl=$(pg_conftool -s "$ver" main show ssl 2>/dev/null || echo off)
+if [ "$ssl" != "on" ] && [ "$ssl" != "true" ]; then
+    echo "setup-postgres: turning on TLS with a self-signed certificate" >&2
+    if ! command -v openssl >/dev/null; then
+        $SUDO apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends openssl >/dev/null
+    fi
+    conf="/etc/postgresql/$ver/main"
+    # Not a CA certificate (rustls refuses a CA certificate as a server's own), like
+    # Debian's snakeoil one.
+    ext=$(mktemp)
+    printf '[req]\ndistinguished_name = dn\nx509_extensions = ext\n[dn]\n[ext]\nbasicConstraints = critical, CA:FALSE\nsubjectAltName = DNS:localhost, IP:127.0.0.1\n' > "$ext"
+    $SUDO openssl req -x509 -newkey rsa:2048 -nodes -days 3650 -subj "/CN=localhost" -config "$ext" \
+        -keyout "$conf/lightmapd-test.key" -out "$conf/lightmapd-test.crt" 2>/dev/null
+    rm -f "$ext"
+    $SUDO chown postgres:postgres "$conf/lightmapd-test.key" "$conf/lightmapd-test.crt"
+    $SUDO chmod 0600 "$conf/lightmapd-test.key"
+    $SUDO chmod 0644 "$conf/lightmapd-test.crt"
+    $SUDO pg_conftool "$ver" main set ssl_cert_file "$conf/lightmapd-test.crt"
+    $SUDO pg_conftool "$ver" main set ssl_key_file "$conf/lightmapd-test.key"
+    $SUDO pg_conftool "$ver" main set ssl on
+    $SUDO pg_ctlcluster "$ver" main restart
+fi
+
 # Wait for it to accept connections (a fresh start takes a moment); fail loudly if not.
 ready=""
 for _ in $(seq 1 100); do

@@ -60,7 +60,8 @@ struct TokenArgs {
     /// The server's data folder (its database is DATA_DIR/lightmapd.db).
     #[arg(long, default_value = "lightmapd-data", global = true)]
     data_dir: PathBuf,
-    /// postgres://… or sqlite://FILE, when the server was given --database-url.
+    /// postgres://… or sqlite://FILE, when the server was given --database-url (default:
+    /// $LIGHTMAPD_DATABASE_URL, or the contents of $LIGHTMAPD_DATABASE_URL_FILE).
     #[arg(long, global = true)]
     database_url: Option<String>,
 }
@@ -69,14 +70,26 @@ struct TokenArgs {
 enum TokenAction {
     /// Make a token; its secret is printed once, on stdout.
     Create {
-        /// A name for people (who or what uses it).
+        /// A name for people (who or what uses it); unique among live tokens.
         #[arg(long)]
         name: String,
+        /// editor: its own scenes and jobs, priority up to --max-priority; admin: every
+        /// client's jobs, any priority.
+        #[arg(long, value_enum, default_value = "editor")]
+        role: RoleArg,
     },
-    /// Every token: id, name, created, revoked.
+    /// Every token: id, name, role, created, active/revoked, source.
     List,
-    /// Revoke a token by id or name.
+    /// Revoke a token by id, or by name when one live token has it.
     Revoke { token: String },
+    /// Print a fresh random secret for a --tokens-file line (touches no database).
+    Secret,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum RoleArg {
+    Editor,
+    Admin,
 }
 
 #[derive(clap::Args)]
@@ -99,6 +112,17 @@ struct ServeArgs {
     /// Require a bearer token (`lightmapd token create`) on every route but /healthz.
     #[arg(long)]
     auth: bool,
+    /// Serve a non-loopback address without --auth (a network you trust); refused otherwise.
+    #[arg(long)]
+    insecure_no_auth: bool,
+    /// `NAME ROLE SECRET` lines (a mounted secret), applied at start-up: new lines become
+    /// tokens, removed lines' tokens are revoked (default: $LIGHTMAPD_TOKENS_FILE).
+    #[arg(long)]
+    tokens_file: Option<PathBuf>,
+    /// Finished jobs and their artifacts are removed this many hours after they end (0:
+    /// kept until deleted).
+    #[arg(long, default_value_t = 168.0)]
+    job_retention_hours: f64,
     #[command(flatten)]
     tuning: Tuning,
 }
@@ -106,14 +130,19 @@ struct ServeArgs {
 #[derive(clap::Args)]
 struct WorkerArgs {
     /// The database of the `serve` this worker helps: postgres://USER:PASSWORD@HOST/DB
-    /// (workers on other machines) or sqlite://FILE (the same machine).
+    /// (workers on other machines) or sqlite://FILE (the same machine); default
+    /// $LIGHTMAPD_DATABASE_URL or the contents of $LIGHTMAPD_DATABASE_URL_FILE.
     #[arg(long)]
-    database_url: String,
+    database_url: Option<String>,
     /// The artifact store of that `serve`: s3://BUCKET/PREFIX, file://DIR or a directory.
     #[arg(long, value_parser = StoreUrl::parse)]
     store: StoreUrl,
     #[arg(long, default_value_t = 1)]
     workers: usize,
+    /// Exit with code 1 after this many seconds without reaching the database (the
+    /// supervisor restarts the worker).
+    #[arg(long, default_value_t = 60.0)]
+    database_timeout_s: f64,
     #[command(flatten)]
     tuning: Tuning,
 }
@@ -155,12 +184,19 @@ struct Tuning {
     #[arg(long, default_value_t = 60.0)]
     request_timeout_s: f64,
     /// A worker's claim on a job lasts this long without renewal; a job whose worker
-    /// died is taken up again after it.
-    #[arg(long, default_value_t = 30.0)]
+    /// died is taken up again after it (within it plus 1 s).
+    #[arg(long, default_value_t = 5.0)]
     lease_seconds: f64,
     /// Longest time between stored snapshot EXRs of a running bake.
     #[arg(long, default_value_t = 2.0)]
     snapshot_interval_s: f64,
+    /// Snapshots kept per job: the latest and an evenly thinned history (at least 1).
+    #[arg(long, default_value_t = 8)]
+    snapshot_keep: u32,
+    /// Highest priority an editor token (or any caller without --auth) may give a job;
+    /// admin tokens may set any (403 beyond).
+    #[arg(long, default_value_t = 10)]
+    max_priority: i32,
 }
 
 #[derive(clap::Args)]
@@ -449,7 +485,56 @@ fn limits(t: &Tuning) -> Result<service::Limits, Failure> {
         max_event_streams: t.max_event_streams,
         max_job_memory_bytes: t.max_job_memory_mb.saturating_mul(1 << 20),
         request_timeout: Duration::from_secs_f64(t.request_timeout_s),
+        max_priority: t.max_priority,
     })
+}
+
+/// `--database-url`, else `$LIGHTMAPD_DATABASE_URL`, else the contents of the file
+/// `$LIGHTMAPD_DATABASE_URL_FILE` names (a mounted secret), so the password need not be
+/// in argv.
+fn database_url(flag: Option<String>) -> Result<Option<String>, Failure> {
+    if flag.is_some() {
+        return Ok(flag);
+    }
+    if let Ok(url) = std::env::var("LIGHTMAPD_DATABASE_URL")
+        && !url.trim().is_empty()
+    {
+        return Ok(Some(url.trim().to_string()));
+    }
+    match std::env::var_os("LIGHTMAPD_DATABASE_URL_FILE") {
+        Some(path) if !path.is_empty() => {
+            let text = std::fs::read_to_string(&path).map_err(|e| {
+                bad_input(format!(
+                    "LIGHTMAPD_DATABASE_URL_FILE={}: cannot read it: {e}",
+                    std::path::Path::new(&path).display()
+                ))
+            })?;
+            let url = text.trim();
+            if url.is_empty() {
+                return Err(bad_input(format!(
+                    "LIGHTMAPD_DATABASE_URL_FILE={} is empty",
+                    std::path::Path::new(&path).display()
+                )));
+            }
+            Ok(Some(url.to_string()))
+        }
+        _ => Ok(None),
+    }
+}
+
+/// Reads and checks a tokens file (`--tokens-file`, else `$LIGHTMAPD_TOKENS_FILE`).
+fn tokens_file(flag: Option<PathBuf>) -> Result<Option<Vec<service::auth::FileToken>>, Failure> {
+    let path = flag.or_else(|| {
+        std::env::var_os("LIGHTMAPD_TOKENS_FILE")
+            .filter(|p| !p.is_empty())
+            .map(PathBuf::from)
+    });
+    let Some(path) = path else { return Ok(None) };
+    let text = std::fs::read_to_string(&path)
+        .map_err(|e| bad_input(format!("tokens file {}: cannot read it: {e}", path.display())))?;
+    let tokens = service::auth::parse_tokens_file(&text)
+        .map_err(|e| bad_input(format!("tokens file {}: {e}", path.display())))?;
+    Ok(Some(tokens))
 }
 
 fn tuning(t: &Tuning) -> Result<(Duration, Duration), Failure> {
@@ -470,16 +555,35 @@ fn tuning(t: &Tuning) -> Result<(Duration, Duration), Failure> {
 
 fn serve(args: ServeArgs) -> Result<(), Failure> {
     let (lease, snapshot_interval) = tuning(&args.tuning)?;
+    service::check_exposure(args.listen, args.auth, args.insecure_no_auth).map_err(bad_input)?;
+    if args.insecure_no_auth && !args.listen.ip().is_loopback() && !args.auth {
+        tracing::warn!(listen = %args.listen, "serving without authentication (--insecure-no-auth): every caller owns every job");
+    }
+    let tokens = tokens_file(args.tokens_file)?;
+    if tokens.is_some() && !args.auth {
+        return Err(bad_input("--tokens-file needs --auth (without it tokens are not checked)"));
+    }
+    if !(args.job_retention_hours.is_finite() && args.job_retention_hours >= 0.0) {
+        return Err(bad_input(format!(
+            "--job-retention-hours must be a number >= 0, got {}",
+            args.job_retention_hours
+        )));
+    }
     let config = service::Config {
         listen: args.listen,
         data_dir: args.data_dir,
         workers: args.workers,
-        database_url: args.database_url,
+        database_url: database_url(args.database_url)?,
         store: args.store,
         limits: limits(&args.tuning)?,
         auth: args.auth,
         lease,
         snapshot_interval,
+        snapshot_keep: snapshot_keep(&args.tuning)?,
+        job_retention: (args.job_retention_hours > 0.0)
+            .then(|| Duration::from_secs_f64(args.job_retention_hours * 3600.0)),
+        tokens_file: tokens,
+        ..service::Config::default()
     };
     runtime()?.block_on(async move {
         let running = service::start(config).await.map_err(|e| Failure {
@@ -497,18 +601,38 @@ fn serve(args: ServeArgs) -> Result<(), Failure> {
     })
 }
 
+fn snapshot_keep(t: &Tuning) -> Result<u32, Failure> {
+    if t.snapshot_keep == 0 {
+        return Err(bad_input("--snapshot-keep must be at least 1 (the latest snapshot)"));
+    }
+    Ok(t.snapshot_keep)
+}
+
 fn worker(args: WorkerArgs) -> Result<(), Failure> {
     let (lease, snapshot_interval) = tuning(&args.tuning)?;
-    if !service::queue::supported_url(&args.database_url) {
-        return Err(bad_input(service::queue::unsupported_url(&args.database_url)));
+    let Some(url) = database_url(args.database_url)? else {
+        return Err(bad_input(
+            "worker needs its database: --database-url, LIGHTMAPD_DATABASE_URL or LIGHTMAPD_DATABASE_URL_FILE",
+        ));
+    };
+    if !service::queue::supported_url(&url) {
+        return Err(bad_input(service::queue::unsupported_url(&url)));
+    }
+    if !(args.database_timeout_s.is_finite() && args.database_timeout_s > 0.0) {
+        return Err(bad_input(format!(
+            "--database-timeout-s must be a positive number of seconds, got {}",
+            args.database_timeout_s
+        )));
     }
     let config = service::Config {
         workers: args.workers,
-        database_url: Some(args.database_url),
+        database_url: Some(url),
         store: Some(args.store),
         limits: limits(&args.tuning)?,
         lease,
         snapshot_interval,
+        snapshot_keep: snapshot_keep(&args.tuning)?,
+        database_timeout: Duration::from_secs_f64(args.database_timeout_s),
         ..service::Config::default()
     };
     runtime()?
@@ -607,9 +731,13 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
 }
 
 fn token(args: TokenArgs) -> Result<(), Failure> {
+    if let TokenAction::Secret = args.action {
+        println!("{}", service::auth::new_secret());
+        return Ok(());
+    }
     let config = service::Config {
         data_dir: args.data_dir,
-        database_url: args.database_url,
+        database_url: database_url(args.database_url)?,
         ..service::Config::default()
     };
     let fail = |e: &dyn std::fmt::Display| Failure {
@@ -619,14 +747,22 @@ fn token(args: TokenArgs) -> Result<(), Failure> {
     runtime()?.block_on(async move {
         let (queue, _) = service::open_backends(&config).await.map_err(|e| fail(&e))?;
         match args.action {
-            TokenAction::Create { name } => {
-                if name.trim().is_empty() {
-                    return Err(bad_input("--name must not be empty"));
+            TokenAction::Create { name, role } => {
+                if name.trim().is_empty() || name.chars().any(char::is_whitespace) {
+                    return Err(bad_input("--name must be one word (no spaces)"));
                 }
-                let (record, secret) = service::auth::create_token(&*queue, &name)
+                let role = match role {
+                    RoleArg::Editor => service::queue::Role::Editor,
+                    RoleArg::Admin => service::queue::Role::Admin,
+                };
+                let (record, secret) = service::auth::create_token(&*queue, &name, role)
                     .await
-                    .map_err(|e| fail(&e))?;
-                eprintln!("token {} ({name}) created; its secret is shown only now:", record.id);
+                    .map_err(|e| token_failure(&e))?;
+                eprintln!(
+                    "token {} ({name}, {}) created; its secret is shown only now:",
+                    record.id,
+                    role.as_str()
+                );
                 println!("{secret}");
             }
             TokenAction::List => {
@@ -636,26 +772,42 @@ fn token(args: TokenArgs) -> Result<(), Failure> {
                         .map(|ms| format!("revoked {}", service::model::rfc3339(ms)))
                         .unwrap_or_else(|| "active".into());
                     println!(
-                        "{}\t{}\tcreated {}\t{revoked}",
+                        "{}\t{}\t{}\tcreated {}\t{revoked}\t{}",
                         t.id,
                         t.name,
-                        service::model::rfc3339(t.created_at)
+                        t.role.as_str(),
+                        service::model::rfc3339(t.created_at),
+                        t.source
                     );
                 }
             }
             TokenAction::Revoke { token } => {
+                let t = service::auth::resolve_token(&*queue, &token)
+                    .await
+                    .map_err(|e| token_failure(&e))?;
                 if !queue
-                    .revoke_token(&token, service::queue::now_ms())
+                    .revoke_token(&t.id, service::queue::now_ms())
                     .await
                     .map_err(|e| fail(&e))?
                 {
                     return Err(bad_input(format!("no active token with id or name {token:?}")));
                 }
-                eprintln!("token {token} revoked");
+                eprintln!("token {} ({}) revoked", t.id, t.name);
             }
+            TokenAction::Secret => {}
         }
         Ok(())
     })
+}
+
+fn token_failure(e: &service::auth::TokenError) -> Failure {
+    match e {
+        service::auth::TokenError::Invalid(m) => bad_input(m.clone()),
+        service::auth::TokenError::Database(e) => Failure {
+            code: 1,
+            message: format!("token: {e}"),
+        },
+    }
 }
 
 fn bake(args: BakeArgs) -> Result<(), Failure> {

@@ -267,8 +267,13 @@ fn compose_services_and_command_lines_are_real() {
             Some("true"),
             "{origin}: http endpoint"
         );
-        let db = args.iter().position(|a| a == "--database-url").map(|i| &args[i + 1]);
-        let db = db.unwrap_or_else(|| panic!("{origin}: no --database-url"));
+        // The database URL holds a password: from the environment, never in argv.
+        assert!(
+            !args.iter().any(|a| a == "--database-url"),
+            "{origin}: --database-url in argv shows the password in the process list"
+        );
+        let db = env_value("LIGHTMAPD_DATABASE_URL").unwrap_or_else(|| panic!("{origin}: no LIGHTMAPD_DATABASE_URL"));
+        let db = &db;
         let db_host = db
             .split('@')
             .nth(1)
@@ -288,10 +293,20 @@ fn compose_services_and_command_lines_are_real() {
                 let w = args.iter().position(|a| a == "--workers").map(|i| args[i + 1].as_str());
                 assert_eq!(w, Some("0"), "{origin}: the API runs no bakes");
                 assert!(svc.get("healthcheck").is_some(), "{origin}: no healthcheck");
+                // Tokens required, from a compose secret that the file defines.
+                assert!(args.iter().any(|a| a == "--auth"), "{origin}: no --auth");
+                let tokens = env_value("LIGHTMAPD_TOKENS_FILE").unwrap_or_else(|| panic!("{origin}: no tokens file"));
+                let secret = tokens.strip_prefix("/run/secrets/").expect("a compose secret");
+                assert!(strings(&svc["secrets"]).contains(&secret.to_string()), "{origin}: secret {secret} not mounted");
+                assert!(doc["secrets"][secret]["file"].as_str().is_some(), "{origin}: secret {secret} undefined");
                 apis += 1;
             }
             "worker" => {
                 workers += svc["deploy"]["replicas"].as_u64().unwrap_or(1);
+                assert!(
+                    args.iter().any(|a| a == "--database-timeout-s"),
+                    "{origin}: a worker without its database must exit for `restart` to help"
+                );
             }
             other => panic!("{origin}: unexpected subcommand {other}"),
         }
@@ -389,6 +404,11 @@ fn kubernetes_manifests_are_consistent() {
                 .map(|a| expand(a, true, &lookup, &origin))
                 .collect();
             cli.check(&args, &origin);
+            assert!(
+                !args.iter().any(|a| a == "--database-url"),
+                "{origin}: --database-url in argv shows the password in the pod spec"
+            );
+            assert!(lookup("LIGHTMAPD_DATABASE_URL", None).is_some(), "{origin}: no LIGHTMAPD_DATABASE_URL");
             let gpus = c["resources"]["limits"]["nvidia.com/gpu"].as_u64();
             match args[0].as_str() {
                 "serve" => {
@@ -400,9 +420,28 @@ fn kubernetes_manifests_are_consistent() {
                     let listen = args.iter().position(|a| a == "--listen").map(|i| args[i + 1].as_str());
                     assert_eq!(listen, Some(format!("0.0.0.0:{port}").as_str()), "{origin}");
                     assert_eq!(s(&c["readinessProbe"]["httpGet"]["path"]), "/healthz", "{origin}");
+                    assert!(args.iter().any(|a| a == "--auth"), "{origin}: no --auth");
+                    // The tokens file is a mounted Secret.
+                    let file = lookup("LIGHTMAPD_TOKENS_FILE", None).unwrap_or_else(|| panic!("{origin}: no tokens file"));
+                    let mount = c["volumeMounts"]
+                        .as_sequence()
+                        .unwrap()
+                        .iter()
+                        .find(|m| file.starts_with(s(&m["mountPath"])))
+                        .unwrap_or_else(|| panic!("{origin}: {file} is on no volume"));
+                    let volume = spec["volumes"]
+                        .as_sequence()
+                        .unwrap()
+                        .iter()
+                        .find(|v| v["name"] == mount["name"])
+                        .unwrap();
+                    let secret = find(&objects, "Secret", s(&volume["secret"]["secretName"])).expect("the tokens Secret");
+                    let key = file.rsplit('/').next().unwrap();
+                    assert!(secret["stringData"].get(key).is_some(), "{origin}: the Secret has no key {key}");
                 }
                 "worker" => {
                     worker = true;
+                    assert!(args.iter().any(|a| a == "--database-timeout-s"), "{origin}: no --database-timeout-s");
                     assert_eq!(gpus, Some(1), "{origin}: a worker requests one nvidia.com/gpu");
                     let caps = lookup("NVIDIA_DRIVER_CAPABILITIES", None).unwrap_or_default();
                     assert!(
@@ -514,6 +553,9 @@ fn systemd_unit_and_dockerfile_command_lines_are_real() {
         .collect();
     assert!(words[0].ends_with("/lightmapd"), "{exec}");
     cli.check(&words[1..], "lightmapd.service ExecStart");
+    assert!(words.iter().any(|w| w == "--auth"), "the unit serves without --auth");
+    assert_eq!(env.get("LIGHTMAPD_TOKENS_FILE").map(String::as_str), Some("%d/tokens"));
+    assert!(unit.lines().any(|l| l.trim() == "LoadCredential=tokens:/etc/lightmapd/tokens"));
 
     // The Dockerfile: its default command, what it copies, what it installs.
     let docker = read(&deploy().join("Dockerfile"));
@@ -526,6 +568,7 @@ fn systemd_unit_and_dockerfile_command_lines_are_real() {
     };
     assert_eq!(json_array("ENTRYPOINT"), vec!["lightmapd".to_string()]);
     cli.check(&json_array("CMD"), "Dockerfile CMD");
+    assert!(json_array("CMD").contains(&"--auth".to_string()), "the image serves without --auth");
     for line in docker
         .lines()
         .filter(|l| l.starts_with("COPY ") && !l.contains("--from"))

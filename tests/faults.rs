@@ -13,6 +13,10 @@
 //! - A dropped database: a queue wrapper that answers every call with a connection error
 //!   for longer than a lease, while a bake runs and finishes: the API answers 500
 //!   problem+json meanwhile, and afterwards every job ends.
+//! - Leases (issue 24): a final upload five leases long keeps the lease (one attempt);
+//!   a worker whose database is gone exits after `--database-timeout-s`; and the job of a
+//!   SIGKILLed `lightmapd worker` is queued again within 10 s with the default lease
+//!   (the time is printed: docs/reliability.md).
 //!
 //! Bakes are the `path` technique on the bundled Cornell box at 16² texels for a few
 //! tenths of a second, so the whole file runs in well under a minute.
@@ -30,7 +34,7 @@ use lightmapd::engine::rng::Rng;
 use lightmapd::service::model::{JobSpec, JobStatus};
 use lightmapd::service::queue::sqlite::SqliteQueue;
 use lightmapd::service::queue::{
-    Cancellation, Enqueued, JobRecord, JobUpdate, Lease, Outcome, Queue, QueueResult, Recovered, SceneDeletion,
+    Cancellation, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, Outcome, Queue, QueueResult, Recovered, SceneDeletion,
     SceneRecord, TokenRecord,
 };
 use lightmapd::service::store::Artifacts;
@@ -186,6 +190,8 @@ fn sigkill_at_random_points_loses_no_job() {
 struct FullDisk {
     inner: LocalFileSystem,
     full: Arc<AtomicBool>,
+    /// How long each write of a final `lightmap.exr` takes (a slow link to the store).
+    slow_final: Duration,
 }
 
 impl std::fmt::Display for FullDisk {
@@ -210,6 +216,9 @@ impl ObjectStore for FullDisk {
                     "No space left on device (injected)",
                 )),
             });
+        }
+        if location.as_ref().ends_with("/lightmap.exr") {
+            tokio::time::sleep(self.slow_final).await;
         }
         self.inner.put_opts(location, payload, opts).await
     }
@@ -256,6 +265,7 @@ async fn a_full_artifact_disk_fails_the_job_with_its_reason_and_no_lightmap() {
     let store = FullDisk {
         inner: LocalFileSystem::new_with_prefix(dir.path().join("objects")).unwrap(),
         full: full.clone(),
+        slow_final: Duration::ZERO,
     };
     let running = lightmapd::service::start_with(config, queue, Artifacts::from_store(Arc::new(store)))
         .await
@@ -391,6 +401,18 @@ impl Queue for DroppedDb {
         self.check()?;
         self.inner.token_by_hash(hash).await
     }
+    async fn clock(&self) -> QueueResult<i64> {
+        self.check()?;
+        self.inner.clock().await
+    }
+    async fn delete_job(&self, id: &str) -> QueueResult<JobDeletion> {
+        self.check()?;
+        self.inner.delete_job(id).await
+    }
+    async fn finished_before(&self, before: i64, limit: u32) -> QueueResult<Vec<String>> {
+        self.check()?;
+        self.inner.finished_before(before, limit).await
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -470,4 +492,125 @@ async fn a_dropped_database_connection_loses_no_job() {
         "the bake that ended during the outage ran again once its lease lapsed: {first:#}"
     );
     s.running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_lease_is_renewed_while_a_slow_final_upload_runs() {
+    // Storing the final EXR takes five leases: before issue 24 the heartbeat stopped with
+    // the bake, the lease lapsed during the upload, and the job ran again (three times,
+    // then failed). Now it is renewed until the end is recorded: one attempt.
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = test_config(dir.path(), 1);
+    config.lease = Duration::from_millis(300);
+    let queue: Arc<dyn Queue> = Arc::new(SqliteQueue::open(&dir.path().join("lightmapd.db")).await.unwrap());
+    std::fs::create_dir_all(dir.path().join("objects")).unwrap();
+    let store = FullDisk {
+        inner: LocalFileSystem::new_with_prefix(dir.path().join("objects")).unwrap(),
+        full: Arc::new(AtomicBool::new(false)),
+        slow_final: Duration::from_millis(1500),
+    };
+    let running = lightmapd::service::start_with(config, queue, Artifacts::from_store(Arc::new(store)))
+        .await
+        .unwrap();
+    let s = Server::wrap(running);
+    let scene = s.upload(None).await;
+    let id = s
+        .submit(None, json!({"scene": scene, "resolution": 16, "stop": {"steps": 4}}))
+        .await;
+    let j = s.wait_end(&id).await;
+    assert_eq!((j["status"].as_str(), j["attempts"].as_u64()), (Some("succeeded"), Some(1)), "{j:#}");
+    let exr = s.get(&format!("/v1/jobs/{id}/lightmap.exr")).send().await.unwrap();
+    exr_is_whole(&exr.bytes().await.unwrap()).unwrap();
+    s.running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_worker_without_its_database_exits_after_the_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = test_config(dir.path(), 1);
+    config.database_timeout = Duration::from_millis(800);
+    let queue = DroppedDb {
+        inner: SqliteQueue::open(&dir.path().join("lightmapd.db")).await.unwrap(),
+        down: Arc::new(AtomicBool::new(true)),
+    };
+    let artifacts = Artifacts::local(&dir.path().join("objects")).unwrap();
+    let start = Instant::now();
+    let r = lightmapd::service::run_workers_with(config, Arc::new(queue), artifacts, std::future::pending()).await;
+    let took = start.elapsed();
+    let e = r.expect_err("the worker gives up");
+    assert_eq!(
+        e.to_string(),
+        "the database has not answered for 0.8 s (--database-timeout-s): error communicating with database: connection dropped (injected)"
+    );
+    // Checked every timeout/4: it gives up at the timeout, then waits for its workers to
+    // stop (a worker whose claim failed sleeps 1 s before it looks again).
+    assert!(took >= Duration::from_millis(800) && took < Duration::from_secs(5), "{took:?}");
+}
+
+#[test]
+fn a_killed_workers_job_is_queued_again_within_ten_seconds_by_default() {
+    // Default lease (5 s) and recovery period (1 s): the API process (no workers of its
+    // own) finds the lapsed lease of the SIGKILLed worker's job and queues it again.
+    let dir = tempfile::tempdir().unwrap();
+    let (mut api, url) = spawn_serve(dir.path(), 0, &[]);
+    let mut worker = spawn_worker(dir.path(), &["--snapshot-interval-s", "0.5"]);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let http = reqwest::Client::new();
+    let requeued = rt.block_on(async {
+        let up = http
+            .post(format!("{url}/v1/scenes"))
+            .body(cornell_glb())
+            .send()
+            .await
+            .unwrap();
+        let scene = up.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+        let r = http
+            .post(format!("{url}/v1/jobs"))
+            .json(&json!({"scene": scene, "resolution": 16, "stop": {"seconds": 60}}))
+            .send()
+            .await
+            .unwrap();
+        let id = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+        let job = |id: String| {
+            let http = http.clone();
+            let url = url.clone();
+            async move {
+                http.get(format!("{url}/v1/jobs/{id}"))
+                    .send()
+                    .await
+                    .unwrap()
+                    .json::<Value>()
+                    .await
+                    .unwrap()
+            }
+        };
+        let start = Instant::now();
+        loop {
+            let j = job(id.clone()).await;
+            if j["status"] == "running" && j["progress"]["steps"].as_u64().unwrap_or(0) >= 1 {
+                break;
+            }
+            assert!(start.elapsed() < DEADLINE, "never ran: {j:#}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        worker.kill().unwrap(); // SIGKILL
+        let killed = Instant::now();
+        let _ = worker.wait();
+        loop {
+            let j = job(id.clone()).await;
+            if j["status"] == "queued" {
+                return killed.elapsed();
+            }
+            assert_eq!(j["status"], "running", "{j:#}");
+            assert!(killed.elapsed() < Duration::from_secs(20), "still running: {j:#}");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    });
+    api.kill().unwrap();
+    let _ = api.wait();
+    eprintln!("requeued {:.2} s after SIGKILL of the worker", requeued.as_secs_f64());
+    assert!(requeued < Duration::from_secs(10), "{requeued:?}");
+    // Not before the lease could have lapsed: the last renewal was at most 0.25 s before
+    // the kill.
+    assert!(requeued > Duration::from_millis(4500), "{requeued:?}");
 }

@@ -2,7 +2,9 @@
 //! the happy path with `lightmapd submit`, every error status with its exact
 //! problem+json body, cancel, 50 concurrent submissions with 2 workers, restart recovery
 //! of a real `lightmapd serve` killed with SIGKILL (and handed back on SIGTERM), and the
-//! OpenAPI document against the committed route list.
+//! OpenAPI document against the committed route list; snapshot retention over a long
+//! bake, `DELETE /v1/jobs/{id}`, the retention sweeper and the store usage in `/metrics`
+//! (issue 24).
 //!
 //! Bakes are tiny (the `path` technique on the bundled Cornell box at 16² texels, a few
 //! steps), and every wait polls with a short interval up to a deadline.
@@ -1079,5 +1081,161 @@ async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
         report.has_lightmap_uvs,
         "the returned scene carries the generated TEXCOORD_1"
     );
+    s.running.shutdown().await;
+}
+
+/// Snapshot files (EXR and PNG) in a job's folder of the local store, by number.
+fn snapshot_files(dir: &Path, job: &str) -> (std::collections::BTreeSet<u32>, usize) {
+    let folder = dir.join(format!("objects/jobs/{job}/snapshots"));
+    let mut numbers = std::collections::BTreeSet::new();
+    let mut files = 0;
+    for e in std::fs::read_dir(&folder).into_iter().flatten() {
+        let name = e.unwrap().file_name().to_string_lossy().to_string();
+        // `NAME#N` is a write in progress (the local store's temporary file).
+        let Some((n, ext)) = name.split_once('.') else { continue };
+        if (ext == "exr" || ext == "png") && !name.contains('#') {
+            numbers.insert(n.parse::<u32>().unwrap());
+            files += 1;
+        }
+    }
+    (numbers, files)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_long_bake_keeps_at_most_the_configured_snapshots() {
+    const KEEP: u32 = 4;
+    let s = start(1, |c| {
+        c.snapshot_interval = Duration::from_millis(20);
+        c.snapshot_keep = KEEP;
+    })
+    .await;
+    let scene = s.upload().await;
+    let id = s
+        .submit(json!({"scene": scene, "resolution": 16, "stop": {"seconds": 3.0, "steps": 1000000}}))
+        .await;
+    // While it bakes: never more than KEEP pairs, plus the one being written for the
+    // moment between its store and the deletion it makes due.
+    let mut most = 0;
+    loop {
+        let (_, files) = snapshot_files(s._dir.path(), &id);
+        most = most.max(files);
+        assert!(files <= 2 * (KEEP as usize + 1), "{files} snapshot files");
+        let j = s.job(&id).await;
+        if ["succeeded", "failed", "cancelled"].contains(&j["status"].as_str().unwrap()) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let j = s.job(&id).await;
+    assert_eq!(j["status"], "succeeded", "{j:#}");
+    let n = j["snapshots"].as_u64().unwrap() as u32;
+    assert!(n > 3 * KEEP, "a long bake stores many snapshots: {n}");
+    let (numbers, files) = snapshot_files(s._dir.path(), &id);
+    let kept = lightmapd::service::store::kept_snapshots(n, KEEP);
+    eprintln!("{n} snapshots stored, kept {kept:?}, at most {most} files at once");
+    assert_eq!(numbers.into_iter().collect::<Vec<_>>(), kept);
+    assert_eq!(files, 2 * kept.len());
+    assert!(kept.len() <= KEEP as usize && kept.last() == Some(&n));
+
+    // A thinned snapshot is 404 naming the retention; a kept one and the latest download.
+    let gone = (1..n).find(|k| !kept.contains(k)).unwrap();
+    let r = s
+        .http
+        .get(format!("{}/v1/jobs/{id}/lightmap.exr?snapshot={gone}", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 404);
+    let p: Value = r.json().await.unwrap();
+    let list: Vec<String> = kept.iter().map(u32::to_string).collect();
+    assert_eq!(
+        p["detail"],
+        format!(
+            "snapshot {gone} of job {id} was removed by snapshot retention (--snapshot-keep {KEEP}); kept: {}",
+            list.join(", ")
+        )
+    );
+    for q in [format!("?snapshot={}", kept[0]), "?snapshot=latest".into()] {
+        let r = s
+            .http
+            .get(format!("{}/v1/jobs/{id}/lightmap.exr{q}", s.url))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200, "{q}");
+    }
+    s.running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deleting_a_job_and_the_retention_sweeper_remove_its_artifacts() {
+    let s = start(1, |c| {
+        c.job_retention = Some(Duration::from_millis(1500));
+        c.sweep_interval = Duration::from_millis(100);
+    })
+    .await;
+    let scene = s.upload().await;
+    let body = json!({"scene": scene, "resolution": 16, "stop": {"steps": 4}});
+    let (a, b) = (s.submit(body.clone()).await, s.submit(body).await);
+    for id in [&a, &b] {
+        s.wait_job(id, "succeeded", |j| j["status"] == "succeeded").await;
+    }
+    let b_done = Instant::now();
+    let folder = |id: &str| s._dir.path().join(format!("objects/jobs/{id}"));
+    assert!(folder(&a).join("lightmap.exr").exists());
+    // DELETE: 204, the folder is gone, the job is 404 (and a second DELETE too).
+    let r = s.http.delete(format!("{}/v1/jobs/{a}", s.url)).send().await.unwrap();
+    assert_eq!(r.status(), 204);
+    assert!(!folder(&a).exists(), "artifacts of a deleted job remain");
+    let r = s.http.get(format!("{}/v1/jobs/{a}", s.url)).send().await.unwrap();
+    assert_eq!(r.status(), 404);
+    let r = s.http.delete(format!("{}/v1/jobs/{a}", s.url)).send().await.unwrap();
+    assert_eq!(r.status(), 404);
+    // The store's usage is in /metrics: the scene's bytes exactly.
+    let metrics = || async {
+        s.http
+            .get(format!("{}/metrics", s.url))
+            .send()
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap()
+    };
+    let scene_line = format!("lightmapd_store_bytes{{kind=\"scenes\"}} {}", glb().len());
+    let start_wait = Instant::now();
+    loop {
+        let m = metrics().await;
+        if m.contains(&scene_line) {
+            break;
+        }
+        assert!(start_wait.elapsed() < DEADLINE, "{m}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // B is still within its retention: downloadable. After it, the sweeper removes it.
+    let r = s.http.get(format!("{}/v1/jobs/{b}/lightmap.exr", s.url)).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let start_wait = Instant::now();
+    loop {
+        let r = s.http.get(format!("{}/v1/jobs/{b}", s.url)).send().await.unwrap();
+        if r.status() == 404 {
+            break;
+        }
+        assert!(start_wait.elapsed() < DEADLINE, "never swept");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // Observed as succeeded at or after it finished: the retention (1.5 s) had passed.
+    assert!(b_done.elapsed() >= Duration::from_millis(1400), "swept before its retention ended");
+    assert!(!folder(&b).exists(), "artifacts of an expired job remain");
+    let start_wait = Instant::now();
+    loop {
+        let m = metrics().await;
+        if m.contains("lightmapd_store_objects{kind=\"jobs\"} 0") {
+            assert!(m.contains("lightmapd_jobs_expired_total 1\n"), "{m}");
+            break;
+        }
+        assert!(start_wait.elapsed() < DEADLINE, "{m}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
     s.running.shutdown().await;
 }

@@ -9,11 +9,15 @@
 //! Exit codes: 2 when the server refuses the input (a 4xx other than 408 and 429), 1 for
 //! everything else. A busy server (429: the client's queue is full; 503) is not bad
 //! input: the upload and the submission wait as the server's `Retry-After` says (at
-//! most a minute at a time) and try again, for up to `retry_for` in all.
+//! most a minute at a time) and try again, for up to `retry_for` in all; so does
+//! following the job's events (`--wait`), whose stream a server may refuse with 503 when
+//! it has too many open.
 //!
-//! Limits: plain HTTP only (reqwest is built without TLS to keep the build small; put a
-//! TLS-terminating proxy in front of a remote server and reach it over a tunnel, or add
-//! reqwest's `rustls` feature).
+//! TLS: `https://` servers are reached with rustls and the system's trust store
+//! (reqwest's `rustls` feature); `http://` as before.
+//!
+//! Limits: no client certificates; a private CA must be in the system's trust store (or
+//! `SSL_CERT_FILE`).
 
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -83,6 +87,25 @@ async fn check(resp: reqwest::Response, what: &str) -> Result<reqwest::Response,
     Err(fail(code, format!("{what}: {} {detail}", status.as_u16())))
 }
 
+/// How long a busy answer asks to wait: its `Retry-After` in seconds, 1 to 60 (5 without).
+fn retry_after(resp: &reqwest::Response) -> Duration {
+    let s = resp
+        .headers()
+        .get(reqwest::header::RETRY_AFTER)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .unwrap_or(5)
+        .clamp(1, 60);
+    Duration::from_secs(s)
+}
+
+fn is_busy(status: reqwest::StatusCode) -> bool {
+    matches!(
+        status,
+        reqwest::StatusCode::TOO_MANY_REQUESTS | reqwest::StatusCode::SERVICE_UNAVAILABLE
+    )
+}
+
 /// Sends the request `make` builds, again while the server answers 429 or 503 and
 /// `retry_for` has not run out, waiting as its `Retry-After` says (1 to 60 s).
 async fn send_retrying(
@@ -94,18 +117,8 @@ async fn send_retrying(
     let give_up = std::time::Instant::now() + retry_for;
     loop {
         let resp = make()?.send().await.map_err(|e| http_err(server, e))?;
-        let busy = matches!(
-            resp.status(),
-            reqwest::StatusCode::TOO_MANY_REQUESTS | reqwest::StatusCode::SERVICE_UNAVAILABLE
-        );
-        let wait = resp
-            .headers()
-            .get(reqwest::header::RETRY_AFTER)
-            .and_then(|v| v.to_str().ok())
-            .and_then(|v| v.trim().parse::<u64>().ok())
-            .unwrap_or(5)
-            .clamp(1, 60);
-        let wait = Duration::from_secs(wait);
+        let busy = is_busy(resp.status());
+        let wait = retry_after(&resp);
         if !busy || std::time::Instant::now() + wait > give_up {
             return check(resp, what).await;
         }
@@ -163,7 +176,7 @@ pub async fn submit(s: Submit) -> Result<JobView, ClientError> {
     if !(s.wait || s.output.is_some()) {
         return get_job(&http, &server, &job_id).await;
     }
-    let job = follow(&http, &server, &job_id).await?;
+    let job = follow(&http, &server, &job_id, s.retry_for).await?;
     match job.status {
         crate::service::model::JobStatus::Succeeded => {}
         crate::service::model::JobStatus::Failed => {
@@ -253,7 +266,8 @@ fn scene_request(http: &reqwest::Client, server: &str, path: &Path) -> Result<re
 
 /// Follows the job's events until it ends, drawing a progress bar; reconnects when the
 /// stream breaks.
-async fn follow(http: &reqwest::Client, server: &str, id: &str) -> Result<JobView, ClientError> {
+async fn follow(http: &reqwest::Client, server: &str, id: &str, retry_for: Duration) -> Result<JobView, ClientError> {
+    let give_up = std::time::Instant::now() + retry_for;
     let bar = if std::io::stderr().is_terminal() {
         ProgressBar::new(1000)
     } else {
@@ -271,6 +285,16 @@ async fn follow(http: &reqwest::Client, server: &str, id: &str) -> Result<JobVie
     let mut failures = 0u32;
     loop {
         let resp = match http.get(format!("{server}/v1/jobs/{id}/events")).send().await {
+            Ok(r) if is_busy(r.status()) && std::time::Instant::now() + retry_after(&r) <= give_up => {
+                let wait = retry_after(&r);
+                eprintln!(
+                    "events: the server is busy ({}); trying again in {} s",
+                    r.status().as_u16(),
+                    wait.as_secs()
+                );
+                tokio::time::sleep(wait).await;
+                continue;
+            }
             Ok(r) => check(r, "events").await?,
             Err(e) => {
                 failures += 1;

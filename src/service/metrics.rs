@@ -3,7 +3,9 @@
 //! What is measured: queue depth and jobs by state (read from the database at scrape
 //! time, so they are right across processes), and in this process: time per bake step
 //! and whole-bake duration as histograms per technique, finished jobs by outcome, and
-//! busy workers.
+//! busy workers; the artifact store's usage (bytes and objects under `scenes/` and
+//! `jobs/`, measured by the retention sweeper's listing every sweep, issue 24) and what
+//! the sweeper and snapshot retention removed.
 //!
 //! How: a histogram is a mutex around bucket counts; a step takes milliseconds or more,
 //! so an uncontended lock per step costs nothing measurable. No metrics crate: five
@@ -62,6 +64,23 @@ pub struct Metrics {
     finished: Mutex<BTreeMap<&'static str, u64>>,
     pub workers: AtomicUsize,
     pub busy: AtomicUsize,
+    /// The store's last measured usage, by top-level prefix (`None` before the first).
+    store: Mutex<Option<StoreUsage>>,
+    /// Finished jobs the retention sweeper removed.
+    pub jobs_expired: AtomicUsize,
+    /// Snapshot EXR+PNG pairs thinned out by snapshot retention in this process.
+    pub snapshots_thinned: AtomicUsize,
+}
+
+/// Bytes and objects in the artifact store, by what they belong to.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct StoreUsage {
+    pub scene_bytes: u64,
+    pub scene_objects: u64,
+    pub job_bytes: u64,
+    pub job_objects: u64,
+    /// When it was measured (Unix ms).
+    pub at_ms: i64,
 }
 
 impl Metrics {
@@ -87,6 +106,16 @@ impl Metrics {
         }
     }
 
+    pub fn set_store_usage(&self, u: StoreUsage) {
+        if let Ok(mut m) = self.store.lock() {
+            *m = Some(u);
+        }
+    }
+
+    pub fn store_usage(&self) -> Option<StoreUsage> {
+        self.store.lock().ok().and_then(|m| *m)
+    }
+
     /// The exposition text; `counts` are the jobs by state from the database.
     pub fn render(&self, counts: &[(JobStatus, u64)]) -> String {
         let mut out = String::new();
@@ -110,6 +139,22 @@ impl Metrics {
                 let _ = writeln!(out, "lightmapd_jobs_finished_total{{outcome=\"{}\"}} {n}", s.as_str());
             }
         }
+        if let Some(u) = self.store_usage() {
+            out.push_str(
+                "# HELP lightmapd_store_bytes Bytes in the artifact store, by kind (measured every retention sweep).\n# TYPE lightmapd_store_bytes gauge\n",
+            );
+            let _ = writeln!(out, "lightmapd_store_bytes{{kind=\"scenes\"}} {}", u.scene_bytes);
+            let _ = writeln!(out, "lightmapd_store_bytes{{kind=\"jobs\"}} {}", u.job_bytes);
+            out.push_str("# HELP lightmapd_store_objects Objects in the artifact store, by kind.\n# TYPE lightmapd_store_objects gauge\n");
+            let _ = writeln!(out, "lightmapd_store_objects{{kind=\"scenes\"}} {}", u.scene_objects);
+            let _ = writeln!(out, "lightmapd_store_objects{{kind=\"jobs\"}} {}", u.job_objects);
+            out.push_str("# HELP lightmapd_store_measured_timestamp_seconds When the store usage was measured.\n# TYPE lightmapd_store_measured_timestamp_seconds gauge\n");
+            let _ = writeln!(out, "lightmapd_store_measured_timestamp_seconds {}", u.at_ms as f64 / 1000.0);
+        }
+        out.push_str("# HELP lightmapd_jobs_expired_total Finished jobs removed by the retention sweeper of this process.\n# TYPE lightmapd_jobs_expired_total counter\n");
+        let _ = writeln!(out, "lightmapd_jobs_expired_total {}", self.jobs_expired.load(Ordering::Relaxed));
+        out.push_str("# HELP lightmapd_snapshots_thinned_total Snapshots removed by snapshot retention in this process.\n# TYPE lightmapd_snapshots_thinned_total counter\n");
+        let _ = writeln!(out, "lightmapd_snapshots_thinned_total {}", self.snapshots_thinned.load(Ordering::Relaxed));
         out.push_str("# HELP lightmapd_step_seconds Time per bake step.\n# TYPE lightmapd_step_seconds histogram\n");
         if let Ok(m) = self.steps.lock() {
             for (t, h) in m.iter() {

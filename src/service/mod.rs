@@ -20,6 +20,13 @@
 //! tokens; every request has a time limit; artifacts are written to a temporary file,
 //! synced, then renamed, before the job that made them is marked succeeded.
 //!
+//! Deployed (issue 24): [`check_exposure`] refuses to serve a non-loopback address
+//! without tokens unless told the network is trusted; tokens may come from a secret file
+//! ([`auth::sync_tokens_file`]); snapshot retention ([`store::snapshot_kept`]) and the
+//! retention sweeper ([`retention_loop`]) bound the store; leases are short (5 s by
+//! default, renewed until the job's end is recorded) and measured on the database's clock
+//! ([`queue::Queue::clock`]).
+//!
 //! Limits: API and worker processes on several machines need PostgreSQL and an artifact
 //! store they all reach (an S3 bucket, [`store`], or a shared filesystem).
 
@@ -37,7 +44,7 @@ pub mod worker;
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU8, Ordering};
+use std::sync::atomic::{AtomicI64, AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -67,6 +74,39 @@ pub struct Config {
     pub lease: Duration,
     /// Longest time between stored snapshot EXRs of a running bake.
     pub snapshot_interval: Duration,
+    /// Snapshot EXR+PNG pairs kept per job: the latest and a thinned history
+    /// ([`store::snapshot_kept`]).
+    pub snapshot_keep: u32,
+    /// Finished jobs (and their artifacts) older than this are removed by the sweeper;
+    /// `None` keeps them until deleted.
+    pub job_retention: Option<Duration>,
+    /// How often the sweeper runs and the store's usage is measured.
+    pub sweep_interval: Duration,
+    /// Tokens from a secret file (`--tokens-file`), synced into the database at start-up;
+    /// `None`: no file.
+    pub tokens_file: Option<Vec<auth::FileToken>>,
+    /// A worker process exits (code 1) after this long without reaching its database.
+    pub database_timeout: Duration,
+}
+
+/// Default lease: short, so a dead worker's job is queued again within
+/// [`DEFAULT_LEASE`] plus one recovery period (at most 1 s) of its last renewal.
+pub const DEFAULT_LEASE: Duration = Duration::from_secs(5);
+/// Default retention of finished jobs: 7 days.
+pub const DEFAULT_JOB_RETENTION: Duration = Duration::from_secs(7 * 24 * 3600);
+
+/// Refuses to serve `listen` without tokens when it is not a loopback address, unless
+/// `insecure` says the network is trusted: without tokens every caller may list,
+/// download, cancel and delete every job.
+pub fn check_exposure(listen: SocketAddr, auth: bool, insecure: bool) -> Result<(), String> {
+    if auth || insecure || listen.ip().is_loopback() {
+        return Ok(());
+    }
+    Err(format!(
+        "refusing to serve {listen} without authentication: anyone who can reach it could list, download, \
+         cancel and delete every job. Add --auth (tokens from `lightmapd token create` or --tokens-file), \
+         or --insecure-no-auth on a network you trust, or listen on 127.0.0.1"
+    ))
 }
 
 impl Default for Config {
@@ -79,8 +119,13 @@ impl Default for Config {
             store: None,
             limits: Limits::default(),
             auth: false,
-            lease: Duration::from_secs(30),
+            lease: DEFAULT_LEASE,
             snapshot_interval: Duration::from_secs(2),
+            snapshot_keep: 8,
+            job_retention: Some(DEFAULT_JOB_RETENTION),
+            sweep_interval: Duration::from_secs(60),
+            tokens_file: None,
+            database_timeout: Duration::from_secs(60),
         }
     }
 }
@@ -111,6 +156,9 @@ pub struct Limits {
     pub max_job_memory_bytes: u64,
     /// Time to answer a request (the headers; an event stream's body is not limited).
     pub request_timeout: Duration,
+    /// Highest job priority an editor token (or any caller without tokens) may set; an
+    /// admin token may set any (403 beyond).
+    pub max_priority: i32,
 }
 
 impl Default for Limits {
@@ -127,6 +175,7 @@ impl Default for Limits {
             max_event_streams: 256,
             max_job_memory_bytes: 8 << 30,
             request_timeout: Duration::from_secs(60),
+            max_priority: 10,
         }
     }
 }
@@ -228,6 +277,8 @@ pub struct AppState {
     pub shutdown: watch::Receiver<bool>,
     /// One permit per open event stream (`Limits::max_event_streams`).
     pub streams: Arc<tokio::sync::Semaphore>,
+    /// The database's clock minus this process's, in ms ([`AppState::db_now`]).
+    clock_offset: Arc<AtomicI64>,
 }
 
 impl AppState {
@@ -240,6 +291,83 @@ impl AppState {
             streams: Arc::new(tokio::sync::Semaphore::new(config.limits.max_event_streams)),
             config: Arc::new(config.clone()),
             shutdown,
+            clock_offset: Arc::new(AtomicI64::new(0)),
+        }
+    }
+
+    /// Now on the database's clock (Unix ms): this process's clock plus the offset last
+    /// measured by [`AppState::sync_clock`] (every recovery period).
+    pub fn db_now(&self) -> i64 {
+        queue::now_ms() + self.clock_offset.load(Ordering::Relaxed)
+    }
+
+    /// Reads the database's clock, remembers its offset from ours, and returns it.
+    pub async fn sync_clock(&self) -> Result<i64, sqlx::Error> {
+        let before = queue::now_ms();
+        let db = self.queue.clock().await?;
+        let after = queue::now_ms();
+        // The database read its clock somewhere in the round trip: assume the middle.
+        self.clock_offset.store(db - (before + after) / 2, Ordering::Relaxed);
+        Ok(db)
+    }
+}
+
+/// Removes a finished job: its artifacts first, then its row (so a failure in between
+/// leaves a job whose deletion can be retried, never artifacts nobody can find).
+pub async fn remove_job(state: &AppState, id: &str) -> Result<queue::JobDeletion, problem::Problem> {
+    match state.queue.job(id).await? {
+        None => return Ok(queue::JobDeletion::NotFound),
+        Some(j) if !j.status.is_terminal() => return Ok(queue::JobDeletion::Unfinished(j.status)),
+        Some(_) => {}
+    }
+    state.artifacts.delete_prefix(&store::job_prefix(id)).await?;
+    let r = state.queue.delete_job(id).await?;
+    if r == queue::JobDeletion::Deleted {
+        state.hub.job_changed(id);
+    }
+    Ok(r)
+}
+
+/// The retention sweeper: every `sweep_interval`, removes finished jobs older than
+/// `job_retention` (artifacts and row) and measures the store's usage for `/metrics`.
+/// Several API processes may sweep at once: a job removed twice is removed once.
+pub async fn retention_loop(state: AppState) {
+    let mut shutdown = state.shutdown.clone();
+    loop {
+        if let Some(keep) = state.config.job_retention {
+            let before = state.db_now() - keep.as_millis() as i64;
+            loop {
+                let ids = match state.queue.finished_before(before, 100).await {
+                    Ok(ids) => ids,
+                    Err(e) => {
+                        tracing::warn!(error = %e, "retention sweep: cannot list finished jobs");
+                        break;
+                    }
+                };
+                let mut removed = 0;
+                for id in &ids {
+                    match remove_job(&state, id).await {
+                        Ok(queue::JobDeletion::Deleted) => {
+                            removed += 1;
+                            state.metrics.jobs_expired.fetch_add(1, Ordering::Relaxed);
+                            tracing::info!(job = %id, "retention: finished job removed");
+                        }
+                        Ok(_) => {}
+                        Err(e) => tracing::warn!(job = %id, error = %e.detail, "retention: cannot remove job"),
+                    }
+                }
+                if ids.len() < 100 || removed == 0 {
+                    break;
+                }
+            }
+        }
+        match state.artifacts.usage().await {
+            Ok(u) => state.metrics.set_store_usage(u),
+            Err(e) => tracing::warn!(error = %e, "cannot measure the artifact store's usage"),
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(state.config.sweep_interval) => {}
+            _ = shutting_down(&mut shutdown) => break,
         }
     }
 }
@@ -296,7 +424,15 @@ pub async fn start(config: Config) -> anyhow::Result<Running> {
 pub async fn start_with(config: Config, queue: Arc<dyn Queue>, artifacts: Artifacts) -> anyhow::Result<Running> {
     let (tx, rx) = watch::channel(false);
     let state = AppState::new(queue, artifacts, &config, rx.clone());
+    if let Some(tokens) = &config.tokens_file {
+        let sync = auth::sync_tokens_file(&*state.queue, tokens).await?;
+        tracing::info!(added = ?sync.added, revoked = ?sync.revoked, kept = ?sync.kept, "tokens file applied");
+    }
+    if let Err(e) = state.sync_clock().await {
+        tracing::warn!(error = %e, "cannot read the database's clock; using this machine's until it answers");
+    }
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
+    tasks.push(tokio::spawn(retention_loop(state.clone())));
     tasks.extend(state.queue.listen(state.hub.clone(), rx.clone()));
     tasks.extend(worker::spawn_pool(
         &state,
@@ -324,11 +460,24 @@ pub async fn start_with(config: Config, queue: Arc<dyn Queue>, artifacts: Artifa
     })
 }
 
-/// Runs workers only (no API) until `shutdown` resolves.
+/// Runs workers only (no API) until `shutdown` resolves, or until the database has not
+/// answered for `config.database_timeout` (then an error: the process exits 1 and its
+/// supervisor restarts it, which is what the compose and Kubernetes files rely on).
 pub async fn run_workers(config: Config, shutdown: impl std::future::Future<Output = ()>) -> anyhow::Result<()> {
     let (queue, artifacts) = open_backends(&config).await?;
+    run_workers_with(config, queue, artifacts, shutdown).await
+}
+
+/// [`run_workers`] over a queue and store made by the caller.
+pub async fn run_workers_with(
+    config: Config,
+    queue: Arc<dyn Queue>,
+    artifacts: Artifacts,
+    shutdown: impl std::future::Future<Output = ()>,
+) -> anyhow::Result<()> {
     let (tx, rx) = watch::channel(false);
     let state = AppState::new(queue, artifacts, &config, rx.clone());
+    let _ = state.sync_clock().await;
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
     tasks.extend(state.queue.listen(state.hub.clone(), rx));
     tasks.extend(worker::spawn_pool(
@@ -336,12 +485,36 @@ pub async fn run_workers(config: Config, shutdown: impl std::future::Future<Outp
         config.workers,
         Arc::new(worker::EngineShared::default()),
     ));
-    shutdown.await;
+    let outcome = tokio::select! {
+        _ = shutdown => Ok(()),
+        lost = database_watchdog(&state, config.database_timeout) => Err(lost),
+    };
     let _ = tx.send(true);
     for t in tasks {
         let _ = t.await;
     }
-    Ok(())
+    outcome
+}
+
+/// Resolves with an error once the database has failed every check for `timeout`
+/// (checked every second, or every `timeout / 4` when that is shorter).
+async fn database_watchdog(state: &AppState, timeout: Duration) -> anyhow::Error {
+    let period = (timeout / 4).clamp(Duration::from_millis(50), Duration::from_secs(1));
+    let mut last_ok = std::time::Instant::now();
+    loop {
+        tokio::time::sleep(period).await;
+        match state.queue.clock().await {
+            Ok(_) => last_ok = std::time::Instant::now(),
+            Err(e) if last_ok.elapsed() >= timeout => {
+                tracing::error!(error = %e, seconds = timeout.as_secs_f64(), "the database has not answered: exiting so the supervisor restarts this worker");
+                return anyhow::anyhow!(
+                    "the database has not answered for {} s (--database-timeout-s): {e}",
+                    timeout.as_secs_f64()
+                );
+            }
+            Err(e) => tracing::warn!(error = %e, "database check failed"),
+        }
+    }
 }
 
 /// Resolves once `rx` says the process is shutting down (or its sender is gone).

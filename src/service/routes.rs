@@ -19,6 +19,10 @@
 //! [`problem_bodies`] rewrites the plain-text answers axum and tower-http produce on
 //! their own (a malformed path or query, a body over the limit, a timeout).
 //!
+//! Downloads (lightmaps, previews, scenes) are streamed from the store as they are read
+//! (issue 24), so a large EXR is never held whole by the API; snapshot EXRs (small, and
+//! checked against snapshot retention) are read whole.
+//!
 //! Limits: uploads are buffered in memory up to `max_scene_bytes`, once (the importer
 //! parses from memory, and the store writes from the same buffer: [`store`]); a `.glb`
 //! goes into one buffer sized from `Content-Length`, while multipart parts are gathered
@@ -45,7 +49,7 @@ use crate::service::model::{
     Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339, uri_file_name,
 };
 use crate::service::problem::{PROBLEM_JSON, Problem};
-use crate::service::queue::{Cancellation, Enqueued, JobRecord, SceneDeletion, SceneRecord, now_ms};
+use crate::service::queue::{Cancellation, Enqueued, JobDeletion, JobRecord, SceneDeletion, SceneRecord, now_ms};
 use crate::service::worker::{ImportFailure, SceneFiles, import_files, job_memory};
 use crate::service::{AppState, StopSignal, events, store};
 
@@ -66,6 +70,7 @@ pub const RETRY_AFTER_S: u64 = 10;
         list_jobs,
         get_job,
         cancel_job,
+        delete_job,
         events::job_events,
         get_lightmap,
         get_preview,
@@ -93,7 +98,7 @@ pub fn router(state: AppState) -> Router {
         )
         .route("/v1/scenes/{id}", get(get_scene).delete(delete_scene))
         .route("/v1/jobs", post(create_job).get(list_jobs))
-        .route("/v1/jobs/{id}", get(get_job))
+        .route("/v1/jobs/{id}", get(get_job).delete(delete_job))
         .route("/v1/jobs/{id}/cancel", post(cancel_job))
         .route("/v1/jobs/{id}/events", get(events::job_events))
         .route("/v1/jobs/{id}/lightmap.exr", get(get_lightmap))
@@ -535,7 +540,8 @@ async fn delete_scene(
         (status = 400, description = "Not JSON", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "The body is over `--max-body-bytes`", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Not application/json", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "A field is invalid or over a server limit (`field` names it; an estimated memory over the limit names `resolution`), or the scene does not exist", body = Problem, content_type = "application/problem+json"),
+        (status = 403, description = "`priority` above `--max-priority` from an editor token (or without authentication); an admin token may set it", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "A field is invalid or over a server limit (`field` names it; an estimated memory over the limit names `resolution`), the scene does not exist, or the body is not a JSON object", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "The client already has `--max-queued-per-client` queued jobs; `Retry-After` says when to try again", body = Problem, content_type = "application/problem+json")
     )
 )]
@@ -554,7 +560,38 @@ async fn create_job(
         ));
     }
     let limits = &state.config.limits;
+    // serde reads a struct from a JSON array too (fields in order): only an object is a job.
+    if let Ok(v) = serde_json::from_slice::<serde_json::Value>(&body)
+        && !v.is_object()
+    {
+        let kind = match v {
+            serde_json::Value::Array(_) => "an array",
+            serde_json::Value::String(_) => "a string",
+            serde_json::Value::Number(_) => "a number",
+            serde_json::Value::Bool(_) => "a boolean",
+            _ => "null",
+        };
+        return Err(Problem::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid-field",
+            format!("the job must be a JSON object ({{\"scene\": …}}), got {kind}"),
+        ));
+    }
     let spec = JobSpec::parse_with(&body, limits)?;
+    if spec.priority > limits.max_priority && !caller.admin {
+        let mut p = Problem::new(
+            StatusCode::FORBIDDEN,
+            "forbidden",
+            format!(
+                "priority {} is above {}, the most this server allows {} (--max-priority); an admin token may set it",
+                spec.priority,
+                limits.max_priority,
+                if caller.token.is_some() { "an editor token" } else { "without authentication" }
+            ),
+        );
+        p.field = Some("priority".into());
+        return Err(p);
+    }
     let no_scene = || Problem::invalid_field("scene", format!("no scene with id {:?}; upload it first", spec.scene));
     let scene = match state.queue.scene(&spec.scene).await? {
         Some(s) if caller.owns(s.client.as_deref()) => s,
@@ -680,7 +717,7 @@ async fn list_jobs(
             .parse::<u64>()
             .map_err(|_| Problem::invalid_field("offset", format!("offset must be a whole number >= 0, got {s:?}")))?,
     };
-    let (jobs, total) = state.queue.list(status, caller.token.as_deref(), limit, offset).await?;
+    let (jobs, total) = state.queue.list(status, caller.scope(), limit, offset).await?;
     Ok(axum::Json(JobList {
         jobs: jobs.iter().map(job_view).collect(),
         total,
@@ -753,8 +790,61 @@ async fn cancel_job(
     Ok((StatusCode::ACCEPTED, axum::Json(job_view(&job))).into_response())
 }
 
+/// Delete a finished job and every artifact it made (lightmap, preview, snapshots).
+#[utoipa::path(
+    delete,
+    path = "/v1/jobs/{id}",
+    tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 204, description = "Deleted, with its artifacts"),
+        (status = 404, body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The job is queued or running: cancel it first", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn delete_job(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, Problem> {
+    find_job(&state, &caller, &id).await?;
+    match crate::service::remove_job(&state, &id).await? {
+        JobDeletion::Deleted => {
+            tracing::info!(job = %id, "job deleted");
+            Ok(StatusCode::NO_CONTENT)
+        }
+        JobDeletion::NotFound => Err(Problem::not_found("job", &id)),
+        JobDeletion::Unfinished(s) => Err(Problem::conflict(format!(
+            "job {id} is {}: cancel it first (POST /v1/jobs/{id}/cancel), then delete it once it has ended",
+            s.as_str()
+        ))),
+    }
+}
+
+/// A stored object as a streamed download (never read whole into memory), or 500 when the
+/// job's record names an object the store does not have.
+async fn download(
+    state: &AppState,
+    key: &object_store::path::Path,
+    content_type: &'static str,
+    filename: Option<String>,
+) -> Result<Response, Problem> {
+    let (size, stream) = state
+        .artifacts
+        .get_stream(key)
+        .await?
+        .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
+    let mut resp = binary_body(Body::from_stream(stream), content_type, filename);
+    resp.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(size));
+    Ok(resp)
+}
+
 fn binary(bytes: Bytes, content_type: &'static str, filename: Option<String>) -> Response {
-    let mut resp = Response::new(Body::from(bytes));
+    binary_body(Body::from(bytes), content_type, filename)
+}
+
+fn binary_body(body: Body, content_type: &'static str, filename: Option<String>) -> Response {
+    let mut resp = Response::new(body);
     resp.headers_mut()
         .insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
     if let Some(f) = filename
@@ -788,7 +878,7 @@ async fn get_lightmap(
     Query(q): Query<HashMap<String, String>>,
 ) -> Result<Response, Problem> {
     let job = find_job(&state, &caller, &id).await?;
-    let key = match q.get("snapshot").map(String::as_str) {
+    match q.get("snapshot").map(String::as_str) {
         None => {
             if job.status != JobStatus::Succeeded {
                 return Err(Problem::conflict(format!(
@@ -801,7 +891,7 @@ async fn get_lightmap(
                     }
                 )));
             }
-            store::final_exr(&id)
+            download(&state, &store::final_exr(&id), "image/x-exr", Some(format!("{id}.exr"))).await
         }
         Some(s) => {
             let n = if s == "latest" {
@@ -821,15 +911,34 @@ async fn get_lightmap(
                     format!("job {id} has {} snapshot(s); there is no snapshot {s}", job.snapshots),
                 ));
             }
-            store::snapshot_exr(&id, n)
+            let keep = state.config.snapshot_keep;
+            if !store::snapshot_kept(n, job.snapshots, keep) {
+                return Err(thinned(&job, n, keep));
+            }
+            match state.artifacts.get(&store::snapshot_exr(&id, n)).await? {
+                Some(bytes) => Ok(binary(bytes, "image/x-exr", Some(format!("{id}.exr")))),
+                // Another process may keep fewer (its own --snapshot-keep): still 404.
+                None => Err(thinned(&job, n, keep)),
+            }
         }
-    };
-    let bytes = state
-        .artifacts
-        .get(&key)
-        .await?
-        .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
-    Ok(binary(bytes, "image/x-exr", Some(format!("{id}.exr"))))
+    }
+}
+
+/// 404 for a snapshot that snapshot retention removed, listing those kept.
+fn thinned(job: &JobRecord, n: u32, keep: u32) -> Problem {
+    let kept: Vec<String> = store::kept_snapshots(job.snapshots, keep)
+        .iter()
+        .map(u32::to_string)
+        .collect();
+    Problem::new(
+        StatusCode::NOT_FOUND,
+        "not-found",
+        format!(
+            "snapshot {n} of job {} was removed by snapshot retention (--snapshot-keep {keep}); kept: {}",
+            job.id,
+            kept.join(", ")
+        ),
+    )
 }
 
 /// A tone-mapped PNG of the final lightmap, or of the latest snapshot while running.
@@ -860,12 +969,7 @@ async fn get_preview(
             format!("job {id} is {} and has no preview yet", job.status.as_str()),
         ));
     };
-    let bytes = state
-        .artifacts
-        .get(&key)
-        .await?
-        .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
-    Ok(binary(bytes, "image/png", None))
+    download(&state, &key, "image/png", None).await
 }
 
 /// The scene with the lightmap UVs the engine generated for it (only when it had none:
@@ -893,8 +997,12 @@ async fn get_generated_scene(
             job.status.as_str()
         )));
     }
-    match state.artifacts.get(&store::generated_scene(&id)).await? {
-        Some(bytes) => Ok(binary(bytes, "model/gltf-binary", Some(format!("{id}.glb")))),
+    match state.artifacts.get_stream(&store::generated_scene(&id)).await? {
+        Some((size, stream)) => {
+            let mut resp = binary_body(Body::from_stream(stream), "model/gltf-binary", Some(format!("{id}.glb")));
+            resp.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(size));
+            Ok(resp)
+        }
         None => Err(Problem::new(
             StatusCode::NOT_FOUND,
             "not-found",

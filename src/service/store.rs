@@ -18,7 +18,8 @@
 //! directory is the local store. The S3 endpoint, region and credentials come from the
 //! usual environment variables through `AmazonS3Builder::from_env` (`AWS_ENDPOINT_URL`,
 //! `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`,
-//! `AWS_ALLOW_HTTP`...), never from the URL, so no secret lands in a process list or a
+//! `AWS_ALLOW_HTTP`...), or, for the keys, the files `LIGHTMAPD_S3_ACCESS_KEY_ID_FILE` and
+//! `LIGHTMAPD_S3_SECRET_ACCESS_KEY_FILE` name (mounted secrets); never from the URL, so no secret lands in a process list or a
 //! log line. Requests are path-style (`ENDPOINT/BUCKET/KEY`, what self-hosted servers
 //! expect) unless `AWS_VIRTUAL_HOSTED_STYLE_REQUEST=true`.
 //! [`Artifacts::open`] makes one cheap request (a listing of a prefix that holds nothing)
@@ -43,9 +44,18 @@
 //! scene is neither copied into request bodies nor sent as one request that a network
 //! hiccup restarts from byte 0. The local store writes the buffer to its temporary file.
 //!
-//! Limits: objects are held whole in memory while they are written and read (scenes up
-//! to `--max-scene-bytes`, lightmaps are megabytes); downloads are read whole before they
-//! are answered. Only S3 and local directories are wired up (object_store's GCS and Azure
+//! Snapshot retention (issue 24): a running bake stores a snapshot every
+//! `--snapshot-interval-s`, so a long bake would store hundreds. [`snapshot_kept`] says
+//! which survive once `n` exist with `keep` allowed: the latest, and every `s`-th before
+//! it, where the stride `s` is the smallest power of two that leaves at most `keep - 1`
+//! of them. As `n` grows the stride doubles and every other old snapshot goes, so the
+//! history stays evenly spread over the whole bake; and since a stride only ever grows
+//! (and each divides the next), a snapshot removed once is never wanted again. The
+//! worker deletes what stopped being kept right after it stores a new one.
+//!
+//! Limits: objects are held whole in memory while they are written (scenes up to
+//! `--max-scene-bytes`, lightmaps are megabytes) and when a worker reads a scene; API
+//! downloads are streamed ([`Artifacts::get_stream`]). Only S3 and local directories are wired up (object_store's GCS and Azure
 //! back-ends are not compiled in). Listing a prefix to delete a scene is eventually
 //! consistent on some S3-compatible servers (AWS itself is strongly consistent).
 
@@ -176,6 +186,17 @@ impl Artifacts {
             StoreUrl::Local(dir) => return Ok(Artifacts::local(dir)?),
             StoreUrl::S3 { bucket, prefix } => {
                 let mut b = AmazonS3Builder::from_env().with_bucket_name(bucket);
+                // Keys from files (mounted secrets) win over the variables.
+                for (var, key) in [
+                    ("LIGHTMAPD_S3_ACCESS_KEY_ID_FILE", AmazonS3ConfigKey::AccessKeyId),
+                    ("LIGHTMAPD_S3_SECRET_ACCESS_KEY_FILE", AmazonS3ConfigKey::SecretAccessKey),
+                ] {
+                    if let Some(path) = std::env::var_os(var).filter(|p| !p.is_empty()) {
+                        let v = std::fs::read_to_string(&path)
+                            .map_err(|e| anyhow::anyhow!("{var}={}: cannot read it: {e}", FsPath::new(&path).display()))?;
+                        b = b.with_config(key, v.trim());
+                    }
+                }
                 for (k, v) in overrides {
                     b = b.with_config(*k, v);
                 }
@@ -276,6 +297,52 @@ impl Artifacts {
         }
     }
 
+    /// The object as a stream of chunks, with its size, or `None` when there is none:
+    /// downloads are sent as they are read, never held whole (issue 24).
+    pub async fn get_stream(
+        &self,
+        key: &Path,
+    ) -> Result<Option<(u64, futures_util::stream::BoxStream<'static, object_store::Result<Bytes>>)>, object_store::Error>
+    {
+        match self.store.get(key).await {
+            Ok(r) => Ok(Some((r.meta.size, r.into_stream()))),
+            Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Deletes one object (absent is fine).
+    pub async fn delete(&self, key: &Path) -> Result<(), object_store::Error> {
+        match self.store.delete(key).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Bytes and objects under `scenes/` and `jobs/`, by listing the whole store (one
+    /// request per 1000 objects on S3). `NAME#N` temporaries of the local store are
+    /// counted too: they take disk.
+    pub async fn usage(&self) -> Result<crate::service::metrics::StoreUsage, object_store::Error> {
+        let mut u = crate::service::metrics::StoreUsage::default();
+        let mut list = self.store.list(None);
+        while let Some(m) = list.try_next().await? {
+            let first = m.location.parts().next().map(|p| p.as_ref().to_string());
+            match first.as_deref() {
+                Some("scenes") => {
+                    u.scene_bytes += m.size;
+                    u.scene_objects += 1;
+                }
+                Some("jobs") => {
+                    u.job_bytes += m.size;
+                    u.job_objects += 1;
+                }
+                _ => {}
+            }
+        }
+        u.at_ms = crate::service::queue::now_ms();
+        Ok(u)
+    }
+
     /// Deletes every object under `prefix`.
     pub async fn delete_prefix(&self, prefix: &Path) -> Result<(), object_store::Error> {
         let keys: Vec<Path> = self
@@ -313,6 +380,45 @@ pub fn snapshot_exr(job: &str, n: u32) -> Path {
 
 pub fn snapshot_png(job: &str, n: u32) -> Path {
     Path::from(format!("jobs/{job}/snapshots/{n}.png"))
+}
+
+/// The stride of the kept history once `n` snapshots exist and `keep` may stay: the
+/// smallest power of two `s` with `n / s <= keep - 1` (so the multiples of `s` up to `n`,
+/// plus the latest, are at most `keep`). With `keep` 1 only the latest stays.
+pub fn snapshot_stride(n: u32, keep: u32) -> u64 {
+    let room = u64::from(keep.max(1) - 1);
+    let mut s: u64 = 1;
+    while u64::from(n) / s > room {
+        s *= 2;
+    }
+    s
+}
+
+/// Whether snapshot `k` (1-based) is kept once `n` exist: the latest, and the multiples
+/// of [`snapshot_stride`].
+pub fn snapshot_kept(k: u32, n: u32, keep: u32) -> bool {
+    k >= 1 && k <= n && (k == n || u64::from(k) % snapshot_stride(n, keep) == 0)
+}
+
+/// The snapshots kept once `n` exist, oldest first.
+pub fn kept_snapshots(n: u32, keep: u32) -> Vec<u32> {
+    let s = snapshot_stride(n, keep);
+    let mut v: Vec<u32> = (1..=u64::from(n) / s).map(|i| (i * s) as u32).collect();
+    if v.last() != Some(&n) && n > 0 {
+        v.push(n);
+    }
+    v
+}
+
+/// What storing snapshot `n` makes removable: kept at `n - 1`, not at `n`.
+pub fn snapshots_to_drop(n: u32, keep: u32) -> Vec<u32> {
+    if n < 2 {
+        return vec![];
+    }
+    kept_snapshots(n - 1, keep)
+        .into_iter()
+        .filter(|k| !snapshot_kept(*k, n, keep))
+        .collect()
 }
 
 pub fn final_exr(job: &str) -> Path {
@@ -359,6 +465,36 @@ mod tests {
             StoreUrl::parse("s3://lightmaps/studio/a/").unwrap().to_string(),
             "s3://lightmaps/studio/a"
         );
+    }
+
+    #[test]
+    fn snapshot_retention_keeps_the_latest_and_an_even_history() {
+        // keep 4: stride 1 up to 3 snapshots... then the multiples of 2, 4, 8.
+        assert_eq!(kept_snapshots(3, 4), vec![1, 2, 3]);
+        assert_eq!(kept_snapshots(4, 4), vec![2, 4]);
+        assert_eq!(kept_snapshots(7, 4), vec![2, 4, 6, 7]);
+        assert_eq!(kept_snapshots(8, 4), vec![4, 8]);
+        assert_eq!(kept_snapshots(13, 4), vec![4, 8, 12, 13]);
+        assert_eq!(kept_snapshots(1000, 8), vec![128, 256, 384, 512, 640, 768, 896, 1000]);
+        assert_eq!(kept_snapshots(5, 1), vec![5]);
+        assert_eq!(kept_snapshots(0, 4), Vec::<u32>::new());
+        // Over a long bake: never more than `keep`, the latest always there, a removed
+        // snapshot never wanted again, and dropping exactly what stopped being kept.
+        for keep in [1, 2, 3, 8, 16] {
+            let mut stored: std::collections::BTreeSet<u32> = Default::default();
+            let mut ever_dropped: std::collections::BTreeSet<u32> = Default::default();
+            for n in 1..=3000u32 {
+                stored.insert(n);
+                for k in snapshots_to_drop(n, keep) {
+                    assert!(stored.remove(&k), "keep {keep}, n {n}: {k} dropped twice");
+                    ever_dropped.insert(k);
+                }
+                let kept: std::collections::BTreeSet<u32> = kept_snapshots(n, keep).into_iter().collect();
+                assert_eq!(stored, kept, "keep {keep}, n {n}");
+                assert!(stored.len() <= keep as usize && stored.contains(&n));
+                assert!(kept.is_disjoint(&ever_dropped), "keep {keep}, n {n}: a dropped one came back");
+            }
+        }
     }
 
     #[test]

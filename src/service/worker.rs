@@ -10,6 +10,16 @@
 //! back the cancel flag, and uploads snapshots. The bake thread checks the job's
 //! [`StopFlag`] after every step, so a cancel stops it within one step.
 //!
+//! Snapshots: after storing snapshot `n` (and recording the count), the worker deletes
+//! the ones snapshot retention no longer keeps ([`store::snapshots_to_drop`]), so a job
+//! holds at most `snapshot_keep` snapshot pairs however long it bakes.
+//!
+//! Leases (issue 24): the lease is renewed for as long as the job is ours, not only while
+//! the bake runs: storing the final EXR, preview and scene, and recording the end, run
+//! under [`while_holding`], which keeps renewing it, so a slow upload never lets the lease
+//! lapse and the job run twice. Every lease time is on the database's clock
+//! ([`AppState::db_now`]).
+//!
 //! Endings: finished → final EXR and preview stored, then `succeeded`; engine error →
 //! `failed` with its message; cancel → `cancelled`; shutdown → the job is released to
 //! `queued` (attempt not counted); lease lost → nothing is written, the job is someone
@@ -37,7 +47,7 @@ use crate::engine::plan::Plan;
 use crate::engine::scene::{self, Scene};
 use crate::engine::technique::EngineError;
 use crate::service::model::{HistoryPoint, JobStatus, Progress};
-use crate::service::queue::{JobRecord, JobUpdate, Lease, Outcome, now_ms};
+use crate::service::queue::{JobRecord, JobUpdate, Lease, Outcome};
 use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
 
 /// How often a running job's progress is written and its lease checked.
@@ -75,7 +85,7 @@ async fn worker_loop(state: AppState, worker: String, engine: Arc<EngineShared>)
         if *shutdown.borrow() {
             break;
         }
-        match state.queue.claim(&worker, state.config.lease, now_ms()).await {
+        match state.queue.claim(&worker, state.config.lease, state.db_now()).await {
             Ok(Some(job)) => {
                 let span = tracing::info_span!("job", job = %job.id, technique = %job.spec.technique, worker = %worker);
                 run_job(&state, &worker, job, &engine).instrument(span).await;
@@ -96,12 +106,24 @@ async fn worker_loop(state: AppState, worker: String, engine: Arc<EngineShared>)
     tracing::info!(worker = %worker, "worker stopped");
 }
 
-/// Finds jobs whose worker died (lease expired) at start-up and every half lease.
+/// How often expired leases are looked for: a fifth of the lease, between 0.1 and 1 s, so
+/// a dead worker's job is queued again at most a lease plus one period after its last
+/// renewal (6 s with the default 5 s lease).
+pub fn recovery_period(lease: Duration) -> Duration {
+    (lease / 5).clamp(Duration::from_millis(100), Duration::from_secs(1))
+}
+
+/// Finds jobs whose worker died (lease expired) at start-up and every
+/// [`recovery_period`], comparing leases with the database's clock.
 pub async fn recovery_loop(state: AppState) {
     let mut shutdown = state.shutdown.clone();
-    let period = (state.config.lease / 2).max(Duration::from_millis(100));
+    let period = recovery_period(state.config.lease);
     loop {
-        match state.queue.recover_expired(now_ms()).await {
+        let recovered = match state.sync_clock().await {
+            Ok(now) => state.queue.recover_expired(now).await,
+            Err(e) => Err(e),
+        };
+        match recovered {
             Ok(r) => {
                 for id in &r.requeued {
                     tracing::warn!(job = %id, "lease expired: job queued again");
@@ -151,7 +173,7 @@ async fn run_job(state: &AppState, worker: &str, job: JobRecord, engine: &Arc<En
     let outcome = supervise(state, worker, &job, flag.clone(), engine.clone()).await;
     state.hub.unregister(&id);
     state.metrics.busy.fetch_sub(1, Ordering::Relaxed);
-    let now = now_ms();
+    let now = state.db_now();
     let written = match outcome {
         End::Lost => {
             tracing::warn!("lease lost: another worker owns the job now; nothing written");
@@ -170,7 +192,9 @@ async fn run_job(state: &AppState, worker: &str, job: JobRecord, engine: &Arc<En
                 }
                 Outcome::Cancelled => JobStatus::Cancelled,
             };
-            let r = state.queue.finish(&id, worker, &outcome, now).await;
+            // Still renewing while the end is written (a slow database must not let the
+            // lease lapse between the stored artifacts and the recorded end).
+            let r = while_holding(state, &id, worker, &flag, state.queue.finish(&id, worker, &outcome, now)).await;
             if matches!(r, Ok(true)) {
                 state.metrics.job_finished(status);
                 tracing::info!(status = status.as_str(), "job finished");
@@ -246,6 +270,7 @@ async fn supervise(
                             let update = JobUpdate { snapshots: Some(snapshots), ..collect(&shared, &mut written_progress, &mut written_plan, true) };
                             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
                             tracing::info!(snapshot = snapshots, step, error, "snapshot stored");
+                            thin_snapshots(state, &job.id, snapshots).await;
                         }
                         Err(e) => tracing::error!(error = %e, "cannot store a snapshot"),
                     }
@@ -276,6 +301,7 @@ async fn supervise(
                 ..collect(&shared, &mut written_progress, &mut written_plan, true)
             };
             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
+            thin_snapshots(state, &job.id, snapshots).await;
         }
     }
     let result = match result {
@@ -311,7 +337,7 @@ async fn supervise(
                 "bake finished"
             );
             state.metrics.observe_bake(&job.spec.technique, r.summary.seconds);
-            if let Err(e) = store_final(state, &job.id, &r).await {
+            if let Err(e) = while_holding(state, &job.id, worker, &flag, store_final(state, &job.id, &r)).await {
                 return End::Finish(Outcome::Failed {
                     reason: format!("cannot store the lightmap: {e}"),
                 });
@@ -367,7 +393,7 @@ async fn beat(
 ) {
     match state
         .queue
-        .heartbeat(&job.id, worker, state.config.lease, update, now_ms())
+        .heartbeat(&job.id, worker, state.config.lease, update, state.db_now())
         .await
     {
         Ok(Lease::Held { cancel }) => {
@@ -380,6 +406,49 @@ async fn beat(
         Ok(Lease::Lost) => flag.set(StopSignal::LeaseLost),
         // A database hiccup is not a lost lease: try again at the next tick.
         Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
+    }
+}
+
+/// Runs `work` while renewing the job's lease every third of a lease (the bake's own
+/// ticker has stopped by then): a lost lease raises the flag, and `work` still finishes
+/// (its result is then not recorded: `finish` is guarded by the lease).
+async fn while_holding<T>(
+    state: &AppState,
+    id: &str,
+    worker: &str,
+    flag: &StopFlag,
+    work: impl std::future::Future<Output = T>,
+) -> T {
+    tokio::pin!(work);
+    let period = (state.config.lease / 3).max(Duration::from_millis(20));
+    let mut ticker = tokio::time::interval_at(tokio::time::Instant::now() + period, period);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            r = &mut work => return r,
+            _ = ticker.tick() => {
+                match state.queue.heartbeat(id, worker, state.config.lease, &JobUpdate::default(), state.db_now()).await {
+                    Ok(Lease::Held { .. }) => tracing::debug!("lease renewed while storing the result"),
+                    Ok(Lease::Lost) => flag.set(StopSignal::LeaseLost),
+                    Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
+                }
+            }
+        }
+    }
+}
+
+/// Deletes the snapshots that storing snapshot `n` made surplus (snapshot retention).
+async fn thin_snapshots(state: &AppState, job: &str, n: u32) {
+    for k in store::snapshots_to_drop(n, state.config.snapshot_keep) {
+        let exr = state.artifacts.delete(&store::snapshot_exr(job, k)).await;
+        let png = state.artifacts.delete(&store::snapshot_png(job, k)).await;
+        match exr.and(png) {
+            Ok(()) => {
+                state.metrics.snapshots_thinned.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!(snapshot = k, "snapshot thinned out");
+            }
+            Err(e) => tracing::warn!(snapshot = k, error = %e, "cannot delete a thinned-out snapshot"),
+        }
     }
 }
 

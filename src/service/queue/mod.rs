@@ -101,6 +101,45 @@ pub struct TokenRecord {
     pub hash: String,
     pub created_at: i64,
     pub revoked_at: Option<i64>,
+    /// What the token may do.
+    pub role: Role,
+    /// `cli` (`lightmapd token create`) or `file` (`serve --tokens-file`).
+    pub source: String,
+}
+
+/// A token's role (issue 24).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Role {
+    /// Its own scenes and jobs; priority up to `--max-priority`.
+    Editor,
+    /// Every client's jobs and scenes; any priority.
+    Admin,
+}
+
+impl Role {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Role::Editor => "editor",
+            Role::Admin => "admin",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Role> {
+        match s {
+            "editor" => Some(Role::Editor),
+            "admin" => Some(Role::Admin),
+            _ => None,
+        }
+    }
+}
+
+/// The answer to [`Queue::delete_job`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum JobDeletion {
+    Deleted,
+    NotFound,
+    /// Queued or running: cancel it first.
+    Unfinished(JobStatus),
 }
 
 /// What a running worker writes with a heartbeat (each part only when it changed).
@@ -215,10 +254,23 @@ pub trait Queue: Send + Sync + 'static {
     async fn insert_token(&self, token: &TokenRecord) -> QueueResult<()>;
     /// Every token, oldest first (revoked ones too).
     async fn tokens(&self) -> QueueResult<Vec<TokenRecord>>;
-    /// Revokes the token with this id or name; `false` when there is no such live token.
-    async fn revoke_token(&self, id_or_name: &str, now: i64) -> QueueResult<bool>;
+    /// Revokes the token with this id; `false` when there is no such live token. (Names
+    /// are resolved to one id by the caller, which refuses an ambiguous name.)
+    async fn revoke_token(&self, id: &str, now: i64) -> QueueResult<bool>;
     /// The live (not revoked) token whose secret hashes to `hash`.
     async fn token_by_hash(&self, hash: &str) -> QueueResult<Option<TokenRecord>>;
+
+    /// The database's clock, in Unix milliseconds: leases are set and compared with it,
+    /// so machines whose clocks disagree still agree on when a lease ends (issue 24).
+    /// The default is this process's clock (for wrappers and stores without one).
+    async fn clock(&self) -> QueueResult<i64> {
+        Ok(now_ms())
+    }
+
+    /// Deletes a finished job's row (one statement, guarded by its status).
+    async fn delete_job(&self, id: &str) -> QueueResult<JobDeletion>;
+    /// Up to `limit` finished jobs that finished before `before`, oldest first.
+    async fn finished_before(&self, before: i64, limit: u32) -> QueueResult<Vec<String>>;
 }
 
 /// Opens the queue a `--database-url` names: `postgres://` or `postgresql://` (the shared

@@ -43,8 +43,10 @@
 //! [`PostgresQueue::open_in_schema`] creates a schema and uses it; the tests give each
 //! test its own schema so they run in parallel on one database.
 //!
-//! Limits: times are the callers' clocks (`now` arguments, Unix milliseconds), as with
-//! SQLite; machines must keep their clocks in step (NTP) to well within a lease. The pool
+//! Clocks: the `now` arguments are the caller's, but workers and recovery loops pass the
+//! database's clock ([`Queue::clock`], `clock_timestamp()`), so a lease is set and
+//! compared on one clock and machines whose clocks disagree still agree on when it ends
+//! (issue 24). Limits: the pool
 //! holds at most [`MAX_CONNECTIONS`] connections per process (a worker needs one at a
 //! time per running job, an API process one per request in flight).
 
@@ -60,8 +62,8 @@ use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
 use super::{
-    Cancellation, Enqueued, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult, Recovered,
-    SceneDeletion, SceneRecord, TokenRecord,
+    Cancellation, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult,
+    Recovered, Role, SceneDeletion, SceneRecord, TokenRecord,
 };
 use crate::service::model::{JobSpec, JobStatus};
 use crate::service::{Hub, shutting_down};
@@ -223,6 +225,8 @@ fn token_from_row(row: &PgRow) -> QueueResult<TokenRecord> {
         hash: row.try_get("hash")?,
         created_at: row.try_get("created_at")?,
         revoked_at: row.try_get("revoked_at")?,
+        role: Role::parse(&row.try_get::<String, _>("role")?).unwrap_or(Role::Editor),
+        source: row.try_get("source")?,
     })
 }
 
@@ -604,12 +608,17 @@ impl Queue for PostgresQueue {
     }
 
     async fn insert_token(&self, t: &TokenRecord) -> QueueResult<()> {
-        sqlx::query("INSERT INTO tokens (id, name, hash, created_at, revoked_at) VALUES ($1, $2, $3, $4, $5)")
-            .bind(&t.id)
-            .bind(&t.name)
-            .bind(&t.hash)
-            .bind(t.created_at)
-            .bind(t.revoked_at)
+        sqlx::query(
+            "INSERT INTO tokens (id, name, hash, created_at, revoked_at, role, source)
+             VALUES ($1, $2, $3, $4, $5, $6, $7)",
+        )
+        .bind(&t.id)
+        .bind(&t.name)
+        .bind(&t.hash)
+        .bind(t.created_at)
+        .bind(t.revoked_at)
+        .bind(t.role.as_str())
+        .bind(&t.source)
             .execute(&self.pool)
             .await?;
         Ok(())
@@ -622,9 +631,9 @@ impl Queue for PostgresQueue {
         rows.iter().map(token_from_row).collect()
     }
 
-    async fn revoke_token(&self, id_or_name: &str, now: i64) -> QueueResult<bool> {
-        let r = sqlx::query("UPDATE tokens SET revoked_at = $2 WHERE (id = $1 OR name = $1) AND revoked_at IS NULL")
-            .bind(id_or_name)
+    async fn revoke_token(&self, id: &str, now: i64) -> QueueResult<bool> {
+        let r = sqlx::query("UPDATE tokens SET revoked_at = $2 WHERE id = $1 AND revoked_at IS NULL")
+            .bind(id)
             .bind(now)
             .execute(&self.pool)
             .await?;
@@ -637,5 +646,41 @@ impl Queue for PostgresQueue {
             .fetch_optional(&self.pool)
             .await?;
         row.as_ref().map(token_from_row).transpose()
+    }
+
+    async fn clock(&self) -> QueueResult<i64> {
+        // clock_timestamp(), not now(): now() is the start of the transaction.
+        sqlx::query_scalar("SELECT (extract(epoch FROM clock_timestamp()) * 1000)::BIGINT")
+            .fetch_one(&self.pool)
+            .await
+    }
+
+    async fn delete_job(&self, id: &str) -> QueueResult<JobDeletion> {
+        let r = sqlx::query("DELETE FROM jobs WHERE id = $1 AND status IN ('succeeded', 'failed', 'cancelled')")
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        if r.rows_affected() == 1 {
+            return Ok(JobDeletion::Deleted);
+        }
+        let status: Option<String> = sqlx::query_scalar("SELECT status FROM jobs WHERE id = $1")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(match status.as_deref().and_then(JobStatus::parse) {
+            None => JobDeletion::NotFound,
+            Some(s) => JobDeletion::Unfinished(s),
+        })
+    }
+
+    async fn finished_before(&self, before: i64, limit: u32) -> QueueResult<Vec<String>> {
+        sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE status IN ('succeeded', 'failed', 'cancelled') AND finished_at < $1
+             ORDER BY finished_at LIMIT $2",
+        )
+        .bind(before)
+        .bind(i64::from(limit))
+        .fetch_all(&self.pool)
+        .await
     }
 }

@@ -23,8 +23,8 @@ use sqlx::sqlite::{
 };
 
 use super::{
-    Cancellation, Enqueued, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult, Recovered,
-    SceneDeletion, SceneRecord, TokenRecord,
+    Cancellation, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult,
+    Recovered, Role, SceneDeletion, SceneRecord, TokenRecord,
 };
 use crate::service::model::{JobSpec, JobStatus};
 
@@ -118,6 +118,8 @@ fn token_from_row(row: &SqliteRow) -> QueueResult<TokenRecord> {
         hash: row.try_get("hash")?,
         created_at: row.try_get("created_at")?,
         revoked_at: row.try_get("revoked_at")?,
+        role: Role::parse(&row.try_get::<String, _>("role")?).unwrap_or(Role::Editor),
+        source: row.try_get("source")?,
     })
 }
 
@@ -441,12 +443,16 @@ impl Queue for SqliteQueue {
     }
 
     async fn insert_token(&self, t: &TokenRecord) -> QueueResult<()> {
-        sqlx::query("INSERT INTO tokens (id, name, hash, created_at, revoked_at) VALUES (?, ?, ?, ?, ?)")
-            .bind(&t.id)
-            .bind(&t.name)
-            .bind(&t.hash)
-            .bind(t.created_at)
-            .bind(t.revoked_at)
+        sqlx::query(
+            "INSERT INTO tokens (id, name, hash, created_at, revoked_at, role, source) VALUES (?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(&t.id)
+        .bind(&t.name)
+        .bind(&t.hash)
+        .bind(t.created_at)
+        .bind(t.revoked_at)
+        .bind(t.role.as_str())
+        .bind(&t.source)
             .execute(&self.pool)
             .await?;
         Ok(())
@@ -459,9 +465,9 @@ impl Queue for SqliteQueue {
         rows.iter().map(token_from_row).collect()
     }
 
-    async fn revoke_token(&self, id_or_name: &str, now: i64) -> QueueResult<bool> {
-        let r = sqlx::query("UPDATE tokens SET revoked_at = ?2 WHERE (id = ?1 OR name = ?1) AND revoked_at IS NULL")
-            .bind(id_or_name)
+    async fn revoke_token(&self, id: &str, now: i64) -> QueueResult<bool> {
+        let r = sqlx::query("UPDATE tokens SET revoked_at = ?2 WHERE id = ?1 AND revoked_at IS NULL")
+            .bind(id)
             .bind(now)
             .execute(&self.pool)
             .await?;
@@ -474,5 +480,41 @@ impl Queue for SqliteQueue {
             .fetch_optional(&self.pool)
             .await?;
         row.as_ref().map(token_from_row).transpose()
+    }
+
+    async fn clock(&self) -> QueueResult<i64> {
+        // julianday works on every SQLite version (unixepoch('subsec') needs 3.42).
+        sqlx::query_scalar("SELECT CAST(ROUND((julianday('now') - 2440587.5) * 86400000.0) AS INTEGER)")
+            .fetch_one(&self.pool)
+            .await
+    }
+
+    async fn delete_job(&self, id: &str) -> QueueResult<JobDeletion> {
+        let r = sqlx::query("DELETE FROM jobs WHERE id = ? AND status IN ('succeeded', 'failed', 'cancelled')")
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
+        if r.rows_affected() == 1 {
+            return Ok(JobDeletion::Deleted);
+        }
+        let status: Option<String> = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(match status.as_deref().and_then(JobStatus::parse) {
+            None => JobDeletion::NotFound,
+            Some(s) => JobDeletion::Unfinished(s),
+        })
+    }
+
+    async fn finished_before(&self, before: i64, limit: u32) -> QueueResult<Vec<String>> {
+        sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE status IN ('succeeded', 'failed', 'cancelled') AND finished_at < ?
+             ORDER BY finished_at LIMIT ?",
+        )
+        .bind(before)
+        .bind(i64::from(limit))
+        .fetch_all(&self.pool)
+        .await
     }
 }

@@ -107,7 +107,38 @@ on_both_stores!(
     concurrent_submissions_never_overshoot_the_client_limit,
     heartbeat_progress_cancel_and_finish,
     other_processes_hear_of_new_work_and_job_changes,
+    finished_jobs_are_deleted_and_found_by_age,
+    the_database_clock_is_the_wall_clock,
 );
+
+async fn finished_jobs_are_deleted_and_found_by_age(f: &Fixture) {
+    let q = &*f.queue;
+    with_scene(q).await;
+    for (id, at) in [("old", 10), ("new", 20), ("running", 30)] {
+        assert!(matches!(q.enqueue(id, &spec("s"), "c", 100, at).await.unwrap(), Enqueued::Queued(_)));
+    }
+    for (id, at) in [("old", 100), ("new", 200)] {
+        let j = q.claim("w", Duration::from_secs(30), at).await.unwrap().unwrap();
+        assert_eq!(j.id, id);
+        assert!(q.finish(id, "w", &Outcome::Failed { reason: "x".into() }, at).await.unwrap());
+    }
+    q.claim("w", Duration::from_secs(30), 300).await.unwrap().unwrap();
+    assert_eq!(q.finished_before(150, 10).await.unwrap(), vec!["old".to_string()]);
+    assert_eq!(q.finished_before(1000, 10).await.unwrap(), vec!["old".to_string(), "new".into()]);
+    assert_eq!(q.finished_before(1000, 1).await.unwrap(), vec!["old".to_string()]);
+    assert_eq!(q.delete_job("running").await.unwrap(), JobDeletion::Unfinished(JobStatus::Running));
+    assert_eq!(q.delete_job("old").await.unwrap(), JobDeletion::Deleted);
+    assert_eq!(q.delete_job("old").await.unwrap(), JobDeletion::NotFound);
+    assert!(q.job("old").await.unwrap().is_none());
+    assert_eq!(q.finished_before(1000, 10).await.unwrap(), vec!["new".to_string()]);
+}
+
+async fn the_database_clock_is_the_wall_clock(f: &Fixture) {
+    // Both databases run on this machine in the tests, so their clock and ours agree to
+    // well within a second; a wrong unit or epoch would be off by years.
+    let db = f.queue.clock().await.unwrap();
+    assert!((db - now_ms()).abs() < 1000, "database clock {db}, local {}", now_ms());
+}
 
 fn spec(scene: &str) -> JobSpec {
     JobSpec::parse(format!(r#"{{"scene": "{scene}"}}"#).as_bytes()).unwrap()
@@ -172,11 +203,15 @@ async fn per_client_queue_limit_and_tokens(f: &Fixture) {
         hash: "ab".into(),
         created_at: 5,
         revoked_at: None,
+        role: Role::Admin,
+        source: "file".into(),
     };
     q.insert_token(&t).await.unwrap();
     assert_eq!(q.token_by_hash("ab").await.unwrap(), Some(t.clone()));
-    assert!(q.revoke_token("ci", 6).await.unwrap());
-    assert!(!q.revoke_token("ci", 7).await.unwrap(), "already revoked");
+    // Revocation is by id only: a name is resolved (and refused when ambiguous) by the CLI.
+    assert!(!q.revoke_token("ci", 6).await.unwrap(), "a name is not an id");
+    assert!(q.revoke_token("tok_1", 6).await.unwrap());
+    assert!(!q.revoke_token("tok_1", 7).await.unwrap(), "already revoked");
     assert_eq!(q.token_by_hash("ab").await.unwrap(), None);
     assert_eq!(q.tokens().await.unwrap()[0].revoked_at, Some(6));
 }
