@@ -152,17 +152,24 @@ fn errors(args: &[String]) {
             let normals: Vec<Vec3> = atlas.texels.iter().map(|t| t.normal).collect();
             let img = lightmapd::engine::post::dilate(&atlas, &est.total, denoised::FILL_RINGS);
             let nimg = lightmapd::engine::post::dilate(&atlas, &normals, denoised::FILL_RINGS);
-            let rt = o
-                .filter(atlas.width, atlas.height, &img, Some(&nimg), Mode::RtWithNormal)
-                .unwrap();
-            let rt: Vec<Vec3> = atlas.texels.iter().map(|t| rt[t.pixel as usize]).collect();
+            let rt = o.filter(atlas.width, atlas.height, &img, Some(&nimg), Mode::RtWithNormal);
+            let rt_err = match rt {
+                Ok(rt) => {
+                    let rt: Vec<Vec3> = atlas.texels.iter().map(|t| rt[t.pixel as usize]).collect();
+                    pct(true_error(&rt, &reference))
+                }
+                Err(e) => {
+                    eprintln!("  RT with normals: {e}");
+                    "failed".into()
+                }
+            };
             let tb = Instant::now();
             let (b, weights) = denoised::apply_with_weights(&atlas, &est, Used::Oidn);
             eprintln!("  {target} steps: oidn blended in {:.2} s", tb.elapsed().as_secs_f64());
             let w = weights.iter().map(|w| *w as f64).sum::<f64>() / weights.len().max(1) as f64;
             (
                 pct(true_error(&d, &reference)),
-                pct(true_error(&rt, &reference)),
+                rt_err,
                 pct(true_error(&b.total, &reference)),
                 pct(b.error.relative.unwrap_or(0.0) as f64),
                 format!("{w:.2}"),

@@ -90,7 +90,8 @@ pub enum Mode {
     Lightmap,
     /// `RTLightmap` with `directional`: coefficients normalised to [-1, 1].
     Directional,
-    /// `RT` with `hdr` and a clean normal image (`cleanAux`): for comparison.
+    /// `RT` with `hdr`, a clean normal image and a white albedo (`cleanAux`): for
+    /// comparison.
     RtWithNormal,
 }
 
@@ -245,8 +246,10 @@ impl Oidn {
             };
             let run = (|| {
                 let input = make(Some(color))?;
+                // `RT` accepts a normal image only beside an albedo one: a white albedo
+                // (a lightmap is irradiance, there is no albedo to separate).
                 let aux = match (mode, normal) {
-                    (Mode::RtWithNormal, Some(nrm)) => Some(make(Some(nrm))?),
+                    (Mode::RtWithNormal, Some(nrm)) => Some((make(Some(nrm))?, make(Some(&vec![Vec3::ONE; n]))?)),
                     _ => None,
                 };
                 let output = make(None)?;
@@ -272,8 +275,9 @@ impl Oidn {
                 };
                 image(c"color", input);
                 image(c"output", output);
-                if let Some(a) = aux {
-                    image(c"normal", a);
+                if let Some((nrm, albedo)) = aux {
+                    image(c"normal", nrm);
+                    image(c"albedo", albedo);
                     (api.set_filter_bool)(filter, c"cleanAux".as_ptr(), true);
                 }
                 match mode {
