@@ -4,7 +4,8 @@
 //! How: an edge-avoiding à-trous wavelet filter (Dammertz et al., HPG 2010) run in
 //! lightmap space, five passes with taps 1, 2, 4, 8 and 16 texels apart, extended with
 //! the variance guidance of SVGF (Schied et al., HPG 2017). A tap contributes only when
-//! - it belongs to the same mesh (never across charts, whatever their UV distance);
+//! - it belongs to the same chart ([`charts`]: never across charts, whatever their UV
+//!   distance);
 //! - its normal agrees (n·n')^32;
 //! - it lies where the chart says it should: within 1.5 × the expected world distance
 //!   for its texel offset and near the texel's tangent plane (no smoothing across folds
@@ -16,8 +17,8 @@
 //!
 //! Limits: the filter trades noise for bias at contact shadows and thin features narrower
 //! than the noise can resolve; `docs/accuracy.md` measures both against the reference.
-//! OpenImageDenoise is not used: Debian has no package for it and the `oidn` crate needs
-//! the library (../shared/NOTES.md).
+//! This is the fallback denoiser: `engine::post::denoised` uses OpenImageDenoise where it
+//! is installed, and blends either filter's output with the raw estimate by error.
 
 use glam::Vec3;
 use rayon::prelude::*;

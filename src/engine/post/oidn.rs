@@ -8,7 +8,7 @@
 //! How, and why run-time loading: the `oidn` crate links the library at build time
 //! (through `OIDN_DIR` or pkg-config), so a build without OIDN needs a cargo feature, and
 //! a binary built with it does not start on a machine without the library. OIDN's C API
-//! is small and stable across 2.x (eleven entry points are used here), so this module
+//! is small and stable across 2.x (fifteen entry points are used here), so this module
 //! declares them by hand and opens the library with `libloading`: one binary, built with
 //! no OIDN present, uses OIDN where it is installed and the own denoiser elsewhere, and
 //! the tests run either way. The library is looked for in `$LIGHTMAPD_OIDN_DIR` (a
