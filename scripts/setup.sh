@@ -21,6 +21,9 @@ if ((${#need[@]})); then
 fi
 command -v cargo >/dev/null || { echo "setup: cargo not found; install the Rust toolchain (rustup) first" >&2; exit 1; }
 
+# --- Intel Open Image Denoise, the default denoiser (issue 22): its own script. ---
+bash "$(dirname "$0")/setup-oidn.sh"
+
 [ "${1:-}" = "test" ] || exit 0
 
 # --- PostgreSQL for the shared-queue tests (issue 11): its own script, see there. ---

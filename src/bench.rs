@@ -52,8 +52,15 @@ pub struct Sample {
     pub steps: u64,
     pub true_error: f64,
     pub estimated_error: Option<f32>,
-    /// True error of the same snapshot after the denoiser.
+    /// True error of the same snapshot as delivered: after the default denoiser
+    /// (OIDN when installed, else the own filter), blended by the error estimate.
     pub denoised_error: f64,
+    /// The delivered lightmap's own error estimate (what the header reports).
+    pub denoised_estimate: Option<f32>,
+    /// True error after the own filter (blended), and after OIDN (blended) where
+    /// installed.
+    pub own_error: f64,
+    pub oidn_error: Option<f64>,
 }
 
 /// Per valid texel, the reference value (None where it has none), and how it was made.
@@ -214,10 +221,17 @@ pub fn measure(
         lighting: lib.lighting,
         ..Default::default()
     };
+    let oidn = crate::engine::post::oidn::Oidn::available();
     let mut record = |est: &Estimate, seconds: f64| {
+        use crate::engine::post::denoised::{Used, apply};
         let denoised = crate::engine::job::finish(&p.atlas, est, &request);
+        let own = apply(&p.atlas, est, Used::Own);
+        let oidn_error = oidn.then(|| true_error(&apply(&p.atlas, est, Used::Oidn).total, &reference.values));
         samples.push(Sample {
             denoised_error: true_error(&denoised.total, &reference.values),
+            denoised_estimate: denoised.error.relative,
+            own_error: true_error(&own.total, &reference.values),
+            oidn_error,
             scene: lib.name.into(),
             technique: technique.into(),
             seconds,
@@ -293,13 +307,17 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
         .map_err(io)?;
         all_samples.extend(scene_samples);
     }
-    let mut csv = String::from("scene,technique,seconds,steps,true_error,estimated_error,denoised_error\n");
+    let mut csv = String::from(
+        "scene,technique,seconds,steps,true_error,estimated_error,denoised_error,denoised_estimate,own_error,oidn_error\n",
+    );
     for s in &all_samples {
         let est = s.estimated_error.map(|e| format!("{e:.6}")).unwrap_or_default();
+        let den_est = s.denoised_estimate.map(|e| format!("{e:.6}")).unwrap_or_default();
+        let oidn = s.oidn_error.map(|e| format!("{e:.6}")).unwrap_or_default();
         let _ = writeln!(
             csv,
-            "{},{},{:.4},{},{:.6},{}",
-            s.scene, s.technique, s.seconds, s.steps, s.true_error, est
+            "{},{},{:.4},{},{:.6},{},{:.6},{},{:.6},{}",
+            s.scene, s.technique, s.seconds, s.steps, s.true_error, est, s.denoised_error, den_est, s.own_error, oidn
         );
     }
     std::fs::write(cfg.out_dir.join("results.csv"), csv).map_err(io)?;
@@ -327,7 +345,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
     );
     let _ = writeln!(
         md,
-        "| scene | technique | 10 % | 5 % | 2 % | 2 % denoised | final error (estimated) | final denoised |\n| --- | --- | --- | --- | --- | --- | --- | --- |"
+        "| scene | technique | 10 % | 5 % | 2 % | 2 % denoised | final error (estimated) | final denoised (estimated) | snapshots denoised worse than raw |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |"
     );
     let mut keys: Vec<(&str, &str)> = samples
         .iter()
@@ -346,8 +364,15 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
             .unwrap_or_else(|| "—".into());
         let last_denoised = run
             .last()
-            .map(|s| format!("{:.2} %", s.denoised_error * 100.0))
+            .map(|s| {
+                let est = s
+                    .denoised_estimate
+                    .map(|e| format!("{:.2} %", e * 100.0))
+                    .unwrap_or_else(|| "n/a".into());
+                format!("{:.2} % ({est})", s.denoised_error * 100.0)
+            })
             .unwrap_or_default();
+        let worse = run.iter().filter(|s| s.denoised_error > s.true_error).count();
         let reach = |target: f64| {
             run.iter()
                 .find(|s| s.true_error <= target)
@@ -363,11 +388,12 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
         });
         let _ = writeln!(
             md,
-            "| {scene} | {tech} | {} | {} | {} | {reach_denoised} | {} | {last_denoised} |",
+            "| {scene} | {tech} | {} | {} | {} | {reach_denoised} | {} | {last_denoised} | {worse} of {} |",
             reach(0.10),
             reach(0.05),
             reach(0.02),
-            last.unwrap_or_default()
+            last.unwrap_or_default(),
+            run.len()
         );
     }
     md

@@ -317,9 +317,12 @@ struct BakeArgs {
     /// Extra layers: validity, direct, indirect, sh, ao (comma separated).
     #[arg(long, value_delimiter = ',', value_parser = OutputLayer::parse)]
     outputs: Vec<OutputLayer>,
-    /// Write the raw estimate, without the edge-aware denoiser.
+    /// Write the raw estimate, without a denoiser (same as `--denoiser none`).
     #[arg(long)]
     no_denoise: bool,
+    /// Denoiser: auto (OIDN when installed, else own), oidn, own, none.
+    #[arg(long, value_parser = lightmapd::engine::post::denoised::Denoiser::parse)]
+    denoiser: Option<lightmapd::engine::post::denoised::Denoiser>,
     /// Also write the scene as .glb with its lightmap UVs (TEXCOORD_1), e.g. after they
     /// were generated for a scene that had none.
     #[arg(long)]
@@ -842,7 +845,11 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         params,
         outputs: args.outputs.clone(),
         seed: args.seed,
-        denoise: !args.no_denoise,
+        denoise: if args.no_denoise {
+            lightmapd::engine::post::denoised::Denoiser::None
+        } else {
+            args.denoiser.unwrap_or_default()
+        },
     };
 
     let (scene, report) =

@@ -583,7 +583,12 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "samples": 4}).to_string(),
             "samples",
-            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `priority`, `seed`".into(),
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `priority`, `seed`, `denoise`".into(),
+        ),
+        (
+            json!({"scene": scene, "denoise": "bm3d"}).to_string(),
+            "denoise",
+            "unknown denoiser \"bm3d\"; available: auto, oidn, own, none".into(),
         ),
         (
             json!({"scene": scene, "outputs": ["bent_normals"]}).to_string(),

@@ -77,6 +77,10 @@ pub struct Estimate {
     /// halves have a step.
     pub texel_error: Option<Vec<f32>>,
     pub error: ErrorSummary,
+    /// The two halves' means of `total` and their step counts, when both have steps:
+    /// the denoiser filters each on its own to estimate its own error
+    /// (`engine::post::denoised`).
+    pub halves: Option<([Vec<Vec3>; 2], [u64; 2])>,
 }
 
 #[derive(Clone, Copy, Debug, Serialize, PartialEq)]
@@ -85,6 +89,10 @@ pub struct ErrorSummary {
     pub relative: Option<f32>,
     /// RMS of the luminance estimate over valid texels.
     pub rms_luminance: f32,
+    /// After denoising, `relative` is the estimated error of the denoised lightmap and
+    /// this the raw estimate's; `None` for a raw estimate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub raw_relative: Option<f32>,
 }
 
 fn combine(a: &[Vec3], na: u64, b: &[Vec3], nb: u64) -> Vec<Vec3> {
@@ -142,10 +150,12 @@ impl Snapshot {
             direct,
             moments,
             ao: None,
+            halves: (na > 0 && nb > 0).then(|| ([self.even.total.clone(), self.odd.total.clone()], [na, nb])),
             texel_error,
             error: ErrorSummary {
                 relative,
                 rms_luminance,
+                raw_relative: None,
             },
         }
     }

@@ -18,7 +18,7 @@ use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
 use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
-use crate::engine::post::denoise::denoise;
+use crate::engine::post::denoised::{self, Denoiser, Used};
 use crate::engine::scene::{Lighting, Scene};
 use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateReach};
 use crate::engine::technique::{self, BakeInputs, EngineError, Technique};
@@ -42,13 +42,11 @@ pub struct BakeRequest {
     pub params: Value,
     pub outputs: Vec<OutputLayer>,
     pub seed: u64,
-    /// Run the edge-aware denoiser (`engine::post::denoise`) on what is written.
-    #[serde(default = "yes")]
-    pub denoise: bool,
-}
-
-fn yes() -> bool {
-    true
+    /// The denoiser for what is written (`engine::post::denoised`): `auto` (OIDN when
+    /// installed, else the own filter), `oidn`, `own` or `none`; `true` / `false` mean
+    /// `auto` / `none`.
+    #[serde(default)]
+    pub denoise: Denoiser,
 }
 
 impl Default for BakeRequest {
@@ -65,7 +63,7 @@ impl Default for BakeRequest {
             params: Value::Null,
             outputs: Vec::new(),
             seed: 0,
-            denoise: true,
+            denoise: Denoiser::Auto,
         }
     }
 }
@@ -82,6 +80,9 @@ pub struct BakeSummary {
     pub validation: ValidationReport,
     /// Set when the scene had no lightmap UVs and they were generated.
     pub generated_uvs: Option<UnwrapReport>,
+    /// The denoiser that made the delivered lightmap (`none` for the raw estimate);
+    /// `error` is the delivered lightmap's estimate, `error.raw_relative` the raw one's.
+    pub denoiser: String,
 }
 
 pub struct BakeResult {
@@ -169,7 +170,16 @@ fn bake_impl(
 ) -> Result<(BakeResult, Option<ObscuranceState>), EngineError> {
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
-    let plan = plan_for(&scene, request)?;
+    let mut plan = plan_for(&scene, request)?;
+    let denoiser = request.denoise.resolve().map_err(EngineError::BadInput)?;
+    if denoiser == Used::None {
+        plan.leave_out("denoiser", "the job asks for the raw estimate");
+    } else {
+        plan.run(
+            "denoiser",
+            &format!("{denoiser}; the error reported is the denoised lightmap's"),
+        );
+    }
     on_plan(&plan);
     let (scene, unwrap) = if scene.needs_lightmap_uvs {
         let mut generated = (*scene).clone();
@@ -219,8 +229,9 @@ fn bake_impl(
     let mut bake_loop = BakeLoop::new(stop);
     bake_loop.snapshot_interval = options.snapshot_interval;
     let outcome = bake_loop.run(tech, observer)?;
-    let exr = snapshot_exr(&atlas, &outcome.estimate, request, &tech.params(), outcome.elapsed)?;
+    // Denoised once: the EXR and the preview show the same delivered lightmap.
     let finished = finish(&atlas, &outcome.estimate, request);
+    let exr = finished_exr(&atlas, &finished, request, &tech.params(), outcome.elapsed)?;
     let preview_png = preview_png(&atlas, &finished)?;
     let summary = BakeSummary {
         technique: request.technique.clone(),
@@ -228,10 +239,15 @@ fn bake_impl(
         steps: outcome.estimate.steps,
         seconds: outcome.elapsed.as_secs_f64(),
         stopped_by: outcome.stopped_by,
-        error: outcome.estimate.error,
+        error: finished.error,
         plan,
         validation,
         generated_uvs: unwrap,
+        denoiser: if finished.error.raw_relative.is_some() {
+            denoiser.to_string()
+        } else {
+            "none".into()
+        },
     };
     let state = concrete.map(|t| t.state()).transpose()?;
     Ok((
@@ -270,8 +286,17 @@ pub fn snapshot_exr(
     params: &Value,
     elapsed: Duration,
 ) -> Result<Vec<u8>, EngineError> {
-    let finished = finish(atlas, estimate, request);
-    let estimate = &finished;
+    finished_exr(atlas, &finish(atlas, estimate, request), request, params, elapsed)
+}
+
+/// [`snapshot_exr`] for an estimate [`finish`] already delivered.
+fn finished_exr(
+    atlas: &Atlas,
+    estimate: &Estimate,
+    request: &BakeRequest,
+    params: &Value,
+    elapsed: Duration,
+) -> Result<Vec<u8>, EngineError> {
     let channels =
         output::lightmap_channels(atlas, estimate, &request.outputs, DEFAULT_RINGS).map_err(EngineError::Internal)?;
     let meta = ExrMetadata {
@@ -281,28 +306,27 @@ pub fn snapshot_exr(
         seconds: elapsed.as_secs_f64(),
         relative_error: estimate.error.relative,
         seed: request.seed,
-        denoised: request.denoise && estimate.texel_error.is_some(),
+        denoised: if estimate.error.raw_relative.is_some() {
+            used(request).to_string()
+        } else {
+            "no".into()
+        },
+        raw_relative_error: estimate.error.raw_relative,
     };
     output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)
 }
 
-/// What is written for an estimate: denoised when the request asks for it and the
-/// estimate has per-texel errors to guide the filter (both halves have steps).
+/// The denoiser `request` gets: its choice, or the own filter where `oidn` was asked
+/// for and the library is gone (a bake checks this before it starts).
+fn used(request: &BakeRequest) -> Used {
+    request.denoise.resolve().unwrap_or(Used::Own)
+}
+
+/// What is written for an estimate: denoised by the request's denoiser and blended so it
+/// is never worse than raw, with the delivered error (`engine::post::denoised`), when
+/// both halves have steps; else the raw estimate.
 pub fn finish(atlas: &Atlas, estimate: &Estimate, request: &BakeRequest) -> Estimate {
-    let mut out = estimate.clone();
-    if let (true, Some(se)) = (request.denoise, &estimate.texel_error) {
-        out.total = denoise(atlas, &estimate.total, se);
-        if let Some(d) = &estimate.direct {
-            out.direct = Some(denoise(atlas, d, se));
-        }
-        if let Some(m) = &estimate.moments {
-            let axes: Vec<Vec<glam::Vec3>> = (0..3)
-                .map(|k| denoise(atlas, &m.iter().map(|v| v[k]).collect::<Vec<_>>(), se))
-                .collect();
-            out.moments = Some((0..m.len()).map(|t| [axes[0][t], axes[1][t], axes[2][t]]).collect());
-        }
-    }
-    out
+    denoised::apply(atlas, estimate, used(request))
 }
 
 /// A tone-mapped PNG of an estimate, gutters filled.

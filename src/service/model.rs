@@ -22,6 +22,7 @@ use utoipa::ToSchema;
 use crate::engine::bake::StopCriteria;
 use crate::engine::job::BakeRequest;
 use crate::engine::output::OutputLayer;
+use crate::engine::post::denoised::Denoiser;
 use crate::engine::scene::{Hemisphere, Lighting, Sky, Sun};
 use crate::engine::technique;
 use crate::service::Limits;
@@ -63,6 +64,11 @@ pub struct JobSpec {
     pub priority: i32,
     #[serde(default)]
     pub seed: u64,
+    /// Denoiser: `auto` (OIDN when installed, else the own filter), `oidn`, `own`,
+    /// `none`. Absent: `auto`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(default = "auto")]
+    pub denoise: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
@@ -195,6 +201,10 @@ impl JobSpec {
         for (i, o) in self.outputs.iter().enumerate() {
             OutputLayer::parse(o).map_err(|e| Problem::invalid_field(format!("outputs[{i}]"), e))?;
         }
+        if let Some(d) = &self.denoise {
+            let d = Denoiser::parse(d).map_err(|e| Problem::invalid_field("denoise", e))?;
+            d.resolve().map_err(|e| Problem::invalid_field("denoise", e))?;
+        }
         if !(self.params.is_null() || self.params.is_object()) {
             return Err(Problem::invalid_field("params", "params must be a JSON object"));
         }
@@ -270,8 +280,11 @@ impl JobSpec {
             params: self.params.clone(),
             outputs: self.outputs.iter().filter_map(|o| OutputLayer::parse(o).ok()).collect(),
             seed: self.seed,
-            // Not part of the job body (DESIGN §7): the engine's default (denoised).
-            denoise: BakeRequest::default().denoise,
+            denoise: self
+                .denoise
+                .as_deref()
+                .and_then(|d| Denoiser::parse(d).ok())
+                .unwrap_or_default(),
         }
     }
 }

@@ -64,7 +64,11 @@ pub struct ExrMetadata {
     pub seconds: f64,
     pub relative_error: Option<f32>,
     pub seed: u64,
-    pub denoised: bool,
+    /// `no`, or the denoiser that made the lightmap (e.g. `oidn 2.5.1 (cpu) RTLightmap,
+    /// blended by error`); `relative_error` is then the denoised lightmap's estimate.
+    pub denoised: String,
+    /// The raw estimate's relative error, when the lightmap was denoised.
+    pub raw_relative_error: Option<f32>,
 }
 
 /// Builds the channel list for `estimate` (dilated) plus the requested layers.
@@ -177,8 +181,11 @@ pub fn encode_exr(
     other.insert(Text::from("lightmapd:seed"), text(&meta.seed.to_string()));
     other.insert(
         Text::from("lightmapd:denoised"),
-        text(if meta.denoised { "yes" } else { "no" }),
+        text(&meta.denoised),
     );
+    if let Some(e) = meta.raw_relative_error {
+        other.insert(Text::from("lightmapd:raw_relative_error"), AttributeValue::F32(e));
+    }
     other.insert(
         Text::from("lightmapd:quantity"),
         text("irradiance/pi, linear RGB (albedo * lightmap = outgoing radiance)"),

@@ -4,7 +4,8 @@
 //! How: an edge-avoiding à-trous wavelet filter (Dammertz et al., HPG 2010) run in
 //! lightmap space, five passes with taps 1, 2, 4, 8 and 16 texels apart, extended with
 //! the variance guidance of SVGF (Schied et al., HPG 2017). A tap contributes only when
-//! - it belongs to the same mesh (never across charts, whatever their UV distance);
+//! - it belongs to the same chart ([`charts`]: never across charts, whatever their UV
+//!   distance);
 //! - its normal agrees (n·n')^32;
 //! - it lies where the chart says it should: within 1.5 × the expected world distance
 //!   for its texel offset and near the texel's tangent plane (no smoothing across folds
@@ -16,8 +17,8 @@
 //!
 //! Limits: the filter trades noise for bias at contact shadows and thin features narrower
 //! than the noise can resolve; `docs/accuracy.md` measures both against the reference.
-//! OpenImageDenoise is not used: Debian has no package for it and the `oidn` crate needs
-//! the library (../shared/NOTES.md).
+//! This is the fallback denoiser: `engine::post::denoised` uses OpenImageDenoise where it
+//! is installed, and blends either filter's output with the raw estimate by error.
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -34,10 +35,16 @@ const NORMAL_POWER: i32 = 32;
 /// Denoises per-texel `values` (indexed like `atlas.texels`) whose luminance standard
 /// errors are `std_error`; returns the filtered values.
 pub fn denoise(atlas: &Atlas, values: &[Vec3], std_error: &[f32]) -> Vec<Vec3> {
+    denoise_own(atlas, &charts(atlas), values, std_error)
+}
+
+/// [`denoise`] with the chart labels of [`charts`] computed once by the caller.
+pub fn denoise_own(atlas: &Atlas, chart: &[u32], values: &[Vec3], std_error: &[f32]) -> Vec<Vec3> {
     let (w, h) = (atlas.width as i64, atlas.height as i64);
     let guides = &atlas.texels;
     let mut current = values.to_vec();
-    let mut variance = smoothed_variance(atlas, std_error);
+    let variance: Vec<f32> = std_error.iter().map(|e| e * e).collect();
+    let mut variance = smooth(atlas, chart, &variance, 3);
     for pass in 0..PASSES {
         let step = 1i64 << pass;
         let filtered: Vec<(Vec3, f32)> = atlas
@@ -65,7 +72,7 @@ pub fn denoise(atlas: &Atlas, values: &[Vec3], std_error: &[f32]) -> Vec<Vec3> {
                         let gq = &guides[q];
                         let mut wt = ki * kj;
                         if q != k {
-                            if gq.mesh != g.mesh {
+                            if chart[q] != chart[k] {
                                 continue;
                             }
                             wt *= g.normal.dot(gq.normal).max(0.0).powi(NORMAL_POWER);
@@ -103,25 +110,26 @@ pub fn denoise(atlas: &Atlas, values: &[Vec3], std_error: &[f32]) -> Vec<Vec3> {
 
 /// Each texel's own error comes from one difference of two halves: a very noisy
 /// estimate of its variance (a texel whose halves happen to agree would not be filtered
-/// at all). As SVGF does, average it over the texel's 7 × 7 neighbourhood on the same
-/// mesh with agreeing normals before using it.
-fn smoothed_variance(atlas: &Atlas, std_error: &[f32]) -> Vec<f32> {
+/// at all). As SVGF does, average such per-texel figures over the texel's
+/// (2r+1) × (2r+1) neighbourhood in the same chart with agreeing normals before use.
+pub fn smooth(atlas: &Atlas, chart: &[u32], values: &[f32], radius: i64) -> Vec<f32> {
     let (w, h) = (atlas.width as i64, atlas.height as i64);
     atlas
         .texels
         .par_iter()
-        .map(|t| {
+        .enumerate()
+        .map(|(k, t)| {
             let (pi, pj) = ((t.pixel as i64) % w, (t.pixel as i64) / w);
             let (mut sum, mut n) = (0.0f32, 0u32);
-            for qj in (pj - 3).max(0)..=(pj + 3).min(h - 1) {
-                for qi in (pi - 3).max(0)..=(pi + 3).min(w - 1) {
+            for qj in (pj - radius).max(0)..=(pj + radius).min(h - 1) {
+                for qi in (pi - radius).max(0)..=(pi + radius).min(w - 1) {
                     let q = atlas.pixel_texel[(qj * w + qi) as usize];
                     if q == NO_TEXEL {
                         continue;
                     }
                     let tq = &atlas.texels[q as usize];
-                    if tq.mesh == t.mesh && tq.normal.dot(t.normal) > 0.9 {
-                        sum += std_error[q as usize].powi(2);
+                    if chart[q as usize] == chart[k] && tq.normal.dot(t.normal) > 0.9 {
+                        sum += values[q as usize];
                         n += 1;
                     }
                 }
@@ -129,6 +137,51 @@ fn smoothed_variance(atlas: &Atlas, std_error: &[f32]) -> Vec<f32> {
             sum / n.max(1) as f32
         })
         .collect()
+}
+
+/// A chart label per valid texel: the 4-connected islands of valid texels of one mesh in
+/// the lightmap image. The atlas keeps no chart index, and islands are what matters to a
+/// filter: two islands never exchange light, whatever their UV distance. (Two charts of
+/// one mesh that touch in UV form one island; the world-distance test of the filter
+/// still keeps them apart.)
+pub fn charts(atlas: &Atlas) -> Vec<u32> {
+    let w = atlas.width as usize;
+    let h = atlas.height as usize;
+    let mut label = vec![u32::MAX; atlas.texels.len()];
+    let mut next = 0u32;
+    let mut stack = Vec::new();
+    for start in 0..atlas.texels.len() {
+        if label[start] != u32::MAX {
+            continue;
+        }
+        label[start] = next;
+        stack.push(start);
+        while let Some(k) = stack.pop() {
+            let t = &atlas.texels[k];
+            let (i, j) = (t.pixel as usize % w, t.pixel as usize / w);
+            let mut visit = |ni: usize, nj: usize| {
+                let q = atlas.pixel_texel[nj * w + ni];
+                if q != NO_TEXEL && label[q as usize] == u32::MAX && atlas.texels[q as usize].mesh == t.mesh {
+                    label[q as usize] = next;
+                    stack.push(q as usize);
+                }
+            };
+            if i > 0 {
+                visit(i - 1, j);
+            }
+            if i + 1 < w {
+                visit(i + 1, j);
+            }
+            if j > 0 {
+                visit(i, j - 1);
+            }
+            if j + 1 < h {
+                visit(i, j + 1);
+            }
+        }
+        next += 1;
+    }
+    label
 }
 
 #[cfg(test)]

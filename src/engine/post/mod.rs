@@ -6,10 +6,14 @@
 //! its own chart's nearest valid value), then rings of empty texels are filled outward,
 //! each with the mean of its already-filled 8-neighbours, for `rings` rings.
 //!
-//! Limits: a ring may average two charts' values where their gutters meet; Bakery-style
-//! seam stitching and denoising are later work.
+//! Denoising: [`denoised`] (OIDN or the own filter of [`denoise`], blended by the
+//! bake's error estimate).
+//!
+//! Limits: a ring may average two charts' values where their gutters meet.
 
 pub mod denoise;
+pub mod denoised;
+pub mod oidn;
 pub mod seams;
 
 use glam::Vec3;

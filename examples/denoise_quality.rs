@@ -1,0 +1,230 @@
+//! The figures of docs/quality.md's denoising sections (issue 22).
+//!
+//! `cargo run --release --example denoise_quality -- errors [SCENE] [REF_SAMPLES]`:
+//! true error against a converged reference (a `path` bake with another seed and
+//! REF_SAMPLES samples per texel, default 65536) at 4 … 1024 steps of `path` (4 samples
+//! a step), raw and after each denoiser, unblended and blended, with the delivered
+//! error estimate and the error on chart borders (texels within 2 of another chart or
+//! an empty texel). SCENE is a bench scene (default cornell-box) or a .glb path.
+//!
+//! `… -- cost SIZE`: OIDN's time and peak memory on a SIZE² lightmap (run one size per
+//! process so the peak is that size's).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::Vec3;
+use lightmapd::bench::{prepare, true_error};
+use lightmapd::engine::accumulate::Estimate;
+use lightmapd::engine::atlas::{Atlas, NO_TEXEL};
+use lightmapd::engine::job::BakeRequest;
+use lightmapd::engine::post::denoise::charts;
+use lightmapd::engine::post::denoised::{self, Used};
+use lightmapd::engine::post::oidn::{Mode, Oidn};
+use lightmapd::engine::scene::library::benchmark_scenes;
+use lightmapd::engine::scene::{Lighting, Scene, import_file};
+use lightmapd::engine::technique::{self, BakeInputs, Technique};
+
+fn peak_rss_mb() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    s.lines()
+        .find(|l| l.starts_with("VmHWM:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or(0.0)
+        / 1024.0
+}
+
+fn path_tech(scene: &Arc<Scene>, atlas: &Arc<Atlas>, lighting: Lighting, seed: u64, spp: u32) -> Box<dyn Technique> {
+    let request = BakeRequest {
+        lighting,
+        seed,
+        ..Default::default()
+    };
+    let plan = lightmapd::engine::plan::build(scene, &request).unwrap();
+    let inputs = BakeInputs {
+        scene: scene.clone(),
+        atlas: atlas.clone(),
+        lighting,
+        seed,
+        want_direct: false,
+        plan,
+    };
+    technique::create("path", inputs, &serde_json::json!({ "samples_per_step": spp })).unwrap()
+}
+
+fn border_mask(atlas: &Atlas, chart: &[u32]) -> Vec<bool> {
+    let (w, h) = (atlas.width as i64, atlas.height as i64);
+    atlas
+        .texels
+        .iter()
+        .enumerate()
+        .map(|(k, t)| {
+            let (i, j) = (t.pixel as i64 % w, t.pixel as i64 / w);
+            (-2..=2).any(|dj| {
+                (-2..=2).any(|di| {
+                    let (x, y) = (i + di, j + dj);
+                    if x < 0 || y < 0 || x >= w || y >= h {
+                        return true;
+                    }
+                    let q = atlas.pixel_texel[(y * w + x) as usize];
+                    q == NO_TEXEL || chart[q as usize] != chart[k]
+                })
+            })
+        })
+        .collect()
+}
+
+fn masked(reference: &[Option<Vec3>], mask: &[bool]) -> Vec<Option<Vec3>> {
+    reference
+        .iter()
+        .zip(mask)
+        .map(|(r, m)| if *m { *r } else { None })
+        .collect()
+}
+
+fn errors(args: &[String]) {
+    let name = args.first().map(String::as_str).unwrap_or("cornell-box");
+    let ref_samples: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(65536);
+    let (scene, atlas, lighting) = if name.ends_with(".glb") {
+        let scene = import_file(std::path::Path::new(name)).unwrap().0;
+        let res: u32 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(256);
+        let mut scene = scene;
+        if scene.needs_lightmap_uvs {
+            lightmapd::engine::atlas::unwrap::generate_lightmap_uvs(
+                &mut scene,
+                res,
+                &lightmapd::engine::atlas::unwrap::UvUnwrap,
+            )
+            .unwrap();
+        }
+        let atlas = Atlas::build(&scene, res, res).unwrap();
+        let lighting: Lighting = serde_json::from_str(r#"{"sky":{"radiance":[1,1,1]},"sun":null}"#).unwrap_or_default();
+        (Arc::new(scene), Arc::new(atlas), lighting)
+    } else {
+        let lib = benchmark_scenes()
+            .into_iter()
+            .find(|s| s.name == name)
+            .expect("bench scene");
+        let p = prepare(&lib).unwrap();
+        (p.scene, p.atlas, lib.lighting)
+    };
+    let chart = charts(&atlas);
+    let border = border_mask(&atlas, &chart);
+    eprintln!(
+        "{name}: {} texels, {} charts, {} on borders; reference {ref_samples} samples/texel…",
+        atlas.texels.len(),
+        chart.iter().max().map(|m| m + 1).unwrap_or(0),
+        border.iter().filter(|b| **b).count()
+    );
+    let t = Instant::now();
+    let mut r = path_tech(&scene, &atlas, lighting, 987_654, 64);
+    for _ in 0..(ref_samples / 64).max(2) {
+        r.step().unwrap();
+    }
+    let rest = r.snapshot().unwrap().estimate();
+    eprintln!(
+        "reference: {:.1} s, own estimated error {:.3} %",
+        t.elapsed().as_secs_f64(),
+        rest.error.relative.unwrap_or(0.0) * 100.0
+    );
+    let reference: Vec<Option<Vec3>> = rest.total.iter().map(|v| Some(*v)).collect();
+    let ref_border = masked(&reference, &border);
+    let oidn = Oidn::available();
+    println!(
+        "| steps | raw | own | own blended | oidn | oidn + normal | oidn blended | estimated (oidn blended) | raw estimated | mean weight | border raw | border oidn | border oidn blended |"
+    );
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    let mut tech = path_tech(&scene, &atlas, lighting, 1, 4);
+    let pct = |e: f64| format!("{:.2} %", e * 100.0);
+    for target in [4u64, 16, 64, 256, 1024] {
+        while tech.steps_done() < target {
+            tech.step().unwrap();
+        }
+        let est: Estimate = tech.snapshot().unwrap().estimate();
+        let se = est.texel_error.clone().unwrap();
+        let raw = true_error(&est.total, &reference);
+        let own = denoised::filter_unblended(&atlas, &chart, Used::Own, &est.total, &se);
+        let own_b = denoised::apply(&atlas, &est, Used::Own);
+        let (oidn_e, oidn_n, oidn_b, est_b, w, b_oidn, b_blend) = if oidn {
+            let o = Oidn::get().unwrap();
+            let d = denoised::filter_unblended(&atlas, &chart, Used::Oidn, &est.total, &se);
+            let normals: Vec<Vec3> = atlas.texels.iter().map(|t| t.normal).collect();
+            let img = lightmapd::engine::post::dilate(&atlas, &est.total, denoised::FILL_RINGS);
+            let nimg = lightmapd::engine::post::dilate(&atlas, &normals, denoised::FILL_RINGS);
+            let rt = o.filter(atlas.width, atlas.height, &img, Some(&nimg), Mode::RtWithNormal);
+            let rt_err = match rt {
+                Ok(rt) => {
+                    let rt: Vec<Vec3> = atlas.texels.iter().map(|t| rt[t.pixel as usize]).collect();
+                    pct(true_error(&rt, &reference))
+                }
+                Err(e) => {
+                    eprintln!("  RT with normals: {e}");
+                    "failed".into()
+                }
+            };
+            let tb = Instant::now();
+            let (b, weights) = denoised::apply_with_weights(&atlas, &est, Used::Oidn);
+            eprintln!("  {target} steps: oidn blended in {:.2} s", tb.elapsed().as_secs_f64());
+            let w = weights.iter().map(|w| *w as f64).sum::<f64>() / weights.len().max(1) as f64;
+            (
+                pct(true_error(&d, &reference)),
+                rt_err,
+                pct(true_error(&b.total, &reference)),
+                pct(b.error.relative.unwrap_or(0.0) as f64),
+                format!("{w:.2}"),
+                pct(true_error(&d, &ref_border)),
+                pct(true_error(&b.total, &ref_border)),
+            )
+        } else {
+            let na = || "n/a".to_string();
+            (na(), na(), na(), na(), na(), na(), na())
+        };
+        println!(
+            "| {target} | {} | {} | {} | {oidn_e} | {oidn_n} | {oidn_b} | {est_b} | {} | {w} | {} | {b_oidn} | {b_blend} |",
+            pct(raw),
+            pct(true_error(&own, &reference)),
+            pct(true_error(&own_b.total, &reference)),
+            pct(est.error.relative.unwrap_or(0.0) as f64),
+            pct(true_error(&est.total, &ref_border)),
+        );
+    }
+}
+
+fn cost(args: &[String]) {
+    let size: u32 = args.first().and_then(|s| s.parse().ok()).unwrap_or(1024);
+    let o = Oidn::get().expect("OIDN installed (scripts/setup-oidn.sh)");
+    let n = (size * size) as usize;
+    let mut x = 0x9e37_79b9u32;
+    let img: Vec<Vec3> = (0..n)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            Vec3::splat(0.5 + (x as f32 / u32::MAX as f32 - 0.5) * 0.4)
+        })
+        .collect();
+    let before = peak_rss_mb();
+    let t = Instant::now();
+    let out = o.filter(size, size, &img, None, Mode::Lightmap).unwrap();
+    let first = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let _ = o.filter(size, size, &img, None, Mode::Lightmap).unwrap();
+    let second = t.elapsed().as_secs_f64();
+    println!(
+        "| {size}² | {} | {first:.2} s | {second:.2} s | {:.0} MB | {:.0} MB |",
+        o.describe(),
+        before,
+        peak_rss_mb() - before,
+    );
+    assert_eq!(out.len(), n);
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    match args.first().map(String::as_str) {
+        Some("cost") => cost(&args[1..]),
+        Some("errors") | None => errors(args.get(1..).unwrap_or(&[])),
+        Some(other) => eprintln!("unknown mode {other:?}: errors or cost"),
+    }
+}

@@ -1,0 +1,254 @@
+//! Denoising never makes a lightmap worse (issue 22): against closed-form answers, the
+//! delivered (denoised and blended) lightmap's true error is at most the raw one's at a
+//! low and a high sample count, for the own filter and for OIDN where it is installed;
+//! the blend fades the filter out as the bake converges; the EXR header and the plan
+//! name the denoiser; the job's choice parses.
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use lightmapd::bench::{prepare, true_error};
+use lightmapd::engine::atlas::Atlas;
+use lightmapd::engine::job::{BakeRequest, bake_unobserved};
+use lightmapd::engine::post::denoise::charts;
+use lightmapd::engine::post::denoised::{self, Denoiser, Used, blend_weights};
+use lightmapd::engine::post::oidn::Oidn;
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
+use lightmapd::engine::scene::import_slice;
+use lightmapd::engine::scene::library::benchmark_scenes;
+use lightmapd::engine::technique::{self, BakeInputs};
+
+/// The denoisers this machine has: the own filter always, OIDN when installed. Where
+/// the set-up script installed it, it must also load.
+fn denoisers() -> Vec<Used> {
+    let installed = std::path::Path::new(lightmapd::engine::post::oidn::DEFAULT_DIR)
+        .join("lib/libOpenImageDenoise.so.2")
+        .exists();
+    if installed {
+        assert!(
+            Oidn::available(),
+            "OIDN is installed but does not load: {:?}",
+            Oidn::get().err()
+        );
+    }
+    let mut out = vec![Used::Own];
+    if Oidn::available() {
+        out.push(Used::Oidn);
+    }
+    out
+}
+
+/// Raw and delivered true errors of `path` on a closed-form bench scene after `steps`
+/// steps of `spp` samples.
+fn errors(scene: &str, spp: u32, steps: u64, used: Used) -> (f64, f64, f32) {
+    let lib = benchmark_scenes().into_iter().find(|s| s.name == scene).unwrap();
+    let p = prepare(&lib).unwrap();
+    let reference: Vec<Option<Vec3>> = p
+        .atlas
+        .texels
+        .iter()
+        .map(|t| (lib.analytic.unwrap())(t.position.as_dvec3() + p.scene.origin_offset, t.geo_normal))
+        .collect();
+    let request = BakeRequest {
+        lighting: lib.lighting,
+        ..Default::default()
+    };
+    let plan = lightmapd::engine::plan::build(&p.scene, &request).unwrap();
+    let inputs = BakeInputs {
+        scene: p.scene.clone(),
+        atlas: p.atlas.clone(),
+        lighting: lib.lighting,
+        seed: 3,
+        want_direct: false,
+        plan,
+    };
+    let mut tech = technique::create("path", inputs, &serde_json::json!({ "samples_per_step": spp })).unwrap();
+    for _ in 0..steps {
+        tech.step().unwrap();
+    }
+    let est = tech.snapshot().unwrap().estimate();
+    let out = denoised::apply(&p.atlas, &est, used);
+    let delivered_estimate = out.error.relative.unwrap();
+    (
+        true_error(&est.total, &reference),
+        true_error(&out.total, &reference),
+        delivered_estimate,
+    )
+}
+
+/// The sphere's soft shadow on the plane (closed form) is what a filter blurs: at 16
+/// samples per texel the delivered map must be clearly better than raw, at 8192 (where
+/// the filter's bias exceeds the noise) no worse.
+#[test]
+fn delivered_error_is_never_above_raw_on_the_soft_shadow() {
+    for used in denoisers() {
+        let (raw, out, est) = errors("sphere-over-plane", 2, 8, used);
+        eprintln!("{used}: 16 samples: raw {raw:.4}, delivered {out:.4} (estimated {est:.4})");
+        assert!(out < 0.7 * raw, "{used}: 16 samples: raw {raw}, delivered {out}");
+        let (raw, out, est) = errors("sphere-over-plane", 512, 16, used);
+        eprintln!("{used}: 8192 samples: raw {raw:.4}, delivered {out:.4} (estimated {est:.4})");
+        assert!(out <= raw * 1.001, "{used}: 8192 samples: raw {raw}, delivered {out}");
+    }
+}
+
+/// Form factors between parallel plates: a smooth gradient with a sharp edge at the
+/// plate's border.
+#[test]
+fn delivered_error_is_never_above_raw_on_parallel_plates() {
+    for used in denoisers() {
+        for (spp, steps) in [(2u32, 8u64), (512, 16)] {
+            let (raw, out, est) = errors("parallel-plates", spp, steps, used);
+            eprintln!(
+                "{used}: {} samples: raw {raw:.4}, delivered {out:.4} (estimated {est:.4})",
+                spp as u64 * steps
+            );
+            assert!(out <= raw * 1.001, "{used}: {spp}x{steps}: raw {raw}, delivered {out}");
+        }
+    }
+}
+
+fn two_quads() -> Atlas {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("a", Vec3::ZERO, 1.0, Vec3::Y, m);
+    b.square("b", Vec3::new(3.0, 0.0, 0.0), 1.0, Vec3::Y, m);
+    b.margin = Some(0.0);
+    let scene = import_slice(&b.to_glb(), None).unwrap().0;
+    Atlas::build(&scene, 32, 32).unwrap()
+}
+
+/// The blend weight is V / (V + M): with a raw error a thousand times below the filter's
+/// (biased) error it is ~0, with a raw error far above it ~1.
+#[test]
+fn blend_weight_fades_out_as_the_bake_converges() {
+    let atlas = two_quads();
+    let chart = charts(&atlas);
+    let n = atlas.texels.len();
+    let truth = vec![Vec3::splat(1.0); n];
+    // The filter's output is off by 0.05 everywhere (its bias); the halves differ from
+    // the truth by ±s (alternating by texel), so the raw standard error is s.
+    for (s, expect_low, expect_high) in [(5e-5f32, 0.0, 1e-3), (0.5, 0.95, 1.0)] {
+        let halves = [
+            truth
+                .iter()
+                .enumerate()
+                .map(|(k, v)| *v + Vec3::splat(if k % 2 == 0 { s } else { -s }))
+                .collect::<Vec<_>>(),
+            truth
+                .iter()
+                .enumerate()
+                .map(|(k, v)| *v - Vec3::splat(if k % 2 == 0 { s } else { -s }))
+                .collect::<Vec<_>>(),
+        ];
+        let se = vec![s; n];
+        let filtered = [vec![Vec3::splat(1.05); n], vec![Vec3::splat(1.05); n]];
+        let blend = blend_weights(&atlas, &chart, &se, &halves, [8, 8], &filtered);
+        let mean = blend.weight.iter().sum::<f32>() / n as f32;
+        assert!(
+            (expect_low..=expect_high).contains(&mean),
+            "raw error {s}: mean weight {mean}, expected in [{expect_low}, {expect_high}]"
+        );
+        // The delivered error is never above the raw one nor the filter's.
+        for (k, e) in blend.texel_error.iter().enumerate() {
+            assert!(
+                *e <= s * 1.0001 && *e <= 0.0501,
+                "texel {k}: delivered error {e} (raw {s})"
+            );
+        }
+    }
+}
+
+/// Charts are 4-connected islands of one mesh: the two quads are two charts.
+#[test]
+fn two_quads_are_two_charts() {
+    let atlas = two_quads();
+    let chart = charts(&atlas);
+    for (t, c) in atlas.texels.iter().zip(&chart) {
+        assert_eq!(*c, t.mesh, "texel at pixel {}", t.pixel);
+    }
+}
+
+/// Reads a string attribute from EXR bytes (name, NUL, "string", NUL, i32 size, bytes).
+fn exr_string(bytes: &[u8], name: &str) -> Option<String> {
+    let key = [name.as_bytes(), b"\0string\0"].concat();
+    let at = bytes.windows(key.len()).position(|w| w == key.as_slice())? + key.len();
+    let len = i32::from_le_bytes(bytes[at..at + 4].try_into().ok()?) as usize;
+    Some(String::from_utf8_lossy(&bytes[at + 4..at + 4 + len]).into_owned())
+}
+
+fn small_bake(denoise: Denoiser) -> lightmapd::engine::job::BakeResult {
+    let lib = benchmark_scenes().into_iter().find(|s| s.name == "sky-plane").unwrap();
+    let p = prepare(&lib).unwrap();
+    let request = BakeRequest {
+        lighting: lib.lighting,
+        resolution: 32,
+        stop: lightmapd::engine::bake::StopCriteria {
+            steps: Some(8),
+            seconds: None,
+            target_error: None,
+        },
+        denoise,
+        ..Default::default()
+    };
+    bake_unobserved(Arc::clone(&p.scene), &request).unwrap()
+}
+
+/// The header and the summary name the denoiser that ran; the reported error is the
+/// delivered one and the raw one is kept beside it.
+#[test]
+fn header_plan_and_summary_name_the_denoiser() {
+    let raw = small_bake(Denoiser::None);
+    assert_eq!(exr_string(&raw.exr, "lightmapd:denoised").as_deref(), Some("no"));
+    assert_eq!(raw.summary.denoiser, "none");
+    assert!(raw.summary.plan.left_out.iter().any(|i| i.name == "denoiser"));
+    assert_eq!(raw.summary.error.raw_relative, None);
+
+    let own = small_bake(Denoiser::Own);
+    let header = exr_string(&own.exr, "lightmapd:denoised").unwrap();
+    assert!(header.starts_with("own (edge-aware a-trous)"), "header {header:?}");
+    assert_eq!(own.summary.denoiser, header);
+    assert!(
+        own.summary
+            .plan
+            .passes
+            .iter()
+            .any(|i| i.name == "denoiser" && i.why.starts_with("own"))
+    );
+    let (delivered, raw_e) = (
+        own.summary.error.relative.unwrap(),
+        own.summary.error.raw_relative.unwrap(),
+    );
+    assert!(delivered <= raw_e, "delivered estimate {delivered} above raw {raw_e}");
+    assert!(
+        (raw_e - raw.summary.error.relative.unwrap()).abs() < 1e-6,
+        "the raw estimate is the raw bake's"
+    );
+
+    if Oidn::available() {
+        let oidn = small_bake(Denoiser::Auto);
+        let header = exr_string(&oidn.exr, "lightmapd:denoised").unwrap();
+        assert!(header.starts_with("oidn 2."), "header {header:?}");
+    }
+}
+
+#[test]
+fn the_job_choice_parses_names_and_old_booleans() {
+    let parse = |s: &str| serde_json::from_str::<Denoiser>(s).map_err(|e| e.to_string());
+    assert_eq!(parse("\"oidn\""), Ok(Denoiser::Oidn));
+    assert_eq!(parse("\"own\""), Ok(Denoiser::Own));
+    assert_eq!(parse("\"none\""), Ok(Denoiser::None));
+    assert_eq!(parse("\"auto\""), Ok(Denoiser::Auto));
+    assert_eq!(parse("true"), Ok(Denoiser::Auto));
+    assert_eq!(parse("false"), Ok(Denoiser::None));
+    let err = parse("\"bm3d\"").unwrap_err();
+    assert!(
+        err.contains("unknown denoiser \"bm3d\"; available: auto, oidn, own, none"),
+        "{err}"
+    );
+    let req: BakeRequest = serde_json::from_value(serde_json::json!({
+        "technique": "path", "resolution": 8, "lighting": {}, "stop": {"steps": 1},
+        "params": null, "outputs": [], "seed": 0
+    }))
+    .unwrap();
+    assert_eq!(req.denoise, Denoiser::Auto);
+}
