@@ -285,6 +285,13 @@ struct BakeArgs {
     /// Write the raw estimate, without the edge-aware denoiser.
     #[arg(long)]
     no_denoise: bool,
+    /// Lightmap UVs: keep (authored only), generate-missing (default), regenerate-all.
+    #[arg(long, default_value = "generate-missing")]
+    lightmap_uvs: lightmapd::engine::atlas::unwrap::LightmapUvs,
+    /// Texel density of generated lightmap UVs (texels per metre); default: the highest
+    /// at which they fit one --resolution-wide page.
+    #[arg(long)]
+    texels_per_unit: Option<f32>,
     /// Also write the scene as .glb with its lightmap UVs (TEXCOORD_1), e.g. after they
     /// were generated for a scene that had none.
     #[arg(long)]
@@ -698,6 +705,8 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         outputs: args.outputs.clone(),
         seed: args.seed,
         denoise: !args.no_denoise,
+        lightmap_uvs: args.lightmap_uvs,
+        texels_per_unit: args.texels_per_unit,
     };
 
     let (scene, report) =

@@ -279,6 +279,8 @@ impl JobSpec {
             seed: self.seed,
             // Not part of the job body (DESIGN §7): the engine's default (denoised).
             denoise: BakeRequest::default().denoise,
+            lightmap_uvs: Default::default(),
+            texels_per_unit: None,
         }
     }
 }
