@@ -229,5 +229,5 @@ fn albedo_is_bounded_and_reported() {
     assert!(report.default_material_used);
     assert_eq!(scene.triangles[0].material as usize, scene.materials.len() - 1);
     assert_eq!(scene.albedo(&scene.triangles[0], Vec3::splat(1.0 / 3.0)), Vec3::splat(ALBEDO_BOUND));
-    assert!(report.warnings.iter().any(|w| w.ends_with(": default")), "{:?}", report.warnings);
+    assert!(report.warnings.iter().any(|w| w.ends_with(": snow, default")), "{:?}", report.warnings);
 }

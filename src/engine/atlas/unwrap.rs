@@ -338,7 +338,7 @@ pub fn generate_lightmap_uvs_with(
         for (slot, &m) in order.iter().enumerate() {
             let local = source.meshes[m].as_ref().expect("generated meshes are placed");
             let out = &u.meshes[slot];
-            let mut gen = GeneratedMesh {
+            let mut generated = GeneratedMesh {
                 primitives: vec![None; local.primitives.len()],
             };
             let mut face = 0usize;
@@ -357,9 +357,9 @@ pub fn generate_lightmap_uvs_with(
                     g.indices.push(id);
                 }
                 face += prim.indices.len() / 3;
-                gen.primitives[p] = Some(g);
+                generated.primitives[p] = Some(g);
             }
-            layout.meshes[m] = Some(gen);
+            layout.meshes[m] = Some(generated);
         }
         for (k, slot) in instance_slot.iter().enumerate() {
             let Some((mi, ii)) = slot else { continue };
@@ -392,13 +392,13 @@ pub fn generate_lightmap_uvs_with(
             }
             continue;
         }
-        let (Some(gen), Some(so)) = (layout.meshes[inst.mesh].as_ref(), layout.scale_offset[k]) else {
+        let (Some(generated), Some(so)) = (layout.meshes[inst.mesh].as_ref(), layout.scale_offset[k]) else {
             continue;
         };
         let (s, o) = (Vec2::new(so[0], so[1]), Vec2::new(so[2], so[3]));
         for ti in range {
             let src = scene.tri_source[ti];
-            let Some(g) = gen.primitives[src.primitive as usize].as_ref() else { continue };
+            let Some(g) = generated.primitives[src.primitive as usize].as_ref() else { continue };
             let c = |j: usize| (g.uv[g.indices[3 * src.triangle as usize + j] as usize] * s + o).clamp(Vec2::ZERO, Vec2::ONE);
             scene.triangles[ti].lm = if src.mirrored { [c(0), c(2), c(1)] } else { [c(0), c(1), c(2)] };
         }

@@ -260,7 +260,7 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
         let len = declared.get(i).copied().unwrap_or(data.len()).min(data.len());
         bin.extend_from_slice(&data[..len]);
     }
-    if let Some(views) = doc["bufferViews"].as_array_mut() {
+    if let Some(views) = doc.get_mut("bufferViews").and_then(Value::as_array_mut) {
         for v in views {
             let b = v["buffer"].as_u64().unwrap_or(0) as usize;
             let off = v["byteOffset"].as_u64().unwrap_or(0) as usize + base.get(b).copied().unwrap_or(0);
@@ -271,7 +271,7 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     let mut new_views: Vec<Value> = Vec::new();
     let view_count = doc["bufferViews"].as_array().map_or(0, Vec::len);
     // External images are embedded as they are (not re-encoded).
-    if let Some(images) = doc["images"].as_array_mut() {
+    if let Some(images) = doc.get_mut("images").and_then(Value::as_array_mut) {
         for (i, img) in images.iter_mut().enumerate() {
             let Some(uri) = img["uri"].as_str().map(str::to_string) else { continue };
             if uri.starts_with("data:") {
@@ -294,9 +294,9 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     let mut new_accessors: Vec<Value> = Vec::new();
     let accessor_count = doc["accessors"].as_array().map_or(0, Vec::len);
     if let Some(layout) = scene.layout.as_deref() {
-        for (m, gen) in layout.meshes.iter().enumerate() {
-            let Some(gen) = gen else { continue };
-            for (p, g) in gen.primitives.iter().enumerate() {
+        for (m, generated) in layout.meshes.iter().enumerate() {
+            let Some(generated) = generated else { continue };
+            for (p, g) in generated.primitives.iter().enumerate() {
                 let Some(g) = g else { continue };
                 let prim = doc["meshes"][m]["primitives"][p].clone();
                 let mut w = Writer {
@@ -316,13 +316,13 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
         }
     }
     if !new_views.is_empty() {
-        match doc["bufferViews"].as_array_mut() {
+        match doc.get_mut("bufferViews").and_then(Value::as_array_mut) {
             Some(v) => v.extend(new_views),
             None => doc["bufferViews"] = Value::Array(new_views),
         }
     }
     if !new_accessors.is_empty() {
-        match doc["accessors"].as_array_mut() {
+        match doc.get_mut("accessors").and_then(Value::as_array_mut) {
             Some(a) => a.extend(new_accessors),
             None => doc["accessors"] = Value::Array(new_accessors),
         }
