@@ -329,13 +329,12 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
         errors.push((path(), error))
     });
     // Extensions read here from the JSON itself (not by the `gltf` crate) may be required.
+    // (The path reads `extensionsRequired[i] = "NAME"`.)
     errors.retain(|(path, error)| {
-        let index = path.as_str().strip_prefix("extensionsRequired[").and_then(|r| r.strip_suffix(']'));
-        let name = index
-            .and_then(|i| i.parse::<usize>().ok())
-            .and_then(|i| root.extensions_required.get(i));
+        let p = path.as_str();
         !(matches!(error, gltf::json::validation::Error::Unsupported)
-            && name.is_some_and(|n| matches!(n.as_str(), "KHR_mesh_quantization" | "KHR_texture_transform")))
+            && p.starts_with("extensionsRequired[")
+            && (p.ends_with("\"KHR_mesh_quantization\"") || p.ends_with("\"KHR_texture_transform\"")))
     });
     if !errors.is_empty() {
         return Err(ImportError::Invalid(
@@ -1006,10 +1005,14 @@ impl Flatten<'_> {
                     at,
                     accessor: acc,
                     attribute: "TEXCOORD_1".into(),
-                    problem: format!(
-                        "lightmap UV ({}, {}) of vertex {i} (after the node's extras.lightmap.scale_offset) is outside [0, 1]",
-                        uv.x, uv.y
-                    ),
+                    problem: if scale_offset == [1.0, 1.0, 0.0, 0.0] {
+                        format!("lightmap UV ({}, {}) of vertex {i} is outside [0, 1]", uv.x, uv.y)
+                    } else {
+                        format!(
+                            "lightmap UV ({}, {}) of vertex {i} is outside [0, 1] (after the node's extras.lightmap.scale_offset)",
+                            uv.x, uv.y
+                        )
+                    },
                 });
             }
             let indices: Vec<u32> = match prim.indices() {
