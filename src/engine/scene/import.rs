@@ -20,8 +20,17 @@
 //! (a small PNG can claim 100 000² pixels). `import_slice` has no caps; the service calls
 //! [`import_slice_limited`] with its configured ones.
 //!
-//! Limits: sparse accessors, morph targets, skins and texture transforms are not read
-//! (sparse position or UV accessors are an error; the others are ignored with a warning).
+//! Real files (issue 19): only the default scene's node trees are walked, so meshes no
+//! node of it places neither cast nor get texels; `KHR_mesh_quantization`'s integer
+//! positions, normals and UVs are decoded; a primitive without normals gets flat ones; a
+//! base colour `KHR_texture_transform` is applied to TEXCOORD_0; a node's
+//! `extras.lightmap_scale`, `extras.lightmap: false` and `extras.lightmap.scale_offset`
+//! are read; what the bake does not read (extensions by name, skins, animations, alpha
+//! modes, normal textures, morph targets) is listed in one warning; albedo is bounded
+//! (`scene::ALBEDO_BOUND`) and the report says so.
+//!
+//! Limits: sparse accessors, morph targets and skins are not read (sparse position or UV
+//! accessors are an error; the others are listed in the report).
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -651,7 +660,8 @@ fn texture_transforms(json: &serde_json::Value, n: usize, warnings: &mut Vec<Str
         let offset = pair("offset", [0.0, 0.0]);
         let scale = pair("scale", [1.0, 1.0]);
         let r = t.get("rotation").and_then(|v| v.as_f64()).unwrap_or(0.0) as f32;
-        if t.get("texCoord").is_some() {
+        let base_set = m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"].as_u64().unwrap_or(0);
+        if t.get("texCoord").and_then(|v| v.as_u64()).is_some_and(|set| set != base_set) {
             warnings.push(format!(
                 "material {i}: KHR_texture_transform.texCoord is not read (TEXCOORD_{} of the texture is used)",
                 m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"].as_u64().unwrap_or(0)

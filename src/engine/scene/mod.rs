@@ -16,8 +16,16 @@
 //! (kept in [`Scene::origin_offset`], in f64), so a scene translated by 1e5 m keeps full
 //! f32 precision near its geometry. Irradiance does not depend on where the scene sits.
 //!
+//! The import also keeps the input document ([`SourceDocument`]: its JSON, buffers, each
+//! placed mesh's local geometry and every placing node as an [`Instance`]), and which
+//! primitive triangle each scene triangle came from ([`TriSource`]): lightmap UVs are
+//! generated per mesh (`atlas::unwrap`, [`LightmapLayout`]) and `export` writes the same
+//! document back with them.
+//!
 //! Limits: alpha (MASK/BLEND) is ignored, every surface is opaque; morph targets and
-//! skins are ignored (the bind pose is baked); texture transforms are not applied.
+//! skins are ignored (the bind pose is baked). A base colour `KHR_texture_transform` is
+//! applied to TEXCOORD_0 at import, so an emissive texture on the same material reads
+//! the transformed UVs too. Albedo is bounded by [`ALBEDO_BOUND`].
 
 pub mod build;
 mod error;
