@@ -13,7 +13,9 @@ use lightmapd::engine::scene::{export, import_slice};
 use serde_json::Value;
 
 fn level(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes/third-party")
+        .join(name)
 }
 
 /// JSON and binary chunk of a GLB.
@@ -64,12 +66,10 @@ fn validate(path: &Path) -> Value {
         .output()
         .expect("bash runs");
     let stdout = String::from_utf8_lossy(&out.stdout);
-    let line = stdout.lines().last().unwrap_or_else(|| {
-        panic!(
-            "validator printed nothing: {}",
-            String::from_utf8_lossy(&out.stderr)
-        )
-    });
+    let line = stdout
+        .lines()
+        .last()
+        .unwrap_or_else(|| panic!("validator printed nothing: {}", String::from_utf8_lossy(&out.stderr)));
     serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}"))
 }
 
@@ -88,36 +88,87 @@ fn roundtrip(name: &str, resolution: u32) {
     let (b, bbin) = parse(&glb);
 
     // The same document, only with lightmap UVs added.
-    for key in ["nodes", "meshes", "materials", "textures", "samplers", "images", "scenes"] {
+    for key in [
+        "nodes",
+        "meshes",
+        "materials",
+        "textures",
+        "samplers",
+        "images",
+        "scenes",
+    ] {
         assert_eq!(len(&a, key), len(&b, key), "{name}: number of {key}");
     }
-    for key in ["materials", "textures", "samplers", "scenes", "extensionsUsed", "extensionsRequired", "asset"] {
+    for key in [
+        "materials",
+        "textures",
+        "samplers",
+        "scenes",
+        "extensionsUsed",
+        "extensionsRequired",
+        "asset",
+    ] {
         assert_eq!(a[key], b[key], "{name}: {key} differ");
     }
     assert_eq!(a["scene"], b["scene"]);
-    for (i, (na, nb)) in a["nodes"].as_array().unwrap().iter().zip(b["nodes"].as_array().unwrap()).enumerate() {
-        for key in ["name", "mesh", "children", "translation", "rotation", "scale", "matrix", "extensions", "camera"] {
+    for (i, (na, nb)) in a["nodes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(b["nodes"].as_array().unwrap())
+        .enumerate()
+    {
+        for key in [
+            "name",
+            "mesh",
+            "children",
+            "translation",
+            "rotation",
+            "scale",
+            "matrix",
+            "extensions",
+            "camera",
+        ] {
             assert_eq!(na[key], nb[key], "{name}: node {i} {key}");
         }
     }
     for i in 0..len(&a, "images") {
-        assert_eq!(image_bytes(&a, &abin, i), image_bytes(&b, &bbin, i), "{name}: image {i} re-encoded");
+        assert_eq!(
+            image_bytes(&a, &abin, i),
+            image_bytes(&b, &bbin, i),
+            "{name}: image {i} re-encoded"
+        );
     }
     let mut placed = std::collections::HashSet::new();
     for inst in &scene.source.as_ref().unwrap().instances {
         placed.insert(inst.node);
     }
-    for (m, (ma, mb)) in a["meshes"].as_array().unwrap().iter().zip(b["meshes"].as_array().unwrap()).enumerate() {
+    for (m, (ma, mb)) in a["meshes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(b["meshes"].as_array().unwrap())
+        .enumerate()
+    {
         assert_eq!(ma["name"], mb["name"]);
-        let (pa, pb) = (ma["primitives"].as_array().unwrap(), mb["primitives"].as_array().unwrap());
+        let (pa, pb) = (
+            ma["primitives"].as_array().unwrap(),
+            mb["primitives"].as_array().unwrap(),
+        );
         assert_eq!(pa.len(), pb.len(), "{name}: mesh {m} primitives");
         for (p, (x, y)) in pa.iter().zip(pb).enumerate() {
             assert_eq!(x["material"], y["material"], "{name}: mesh {m} primitive {p} material");
             assert_eq!(x["mode"], y["mode"]);
             for semantic in x["attributes"].as_object().unwrap().keys() {
-                assert!(y["attributes"].get(semantic).is_some(), "{name}: mesh {m} lost {semantic}");
+                assert!(
+                    y["attributes"].get(semantic).is_some(),
+                    "{name}: mesh {m} lost {semantic}"
+                );
             }
-            assert!(y["attributes"].get("TEXCOORD_1").is_some(), "{name}: mesh {m} has no TEXCOORD_1");
+            assert!(
+                y["attributes"].get("TEXCOORD_1").is_some(),
+                "{name}: mesh {m} has no TEXCOORD_1"
+            );
         }
     }
     for (i, node) in b["nodes"].as_array().unwrap().iter().enumerate() {
@@ -128,9 +179,17 @@ fn roundtrip(name: &str, resolution: u32) {
         }
         assert_eq!(lm["page"], 0);
         assert_eq!(lm["file"], "lightmap-0.exr");
-        let so: Vec<f64> = lm["scale_offset"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+        let so: Vec<f64> = lm["scale_offset"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
         assert_eq!(so.len(), 4);
-        assert!(so[0] > 0.0 && so[1] > 0.0 && so[0] + so[2] <= 1.0 + 1e-6 && so[1] + so[3] <= 1.0 + 1e-6, "{so:?}");
+        assert!(
+            so[0] > 0.0 && so[1] > 0.0 && so[0] + so[2] <= 1.0 + 1e-6 && so[1] + so[3] <= 1.0 + 1e-6,
+            "{so:?}"
+        );
         // Other extras stay.
         for (k, v) in a["nodes"][i]["extras"].as_object().into_iter().flatten() {
             assert_eq!(&node["extras"][k], v);
@@ -146,8 +205,16 @@ fn roundtrip(name: &str, resolution: u32) {
     for (x, y) in back.triangles.iter().zip(&scene.triangles) {
         assert_eq!(x.material, y.material);
         for k in 0..3 {
-            assert!((x.lm[k] - y.lm[k]).abs().max_element() < 1e-6, "{name}: {} vs {}", x.lm[k], y.lm[k]);
-            let (pa, pb) = (x.p[k].as_dvec3() + back.origin_offset, y.p[k].as_dvec3() + scene.origin_offset);
+            assert!(
+                (x.lm[k] - y.lm[k]).abs().max_element() < 1e-6,
+                "{name}: {} vs {}",
+                x.lm[k],
+                y.lm[k]
+            );
+            let (pa, pb) = (
+                x.p[k].as_dvec3() + back.origin_offset,
+                y.p[k].as_dvec3() + scene.origin_offset,
+            );
             assert!((pa - pb).abs().max_element() < 1e-4, "{name}: {pa} vs {pb}");
         }
     }
@@ -158,9 +225,15 @@ fn roundtrip(name: &str, resolution: u32) {
         for (p, prim) in mesh["primitives"].as_array().unwrap().iter().enumerate() {
             let (ua, ub) = (
                 prim["attributes"]["TEXCOORD_1"].as_u64().unwrap() as usize,
-                c["meshes"][m]["primitives"][p]["attributes"]["TEXCOORD_1"].as_u64().unwrap() as usize,
+                c["meshes"][m]["primitives"][p]["attributes"]["TEXCOORD_1"]
+                    .as_u64()
+                    .unwrap() as usize,
             );
-            assert_eq!(accessor_bytes(&b, &bbin, ua), accessor_bytes(&c, &cbin, ub), "authored UVs changed");
+            assert_eq!(
+                accessor_bytes(&b, &bbin, ua),
+                accessor_bytes(&c, &cbin, ub),
+                "authored UVs changed"
+            );
         }
     }
     for (i, node) in b["nodes"].as_array().unwrap().iter().enumerate() {

@@ -14,7 +14,12 @@ use lightmapd::engine::scene::{ALBEDO_BOUND, Scene, export, import_slice};
 use serde_json::json;
 
 fn level(name: &str) -> Scene {
-    let bytes = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party").join(name)).unwrap();
+    let bytes = std::fs::read(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scenes/third-party")
+            .join(name),
+    )
+    .unwrap();
     import_slice(&bytes, None).unwrap().0
 }
 
@@ -49,10 +54,17 @@ fn kenney_instances_each_get_their_own_texels() {
     assert!(per.iter().all(|n| *n > 0), "an instance has no texel: {per:?}");
     // One layout per mesh: the 39 rectangles are all distinct.
     let layout = scene.layout.as_ref().unwrap();
-    let rects: std::collections::HashSet<String> =
-        layout.scale_offset.iter().map(|s| format!("{:?}", s.unwrap())).collect();
+    let rects: std::collections::HashSet<String> = layout
+        .scale_offset
+        .iter()
+        .map(|s| format!("{:?}", s.unwrap()))
+        .collect();
     assert_eq!(rects.len(), 39);
-    eprintln!("kenney: {r:?}, {} texels, per instance min {}", atlas.texels.len(), per.iter().min().unwrap());
+    eprintln!(
+        "kenney: {r:?}, {} texels, per instance min {}",
+        atlas.texels.len(),
+        per.iter().min().unwrap()
+    );
 }
 
 /// A texel density in texels per metre: a 4 m square at 8 texels/m spans 32 texels
@@ -66,7 +78,10 @@ fn texels_per_unit_sets_the_density_and_adds_pages() {
     b.square("b", Vec3::new(10.0, 0.0, 0.0), 4.0, Vec3::Y, m);
     let (mut json, bin) = b.to_gltf();
     for mesh in json["meshes"].as_array_mut().unwrap() {
-        mesh["primitives"][0]["attributes"].as_object_mut().unwrap().remove("TEXCOORD_1");
+        mesh["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
     }
     let glb = write_glb(&json, &bin);
     let (mut scene, _) = import_slice(&glb, None).unwrap();
@@ -91,8 +106,8 @@ fn texels_per_unit_sets_the_density_and_adds_pages() {
     assert!(per.iter().all(|n| *n > 200 * 200), "{per:?}");
 
     let (mut scene, _) = import_slice(&glb, None).unwrap();
-    let e = generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(-1.0), &UvUnwrap)
-        .unwrap_err();
+    let e =
+        generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(-1.0), &UvUnwrap).unwrap_err();
     assert_eq!(e, "texels_per_unit must be a positive number, got -1");
 }
 
@@ -109,7 +124,10 @@ fn only_the_scene_is_baked_and_nodes_opt_out() {
     b.square("collider", Vec3::new(0.0, 5.0, 0.0), 2.0, Vec3::Y, m);
     let (mut json, bin) = b.to_gltf();
     for mesh in json["meshes"].as_array_mut().unwrap() {
-        mesh["primitives"][0]["attributes"].as_object_mut().unwrap().remove("TEXCOORD_1");
+        mesh["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
     }
     // Node 3 (collider) is in a second scene only; node 1 (wall) opts out; node 2 is dense.
     json["scenes"] = json!([{"nodes": [0, 1, 2]}, {"nodes": [3]}]);
@@ -130,8 +148,14 @@ fn only_the_scene_is_baked_and_nodes_opt_out() {
 
     let out = export::to_glb(&scene).unwrap();
     let doc: serde_json::Value = serde_json::from_slice(&gltf::binary::Glb::from_slice(&out).unwrap().json).unwrap();
-    assert_eq!(doc["nodes"][1]["extras"], json!({"lightmap": false, "editor": "keep me"}));
-    assert!(doc["nodes"][3].get("extras").is_none(), "a node outside the scene got a lightmap");
+    assert_eq!(
+        doc["nodes"][1]["extras"],
+        json!({"lightmap": false, "editor": "keep me"})
+    );
+    assert!(
+        doc["nodes"][3].get("extras").is_none(),
+        "a node outside the scene got a lightmap"
+    );
     assert_eq!(doc["nodes"][2]["extras"]["lightmap_scale"], 2.0);
     assert!(doc["nodes"][2]["extras"]["lightmap"]["scale_offset"].is_array());
 }
@@ -202,7 +226,10 @@ fn quantized_positions_missing_normals_and_texture_transform() {
         assert!(uvs.contains(&Vec2::new(1.0, 0.5)));
         // Both extensions are read: the report lists neither as unread or unsupported.
         assert!(
-            !report.warnings.iter().any(|w| w.contains("KHR_mesh_quantization") || w.contains("KHR_texture_transform")),
+            !report
+                .warnings
+                .iter()
+                .any(|w| w.contains("KHR_mesh_quantization") || w.contains("KHR_texture_transform")),
             "{:?}",
             report.warnings
         );
@@ -217,17 +244,33 @@ fn albedo_is_bounded_and_reported() {
     b.square("floor", Vec3::ZERO, 2.0, Vec3::Y, m);
     let (mut json, bin) = b.to_gltf();
     let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
-    assert_eq!(scene.materials[0].base_color.truncate(), Vec3::new(ALBEDO_BOUND, 0.5, ALBEDO_BOUND));
+    assert_eq!(
+        scene.materials[0].base_color.truncate(),
+        Vec3::new(ALBEDO_BOUND, 0.5, ALBEDO_BOUND)
+    );
     assert_eq!(report.albedo_bound, 0.9);
     assert!(
-        report.warnings.iter().any(|w| w == "albedo bounded to 0.9 for bounced light (so paths in closed rooms end): snow"),
+        report
+            .warnings
+            .iter()
+            .any(|w| w == "albedo bounded to 0.9 for bounced light (so paths in closed rooms end): snow"),
         "{:?}",
         report.warnings
     );
-    json["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("material");
+    json["meshes"][0]["primitives"][0]
+        .as_object_mut()
+        .unwrap()
+        .remove("material");
     let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
     assert!(report.default_material_used);
     assert_eq!(scene.triangles[0].material as usize, scene.materials.len() - 1);
-    assert_eq!(scene.albedo(&scene.triangles[0], Vec3::splat(1.0 / 3.0)), Vec3::splat(ALBEDO_BOUND));
-    assert!(report.warnings.iter().any(|w| w.ends_with(": snow, default")), "{:?}", report.warnings);
+    assert_eq!(
+        scene.albedo(&scene.triangles[0], Vec3::splat(1.0 / 3.0)),
+        Vec3::splat(ALBEDO_BOUND)
+    );
+    assert!(
+        report.warnings.iter().any(|w| w.ends_with(": snow, default")),
+        "{:?}",
+        report.warnings
+    );
 }

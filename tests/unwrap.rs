@@ -5,6 +5,7 @@
 use std::sync::Arc;
 
 use glam::{Vec2, Vec3};
+use lightmapd::engine::atlas::unwrap::LightmapUvs;
 use lightmapd::engine::bake::StopCriteria;
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::post::{dilate, seams};
@@ -12,7 +13,6 @@ use lightmapd::engine::rng::Rng;
 use lightmapd::engine::scene::build::write_glb;
 use lightmapd::engine::scene::library::{sphere_occlusion, sphere_over_plane};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, export, import_slice};
-use lightmapd::engine::atlas::unwrap::LightmapUvs;
 use serde_json::json;
 
 fn without_lightmap_uvs() -> Vec<u8> {
@@ -217,7 +217,10 @@ fn authored_uvs_are_kept_beside_generated_ones() {
         }
     }
     for t in baked.triangles.iter().filter(|t| t.mesh == 1) {
-        assert!(t.lm.iter().all(|uv| uv.y >= squeeze), "a generated chart reaches into the authored page");
+        assert!(
+            t.lm.iter().all(|uv| uv.y >= squeeze),
+            "a generated chart reaches into the authored page"
+        );
     }
     assert_eq!(result.atlas.overlapping_texels, 0);
     let ground_texels = result.atlas.texels.iter().filter(|t| t.mesh == 0).count();
@@ -234,10 +237,13 @@ fn authored_uvs_are_kept_beside_generated_ones() {
     let out = gltf::binary::Glb::from_slice(&glb).unwrap();
     let doc: serde_json::Value = serde_json::from_slice(&out.json).unwrap();
     let uv = |doc: &serde_json::Value, bin: &[u8], mesh: usize| -> Vec<u8> {
-        let a = doc["meshes"][mesh]["primitives"][0]["attributes"]["TEXCOORD_1"].as_u64().unwrap() as usize;
+        let a = doc["meshes"][mesh]["primitives"][0]["attributes"]["TEXCOORD_1"]
+            .as_u64()
+            .unwrap() as usize;
         let acc = &doc["accessors"][a];
         let view = &doc["bufferViews"][acc["bufferView"].as_u64().unwrap() as usize];
-        let start = view["byteOffset"].as_u64().unwrap_or(0) as usize + acc["byteOffset"].as_u64().unwrap_or(0) as usize;
+        let start =
+            view["byteOffset"].as_u64().unwrap_or(0) as usize + acc["byteOffset"].as_u64().unwrap_or(0) as usize;
         bin[start..start + 8 * acc["count"].as_u64().unwrap() as usize].to_vec()
     };
     assert_eq!(uv(&json, &bin, 0), uv(&doc, out.bin.as_ref().unwrap(), 0));
@@ -256,7 +262,9 @@ fn authored_uvs_are_kept_beside_generated_ones() {
         lightmap_uvs: LightmapUvs::Keep,
         ..sky_request(64)
     };
-    let err = job::bake_unobserved(Arc::new(scene.clone()), &keep).err().expect("keep fails");
+    let err = job::bake_unobserved(Arc::new(scene.clone()), &keep)
+        .err()
+        .expect("keep fails");
     assert!(err.to_string().contains("mesh 1 \"ball\" has no TEXCOORD_1"), "{err}");
     let mut all = scene.clone();
     let r = lightmapd::engine::atlas::unwrap::generate_lightmap_uvs_with(

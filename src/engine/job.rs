@@ -176,15 +176,14 @@ fn bake_impl(
     let (scene, unwrap) = if (scene.needs_lightmap_uvs || regenerate) && scene.layout.is_none() {
         let mut generated = (*scene).clone();
         let started = std::time::Instant::now();
-        let report =
-            unwrap::generate_lightmap_uvs_with(
-                &mut generated,
-                request.resolution,
-                request.lightmap_uvs,
-                request.texels_per_unit,
-                &unwrap::UvUnwrap,
-            )
-                .map_err(|e| EngineError::BadInput(format!("generating lightmap UVs: {e}")))?;
+        let report = unwrap::generate_lightmap_uvs_with(
+            &mut generated,
+            request.resolution,
+            request.lightmap_uvs,
+            request.texels_per_unit,
+            &unwrap::UvUnwrap,
+        )
+        .map_err(|e| EngineError::BadInput(format!("generating lightmap UVs: {e}")))?;
         tracing::info!(
             charts = report.charts,
             width = report.width,

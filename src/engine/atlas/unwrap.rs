@@ -232,7 +232,9 @@ pub fn generate_lightmap_uvs_with(
     let mut generate = vec![false; source.meshes.len()];
     let mut kept = vec![false; source.meshes.len()];
     for inst in source.instances.iter().filter(|i| !i.opt_out) {
-        let Some(local) = source.meshes[inst.mesh].as_ref() else { continue };
+        let Some(local) = source.meshes[inst.mesh].as_ref() else {
+            continue;
+        };
         let authored = local.authored();
         match mode {
             LightmapUvs::Keep if !authored => {
@@ -253,7 +255,9 @@ pub fn generate_lightmap_uvs_with(
     let mut inputs: Vec<UnwrapMesh> = Vec::new();
     let mut instance_slot: Vec<Option<(usize, usize)>> = vec![None; source.instances.len()];
     for (m, local) in source.meshes.iter().enumerate() {
-        let Some(local) = local.as_ref().filter(|_| generate[m]) else { continue };
+        let Some(local) = local.as_ref().filter(|_| generate[m]) else {
+            continue;
+        };
         let mut input = UnwrapMesh {
             positions: Vec::new(),
             indices: Vec::new(),
@@ -265,7 +269,9 @@ pub fn generate_lightmap_uvs_with(
             let base = input.positions.len() as u32;
             input.positions.extend(prim.positions.iter().map(|v| v.to_array()));
             input.indices.extend(prim.indices.iter().map(|i| i + base));
-            input.groups.extend(std::iter::repeat_n(p as u32, prim.indices.len() / 3));
+            input
+                .groups
+                .extend(std::iter::repeat_n(p as u32, prim.indices.len() / 3));
         }
         for (k, inst) in source.instances.iter().enumerate() {
             if inst.mesh != m || inst.opt_out {
@@ -290,7 +296,9 @@ pub fn generate_lightmap_uvs_with(
                 ));
             }
             instance_slot[k] = Some((inputs.len(), input.instance_scales.len()));
-            input.instance_scales.push((det.cbrt() as f32 * inst.lightmap_scale).max(1e-6));
+            input
+                .instance_scales
+                .push((det.cbrt() as f32 * inst.lightmap_scale).max(1e-6));
         }
         if input.indices.is_empty() {
             continue;
@@ -322,7 +330,10 @@ pub fn generate_lightmap_uvs_with(
     if let Some(u) = &unwrapped
         && u.width != w
     {
-        return Err(format!("the unwrapper made {}-wide pages for a {w}-wide lightmap", u.width));
+        return Err(format!(
+            "the unwrapper made {}-wide pages for a {w}-wide lightmap",
+            u.width
+        ));
     }
     let (wf, hf) = (w as f32, height as f32);
 
@@ -398,9 +409,17 @@ pub fn generate_lightmap_uvs_with(
         let (s, o) = (Vec2::new(so[0], so[1]), Vec2::new(so[2], so[3]));
         for ti in range {
             let src = scene.tri_source[ti];
-            let Some(g) = generated.primitives[src.primitive as usize].as_ref() else { continue };
-            let c = |j: usize| (g.uv[g.indices[3 * src.triangle as usize + j] as usize] * s + o).clamp(Vec2::ZERO, Vec2::ONE);
-            scene.triangles[ti].lm = if src.mirrored { [c(0), c(2), c(1)] } else { [c(0), c(1), c(2)] };
+            let Some(g) = generated.primitives[src.primitive as usize].as_ref() else {
+                continue;
+            };
+            let c = |j: usize| {
+                (g.uv[g.indices[3 * src.triangle as usize + j] as usize] * s + o).clamp(Vec2::ZERO, Vec2::ONE)
+            };
+            scene.triangles[ti].lm = if src.mirrored {
+                [c(0), c(2), c(1)]
+            } else {
+                [c(0), c(1), c(2)]
+            };
         }
     }
 
@@ -423,11 +442,7 @@ pub fn generate_lightmap_uvs_with(
 
 /// UV area of the generated meshes' triangles over the page's: how much of it the new
 /// charts cover.
-fn utilisation(
-    scene: &Scene,
-    instances: &[crate::engine::scene::Instance],
-    generate: &[bool],
-) -> f32 {
+fn utilisation(scene: &Scene, instances: &[crate::engine::scene::Instance], generate: &[bool]) -> f32 {
     let mut area = 0.0f64;
     for inst in instances.iter().filter(|i| !i.opt_out && generate[i.mesh]) {
         for t in &scene.triangles[inst.triangles.clone()] {

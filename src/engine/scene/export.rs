@@ -251,7 +251,11 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     // Buffers, one after another in the binary chunk; views re-pointed.
     let declared: Vec<usize> = doc["buffers"]
         .as_array()
-        .map(|a| a.iter().map(|b| b["byteLength"].as_u64().unwrap_or(0) as usize).collect())
+        .map(|a| {
+            a.iter()
+                .map(|b| b["byteLength"].as_u64().unwrap_or(0) as usize)
+                .collect()
+        })
         .unwrap_or_default();
     let mut base = Vec::new();
     for (i, data) in source.buffers.iter().enumerate() {
@@ -273,20 +277,29 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     // External images are embedded as they are (not re-encoded).
     if let Some(images) = doc.get_mut("images").and_then(Value::as_array_mut) {
         for (i, img) in images.iter_mut().enumerate() {
-            let Some(uri) = img["uri"].as_str().map(str::to_string) else { continue };
+            let Some(uri) = img["uri"].as_str().map(str::to_string) else {
+                continue;
+            };
             if uri.starts_with("data:") {
                 continue;
             }
             let bytes = super::import::read_external(&uri, source.base_dir.as_deref())
                 .map_err(|e| format!("image {i}: {e}"))?;
-            let mime = if bytes.starts_with(b"\x89PNG") { "image/png" } else { "image/jpeg" };
+            let mime = if bytes.starts_with(b"\x89PNG") {
+                "image/png"
+            } else {
+                "image/jpeg"
+            };
             align(&mut bin, 4);
             new_views.push(json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": bytes.len()}));
             bin.extend_from_slice(&bytes);
             let obj = img.as_object_mut().ok_or("image is not an object")?;
             obj.remove("uri");
             obj.insert("bufferView".into(), json!(view_count + new_views.len() - 1));
-            obj.insert("mimeType".into(), json!(obj.get("mimeType").cloned().unwrap_or(json!(mime))));
+            obj.insert(
+                "mimeType".into(),
+                json!(obj.get("mimeType").cloned().unwrap_or(json!(mime))),
+            );
         }
     }
 
@@ -420,8 +433,7 @@ impl Writer<'_> {
 
     /// A copy of accessor `index` holding element `xref[i]` at position `i`.
     fn remap(&mut self, index: usize, xref: &[u32], semantic: &str) -> Result<usize, String> {
-        let acc = self
-            .doc["accessors"]
+        let acc = self.doc["accessors"]
             .get(index)
             .ok_or_else(|| format!("{semantic}: accessor {index} does not exist"))?
             .clone();
@@ -433,7 +445,9 @@ impl Writer<'_> {
         let ct = acc["componentType"].as_u64().unwrap_or(0);
         let ty = acc["type"].as_str().unwrap_or("");
         let (Some(cs), Some(nc)) = (component_size(ct), components(ty)) else {
-            return Err(format!("{semantic}: accessor {index} has an unsupported type {ty} of {ct}"));
+            return Err(format!(
+                "{semantic}: accessor {index} has an unsupported type {ty} of {ct}"
+            ));
         };
         let elem = cs * nc;
         let count = acc["count"].as_u64().unwrap_or(0) as usize;
@@ -459,7 +473,8 @@ impl Writer<'_> {
             .buffers
             .get(view["buffer"].as_u64().unwrap_or(0) as usize)
             .ok_or_else(|| format!("{semantic}: buffer of view {view_index} is missing"))?;
-        let start = view["byteOffset"].as_u64().unwrap_or(0) as usize + acc["byteOffset"].as_u64().unwrap_or(0) as usize;
+        let start =
+            view["byteOffset"].as_u64().unwrap_or(0) as usize + acc["byteOffset"].as_u64().unwrap_or(0) as usize;
         let stride = view["byteStride"].as_u64().map_or(elem, |s| s as usize);
         let padded = elem.div_ceil(4) * 4;
         let mut bytes = vec![0u8; padded * xref.len()];
@@ -468,7 +483,9 @@ impl Writer<'_> {
         for (i, &x) in xref.iter().enumerate() {
             let x = x as usize;
             if x >= count {
-                return Err(format!("{semantic}: vertex {x} is past accessor {index}'s {count} elements"));
+                return Err(format!(
+                    "{semantic}: vertex {x} is past accessor {index}'s {count} elements"
+                ));
             }
             let at = start + x * stride;
             let src = buffer
@@ -499,12 +516,19 @@ impl Writer<'_> {
             if semantic == "TEXCOORD_1" {
                 continue;
             }
-            let index = index.as_u64().ok_or_else(|| format!("{semantic} is not an accessor index"))? as usize;
+            let index = index
+                .as_u64()
+                .ok_or_else(|| format!("{semantic} is not an accessor index"))? as usize;
             new_attr.insert(semantic.clone(), json!(self.remap(index, &g.xref, semantic)?));
         }
-        let uv_bytes: Vec<u8> = g.uv.iter().flat_map(|uv| uv.to_array()).flat_map(f32::to_le_bytes).collect();
+        let uv_bytes: Vec<u8> =
+            g.uv.iter()
+                .flat_map(|uv| uv.to_array())
+                .flat_map(f32::to_le_bytes)
+                .collect();
         let view = self.push_view(&uv_bytes, None, 34962);
-        let uv = self.push_accessor(json!({"bufferView": view, "componentType": 5126, "count": g.uv.len(), "type": "VEC2"}));
+        let uv =
+            self.push_accessor(json!({"bufferView": view, "componentType": 5126, "count": g.uv.len(), "type": "VEC2"}));
         new_attr.insert("TEXCOORD_1".into(), json!(uv));
         new_attr.entry("TEXCOORD_0").or_insert(json!(uv));
         prim["attributes"] = Value::Object(new_attr);
@@ -513,7 +537,10 @@ impl Writer<'_> {
             for t in targets {
                 let mut nt = serde_json::Map::new();
                 for (semantic, index) in t.as_object().into_iter().flatten() {
-                    let index = index.as_u64().ok_or("morph target attribute is not an accessor index")? as usize;
+                    let index = index
+                        .as_u64()
+                        .ok_or("morph target attribute is not an accessor index")?
+                        as usize;
                     nt.insert(semantic.clone(), json!(self.remap(index, &g.xref, semantic)?));
                 }
                 new_targets.push(Value::Object(nt));
@@ -522,7 +549,9 @@ impl Writer<'_> {
         }
         let idx: Vec<u8> = g.indices.iter().flat_map(|i| i.to_le_bytes()).collect();
         let view = self.push_view(&idx, None, 34963);
-        let indices = self.push_accessor(json!({"bufferView": view, "componentType": 5125, "count": g.indices.len(), "type": "SCALAR"}));
+        let indices = self.push_accessor(
+            json!({"bufferView": view, "componentType": 5125, "count": g.indices.len(), "type": "SCALAR"}),
+        );
         prim["indices"] = json!(indices);
         Ok(prim)
     }

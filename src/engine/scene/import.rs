@@ -124,7 +124,10 @@ pub fn import_slice_limited(
     for ext in gltf.extensions_required() {
         if !matches!(
             ext,
-            "KHR_lights_punctual" | "KHR_materials_emissive_strength" | "KHR_mesh_quantization" | "KHR_texture_transform"
+            "KHR_lights_punctual"
+                | "KHR_materials_emissive_strength"
+                | "KHR_mesh_quantization"
+                | "KHR_texture_transform"
         ) {
             report
                 .warnings
@@ -655,22 +658,38 @@ fn texture_transforms(json: &serde_json::Value, n: usize, warnings: &mut Vec<Str
             t.get(key)
                 .and_then(|v| v.as_array())
                 .filter(|a| a.len() == 2)
-                .map_or(default, |a| [a[0].as_f64().unwrap_or(0.0) as f32, a[1].as_f64().unwrap_or(0.0) as f32])
+                .map_or(default, |a| {
+                    [a[0].as_f64().unwrap_or(0.0) as f32, a[1].as_f64().unwrap_or(0.0) as f32]
+                })
         };
         let offset = pair("offset", [0.0, 0.0]);
         let scale = pair("scale", [1.0, 1.0]);
         let r = t.get("rotation").and_then(|v| v.as_f64()).unwrap_or(0.0) as f32;
-        let base_set = m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"].as_u64().unwrap_or(0);
-        if t.get("texCoord").and_then(|v| v.as_u64()).is_some_and(|set| set != base_set) {
+        let base_set = m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"]
+            .as_u64()
+            .unwrap_or(0);
+        if t.get("texCoord")
+            .and_then(|v| v.as_u64())
+            .is_some_and(|set| set != base_set)
+        {
             warnings.push(format!(
                 "material {i}: KHR_texture_transform.texCoord is not read (TEXCOORD_{} of the texture is used)",
-                m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"].as_u64().unwrap_or(0)
+                m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"]
+                    .as_u64()
+                    .unwrap_or(0)
             ));
         }
         // The extension's matrix: translation · rotation · scale, rotation's columns
         // (cos r, sin r) and (-sin r, cos r).
         let (c, s) = (r.cos(), r.sin());
-        out[i] = Some([c * scale[0], s * scale[0], -s * scale[1], c * scale[1], offset[0], offset[1]]);
+        out[i] = Some([
+            c * scale[0],
+            s * scale[0],
+            -s * scale[1],
+            c * scale[1],
+            offset[0],
+            offset[1],
+        ]);
     }
     out
 }
@@ -758,7 +777,11 @@ fn shared_authored_warning(
     }
     for (mesh, n) in users {
         if n > 1 && meshes[mesh].as_ref().is_some_and(LocalMesh::authored) {
-            let name = gltf.meshes().nth(mesh).and_then(|m| m.name().map(str::to_string)).unwrap_or_default();
+            let name = gltf
+                .meshes()
+                .nth(mesh)
+                .and_then(|m| m.name().map(str::to_string))
+                .unwrap_or_default();
             warnings.push(format!(
                 "mesh {mesh} \"{name}\" has authored TEXCOORD_1 and is placed by {n} nodes: unless their extras.lightmap.scale_offset differ, they share texels (lightmap_uvs: regenerate-all gives each its own rectangle)"
             ));
@@ -790,7 +813,11 @@ fn unread_features(json: &serde_json::Value, warnings: &mut Vec<String>) {
     if has("animations") {
         unread.push("animations".into());
     }
-    let materials = json.get("materials").and_then(|v| v.as_array()).cloned().unwrap_or_default();
+    let materials = json
+        .get("materials")
+        .and_then(|v| v.as_array())
+        .cloned()
+        .unwrap_or_default();
     if materials
         .iter()
         .any(|m| matches!(m.get("alphaMode").and_then(|v| v.as_str()), Some("MASK" | "BLEND")))
