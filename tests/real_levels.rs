@@ -10,7 +10,7 @@ use glam::{Vec2, Vec3};
 use lightmapd::engine::atlas::Atlas;
 use lightmapd::engine::atlas::unwrap::{LightmapUvs, UvUnwrap, generate_lightmap_uvs, generate_lightmap_uvs_with};
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
-use lightmapd::engine::scene::{ALBEDO_BOUND, Scene, export, import_slice};
+use lightmapd::engine::scene::{ALBEDO_BOUND, DEFAULT_MATERIAL_ALBEDO, Scene, export, import_slice};
 use serde_json::json;
 
 fn level(name: &str) -> Scene {
@@ -236,40 +236,31 @@ fn quantized_positions_missing_normals_and_texture_transform() {
     }
 }
 
-/// glTF's default material (white) is bounded for bounced light, and the report says so.
+/// glTF's default material (white) is bounded for bounced light, a file's albedo above
+/// 0.999 too, and the report says so.
 #[test]
 fn albedo_is_bounded_and_reported() {
     let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::diffuse("snow", [1.0, 0.5, 0.95]));
+    let m = b.material(MaterialDesc::diffuse("snow", [1.0, 0.5, 0.99]));
     b.square("floor", Vec3::ZERO, 2.0, Vec3::Y, m);
     let (mut json, bin) = b.to_gltf();
     let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert_eq!(scene.materials[0].base_color.truncate(), Vec3::new(ALBEDO_BOUND, 0.5, 0.99));
+    assert_eq!((report.albedo_bound, report.default_material_albedo), (0.999, 0.8));
     assert_eq!(
-        scene.materials[0].base_color.truncate(),
-        Vec3::new(ALBEDO_BOUND, 0.5, ALBEDO_BOUND)
+        report.warnings.iter().filter(|w| w.starts_with("albedo")).collect::<Vec<_>>(),
+        ["albedo bounded for bounced light (so paths in closed rooms end): snow to 0.999"]
     );
-    assert_eq!(report.albedo_bound, 0.9);
-    assert!(
-        report
-            .warnings
-            .iter()
-            .any(|w| w == "albedo bounded to 0.9 for bounced light (so paths in closed rooms end): snow"),
-        "{:?}",
-        report.warnings
-    );
-    json["meshes"][0]["primitives"][0]
-        .as_object_mut()
-        .unwrap()
-        .remove("material");
+    json["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("material");
     let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
     assert!(report.default_material_used);
     assert_eq!(scene.triangles[0].material as usize, scene.materials.len() - 1);
     assert_eq!(
         scene.albedo(&scene.triangles[0], Vec3::splat(1.0 / 3.0)),
-        Vec3::splat(ALBEDO_BOUND)
+        Vec3::splat(DEFAULT_MATERIAL_ALBEDO)
     );
     assert!(
-        report.warnings.iter().any(|w| w.ends_with(": snow, default")),
+        report.warnings.iter().any(|w| w.ends_with(": snow to 0.999, default to 0.8")),
         "{:?}",
         report.warnings
     );

@@ -70,6 +70,8 @@ pub struct ImportReport {
     pub texture_texels: u64,
     /// Largest diffuse albedo any material has for bounced light ([`super::ALBEDO_BOUND`]).
     pub albedo_bound: f32,
+    /// Albedo used for glTF's default (white) material ([`super::DEFAULT_MATERIAL_ALBEDO`]).
+    pub default_material_albedo: f32,
     /// Some primitive has no material (glTF's default white is used).
     pub default_material_used: bool,
     pub warnings: Vec<String>,
@@ -622,21 +624,27 @@ struct Flatten<'a> {
 /// Bounds every material's diffuse albedo for bounced light (module doc of `scene`).
 fn bound_albedo(materials: &mut [Material], report: &mut ImportReport) {
     report.albedo_bound = super::ALBEDO_BOUND;
+    report.default_material_albedo = super::DEFAULT_MATERIAL_ALBEDO;
+    let default = materials.len() - 1;
     let mut bounded = Vec::new();
-    for m in materials.iter_mut() {
+    for (k, m) in materials.iter_mut().enumerate() {
+        let bound = if k == default {
+            super::DEFAULT_MATERIAL_ALBEDO
+        } else {
+            super::ALBEDO_BOUND
+        };
         let rgb = m.base_color.truncate();
-        if rgb.max_element() > super::ALBEDO_BOUND {
-            m.base_color = rgb.min(Vec3::splat(super::ALBEDO_BOUND)).extend(m.base_color.w);
-            bounded.push(m.name.clone());
+        if rgb.max_element() > bound {
+            m.base_color = rgb.min(Vec3::splat(bound)).extend(m.base_color.w);
+            // glTF's default material is always in the list; only named when used.
+            if k != default || report.default_material_used {
+                bounded.push(format!("{} to {bound}", m.name));
+            }
         }
     }
-    let default = materials.len() - 1;
-    // glTF's default material is always in the list; only name it when a primitive uses it.
-    bounded.retain(|n| n != &materials[default].name || report.default_material_used);
     if !bounded.is_empty() {
         report.warnings.push(format!(
-            "albedo bounded to {} for bounced light (so paths in closed rooms end): {}",
-            super::ALBEDO_BOUND,
+            "albedo bounded for bounced light (so paths in closed rooms end): {}",
             bounded.join(", ")
         ));
     }
