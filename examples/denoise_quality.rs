@@ -41,7 +41,7 @@ fn path_tech(scene: &Arc<Scene>, atlas: &Arc<Atlas>, lighting: Lighting, seed: u
         seed,
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(scene, &request).unwrap();
+    let plan = lightmapd::engine::job::plan_for(scene, &request).unwrap();
     let inputs = BakeInputs {
         scene: scene.clone(),
         atlas: atlas.clone(),

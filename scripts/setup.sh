@@ -26,6 +26,15 @@ bash "$(dirname "$0")/setup-oidn.sh"
 
 [ "${1:-}" = "test" ] || exit 0
 
+# --- node and npm for scripts/validate-gltf.sh (Khronos glTF validator, tests/gltf_roundtrip.rs) ---
+if ! command -v node >/dev/null || ! command -v npm >/dev/null; then
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    echo "setup: installing nodejs npm" >&2
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends nodejs npm >/dev/null
+fi
+
 # --- PostgreSQL for the shared-queue tests (issue 11): its own script, see there. ---
 bash "$(dirname "$0")/setup-postgres.sh"
 

@@ -323,6 +323,13 @@ struct BakeArgs {
     /// Denoiser: auto (OIDN when installed, else own), oidn, own, none.
     #[arg(long, value_parser = lightmapd::engine::post::denoised::Denoiser::parse)]
     denoiser: Option<lightmapd::engine::post::denoised::Denoiser>,
+    /// Lightmap UVs: keep (authored only), generate-missing (default), regenerate-all.
+    #[arg(long, default_value = "generate-missing")]
+    lightmap_uvs: lightmapd::engine::atlas::unwrap::LightmapUvs,
+    /// Texel density of generated lightmap UVs (texels per metre); default: the highest
+    /// at which they fit one --resolution-wide page.
+    #[arg(long)]
+    texels_per_unit: Option<f32>,
     /// Also write the scene as .glb with its lightmap UVs (TEXCOORD_1), e.g. after they
     /// were generated for a scene that had none.
     #[arg(long)]
@@ -850,6 +857,8 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         } else {
             args.denoiser.unwrap_or_default()
         },
+        lightmap_uvs: args.lightmap_uvs,
+        texels_per_unit: args.texels_per_unit,
     };
 
     let (scene, report) =

@@ -53,7 +53,7 @@ fn errors(scene: &str, spp: u32, steps: u64, used: Used) -> (f64, f64, f32) {
         lighting: lib.lighting,
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&p.scene, &request).unwrap();
+    let plan = lightmapd::engine::job::plan_for(&p.scene, &request).unwrap();
     let inputs = BakeInputs {
         scene: p.scene.clone(),
         atlas: p.atlas.clone(),

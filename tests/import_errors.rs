@@ -186,8 +186,8 @@ fn no_lightmap_uvs_is_reported_not_refused() {
     assert_eq!(
         report.warnings,
         vec![
-            "mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1: lightmap UVs will be generated for the whole scene \
-             (bake --write-gltf saves them)"
+            "mesh 0 \"Floor\", primitive 0 has no TEXCOORD_1: lightmap UVs will be generated for the meshes without \
+             them, authored ones are kept (bake --write-gltf saves them)"
                 .to_string()
         ]
     );

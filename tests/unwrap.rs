@@ -5,6 +5,7 @@
 use std::sync::Arc;
 
 use glam::{Vec2, Vec3};
+use lightmapd::engine::atlas::unwrap::LightmapUvs;
 use lightmapd::engine::bake::StopCriteria;
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::post::{dilate, seams};
@@ -63,36 +64,7 @@ fn generated_uvs_bake_and_match_the_closed_form() {
     assert!(unwrap.charts >= 2 && unwrap.utilisation > 0.3, "{unwrap:?}");
     assert_eq!(result.atlas.overlapping_texels, 0, "generated charts must not overlap");
 
-    // What a renderer does: bilinear lookups at the surface's lightmap UV.
-    let atlas = &result.atlas;
-    let mut img = dilate(atlas, &result.estimate.total, 8);
-    seams::stitch(&mut img, atlas.width, atlas.height, &atlas.pixel_texel, &atlas.seams);
-    let scene = &result.scene;
-    let offset = scene.origin_offset.as_vec3();
-    let ground: Vec<_> = scene
-        .triangles
-        .iter()
-        .filter(|t| t.geometric_normal().y > 0.99 && (t.p[0].y + offset.y).abs() < 1e-3)
-        .collect();
-    assert_eq!(ground.len(), 2);
-    let mut rng = Rng::new(11, 0, 0, 0);
-    let (mut sum, mut worst, n) = (0.0f64, 0.0f64, 2000);
-    for _ in 0..n {
-        let t = ground[(rng.next_u32() as usize) % ground.len()];
-        let (mut a, mut b) = (rng.next_f32(), rng.next_f32());
-        if a + b > 1.0 {
-            (a, b) = (1.0 - a, 1.0 - b);
-        }
-        let bary = Vec3::new(1.0 - a - b, a, b);
-        let p = t.point(bary) + offset;
-        let uv = t.lm[0] * bary.x + t.lm[1] * bary.y + t.lm[2] * bary.z;
-        let want = sphere_occlusion(1.0, 1.0, 2.0, ((p.x * p.x + p.z * p.z) as f64).sqrt());
-        let got = bilinear(&img, atlas.width, atlas.height, uv).x as f64;
-        let err = (got - want).abs() / want;
-        sum += err;
-        worst = worst.max(err);
-    }
-    let mean = sum / n as f64;
+    let (mean, worst) = ground_error(&result);
     eprintln!("lookup at generated UVs vs closed form: mean relative error {mean:.4}, worst {worst:.4}");
     // 128 paths per texel leave about 3 % noise per texel before denoising (measured
     // after it: 0.4 % mean, 1.8 % worst); the lookup also interpolates across texels
@@ -159,4 +131,149 @@ fn lightmap_scale_from_extras() {
             .iter()
             .any(|w| w.contains("extras.lightmap_scale -1 is not a number in (0, 1000]"))
     );
+}
+
+/// Mean and worst relative error of bilinear lookups at the ground's lightmap UVs (what a
+/// renderer does) against the closed form of the sphere's occlusion.
+fn ground_error(result: &job::BakeResult) -> (f64, f64) {
+    // What a renderer does: bilinear lookups at the surface's lightmap UV.
+    let atlas = &result.atlas;
+    let mut img = dilate(atlas, &result.estimate.total, 8);
+    seams::stitch(&mut img, atlas.width, atlas.height, &atlas.pixel_texel, &atlas.seams);
+    let scene = &result.scene;
+    let offset = scene.origin_offset.as_vec3();
+    let ground: Vec<_> = scene
+        .triangles
+        .iter()
+        .filter(|t| t.geometric_normal().y > 0.99 && (t.p[0].y + offset.y).abs() < 1e-3)
+        .collect();
+    assert_eq!(ground.len(), 2);
+    let mut rng = Rng::new(11, 0, 0, 0);
+    let (mut sum, mut worst, n) = (0.0f64, 0.0f64, 2000);
+    for _ in 0..n {
+        let t = ground[(rng.next_u32() as usize) % ground.len()];
+        let (mut a, mut b) = (rng.next_f32(), rng.next_f32());
+        if a + b > 1.0 {
+            (a, b) = (1.0 - a, 1.0 - b);
+        }
+        let bary = Vec3::new(1.0 - a - b, a, b);
+        let p = t.point(bary) + offset;
+        let uv = t.lm[0] * bary.x + t.lm[1] * bary.y + t.lm[2] * bary.z;
+        let want = sphere_occlusion(1.0, 1.0, 2.0, ((p.x * p.x + p.z * p.z) as f64).sqrt());
+        let got = bilinear(&img, atlas.width, atlas.height, uv).x as f64;
+        let err = (got - want).abs() / want;
+        sum += err;
+        worst = worst.max(err);
+    }
+    (sum / n as f64, worst)
+}
+
+fn sky_request(resolution: u32) -> BakeRequest {
+    BakeRequest {
+        resolution,
+        lighting: Lighting {
+            sky: Some(Sky {
+                radiance: Vec3::ONE,
+                hemisphere: Hemisphere::Upper,
+            }),
+            sun: None,
+        },
+        stop: StopCriteria {
+            steps: Some(16),
+            ..Default::default()
+        },
+        params: json!({"samples_per_step": 8}),
+        ..Default::default()
+    }
+}
+
+/// Issue 19: only the ball lacks TEXCOORD_1. The ground's authored UVs come back bit for
+/// bit, the ball's new charts cover none of the ground's texels, and the lightmap read at
+/// the ground's authored UVs still matches the closed form.
+#[test]
+fn authored_uvs_are_kept_beside_generated_ones() {
+    let (mut json, bin) = sphere_over_plane().to_gltf();
+    json["meshes"][1]["primitives"][0]["attributes"]
+        .as_object_mut()
+        .unwrap()
+        .remove("TEXCOORD_1");
+    let input = write_glb(&json, &bin);
+    let (scene, report) = import_slice(&input, None).unwrap();
+    assert!(!report.has_lightmap_uvs);
+    let authored: Vec<_> = scene.triangles.iter().filter(|t| t.mesh == 0).map(|t| t.lm).collect();
+
+    let result = job::bake_unobserved(Arc::new(scene.clone()), &sky_request(128)).unwrap();
+    let unwrap = result.summary.generated_uvs.clone().expect("UVs were generated");
+    eprintln!("{unwrap:?}");
+    assert_eq!((unwrap.generated_meshes, unwrap.kept_meshes), (1, 1));
+    // The authored 128 x 128 page on top, the ball's charts below it.
+    assert_eq!(result.atlas.width, 128);
+    assert!(result.atlas.height > 128, "{}", result.atlas.height);
+    let squeeze = 128.0 / result.atlas.height as f32;
+    let baked = &result.scene;
+    for (t, lm) in baked.triangles.iter().filter(|t| t.mesh == 0).zip(&authored) {
+        for k in 0..3 {
+            assert_eq!(t.lm[k], Vec2::new(lm[k].x, lm[k].y * squeeze));
+        }
+    }
+    for t in baked.triangles.iter().filter(|t| t.mesh == 1) {
+        assert!(
+            t.lm.iter().all(|uv| uv.y >= squeeze),
+            "a generated chart reaches into the authored page"
+        );
+    }
+    assert_eq!(result.atlas.overlapping_texels, 0);
+    let ground_texels = result.atlas.texels.iter().filter(|t| t.mesh == 0).count();
+    assert!(ground_texels > 1000, "{ground_texels}");
+
+    let (mean, worst) = ground_error(&result);
+    eprintln!("authored ground beside generated ball: mean relative error {mean:.4}, worst {worst:.4}");
+    assert!(mean < 0.01, "mean relative error {mean}");
+    assert!(worst < 0.05, "worst relative error {worst}");
+
+    // The written glTF: the ground's TEXCOORD_1 accessor is the input's, byte for byte,
+    // and its node says which part of the taller page the authored UVs address.
+    let glb = export::to_glb(baked).unwrap();
+    let out = gltf::binary::Glb::from_slice(&glb).unwrap();
+    let doc: serde_json::Value = serde_json::from_slice(&out.json).unwrap();
+    let uv = |doc: &serde_json::Value, bin: &[u8], mesh: usize| -> Vec<u8> {
+        let a = doc["meshes"][mesh]["primitives"][0]["attributes"]["TEXCOORD_1"]
+            .as_u64()
+            .unwrap() as usize;
+        let acc = &doc["accessors"][a];
+        let view = &doc["bufferViews"][acc["bufferView"].as_u64().unwrap() as usize];
+        let start =
+            view["byteOffset"].as_u64().unwrap_or(0) as usize + acc["byteOffset"].as_u64().unwrap_or(0) as usize;
+        bin[start..start + 8 * acc["count"].as_u64().unwrap() as usize].to_vec()
+    };
+    assert_eq!(uv(&json, &bin, 0), uv(&doc, out.bin.as_ref().unwrap(), 0));
+    let so = &doc["nodes"][0]["extras"]["lightmap"]["scale_offset"];
+    assert_eq!(so, &json!([1.0, squeeze, 0.0, 0.0]));
+    // Re-imported, the file bakes to the same page UVs.
+    let (back, _) = import_slice(&glb, None).unwrap();
+    for (a, b) in back.triangles.iter().zip(&baked.triangles) {
+        for k in 0..3 {
+            assert!((a.lm[k] - b.lm[k]).abs().max_element() < 1e-6);
+        }
+    }
+
+    // keep: the ball's missing UVs are an error naming it; regenerate-all: one page.
+    let keep = BakeRequest {
+        lightmap_uvs: LightmapUvs::Keep,
+        ..sky_request(64)
+    };
+    let err = job::bake_unobserved(Arc::new(scene.clone()), &keep)
+        .err()
+        .expect("keep fails");
+    assert!(err.to_string().contains("mesh 1 \"ball\" has no TEXCOORD_1"), "{err}");
+    let mut all = scene.clone();
+    let r = lightmapd::engine::atlas::unwrap::generate_lightmap_uvs_with(
+        &mut all,
+        64,
+        LightmapUvs::RegenerateAll,
+        None,
+        &lightmapd::engine::atlas::unwrap::UvUnwrap,
+    )
+    .unwrap();
+    assert_eq!((r.generated_meshes, r.kept_meshes, r.width, r.height), (2, 0, 64, 64));
 }

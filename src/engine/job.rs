@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::engine::accumulate::{ErrorSummary, Estimate};
-use crate::engine::atlas::unwrap::{self, UnwrapReport};
+use crate::engine::atlas::unwrap::{self, LightmapUvs, UnwrapReport};
 use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
@@ -47,6 +47,14 @@ pub struct BakeRequest {
     /// `auto` / `none`.
     #[serde(default)]
     pub denoise: Denoiser,
+    /// Which lightmap UVs are used: authored kept, missing generated (`atlas::unwrap`).
+    #[serde(default)]
+    pub lightmap_uvs: LightmapUvs,
+    /// Texel density of generated charts (texels per metre, times each node's and mesh's
+    /// `extras.lightmap_scale`); None: the highest that fits one `resolution`-wide page.
+    /// Charts that need more than one page get several, stacked in one taller page.
+    #[serde(default)]
+    pub texels_per_unit: Option<f32>,
 }
 
 impl Default for BakeRequest {
@@ -64,6 +72,8 @@ impl Default for BakeRequest {
             outputs: Vec::new(),
             seed: 0,
             denoise: Denoiser::Auto,
+            lightmap_uvs: LightmapUvs::default(),
+            texels_per_unit: None,
         }
     }
 }
@@ -181,16 +191,40 @@ fn bake_impl(
         );
     }
     on_plan(&plan);
-    let (scene, unwrap) = if scene.needs_lightmap_uvs {
+    let regenerate = request.lightmap_uvs == LightmapUvs::RegenerateAll && scene.source.is_some();
+    let (scene, unwrap) = if (scene.needs_lightmap_uvs || regenerate) && scene.layout.is_none() {
         let mut generated = (*scene).clone();
-        let report = unwrap::generate_lightmap_uvs(&mut generated, request.resolution, &unwrap::UvUnwrap)
-            .map_err(|e| EngineError::BadInput(format!("generating lightmap UVs: {e}")))?;
+        let started = std::time::Instant::now();
+        let report = unwrap::generate_lightmap_uvs_with(
+            &mut generated,
+            request.resolution,
+            request.lightmap_uvs,
+            request.texels_per_unit,
+            &unwrap::UvUnwrap,
+        )
+        .map_err(|e| EngineError::BadInput(format!("generating lightmap UVs: {e}")))?;
+        tracing::info!(
+            charts = report.charts,
+            width = report.width,
+            height = report.height,
+            generated_meshes = report.generated_meshes,
+            kept_meshes = report.kept_meshes,
+            seconds = started.elapsed().as_secs_f64(),
+            "lightmap UVs generated"
+        );
+        for w in &report.warnings {
+            tracing::warn!("{w}");
+        }
         (Arc::new(generated), Some(report))
     } else {
         (scene, None)
     };
-    let mut atlas = Atlas::build(&scene, request.resolution, request.resolution)
-        .map_err(|e| EngineError::BadInput(e.to_string()))?;
+    // The page: W x W, or taller when generated charts sit below authored ones.
+    let (width, height) = scene
+        .layout
+        .as_ref()
+        .map_or((request.resolution, request.resolution), |l| (l.width, l.height));
+    let mut atlas = Atlas::build(&scene, width, height).map_err(|e| EngineError::BadInput(e.to_string()))?;
     let validation = validate::validate(&scene, &mut atlas);
     let atlas = Arc::new(atlas);
     let report = atlas.report();

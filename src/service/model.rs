@@ -285,6 +285,8 @@ impl JobSpec {
                 .as_deref()
                 .and_then(|d| Denoiser::parse(d).ok())
                 .unwrap_or_default(),
+            lightmap_uvs: Default::default(),
+            texels_per_unit: None,
         }
     }
 }

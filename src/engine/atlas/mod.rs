@@ -114,6 +114,18 @@ pub fn texel_centre_uv(i: u32, j: u32, width: u32, height: u32) -> Vec2 {
     Vec2::new((i as f32 + 0.5) / width as f32, (j as f32 + 0.5) / height as f32)
 }
 
+/// `(b - a) × (p - a)`, evaluated from the same endpoint whichever way the edge runs, so
+/// the two triangles sharing an edge get exactly opposite values: a texel centre within
+/// rounding of a shared edge is then claimed by exactly one of them (evaluated from `a` in
+/// one and from `b` in the other, the two roundings could both come out positive).
+fn edge_function(a: Vec2, b: Vec2, p: Vec2) -> f32 {
+    if (a.x, a.y) <= (b.x, b.y) {
+        (b - a).perp_dot(p - a)
+    } else {
+        -((a - b).perp_dot(p - b))
+    }
+}
+
 struct Claim {
     triangle: u32,
     bary: Vec3,
@@ -165,7 +177,7 @@ impl Atlas {
                     let mut e = [0.0f32; 3];
                     let mut inside = true;
                     for (k, (a, b)) in edges.iter().enumerate() {
-                        e[k] = (q[*b] - q[*a]).perp_dot(p - q[*a]);
+                        e[k] = edge_function(q[*a], q[*b], p);
                         if e[k] < 0.0 || (e[k] == 0.0 && !owns[k]) {
                             inside = false;
                             break;

@@ -1,156 +1,453 @@
-//! Lightmap UV generation for scenes whose meshes have no `TEXCOORD_1`.
+//! Lightmap UV generation for meshes without `TEXCOORD_1`, packed beside the authored ones.
 //!
-//! How: every triangle of the (flattened, world-space) scene goes to an [`Unwrapper`];
-//! the one used is the `uvunwrap` crate (region-growing charts within a normal cone,
-//! LSCM + ARAP flattening, shape packing), behind this small trait because the crate is
-//! young and xatlas-rs does not link here (../shared/NOTES.md). World space means every
-//! instance of a mesh gets its own charts, as a lightmap needs. The page is the job's
-//! lightmap resolution, with a padding of 3 texels (charts at least 6 apart): enough
-//! for the gutter links, bilinear filtering and one mip level, and the dilation fills
-//! the rest. `uvunwrap` is built without its `direct-solver` feature: the output is then
-//! the same on every CPU, so a lightmap baked on one machine fits UVs made on another.
+//! How: each glTF mesh that needs UVs is unwrapped once, in its own space, by an
+//! [`Unwrapper`]; the one used is the `uvunwrap` crate (region-growing charts within a
+//! normal cone, LSCM + ARAP flattening, shape packing), behind this small trait because
+//! the crate is young and xatlas-rs does not link here (../shared/NOTES.md). Every node
+//! that places the mesh is an *instance*: `uvunwrap` gives each its own unrotated
+//! rectangle on a page holding the mesh's layout at the instance's scale (the cube root of
+//! its transform's |determinant| times `extras.lightmap_scale` of node and mesh, the
+//! "scale in lightmap" of Unity and Bakery). The mesh's `TEXCOORD_1` is then its layout in
+//! [0, 1], shared by all instances, and each instance's page UV is
+//! `TEXCOORD_1 · (sx, sy) + (ox, oy)` (its `scale_offset`, Unity's `lightmapScaleOffset`;
+//! docs/conventions.md). Charts never span primitives, so each primitive's vertices are
+//! split only where one of its UV seams runs.
 //!
-//! Each mesh's charts are scaled by its `lightmap_scale` (glTF mesh `extras`), the
-//! "scale in lightmap" of Unity and Bakery.
+//! Authored UVs are kept bit for bit (`lightmap_uvs: generate-missing`, the default, or
+//! `keep`): a mesh is *authored* when every TRIANGLES primitive has `TEXCOORD_1`. The
+//! packer cannot place charts around existing ones, so when a scene has both kinds the
+//! page is made taller instead: rows `[0, W)` are the authored W × W page exactly as
+//! authored, the generated pages follow below it (each W wide), and the authored nodes'
+//! `scale_offset` becomes `[1, W/H, 0, 0]`. Generated content that needs several W × W
+//! pages is stacked the same way, so a scene never fails because its charts do not fit
+//! one page; the page may not exceed [`MAX_RESOLUTION`](super::MAX_RESOLUTION) rows.
+//! Without authored meshes and with one page the page stays W × W (`--resolution N` is
+//! one N × N page).
 //!
-//! Limits: all lightmap UVs of the scene are regenerated when any mesh lacks them (the
-//! packer cannot place new charts around existing ones); a scene with too many charts
-//! for one page at this resolution is an error that says to raise the resolution.
+//! Padding: 3 texels (charts at least 6 apart): enough for the gutter links, bilinear
+//! filtering and one mip level; dilation fills the rest. `uvunwrap` is built without its
+//! `direct-solver` feature: the output is then the same on every CPU, so a lightmap baked
+//! on one machine fits UVs made on another.
+//!
+//! Limits: an instance whose transform scales non-uniformly gets stretched texels (the
+//! layout is shared); above a ratio of [`ANISOTROPY_WARNING`] between its largest and
+//! smallest axis scale the report warns, naming the node (its own unwrap would need a
+//! copy of the mesh). All instances of a mesh share a layout padded for the smallest, so a
+//! much larger instance gets proportionally wider padding.
 
-use glam::Vec2;
-use serde::Serialize;
+use std::collections::HashMap;
 
-use crate::engine::scene::Scene;
+use glam::{DMat3, Vec2};
+use serde::{Deserialize, Serialize};
+
+use crate::engine::scene::{GeneratedMesh, GeneratedPrimitive, LightmapLayout, Scene};
 
 /// Padding around each chart, in texels.
 pub const PADDING: u32 = 3;
 
-/// One mesh's world-space triangles and its relative texel density.
+/// Axis-scale ratio of an instance's transform above which the report warns that its
+/// texels are stretched.
+pub const ANISOTROPY_WARNING: f64 = 2.0;
+
+/// Which lightmap UVs a bake uses (`lightmap_uvs` in a job, `--lightmap-uvs` on the CLI).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LightmapUvs {
+    /// Only authored `TEXCOORD_1`; a mesh without is an error naming it.
+    Keep,
+    /// Authored UVs kept, the others generated (the default).
+    #[default]
+    GenerateMissing,
+    /// Every mesh gets generated UVs (authored ones are replaced in the written glTF).
+    RegenerateAll,
+}
+
+impl std::str::FromStr for LightmapUvs {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "keep" => Ok(LightmapUvs::Keep),
+            "generate-missing" => Ok(LightmapUvs::GenerateMissing),
+            "regenerate-all" => Ok(LightmapUvs::RegenerateAll),
+            _ => Err(format!(
+                "lightmap_uvs must be keep, generate-missing or regenerate-all, got {s:?}"
+            )),
+        }
+    }
+}
+
+/// One mesh to unwrap, in its own space.
 pub struct UnwrapMesh {
-    pub triangles: Vec<[[f32; 3]; 3]>,
-    pub scale: f32,
+    pub positions: Vec<[f32; 3]>,
+    pub indices: Vec<u32>,
+    /// Per triangle, a group (the primitive): charts never span groups.
+    pub groups: Vec<u32>,
+    /// One scale per instance (> 0), see the module doc.
+    pub instance_scales: Vec<f32>,
 }
 
-/// Meshes in, one lightmap UV per triangle corner out (in [0, 1], DESIGN §2's
-/// orientation), in the same order. Charts never span meshes; all share one page.
+/// One unwrapped mesh: split vertices (UV in the mesh's [0, 1] layout), the same triangles
+/// over them, and per instance its page and rectangle `[min, max]` in page UV.
+pub struct UnwrappedMesh {
+    pub uv: Vec<Vec2>,
+    pub indices: Vec<u32>,
+    pub instances: Vec<(u32, Vec2, Vec2)>,
+}
+
+/// The unwrap of every mesh: pages of `width` × `page_height` texels.
+pub struct Unwrapped {
+    pub meshes: Vec<UnwrappedMesh>,
+    pub width: u32,
+    pub page_height: u32,
+    pub pages: u32,
+    pub charts: u32,
+    pub texels_per_metre: f32,
+}
+
+/// Meshes in (each with its instances), layouts and rectangles out, in the same order.
 pub trait Unwrapper {
-    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32) -> Result<Unwrapped, String>;
+    /// Pages are `resolution` wide; `texels_per_unit` None: the highest density at which
+    /// everything fits one page (several pages only when it cannot fit at any density).
+    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32, texels_per_unit: Option<f32>)
+    -> Result<Unwrapped, String>;
 }
-
-/// Per mesh, per triangle, the three corners' lightmap UVs; and the report.
-pub type Unwrapped = (Vec<Vec<[Vec2; 3]>>, UnwrapReport);
 
 #[derive(Clone, Debug, Serialize, PartialEq)]
 pub struct UnwrapReport {
     pub charts: u32,
-    /// Fraction of the page covered by charts.
+    /// Fraction of the page covered by the charts of generated meshes.
     pub utilisation: f32,
     pub texels_per_metre: f32,
+    /// The page: `width` × `height` texels (taller than wide when authored UVs were kept
+    /// beside generated ones, or the generated charts needed several pages).
+    pub width: u32,
+    pub height: u32,
+    /// W × W pages of generated charts stacked in it.
+    pub generated_pages: u32,
+    /// Meshes unwrapped, and meshes whose authored UVs were kept.
+    pub generated_meshes: usize,
+    pub kept_meshes: usize,
+    /// Nodes with their own rectangle (and `extras.lightmap` in the written glTF).
+    pub instances: usize,
+    pub warnings: Vec<String>,
 }
 
 /// The `uvunwrap` crate.
 pub struct UvUnwrap;
 
 impl Unwrapper for UvUnwrap {
-    fn unwrap(&self, meshes: &[UnwrapMesh], resolution: u32) -> Result<Unwrapped, String> {
-        let positions: Vec<Vec<[f32; 3]>> = meshes
-            .iter()
-            .map(|m| m.triangles.iter().flatten().copied().collect())
-            .collect();
-        let indices: Vec<Vec<u32>> = positions.iter().map(|p| (0..p.len() as u32).collect()).collect();
+    fn unwrap(
+        &self,
+        meshes: &[UnwrapMesh],
+        resolution: u32,
+        texels_per_unit: Option<f32>,
+    ) -> Result<Unwrapped, String> {
         let inputs: Vec<uvunwrap::MeshInput> = meshes
             .iter()
-            .enumerate()
-            .map(|(k, m)| {
-                let mut input = uvunwrap::MeshInput::new(&positions[k], &indices[k]);
-                input.scale = m.scale;
-                input
+            .map(|m| uvunwrap::MeshInput {
+                face_materials: Some(&m.groups),
+                instance_scales: &m.instance_scales,
+                ..uvunwrap::MeshInput::new(&m.positions, &m.indices)
             })
             .collect();
+        let density = match texels_per_unit {
+            None => uvunwrap::Density::Auto { page_size: resolution },
+            Some(t) => uvunwrap::Density::Fixed {
+                texels_per_unit: t,
+                page_size: Some(resolution),
+            },
+        };
         let options = uvunwrap::Options {
-            density: uvunwrap::Density::Auto { page_size: resolution },
+            density,
             padding: PADDING,
+            // A chart larger than a page is scaled down to fit it (with a lower density)
+            // rather than failing the bake.
+            max_chart_size: resolution.saturating_sub(2 * PADDING + 2).max(1),
             ..Default::default()
         };
         let atlas = uvunwrap::generate(&inputs, &options).map_err(|e| e.to_string())?;
-        if atlas.page_count > 1 {
-            return Err(format!(
-                "{} charts do not fit one {resolution}x{resolution} lightmap: raise the resolution",
-                atlas.chart_count
-            ));
-        }
-        // A cropped page is shorter than it is wide: v is relative to its height.
-        let v_scale = atlas.height as f32 / resolution as f32;
-        let u_scale = atlas.width as f32 / resolution as f32;
         let out = atlas
             .meshes
             .iter()
-            .zip(meshes)
-            .map(|(mesh, input)| {
-                let uv = |i: u32| {
-                    let v = &mesh.vertices[mesh.indices[i as usize] as usize];
-                    Vec2::new(v.uv[0] * u_scale, v.uv[1] * v_scale).clamp(Vec2::ZERO, Vec2::ONE)
-                };
-                (0..input.triangles.len() as u32)
-                    .map(|t| [uv(3 * t), uv(3 * t + 1), uv(3 * t + 2)])
-                    .collect()
+            .map(|mesh| UnwrappedMesh {
+                uv: mesh
+                    .vertices
+                    .iter()
+                    .map(|v| Vec2::from_array(v.uv).clamp(Vec2::ZERO, Vec2::ONE))
+                    .collect(),
+                indices: mesh.indices.clone(),
+                instances: mesh
+                    .instances
+                    .iter()
+                    .map(|r| (r.page, Vec2::from_array(r.min), Vec2::from_array(r.max)))
+                    .collect(),
             })
             .collect();
-        Ok((
-            out,
-            UnwrapReport {
-                charts: atlas.chart_count,
-                utilisation: atlas.utilization * (u_scale * v_scale),
-                texels_per_metre: atlas.texels_per_unit,
-            },
-        ))
+        Ok(Unwrapped {
+            meshes: out,
+            width: atlas.width,
+            page_height: atlas.height,
+            pages: atlas.page_count,
+            charts: atlas.chart_count,
+            texels_per_metre: atlas.texels_per_unit,
+        })
     }
 }
 
-/// Gives every triangle of `scene` a generated lightmap UV for a `resolution`² lightmap.
+/// [`generate_lightmap_uvs_with`] with the default `generate-missing`.
 pub fn generate_lightmap_uvs(
     scene: &mut Scene,
     resolution: u32,
     unwrapper: &dyn Unwrapper,
 ) -> Result<UnwrapReport, String> {
-    // Group triangles by mesh (each mesh's charts get its own density), remembering where
-    // each triangle came from.
-    let mut groups: Vec<(usize, UnwrapMesh, Vec<usize>)> = Vec::new();
-    let mut slot = std::collections::HashMap::new();
-    for (i, t) in scene.triangles.iter().enumerate() {
-        let g = *slot.entry(t.mesh).or_insert_with(|| {
-            let scale = scene.meshes.get(t.mesh as usize).map_or(1.0, |m| m.lightmap_scale);
-            groups.push((
-                t.mesh as usize,
-                UnwrapMesh {
-                    triangles: Vec::new(),
-                    scale,
-                },
-                Vec::new(),
-            ));
-            groups.len() - 1
-        });
-        groups[g].1.triangles.push(t.p.map(|p| p.to_array()));
-        groups[g].2.push(i);
+    generate_lightmap_uvs_with(scene, resolution, LightmapUvs::GenerateMissing, None, unwrapper)
+}
+
+/// Gives the meshes `mode` selects generated lightmap UVs, packed beside the authored
+/// ones (module doc), and records the layout in `scene.layout` for the written glTF.
+/// `resolution` is the page width W.
+pub fn generate_lightmap_uvs_with(
+    scene: &mut Scene,
+    resolution: u32,
+    mode: LightmapUvs,
+    texels_per_unit: Option<f32>,
+    unwrapper: &dyn Unwrapper,
+) -> Result<UnwrapReport, String> {
+    if let Some(t) = texels_per_unit
+        && !(t.is_finite() && t > 0.0)
+    {
+        return Err(format!("texels_per_unit must be a positive number, got {t}"));
     }
-    let meshes: Vec<UnwrapMesh> = groups
-        .iter_mut()
-        .map(|g| {
-            std::mem::replace(
-                &mut g.1,
-                UnwrapMesh {
-                    triangles: Vec::new(),
-                    scale: 1.0,
-                },
-            )
-        })
-        .collect();
-    let (uvs, report) = unwrapper.unwrap(&meshes, resolution)?;
-    for ((_, _, tris), mesh_uvs) in groups.iter().zip(uvs) {
-        for (i, uv) in tris.iter().zip(mesh_uvs) {
-            scene.triangles[*i].lm = uv;
+    let source = scene
+        .source
+        .clone()
+        .ok_or("the scene has no source document to unwrap")?;
+    let mesh_name = |m: usize| -> String {
+        match scene.meshes.get(m).map(|i| i.name.as_str()).filter(|n| !n.is_empty()) {
+            Some(n) => format!("mesh {m} \"{n}\""),
+            None => format!("mesh {m}"),
+        }
+    };
+    // Which meshes get generated UVs: those placed by some node that did not opt out.
+    let mut generate = vec![false; source.meshes.len()];
+    let mut kept = vec![false; source.meshes.len()];
+    for inst in source.instances.iter().filter(|i| !i.opt_out) {
+        let Some(local) = source.meshes[inst.mesh].as_ref() else {
+            continue;
+        };
+        let authored = local.authored();
+        match mode {
+            LightmapUvs::Keep if !authored => {
+                return Err(format!(
+                    "{} has no TEXCOORD_1 and lightmap_uvs is keep (use generate-missing)",
+                    mesh_name(inst.mesh)
+                ));
+            }
+            LightmapUvs::RegenerateAll => generate[inst.mesh] = true,
+            _ if authored => kept[inst.mesh] = true,
+            _ => generate[inst.mesh] = true,
         }
     }
+
+    // One UnwrapMesh per generated mesh: its primitives concatenated, a group each.
+    let mut warnings = Vec::new();
+    let mut order: Vec<usize> = Vec::new(); // glTF mesh index per UnwrapMesh
+    let mut inputs: Vec<UnwrapMesh> = Vec::new();
+    let mut instance_slot: Vec<Option<(usize, usize)>> = vec![None; source.instances.len()];
+    for (m, local) in source.meshes.iter().enumerate() {
+        let Some(local) = local.as_ref().filter(|_| generate[m]) else {
+            continue;
+        };
+        let mut input = UnwrapMesh {
+            positions: Vec::new(),
+            indices: Vec::new(),
+            groups: Vec::new(),
+            instance_scales: Vec::new(),
+        };
+        for (p, prim) in local.primitives.iter().enumerate() {
+            let Some(prim) = prim else { continue };
+            let base = input.positions.len() as u32;
+            input.positions.extend(prim.positions.iter().map(|v| v.to_array()));
+            input.indices.extend(prim.indices.iter().map(|i| i + base));
+            input
+                .groups
+                .extend(std::iter::repeat_n(p as u32, prim.indices.len() / 3));
+        }
+        for (k, inst) in source.instances.iter().enumerate() {
+            if inst.mesh != m || inst.opt_out {
+                continue;
+            }
+            let lin = DMat3::from_mat4(inst.world);
+            let axes = [lin.x_axis.length(), lin.y_axis.length(), lin.z_axis.length()];
+            let det = lin.determinant().abs();
+            if !(det.is_finite() && det > 1e-30) {
+                return Err(format!(
+                    "node {} places {} with a singular transform (determinant {det:e})",
+                    inst.node,
+                    mesh_name(m)
+                ));
+            }
+            let ratio = axes.iter().cloned().fold(0.0, f64::max) / axes.iter().cloned().fold(f64::INFINITY, f64::min);
+            if ratio > ANISOTROPY_WARNING {
+                warnings.push(format!(
+                    "node {} scales {} {ratio:.1}x more along one axis than another: its lightmap texels are stretched as much",
+                    inst.node,
+                    mesh_name(m)
+                ));
+            }
+            instance_slot[k] = Some((inputs.len(), input.instance_scales.len()));
+            input
+                .instance_scales
+                .push((det.cbrt() as f32 * inst.lightmap_scale).max(1e-6));
+        }
+        if input.indices.is_empty() {
+            continue;
+        }
+        order.push(m);
+        inputs.push(input);
+    }
+
+    let w = resolution;
+    let authored_rows = if kept.iter().any(|k| *k) { w } else { 0 };
+    let unwrapped = if inputs.is_empty() {
+        None
+    } else {
+        Some(unwrapper.unwrap(&inputs, resolution, texels_per_unit)?)
+    };
+    // Page rows: the authored page first, then each generated page.
+    let (page_h, pages) = unwrapped.as_ref().map_or((0, 0), |u| (u.page_height, u.pages));
+    let height = if authored_rows == 0 && pages == 1 {
+        w.max(page_h)
+    } else {
+        authored_rows + pages * page_h
+    };
+    if height > super::MAX_RESOLUTION {
+        return Err(format!(
+            "the generated charts need {pages} pages of {w}x{page_h}: {height} rows in all, more than {}; lower the resolution or the meshes' extras.lightmap_scale",
+            super::MAX_RESOLUTION
+        ));
+    }
+    if let Some(u) = &unwrapped
+        && u.width != w
+    {
+        return Err(format!(
+            "the unwrapper made {}-wide pages for a {w}-wide lightmap",
+            u.width
+        ));
+    }
+    let (wf, hf) = (w as f32, height as f32);
+
+    let mut layout = LightmapLayout {
+        width: w,
+        height,
+        meshes: vec![None; source.meshes.len()],
+        scale_offset: vec![None; source.instances.len()],
+    };
+    // Per generated mesh: per primitive, split vertices = distinct (original vertex,
+    // unwrapped vertex) pairs over its corners.
+    if let Some(u) = &unwrapped {
+        for (slot, &m) in order.iter().enumerate() {
+            let local = source.meshes[m].as_ref().expect("generated meshes are placed");
+            let out = &u.meshes[slot];
+            let mut generated = GeneratedMesh {
+                primitives: vec![None; local.primitives.len()],
+            };
+            let mut face = 0usize;
+            for (p, prim) in local.primitives.iter().enumerate() {
+                let Some(prim) = prim else { continue };
+                let mut map: HashMap<(u32, u32), u32> = HashMap::new();
+                let mut g = GeneratedPrimitive::default();
+                for (c, &orig) in prim.indices.iter().enumerate() {
+                    let new = out.indices[3 * face + c];
+                    let next = g.xref.len() as u32;
+                    let id = *map.entry((orig, new)).or_insert_with(|| {
+                        g.xref.push(orig);
+                        g.uv.push(out.uv[new as usize]);
+                        next
+                    });
+                    g.indices.push(id);
+                }
+                face += prim.indices.len() / 3;
+                generated.primitives[p] = Some(g);
+            }
+            layout.meshes[m] = Some(generated);
+        }
+        for (k, slot) in instance_slot.iter().enumerate() {
+            let Some((mi, ii)) = slot else { continue };
+            let (page, lo, hi) = u.meshes[*mi].instances[*ii];
+            let top = authored_rows as f32 + (page * page_h) as f32;
+            let size = (hi - lo) * Vec2::new(1.0, page_h as f32 / hf);
+            layout.scale_offset[k] = Some([size.x, size.y, lo.x, (top + lo.y * page_h as f32) / hf]);
+        }
+    }
+    // Authored instances keep their UVs; only the page they address grew.
+    let squeeze = wf / hf;
+    for (k, inst) in source.instances.iter().enumerate() {
+        if !inst.opt_out && kept[inst.mesh] {
+            let [sx, sy, ox, oy] = inst.authored_scale_offset;
+            layout.scale_offset[k] = Some([sx, sy * squeeze, ox, oy * squeeze]);
+        }
+    }
+
+    // The baked triangles: page UV of each corner.
+    for (k, inst) in source.instances.iter().enumerate() {
+        let range = inst.triangles.clone();
+        if inst.opt_out {
+            continue;
+        }
+        if kept[inst.mesh] {
+            if squeeze != 1.0 {
+                for t in &mut scene.triangles[range] {
+                    t.lm.iter_mut().for_each(|uv| uv.y *= squeeze);
+                }
+            }
+            continue;
+        }
+        let (Some(generated), Some(so)) = (layout.meshes[inst.mesh].as_ref(), layout.scale_offset[k]) else {
+            continue;
+        };
+        let (s, o) = (Vec2::new(so[0], so[1]), Vec2::new(so[2], so[3]));
+        for ti in range {
+            let src = scene.tri_source[ti];
+            let Some(g) = generated.primitives[src.primitive as usize].as_ref() else {
+                continue;
+            };
+            let c = |j: usize| {
+                (g.uv[g.indices[3 * src.triangle as usize + j] as usize] * s + o).clamp(Vec2::ZERO, Vec2::ONE)
+            };
+            scene.triangles[ti].lm = if src.mirrored {
+                [c(0), c(2), c(1)]
+            } else {
+                [c(0), c(1), c(2)]
+            };
+        }
+    }
+
+    let report = UnwrapReport {
+        charts: unwrapped.as_ref().map_or(0, |u| u.charts),
+        utilisation: utilisation(scene, &source.instances, &generate),
+        texels_per_metre: unwrapped.as_ref().map_or(0.0, |u| u.texels_per_metre),
+        width: w,
+        height,
+        generated_pages: pages,
+        generated_meshes: order.len(),
+        kept_meshes: kept.iter().filter(|k| **k).count(),
+        instances: layout.scale_offset.iter().filter(|s| s.is_some()).count(),
+        warnings,
+    };
+    scene.layout = Some(std::sync::Arc::new(layout));
     scene.needs_lightmap_uvs = false;
     Ok(report)
+}
+
+/// UV area of the generated meshes' triangles over the page's: how much of it the new
+/// charts cover.
+fn utilisation(scene: &Scene, instances: &[crate::engine::scene::Instance], generate: &[bool]) -> f32 {
+    let mut area = 0.0f64;
+    for inst in instances.iter().filter(|i| !i.opt_out && generate[i.mesh]) {
+        for t in &scene.triangles[inst.triangles.clone()] {
+            area += 0.5 * f64::from((t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs());
+        }
+    }
+    area as f32
 }

@@ -1,17 +1,25 @@
-//! Writes a scene back as `.glb`, with its lightmap UVs as `TEXCOORD_1`: after UV
-//! generation, this is the file a renderer needs next to the lightmap.
+//! Writes the baked level back as `.glb`: the input document with lightmap UVs added,
+//! the file a renderer needs next to the lightmap.
 //!
-//! How: one glTF mesh per source mesh (every instance's triangles, already in world
-//! space), one node per mesh translated by the scene's origin offset (JSON numbers keep
-//! it in double precision, so a scene far from the origin comes back where it was);
-//! positions, normals, `TEXCOORD_0` and `TEXCOORD_1` per triangle corner; materials with
-//! their factors, emission (strength via `KHR_materials_emissive_strength`) and
-//! textures, re-encoded as 8-bit sRGB PNG; punctual lights as `KHR_lights_punctual`.
+//! How ([`to_glb`]): the input's JSON is copied as it was parsed (node hierarchy, names,
+//! transforms, mesh sharing, primitives and their materials, samplers, textures,
+//! extensions and extras), its buffers are concatenated into the GLB binary chunk (each
+//! buffer view re-pointed, no data re-encoded; external images are embedded byte for
+//! byte). Only primitives of meshes that got generated UVs change: their vertices are
+//! split where a UV seam needs it (every attribute and morph target copied per split
+//! vertex, in its own component type), with new indices and a new `TEXCOORD_1`; a
+//! primitive with no `TEXCOORD_0` gets the same accessor as `TEXCOORD_0` too, because
+//! glTF requires texture coordinate sets to be numbered from 0 without gaps. Authored
+//! `TEXCOORD_1` accessors are left untouched (bit for bit). Every node of the scene that
+//! places a mesh and did not opt out gets `extras.lightmap = {"page", "scale_offset",
+//! "file"}` (docs/conventions.md); other keys of its `extras` stay.
 //!
-//! Limits: the node hierarchy is flattened (instances become separate geometry, as
-//! their lightmap UVs differ); vertices are not welded; 16-bit textures come back as
-//! 8-bit; texture transforms, alpha modes and extensions other than the two above are
-//! not written.
+//! The accessors a split primitive used before are kept (other primitives may share
+//! them), so the file carries them unused; the validator reports that as information.
+//!
+//! Limits: sparse accessors on a primitive that gets new vertices are an error; a node
+//! whose `extras` is not a JSON object gets no `extras.lightmap` (the file stays valid).
+//! [`to_glb_flattened`] is the older writer for scenes without a source document.
 
 use std::collections::BTreeMap;
 
@@ -19,10 +27,10 @@ use glam::{Quat, Vec2, Vec3};
 use serde_json::{Value, json};
 
 use super::build::write_glb;
-use super::{LightKind, Scene, Triangle, Wrap};
+use super::{GeneratedPrimitive, LightKind, Scene, SourceDocument, Triangle, Wrap};
 
-/// The scene as GLB bytes.
-pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
+/// The scene flattened into world space, one node per mesh (no source document needed).
+pub fn to_glb_flattened(scene: &Scene) -> Result<Vec<u8>, String> {
     let mut bin: Vec<u8> = Vec::new();
     let mut views: Vec<Value> = Vec::new();
     let mut accessors: Vec<Value> = Vec::new();
@@ -225,4 +233,326 @@ fn linear_to_srgb8(c: f32) -> u8 {
         1.055 * c.powf(1.0 / 2.4) - 0.055
     };
     (s * 255.0).round() as u8
+}
+
+/// The lightmap EXR of page `page`, as `extras.lightmap.file` names it.
+pub fn page_file(page: u32) -> String {
+    format!("lightmap-{page}.exr")
+}
+
+/// The input document with lightmap UVs added (module doc).
+pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
+    let Some(source) = scene.source.as_deref() else {
+        return to_glb_flattened(scene);
+    };
+    let mut doc = source.json.clone();
+    let mut bin: Vec<u8> = Vec::new();
+
+    // Buffers, one after another in the binary chunk; views re-pointed.
+    let declared: Vec<usize> = doc["buffers"]
+        .as_array()
+        .map(|a| {
+            a.iter()
+                .map(|b| b["byteLength"].as_u64().unwrap_or(0) as usize)
+                .collect()
+        })
+        .unwrap_or_default();
+    let mut base = Vec::new();
+    for (i, data) in source.buffers.iter().enumerate() {
+        align(&mut bin, 16);
+        base.push(bin.len());
+        let len = declared.get(i).copied().unwrap_or(data.len()).min(data.len());
+        bin.extend_from_slice(&data[..len]);
+    }
+    if let Some(views) = doc.get_mut("bufferViews").and_then(Value::as_array_mut) {
+        for v in views {
+            let b = v["buffer"].as_u64().unwrap_or(0) as usize;
+            let off = v["byteOffset"].as_u64().unwrap_or(0) as usize + base.get(b).copied().unwrap_or(0);
+            v["buffer"] = json!(0);
+            v["byteOffset"] = json!(off);
+        }
+    }
+    let mut new_views: Vec<Value> = Vec::new();
+    let view_count = doc["bufferViews"].as_array().map_or(0, Vec::len);
+    // External images are embedded as they are (not re-encoded).
+    if let Some(images) = doc.get_mut("images").and_then(Value::as_array_mut) {
+        for (i, img) in images.iter_mut().enumerate() {
+            let Some(uri) = img["uri"].as_str().map(str::to_string) else {
+                continue;
+            };
+            if uri.starts_with("data:") {
+                continue;
+            }
+            let bytes = super::import::read_external(&uri, source.base_dir.as_deref())
+                .map_err(|e| format!("image {i}: {e}"))?;
+            let mime = if bytes.starts_with(b"\x89PNG") {
+                "image/png"
+            } else {
+                "image/jpeg"
+            };
+            align(&mut bin, 4);
+            new_views.push(json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": bytes.len()}));
+            bin.extend_from_slice(&bytes);
+            let obj = img.as_object_mut().ok_or("image is not an object")?;
+            obj.remove("uri");
+            obj.insert("bufferView".into(), json!(view_count + new_views.len() - 1));
+            obj.insert(
+                "mimeType".into(),
+                json!(obj.get("mimeType").cloned().unwrap_or(json!(mime))),
+            );
+        }
+    }
+
+    // Generated UVs: new vertices per primitive.
+    let mut new_accessors: Vec<Value> = Vec::new();
+    let accessor_count = doc["accessors"].as_array().map_or(0, Vec::len);
+    if let Some(layout) = scene.layout.as_deref() {
+        for (m, generated) in layout.meshes.iter().enumerate() {
+            let Some(generated) = generated else { continue };
+            for (p, g) in generated.primitives.iter().enumerate() {
+                let Some(g) = g else { continue };
+                let prim = doc["meshes"][m]["primitives"][p].clone();
+                let mut w = Writer {
+                    doc: &doc,
+                    source,
+                    bin: &mut bin,
+                    views: &mut new_views,
+                    view_base: view_count,
+                    accessors: &mut new_accessors,
+                    accessor_base: accessor_count,
+                };
+                let prim = w
+                    .split_primitive(&prim, g)
+                    .map_err(|e| format!("mesh {m}, primitive {p}: {e}"))?;
+                doc["meshes"][m]["primitives"][p] = prim;
+            }
+        }
+    }
+    if !new_views.is_empty() {
+        match doc.get_mut("bufferViews").and_then(Value::as_array_mut) {
+            Some(v) => v.extend(new_views),
+            None => doc["bufferViews"] = Value::Array(new_views),
+        }
+    }
+    if !new_accessors.is_empty() {
+        match doc.get_mut("accessors").and_then(Value::as_array_mut) {
+            Some(a) => a.extend(new_accessors),
+            None => doc["accessors"] = Value::Array(new_accessors),
+        }
+    }
+
+    // Per node, where its lightmap is.
+    for (k, inst) in source.instances.iter().enumerate() {
+        if inst.opt_out {
+            continue;
+        }
+        let so = match scene.layout.as_deref() {
+            Some(l) => l.scale_offset.get(k).copied().flatten(),
+            None => Some(inst.authored_scale_offset),
+        };
+        let Some(so) = so else { continue };
+        let node = &mut doc["nodes"][inst.node];
+        if node.get("extras").is_none() {
+            node["extras"] = json!({});
+        }
+        if let Some(extras) = node["extras"].as_object_mut() {
+            extras.insert(
+                "lightmap".into(),
+                json!({"page": 0, "scale_offset": so, "file": page_file(0)}),
+            );
+        }
+    }
+
+    align(&mut bin, 4);
+    doc["buffers"] = json!([{"byteLength": bin.len()}]);
+    Ok(write_glb(&doc, &bin))
+}
+
+fn align(bin: &mut Vec<u8>, to: usize) {
+    while !bin.len().is_multiple_of(to) {
+        bin.push(0);
+    }
+}
+
+struct Writer<'a> {
+    doc: &'a Value,
+    source: &'a SourceDocument,
+    bin: &'a mut Vec<u8>,
+    views: &'a mut Vec<Value>,
+    view_base: usize,
+    accessors: &'a mut Vec<Value>,
+    accessor_base: usize,
+}
+
+fn component_size(ct: u64) -> Option<usize> {
+    match ct {
+        5120 | 5121 => Some(1),
+        5122 | 5123 => Some(2),
+        5125 | 5126 => Some(4),
+        _ => None,
+    }
+}
+
+fn components(ty: &str) -> Option<usize> {
+    match ty {
+        "SCALAR" => Some(1),
+        "VEC2" => Some(2),
+        "VEC3" => Some(3),
+        "VEC4" => Some(4),
+        _ => None,
+    }
+}
+
+fn decode(ct: u64, b: &[u8]) -> f64 {
+    match ct {
+        5120 => f64::from(b[0] as i8),
+        5121 => f64::from(b[0]),
+        5122 => f64::from(i16::from_le_bytes([b[0], b[1]])),
+        5123 => f64::from(u16::from_le_bytes([b[0], b[1]])),
+        5125 => f64::from(u32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+        _ => f64::from(f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
+    }
+}
+
+impl Writer<'_> {
+    fn push_view(&mut self, bytes: &[u8], stride: Option<usize>, target: u32) -> usize {
+        align(self.bin, 4);
+        let mut v = json!({"buffer": 0, "byteOffset": self.bin.len(), "byteLength": bytes.len(), "target": target});
+        if let Some(s) = stride {
+            v["byteStride"] = json!(s);
+        }
+        self.bin.extend_from_slice(bytes);
+        self.views.push(v);
+        self.view_base + self.views.len() - 1
+    }
+
+    fn push_accessor(&mut self, acc: Value) -> usize {
+        self.accessors.push(acc);
+        self.accessor_base + self.accessors.len() - 1
+    }
+
+    /// A copy of accessor `index` holding element `xref[i]` at position `i`.
+    fn remap(&mut self, index: usize, xref: &[u32], semantic: &str) -> Result<usize, String> {
+        let acc = self.doc["accessors"]
+            .get(index)
+            .ok_or_else(|| format!("{semantic}: accessor {index} does not exist"))?
+            .clone();
+        if acc.get("sparse").is_some() {
+            return Err(format!(
+                "{semantic}: accessor {index} is sparse; vertices cannot be split for new lightmap UVs"
+            ));
+        }
+        let ct = acc["componentType"].as_u64().unwrap_or(0);
+        let ty = acc["type"].as_str().unwrap_or("");
+        let (Some(cs), Some(nc)) = (component_size(ct), components(ty)) else {
+            return Err(format!(
+                "{semantic}: accessor {index} has an unsupported type {ty} of {ct}"
+            ));
+        };
+        let elem = cs * nc;
+        let count = acc["count"].as_u64().unwrap_or(0) as usize;
+        let mut out = json!({"componentType": ct, "type": ty, "count": xref.len()});
+        if let Some(n) = acc.get("normalized") {
+            out["normalized"] = n.clone();
+        }
+        if let Some(name) = acc.get("name") {
+            out["name"] = name.clone();
+        }
+        let Some(view_index) = acc["bufferView"].as_u64().map(|v| v as usize) else {
+            // All zeros: the copy is all zeros too.
+            for key in ["min", "max"] {
+                if let Some(v) = acc.get(key) {
+                    out[key] = v.clone();
+                }
+            }
+            return Ok(self.push_accessor(out));
+        };
+        let view = &self.source.json["bufferViews"][view_index];
+        let buffer = self
+            .source
+            .buffers
+            .get(view["buffer"].as_u64().unwrap_or(0) as usize)
+            .ok_or_else(|| format!("{semantic}: buffer of view {view_index} is missing"))?;
+        let start =
+            view["byteOffset"].as_u64().unwrap_or(0) as usize + acc["byteOffset"].as_u64().unwrap_or(0) as usize;
+        let stride = view["byteStride"].as_u64().map_or(elem, |s| s as usize);
+        let padded = elem.div_ceil(4) * 4;
+        let mut bytes = vec![0u8; padded * xref.len()];
+        let mut lo = vec![f64::INFINITY; nc];
+        let mut hi = vec![f64::NEG_INFINITY; nc];
+        for (i, &x) in xref.iter().enumerate() {
+            let x = x as usize;
+            if x >= count {
+                return Err(format!(
+                    "{semantic}: vertex {x} is past accessor {index}'s {count} elements"
+                ));
+            }
+            let at = start + x * stride;
+            let src = buffer
+                .get(at..at + elem)
+                .ok_or_else(|| format!("{semantic}: accessor {index} reads past its buffer"))?;
+            bytes[i * padded..i * padded + elem].copy_from_slice(src);
+            for c in 0..nc {
+                let v = decode(ct, &src[c * cs..(c + 1) * cs]);
+                lo[c] = lo[c].min(v);
+                hi[c] = hi[c].max(v);
+            }
+        }
+        let view = self.push_view(&bytes, (padded != elem).then_some(padded), 34962);
+        out["bufferView"] = json!(view);
+        if (acc.get("min").is_some() || semantic == "POSITION") && !xref.is_empty() {
+            let num = |v: f64| if ct == 5126 { json!(v) } else { json!(v as i64) };
+            out["min"] = Value::Array(lo.into_iter().map(num).collect());
+            out["max"] = Value::Array(hi.into_iter().map(num).collect());
+        }
+        Ok(self.push_accessor(out))
+    }
+
+    fn split_primitive(&mut self, prim: &Value, g: &GeneratedPrimitive) -> Result<Value, String> {
+        let mut prim = prim.clone();
+        let attributes = prim["attributes"].as_object().cloned().ok_or("has no attributes")?;
+        let mut new_attr = serde_json::Map::new();
+        for (semantic, index) in &attributes {
+            if semantic == "TEXCOORD_1" {
+                continue;
+            }
+            let index = index
+                .as_u64()
+                .ok_or_else(|| format!("{semantic} is not an accessor index"))? as usize;
+            new_attr.insert(semantic.clone(), json!(self.remap(index, &g.xref, semantic)?));
+        }
+        let uv_bytes: Vec<u8> =
+            g.uv.iter()
+                .flat_map(|uv| uv.to_array())
+                .flat_map(f32::to_le_bytes)
+                .collect();
+        let view = self.push_view(&uv_bytes, None, 34962);
+        let uv =
+            self.push_accessor(json!({"bufferView": view, "componentType": 5126, "count": g.uv.len(), "type": "VEC2"}));
+        new_attr.insert("TEXCOORD_1".into(), json!(uv));
+        new_attr.entry("TEXCOORD_0").or_insert(json!(uv));
+        prim["attributes"] = Value::Object(new_attr);
+        if let Some(targets) = prim["targets"].as_array().cloned() {
+            let mut new_targets = Vec::new();
+            for t in targets {
+                let mut nt = serde_json::Map::new();
+                for (semantic, index) in t.as_object().into_iter().flatten() {
+                    let index = index
+                        .as_u64()
+                        .ok_or("morph target attribute is not an accessor index")?
+                        as usize;
+                    nt.insert(semantic.clone(), json!(self.remap(index, &g.xref, semantic)?));
+                }
+                new_targets.push(Value::Object(nt));
+            }
+            prim["targets"] = Value::Array(new_targets);
+        }
+        let idx: Vec<u8> = g.indices.iter().flat_map(|i| i.to_le_bytes()).collect();
+        let view = self.push_view(&idx, None, 34963);
+        let indices = self.push_accessor(
+            json!({"bufferView": view, "componentType": 5125, "count": g.indices.len(), "type": "SCALAR"}),
+        );
+        prim["indices"] = json!(indices);
+        Ok(prim)
+    }
 }

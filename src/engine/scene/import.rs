@@ -20,8 +20,17 @@
 //! (a small PNG can claim 100 000² pixels). `import_slice` has no caps; the service calls
 //! [`import_slice_limited`] with its configured ones.
 //!
-//! Limits: sparse accessors, morph targets, skins and texture transforms are not read
-//! (sparse position or UV accessors are an error; the others are ignored with a warning).
+//! Real files (issue 19): only the default scene's node trees are walked, so meshes no
+//! node of it places neither cast nor get texels; `KHR_mesh_quantization`'s integer
+//! positions, normals and UVs are decoded; a primitive without normals gets flat ones; a
+//! base colour `KHR_texture_transform` is applied to TEXCOORD_0; a node's
+//! `extras.lightmap_scale`, `extras.lightmap: false` and `extras.lightmap.scale_offset`
+//! are read; what the bake does not read (extensions by name, skins, animations, alpha
+//! modes, normal textures, morph targets) is listed in one warning; albedo is bounded
+//! (`scene::ALBEDO_BOUND`) and the report says so.
+//!
+//! Limits: sparse accessors, morph targets and skins are not read (sparse position or UV
+//! accessors are an error; the others are listed in the report).
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
@@ -33,7 +42,10 @@ use gltf::mesh::Mode;
 use serde::Serialize;
 
 use super::error::{ImportError, PrimitiveRef};
-use super::{Bounds, LightKind, Material, MeshInfo, PunctualLight, Scene, Texture, TextureRef, Triangle, Wrap};
+use super::{
+    Bounds, Instance, LightKind, LocalMesh, LocalPrimitive, Material, MeshInfo, PunctualLight, Scene, SourceDocument,
+    Texture, TextureRef, TriSource, Triangle, Wrap,
+};
 
 /// What import found, for the CLI summary and the service's scene report.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -56,6 +68,12 @@ pub struct ImportReport {
     /// Pixels of every decoded texture together (each is kept as four f32).
     #[serde(default)]
     pub texture_texels: u64,
+    /// Largest diffuse albedo any material has for bounced light ([`super::ALBEDO_BOUND`]).
+    pub albedo_bound: f32,
+    /// Albedo used for glTF's default (white) material ([`super::DEFAULT_MATERIAL_ALBEDO`]).
+    pub default_material_albedo: f32,
+    /// Some primitive has no material (glTF's default white is used).
+    pub default_material_used: bool,
     pub warnings: Vec<String>,
 }
 
@@ -97,14 +115,22 @@ pub fn import_slice_limited(
     limits: &ImportLimits,
 ) -> Result<(Scene, ImportReport), ImportError> {
     let gltf = parse(bytes)?;
+    let json = document_json(bytes)?;
     let buffers = load_buffers(&gltf, base_dir)?;
     let mut report = ImportReport::default();
     let textures = load_textures(&gltf, &buffers, base_dir, limits.max_texture_side)?;
     report.texture_texels = textures.iter().map(|t| u64::from(t.width) * u64::from(t.height)).sum();
-    let materials = load_materials(&gltf)?;
+    let mut materials = load_materials(&gltf)?;
+    let uv_transforms = texture_transforms(&json, materials.len(), &mut report.warnings);
 
     for ext in gltf.extensions_required() {
-        if !matches!(ext, "KHR_lights_punctual" | "KHR_materials_emissive_strength") {
+        if !matches!(
+            ext,
+            "KHR_lights_punctual"
+                | "KHR_materials_emissive_strength"
+                | "KHR_mesh_quantization"
+                | "KHR_texture_transform"
+        ) {
             report
                 .warnings
                 .push(format!("required extension {ext} is not supported and is ignored"));
@@ -129,10 +155,17 @@ pub fn import_slice_limited(
         missing_lightmap_uvs: Vec::new(),
         visited_meshes: HashSet::new(),
         max_triangles: limits.max_triangles,
+        local_meshes: vec![None; gltf.meshes().len()],
+        uv_transforms,
+        instances: Vec::new(),
     };
     let roots: Vec<gltf::Node> = match gltf.default_scene().or_else(|| gltf.scenes().next()) {
         Some(s) => s.nodes().collect(),
-        None => gltf.nodes().collect(), // no scene: glTF allows it; bake every node once
+        None => {
+            // No scene: glTF allows it; bake every node tree once, from its root.
+            let children: HashSet<usize> = gltf.nodes().flat_map(|n| n.children().map(|c| c.index())).collect();
+            gltf.nodes().filter(|n| !children.contains(&n.index())).collect()
+        }
     };
     ctx.report.warnings.append(&mut scale_warnings);
     let mut seen_nodes = HashSet::new();
@@ -144,15 +177,20 @@ pub fn import_slice_limited(
         mut lights,
         meshes,
         missing_lightmap_uvs,
+        local_meshes,
+        instances,
         ..
     } = ctx;
 
     if !missing_lightmap_uvs.is_empty() {
         report.warnings.push(format!(
-            "{} has no TEXCOORD_1: lightmap UVs will be generated for the whole scene (bake --write-gltf saves them)",
+            "{} has no TEXCOORD_1: lightmap UVs will be generated for the meshes without them, authored ones are kept (bake --write-gltf saves them)",
             missing_lightmap_uvs.join("; ")
         ));
     }
+    shared_authored_warning(&instances, &local_meshes, &gltf, &mut report.warnings);
+    unread_features(&json, &mut report.warnings);
+    bound_albedo(&mut materials, &mut report);
     if triangles.is_empty() {
         let why = if report.degenerate_triangles > 0 {
             format!(" (all {} triangles are degenerate)", report.degenerate_triangles)
@@ -173,6 +211,7 @@ pub fn import_slice_limited(
     }
     let offset = 0.5 * (dmin + dmax);
     let mut bounds = Bounds::EMPTY;
+    let tri_source: Vec<TriSource> = triangles.iter().map(|t| t.source).collect();
     let tris: Vec<Triangle> = triangles
         .drain(..)
         .map(|t| {
@@ -218,6 +257,15 @@ pub fn import_slice_limited(
         bounds,
         origin_offset: offset,
         needs_lightmap_uvs: !missing_lightmap_uvs.is_empty(),
+        source: Some(std::sync::Arc::new(SourceDocument {
+            json,
+            buffers,
+            base_dir: base_dir.map(Path::to_path_buf),
+            meshes: local_meshes,
+            instances,
+        })),
+        tri_source,
+        layout: None,
     };
     Ok((scene, report))
 }
@@ -294,6 +342,14 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
     root.validate(root, gltf::json::Path::new, &mut |path, error| {
         errors.push((path(), error))
     });
+    // Extensions read here from the JSON itself (not by the `gltf` crate) may be required.
+    // (The path reads `extensionsRequired[i] = "NAME"`.)
+    errors.retain(|(path, error)| {
+        let p = path.as_str();
+        !(matches!(error, gltf::json::validation::Error::Unsupported)
+            && p.starts_with("extensionsRequired[")
+            && (p.ends_with("\"KHR_mesh_quantization\"") || p.ends_with("\"KHR_texture_transform\"")))
+    });
     if !errors.is_empty() {
         return Err(ImportError::Invalid(
             errors
@@ -331,6 +387,11 @@ fn resolve_uri(uri: &str, base_dir: Option<&Path>, what: &str) -> Result<Vec<u8>
         ));
     }
     std::fs::read(base.join(&rel)).map_err(|e| format!("{what}: cannot read external file {decoded:?}: {e}"))
+}
+
+/// The bytes of an external (relative, non-data) URI, for the exporter.
+pub(crate) fn read_external(uri: &str, base_dir: Option<&Path>) -> Result<Vec<u8>, String> {
+    resolve_uri(uri, base_dir, "uri")
 }
 
 fn percent_decode(s: &str) -> String {
@@ -535,6 +596,7 @@ struct RawTriangle {
     lm: [Vec2; 3],
     material: u32,
     mesh: u32,
+    source: TriSource,
 }
 
 struct RawLight {
@@ -552,6 +614,244 @@ struct Flatten<'a> {
     missing_lightmap_uvs: Vec<String>,
     visited_meshes: HashSet<usize>,
     max_triangles: usize,
+    local_meshes: Vec<Option<LocalMesh>>,
+    instances: Vec<Instance>,
+    /// Per material, the base colour texture's `KHR_texture_transform` as
+    /// `[a, b, c, d, ox, oy]`: uv' = (a·u + c·v + ox, b·u + d·v + oy).
+    uv_transforms: Vec<Option<[f32; 6]>>,
+}
+
+/// Bounds every material's diffuse albedo for bounced light (module doc of `scene`).
+fn bound_albedo(materials: &mut [Material], report: &mut ImportReport) {
+    report.albedo_bound = super::ALBEDO_BOUND;
+    report.default_material_albedo = super::DEFAULT_MATERIAL_ALBEDO;
+    let default = materials.len() - 1;
+    let mut bounded = Vec::new();
+    for (k, m) in materials.iter_mut().enumerate() {
+        let bound = if k == default {
+            super::DEFAULT_MATERIAL_ALBEDO
+        } else {
+            super::ALBEDO_BOUND
+        };
+        let rgb = m.base_color.truncate();
+        if rgb.max_element() > bound {
+            m.base_color = rgb.min(Vec3::splat(bound)).extend(m.base_color.w);
+            // glTF's default material is always in the list; only named when used.
+            if k != default || report.default_material_used {
+                bounded.push(format!("{} to {bound}", m.name));
+            }
+        }
+    }
+    if !bounded.is_empty() {
+        report.warnings.push(format!(
+            "albedo bounded for bounced light (so paths in closed rooms end): {}",
+            bounded.join(", ")
+        ));
+    }
+}
+
+/// Base colour `KHR_texture_transform` per material, read from the document's JSON
+/// (the `gltf` crate's feature for it is not enabled). Its `texCoord` override is not read.
+fn texture_transforms(json: &serde_json::Value, n: usize, warnings: &mut Vec<String>) -> Vec<Option<[f32; 6]>> {
+    let mut out = vec![None; n];
+    let Some(materials) = json.get("materials").and_then(|v| v.as_array()) else {
+        return out;
+    };
+    for (i, m) in materials.iter().enumerate().take(n) {
+        let t = &m["pbrMetallicRoughness"]["baseColorTexture"]["extensions"]["KHR_texture_transform"];
+        if !t.is_object() {
+            continue;
+        }
+        let pair = |key: &str, default: [f32; 2]| -> [f32; 2] {
+            t.get(key)
+                .and_then(|v| v.as_array())
+                .filter(|a| a.len() == 2)
+                .map_or(default, |a| {
+                    [a[0].as_f64().unwrap_or(0.0) as f32, a[1].as_f64().unwrap_or(0.0) as f32]
+                })
+        };
+        let offset = pair("offset", [0.0, 0.0]);
+        let scale = pair("scale", [1.0, 1.0]);
+        let r = t.get("rotation").and_then(|v| v.as_f64()).unwrap_or(0.0) as f32;
+        let base_set = m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"]
+            .as_u64()
+            .unwrap_or(0);
+        if t.get("texCoord")
+            .and_then(|v| v.as_u64())
+            .is_some_and(|set| set != base_set)
+        {
+            warnings.push(format!(
+                "material {i}: KHR_texture_transform.texCoord is not read (TEXCOORD_{} of the texture is used)",
+                m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"]
+                    .as_u64()
+                    .unwrap_or(0)
+            ));
+        }
+        // The extension's matrix: translation · rotation · scale, rotation's columns
+        // (cos r, sin r) and (-sin r, cos r).
+        let (c, s) = (r.cos(), r.sin());
+        out[i] = Some([
+            c * scale[0],
+            s * scale[0],
+            -s * scale[1],
+            c * scale[1],
+            offset[0],
+            offset[1],
+        ]);
+    }
+    out
+}
+
+/// What a node's `extras` say about its lightmap (module doc of `atlas::unwrap`).
+struct NodeLightmap {
+    scale: f32,
+    opt_out: bool,
+    scale_offset: [f32; 4],
+}
+
+fn node_lightmap(node: &gltf::Node, warnings: &mut Vec<String>) -> NodeLightmap {
+    let mut out = NodeLightmap {
+        scale: 1.0,
+        opt_out: false,
+        scale_offset: [1.0, 1.0, 0.0, 0.0],
+    };
+    let Some(raw) = node.extras() else { return out };
+    let Ok(value) = serde_json::from_str::<serde_json::Value>(raw.get()) else {
+        return out;
+    };
+    let name = node_name(node);
+    if let Some(v) = value.get("lightmap_scale") {
+        match v.as_f64() {
+            Some(s) if s.is_finite() && s > 0.0 && s <= 1e3 => out.scale = s as f32,
+            _ => warnings.push(format!(
+                "{name}: extras.lightmap_scale {v} is not a number in (0, 1000]; using 1"
+            )),
+        }
+    }
+    match value.get("lightmap") {
+        Some(serde_json::Value::Bool(false)) => out.opt_out = true,
+        Some(serde_json::Value::Object(o)) => {
+            let so: Option<Vec<f32>> = o.get("scale_offset").and_then(|v| v.as_array()).map(|a| {
+                a.iter()
+                    .filter_map(|x| x.as_f64().map(|x| x as f32))
+                    .filter(|x| x.is_finite())
+                    .collect()
+            });
+            match so {
+                Some(so) if so.len() == 4 && so[0] > 0.0 && so[1] > 0.0 => {
+                    out.scale_offset = [so[0], so[1], so[2], so[3]]
+                }
+                None => {}
+                Some(_) => warnings.push(format!(
+                    "{name}: extras.lightmap.scale_offset is not four finite numbers with positive scales; ignored"
+                )),
+            }
+        }
+        _ => {}
+    }
+    out
+}
+
+fn node_name(node: &gltf::Node) -> String {
+    match node.name() {
+        Some(n) => format!("node {} \"{n}\"", node.index()),
+        None => format!("node {}", node.index()),
+    }
+}
+
+/// The document's JSON as a tree: the GLB JSON chunk, or the whole `.gltf` file.
+fn document_json(bytes: &[u8]) -> Result<serde_json::Value, ImportError> {
+    let chunk: std::borrow::Cow<[u8]> = if bytes.starts_with(b"glTF") {
+        gltf::binary::Glb::from_slice(bytes)
+            .map_err(|e| ImportError::NotGltf(format!("broken GLB container: {e:?}")))?
+            .json
+    } else {
+        std::borrow::Cow::Borrowed(bytes)
+    };
+    serde_json::from_slice(&chunk).map_err(|e| ImportError::NotGltf(format!("JSON: {e}")))
+}
+
+/// Several nodes place one mesh whose lightmap UVs are authored: on one page they would
+/// cover the same texels.
+fn shared_authored_warning(
+    instances: &[Instance],
+    meshes: &[Option<LocalMesh>],
+    gltf: &gltf::Gltf,
+    warnings: &mut Vec<String>,
+) {
+    let mut users: std::collections::BTreeMap<usize, usize> = Default::default();
+    for i in instances.iter().filter(|i| !i.opt_out) {
+        *users.entry(i.mesh).or_default() += 1;
+    }
+    for (mesh, n) in users {
+        if n > 1 && meshes[mesh].as_ref().is_some_and(LocalMesh::authored) {
+            let name = gltf
+                .meshes()
+                .nth(mesh)
+                .and_then(|m| m.name().map(str::to_string))
+                .unwrap_or_default();
+            warnings.push(format!(
+                "mesh {mesh} \"{name}\" has authored TEXCOORD_1 and is placed by {n} nodes: unless their extras.lightmap.scale_offset differ, they share texels (lightmap_uvs: regenerate-all gives each its own rectangle)"
+            ));
+        }
+    }
+}
+
+/// Names what the document uses that the bake does not read.
+fn unread_features(json: &serde_json::Value, warnings: &mut Vec<String>) {
+    const READ: &[&str] = &[
+        "KHR_lights_punctual",
+        "KHR_materials_emissive_strength",
+        "KHR_mesh_quantization",
+        "KHR_texture_transform",
+    ];
+    let mut unread: Vec<String> = json
+        .get("extensionsUsed")
+        .and_then(|v| v.as_array())
+        .into_iter()
+        .flatten()
+        .filter_map(|e| e.as_str())
+        .filter(|e| !READ.contains(e))
+        .map(|e| format!("extension {e}"))
+        .collect();
+    let has = |key: &str| json.get(key).and_then(|v| v.as_array()).is_some_and(|a| !a.is_empty());
+    if has("skins") {
+        unread.push("skins (the bind pose is baked)".into());
+    }
+    if has("animations") {
+        unread.push("animations".into());
+    }
+    let materials = json
+        .get("materials")
+        .and_then(|v| v.as_array())
+        .cloned()
+        .unwrap_or_default();
+    if materials
+        .iter()
+        .any(|m| matches!(m.get("alphaMode").and_then(|v| v.as_str()), Some("MASK" | "BLEND")))
+    {
+        unread.push("alphaMode MASK/BLEND (every surface is opaque)".into());
+    }
+    if materials.iter().any(|m| m.get("normalTexture").is_some()) {
+        unread.push("normal textures".into());
+    }
+    let prims = json
+        .get("meshes")
+        .and_then(|v| v.as_array())
+        .into_iter()
+        .flatten()
+        .filter_map(|m| m.get("primitives").and_then(|p| p.as_array()))
+        .flatten();
+    let mut targets = false;
+    for p in prims {
+        targets |= p.get("targets").is_some();
+    }
+    if targets {
+        unread.push("morph targets".into());
+    }
+    if !unread.is_empty() {
+        warnings.push(format!("not read by the bake: {}", unread.join(", ")));
+    }
 }
 
 impl Flatten<'_> {
@@ -572,7 +872,25 @@ impl Flatten<'_> {
             )));
         }
         if let Some(mesh) = node.mesh() {
-            self.mesh(&mesh, &world)?;
+            let lm = node_lightmap(node, &mut self.report.warnings);
+            let mesh_scale = self.meshes.get(mesh.index()).map_or(1.0, |m| m.lightmap_scale);
+            let start = self.triangles.len();
+            self.mesh(&mesh, &world, lm.scale_offset)?;
+            self.instances.push(Instance {
+                node: node.index(),
+                mesh: mesh.index(),
+                world,
+                lightmap_scale: lm.scale * mesh_scale,
+                opt_out: lm.opt_out,
+                authored_scale_offset: lm.scale_offset,
+                triangles: start..self.triangles.len(),
+            });
+            if lm.opt_out {
+                // Casts shadows, owns no texel: a zero-area lightmap footprint.
+                for t in &mut self.triangles[start..] {
+                    t.lm = [Vec2::ZERO; 3];
+                }
+            }
         }
         if let Some(light) = node.light() {
             self.light(&light, &world, node.index())?;
@@ -642,8 +960,17 @@ impl Flatten<'_> {
         Ok(())
     }
 
-    fn mesh(&mut self, mesh: &gltf::Mesh, world: &DMat4) -> Result<(), ImportError> {
+    fn mesh(&mut self, mesh: &gltf::Mesh, world: &DMat4, scale_offset: [f32; 4]) -> Result<(), ImportError> {
         let first_visit = self.visited_meshes.insert(mesh.index());
+        if first_visit {
+            self.local_meshes[mesh.index()] = Some(LocalMesh {
+                primitives: vec![None; mesh.primitives().len()],
+            });
+        }
+        let (so_scale, so_offset) = (
+            Vec2::new(scale_offset[0], scale_offset[1]),
+            Vec2::new(scale_offset[2], scale_offset[3]),
+        );
         let mirrored = world.determinant() < 0.0;
         let normal_matrix = world.inverse().transpose();
         let mesh_name = mesh.name().unwrap_or("").to_string();
@@ -673,7 +1000,10 @@ impl Flatten<'_> {
                         problem: format!("material {i} does not exist"),
                     });
                 }
-                None => self.materials_len as u32,
+                None => {
+                    self.report.default_material_used = true;
+                    self.materials_len as u32
+                }
             };
 
             let positions = read_vec3(&prim, gltf::Semantic::Positions, self.buffers, &at)?.ok_or_else(|| {
@@ -685,8 +1015,9 @@ impl Flatten<'_> {
             let normals = read_vec3(&prim, gltf::Semantic::Normals, self.buffers, &at)?;
             let uv0 = read_vec2(&prim, 0, self.buffers, &at)?;
             let n = positions.len();
+            let authored = prim.get(&gltf::Semantic::TexCoords(1)).is_some();
             let uv1 = match read_vec2(&prim, 1, self.buffers, &at)? {
-                Some(uv1) => uv1,
+                Some(uv1) => uv1.iter().map(|uv| *uv * so_scale + so_offset).collect(),
                 None => {
                     // Placeholder; `atlas::unwrap` generates the real UVs at bake time.
                     if first_visit {
@@ -719,7 +1050,14 @@ impl Flatten<'_> {
                     at,
                     accessor: acc,
                     attribute: "TEXCOORD_1".into(),
-                    problem: format!("lightmap UV ({}, {}) of vertex {i} is outside [0, 1]", uv.x, uv.y),
+                    problem: if scale_offset == [1.0, 1.0, 0.0, 0.0] {
+                        format!("lightmap UV ({}, {}) of vertex {i} is outside [0, 1]", uv.x, uv.y)
+                    } else {
+                        format!(
+                            "lightmap UV ({}, {}) of vertex {i} is outside [0, 1] (after the node's extras.lightmap.scale_offset)",
+                            uv.x, uv.y
+                        )
+                    },
                 });
             }
             let indices: Vec<u32> = match prim.indices() {
@@ -750,11 +1088,18 @@ impl Flatten<'_> {
                 }
                 None => (0..n as u32).collect(),
             };
-            if !indices.len().is_multiple_of(3) {
+            if !indices.len().is_multiple_of(3) && first_visit {
                 self.report.warnings.push(format!(
                     "{at}: {} indices is not a multiple of 3; the last ones are ignored",
                     indices.len()
                 ));
+            }
+            if first_visit && let Some(local) = self.local_meshes[mesh.index()].as_mut() {
+                local.primitives[prim.index()] = Some(LocalPrimitive {
+                    positions: positions.clone(),
+                    indices: indices[..indices.len() / 3 * 3].to_vec(),
+                    has_lightmap_uvs: authored,
+                });
             }
 
             let world_pos: Vec<DVec3> = positions.iter().map(|p| world.transform_point3(p.as_dvec3())).collect();
@@ -768,7 +1113,7 @@ impl Flatten<'_> {
                     })
                     .collect()
             });
-            for tri in indices.chunks_exact(3) {
+            for (k, tri) in indices.chunks_exact(3).enumerate() {
                 let (a, b, c) = if mirrored {
                     (tri[0], tri[2], tri[1])
                 } else {
@@ -795,7 +1140,12 @@ impl Flatten<'_> {
                 {
                     self.report.zero_uv_area_triangles += 1;
                 }
-                let uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);
+                let mut uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);
+                // TEXCOORD_0 is read only for the base colour texture: its transform is
+                // applied here, once, so every technique samples the transformed UVs.
+                if let Some([ta, tb, tc, td, ox, oy]) = self.uv_transforms.get(material as usize).copied().flatten() {
+                    uv = uv.map(|q| Vec2::new(ta * q.x + tc * q.y + ox, tb * q.x + td * q.y + oy));
+                }
                 if self.triangles.len() >= self.max_triangles {
                     return Err(ImportError::Limit {
                         what: "triangles",
@@ -812,6 +1162,11 @@ impl Flatten<'_> {
                     lm,
                     material,
                     mesh: mesh.index() as u32,
+                    source: TriSource {
+                        primitive: prim.index() as u32,
+                        triangle: k as u32,
+                        mirrored,
+                    },
                 });
             }
         }
@@ -906,6 +1261,40 @@ fn check_format(
     Ok(())
 }
 
+/// Every element of `acc` as f32 components, decoding the integer types that
+/// `KHR_mesh_quantization` allows (normalised ones mapped to [0, 1] or [-1, 1] by glTF's
+/// rules, others converted as integers). The range was checked by `check_accessor`.
+fn read_components(acc: &gltf::Accessor, buffers: &[Vec<u8>], n: usize) -> Option<Vec<f32>> {
+    let view = acc.view()?;
+    let bytes = view_bytes(&view, buffers).ok()?;
+    let cs = acc.data_type().size();
+    let stride = view.stride().unwrap_or(cs * n);
+    let normalized = acc.normalized();
+    let mut out = Vec::with_capacity(acc.count() * n);
+    for i in 0..acc.count() {
+        for c in 0..n {
+            let at = acc.offset() + i * stride + c * cs;
+            let b = bytes.get(at..at + cs)?;
+            let v = match acc.data_type() {
+                DataType::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+                DataType::I8 if normalized => (f32::from(b[0] as i8) / 127.0).max(-1.0),
+                DataType::I8 => f32::from(b[0] as i8),
+                DataType::U8 if normalized => f32::from(b[0]) / 255.0,
+                DataType::U8 => f32::from(b[0]),
+                DataType::I16 if normalized => (f32::from(i16::from_le_bytes([b[0], b[1]])) / 32767.0).max(-1.0),
+                DataType::I16 => f32::from(i16::from_le_bytes([b[0], b[1]])),
+                DataType::U16 if normalized => f32::from(u16::from_le_bytes([b[0], b[1]])) / 65535.0,
+                DataType::U16 => f32::from(u16::from_le_bytes([b[0], b[1]])),
+                DataType::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
+            };
+            out.push(v);
+        }
+    }
+    Some(out)
+}
+
+const QUANTIZED: &[DataType] = &[DataType::F32, DataType::I8, DataType::U8, DataType::I16, DataType::U16];
+
 fn read_vec3(
     prim: &gltf::Primitive,
     semantic: gltf::Semantic,
@@ -917,14 +1306,13 @@ fn read_vec3(
     };
     let name = semantic.to_string();
     check_accessor(&acc, buffers, at, &name)?;
-    check_format(&acc, at, &name, Dimensions::Vec3, &[DataType::F32])?;
-    let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
-    let data: Option<Vec<Vec3>> = match semantic {
-        gltf::Semantic::Positions => reader.read_positions().map(|it| it.map(Vec3::from_array).collect()),
-        gltf::Semantic::Normals => reader.read_normals().map(|it| it.map(Vec3::from_array).collect()),
-        _ => None,
-    };
-    let data = data.ok_or_else(|| accessor_err(at, &acc, &name, "cannot be read (wrong component type?)".into()))?;
+    // F32, or the integer types of KHR_mesh_quantization.
+    check_format(&acc, at, &name, Dimensions::Vec3, QUANTIZED)?;
+    let data: Vec<Vec3> = read_components(&acc, buffers, 3)
+        .ok_or_else(|| accessor_err(at, &acc, &name, "cannot be read".into()))?
+        .chunks_exact(3)
+        .map(|c| Vec3::new(c[0], c[1], c[2]))
+        .collect();
     if let Some((i, v)) = data.iter().enumerate().find(|(_, v)| !v.is_finite()) {
         return Err(accessor_err(
             at,
@@ -948,19 +1336,11 @@ fn read_vec2(
     };
     let name = semantic.to_string();
     check_accessor(&acc, buffers, at, &name)?;
-    check_format(
-        &acc,
-        at,
-        &name,
-        Dimensions::Vec2,
-        &[DataType::F32, DataType::U8, DataType::U16],
-    )?;
-    let reader = prim.reader(|b| buffers.get(b.index()).map(Vec::as_slice));
-    let data: Vec<Vec2> = reader
-        .read_tex_coords(set)
-        .ok_or_else(|| accessor_err(at, &acc, &name, "cannot be read (wrong component type?)".into()))?
-        .into_f32()
-        .map(Vec2::from_array)
+    check_format(&acc, at, &name, Dimensions::Vec2, QUANTIZED)?;
+    let data: Vec<Vec2> = read_components(&acc, buffers, 2)
+        .ok_or_else(|| accessor_err(at, &acc, &name, "cannot be read".into()))?
+        .chunks_exact(2)
+        .map(|c| Vec2::new(c[0], c[1]))
         .collect();
     if let Some((i, v)) = data.iter().enumerate().find(|(_, v)| !v.is_finite()) {
         return Err(accessor_err(

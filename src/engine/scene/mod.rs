@@ -16,8 +16,17 @@
 //! (kept in [`Scene::origin_offset`], in f64), so a scene translated by 1e5 m keeps full
 //! f32 precision near its geometry. Irradiance does not depend on where the scene sits.
 //!
+//! The import also keeps the input document ([`SourceDocument`]: its JSON, buffers, each
+//! placed mesh's local geometry and every placing node as an [`Instance`]), and which
+//! primitive triangle each scene triangle came from ([`TriSource`]): lightmap UVs are
+//! generated per mesh (`atlas::unwrap`, [`LightmapLayout`]) and `export` writes the same
+//! document back with them.
+//!
 //! Limits: alpha (MASK/BLEND) is ignored, every surface is opaque; morph targets and
-//! skins are ignored (the bind pose is baked); texture transforms are not applied.
+//! skins are ignored (the bind pose is baked). A base colour `KHR_texture_transform` is
+//! applied to TEXCOORD_0 at import, so an emissive texture on the same material reads
+//! the transformed UVs too. Albedo is bounded by [`ALBEDO_BOUND`] and
+//! [`DEFAULT_MATERIAL_ALBEDO`].
 
 pub mod build;
 mod error;
@@ -26,7 +35,24 @@ pub mod import;
 pub mod library;
 
 pub use error::ImportError;
+
+/// Largest diffuse albedo a material of the file keeps (every colour channel of
+/// `baseColorFactor` is bounded at import, so texture × factor is too, for every
+/// technique): an albedo of 1 reflects everything, and in a closed level a path then
+/// bounces until it escapes. 0.999 changes no physical material and keeps deliberate
+/// stiff test scenes (ρ = 0.99, 0.999) as they are.
+pub const ALBEDO_BOUND: f32 = 0.999;
+
+/// Albedo of glTF's default material (primitives without a material), for bounced light:
+/// glTF says white (1), which makes a mostly closed level bounce without end (issue 19:
+/// one 4-sample step of a 181k-texel level took 144 s); 0.8 is Blender's default base
+/// colour, and bakers bound this case too (Unity, Lightmass and Bakery scale or clamp
+/// albedo for bounced light). The import report states both bounds and names the
+/// materials they changed.
+pub const DEFAULT_MATERIAL_ALBEDO: f32 = 0.8;
 pub use import::{ImportLimits, ImportReport, import_file, import_slice, import_slice_limited};
+
+use std::sync::Arc;
 
 use glam::{DVec3, Vec2, Vec3, Vec4};
 use serde::{Deserialize, Serialize};
@@ -260,6 +286,105 @@ pub struct Scene {
     /// Some mesh had no TEXCOORD_1: `atlas::unwrap` must generate every triangle's
     /// lightmap UVs before a texel set can be built.
     pub needs_lightmap_uvs: bool,
+    /// The glTF document the scene came from, with each placed mesh's local geometry:
+    /// what `atlas::unwrap` unwraps (once per mesh) and `export` writes back.
+    pub source: Option<Arc<SourceDocument>>,
+    /// One entry per triangle of [`Scene::triangles`]: where it came from.
+    pub tri_source: Vec<TriSource>,
+    /// Generated lightmap UVs and each instance's rectangle, once `atlas::unwrap` ran.
+    pub layout: Option<Arc<LightmapLayout>>,
+}
+
+/// The input document, kept so the written glTF is the same level with lightmap UVs added.
+#[derive(Debug)]
+pub struct SourceDocument {
+    /// The document's JSON, as parsed (unknown extensions and extras included).
+    pub json: serde_json::Value,
+    /// Its buffers, resolved (GLB binary chunk, external files, data URIs).
+    pub buffers: Vec<Vec<u8>>,
+    /// Where relative image URIs resolve (None: only embedded data was allowed).
+    pub base_dir: Option<std::path::PathBuf>,
+    /// Per glTF mesh (by index), its local geometry when some node of the scene uses it.
+    pub meshes: Vec<Option<LocalMesh>>,
+    /// Every node of the default scene that places a mesh, in visiting order.
+    pub instances: Vec<Instance>,
+}
+
+/// A glTF mesh in its own space.
+#[derive(Debug, Clone)]
+pub struct LocalMesh {
+    /// Per primitive (by index), its TRIANGLES geometry (None for other modes).
+    pub primitives: Vec<Option<LocalPrimitive>>,
+}
+
+impl LocalMesh {
+    /// Every TRIANGLES primitive has `TEXCOORD_1`.
+    pub fn authored(&self) -> bool {
+        self.primitives.iter().flatten().all(|p| p.has_lightmap_uvs)
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct LocalPrimitive {
+    pub positions: Vec<Vec3>,
+    /// Triangle list (a multiple of 3), as read (non-indexed primitives get 0..n).
+    pub indices: Vec<u32>,
+    pub has_lightmap_uvs: bool,
+}
+
+/// A node of the scene that places a mesh.
+#[derive(Debug, Clone)]
+pub struct Instance {
+    pub node: usize,
+    pub mesh: usize,
+    /// The node's world transform (glTF space, before re-centring).
+    pub world: glam::DMat4,
+    /// `extras.lightmap_scale` of the node times that of the mesh.
+    pub lightmap_scale: f32,
+    /// `extras.lightmap: false`: casts shadows, gets no texels.
+    pub opt_out: bool,
+    /// For authored UVs: the node's `extras.lightmap.scale_offset` (`[1, 1, 0, 0]` when
+    /// absent), already applied to its triangles' `lm`.
+    pub authored_scale_offset: [f32; 4],
+    /// Its triangles in [`Scene::triangles`].
+    pub triangles: std::ops::Range<usize>,
+}
+
+/// Where a scene triangle came from: primitive, triangle of that primitive's index list,
+/// and whether its corners were reordered (a mirroring transform flips the winding).
+#[derive(Debug, Clone, Copy)]
+pub struct TriSource {
+    pub primitive: u32,
+    pub triangle: u32,
+    pub mirrored: bool,
+}
+
+/// Generated lightmap UVs: per mesh its new vertices, per instance its page rectangle.
+#[derive(Debug, Clone, Default)]
+pub struct LightmapLayout {
+    /// Page size in texels (one page; DESIGN §2 addresses its texel grid).
+    pub width: u32,
+    pub height: u32,
+    /// Per glTF mesh (by index): the generated UVs, when the mesh got them.
+    pub meshes: Vec<Option<GeneratedMesh>>,
+    /// Per entry of [`SourceDocument::instances`]: `[sx, sy, ox, oy]` such that page
+    /// UV = TEXCOORD_1 · (sx, sy) + (ox, oy); None for opted-out instances.
+    pub scale_offset: Vec<Option<[f32; 4]>>,
+}
+
+/// One mesh's generated lightmap UVs, per primitive: the split vertices (each an index
+/// into the primitive's original vertices, and its UV in the mesh's own [0, 1] layout)
+/// and the triangle list over them (same triangles, same order).
+#[derive(Debug, Clone, Default)]
+pub struct GeneratedMesh {
+    pub primitives: Vec<Option<GeneratedPrimitive>>,
+}
+
+#[derive(Debug, Clone, Default)]
+pub struct GeneratedPrimitive {
+    pub xref: Vec<u32>,
+    pub uv: Vec<Vec2>,
+    pub indices: Vec<u32>,
 }
 
 impl Scene {

@@ -1,0 +1,267 @@
+//! Real levels (issue 19): the third-party scenes in `scenes/third-party` (attribution in
+//! its SOURCES.md) get lightmap UVs with every placed instance on its own texels, and the
+//! import limits that bite real files: only the default scene is baked, per-node opt-out
+//! and density, `KHR_mesh_quantization`, `KHR_texture_transform`, missing normals, a
+//! texel density in texels per metre with as many pages as it needs, the albedo bound.
+
+use std::path::Path;
+
+use glam::{Vec2, Vec3};
+use lightmapd::engine::atlas::Atlas;
+use lightmapd::engine::atlas::unwrap::{LightmapUvs, UvUnwrap, generate_lightmap_uvs, generate_lightmap_uvs_with};
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
+use lightmapd::engine::scene::{ALBEDO_BOUND, DEFAULT_MATERIAL_ALBEDO, Scene, export, import_slice};
+use serde_json::json;
+
+fn level(name: &str) -> Scene {
+    let bytes = std::fs::read(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scenes/third-party")
+            .join(name),
+    )
+    .unwrap();
+    import_slice(&bytes, None).unwrap().0
+}
+
+/// Texels per instance of `scene` in `atlas`.
+fn texels_per_instance(scene: &Scene, atlas: &Atlas) -> Vec<usize> {
+    let source = scene.source.as_ref().unwrap();
+    let mut owner = vec![usize::MAX; scene.triangles.len()];
+    for (k, inst) in source.instances.iter().enumerate() {
+        for t in inst.triangles.clone() {
+            owner[t] = k;
+        }
+    }
+    let mut count = vec![0; source.instances.len()];
+    for t in &atlas.texels {
+        count[owner[t.triangle as usize]] += 1;
+    }
+    count
+}
+
+/// The FPS kit level: 7 meshes placed by 39 nodes. Each node gets its own rectangle, so
+/// every instance owns texels and none overlaps another.
+#[test]
+fn kenney_instances_each_get_their_own_texels() {
+    let mut scene = level("kenney_fps_level.glb");
+    let source = scene.source.clone().unwrap();
+    assert_eq!(source.instances.len(), 39);
+    let r = generate_lightmap_uvs(&mut scene, 512, &UvUnwrap).unwrap();
+    assert_eq!((r.generated_meshes, r.kept_meshes, r.instances), (7, 0, 39), "{r:?}");
+    let atlas = Atlas::build(&scene, 512, 512).unwrap();
+    assert_eq!(atlas.overlapping_texels, 0);
+    let per = texels_per_instance(&scene, &atlas);
+    assert!(per.iter().all(|n| *n > 0), "an instance has no texel: {per:?}");
+    // One layout per mesh: the 39 rectangles are all distinct.
+    let layout = scene.layout.as_ref().unwrap();
+    let rects: std::collections::HashSet<String> = layout
+        .scale_offset
+        .iter()
+        .map(|s| format!("{:?}", s.unwrap()))
+        .collect();
+    assert_eq!(rects.len(), 39);
+    eprintln!(
+        "kenney: {r:?}, {} texels, per instance min {}",
+        atlas.texels.len(),
+        per.iter().min().unwrap()
+    );
+}
+
+/// A texel density in texels per metre: a 4 m square at 8 texels/m spans 32 texels
+/// (padding aside); a density too high for one page gives several pages stacked in one
+/// taller page instead of an error.
+#[test]
+fn texels_per_unit_sets_the_density_and_adds_pages() {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("a", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.square("b", Vec3::new(10.0, 0.0, 0.0), 4.0, Vec3::Y, m);
+    let (mut json, bin) = b.to_gltf();
+    for mesh in json["meshes"].as_array_mut().unwrap() {
+        mesh["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
+    }
+    let glb = write_glb(&json, &bin);
+    let (mut scene, _) = import_slice(&glb, None).unwrap();
+    let r = generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(8.0), &UvUnwrap).unwrap();
+    assert_eq!(r.texels_per_metre, 8.0);
+    let atlas = Atlas::build(&scene, r.width, r.height).unwrap();
+    // Two 32 x 32 texel charts.
+    let n = atlas.texels.len() as f32;
+    assert!((n - 2.0 * 32.0 * 32.0).abs() <= 2.0 * 4.0 * 32.0, "{n} texels");
+    assert_eq!(r.generated_pages, 1);
+
+    // 100 texels/m: each square is 400 texels wide, more than a 256 page: each chart is
+    // scaled down to fit a page, and the two take a page each.
+    let (mut scene, _) = import_slice(&glb, None).unwrap();
+    let r = generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(100.0), &UvUnwrap).unwrap();
+    eprintln!("{r:?}");
+    assert_eq!((r.width, r.generated_pages), (256, 2), "{r:?}");
+    assert_eq!(r.height, 512);
+    let atlas = Atlas::build(&scene, r.width, r.height).unwrap();
+    assert_eq!(atlas.overlapping_texels, 0);
+    let per = texels_per_instance(&scene, &atlas);
+    assert!(per.iter().all(|n| *n > 200 * 200), "{per:?}");
+
+    let (mut scene, _) = import_slice(&glb, None).unwrap();
+    let e =
+        generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(-1.0), &UvUnwrap).unwrap_err();
+    assert_eq!(e, "texels_per_unit must be a positive number, got -1");
+}
+
+/// Only the default scene is baked: a mesh no node uses, and a node in another scene,
+/// add no triangle; `extras.lightmap: false` keeps a node's shadow but gives it no texel;
+/// a node's `extras.lightmap_scale` scales its density.
+#[test]
+fn only_the_scene_is_baked_and_nodes_opt_out() {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("floor", Vec3::ZERO, 2.0, Vec3::Y, m);
+    b.square("wall", Vec3::new(0.0, 1.0, -1.0), 2.0, Vec3::Z, m);
+    b.square("dense", Vec3::new(4.0, 0.0, 0.0), 2.0, Vec3::Y, m);
+    b.square("collider", Vec3::new(0.0, 5.0, 0.0), 2.0, Vec3::Y, m);
+    let (mut json, bin) = b.to_gltf();
+    for mesh in json["meshes"].as_array_mut().unwrap() {
+        mesh["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
+    }
+    // Node 3 (collider) is in a second scene only; node 1 (wall) opts out; node 2 is dense.
+    json["scenes"] = json!([{"nodes": [0, 1, 2]}, {"nodes": [3]}]);
+    json["nodes"][1]["extras"] = json!({"lightmap": false, "editor": "keep me"});
+    json["nodes"][2]["extras"] = json!({"lightmap_scale": 2.0});
+    let glb = write_glb(&json, &bin);
+    let (mut scene, _) = import_slice(&glb, None).unwrap();
+    assert_eq!(scene.triangles.len(), 6, "the collider is not in the default scene");
+    assert!(scene.triangles.iter().all(|t| t.mesh != 3));
+    generate_lightmap_uvs(&mut scene, 128, &UvUnwrap).unwrap();
+    let atlas = Atlas::build(&scene, 128, 128).unwrap();
+    let per = texels_per_instance(&scene, &atlas);
+    assert_eq!(per[1], 0, "the opted-out wall owns texels: {per:?}");
+    let ratio = per[2] as f32 / per[0] as f32;
+    assert!((ratio - 4.0).abs() < 0.5, "dense / plain texels {ratio}");
+    // The wall still casts: it is in the triangle list, with no lightmap footprint.
+    assert_eq!(scene.triangles.iter().filter(|t| t.mesh == 1).count(), 2);
+
+    let out = export::to_glb(&scene).unwrap();
+    let doc: serde_json::Value = serde_json::from_slice(&gltf::binary::Glb::from_slice(&out).unwrap().json).unwrap();
+    assert_eq!(
+        doc["nodes"][1]["extras"],
+        json!({"lightmap": false, "editor": "keep me"})
+    );
+    assert!(
+        doc["nodes"][3].get("extras").is_none(),
+        "a node outside the scene got a lightmap"
+    );
+    assert_eq!(doc["nodes"][2]["extras"]["lightmap_scale"], 2.0);
+    assert!(doc["nodes"][2]["extras"]["lightmap"]["scale_offset"].is_array());
+}
+
+/// `KHR_mesh_quantization`: u16 positions under a scaling node, i8 normalised normals;
+/// no normals at all gives flat ones; a base colour `KHR_texture_transform` moves
+/// TEXCOORD_0.
+#[test]
+fn quantized_positions_missing_normals_and_texture_transform() {
+    let positions: [[u16; 4]; 4] = [[0, 0, 0, 0], [2, 0, 0, 0], [2, 0, 2, 0], [0, 0, 2, 0]];
+    let normals: [[i8; 4]; 4] = [[0, 127, 0, 0]; 4];
+    let uv0: [[f32; 2]; 4] = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+    let indices: [u16; 6] = [0, 2, 1, 0, 3, 2];
+    let mut bin = Vec::new();
+    bin.extend(positions.iter().flatten().flat_map(|v| v.to_le_bytes()));
+    bin.extend(normals.iter().flatten().map(|v| *v as u8));
+    bin.extend(uv0.iter().flatten().flat_map(|v| v.to_le_bytes()));
+    bin.extend(indices.iter().flat_map(|v| v.to_le_bytes()));
+    let doc = |with_normals: bool| {
+        let mut attributes = json!({"POSITION": 0, "TEXCOORD_0": 2});
+        if with_normals {
+            attributes["NORMAL"] = json!(1);
+        }
+        json!({
+            "asset": {"version": "2.0"},
+            "extensionsUsed": ["KHR_mesh_quantization", "KHR_texture_transform"],
+            "extensionsRequired": ["KHR_mesh_quantization"],
+            "scene": 0,
+            "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0, "scale": [0.5, 0.5, 0.5]}],
+            "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0,
+                "extensions": {"KHR_texture_transform": {"offset": [0.5, 0.0], "scale": [0.5, 0.5]}}}}}],
+            "meshes": [{"primitives": [{"attributes": attributes, "indices": 3, "material": 0}]}],
+            "accessors": [
+                {"bufferView": 0, "componentType": 5123, "count": 4, "type": "VEC3", "min": [0, 0, 0], "max": [2, 0, 2]},
+                {"bufferView": 1, "componentType": 5120, "normalized": true, "count": 4, "type": "VEC3"},
+                {"bufferView": 2, "componentType": 5126, "count": 4, "type": "VEC2"},
+                {"bufferView": 3, "componentType": 5123, "count": 6, "type": "SCALAR"}
+            ],
+            "bufferViews": [
+                {"buffer": 0, "byteOffset": 0, "byteLength": 32, "byteStride": 8},
+                {"buffer": 0, "byteOffset": 32, "byteLength": 16, "byteStride": 4},
+                {"buffer": 0, "byteOffset": 48, "byteLength": 32},
+                {"buffer": 0, "byteOffset": 80, "byteLength": 12}
+            ],
+            "buffers": [{"byteLength": 92}],
+            "textures": [{"source": 0}],
+            "images": [{"uri": "data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mP8/5+hHgAHggJ/PchI7wAAAABJRU5ErkJggg=="}]
+        })
+    };
+    for with_normals in [true, false] {
+        let (scene, report) = import_slice(&write_glb(&doc(with_normals), &bin), None).unwrap();
+        assert_eq!(scene.triangles.len(), 2);
+        let world = |p: Vec3| p + scene.origin_offset.as_vec3();
+        let (lo, hi) = scene.triangles.iter().flat_map(|t| t.p).fold(
+            (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)),
+            |(lo, hi), p| (lo.min(world(p)), hi.max(world(p))),
+        );
+        assert_eq!((lo, hi), (Vec3::ZERO, Vec3::new(1.0, 0.0, 1.0)), "u16 positions x 0.5");
+        for t in &scene.triangles {
+            assert!(t.n.iter().all(|n| (*n - Vec3::Y).length() < 1e-6), "{:?}", t.n);
+            // uv' = 0.5 uv + (0.5, 0).
+            for uv in t.uv {
+                assert!(uv.x >= 0.5 && uv.x <= 1.0 && uv.y <= 0.5, "{uv}");
+            }
+        }
+        let uvs: Vec<Vec2> = scene.triangles.iter().flat_map(|t| t.uv).collect();
+        assert!(uvs.contains(&Vec2::new(1.0, 0.5)));
+        // Both extensions are read: the report lists neither as unread or unsupported.
+        assert!(
+            !report
+                .warnings
+                .iter()
+                .any(|w| w.contains("KHR_mesh_quantization") || w.contains("KHR_texture_transform")),
+            "{:?}",
+            report.warnings
+        );
+    }
+}
+
+/// glTF's default material (white) is bounded for bounced light, a file's albedo above
+/// 0.999 too, and the report says so.
+#[test]
+fn albedo_is_bounded_and_reported() {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("snow", [1.0, 0.5, 0.99]));
+    b.square("floor", Vec3::ZERO, 2.0, Vec3::Y, m);
+    let (mut json, bin) = b.to_gltf();
+    let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert_eq!(scene.materials[0].base_color.truncate(), Vec3::new(ALBEDO_BOUND, 0.5, 0.99));
+    assert_eq!((report.albedo_bound, report.default_material_albedo), (0.999, 0.8));
+    assert_eq!(
+        report.warnings.iter().filter(|w| w.starts_with("albedo")).collect::<Vec<_>>(),
+        ["albedo bounded for bounced light (so paths in closed rooms end): snow to 0.999"]
+    );
+    json["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("material");
+    let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    assert!(report.default_material_used);
+    assert_eq!(scene.triangles[0].material as usize, scene.materials.len() - 1);
+    assert_eq!(
+        scene.albedo(&scene.triangles[0], Vec3::splat(1.0 / 3.0)),
+        Vec3::splat(DEFAULT_MATERIAL_ALBEDO)
+    );
+    assert!(
+        report.warnings.iter().any(|w| w.ends_with(": snow to 0.999, default to 0.8")),
+        "{:?}",
+        report.warnings
+    );
+}
