@@ -433,6 +433,19 @@ stability_suite!(
     leak <= 1e-4
 );
 
+// `path` on the GPU (technique::path_gpu, a megakernel over the GPU BVH): the CPU's
+// estimator with other random streams, so the CPU row's bounds.
+stability_suite!(
+    path_gpu,
+    Row {
+        technique: "path",
+        params: json!({"samples_per_step": 4, "device": "gpu"}),
+        bias: 0.0,
+        open_failures: &[],
+    },
+    leak <= 1e-4
+);
+
 // `sdb` (average mode, 64 directions a step, default 5 x 5 neighbourhood): biased by
 // design (dilation of the neighbourhood, overdraw), so cases that compare with a closed
 // form allow 2 %. The thin wall leaks through overdraw, measured 0.7 %.

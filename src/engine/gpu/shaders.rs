@@ -76,6 +76,30 @@ pub const HEMICUBE_SELECT: PassShader = pass!("hemicube_select.wgsl");
 /// `hemicube`: every receiver takes the shooters' light; the half accumulators.
 pub const HEMICUBE_TRANSFER: PassShader = pass!("hemicube_transfer.wgsl");
 
+/// A pass that casts rays: common prelude, then the BVH traversal library
+/// (`shaders/gpu/bvh.wgsl`, which owns bindings 0 and 1), then the pass.
+macro_rules! pass_with_bvh {
+    ($name:literal) => {
+        PassShader {
+            name: $name,
+            source: concat!(
+                include_str!("../../../shaders/gpu/bvh.wgsl"),
+                "\n// ---- ",
+                $name,
+                " ----\n",
+                include_str!(concat!("../../../shaders/", $name))
+            ),
+        }
+    };
+}
+
+/// The GPU BVH traversal library (no entry points), validated through the passes below.
+pub const BVH_LIBRARY: &str = "gpu/bvh.wgsl";
+/// GPU BVH: one closest-hit or any-hit query per invocation (tests, benchmarks).
+pub const BVH_QUERY: PassShader = pass_with_bvh!("gpu/bvh_query.wgsl");
+/// `path` on the GPU: the whole estimator per texel and sample (megakernel).
+pub const PATH_TRACE: PassShader = pass_with_bvh!("path/path_trace.wgsl");
+
 /// Every pass shader in the crate.
 pub const ALL: &[PassShader] = &[
     SDB_RESOLVE,
@@ -95,6 +119,8 @@ pub const ALL: &[PassShader] = &[
     HEMICUBE_PYRAMID,
     HEMICUBE_SELECT,
     HEMICUBE_TRANSFER,
+    BVH_QUERY,
+    PATH_TRACE,
 ];
 
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the
@@ -129,13 +155,22 @@ mod tests {
 
     #[test]
     fn every_shader_file_is_listed() {
-        // A new file in shaders/ that is not in ALL would escape the validation test.
-        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/shaders");
-        let mut on_disk: Vec<String> = std::fs::read_dir(dir)
-            .expect("shaders/ exists")
-            .filter_map(|e| e.ok()?.file_name().into_string().ok())
-            .filter(|n| n.ends_with(".wgsl") && n != "common.wgsl")
-            .collect();
+        // A new file in shaders/ (or a folder below it) that is not in ALL would escape the
+        // validation test. The two libraries are validated as part of every pass.
+        fn walk(dir: &std::path::Path, prefix: &str, out: &mut Vec<String>) {
+            for e in std::fs::read_dir(dir).expect("shaders/ exists").flatten() {
+                let name = e.file_name().into_string().expect("UTF-8 file name");
+                let path = e.path();
+                if path.is_dir() {
+                    walk(&path, &format!("{prefix}{name}/"), out);
+                } else if name.ends_with(".wgsl") {
+                    out.push(format!("{prefix}{name}"));
+                }
+            }
+        }
+        let mut on_disk = Vec::new();
+        walk(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/shaders")), "", &mut on_disk);
+        on_disk.retain(|n| n != "common.wgsl" && n != BVH_LIBRARY);
         on_disk.sort();
         let mut listed: Vec<String> = ALL.iter().map(|p| p.name.to_string()).collect();
         listed.sort();

@@ -14,6 +14,7 @@
 pub mod hemicube;
 pub mod obscurance;
 pub mod path;
+pub mod path_gpu;
 pub mod sdb;
 pub mod sdf;
 pub mod vpl;
