@@ -152,12 +152,12 @@ fn tri_material(slot: u32) -> u32 { return bitcast<u32>(shade[slot * SHADE_STRID
 fn tri_pick(slot: u32) -> f32 { return shade[slot * SHADE_STRIDE + 1u].w; }
 fn tri_area(slot: u32) -> f32 { return shade[slot * SHADE_STRIDE + 2u].w; }
 
-fn tri_uv(slot: u32, set: u32, b: vec3<f32>) -> vec2<f32> {
+fn tri_uv(slot: u32, uv_set: u32, b: vec3<f32>) -> vec2<f32> {
     let base = slot * SHADE_STRIDE;
     let a = shade[base + 3u];
     let c = shade[base + 4u];
     let d = shade[base + 5u];
-    if set == 1u {
+    if uv_set == 1u {
         return c.zw * b.x + d.xy * b.y + d.zw * b.z;
     }
     return a.xy * b.x + a.zw * b.y + c.xy * b.z;
@@ -218,8 +218,8 @@ fn albedo_at(slot: u32, b: vec3<f32>) -> vec3<f32> {
     var c = row.xyz;
     let tex = bitcast<u32>(row.w);
     if tex != NO_TEXTURE {
-        let set = bitcast<u32>(tables[pu.tables.x + m * 3u + 2u].x);
-        c *= tex_sample(tex, tri_uv(slot, set, b)).xyz;
+        let uv_set = bitcast<u32>(tables[pu.tables.x + m * 3u + 2u].x);
+        c *= tex_sample(tex, tri_uv(slot, uv_set, b)).xyz;
     }
     return c;
 }
@@ -230,8 +230,8 @@ fn emission_at(slot: u32, b: vec3<f32>) -> vec3<f32> {
     var e = row.xyz;
     let tex = bitcast<u32>(row.w);
     if any(e != vec3<f32>(0.0)) && tex != NO_TEXTURE {
-        let set = bitcast<u32>(tables[pu.tables.x + m * 3u + 2u].y);
-        e *= tex_sample(tex, tri_uv(slot, set, b)).xyz;
+        let uv_set = bitcast<u32>(tables[pu.tables.x + m * 3u + 2u].y);
+        e *= tex_sample(tex, tri_uv(slot, uv_set, b)).xyz;
     }
     return e;
 }
