@@ -141,6 +141,8 @@ struct Tally {
     same: usize,
     ties: usize,
     edge_cases: usize,
+    /// Hits the CPU's BVH lost and the GPU found (checked against every triangle).
+    cpu_bvh_lost: usize,
     max_dt: f32,
 }
 
@@ -160,6 +162,21 @@ fn near_edge(scene: &Scene, tri: u32, r: &QueryRay) -> bool {
         intersect(&g, &ray).is_some()
     };
     grow(1.0 + rel) != grow(1.0 - rel)
+}
+
+/// The closest hit by testing every triangle (the CPU's own Moller-Trumbore): the truth a
+/// disagreement between the two BVHs is settled against.
+fn brute_force(scene: &Scene, o: Vec3, d: Vec3) -> Option<(u32, f32)> {
+    let ray = obvhs::ray::Ray::new(o.into(), d.into(), 0.0, f32::INFINITY);
+    let mut best: Option<(u32, f32)> = None;
+    for (k, t) in scene.triangles.iter().enumerate() {
+        if let Some((th, _)) = intersect(t, &ray)
+            && best.is_none_or(|(_, b)| th < b)
+        {
+            best = Some((k as u32, th));
+        }
+    }
+    best
 }
 
 /// Compares GPU answers with the CPU's for `rays` over `scene`; panics on a real mismatch.
@@ -188,8 +205,10 @@ fn compare(
         let gpu = (h.slot != BVH_MISS).then(|| (bvh.tris[h.slot as usize].id, h.t));
         // Float precision of a distance: a few ulps of the coordinates involved.
         let tol = |t: f32| 4e-6 * t + 2e-6 * (size + o.abs().max_element());
+        // At 1e5 the aimed-at point itself is rounded by 1/256 m, off its 12 cm triangle
+        // at times: there the CPU comparison below is the test.
         if let Some((k, t_aim)) = rays.aimed[i]
-            && !(coarse && cpu.is_none() && gpu.is_none())
+            && !coarse
         {
             let (tri, t) = gpu.unwrap_or_else(|| panic!("{what}: near-surface ray {i} missed on the GPU (aimed at {k}, t = {t_aim})"));
             // The aimed-at surface is never skipped (a nearer neighbour may come first).
@@ -197,6 +216,19 @@ fn compare(
                 t <= t_aim + tol(t_aim) * 4.0 + 1e-4 * t_aim,
                 "{what}: near-surface ray {i} hit {tri} at {t}, aimed at {k} at {t_aim}"
             );
+        }
+        if cpu.as_ref().map(|c| (c.triangle, c.t)) != gpu.map(|(k, t)| (k, t)) {
+            // Where the CPU's BVH (obvhs's own slab test, not conservative) loses a hit the
+            // GPU finds, every triangle is tested: the GPU's answer must be the truth.
+            let truth = brute_force(scene, o, d);
+            let cpu_t = cpu.as_ref().map(|c| c.t);
+            if gpu.is_some() && truth.is_some() && truth.map(|x| x.1) != cpu_t {
+                let ((_, tt), (_, tg)) = (truth.unwrap(), gpu.unwrap());
+                if (tt - tg).abs() <= tol(tt) {
+                    tally.cpu_bvh_lost += 1;
+                    continue;
+                }
+            }
         }
         match (&cpu, gpu) {
             (None, None) => tally.same += 1,
@@ -309,8 +341,8 @@ fn gpu_closest_hits_match_the_cpu_at_every_scale() {
             let what = format!("{name}, {label}");
             let t = compare(&scene, &tracer, &bvh.data, &rays, &hits, &what, offset != Vec3::ZERO);
             eprintln!(
-                "{what}: {} rays, {} same, {} ties, {} edge cases, largest distance difference {:.2e} of the scene size",
-                t.rays, t.same, t.ties, t.edge_cases, t.max_dt
+                "{what}: {} rays, {} same, {} ties, {} edge cases, {} hits the CPU BVH lost, largest distance difference {:.2e} of the scene size",
+                t.rays, t.same, t.ties, t.edge_cases, t.cpu_bvh_lost, t.max_dt
             );
         }
     }
