@@ -38,7 +38,10 @@ fn scenes() -> Vec<(&'static str, Scene)> {
     let room = concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/occlusion_room.glb");
     vec![
         ("cornell-box", import_slice(&cornell_box().to_glb(), None).unwrap().0),
-        ("blocks-25k", import_slice(&procedural_blocks().to_glb(), None).unwrap().0),
+        (
+            "blocks-25k",
+            import_slice(&procedural_blocks().to_glb(), None).unwrap().0,
+        ),
         ("occlusion_room", import_file(std::path::Path::new(room)).unwrap().0),
     ]
 }
@@ -95,12 +98,18 @@ fn incoherent(scene: &Scene, n: usize) -> Vec<QueryRay> {
 }
 
 fn traversal(ctx: &GpuContext, rays_n: usize) {
-    println!("| scene | triangles | BVH nodes / depth | rays | kind | hit % | GPU Mrays/s | CPU Mrays/s ({} threads) |", rayon::current_num_threads());
+    println!(
+        "| scene | triangles | BVH nodes / depth | rays | kind | hit % | GPU Mrays/s | CPU Mrays/s ({} threads) |",
+        rayon::current_num_threads()
+    );
     println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
     for (name, scene) in scenes() {
         let tracer = Tracer::new(&scene);
         let bvh = GpuBvh::new(ctx, tracer.bvh(), &scene).unwrap();
-        for (kind, rays) in [("coherent", coherent(&scene, rays_n)), ("incoherent", incoherent(&scene, rays_n))] {
+        for (kind, rays) in [
+            ("coherent", coherent(&scene, rays_n)),
+            ("incoherent", incoherent(&scene, rays_n)),
+        ] {
             let runner = QueryRunner::new(ctx, &bvh, rays.len()).unwrap();
             runner.load(ctx, &rays);
             runner.dispatch(ctx, rays.len()).unwrap(); // compile, warm up
@@ -115,10 +124,17 @@ fn traversal(ctx: &GpuContext, rays_n: usize) {
             let t0 = Instant::now();
             let cpu_hits: usize = rays
                 .par_iter()
-                .map(|r| tracer.trace(&scene, r.origin.into(), r.dir.into(), f32::INFINITY).is_some() as usize)
+                .map(|r| {
+                    tracer
+                        .trace(&scene, r.origin.into(), r.dir.into(), f32::INFINITY)
+                        .is_some() as usize
+                })
                 .sum();
             let cpu_s = t0.elapsed().as_secs_f64();
-            assert!((cpu_hits as f64 / rays.len() as f64 - hit).abs() < 0.01, "CPU and GPU hit rates differ");
+            assert!(
+                (cpu_hits as f64 / rays.len() as f64 - hit).abs() < 0.01,
+                "CPU and GPU hit rates differ"
+            );
             println!(
                 "| {name} | {} | {} / {} | {} | {kind} | {:.1} | {:.2} | {:.2} |",
                 scene.triangles.len(),
@@ -135,7 +151,9 @@ fn traversal(ctx: &GpuContext, rays_n: usize) {
 
 fn path_steps(steps: u64, res: u32) {
     println!();
-    println!("| scene | triangles | lightmap | texels | device | ms / step (4 paths a texel) | estimated error after {steps} steps |");
+    println!(
+        "| scene | triangles | lightmap | texels | device | ms / step (4 paths a texel) | estimated error after {steps} steps |"
+    );
     println!("| --- | --- | --- | --- | --- | --- | --- |");
     let lighting = Lighting {
         sky: Some(Sky {
@@ -189,7 +207,10 @@ fn path_steps(steps: u64, res: u32) {
 fn main() {
     tracing_subscriber::fmt().with_writer(std::io::stderr).init();
     let ctx = GpuContext::new(&Requirements::default()).expect("a GPU adapter (lavapipe will do)");
-    println!("adapter: {} ({:?}, {:?})", ctx.info.name, ctx.info.device_type, ctx.info.backend);
+    println!(
+        "adapter: {} ({:?}, {:?})",
+        ctx.info.name, ctx.info.device_type, ctx.info.backend
+    );
     traversal(&ctx, arg("RAYS", 1 << 20));
     path_steps(arg("STEPS", 8) as u64, arg("RES", 128) as u32);
 }

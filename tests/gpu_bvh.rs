@@ -64,7 +64,11 @@ fn random_point_on(scene: &Scene, rng: &mut Rng) -> (u32, Vec3) {
     }
     // Keep away from the edges so the intended triangle is the unambiguous answer.
     let (a, b) = (0.02 + 0.96 * a, 0.02 + 0.96 * b);
-    let (a, b) = if a + b > 0.98 { (a * 0.98 / (a + b), b * 0.98 / (a + b)) } else { (a, b) };
+    let (a, b) = if a + b > 0.98 {
+        (a * 0.98 / (a + b), b * 0.98 / (a + b))
+    } else {
+        (a, b)
+    };
     (k as u32, t.point(Vec3::new(1.0 - a - b, a, b)))
 }
 
@@ -147,12 +151,20 @@ struct Tally {
 }
 
 fn near_edge(scene: &Scene, tri: u32, r: &QueryRay) -> bool {
-    let ray = obvhs::ray::Ray::new(Vec3::from(r.origin).into(), Vec3::from(r.dir).into(), 0.0, f32::INFINITY);
+    let ray = obvhs::ray::Ray::new(
+        Vec3::from(r.origin).into(),
+        Vec3::from(r.dir).into(),
+        0.0,
+        f32::INFINITY,
+    );
     // Slightly enlarged triangle: is the ray within 1e-5 (barycentric) of its boundary?
     let t = &scene.triangles[tri as usize];
     let c = (t.p[0] + t.p[1] + t.p[2]) / 3.0;
     // 3e-5 of the triangle, or 8 ulps of its coordinates where they are coarser.
-    let size = (t.p[1] - t.p[0]).length().max((t.p[2] - t.p[0]).length()).max(f32::MIN_POSITIVE);
+    let size = (t.p[1] - t.p[0])
+        .length()
+        .max((t.p[2] - t.p[0]).length())
+        .max(f32::MIN_POSITIVE);
     let rel = (3e-5f32).max(8.0 * f32::EPSILON * c.abs().max_element() / size);
     let grow = |k: f32| {
         let mut g = t.clone();
@@ -210,7 +222,9 @@ fn compare(
         if let Some((k, t_aim)) = rays.aimed[i]
             && !coarse
         {
-            let (tri, t) = gpu.unwrap_or_else(|| panic!("{what}: near-surface ray {i} missed on the GPU (aimed at {k}, t = {t_aim})"));
+            let (tri, t) = gpu.unwrap_or_else(|| {
+                panic!("{what}: near-surface ray {i} missed on the GPU (aimed at {k}, t = {t_aim})")
+            });
             // The aimed-at surface is never skipped (a nearer neighbour may come first).
             assert!(
                 t <= t_aim + tol(t_aim) * 4.0 + 1e-4 * t_aim,
@@ -234,7 +248,11 @@ fn compare(
             (None, None) => tally.same += 1,
             (Some(c), Some((tri, t))) if c.triangle == tri => {
                 let dt = (c.t - t).abs();
-                assert!(dt <= tol(c.t), "{what}: ray {i} hit {tri} at {t} on the GPU, at {} on the CPU", c.t);
+                assert!(
+                    dt <= tol(c.t),
+                    "{what}: ray {i} hit {tri} at {t} on the GPU, at {} on the CPU",
+                    c.t
+                );
                 tally.max_dt = tally.max_dt.max(dt / size);
                 tally.same += 1;
             }
@@ -297,13 +315,20 @@ fn flattened_tree_is_conservative_and_complete() {
     for (name, scene) in scenes() {
         let tracer = Tracer::new(&scene);
         let data = BvhData::new(tracer.bvh(), &scene).unwrap();
-        assert!(data.depth <= lightmapd::engine::gpu::bvh::BVH_STACK, "{name}: depth {}", data.depth);
+        assert!(
+            data.depth <= lightmapd::engine::gpu::bvh::BVH_STACK,
+            "{name}: depth {}",
+            data.depth
+        );
         let mut seen = vec![0u32; scene.triangles.len()];
         let mut stack = vec![(0usize, Vec3::splat(f32::NEG_INFINITY), Vec3::splat(f32::INFINITY))];
         while let Some((i, plo, phi)) = stack.pop() {
             let n = &data.nodes[i];
             let (lo, hi) = (Vec3::from(n.min), Vec3::from(n.max));
-            assert!(lo.cmpge(plo).all() && hi.cmple(phi).all(), "{name}: node {i} pokes out of its parent");
+            assert!(
+                lo.cmpge(plo).all() && hi.cmple(phi).all(),
+                "{name}: node {i} pokes out of its parent"
+            );
             if n.count == 0 {
                 stack.push((n.first as usize, lo, hi));
                 stack.push((n.first as usize + 1, lo, hi));
@@ -312,13 +337,19 @@ fn flattened_tree_is_conservative_and_complete() {
                     let t = &data.tris[s as usize];
                     seen[t.id as usize] += 1;
                     for p in scene.triangles[t.id as usize].p {
-                        assert!(p.cmpgt(lo).all() && p.cmplt(hi).all(), "{name}: a vertex touches its leaf box");
+                        assert!(
+                            p.cmpgt(lo).all() && p.cmplt(hi).all(),
+                            "{name}: a vertex touches its leaf box"
+                        );
                     }
                     assert_eq!(data.slot_of[t.id as usize], s);
                 }
             }
         }
-        assert!(seen.iter().all(|c| *c == 1), "{name}: a triangle is in no leaf or in two");
+        assert!(
+            seen.iter().all(|c| *c == 1),
+            "{name}: a triangle is in no leaf or in two"
+        );
     }
 }
 
@@ -375,18 +406,32 @@ fn gpu_rays_inside_a_closed_box_never_escape() {
         let hits = runner.run(&ctx, &rays).unwrap();
         let cpu_miss: Vec<bool> = rays
             .iter()
-            .map(|r| tracer.trace(&scene, r.origin.into(), r.dir.into(), f32::INFINITY).is_none())
+            .map(|r| {
+                tracer
+                    .trace(&scene, r.origin.into(), r.dir.into(), f32::INFINITY)
+                    .is_none()
+            })
             .collect();
         let misses = hits.iter().filter(|h| h.slot == BVH_MISS).count();
         let cpu_misses = cpu_miss.iter().filter(|m| **m).count();
-        eprintln!("closed box, scale {scale}, offset {offset}: {misses} GPU and {cpu_misses} CPU escapes of {}", rays.len());
+        eprintln!(
+            "closed box, scale {scale}, offset {offset}: {misses} GPU and {cpu_misses} CPU escapes of {}",
+            rays.len()
+        );
         if offset == Vec3::ZERO {
             assert_eq!(misses, 0, "scale {scale}: {misses} of {} rays escaped", rays.len());
         } else {
             // At 1e5 (1/128 m resolution) the f32 triangle test has cracks at the box's
             // edges on the CPU as well: the GPU lets through no ray the CPU does not.
-            let extra = hits.iter().zip(&cpu_miss).filter(|(h, c)| h.slot == BVH_MISS && !**c).count();
-            assert!(extra * 1000 <= rays.len(), "offset {offset}: {extra} rays escape on the GPU only");
+            let extra = hits
+                .iter()
+                .zip(&cpu_miss)
+                .filter(|(h, c)| h.slot == BVH_MISS && !**c)
+                .count();
+            assert!(
+                extra * 1000 <= rays.len(),
+                "offset {offset}: {extra} rays escape on the GPU only"
+            );
         }
     }
 }
@@ -421,14 +466,27 @@ fn gpu_any_hit_matches_the_cpu() {
             if free != (h.slot == 0) {
                 // Only where the closest hit is within rounding of tmax.
                 let near = closest[i].is_some_and(|t| (t - r.tmax).abs() <= 1e-5 * t + 1e-6 * size);
-                assert!(near, "{name}: occlusion ray {i} free on the CPU: {free}, on the GPU: {}", h.slot == 0);
+                assert!(
+                    near,
+                    "{name}: occlusion ray {i} free on the CPU: {free}, on the GPU: {}",
+                    h.slot == 0
+                );
                 disagree += 1;
             }
         }
-        assert!(disagree * 500 <= rays.len(), "{name}: {disagree} occlusion answers differ");
+        assert!(
+            disagree * 500 <= rays.len(),
+            "{name}: {disagree} occlusion answers differ"
+        );
         let occluded = hits.iter().filter(|h| h.slot == 1).count();
-        eprintln!("{name}: {} occlusion rays, {occluded} occluded, {disagree} differ at tmax", rays.len());
-        assert!(occluded > 0 && occluded < rays.len(), "{name}: the test rays must include both outcomes");
+        eprintln!(
+            "{name}: {} occlusion rays, {occluded} occluded, {disagree} differ at tmax",
+            rays.len()
+        );
+        assert!(
+            occluded > 0 && occluded < rays.len(),
+            "{name}: the test rays must include both outcomes"
+        );
     }
 }
 
@@ -443,7 +501,10 @@ fn empty_scene_misses_everything() {
     let hits = runner
         .run(
             &ctx,
-            &[ray(Vec3::ZERO, Vec3::X, f32::MAX, 0), ray(Vec3::ZERO, Vec3::Y, f32::MAX, 1)],
+            &[
+                ray(Vec3::ZERO, Vec3::X, f32::MAX, 0),
+                ray(Vec3::ZERO, Vec3::Y, f32::MAX, 1),
+            ],
         )
         .unwrap();
     assert_eq!(hits[0].slot, BVH_MISS);

@@ -58,7 +58,14 @@ fn closed_cube(rho: f32, le: f32) {
         16,
     );
     let expected = Vec3::splat(le / (1.0 - rho));
-    let (_, se, n) = assert_unbiased(&atlas, &est, |_| true, |_| expected, 0.0, &format!("GPU closed cube rho={rho}"));
+    let (_, se, n) = assert_unbiased(
+        &atlas,
+        &est,
+        |_| true,
+        |_| expected,
+        0.0,
+        &format!("GPU closed cube rho={rho}"),
+    );
     assert!(n > 1000);
     assert!(se < 0.02, "too few samples to test anything: standard error {se}");
     let se_t = est.texel_error.as_ref().unwrap();
@@ -92,7 +99,14 @@ fn gpu_plane_under_uniform_sky_reads_the_sky_radiance() {
         return;
     }
     let l = 1.7;
-    let (atlas, est) = bake(import(&sky_plane()), 32, upper_sky(l), "path", gpu(json!({"samples_per_step": 2})), 4);
+    let (atlas, est) = bake(
+        import(&sky_plane()),
+        32,
+        upper_sky(l),
+        "path",
+        gpu(json!({"samples_per_step": 2})),
+        4,
+    );
     assert!(atlas.texels.len() > 500);
     for v in &est.total {
         assert!((*v - Vec3::splat(l)).abs().max_element() < 1e-5 * l, "{v}");
@@ -118,7 +132,14 @@ fn gpu_point_and_spot_lights_over_a_black_plane_are_exact() {
     });
     let scene = import(&b);
     let offset = scene.origin_offset.as_vec3();
-    let (atlas, est) = bake(scene, 32, Lighting::default(), "path", gpu(json!({"samples_per_step": 1})), 2);
+    let (atlas, est) = bake(
+        scene,
+        32,
+        Lighting::default(),
+        "path",
+        gpu(json!({"samples_per_step": 1})),
+        2,
+    );
     for (t, v) in atlas.texels.iter().zip(&est.total) {
         let to = lp - (t.position + offset);
         let d2 = to.length_squared();
@@ -142,7 +163,14 @@ fn gpu_directional_moments_are_exact() {
         color: [1.0; 3],
         intensity: 2.0,
     });
-    let (_, est) = bake(import(&b), 16, Lighting::default(), "path", gpu(json!({"samples_per_step": 1})), 2);
+    let (_, est) = bake(
+        import(&b),
+        16,
+        Lighting::default(),
+        "path",
+        gpu(json!({"samples_per_step": 1})),
+        2,
+    );
     let moments = est.moments.as_ref().expect("sh asked for");
     for (t, m) in est.total.iter().zip(moments) {
         let e = 2.0 * l.y / std::f32::consts::PI;
@@ -164,7 +192,14 @@ fn gpu_parallel_squares_form_factor() {
     b.square("emitter", Vec3::new(0.0, 1.0, 0.0), 1.0, Vec3::NEG_Y, lamp);
     let scene = import(&b);
     let offset = scene.origin_offset.as_vec3();
-    let (atlas, est) = bake(scene, 62, Lighting::default(), "path", gpu(json!({"samples_per_step": 16})), 64);
+    let (atlas, est) = bake(
+        scene,
+        62,
+        Lighting::default(),
+        "path",
+        gpu(json!({"samples_per_step": 16})),
+        64,
+    );
     let on_receiver = |t: &lightmapd::engine::atlas::Texel| t.geo_normal.y > 0.99;
     let expected = |t: &lightmapd::engine::atlas::Texel| {
         let p = t.position + offset;
@@ -216,7 +251,14 @@ fn gpu_cornell_box_agrees_with_the_cpu_path() {
     for (name, lighting) in [("emitter only", Lighting::default()), ("sky and sun", sun)] {
         let scene = import(&cornell_box());
         let params = json!({"samples_per_step": 4});
-        let (_, cpu) = bake(scene.clone(), 32, lighting, "path", json!({"samples_per_step": 4, "device": "cpu"}), 16);
+        let (_, cpu) = bake(
+            scene.clone(),
+            32,
+            lighting,
+            "path",
+            json!({"samples_per_step": 4, "device": "cpu"}),
+            16,
+        );
         let (_, gpu_est) = bake(scene, 32, lighting, "path", gpu(params), 16);
         let (a, sa) = mean_and_se(&cpu);
         let (b, sb) = mean_and_se(&gpu_est);
@@ -226,7 +268,10 @@ fn gpu_cornell_box_agrees_with_the_cpu_path() {
         assert!(sa / a < 0.01, "{name}: too few samples to test anything");
         // The estimate measures the GPU's error the same way: comparable relative errors.
         let (ra, rb) = (cpu.error.relative.unwrap(), gpu_est.error.relative.unwrap());
-        assert!(rb < 2.0 * ra && ra < 2.0 * rb, "{name}: error estimates {ra} (CPU) and {rb} (GPU)");
+        assert!(
+            rb < 2.0 * ra && ra < 2.0 * rb,
+            "{name}: error estimates {ra} (CPU) and {rb} (GPU)"
+        );
     }
 }
 
@@ -236,8 +281,22 @@ fn device_auto_and_bad_device() {
     // parameter error naming the value.
     let scene = import(&sky_plane());
     if !lightmapd::engine::technique::path_gpu::hardware_adapter_present() {
-        let (_, a) = bake(scene.clone(), 16, upper_sky(1.0), "path", json!({"samples_per_step": 1}), 2);
-        let (_, c) = bake(scene.clone(), 16, upper_sky(1.0), "path", json!({"samples_per_step": 1, "device": "cpu"}), 2);
+        let (_, a) = bake(
+            scene.clone(),
+            16,
+            upper_sky(1.0),
+            "path",
+            json!({"samples_per_step": 1}),
+            2,
+        );
+        let (_, c) = bake(
+            scene.clone(),
+            16,
+            upper_sky(1.0),
+            "path",
+            json!({"samples_per_step": 1, "device": "cpu"}),
+            2,
+        );
         assert_eq!(a.total, c.total, "auto without a hardware GPU must be the CPU path");
     }
     let atlas = std::sync::Arc::new(lightmapd::engine::atlas::Atlas::build(&scene, 16, 16).unwrap());

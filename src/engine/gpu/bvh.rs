@@ -169,9 +169,7 @@ impl BvhData {
         if depth > BVH_STACK {
             return Err(GpuError::Unsupported {
                 adapter: "GPU BVH".into(),
-                missing: format!(
-                    "the scene's BVH is {depth} levels deep; the GPU traversal's stack holds {BVH_STACK}"
-                ),
+                missing: format!("the scene's BVH is {depth} levels deep; the GPU traversal's stack holds {BVH_STACK}"),
             });
         }
         if slot_of.iter().any(|s| *s == u32::MAX) {

@@ -150,9 +150,11 @@ fn scene_tables(scene: &Scene, emitters: &EmitterTable, slot_ids: &[u32], slot_o
         let (kind, cos_outer, scale) = match l.kind {
             LightKind::Directional => (0u32, 0.0, 0.0),
             LightKind::Point => (1, 0.0, 0.0),
-            LightKind::Spot { inner_cone, outer_cone } => {
-                (2, outer_cone.cos(), 1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3))
-            }
+            LightKind::Spot { inner_cone, outer_cone } => (
+                2,
+                outer_cone.cos(),
+                1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3),
+            ),
         };
         tables.push([l.intensity.x, l.intensity.y, l.intensity.z, bits(kind)]);
         tables.push([l.position.x, l.position.y, l.position.z, l.range.unwrap_or(-1.0)]);
