@@ -49,6 +49,11 @@ impl Tracer {
         Tracer { bvh }
     }
 
+    /// The tree itself (the GPU BVH flattens this one: `engine::gpu::bvh`).
+    pub fn bvh(&self) -> &Bvh2 {
+        &self.bvh
+    }
+
     /// Closest hit along `origin + t·dir`, t in (0, tmax).
     pub fn trace(&self, scene: &Scene, origin: Vec3, dir: Vec3, tmax: f32) -> Option<Hit> {
         let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);

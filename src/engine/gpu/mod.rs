@@ -26,6 +26,7 @@
 //! Readback ([`GpuContext::read_buffer`]) blocks on the device and is meant for
 //! snapshots only, never once per step.
 
+pub mod bvh;
 pub mod directions;
 pub mod frame;
 pub mod halves;

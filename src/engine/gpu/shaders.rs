@@ -71,8 +71,15 @@ pub const SHADOW_VIEW: WgslFile = wgsl_file!("gpu/shadow_view.wgsl");
 /// pass (used by `vpl` for lights and VPLs, `hemicube` for its shooters).
 pub const SHADOW_ATLAS: PassShader = pass!("gpu/shadow_atlas.wgsl", [SHADOW_VIEW]);
 
+/// The GPU BVH traversal library (`engine::gpu::bvh`; no entry points, owns bindings 0
+/// and 1): prelude of every pass that casts rays.
+pub const BVH: WgslFile = wgsl_file!("gpu/bvh.wgsl");
+
+/// GPU BVH: one closest-hit or any-hit query per invocation (tests, benchmarks).
+pub const BVH_QUERY: PassShader = pass!("gpu/bvh_query.wgsl", [BVH]);
+
 /// The passes of the shared GPU layer (the technique table adds every technique's).
-pub const SHARED_PASSES: &[PassShader] = &[SHADOW_ATLAS];
+pub const SHARED_PASSES: &[PassShader] = &[SHADOW_ATLAS, BVH_QUERY];
 
 impl PassShader {
     /// The full source handed to the compiler: common prelude, the pass's preludes, then

@@ -32,6 +32,11 @@
 //!
 //! Rays are cast with `engine::raytrace` (obvhs's binary BVH).
 //!
+//! Device (`params.device`): `cpu` traces here on all cores; `gpu` runs the same estimator
+//! as a compute megakernel (`technique::path::gpu`, same tables, other random streams);
+//! `auto` (the default) takes the GPU only when a hardware adapter exists, so a machine
+//! with only a software rasteriser (lavapipe) keeps the CPU path.
+//!
 //! Randomness: one PCG32 stream per (seed, step, texel, sample) (`engine::rng`), so the
 //! result is bit-identical for a seed regardless of thread count.
 //!
@@ -45,6 +50,10 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+mod gpu;
+
+pub use gpu::{Device, hardware_adapter_present};
+use gpu::PathGpu;
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, parse_params};
 use crate::engine::accumulate::{HalfAccumulator, LUMINANCE, Snapshot};
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
@@ -61,6 +70,8 @@ pub struct PathParams {
     pub max_bounces: u32,
     /// Throughput below which Russian roulette starts (0 < τ ≤ 1).
     pub rr_threshold: f32,
+    /// Where to trace: `auto`, `cpu` or `gpu` (module doc).
+    pub device: Device,
 }
 
 impl Default for PathParams {
@@ -69,6 +80,7 @@ impl Default for PathParams {
             samples_per_step: 4,
             max_bounces: 65536,
             rr_threshold: 0.05,
+            device: Device::Auto,
         }
     }
 }
@@ -97,13 +109,23 @@ impl PathParams {
     }
 }
 
+/// `path`'s GPU pass, WGSL in `shaders/path/` (the CPU route needs none).
+pub mod shaders {
+    use crate::engine::gpu::shaders::{BVH, PassShader, pass};
+
+    /// The whole estimator per texel and sample (megakernel) over the GPU BVH.
+    pub const PATH_TRACE: PassShader = pass!("path/path_trace.wgsl", [BVH]);
+    /// Every pass of `path`.
+    pub const ALL: &[PassShader] = &[PATH_TRACE];
+}
+
 /// `path` in the technique table (`technique/table.rs`).
 pub const ENTRY: TechniqueEntry = TechniqueEntry {
     id: "path",
     summary: "the unbiased reference: Monte Carlo path tracing with next-event estimation and MIS (CPU, all cores)",
     plan,
     prepare: |inputs, params| Ok(Box::new(PathTracer::prepare(inputs, params)?)),
-    shaders: &[],
+    shaders: shaders::ALL,
 };
 
 /// The path tracer's plan: one CPU pass, and light sampling only for the kinds of light
@@ -162,22 +184,30 @@ pub struct PathTracer {
     tracer: Tracer,
     emitters: EmitterTable,
     acc: HalfAccumulator,
+    /// The GPU estimator, when `params.device` resolved to the GPU.
+    gpu: Option<PathGpu>,
 }
 
 impl PathTracer {
     pub fn prepare(inputs: BakeInputs, params: &Value) -> Result<Self, EngineError> {
-        let params: PathParams = parse_params("path", params)?;
+        let mut params: PathParams = parse_params("path", params)?;
         params.validate()?;
         let tracer = Tracer::new(&inputs.scene);
         let emitters = EmitterTable::new(&inputs.scene);
-        let acc = HalfAccumulator::new(inputs.atlas.texels.len(), inputs.want_direct)
-            .with_moments(inputs.plan.runs(SH_LAYER));
+        let gpu = match gpu::resolve(params.device)? {
+            Some(ctx) => Some(PathGpu::new(ctx, &inputs, &params, &tracer, &emitters)?),
+            None => None,
+        };
+        params.device = if gpu.is_some() { Device::Gpu } else { Device::Cpu };
+        let texels = if gpu.is_some() { 0 } else { inputs.atlas.texels.len() };
+        let acc = HalfAccumulator::new(texels, inputs.want_direct).with_moments(inputs.plan.runs(SH_LAYER));
         Ok(PathTracer {
             inputs,
             params,
             tracer,
             emitters,
             acc,
+            gpu,
         })
     }
 }
@@ -192,6 +222,9 @@ impl Technique for PathTracer {
     }
 
     fn step(&mut self) -> Result<(), EngineError> {
+        if let Some(gpu) = self.gpu.as_mut() {
+            return gpu.step();
+        }
         let step = self.acc.steps();
         let spp = self.params.samples_per_step;
         let ctx = PathContext {
@@ -249,11 +282,17 @@ impl Technique for PathTracer {
     }
 
     fn steps_done(&self) -> u64 {
-        self.acc.steps()
+        match &self.gpu {
+            Some(gpu) => gpu.steps(),
+            None => self.acc.steps(),
+        }
     }
 
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
-        Ok(self.acc.snapshot())
+        match self.gpu.as_mut() {
+            Some(gpu) => gpu.snapshot(),
+            None => Ok(self.acc.snapshot()),
+        }
     }
 
     fn accumulating_pass(&self) -> &'static str {
@@ -264,10 +303,10 @@ impl Technique for PathTracer {
 /// The light-sampling tables: emissive triangles chosen in proportion to area × emitted
 /// luminance.
 pub struct EmitterTable {
-    emitters: Vec<u32>,
-    emitter_cdf: Vec<f32>,
+    pub(crate) emitters: Vec<u32>,
+    pub(crate) emitter_cdf: Vec<f32>,
     /// Selection probability of each scene triangle as an emitter (0 for non-emitters).
-    emitter_pick: Vec<f32>,
+    pub(crate) emitter_pick: Vec<f32>,
 }
 
 impl EmitterTable {

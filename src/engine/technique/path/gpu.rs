@@ -1,0 +1,427 @@
+//! `path` on the GPU (`"device": "gpu"`, or `"auto"` on a machine with a hardware
+//! adapter): the CPU reference's estimator (`technique::path`) run as one compute
+//! megakernel, `shaders/path/path_trace.wgsl`, over the BVH of `engine::gpu::bvh`.
+//!
+//! How: one invocation per valid texel traces that texel's `samples_per_step` paths of
+//! the step and blends their mean into the step's half accumulator (running means,
+//! even/odd steps as on the CPU), so a step is one dispatch and nothing is read back until
+//! a snapshot. The scene goes up once: the BVH (nodes, triangles in leaf order), per
+//! triangle slot its shading normals, UV sets, material, emitter pick probability and
+//! area, and one table buffer with the materials, punctual lights, the emitter CDF (the
+//! CPU's `EmitterTable`, so both pick emitters with the same probabilities) and the
+//! textures (linear RGBA f32, sampled bilinearly with the same wrap rules as
+//! `scene::Texture::sample`).
+//!
+//! Same estimator, different random numbers: the GPU's streams are PCG-RXS-M-XS 32/32 per
+//! (seed, step, texel, sample) (the shader's header), not the CPU's 64-bit PCG32, so a
+//! GPU bake agrees with a CPU bake of the same seed in the mean, within noise, not bit
+//! for bit; the half-accumulator error estimate is the same. A megakernel rather than a
+//! wavefront: it needs no ray queues in memory and is the first thing to measure
+//! (`docs/performance.md`); paths of very different lengths leave lanes idle, which a
+//! wavefront would recover on hardware GPUs.
+//!
+//! Precision: world space f32, as the CPU. Limits: every storage buffer must fit the
+//! adapter's binding limit (128 MiB on lavapipe: about 1.4M triangles' shading data, 8M
+//! texture texels, 2M texels with moments), checked up front with an error naming the
+//! buffer; the steps are counted in 32 bits in the shader.
+
+use std::sync::{Arc, OnceLock};
+
+use glam::Vec3;
+use wgpu::BufferUsages;
+
+use super::{EmitterTable, PathParams};
+use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
+use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::gpu::bvh::{GpuBvh, check_binding_size};
+use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
+use super::shaders::PATH_TRACE;
+use crate::engine::gpu::{self, AdapterPreference, GpuContext, GpuError, Requirements, dispatch_size_64};
+use crate::engine::raytrace::Tracer;
+use crate::engine::scene::{Hemisphere, LightKind, Scene, Wrap};
+
+/// Where `path` runs (`params.device`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Device {
+    /// The GPU when a hardware adapter exists (and `LIGHTMAPD_ADAPTER` does not ask for a
+    /// software one), else the CPU: a machine with only lavapipe keeps the CPU path.
+    #[default]
+    Auto,
+    Cpu,
+    Gpu,
+}
+
+/// True when some adapter is a hardware GPU (enumerated once per process).
+pub fn hardware_adapter_present() -> bool {
+    static PRESENT: OnceLock<bool> = OnceLock::new();
+    *PRESENT.get_or_init(|| {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        adapters.iter().any(|a| {
+            matches!(
+                a.get_info().device_type,
+                wgpu::DeviceType::DiscreteGpu | wgpu::DeviceType::IntegratedGpu | wgpu::DeviceType::VirtualGpu
+            )
+        })
+    })
+}
+
+/// The GPU context `device` asks for, or `None` for the CPU.
+pub fn resolve(device: Device) -> Result<Option<Arc<GpuContext>>, EngineError> {
+    match device {
+        Device::Cpu => Ok(None),
+        Device::Gpu => gpu::shared(&Requirements::default()).map(Some).map_err(gpu_error),
+        Device::Auto => {
+            if AdapterPreference::from_env() == AdapterPreference::Cpu || !hardware_adapter_present() {
+                return Ok(None);
+            }
+            match gpu::shared(&Requirements::default()) {
+                Ok(ctx) if !ctx.is_software() => Ok(Some(ctx)),
+                Ok(_) => Ok(None),
+                Err(e) => {
+                    tracing::warn!(error = %e, "path: no usable GPU, tracing on the CPU");
+                    Ok(None)
+                }
+            }
+        }
+    }
+}
+
+const PATH_DIRECT: u32 = 1;
+const PATH_MOMENTS: u32 = 2;
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct PathUniform {
+    counts: [u32; 4],
+    keys: [u32; 4],
+    tables: [u32; 4],
+    tables2: [u32; 4],
+    sky: [f32; 4],
+    sun_axis: [f32; 4],
+    sun: [f32; 4],
+    f: [f32; 4],
+}
+
+fn bits(u: u32) -> f32 {
+    f32::from_bits(u)
+}
+
+/// The per-slot shading data and the table buffer (materials, lights, emitters, texture
+/// headers, texels), with the table offsets.
+struct SceneTables {
+    shade: Vec<[f32; 4]>,
+    tables: Vec<[f32; 4]>,
+    /// materials, lights, light count, emitters, emitter count, texture headers.
+    offsets: [u32; 6],
+}
+
+fn scene_tables(scene: &Scene, emitters: &EmitterTable, slot_ids: &[u32], slot_of: &[u32]) -> SceneTables {
+    let mut shade = Vec::with_capacity(slot_ids.len() * 6);
+    for &id in slot_ids {
+        let t = &scene.triangles[id as usize];
+        let pick = emitters.emitter_pick.get(id as usize).copied().unwrap_or(0.0);
+        shade.push([t.n[0].x, t.n[0].y, t.n[0].z, bits(t.material)]);
+        shade.push([t.n[1].x, t.n[1].y, t.n[1].z, pick]);
+        shade.push([t.n[2].x, t.n[2].y, t.n[2].z, t.area()]);
+        shade.push([t.uv[0].x, t.uv[0].y, t.uv[1].x, t.uv[1].y]);
+        shade.push([t.uv[2].x, t.uv[2].y, t.lm[0].x, t.lm[0].y]);
+        shade.push([t.lm[1].x, t.lm[1].y, t.lm[2].x, t.lm[2].y]);
+    }
+    let mut tables: Vec<[f32; 4]> = Vec::new();
+    let mat_off = tables.len() as u32;
+    for m in &scene.materials {
+        let tex = |r: Option<crate::engine::scene::TextureRef>| r.map_or(u32::MAX, |r| r.texture);
+        let set = |r: Option<crate::engine::scene::TextureRef>| r.map_or(0, |r| r.texcoord);
+        let c = m.base_color;
+        tables.push([c.x, c.y, c.z, bits(tex(m.base_color_texture))]);
+        let e = m.emissive;
+        tables.push([e.x, e.y, e.z, bits(tex(m.emissive_texture))]);
+        tables.push([
+            bits(set(m.base_color_texture)),
+            bits(set(m.emissive_texture)),
+            bits(m.double_sided as u32),
+            0.0,
+        ]);
+    }
+    let light_off = tables.len() as u32;
+    for l in &scene.lights {
+        let (kind, cos_outer, scale) = match l.kind {
+            LightKind::Directional => (0u32, 0.0, 0.0),
+            LightKind::Point => (1, 0.0, 0.0),
+            LightKind::Spot { inner_cone, outer_cone } => (
+                2,
+                outer_cone.cos(),
+                1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3),
+            ),
+        };
+        tables.push([l.intensity.x, l.intensity.y, l.intensity.z, bits(kind)]);
+        tables.push([l.position.x, l.position.y, l.position.z, l.range.unwrap_or(-1.0)]);
+        tables.push([l.direction.x, l.direction.y, l.direction.z, 0.0]);
+        tables.push([cos_outer, scale, 0.0, 0.0]);
+    }
+    let emit_off = tables.len() as u32;
+    for (k, &id) in emitters.emitters.iter().enumerate() {
+        tables.push([bits(slot_of[id as usize]), emitters.emitter_cdf[k], 0.0, 0.0]);
+    }
+    let tex_off = tables.len() as u32;
+    let mut texel_off = tex_off + scene.textures.len() as u32;
+    let wrap = |w: Wrap| match w {
+        Wrap::Repeat => 0u32,
+        Wrap::Mirror => 1,
+        Wrap::Clamp => 2,
+    };
+    for t in &scene.textures {
+        tables.push([
+            bits(texel_off),
+            bits(t.width),
+            bits(t.height),
+            bits(wrap(t.wrap_u) | (wrap(t.wrap_v) << 8)),
+        ]);
+        texel_off += t.texels.len() as u32;
+    }
+    for t in &scene.textures {
+        tables.extend(t.texels.iter().map(|c| c.to_array()));
+    }
+    SceneTables {
+        shade,
+        tables,
+        offsets: [
+            mat_off,
+            light_off,
+            scene.lights.len() as u32,
+            emit_off,
+            emitters.emitters.len() as u32,
+            tex_off,
+        ],
+    }
+}
+
+/// The GPU half of `path`: buffers, the pass, and the half accumulators on the GPU.
+pub struct PathGpu {
+    ctx: Arc<GpuContext>,
+    pipeline: wgpu::ComputePipeline,
+    group: wgpu::BindGroup,
+    uniform_buf: wgpu::Buffer,
+    uniform: PathUniform,
+    acc_total: wgpu::Buffer,
+    acc_direct: wgpu::Buffer,
+    acc_moment: wgpu::Buffer,
+    texels: usize,
+    want_direct: bool,
+    want_moments: bool,
+    half_steps: [u64; 2],
+    _bvh: GpuBvh,
+}
+
+impl PathGpu {
+    pub fn new(
+        ctx: Arc<GpuContext>,
+        inputs: &BakeInputs,
+        params: &PathParams,
+        tracer: &Tracer,
+        emitters: &EmitterTable,
+    ) -> Result<Self, EngineError> {
+        Self::build(ctx, inputs, params, tracer, emitters).map_err(gpu_error)
+    }
+
+    fn build(
+        ctx: Arc<GpuContext>,
+        inputs: &BakeInputs,
+        params: &PathParams,
+        tracer: &Tracer,
+        emitters: &EmitterTable,
+    ) -> Result<Self, GpuError> {
+        let scene = &inputs.scene;
+        let bvh = GpuBvh::new(&ctx, tracer.bvh(), scene)?;
+        let slot_ids: Vec<u32> = if scene.triangles.is_empty() {
+            vec![0]
+        } else {
+            bvh.data.tris.iter().map(|t| t.id).collect()
+        };
+        let st = if scene.triangles.is_empty() {
+            SceneTables {
+                shade: vec![[0.0; 4]; 6],
+                tables: vec![[0.0; 4]],
+                offsets: [0; 6],
+            }
+        } else {
+            scene_tables(scene, emitters, &slot_ids, &bvh.data.slot_of)
+        };
+        let n = inputs.atlas.texels.len();
+        let want_direct = inputs.want_direct;
+        let want_moments = inputs.plan.runs("directional (sh) layer");
+        let texel_geom: Vec<[f32; 4]> = inputs
+            .atlas
+            .texels
+            .iter()
+            .flat_map(|t| {
+                [
+                    t.position.extend(0.0).to_array(),
+                    t.normal.extend(0.0).to_array(),
+                    t.geo_normal.extend(0.0).to_array(),
+                ]
+            })
+            .collect();
+        let vec4 = 16u64;
+        check_binding_size(&ctx, "path: the texels", texel_geom.len() as u64 * vec4)?;
+        check_binding_size(&ctx, "path: the triangles' shading data", st.shade.len() as u64 * vec4)?;
+        check_binding_size(
+            &ctx,
+            "path: the materials, lights and textures",
+            st.tables.len() as u64 * vec4,
+        )?;
+        let acc_len = |keep: bool, per: u64| if keep { 2 * n as u64 * per * vec4 } else { vec4 };
+        check_binding_size(&ctx, "path: the accumulators", acc_len(true, 1))?;
+        check_binding_size(&ctx, "path: the directional moments", acc_len(want_moments, 3))?;
+
+        let read = BufferUsages::STORAGE | BufferUsages::COPY_DST;
+        let rw = BufferUsages::STORAGE | BufferUsages::COPY_SRC | BufferUsages::COPY_DST;
+        let texel_buf = ctx.buffer_init("path texels", &texel_geom, read);
+        let shade_buf = ctx.buffer_init("path triangle shading", &st.shade, read);
+        let tables_buf = ctx.buffer_init("path tables", &st.tables, read);
+        let acc_total = ctx.buffer_zeroed("path accumulators", acc_len(true, 1), rw);
+        let acc_direct = ctx.buffer_zeroed("path direct accumulators", acc_len(want_direct, 1), rw);
+        let acc_moment = ctx.buffer_zeroed("path moment accumulators", acc_len(want_moments, 3), rw);
+
+        let l = &inputs.lighting;
+        let (sky, sky_mode) = match l.sky {
+            Some(s) => (s.radiance, if s.hemisphere == Hemisphere::Full { 2.0 } else { 1.0 }),
+            None => (Vec3::ZERO, 0.0),
+        };
+        let (sun_axis, sun) = match &l.sun {
+            Some(s) => (
+                (-s.direction.normalize()).extend(s.cos_half_angle()).to_array(),
+                s.radiance.extend(s.solid_angle()).to_array(),
+            ),
+            None => ([0.0, 1.0, 0.0, 2.0], [0.0; 4]),
+        };
+        let seed = inputs.seed;
+        let flags = if want_direct { PATH_DIRECT } else { 0 } | if want_moments { PATH_MOMENTS } else { 0 };
+        let uniform = PathUniform {
+            counts: [n as u32, params.samples_per_step, params.max_bounces, 0],
+            keys: [seed as u32, (seed >> 32) as u32, 0, flags],
+            tables: [st.offsets[0], st.offsets[1], st.offsets[2], st.offsets[3]],
+            tables2: [st.offsets[4], st.offsets[5], 0, 0],
+            sky: sky.extend(sky_mode).to_array(),
+            sun_axis,
+            sun,
+            f: [params.rr_threshold, inputs.atlas.surface_offset, 1.0, 0.0],
+        };
+        let uniform_buf = ctx.uniform("path params", &uniform);
+        let module = ctx.shader(&PATH_TRACE)?;
+        let binds = [
+            Bind::Read(&bvh.nodes),
+            Bind::Read(&bvh.tris),
+            Bind::Uniform(&uniform_buf),
+            Bind::Read(&texel_buf),
+            Bind::Read(&shade_buf),
+            Bind::Read(&tables_buf),
+            Bind::Write(&acc_total),
+            Bind::Write(&acc_direct),
+            Bind::Write(&acc_moment),
+        ];
+        let layout = layout_of(&ctx, "path trace", wgpu::ShaderStages::COMPUTE, &binds);
+        let group = group_of(&ctx, "path trace", &layout, &binds);
+        let pipeline = compute_pipeline(&ctx, "path trace", &module, "trace", &layout);
+        ctx.take_error("path: preparing the GPU pass")?;
+        tracing::info!(
+            adapter = %ctx.info.name,
+            triangles = scene.triangles.len(),
+            bvh_nodes = bvh.data.nodes.len(),
+            bvh_depth = bvh.data.depth,
+            texels = n,
+            "path on the GPU"
+        );
+        Ok(PathGpu {
+            ctx,
+            pipeline,
+            group,
+            uniform_buf,
+            uniform,
+            acc_total,
+            acc_direct,
+            acc_moment,
+            texels: n,
+            want_direct,
+            want_moments,
+            half_steps: [0, 0],
+            _bvh: bvh,
+        })
+    }
+
+    pub fn steps(&self) -> u64 {
+        self.half_steps[0] + self.half_steps[1]
+    }
+
+    /// Submits one step (one dispatch); does not wait for it.
+    pub fn step(&mut self) -> Result<(), EngineError> {
+        let step = self.steps();
+        let half = (step % 2) as usize;
+        let k = self.half_steps[half] + 1;
+        self.uniform.counts[3] = step as u32;
+        self.uniform.keys[2] = half as u32;
+        self.uniform.f[2] = 1.0 / k as f32;
+        let ctx = &self.ctx;
+        ctx.queue
+            .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("path trace"),
+        });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("path trace"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &self.group, &[]);
+            let (x, y) = dispatch_size_64(self.texels as u32);
+            pass.dispatch_workgroups(x, y, 1);
+        }
+        ctx.queue.submit([enc.finish()]);
+        ctx.take_error("path trace").map_err(gpu_error)?;
+        self.half_steps[half] = k;
+        Ok(())
+    }
+
+    /// Blocks until every submitted step is done (benchmarks).
+    pub fn wait(&self) -> Result<(), EngineError> {
+        self.ctx.wait_idle().map_err(gpu_error)
+    }
+
+    pub fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
+        let n = self.texels;
+        let ctx = &self.ctx;
+        let total: Vec<[f32; 4]> = ctx
+            .read_buffer("path accumulators", &self.acc_total, 2 * n)
+            .map_err(gpu_error)?;
+        let direct: Option<Vec<[f32; 4]>> = if self.want_direct {
+            Some(
+                ctx.read_buffer("path direct accumulators", &self.acc_direct, 2 * n)
+                    .map_err(gpu_error)?,
+            )
+        } else {
+            None
+        };
+        let mut snap = Snapshot::from_gpu_halves(&total, direct.as_deref(), self.half_steps);
+        if self.want_moments {
+            let m: Vec<[f32; 4]> = ctx
+                .read_buffer("path moment accumulators", &self.acc_moment, 6 * n)
+                .map_err(gpu_error)?;
+            let v = |a: [f32; 4]| Vec3::new(a[0], a[1], a[2]);
+            let half = |h: usize| -> Vec<[Vec3; 3]> {
+                (0..n)
+                    .map(|i| {
+                        let b = (h * n + i) * 3;
+                        [v(m[b]), v(m[b + 1]), v(m[b + 2])]
+                    })
+                    .collect()
+            };
+            let set = |e: &mut HalfEstimate, h: usize| e.moments = Some(half(h));
+            set(&mut snap.even, 0);
+            set(&mut snap.odd, 1);
+        }
+        Ok(snap)
+    }
+}
