@@ -1027,7 +1027,10 @@ async fn get_scene_glb(
         files.push((name.clone(), bytes));
     }
     let scene_files = if rec.format == "glb" {
-        SceneFiles::Glb(files.swap_remove(0).1)
+        let (_, bytes) = files
+            .pop()
+            .ok_or_else(|| Problem::internal(format!("scene {id} is recorded with no file")))?;
+        SceneFiles::Glb(bytes)
     } else {
         SceneFiles::Gltf(rec.main_file.clone(), files)
     };

@@ -166,7 +166,7 @@ pub fn techniques(limits: &Limits) -> TechniqueList {
 /// The default `R`, `G`, `B` channels of a lightmap EXR as little-endian half floats,
 /// four per texel (alpha 1), rows top first (the EXR's order, which is glTF's UV order:
 /// v = 0 is the first row). Returns width, height and the bytes.
-pub fn rgba16f(exr_bytes: &[u8]) -> Result<(usize, usize, Vec<u8>), String> {
+pub fn rgba16f(exr_bytes: &[u8]) -> std::result::Result<(usize, usize, Vec<u8>), String> {
     use exr::prelude::*;
     let image: Image<Layers<AnyChannels<FlatSamples>>> = read()
         .no_deep_data()
@@ -181,7 +181,7 @@ pub fn rgba16f(exr_bytes: &[u8]) -> Result<(usize, usize, Vec<u8>), String> {
         .first()
         .ok_or("the lightmap EXR has no layer")?;
     let (w, h) = (layer.size.width(), layer.size.height());
-    let channel = |name: &str| -> Result<Vec<f32>, String> {
+    let channel = |name: &str| -> std::result::Result<Vec<f32>, String> {
         layer
             .channel_data
             .list
