@@ -310,7 +310,9 @@ impl Browser {
             }
             "Runtime.exceptionThrown" => self.errors.push(format!("exception: {}", p["exceptionDetails"])),
             "Log.entryAdded" if p["entry"]["level"] == "error" => {
-                self.errors.push(format!("log ({}): {}", p["entry"]["source"], p["entry"]["text"]));
+                let e = &p["entry"];
+                let text = |k: &str| e[k].as_str().unwrap_or("").to_string();
+                self.errors.push(format!("log ({}): {}", text("source"), text("text")));
             }
             _ => {}
         }
@@ -331,8 +333,10 @@ impl Browser {
     /// Polls `expr` until it is truthy; panics with `what` and the page's state after `limit`.
     fn wait(&mut self, what: &str, expr: &str, limit: Duration) -> Value {
         let start = Instant::now();
+        // Until the page has loaded, the elements `expr` reads may not exist yet.
+        let guarded = format!("(() => {{ try {{ return ({expr}); }} catch (e) {{ return null; }} }})()");
         loop {
-            let v = self.eval(expr);
+            let v = self.eval(&guarded);
             if !(v.is_null() || v == json!(false) || v == json!(0) || v == json!("")) {
                 return v;
             }
