@@ -40,3 +40,17 @@ bash "$(dirname "$0")/setup-postgres.sh"
 
 # --- S3-compatible object store for tests/s3_store.rs (moto on 127.0.0.1:9000) ---
 bash "$(dirname "$0")/setup-s3.sh"
+
+# --- A real browser for tests/console.rs (issue 23): Debian's chromium, driven headless over
+# the DevTools protocol (no chromium-driver needed); fonts so screenshots have glyphs. ---
+browser=()
+for pkg in chromium fonts-dejavu-core; do
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || browser+=("$pkg")
+done
+if ((${#browser[@]})); then
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    echo "setup: installing ${browser[*]}" >&2
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${browser[@]}" >/dev/null
+fi

@@ -335,6 +335,10 @@ impl Queue for DroppedDb {
         self.check()?;
         self.inner.scene(id).await
     }
+    async fn scenes(&self, client: Option<&str>) -> QueueResult<Vec<SceneRecord>> {
+        self.check()?;
+        self.inner.scenes(client).await
+    }
     async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion> {
         self.check()?;
         self.inner.delete_scene(id).await

@@ -32,6 +32,7 @@
 
 pub mod auth;
 pub mod client;
+pub mod console;
 pub mod events;
 pub mod metrics;
 pub mod model;

@@ -48,6 +48,7 @@ use crate::service::auth::{self, Caller};
 use crate::service::model::{
     Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339, uri_file_name,
 };
+use crate::service::console::{TechniqueInfo, TechniqueList};
 use crate::service::problem::{PROBLEM_JSON, Problem};
 use crate::service::queue::{Cancellation, Enqueued, JobDeletion, JobRecord, SceneDeletion, SceneRecord, now_ms};
 use crate::service::worker::{ImportFailure, SceneFiles, import_files, job_memory};
@@ -78,10 +79,15 @@ pub const RETRY_AFTER_S: u64 = 10;
         healthz,
         metrics,
         openapi_json,
-        dashboard
+        dashboard,
+        list_scenes,
+        get_scene_glb,
+        list_techniques,
+        get_lightmap_rgba16f
     ),
     components(schemas(
-        Problem, JobSpec, JobView, JobList, JobCreated, JobStatus, Progress, SceneView, Health
+        Problem, JobSpec, JobView, JobList, JobCreated, JobStatus, Progress, SceneView, Health,
+        SceneList, TechniqueList, TechniqueInfo
     ))
 )]
 pub struct ApiDoc;
@@ -94,7 +100,9 @@ pub fn router(state: AppState) -> Router {
             "/v1/scenes",
             // The limit is enforced (as a 413 problem) by the handler; the general body
             // limit below must not cut in first.
-            post(upload_scene).layer(DefaultBodyLimit::max(max.saturating_add(1 << 20))),
+            post(upload_scene)
+                .layer(DefaultBodyLimit::max(max.saturating_add(1 << 20)))
+                .get(list_scenes),
         )
         .route("/v1/scenes/{id}", get(get_scene).delete(delete_scene))
         .route("/v1/jobs", post(create_job).get(list_jobs))
@@ -108,6 +116,9 @@ pub fn router(state: AppState) -> Router {
         .route("/metrics", get(metrics))
         .route("/openapi.json", get(openapi_json))
         .route("/", get(dashboard))
+        .route("/v1/scenes/{id}/scene.glb", get(get_scene_glb))
+        .route("/v1/techniques", get(list_techniques))
+        .route("/v1/jobs/{id}/lightmap.rgba16f", get(get_lightmap_rgba16f))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         // Innermost first: body limit, caller, time limit, then plain-text errors of
@@ -1058,7 +1069,9 @@ async fn openapi_json() -> Response {
     axum::Json(ApiDoc::openapi()).into_response()
 }
 
-/// A small dashboard: the latest jobs, refreshed every two seconds.
+/// The web console (`src/service/console/`): upload, bake, follow a job, see the
+/// lightmap on the scene. One static HTML document with its style and scripts inlined;
+/// it holds no data, so it is served without a token even under `--auth`.
 #[utoipa::path(
     get,
     path = "/",
@@ -1066,5 +1079,157 @@ async fn openapi_json() -> Response {
     responses((status = 200, description = "HTML", content_type = "text/html", body = String))
 )]
 async fn dashboard() -> Html<&'static str> {
-    Html(include_str!("dashboard.html"))
+    Html(crate::service::console::page())
+}
+
+/// `GET /v1/scenes`.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize, utoipa::ToSchema)]
+pub struct SceneList {
+    pub scenes: Vec<SceneView>,
+}
+
+/// The caller's scenes (with `--auth`, only its token's), newest first.
+#[utoipa::path(
+    get,
+    path = "/v1/scenes",
+    tag = "scenes",
+    responses((status = 200, body = SceneList))
+)]
+async fn list_scenes(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+) -> Result<axum::Json<SceneList>, Problem> {
+    let scenes = state.queue.scenes(caller.token.as_deref()).await?;
+    Ok(axum::Json(SceneList {
+        scenes: scenes.iter().map(scene_view).collect(),
+    }))
+}
+
+/// The uploaded scene as one flat `.glb` (what the engine imported: every instance in
+/// world space, its `TEXCOORD_1` when it has lightmap UVs of its own, materials with
+/// their factors and textures), for a viewer: the console draws the lightmap on it.
+#[utoipa::path(
+    get,
+    path = "/v1/scenes/{id}/scene.glb",
+    tag = "scenes",
+    params(("id" = String, Path, description = "Scene id")),
+    responses(
+        (status = 200, description = "glTF binary", content_type = "model/gltf-binary", body = Vec<u8>),
+        (status = 404, body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_scene_glb(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, Problem> {
+    let rec = find_scene(&state, &caller, &id).await?;
+    let mut files = Vec::new();
+    for name in &rec.files {
+        let key = store::scene_file(&id, name);
+        let bytes = state
+            .artifacts
+            .get(&key)
+            .await?
+            .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
+        files.push((name.clone(), bytes));
+    }
+    let scene_files = if rec.format == "glb" {
+        let (_, bytes) = files
+            .pop()
+            .ok_or_else(|| Problem::internal(format!("scene {id} is recorded with no file")))?;
+        SceneFiles::Glb(bytes)
+    } else {
+        SceneFiles::Gltf(rec.main_file.clone(), files)
+    };
+    let limits = state.config.limits.clone();
+    let glb = tokio::task::spawn_blocking(move || {
+        let (scene, _) = import_files(&scene_files, &limits).map_err(|e| match e {
+            ImportFailure::Limit { detail, .. } => detail,
+            ImportFailure::Invalid(m) => m,
+        })?;
+        crate::engine::scene::export::to_glb(&scene)
+    })
+    .await
+    .map_err(Problem::internal)?
+    .map_err(|e| Problem::internal(format!("cannot export scene {id}: {e}")))?;
+    Ok(binary(Bytes::from(glb), "model/gltf-binary", None))
+}
+
+/// The techniques a job may name, with their parameters and defaults, what each runs and
+/// leaves out, the output layers, the job defaults and this server's limits: what the
+/// console's bake form is built from.
+#[utoipa::path(
+    get,
+    path = "/v1/techniques",
+    tag = "jobs",
+    responses((status = 200, body = TechniqueList))
+)]
+async fn list_techniques(State(state): State<AppState>) -> axum::Json<TechniqueList> {
+    axum::Json(crate::service::console::techniques(&state.config.limits))
+}
+
+/// The lightmap as half floats for a browser: width × height texels of four little-endian
+/// IEEE 754 binary16 values (R, G, B of the EXR's default layer; A = 1), rows top first
+/// (v = 0 first, as glTF UVs count). `X-Lightmap-Width` and `X-Lightmap-Height` give the
+/// size. WebGL2 uploads it as an `RGBA16F` texture as it is.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/lightmap.rgba16f",
+    tag = "jobs",
+    params(
+        ("id" = String, Path, description = "Job id"),
+        ("snapshot" = Option<String>, Query, description = "`latest` or a snapshot number (1 = first); absent: the final lightmap when the job has succeeded, else the latest snapshot")
+    ),
+    responses(
+        (status = 200, description = "Half floats, RGBA, rows top first", content_type = "application/octet-stream", body = Vec<u8>,
+            headers(("X-Lightmap-Width" = u32, description = "Texels per row"), ("X-Lightmap-Height" = u32, description = "Rows"))),
+        (status = 404, description = "No such job, or no lightmap or snapshot yet", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Bad `snapshot` value", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_lightmap_rgba16f(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+    Query(q): Query<HashMap<String, String>>,
+) -> Result<Response, Problem> {
+    let job = find_job(&state, &caller, &id).await?;
+    let none_yet = |what: String| Problem::new(StatusCode::NOT_FOUND, "not-found", what);
+    let key = match q.get("snapshot").map(String::as_str) {
+        None if job.status == JobStatus::Succeeded => store::final_exr(&id),
+        None | Some("latest") if job.snapshots > 0 => store::snapshot_exr(&id, job.snapshots),
+        None | Some("latest") => {
+            return Err(none_yet(format!(
+                "job {id} is {} and has no snapshot yet",
+                job.status.as_str()
+            )));
+        }
+        Some(s) => {
+            let n = s.parse::<u32>().ok().filter(|n| *n >= 1).ok_or_else(|| {
+                Problem::invalid_field("snapshot", format!("snapshot must be `latest` or a number >= 1, got {s:?}"))
+            })?;
+            if n > job.snapshots {
+                return Err(none_yet(format!(
+                    "job {id} has {} snapshot(s); there is no snapshot {n}",
+                    job.snapshots
+                )));
+            }
+            store::snapshot_exr(&id, n)
+        }
+    };
+    let exr = state
+        .artifacts
+        .get(&key)
+        .await?
+        .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
+    let (w, h, data) = tokio::task::spawn_blocking(move || crate::service::console::rgba16f(&exr))
+        .await
+        .map_err(Problem::internal)?
+        .map_err(Problem::internal)?;
+    let mut resp = binary(Bytes::from(data), "application/octet-stream", None);
+    let headers = resp.headers_mut();
+    headers.insert("x-lightmap-width", HeaderValue::from(w));
+    headers.insert("x-lightmap-height", HeaderValue::from(h));
+    Ok(resp)
 }

@@ -214,6 +214,8 @@ pub trait Queue: Send + Sync + 'static {
     /// Stores a scene; `false` when one with the same id (same content) already exists.
     async fn insert_scene(&self, scene: &SceneRecord) -> QueueResult<bool>;
     async fn scene(&self, id: &str) -> QueueResult<Option<SceneRecord>>;
+    /// Every scene, newest first; only `client`'s when it is given.
+    async fn scenes(&self, client: Option<&str>) -> QueueResult<Vec<SceneRecord>>;
     /// Deletes the scene's row unless a queued or running job uses it.
     async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion>;
 

@@ -315,6 +315,14 @@ impl Queue for PostgresQueue {
         row.as_ref().map(scene_from_row).transpose()
     }
 
+    async fn scenes(&self, client: Option<&str>) -> QueueResult<Vec<SceneRecord>> {
+        let rows = sqlx::query("SELECT * FROM scenes WHERE ($1::text IS NULL OR client = $1) ORDER BY created_at DESC, id")
+            .bind(client)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(scene_from_row).collect()
+    }
+
     async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion> {
         let mut tx = self.pool.begin().await?;
         // The row lock makes a concurrent enqueue (which reads the scene FOR SHARE) either

@@ -156,6 +156,14 @@ impl Queue for SqliteQueue {
         row.as_ref().map(scene_from_row).transpose()
     }
 
+    async fn scenes(&self, client: Option<&str>) -> QueueResult<Vec<SceneRecord>> {
+        let rows = sqlx::query("SELECT * FROM scenes WHERE (?1 IS NULL OR client = ?1) ORDER BY created_at DESC, id")
+            .bind(client)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(scene_from_row).collect()
+    }
+
     async fn delete_scene(&self, id: &str) -> QueueResult<SceneDeletion> {
         // One statement, so a job cannot be queued for the scene between the check and
         // the delete (a read in a WAL transaction does not hold the write lock).

@@ -1,0 +1,678 @@
+//! The web console (issue 23): the API routes it adds, checked over HTTP, and the page
+//! itself driven in a real browser.
+//!
+//! The browser tests start `lightmapd serve` on a loopback port with a temporary data
+//! folder, start Debian's `chromium` headless (`--no-sandbox`, WebGL on SwiftShader) and
+//! drive it over the DevTools protocol on a websocket (`tungstenite`): load the page,
+//! upload `scenes/cornell-box.glb` through the file input, bake, wait for success through
+//! the page's event stream, read the 3D view back as a screenshot and check its pixels,
+//! provoke a 422 and check it is shown by its field, cancel a second job. Any console
+//! error, uncaught exception, or failed request other than the provoked 422 fails the
+//! test. With `LIGHTMAPD_UPDATE_SCREENSHOTS=1` the screenshots are written to
+//! `docs/console/` (the ones docs/console.md shows); otherwise to a temporary folder.
+//!
+//! Without a `chromium` on the PATH (`scripts/setup.sh test` installs it) the browser
+//! tests print a SKIPPED line, or fail under `LIGHTMAPD_REQUIRE_SERVICES=1`.
+
+mod service_common;
+
+use std::io::{BufRead, BufReader};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::{Value, json};
+use service_common::{Server, bin, cornell_glb, spawn_serve, test_config};
+use tungstenite::stream::MaybeTlsStream;
+use tungstenite::{Message, WebSocket};
+
+// ---------------------------------------------------------------------------------------
+// The API routes, without a browser.
+
+/// A token made with `lightmapd token create` (the secret it prints).
+fn cli_token(dir: &Path, name: &str) -> String {
+    let out = Command::new(bin())
+        .args(["token", "create", "--name", name, "--data-dir"])
+        .arg(dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout).unwrap().trim().to_string()
+}
+
+#[tokio::test]
+async fn techniques_are_the_engines() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(test_config(dir.path(), 0)).await;
+    let t: Value = s.get("/v1/techniques").send().await.unwrap().json().await.unwrap();
+    let ids: Vec<&str> = t["techniques"].as_array().unwrap().iter().map(|x| x["id"].as_str().unwrap()).collect();
+    assert_eq!(ids, lightmapd::engine::technique::TECHNIQUES);
+    let path = &t["techniques"][0];
+    let defaults = serde_json::to_value(lightmapd::engine::technique::path::PathParams::default()).unwrap();
+    assert_eq!(path["params"], defaults);
+    assert_eq!(t["outputs"], json!(["validity", "direct", "indirect", "sh", "ao"]));
+    assert_eq!(t["defaults"]["resolution"], 256);
+    assert_eq!(t["limits"]["max_job_steps"], 1_048_576);
+    // The path tracer handles every light kind: nothing about lights is left out for it.
+    assert!(
+        path["passes"].as_array().unwrap().iter().any(|p| p["name"] == "light sampling: sun"),
+        "{path}"
+    );
+    // Every output layer the catalogue lists is accepted by POST /v1/jobs's parser.
+    for o in t["outputs"].as_array().unwrap() {
+        let body = json!({"scene": "x", "outputs": [o]}).to_string();
+        lightmapd::service::model::JobSpec::parse(body.as_bytes()).unwrap();
+    }
+}
+
+#[tokio::test]
+async fn scenes_are_listed_per_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let (alice, bob) = (cli_token(dir.path(), "alice"), cli_token(dir.path(), "bob"));
+    let mut config = test_config(dir.path(), 0);
+    config.auth = true;
+    let s = Server::start(config).await;
+    let list = |t: &str| {
+        let req = s.get("/v1/scenes").bearer_auth(t);
+        async move { req.send().await.unwrap().json::<Value>().await.unwrap() }
+    };
+    assert_eq!(list(&alice).await, json!({"scenes": []}));
+    let id = s.upload(Some(&alice)).await;
+    let a = list(&alice).await;
+    assert_eq!(a["scenes"].as_array().unwrap().len(), 1);
+    assert_eq!(a["scenes"][0]["id"], id.as_str());
+    assert_eq!(a["scenes"][0]["report"]["triangles"], 32);
+    assert_eq!(list(&bob).await, json!({"scenes": []}));
+    assert_eq!(s.get("/v1/scenes").send().await.unwrap().status(), 401);
+    // The page itself needs no token: it holds no data.
+    let page = s.get("/").send().await.unwrap();
+    assert_eq!(page.status(), 200);
+    assert!(page.text().await.unwrap().contains("class Viewer"));
+    // Bob cannot read Alice's scene geometry either.
+    let r = s.get(&format!("/v1/scenes/{id}/scene.glb")).bearer_auth(&bob).send().await.unwrap();
+    assert_eq!(r.status(), 404);
+}
+
+#[tokio::test]
+async fn scene_glb_and_half_float_lightmap() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(test_config(dir.path(), 1)).await;
+    let scene = s.upload(None).await;
+    // The geometry for the viewer: a .glb whose every primitive has TEXCOORD_1.
+    let r = s.get(&format!("/v1/scenes/{scene}/scene.glb")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "model/gltf-binary");
+    let glb = r.bytes().await.unwrap();
+    let doc = gltf::Gltf::from_slice(&glb).unwrap();
+    let prims: Vec<_> = doc.meshes().flat_map(|m| m.primitives().collect::<Vec<_>>()).collect();
+    assert!(!prims.is_empty());
+    assert!(prims.iter().all(|p| p.get(&gltf::Semantic::TexCoords(1)).is_some()));
+    let tris: usize = prims
+        .iter()
+        .map(|p| p.indices().map_or(p.get(&gltf::Semantic::Positions).unwrap().count(), |i| i.count()) / 3)
+        .sum();
+    assert_eq!(tris, 32);
+
+    let job = s
+        .submit(None, json!({"scene": scene, "resolution": 16, "stop": {"steps": 4}}))
+        .await;
+    let before = s.get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=7")).send().await.unwrap();
+    assert!(before.status() == 404 || before.status() == 200, "{}", before.status());
+    let done = s.wait_end(&job).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let r = s.get(&format!("/v1/jobs/{job}/lightmap.rgba16f")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["x-lightmap-width"], "16");
+    assert_eq!(r.headers()["x-lightmap-height"], "16");
+    let halves = r.bytes().await.unwrap();
+    assert_eq!(halves.len(), 16 * 16 * 4 * 2);
+    // The same texels as the EXR's R, G, B, to half precision.
+    let exr = s.get(&format!("/v1/jobs/{job}/lightmap.exr")).send().await.unwrap().bytes().await.unwrap();
+    let img = exr_rgb(&exr);
+    let half = |i: usize| f32::from(exr::prelude::f16::from_le_bytes([halves[2 * i], halves[2 * i + 1]]));
+    let mut lit = 0;
+    for (i, px) in img.iter().enumerate() {
+        for c in 0..3 {
+            let want = px[c];
+            let got = half(4 * i + c);
+            assert!((got - want).abs() <= want.abs() * 1e-3 + 1e-6, "texel {i} channel {c}: {got} vs {want}");
+        }
+        assert_eq!(half(4 * i + 3), 1.0);
+        lit += usize::from(px[0] > 0.01);
+    }
+    assert!(lit > 16, "only {lit} lit texels");
+    let bad = s.get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=0")).send().await.unwrap();
+    assert_eq!(bad.status(), 422);
+    let p: Value = bad.json().await.unwrap();
+    assert_eq!(p["field"], "snapshot");
+    let none = s.get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=999")).send().await.unwrap();
+    assert_eq!(none.status(), 404);
+}
+
+/// An EXR's default `R`, `G`, `B` channels, texel by texel.
+fn exr_rgb(bytes: &[u8]) -> Vec<[f32; 3]> {
+    use exr::prelude::*;
+    let image: Image<Layers<AnyChannels<FlatSamples>>> = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .unwrap();
+    let layer = &image.layer_data[0];
+    let chan = |n: &str| -> Vec<f32> {
+        let c = layer.channel_data.list.iter().find(|c| c.name == Text::from(n)).unwrap();
+        c.sample_data.values_as_f32().collect()
+    };
+    let (r, g, b) = (chan("R"), chan("G"), chan("B"));
+    (0..r.len()).map(|i| [r[i], g[i], b[i]]).collect()
+}
+
+// ---------------------------------------------------------------------------------------
+// The page in a real browser.
+
+fn chromium() -> Option<PathBuf> {
+    for name in ["chromium", "chromium-browser", "google-chrome"] {
+        let found = std::env::var_os("PATH")
+            .map(|p| std::env::split_paths(&p).map(|d| d.join(name)).find(|f| f.is_file()))
+            .flatten();
+        if found.is_some() {
+            return found;
+        }
+    }
+    None
+}
+
+fn skip_without_browser(test: &str) -> Option<PathBuf> {
+    let found = chromium();
+    if found.is_none() {
+        let msg = format!("{test}: no chromium on the PATH; run `bash scripts/setup.sh test`");
+        if std::env::var("LIGHTMAPD_REQUIRE_SERVICES").as_deref() == Ok("1") {
+            panic!("{msg}; LIGHTMAPD_REQUIRE_SERVICES=1 makes this a failure");
+        }
+        eprintln!("\n==== SKIPPED {msg} ====\n");
+    }
+    found
+}
+
+/// A headless chromium and one page of it, driven over the DevTools protocol.
+struct Browser {
+    child: Child,
+    ws: WebSocket<MaybeTlsStream<TcpStream>>,
+    session: String,
+    next: u64,
+    /// Console errors, exceptions and failed loads, as text.
+    errors: Vec<String>,
+    _profile: tempfile::TempDir,
+}
+
+impl Browser {
+    fn start(exe: &Path) -> Browser {
+        let profile = tempfile::tempdir().unwrap();
+        let mut child = Command::new(exe)
+            .args([
+                "--headless=new",
+                "--no-sandbox",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--ignore-gpu-blocklist",
+                "--remote-debugging-port=0",
+                "--no-first-run",
+                "--no-default-browser-check",
+                "--disable-extensions",
+                "--disable-background-networking",
+                "--hide-scrollbars",
+                "--window-size=1280,800",
+            ])
+            .arg(format!("--user-data-dir={}", profile.path().display()))
+            .arg("about:blank")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let stderr = BufReader::new(child.stderr.take().unwrap());
+        let mut url = None;
+        for line in stderr.lines() {
+            let line = line.unwrap();
+            if let Some(u) = line.strip_prefix("DevTools listening on ") {
+                url = Some(u.trim().to_string());
+                break;
+            }
+        }
+        let url = url.expect("chromium did not print its DevTools address");
+        let (ws, _) = tungstenite::connect(url.as_str()).unwrap();
+        if let MaybeTlsStream::Plain(s) = ws.get_ref() {
+            s.set_read_timeout(Some(Duration::from_secs(120))).unwrap();
+        }
+        let mut b = Browser {
+            child,
+            ws,
+            session: String::new(),
+            next: 0,
+            errors: Vec::new(),
+            _profile: profile,
+        };
+        let target = b.call_browser("Target.createTarget", json!({"url": "about:blank"}));
+        let attached = b.call_browser(
+            "Target.attachToTarget",
+            json!({"targetId": target["targetId"], "flatten": true}),
+        );
+        b.session = attached["sessionId"].as_str().unwrap().to_string();
+        for m in ["Runtime.enable", "Log.enable", "Page.enable", "Network.enable"] {
+            b.call(m, json!({}));
+        }
+        b.call(
+            "Emulation.setDeviceMetricsOverride",
+            json!({"width": 1280, "height": 800, "deviceScaleFactor": 1, "mobile": false}),
+        );
+        b
+    }
+
+    fn send(&mut self, session: Option<String>, method: &str, params: Value) -> Value {
+        self.next += 1;
+        let id = self.next;
+        let mut msg = json!({"id": id, "method": method, "params": params});
+        if let Some(s) = session {
+            msg["sessionId"] = json!(s);
+        }
+        self.ws.send(Message::text(msg.to_string())).unwrap();
+        loop {
+            let m = self.ws.read().unwrap();
+            let Message::Text(t) = m else { continue };
+            let v: Value = serde_json::from_str(&t).unwrap();
+            if v["id"] == id {
+                if let Some(e) = v.get("error") {
+                    panic!("{method}: {e}");
+                }
+                return v["result"].clone();
+            }
+            self.event(&v);
+        }
+    }
+
+    fn call_browser(&mut self, method: &str, params: Value) -> Value {
+        self.send(None, method, params)
+    }
+
+    fn call(&mut self, method: &str, params: Value) -> Value {
+        let s = self.session.clone();
+        self.send(Some(s), method, params)
+    }
+
+    /// Records what counts as an error on the page.
+    fn event(&mut self, v: &Value) {
+        let p = &v["params"];
+        match v["method"].as_str().unwrap_or("") {
+            "Runtime.consoleAPICalled" if matches!(p["type"].as_str(), Some("error" | "assert")) => {
+                self.errors.push(format!("console.{}: {}", p["type"], p["args"]));
+            }
+            "Runtime.exceptionThrown" => self.errors.push(format!("exception: {}", p["exceptionDetails"])),
+            "Log.entryAdded" if p["entry"]["level"] == "error" => {
+                let e = &p["entry"];
+                let text = |k: &str| e[k].as_str().unwrap_or("").to_string();
+                self.errors.push(format!("log ({}): {}", text("source"), text("text")));
+            }
+            _ => {}
+        }
+    }
+
+    /// Evaluates `expr` in the page (awaiting a promise) and returns its value.
+    fn eval(&mut self, expr: &str) -> Value {
+        let r = self.call(
+            "Runtime.evaluate",
+            json!({"expression": expr, "awaitPromise": true, "returnByValue": true}),
+        );
+        if let Some(e) = r.get("exceptionDetails") {
+            panic!("{expr}: {e}");
+        }
+        r["result"]["value"].clone()
+    }
+
+    /// Polls `expr` until it is truthy; panics with `what` and the page's state after `limit`.
+    fn wait(&mut self, what: &str, expr: &str, limit: Duration) -> Value {
+        let start = Instant::now();
+        // Until the page has loaded, the elements `expr` reads may not exist yet.
+        let guarded = format!("(() => {{ try {{ return ({expr}); }} catch (e) {{ return null; }} }})()");
+        loop {
+            let v = self.eval(&guarded);
+            if !(v.is_null() || v == json!(false) || v == json!(0) || v == json!("")) {
+                return v;
+            }
+            if start.elapsed() > limit {
+                let state = self.eval("JSON.stringify({job: window.lightmapdConsole?.job, err: document.getElementById('form-error')?.textContent, note: document.getElementById('v-note')?.textContent})");
+                panic!("timed out waiting for {what}; page state: {state}; errors: {:?}", self.errors);
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    /// A PNG of the viewport, or of the element `selector`'s box.
+    fn screenshot(&mut self, selector: Option<&str>) -> Vec<u8> {
+        let mut params = json!({"format": "png"});
+        if let Some(sel) = selector {
+            let r = self.eval(&format!(
+                "(() => {{ const e = document.querySelector({sel:?}); e.scrollIntoView({{block: 'center'}}); const b = e.getBoundingClientRect(); return [b.x, b.y, b.width, b.height]; }})()"
+            ));
+            params["clip"] = json!({"x": r[0], "y": r[1], "width": r[2], "height": r[3], "scale": 1});
+        }
+        let r = self.call("Page.captureScreenshot", params);
+        use base64::Engine;
+        base64::engine::general_purpose::STANDARD
+            .decode(r["data"].as_str().unwrap())
+            .unwrap()
+    }
+
+    fn click(&mut self, selector: &str) {
+        self.eval(&format!("document.querySelector({selector:?}).click()"));
+    }
+
+    /// Sets an input's value as typing would (an `input` event follows).
+    fn fill(&mut self, selector: &str, value: &str) {
+        self.eval(&format!(
+            "(() => {{ const e = document.querySelector({selector:?}); e.value = {value:?}; e.dispatchEvent(new Event('input', {{bubbles: true}})); }})()"
+        ));
+    }
+
+    fn key(&mut self, key: &str, code: &str, vk: u32) {
+        for t in ["rawKeyDown", "keyUp"] {
+            self.call(
+                "Input.dispatchKeyEvent",
+                json!({"type": t, "key": key, "code": code, "windowsVirtualKeyCode": vk}),
+            );
+        }
+    }
+
+    /// Errors other than the failed loads `allowed` names (status codes the test provoked).
+    fn unexpected_errors(&self, allowed: &[&str]) -> Vec<String> {
+        self.errors
+            .iter()
+            .filter(|e| !(e.starts_with("log (network)") && allowed.iter().any(|a| e.contains(a))))
+            .cloned()
+            .collect()
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+struct Serve(Child);
+
+impl Drop for Serve {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn shots_dir() -> (PathBuf, Option<tempfile::TempDir>) {
+    if std::env::var("LIGHTMAPD_UPDATE_SCREENSHOTS").as_deref() == Ok("1") {
+        let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/console");
+        std::fs::create_dir_all(&d).unwrap();
+        (d, None)
+    } else {
+        let t = tempfile::tempdir().unwrap();
+        (t.path().to_path_buf(), Some(t))
+    }
+}
+
+/// What a screenshot of the 3D view holds: the share of pixels that are not the clear
+/// colour, of lit ones (brightest channel over 0.35), of red-dominant and green-dominant
+/// ones (the Cornell box's side walls), all over the whole image.
+#[derive(Debug)]
+struct Pixels {
+    covered: f64,
+    lit: f64,
+    red: f64,
+    green: f64,
+    distinct: usize,
+}
+
+fn pixels(png: &[u8]) -> Pixels {
+    let img = image::load_from_memory(png).unwrap().to_rgb8();
+    let n = (img.width() * img.height()) as f64;
+    let (mut covered, mut lit, mut red, mut green) = (0.0, 0.0, 0.0, 0.0);
+    let mut colours = std::collections::HashSet::new();
+    for p in img.pixels() {
+        let [r, g, b] = p.0.map(i32::from);
+        // The clear colour is (12, 13, 15).
+        if (r - 12).abs() + (g - 13).abs() + (b - 15).abs() > 12 {
+            covered += 1.0;
+        }
+        if r.max(g).max(b) > 90 {
+            lit += 1.0;
+        }
+        if r > 60 && r > 2 * g && r > 2 * b {
+            red += 1.0;
+        }
+        if g > 40 && g > r + r / 2 && g > b + b / 2 {
+            green += 1.0;
+        }
+        colours.insert((r / 8, g / 8, b / 8));
+    }
+    Pixels {
+        covered: covered / n,
+        lit: lit / n,
+        red: red / n,
+        green: green / n,
+        distinct: colours.len(),
+    }
+}
+
+#[test]
+fn the_console_bakes_in_a_real_browser() {
+    let Some(exe) = skip_without_browser("the_console_bakes_in_a_real_browser") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (child, url) = spawn_serve(
+        dir.path(),
+        1,
+        &["--snapshot-interval-s", "0.3", "--max-job-steps", "5000"],
+    );
+    let _serve = Serve(child);
+    let (shots, _keep) = shots_dir();
+    let mut b = Browser::start(&exe);
+    let t0 = Instant::now();
+    b.call("Page.navigate", json!({"url": format!("{url}/")}));
+    b.wait(
+        "the bake form",
+        "document.getElementById('f-technique').options.length",
+        Duration::from_secs(30),
+    );
+    let load = b.eval(
+        "(() => { const n = performance.getEntriesByType('navigation')[0]; return {bytes: n.transferSize, body: n.decodedBodySize, dcl: n.domContentLoadedEventEnd, load: n.loadEventEnd}; })()",
+    );
+    eprintln!("page: {load} (form ready after {:?})", t0.elapsed());
+    let techniques = b.eval("[...document.getElementById('f-technique').options].map(o => o.value)");
+    assert_eq!(techniques, json!(lightmapd::engine::technique::TECHNIQUES));
+
+    // Keyboard: Tab reaches the drop zone, the bake button and the 3D view.
+    let mut reached = Vec::new();
+    b.eval("document.activeElement.blur()");
+    for _ in 0..80 {
+        b.key("Tab", "Tab", 9);
+        reached.push(b.eval("document.activeElement.id || document.activeElement.tagName"));
+    }
+    for id in ["drop", "f-technique", "f-resolution", "f-steps", "submit"] {
+        assert!(reached.contains(&json!(id)), "Tab never reaches #{id}: {reached:?}");
+    }
+
+    // 1. Upload through the file input.
+    let input = b.call(
+        "Runtime.evaluate",
+        json!({"expression": "document.getElementById('file')"}),
+    );
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb");
+    b.call(
+        "DOM.setFileInputFiles",
+        json!({"files": [scene.to_str().unwrap()], "objectId": input["result"]["objectId"]}),
+    );
+    b.wait(
+        "the import report",
+        "document.querySelector('#report table') && window.lightmapdConsole.scenes.length === 1",
+        Duration::from_secs(30),
+    );
+    let report = b.eval("document.getElementById('report').innerText");
+    let report = report.as_str().unwrap();
+    assert!(report.contains("triangles\t32"), "{report}");
+    assert!(report.contains("every mesh has TEXCOORD_1"), "{report}");
+    assert_eq!(b.eval("document.querySelectorAll('#scene-list li').length"), 1);
+    std::fs::write(shots.join("1-upload.png"), b.screenshot(None)).unwrap();
+
+    // 2. An API error shown by its field: more steps than --max-job-steps.
+    b.fill("#f-resolution", "32");
+    b.fill("#f-steps", "999999");
+    b.fill("#f-seconds", "60");
+    b.fill("#f-target", "");
+    b.click("#submit");
+    let shown = b.wait(
+        "the 422 by its field",
+        "document.querySelector('[data-field=\"stop.steps\"].invalid .field-error')?.textContent",
+        Duration::from_secs(10),
+    );
+    assert!(shown.as_str().unwrap().contains("at most 5000"), "{shown}");
+    assert_eq!(b.eval("document.activeElement.id"), "f-steps");
+    assert_eq!(b.eval("document.querySelectorAll('#bake-form .invalid').length"), 1);
+    std::fs::write(shots.join("2-field-error.png"), b.screenshot(None)).unwrap();
+
+    // 3. A short bake, followed live.
+    b.fill("#f-steps", "48");
+    b.click("#submit");
+    b.wait(
+        "the job page",
+        "!document.getElementById('job').hidden && window.lightmapdConsole.job",
+        Duration::from_secs(10),
+    );
+    let end = b.wait(
+        "the bake to succeed",
+        "['succeeded','failed','cancelled'].includes(window.lightmapdConsole.job?.status) && window.lightmapdConsole.job.status",
+        Duration::from_secs(240),
+    );
+    assert_eq!(end, "succeeded", "{:?}", b.eval("JSON.stringify(window.lightmapdConsole.job)"));
+    b.wait(
+        "the final lightmap in the viewer",
+        "window.lightmapdConsole.lightmapKey?.endsWith('/final') && window.lightmapdConsole.viewer.lightmap && window.lightmapdConsole.lightmap",
+        Duration::from_secs(20),
+    );
+    b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
+    let snapshots = b.eval("window.lightmapdConsole.job.snapshots");
+    let plotted = b.eval("document.querySelectorAll('#plot circle').length");
+    eprintln!("job: {snapshots} snapshots, {plotted} points plotted");
+    assert!(plotted.as_u64().unwrap() >= 1, "no point on the error plot");
+    let view = b.screenshot(Some("#view3d"));
+    std::fs::write(shots.join("3-view3d.png"), &view).unwrap();
+    let px = pixels(&view);
+    eprintln!("3D view (albedo x lightmap): {px:?}");
+    assert!(px.covered > 0.5, "the 3D view is mostly empty: {px:?}");
+    assert!(px.lit > 0.05, "the 3D view has no lit pixels: {px:?}");
+    assert!(px.red > 0.01 && px.green > 0.01, "the red and green walls are not both lit: {px:?}");
+    assert!(px.distinct > 50, "the 3D view is flat: {px:?}");
+    std::fs::write(shots.join("4-job.png"), b.screenshot(Some("#job"))).unwrap();
+
+    // The lightmap alone, nearest texels: still lit, and no longer red/green dominated
+    // except where colour bleeds.
+    b.eval("(() => { const m = document.getElementById('v-mode'); m.value = 'lightmap'; m.dispatchEvent(new Event('change')); const f = document.getElementById('v-filter'); f.value = 'nearest'; f.dispatchEvent(new Event('change')); })()");
+    b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
+    let alone = b.screenshot(Some("#view3d"));
+    std::fs::write(shots.join("5-lightmap-nearest.png"), &alone).unwrap();
+    let pa = pixels(&alone);
+    eprintln!("3D view (lightmap alone, nearest): {pa:?}");
+    assert!(pa.lit > 0.05 && pa.covered > 0.5, "{pa:?}");
+    assert!(pa.red < px.red, "the lightmap alone should be less red than albedo × lightmap: {pa:?} vs {px:?}");
+
+    // 4. A second job, cancelled from its page.
+    b.fill("#f-steps", "5000");
+    b.fill("#f-seconds", "600");
+    b.click("#submit");
+    let first = b.eval("window.lightmapdConsole.job.id");
+    b.wait(
+        "the second job's page",
+        &format!("window.lightmapdConsole.job && window.lightmapdConsole.job.id !== {first} && !document.getElementById('cancel').disabled"),
+        Duration::from_secs(10),
+    );
+    b.click("#cancel");
+    b.wait(
+        "the cancellation",
+        "window.lightmapdConsole.job.status === 'cancelled' && document.getElementById('job-status').textContent === 'cancelled'",
+        Duration::from_secs(30),
+    );
+    std::fs::write(shots.join("6-cancelled.png"), b.screenshot(None)).unwrap();
+
+    let errors = b.unexpected_errors(&["422"]);
+    assert!(errors.is_empty(), "browser errors: {errors:#?}");
+}
+
+#[test]
+fn the_console_works_behind_auth() {
+    let Some(exe) = skip_without_browser("the_console_works_behind_auth") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (alice, bob) = (cli_token(dir.path(), "alice"), cli_token(dir.path(), "bob"));
+    let (child, url) = spawn_serve(dir.path(), 1, &["--auth", "--snapshot-interval-s", "0.3"]);
+    let _serve = Serve(child);
+    // Bob's scene, which Alice must not see.
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let r = reqwest::Client::new()
+            .post(format!("{url}/v1/scenes"))
+            .bearer_auth(&bob)
+            .body(cornell_glb())
+            .send()
+            .await
+            .unwrap();
+        assert!(r.status().is_success(), "{}", r.status());
+    });
+
+    let mut b = Browser::start(&exe);
+    b.call("Page.navigate", json!({"url": format!("{url}/")}));
+    b.wait("the token prompt", "!document.getElementById('login').hidden", Duration::from_secs(30));
+    std::fs::write(shots_dir_auth().join("0-token.png"), b.screenshot(None)).unwrap();
+    b.fill("#token", &alice);
+    b.click("#login button");
+    b.wait(
+        "the bake form",
+        "document.getElementById('f-technique').options.length && document.getElementById('login').hidden",
+        Duration::from_secs(30),
+    );
+    assert_eq!(b.eval("sessionStorage.getItem('lightmapd-token')"), json!(alice));
+    assert_eq!(b.eval("window.lightmapdConsole.scenes.length"), 0, "Alice sees Bob's scene");
+    let input = b.call("Runtime.evaluate", json!({"expression": "document.getElementById('file')"}));
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb");
+    b.call(
+        "DOM.setFileInputFiles",
+        json!({"files": [scene.to_str().unwrap()], "objectId": input["result"]["objectId"]}),
+    );
+    b.wait("the upload", "window.lightmapdConsole.scenes.length === 1", Duration::from_secs(30));
+    b.fill("#f-resolution", "16");
+    b.fill("#f-steps", "8");
+    b.click("#submit");
+    // The job page learns the end from the event stream, which needs the token too.
+    let end = b.wait(
+        "the bake to end",
+        "['succeeded','failed','cancelled'].includes(window.lightmapdConsole.job?.status) && window.lightmapdConsole.job.status",
+        Duration::from_secs(240),
+    );
+    assert_eq!(end, "succeeded");
+    b.wait(
+        "the lightmap",
+        "window.lightmapdConsole.lightmapKey?.endsWith('/final') && window.lightmapdConsole.lightmap",
+        Duration::from_secs(20),
+    );
+    let errors = b.unexpected_errors(&["401"]);
+    assert!(errors.is_empty(), "browser errors: {errors:#?}");
+}
+
+fn shots_dir_auth() -> PathBuf {
+    if std::env::var("LIGHTMAPD_UPDATE_SCREENSHOTS").as_deref() == Ok("1") {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/console")
+    } else {
+        std::env::temp_dir()
+    }
+}
