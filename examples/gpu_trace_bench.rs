@@ -173,7 +173,7 @@ fn path_steps(steps: u64, res: u32) {
             lighting,
             ..Default::default()
         };
-        let plan = lightmapd::engine::plan::build(&scene, &request).unwrap();
+        let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
         for device in ["gpu", "cpu"] {
             let inputs = BakeInputs {
                 scene: scene.clone(),

@@ -304,7 +304,7 @@ fn device_auto_and_bad_device() {
         technique: "path".into(),
         ..Default::default()
     };
-    let plan = lightmapd::engine::plan::build(&scene, &request).unwrap();
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
     let inputs = lightmapd::engine::technique::BakeInputs {
         scene: std::sync::Arc::new(scene),
         atlas,

@@ -385,11 +385,6 @@ impl PathGpu {
         Ok(())
     }
 
-    /// Blocks until every submitted step is done (benchmarks).
-    pub fn wait(&self) -> Result<(), EngineError> {
-        self.ctx.wait_idle().map_err(gpu_error)
-    }
-
     pub fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let n = self.texels;
         let ctx = &self.ctx;
