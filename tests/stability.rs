@@ -313,6 +313,9 @@ pub fn beyond_half_float(row: &Row) {
         },
         params: row.params.clone(),
         outputs: vec![OutputLayer::Validity],
+        // The raw estimate: this case is about float range, and a denoised peak texel
+        // may be the one seam stitching moves (then the EXR and the estimate differ there).
+        denoise: lightmapd::engine::post::denoised::Denoiser::None,
         ..Default::default()
     };
     let result = job::bake_unobserved(scene, &request).unwrap();

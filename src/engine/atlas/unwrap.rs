@@ -165,7 +165,12 @@ impl Unwrapper for UvUnwrap {
             max_chart_size: resolution.saturating_sub(2 * PADDING + 2).max(1),
             ..Default::default()
         };
-        let atlas = uvunwrap::generate(&inputs, &options).map_err(|e| e.to_string())?;
+        // uvunwrap is young (NOTES.md): a panic inside it on unusual input (measured: a
+        // fuzzed mesh whose charts all vanish panics in its packer) becomes an error that
+        // fails this bake, never the process.
+        let atlas = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| uvunwrap::generate(&inputs, &options)))
+            .map_err(|_| "the UV unwrapper failed on this geometry (degenerate or empty charts)".to_string())?
+            .map_err(|e| e.to_string())?;
         let out = atlas
             .meshes
             .iter()
