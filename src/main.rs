@@ -571,7 +571,9 @@ fn serve(args: ServeArgs) -> Result<(), Failure> {
     }
     let tokens = tokens_file(args.tokens_file)?;
     if tokens.is_some() && !args.auth {
-        return Err(bad_input("--tokens-file needs --auth (without it tokens are not checked)"));
+        return Err(bad_input(
+            "--tokens-file needs --auth (without it tokens are not checked)",
+        ));
     }
     if !(args.job_retention_hours.is_finite() && args.job_retention_hours >= 0.0) {
         return Err(bad_input(format!(

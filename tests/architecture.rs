@@ -58,7 +58,10 @@ fn strip(src: &str) -> String {
                 i += 1;
             }
             i += 2;
-        } else if b[i] == b'r' && (b.get(i + 1) == Some(&b'"') || b.get(i + 1) == Some(&b'#')) && (i == 0 || !b[i - 1].is_ascii_alphanumeric()) {
+        } else if b[i] == b'r'
+            && (b.get(i + 1) == Some(&b'"') || b.get(i + 1) == Some(&b'#'))
+            && (i == 0 || !b[i - 1].is_ascii_alphanumeric())
+        {
             // Raw string: r"…" or r#"…"#.
             let mut j = i + 1;
             let mut hashes = 0;
@@ -277,7 +280,8 @@ fn edges() -> (Vec<Edge>, BTreeSet<String>) {
         .unwrap()
         .filter_map(|e| {
             let p = e.ok()?.path();
-            p.is_dir().then(|| p.file_name().unwrap().to_string_lossy().into_owned())
+            p.is_dir()
+                .then(|| p.file_name().unwrap().to_string_lossy().into_owned())
         })
         .collect();
     let mut files = Vec::new();
@@ -315,7 +319,11 @@ fn engine_macros() -> BTreeSet<String> {
             let src = std::fs::read_to_string(f).unwrap();
             src.split("macro_rules!")
                 .skip(1)
-                .filter_map(|rest| rest.split_whitespace().next().map(|n| n.trim_end_matches('{').to_string()))
+                .filter_map(|rest| {
+                    rest.split_whitespace()
+                        .next()
+                        .map(|n| n.trim_end_matches('{').to_string())
+                })
                 .collect::<Vec<_>>()
         })
         .collect()
@@ -331,11 +339,20 @@ fn the_parser_finds_grouped_and_relative_paths() {
     let src = "use super::api::{BakeInputs, Technique};\n// use super::vpl::X;\nuse crate::engine::{gpu::frame::SceneFrame, plan};\nlet s = \"super::hemicube\";\nfn f() { super::super::job::plan_for(); }";
     let p = paths_in(src, &m);
     let joined: Vec<String> = p.iter().map(|s| s.join("::")).collect();
-    assert!(joined.contains(&"engine::technique::api::BakeInputs".to_string()), "{joined:?}");
-    assert!(joined.contains(&"engine::gpu::frame::SceneFrame".to_string()), "{joined:?}");
+    assert!(
+        joined.contains(&"engine::technique::api::BakeInputs".to_string()),
+        "{joined:?}"
+    );
+    assert!(
+        joined.contains(&"engine::gpu::frame::SceneFrame".to_string()),
+        "{joined:?}"
+    );
     assert!(joined.contains(&"engine::plan".to_string()), "{joined:?}");
     assert!(joined.contains(&"engine::job::plan_for".to_string()), "{joined:?}");
-    assert!(!joined.iter().any(|j| j.contains("vpl") || j.contains("hemicube")), "comments and strings are skipped: {joined:?}");
+    assert!(
+        !joined.iter().any(|j| j.contains("vpl") || j.contains("hemicube")),
+        "comments and strings are skipped: {joined:?}"
+    );
 }
 
 #[test]
@@ -344,7 +361,10 @@ fn the_engine_has_edges_to_check() {
     let (e, techniques) = edges();
     assert!(techniques.len() >= 6, "{techniques:?}");
     assert!(e.iter().any(|x| x.from == "technique::sdb" && x.to == "gpu"));
-    assert!(e.iter().any(|x| x.from == "technique::table" && x.to == "technique::path"));
+    assert!(
+        e.iter()
+            .any(|x| x.from == "technique::table" && x.to == "technique::path")
+    );
     assert!(e.iter().any(|x| x.from == "job" && x.to == "technique"));
     assert!(e.len() > 100, "only {} edges", e.len());
 }
@@ -355,19 +375,29 @@ fn no_technique_imports_another_technique_or_the_table() {
     let bad: Vec<String> = e
         .iter()
         .filter(|x| {
-            x.from.starts_with("technique::") && x.from != "technique::table" && x.from != "technique::api"
+            x.from.starts_with("technique::")
+                && x.from != "technique::table"
+                && x.from != "technique::api"
                 && is_technique(&x.to)
                 && x.to != "technique::api"
         })
         .map(|x| format!("{} ({}) -> {}", x.file, x.from, x.to))
         .collect();
-    assert!(bad.is_empty(), "techniques must import only technique::api:\n{}", bad.join("\n"));
+    assert!(
+        bad.is_empty(),
+        "techniques must import only technique::api:\n{}",
+        bad.join("\n")
+    );
     let api: Vec<String> = e
         .iter()
         .filter(|x| x.from == "technique::api" && is_technique(&x.to))
         .map(|x| format!("{} -> {}", x.file, x.to))
         .collect();
-    assert!(api.is_empty(), "technique::api depends on a technique:\n{}", api.join("\n"));
+    assert!(
+        api.is_empty(),
+        "technique::api depends on a technique:\n{}",
+        api.join("\n")
+    );
 }
 
 #[test]
@@ -378,7 +408,11 @@ fn shared_layers_import_no_technique() {
         .filter(|x| ["gpu", "plan", "atlas", "scene"].contains(&x.from.as_str()) && is_technique(&x.to))
         .map(|x| format!("{} -> {}", x.file, x.to))
         .collect();
-    assert!(bad.is_empty(), "shared layers must not import techniques:\n{}", bad.join("\n"));
+    assert!(
+        bad.is_empty(),
+        "shared layers must not import techniques:\n{}",
+        bad.join("\n")
+    );
 }
 
 #[test]
@@ -452,5 +486,9 @@ fn engine_modules_form_no_cycle() {
             steps.join("; ")
         })
         .collect();
-    assert!(explained.is_empty(), "import cycles in engine:\n{}", explained.join("\n"));
+    assert!(
+        explained.is_empty(),
+        "import cycles in engine:\n{}",
+        explained.join("\n")
+    );
 }

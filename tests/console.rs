@@ -46,7 +46,12 @@ async fn techniques_are_the_engines() {
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(test_config(dir.path(), 0)).await;
     let t: Value = s.get("/v1/techniques").send().await.unwrap().json().await.unwrap();
-    let ids: Vec<&str> = t["techniques"].as_array().unwrap().iter().map(|x| x["id"].as_str().unwrap()).collect();
+    let ids: Vec<&str> = t["techniques"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x["id"].as_str().unwrap())
+        .collect();
     assert_eq!(ids, lightmapd::engine::technique::TECHNIQUES);
     let path = &t["techniques"][0];
     let defaults = serde_json::to_value(lightmapd::engine::technique::path::PathParams::default()).unwrap();
@@ -56,7 +61,11 @@ async fn techniques_are_the_engines() {
     assert_eq!(t["limits"]["max_job_steps"], 1_048_576);
     // The path tracer handles every light kind: nothing about lights is left out for it.
     assert!(
-        path["passes"].as_array().unwrap().iter().any(|p| p["name"] == "light sampling: sun"),
+        path["passes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|p| p["name"] == "light sampling: sun"),
         "{path}"
     );
     // Every output layer the catalogue lists is accepted by POST /v1/jobs's parser.
@@ -90,7 +99,12 @@ async fn scenes_are_listed_per_token() {
     assert_eq!(page.status(), 200);
     assert!(page.text().await.unwrap().contains("class Viewer"));
     // Bob cannot read Alice's scene geometry either.
-    let r = s.get(&format!("/v1/scenes/{id}/scene.glb")).bearer_auth(&bob).send().await.unwrap();
+    let r = s
+        .get(&format!("/v1/scenes/{id}/scene.glb"))
+        .bearer_auth(&bob)
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 404);
 }
 
@@ -110,14 +124,22 @@ async fn scene_glb_and_half_float_lightmap() {
     assert!(prims.iter().all(|p| p.get(&gltf::Semantic::TexCoords(1)).is_some()));
     let tris: usize = prims
         .iter()
-        .map(|p| p.indices().map_or(p.get(&gltf::Semantic::Positions).unwrap().count(), |i| i.count()) / 3)
+        .map(|p| {
+            p.indices()
+                .map_or(p.get(&gltf::Semantic::Positions).unwrap().count(), |i| i.count())
+                / 3
+        })
         .sum();
     assert_eq!(tris, 32);
 
     let job = s
         .submit(None, json!({"scene": scene, "resolution": 16, "stop": {"steps": 4}}))
         .await;
-    let before = s.get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=7")).send().await.unwrap();
+    let before = s
+        .get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=7"))
+        .send()
+        .await
+        .unwrap();
     assert!(before.status() == 404 || before.status() == 200, "{}", before.status());
     let done = s.wait_end(&job).await;
     assert_eq!(done["status"], "succeeded", "{done}");
@@ -128,7 +150,14 @@ async fn scene_glb_and_half_float_lightmap() {
     let halves = r.bytes().await.unwrap();
     assert_eq!(halves.len(), 16 * 16 * 4 * 2);
     // The same texels as the EXR's R, G, B, to half precision.
-    let exr = s.get(&format!("/v1/jobs/{job}/lightmap.exr")).send().await.unwrap().bytes().await.unwrap();
+    let exr = s
+        .get(&format!("/v1/jobs/{job}/lightmap.exr"))
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
     let img = exr_rgb(&exr);
     let half = |i: usize| f32::from(exr::prelude::f16::from_le_bytes([halves[2 * i], halves[2 * i + 1]]));
     let mut lit = 0;
@@ -136,17 +165,28 @@ async fn scene_glb_and_half_float_lightmap() {
         for c in 0..3 {
             let want = px[c];
             let got = half(4 * i + c);
-            assert!((got - want).abs() <= want.abs() * 1e-3 + 1e-6, "texel {i} channel {c}: {got} vs {want}");
+            assert!(
+                (got - want).abs() <= want.abs() * 1e-3 + 1e-6,
+                "texel {i} channel {c}: {got} vs {want}"
+            );
         }
         assert_eq!(half(4 * i + 3), 1.0);
         lit += usize::from(px[0] > 0.01);
     }
     assert!(lit > 16, "only {lit} lit texels");
-    let bad = s.get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=0")).send().await.unwrap();
+    let bad = s
+        .get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=0"))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(bad.status(), 422);
     let p: Value = bad.json().await.unwrap();
     assert_eq!(p["field"], "snapshot");
-    let none = s.get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=999")).send().await.unwrap();
+    let none = s
+        .get(&format!("/v1/jobs/{job}/lightmap.rgba16f?snapshot=999"))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(none.status(), 404);
 }
 
@@ -163,7 +203,12 @@ fn exr_rgb(bytes: &[u8]) -> Vec<[f32; 3]> {
         .unwrap();
     let layer = &image.layer_data[0];
     let chan = |n: &str| -> Vec<f32> {
-        let c = layer.channel_data.list.iter().find(|c| c.name == Text::from(n)).unwrap();
+        let c = layer
+            .channel_data
+            .list
+            .iter()
+            .find(|c| c.name == Text::from(n))
+            .unwrap();
         c.sample_data.values_as_f32().collect()
     };
     let (r, g, b) = (chan("R"), chan("G"), chan("B"));
@@ -342,7 +387,10 @@ impl Browser {
             }
             if start.elapsed() > limit {
                 let state = self.eval("JSON.stringify({job: window.lightmapdConsole?.job, err: document.getElementById('form-error')?.textContent, note: document.getElementById('v-note')?.textContent})");
-                panic!("timed out waiting for {what}; page state: {state}; errors: {:?}", self.errors);
+                panic!(
+                    "timed out waiting for {what}; page state: {state}; errors: {:?}",
+                    self.errors
+                );
             }
             std::thread::sleep(Duration::from_millis(200));
         }
@@ -554,7 +602,12 @@ fn the_console_bakes_in_a_real_browser() {
         "['succeeded','failed','cancelled'].includes(window.lightmapdConsole.job?.status) && window.lightmapdConsole.job.status",
         Duration::from_secs(240),
     );
-    assert_eq!(end, "succeeded", "{:?}", b.eval("JSON.stringify(window.lightmapdConsole.job)"));
+    assert_eq!(
+        end,
+        "succeeded",
+        "{:?}",
+        b.eval("JSON.stringify(window.lightmapdConsole.job)")
+    );
     b.wait(
         "the final lightmap in the viewer",
         "window.lightmapdConsole.lightmapKey?.endsWith('/final') && window.lightmapdConsole.viewer.lightmap && window.lightmapdConsole.lightmap",
@@ -571,7 +624,10 @@ fn the_console_bakes_in_a_real_browser() {
     eprintln!("3D view (albedo x lightmap): {px:?}");
     assert!(px.covered > 0.5, "the 3D view is mostly empty: {px:?}");
     assert!(px.lit > 0.05, "the 3D view has no lit pixels: {px:?}");
-    assert!(px.red > 0.01 && px.green > 0.01, "the red and green walls are not both lit: {px:?}");
+    assert!(
+        px.red > 0.01 && px.green > 0.01,
+        "the red and green walls are not both lit: {px:?}"
+    );
     assert!(px.distinct > 50, "the 3D view is flat: {px:?}");
     std::fs::write(shots.join("4-job.png"), b.screenshot(Some("#job"))).unwrap();
 
@@ -584,7 +640,10 @@ fn the_console_bakes_in_a_real_browser() {
     let pa = pixels(&alone);
     eprintln!("3D view (lightmap alone, nearest): {pa:?}");
     assert!(pa.lit > 0.05 && pa.covered > 0.5, "{pa:?}");
-    assert!(pa.red < px.red, "the lightmap alone should be less red than albedo × lightmap: {pa:?} vs {px:?}");
+    assert!(
+        pa.red < px.red,
+        "the lightmap alone should be less red than albedo × lightmap: {pa:?} vs {px:?}"
+    );
 
     // 4. A second job, cancelled from its page.
     b.fill("#f-steps", "5000");
@@ -632,7 +691,11 @@ fn the_console_works_behind_auth() {
 
     let mut b = Browser::start(&exe);
     b.call("Page.navigate", json!({"url": format!("{url}/")}));
-    b.wait("the token prompt", "!document.getElementById('login').hidden", Duration::from_secs(30));
+    b.wait(
+        "the token prompt",
+        "!document.getElementById('login').hidden",
+        Duration::from_secs(30),
+    );
     std::fs::write(shots_dir_auth().join("0-token.png"), b.screenshot(None)).unwrap();
     b.fill("#token", &alice);
     b.click("#login button");
@@ -642,14 +705,25 @@ fn the_console_works_behind_auth() {
         Duration::from_secs(30),
     );
     assert_eq!(b.eval("sessionStorage.getItem('lightmapd-token')"), json!(alice));
-    assert_eq!(b.eval("window.lightmapdConsole.scenes.length"), 0, "Alice sees Bob's scene");
-    let input = b.call("Runtime.evaluate", json!({"expression": "document.getElementById('file')"}));
+    assert_eq!(
+        b.eval("window.lightmapdConsole.scenes.length"),
+        0,
+        "Alice sees Bob's scene"
+    );
+    let input = b.call(
+        "Runtime.evaluate",
+        json!({"expression": "document.getElementById('file')"}),
+    );
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb");
     b.call(
         "DOM.setFileInputFiles",
         json!({"files": [scene.to_str().unwrap()], "objectId": input["result"]["objectId"]}),
     );
-    b.wait("the upload", "window.lightmapdConsole.scenes.length === 1", Duration::from_secs(30));
+    b.wait(
+        "the upload",
+        "window.lightmapdConsole.scenes.length === 1",
+        Duration::from_secs(30),
+    );
     b.fill("#f-resolution", "16");
     b.fill("#f-steps", "8");
     b.click("#submit");

@@ -297,8 +297,14 @@ fn compose_services_and_command_lines_are_real() {
                 assert!(args.iter().any(|a| a == "--auth"), "{origin}: no --auth");
                 let tokens = env_value("LIGHTMAPD_TOKENS_FILE").unwrap_or_else(|| panic!("{origin}: no tokens file"));
                 let secret = tokens.strip_prefix("/run/secrets/").expect("a compose secret");
-                assert!(strings(&svc["secrets"]).contains(&secret.to_string()), "{origin}: secret {secret} not mounted");
-                assert!(doc["secrets"][secret]["file"].as_str().is_some(), "{origin}: secret {secret} undefined");
+                assert!(
+                    strings(&svc["secrets"]).contains(&secret.to_string()),
+                    "{origin}: secret {secret} not mounted"
+                );
+                assert!(
+                    doc["secrets"][secret]["file"].as_str().is_some(),
+                    "{origin}: secret {secret} undefined"
+                );
                 apis += 1;
             }
             "worker" => {
@@ -408,7 +414,10 @@ fn kubernetes_manifests_are_consistent() {
                 !args.iter().any(|a| a == "--database-url"),
                 "{origin}: --database-url in argv shows the password in the pod spec"
             );
-            assert!(lookup("LIGHTMAPD_DATABASE_URL", None).is_some(), "{origin}: no LIGHTMAPD_DATABASE_URL");
+            assert!(
+                lookup("LIGHTMAPD_DATABASE_URL", None).is_some(),
+                "{origin}: no LIGHTMAPD_DATABASE_URL"
+            );
             let gpus = c["resources"]["limits"]["nvidia.com/gpu"].as_u64();
             match args[0].as_str() {
                 "serve" => {
@@ -422,7 +431,8 @@ fn kubernetes_manifests_are_consistent() {
                     assert_eq!(s(&c["readinessProbe"]["httpGet"]["path"]), "/healthz", "{origin}");
                     assert!(args.iter().any(|a| a == "--auth"), "{origin}: no --auth");
                     // The tokens file is a mounted Secret.
-                    let file = lookup("LIGHTMAPD_TOKENS_FILE", None).unwrap_or_else(|| panic!("{origin}: no tokens file"));
+                    let file =
+                        lookup("LIGHTMAPD_TOKENS_FILE", None).unwrap_or_else(|| panic!("{origin}: no tokens file"));
                     let mount = c["volumeMounts"]
                         .as_sequence()
                         .unwrap()
@@ -435,13 +445,20 @@ fn kubernetes_manifests_are_consistent() {
                         .iter()
                         .find(|v| v["name"] == mount["name"])
                         .unwrap();
-                    let secret = find(&objects, "Secret", s(&volume["secret"]["secretName"])).expect("the tokens Secret");
+                    let secret =
+                        find(&objects, "Secret", s(&volume["secret"]["secretName"])).expect("the tokens Secret");
                     let key = file.rsplit('/').next().unwrap();
-                    assert!(secret["stringData"].get(key).is_some(), "{origin}: the Secret has no key {key}");
+                    assert!(
+                        secret["stringData"].get(key).is_some(),
+                        "{origin}: the Secret has no key {key}"
+                    );
                 }
                 "worker" => {
                     worker = true;
-                    assert!(args.iter().any(|a| a == "--database-timeout-s"), "{origin}: no --database-timeout-s");
+                    assert!(
+                        args.iter().any(|a| a == "--database-timeout-s"),
+                        "{origin}: no --database-timeout-s"
+                    );
                     assert_eq!(gpus, Some(1), "{origin}: a worker requests one nvidia.com/gpu");
                     let caps = lookup("NVIDIA_DRIVER_CAPABILITIES", None).unwrap_or_default();
                     assert!(
@@ -555,7 +572,10 @@ fn systemd_unit_and_dockerfile_command_lines_are_real() {
     cli.check(&words[1..], "lightmapd.service ExecStart");
     assert!(words.iter().any(|w| w == "--auth"), "the unit serves without --auth");
     assert_eq!(env.get("LIGHTMAPD_TOKENS_FILE").map(String::as_str), Some("%d/tokens"));
-    assert!(unit.lines().any(|l| l.trim() == "LoadCredential=tokens:/etc/lightmapd/tokens"));
+    assert!(
+        unit.lines()
+            .any(|l| l.trim() == "LoadCredential=tokens:/etc/lightmapd/tokens")
+    );
 
     // The Dockerfile: its default command, what it copies, what it installs.
     let docker = read(&deploy().join("Dockerfile"));
@@ -568,7 +588,10 @@ fn systemd_unit_and_dockerfile_command_lines_are_real() {
     };
     assert_eq!(json_array("ENTRYPOINT"), vec!["lightmapd".to_string()]);
     cli.check(&json_array("CMD"), "Dockerfile CMD");
-    assert!(json_array("CMD").contains(&"--auth".to_string()), "the image serves without --auth");
+    assert!(
+        json_array("CMD").contains(&"--auth".to_string()),
+        "the image serves without --auth"
+    );
     for line in docker
         .lines()
         .filter(|l| l.starts_with("COPY ") && !l.contains("--from"))

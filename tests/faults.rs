@@ -34,8 +34,8 @@ use lightmapd::engine::rng::Rng;
 use lightmapd::service::model::{JobSpec, JobStatus};
 use lightmapd::service::queue::sqlite::SqliteQueue;
 use lightmapd::service::queue::{
-    Cancellation, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, Outcome, Queue, QueueResult, Recovered, SceneDeletion,
-    SceneRecord, TokenRecord,
+    Cancellation, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, Outcome, Queue, QueueResult, Recovered,
+    SceneDeletion, SceneRecord, TokenRecord,
 };
 use lightmapd::service::store::Artifacts;
 use object_store::local::LocalFileSystem;
@@ -522,7 +522,11 @@ async fn the_lease_is_renewed_while_a_slow_final_upload_runs() {
         .submit(None, json!({"scene": scene, "resolution": 16, "stop": {"steps": 4}}))
         .await;
     let j = s.wait_end(&id).await;
-    assert_eq!((j["status"].as_str(), j["attempts"].as_u64()), (Some("succeeded"), Some(1)), "{j:#}");
+    assert_eq!(
+        (j["status"].as_str(), j["attempts"].as_u64()),
+        (Some("succeeded"), Some(1)),
+        "{j:#}"
+    );
     let exr = s.get(&format!("/v1/jobs/{id}/lightmap.exr")).send().await.unwrap();
     exr_is_whole(&exr.bytes().await.unwrap()).unwrap();
     s.running.shutdown().await;
@@ -548,7 +552,10 @@ async fn a_worker_without_its_database_exits_after_the_timeout() {
     );
     // Checked every timeout/4: it gives up at the timeout, then waits for its workers to
     // stop (a worker whose claim failed sleeps 1 s before it looks again).
-    assert!(took >= Duration::from_millis(800) && took < Duration::from_secs(5), "{took:?}");
+    assert!(
+        took >= Duration::from_millis(800) && took < Duration::from_secs(5),
+        "{took:?}"
+    );
 }
 
 #[test]

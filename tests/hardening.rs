@@ -554,14 +554,19 @@ fn serve_outcome(dir: &std::path::Path, listen: &str, extra: &[&str]) -> Option<
         .spawn()
         .unwrap();
     let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
     if line.starts_with("lightmapd listening on ") {
         child.kill().unwrap();
         let _ = child.wait();
         return None;
     }
     let out = child.wait_with_output().unwrap();
-    Some((out.status.code().unwrap_or(-1), String::from_utf8_lossy(&out.stderr).to_string()))
+    Some((
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stderr).to_string(),
+    ))
 }
 
 #[test]
@@ -575,7 +580,10 @@ fn a_network_address_without_auth_is_refused_unless_trusted() {
          download, cancel and delete every job. Add --auth (tokens from `lightmapd token create` or \
          --tokens-file), or --insecure-no-auth on a network you trust, or listen on 127.0.0.1\n"
     );
-    assert!(!dir.path().join("lightmapd.db").exists(), "refused before anything was opened");
+    assert!(
+        !dir.path().join("lightmapd.db").exists(),
+        "refused before anything was opened"
+    );
     // Loopback, --auth, or the explicit opt-out start.
     assert_eq!(serve_outcome(dir.path(), "127.0.0.1:0", &[]), None);
     assert_eq!(serve_outcome(dir.path(), "0.0.0.0:0", &["--auth"]), None);
@@ -583,8 +591,12 @@ fn a_network_address_without_auth_is_refused_unless_trusted() {
     // A tokens file is checked before start: a bad line is named, exit code 2.
     let file = dir.path().join("tokens");
     std::fs::write(&file, "ops superuser 0123456789abcdef0123456789abcdef\n").unwrap();
-    let (code, stderr) =
-        serve_outcome(dir.path(), "0.0.0.0:0", &["--auth", "--tokens-file", file.to_str().unwrap()]).unwrap();
+    let (code, stderr) = serve_outcome(
+        dir.path(),
+        "0.0.0.0:0",
+        &["--auth", "--tokens-file", file.to_str().unwrap()],
+    )
+    .unwrap();
     assert_eq!(code, 2);
     assert_eq!(
         stderr,
@@ -627,17 +639,42 @@ async fn admin_and_editor_tokens_differ_in_priority_and_reach() {
         .await;
     // Admins: any priority, on anyone's scene; they see, cancel and delete every job.
     let urgent = s
-        .submit(Some(&admin), json!({"scene": scene, "resolution": 16, "priority": 1000}))
+        .submit(
+            Some(&admin),
+            json!({"scene": scene, "resolution": 16, "priority": 1000}),
+        )
         .await;
-    let list: Value = s.get("/v1/jobs").bearer_auth(&admin).send().await.unwrap().json().await.unwrap();
+    let list: Value = s
+        .get("/v1/jobs")
+        .bearer_auth(&admin)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
     assert_eq!(list["total"], 2, "{list:#}");
     assert_eq!(list["jobs"][0]["priority"], 1000);
-    let list: Value = s.get("/v1/jobs").bearer_auth(&editor).send().await.unwrap().json().await.unwrap();
+    let list: Value = s
+        .get("/v1/jobs")
+        .bearer_auth(&editor)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
     assert_eq!(list["total"], 1, "an editor sees only its own: {list:#}");
     expect_problem(
         s.get(&format!("/v1/jobs/{urgent}")).bearer_auth(&editor),
         404,
-        problem(404, "Not Found", "not-found", &format!("no job with id {urgent:?}"), None),
+        problem(
+            404,
+            "Not Found",
+            "not-found",
+            &format!("no job with id {urgent:?}"),
+            None,
+        ),
     )
     .await;
     expect_problem(
@@ -654,9 +691,20 @@ async fn admin_and_editor_tokens_differ_in_priority_and_reach() {
         ),
     )
     .await;
-    let r = s.post(&format!("/v1/jobs/{job}/cancel")).bearer_auth(&admin).send().await.unwrap();
+    let r = s
+        .post(&format!("/v1/jobs/{job}/cancel"))
+        .bearer_auth(&admin)
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 202);
-    let r = s.http.delete(format!("{}/v1/jobs/{job}", s.url)).bearer_auth(&admin).send().await.unwrap();
+    let r = s
+        .http
+        .delete(format!("{}/v1/jobs/{job}", s.url))
+        .bearer_auth(&admin)
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 204);
     expect_problem(
         s.get(&format!("/v1/jobs/{job}")).bearer_auth(&editor),
@@ -725,10 +773,16 @@ fn token_names_are_unique_and_revocation_is_unambiguous() {
     );
     let out = token_cli(dir.path(), &["revoke", &ids[0]]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    assert_eq!(String::from_utf8(out.stderr).unwrap(), "token tok_old1 (build) revoked\n");
+    assert_eq!(
+        String::from_utf8(out.stderr).unwrap(),
+        "token tok_old1 (build) revoked\n"
+    );
     // Now one live token has the name: revoking by name means it.
     let out = token_cli(dir.path(), &["revoke", "build"]);
-    assert_eq!(String::from_utf8(out.stderr).unwrap(), "token tok_old2 (build) revoked\n");
+    assert_eq!(
+        String::from_utf8(out.stderr).unwrap(),
+        "token tok_old2 (build) revoked\n"
+    );
     let listing = String::from_utf8(token_cli(dir.path(), &["list"]).stdout).unwrap();
     let roles: Vec<&str> = listing.lines().map(|l| l.split('\t').nth(2).unwrap()).collect();
     assert_eq!(roles, ["editor", "editor", "editor"], "{listing}");
@@ -828,16 +882,20 @@ async fn postgres_connections_use_tls_as_sslmode_says() {
     let plain = session(with_query(&url, "sslmode=disable")).await.unwrap();
     assert_eq!(plain, (false, None), "sslmode=disable is plain");
     let pool = PgPoolOptions::new().max_connections(1).connect(&url).await.unwrap();
-    let (ssl, cert): (String, String) = sqlx::query_as("SELECT current_setting('ssl'), current_setting('ssl_cert_file')")
-        .fetch_one(&pool)
-        .await
-        .unwrap();
+    let (ssl, cert): (String, String) =
+        sqlx::query_as("SELECT current_setting('ssl'), current_setting('ssl_cert_file')")
+            .fetch_one(&pool)
+            .await
+            .unwrap();
     pool.close().await;
     assert_eq!(ssl, "on", "scripts/setup-postgres.sh turns TLS on");
     // require: encrypted, the certificate not checked (it is self-signed).
     let (tls, version) = session(with_query(&url, "sslmode=require")).await.unwrap();
     assert!(tls, "sslmode=require is not TLS");
-    assert!(version.as_deref().is_some_and(|v| v.starts_with("TLSv1.")), "{version:?}");
+    assert!(
+        version.as_deref().is_some_and(|v| v.starts_with("TLSv1.")),
+        "{version:?}"
+    );
     // The default (prefer) takes TLS when offered.
     assert!(session(url.clone()).await.unwrap().0, "sslmode=prefer did not take TLS");
     // Not checked: verify-ca / verify-full. With both rustls providers compiled in (ring
@@ -865,7 +923,10 @@ async fn submit_wait_retries_a_busy_event_stream() {
     let s = Server::start(config).await;
     let scene = s.upload(None).await;
     let a = s
-        .submit(None, json!({"scene": scene, "resolution": 16, "stop": {"seconds": 3.0, "steps": 1000000}}))
+        .submit(
+            None,
+            json!({"scene": scene, "resolution": 16, "stop": {"seconds": 3.0, "steps": 1000000}}),
+        )
         .await;
     let held = s.get(&format!("/v1/jobs/{a}/events")).send().await.unwrap();
     assert_eq!(held.status(), 200);

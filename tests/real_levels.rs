@@ -245,13 +245,23 @@ fn albedo_is_bounded_and_reported() {
     b.square("floor", Vec3::ZERO, 2.0, Vec3::Y, m);
     let (mut json, bin) = b.to_gltf();
     let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
-    assert_eq!(scene.materials[0].base_color.truncate(), Vec3::new(ALBEDO_BOUND, 0.5, 0.99));
+    assert_eq!(
+        scene.materials[0].base_color.truncate(),
+        Vec3::new(ALBEDO_BOUND, 0.5, 0.99)
+    );
     assert_eq!((report.albedo_bound, report.default_material_albedo), (0.999, 0.8));
     assert_eq!(
-        report.warnings.iter().filter(|w| w.starts_with("albedo")).collect::<Vec<_>>(),
+        report
+            .warnings
+            .iter()
+            .filter(|w| w.starts_with("albedo"))
+            .collect::<Vec<_>>(),
         ["albedo bounded for bounced light (so paths in closed rooms end): snow to 0.999"]
     );
-    json["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("material");
+    json["meshes"][0]["primitives"][0]
+        .as_object_mut()
+        .unwrap()
+        .remove("material");
     let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
     assert!(report.default_material_used);
     assert_eq!(scene.triangles[0].material as usize, scene.materials.len() - 1);
@@ -260,7 +270,10 @@ fn albedo_is_bounded_and_reported() {
         Vec3::splat(DEFAULT_MATERIAL_ALBEDO)
     );
     assert!(
-        report.warnings.iter().any(|w| w.ends_with(": snow to 0.999, default to 0.8")),
+        report
+            .warnings
+            .iter()
+            .any(|w| w.ends_with(": snow to 0.999, default to 0.8")),
         "{:?}",
         report.warnings
     );

@@ -1218,7 +1218,12 @@ async fn deleting_a_job_and_the_retention_sweeper_remove_its_artifacts() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     // B is still within its retention: downloadable. After it, the sweeper removes it.
-    let r = s.http.get(format!("{}/v1/jobs/{b}/lightmap.exr", s.url)).send().await.unwrap();
+    let r = s
+        .http
+        .get(format!("{}/v1/jobs/{b}/lightmap.exr", s.url))
+        .send()
+        .await
+        .unwrap();
     assert_eq!(r.status(), 200);
     let start_wait = Instant::now();
     loop {
@@ -1230,7 +1235,10 @@ async fn deleting_a_job_and_the_retention_sweeper_remove_its_artifacts() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     // Observed as succeeded at or after it finished: the retention (1.5 s) had passed.
-    assert!(b_done.elapsed() >= Duration::from_millis(1400), "swept before its retention ended");
+    assert!(
+        b_done.elapsed() >= Duration::from_millis(1400),
+        "swept before its retention ended"
+    );
     assert!(!folder(&b).exists(), "artifacts of an expired job remain");
     let start_wait = Instant::now();
     loop {

@@ -147,14 +147,21 @@ pub async fn create_token(queue: &dyn Queue, name: &str, role: Role) -> Result<(
 /// A name several live tokens share (made before names were unique) is refused with
 /// their ids.
 pub async fn resolve_token(queue: &dyn Queue, id_or_name: &str) -> Result<TokenRecord, TokenError> {
-    let live: Vec<TokenRecord> = queue.tokens().await?.into_iter().filter(|t| t.revoked_at.is_none()).collect();
+    let live: Vec<TokenRecord> = queue
+        .tokens()
+        .await?
+        .into_iter()
+        .filter(|t| t.revoked_at.is_none())
+        .collect();
     if let Some(t) = live.iter().find(|t| t.id == id_or_name) {
         return Ok(t.clone());
     }
     let named: Vec<&TokenRecord> = live.iter().filter(|t| t.name == id_or_name).collect();
     match named.as_slice() {
         [one] => Ok((*one).clone()),
-        [] => Err(TokenError::Invalid(format!("no active token with id or name {id_or_name:?}"))),
+        [] => Err(TokenError::Invalid(format!(
+            "no active token with id or name {id_or_name:?}"
+        ))),
         many => Err(TokenError::Invalid(format!(
             "{} active tokens are named {id_or_name:?} ({}): revoke one by its id",
             many.len(),
@@ -227,7 +234,12 @@ pub struct TokenSync {
 /// alone.
 pub async fn sync_tokens_file(queue: &dyn Queue, wanted: &[FileToken]) -> Result<TokenSync, sqlx::Error> {
     let now = now_ms();
-    let live: Vec<TokenRecord> = queue.tokens().await?.into_iter().filter(|t| t.revoked_at.is_none()).collect();
+    let live: Vec<TokenRecord> = queue
+        .tokens()
+        .await?
+        .into_iter()
+        .filter(|t| t.revoked_at.is_none())
+        .collect();
     let mut sync = TokenSync::default();
     for t in live.iter().filter(|t| t.source == "file") {
         let still = wanted
@@ -374,16 +386,39 @@ mod tests {
         assert_eq!(
             parse_tokens_file(&text).unwrap(),
             vec![
-                FileToken { name: "ci".into(), role: Role::Editor, secret: secret.clone() },
-                FileToken { name: "ops".into(), role: Role::Admin, secret: format!("lmd_{secret}") },
+                FileToken {
+                    name: "ci".into(),
+                    role: Role::Editor,
+                    secret: secret.clone()
+                },
+                FileToken {
+                    name: "ops".into(),
+                    role: Role::Admin,
+                    secret: format!("lmd_{secret}")
+                },
             ]
         );
         for (text, says) in [
-            (format!("ci editor\n"), "line 1: expected `NAME ROLE SECRET` (3 fields), got 2"),
-            (format!("ci boss {secret}\n"), "line 1: role \"boss\": use admin or editor"),
-            ("ci editor short\n".to_string(), "line 1 (ci): the secret is 5 characters, fewer than 32"),
-            (format!("a editor {secret}\na admin b{secret}\n"), "line 2: the name \"a\" is given twice"),
-            (format!("a editor {secret}\nb admin {secret}\n"), "line 2 (b): the same secret is given twice"),
+            (
+                format!("ci editor\n"),
+                "line 1: expected `NAME ROLE SECRET` (3 fields), got 2",
+            ),
+            (
+                format!("ci boss {secret}\n"),
+                "line 1: role \"boss\": use admin or editor",
+            ),
+            (
+                "ci editor short\n".to_string(),
+                "line 1 (ci): the secret is 5 characters, fewer than 32",
+            ),
+            (
+                format!("a editor {secret}\na admin b{secret}\n"),
+                "line 2: the name \"a\" is given twice",
+            ),
+            (
+                format!("a editor {secret}\nb admin {secret}\n"),
+                "line 2 (b): the same secret is given twice",
+            ),
         ] {
             let e = parse_tokens_file(&text).unwrap_err();
             assert!(e.starts_with(says), "{text:?}: {e}");

@@ -149,12 +149,24 @@ impl Metrics {
             let _ = writeln!(out, "lightmapd_store_objects{{kind=\"scenes\"}} {}", u.scene_objects);
             let _ = writeln!(out, "lightmapd_store_objects{{kind=\"jobs\"}} {}", u.job_objects);
             out.push_str("# HELP lightmapd_store_measured_timestamp_seconds When the store usage was measured.\n# TYPE lightmapd_store_measured_timestamp_seconds gauge\n");
-            let _ = writeln!(out, "lightmapd_store_measured_timestamp_seconds {}", u.at_ms as f64 / 1000.0);
+            let _ = writeln!(
+                out,
+                "lightmapd_store_measured_timestamp_seconds {}",
+                u.at_ms as f64 / 1000.0
+            );
         }
         out.push_str("# HELP lightmapd_jobs_expired_total Finished jobs removed by the retention sweeper of this process.\n# TYPE lightmapd_jobs_expired_total counter\n");
-        let _ = writeln!(out, "lightmapd_jobs_expired_total {}", self.jobs_expired.load(Ordering::Relaxed));
+        let _ = writeln!(
+            out,
+            "lightmapd_jobs_expired_total {}",
+            self.jobs_expired.load(Ordering::Relaxed)
+        );
         out.push_str("# HELP lightmapd_snapshots_thinned_total Snapshots removed by snapshot retention in this process.\n# TYPE lightmapd_snapshots_thinned_total counter\n");
-        let _ = writeln!(out, "lightmapd_snapshots_thinned_total {}", self.snapshots_thinned.load(Ordering::Relaxed));
+        let _ = writeln!(
+            out,
+            "lightmapd_snapshots_thinned_total {}",
+            self.snapshots_thinned.load(Ordering::Relaxed)
+        );
         out.push_str("# HELP lightmapd_step_seconds Time per bake step.\n# TYPE lightmapd_step_seconds histogram\n");
         if let Ok(m) = self.steps.lock() {
             for (t, h) in m.iter() {

@@ -45,10 +45,10 @@ use sha2::{Digest, Sha256};
 use utoipa::OpenApi;
 
 use crate::service::auth::{self, Caller};
+use crate::service::console::{TechniqueInfo, TechniqueList};
 use crate::service::model::{
     Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339, uri_file_name,
 };
-use crate::service::console::{TechniqueInfo, TechniqueList};
 use crate::service::problem::{PROBLEM_JSON, Problem};
 use crate::service::queue::{Cancellation, Enqueued, JobDeletion, JobRecord, SceneDeletion, SceneRecord, now_ms};
 use crate::service::worker::{ImportFailure, SceneFiles, import_files, job_memory};
@@ -86,8 +86,18 @@ pub const RETRY_AFTER_S: u64 = 10;
         get_lightmap_rgba16f
     ),
     components(schemas(
-        Problem, JobSpec, JobView, JobList, JobCreated, JobStatus, Progress, SceneView, Health,
-        SceneList, TechniqueList, TechniqueInfo
+        Problem,
+        JobSpec,
+        JobView,
+        JobList,
+        JobCreated,
+        JobStatus,
+        Progress,
+        SceneView,
+        Health,
+        SceneList,
+        TechniqueList,
+        TechniqueInfo
     ))
 )]
 pub struct ApiDoc;
@@ -597,7 +607,11 @@ async fn create_job(
                 "priority {} is above {}, the most this server allows {} (--max-priority); an admin token may set it",
                 spec.priority,
                 limits.max_priority,
-                if caller.token.is_some() { "an editor token" } else { "without authentication" }
+                if caller.token.is_some() {
+                    "an editor token"
+                } else {
+                    "without authentication"
+                }
             ),
         );
         p.field = Some("priority".into());
@@ -846,7 +860,8 @@ async fn download(
         .await?
         .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
     let mut resp = binary_body(Body::from_stream(stream), content_type, filename);
-    resp.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(size));
+    resp.headers_mut()
+        .insert(header::CONTENT_LENGTH, HeaderValue::from(size));
     Ok(resp)
 }
 
@@ -1010,8 +1025,13 @@ async fn get_generated_scene(
     }
     match state.artifacts.get_stream(&store::generated_scene(&id)).await? {
         Some((size, stream)) => {
-            let mut resp = binary_body(Body::from_stream(stream), "model/gltf-binary", Some(format!("{id}.glb")));
-            resp.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(size));
+            let mut resp = binary_body(
+                Body::from_stream(stream),
+                "model/gltf-binary",
+                Some(format!("{id}.glb")),
+            );
+            resp.headers_mut()
+                .insert(header::CONTENT_LENGTH, HeaderValue::from(size));
             Ok(resp)
         }
         None => Err(Problem::new(
@@ -1207,7 +1227,10 @@ async fn get_lightmap_rgba16f(
         }
         Some(s) => {
             let n = s.parse::<u32>().ok().filter(|n| *n >= 1).ok_or_else(|| {
-                Problem::invalid_field("snapshot", format!("snapshot must be `latest` or a number >= 1, got {s:?}"))
+                Problem::invalid_field(
+                    "snapshot",
+                    format!("snapshot must be `latest` or a number >= 1, got {s:?}"),
+                )
             })?;
             if n > job.snapshots {
                 return Err(none_yet(format!(

@@ -189,11 +189,15 @@ impl Artifacts {
                 // Keys from files (mounted secrets) win over the variables.
                 for (var, key) in [
                     ("LIGHTMAPD_S3_ACCESS_KEY_ID_FILE", AmazonS3ConfigKey::AccessKeyId),
-                    ("LIGHTMAPD_S3_SECRET_ACCESS_KEY_FILE", AmazonS3ConfigKey::SecretAccessKey),
+                    (
+                        "LIGHTMAPD_S3_SECRET_ACCESS_KEY_FILE",
+                        AmazonS3ConfigKey::SecretAccessKey,
+                    ),
                 ] {
                     if let Some(path) = std::env::var_os(var).filter(|p| !p.is_empty()) {
-                        let v = std::fs::read_to_string(&path)
-                            .map_err(|e| anyhow::anyhow!("{var}={}: cannot read it: {e}", FsPath::new(&path).display()))?;
+                        let v = std::fs::read_to_string(&path).map_err(|e| {
+                            anyhow::anyhow!("{var}={}: cannot read it: {e}", FsPath::new(&path).display())
+                        })?;
                         b = b.with_config(key, v.trim());
                     }
                 }
@@ -302,8 +306,13 @@ impl Artifacts {
     pub async fn get_stream(
         &self,
         key: &Path,
-    ) -> Result<Option<(u64, futures_util::stream::BoxStream<'static, object_store::Result<Bytes>>)>, object_store::Error>
-    {
+    ) -> Result<
+        Option<(
+            u64,
+            futures_util::stream::BoxStream<'static, object_store::Result<Bytes>>,
+        )>,
+        object_store::Error,
+    > {
         match self.store.get(key).await {
             Ok(r) => Ok(Some((r.meta.size, r.into_stream()))),
             Err(object_store::Error::NotFound { .. }) => Ok(None),
@@ -492,7 +501,10 @@ mod tests {
                 let kept: std::collections::BTreeSet<u32> = kept_snapshots(n, keep).into_iter().collect();
                 assert_eq!(stored, kept, "keep {keep}, n {n}");
                 assert!(stored.len() <= keep as usize && stored.contains(&n));
-                assert!(kept.is_disjoint(&ever_dropped), "keep {keep}, n {n}: a dropped one came back");
+                assert!(
+                    kept.is_disjoint(&ever_dropped),
+                    "keep {keep}, n {n}: a dropped one came back"
+                );
             }
         }
     }

@@ -194,7 +194,14 @@ async fn run_job(state: &AppState, worker: &str, job: JobRecord, engine: &Arc<En
             };
             // Still renewing while the end is written (a slow database must not let the
             // lease lapse between the stored artifacts and the recorded end).
-            let r = while_holding(state, &id, worker, &flag, state.queue.finish(&id, worker, &outcome, now)).await;
+            let r = while_holding(
+                state,
+                &id,
+                worker,
+                &flag,
+                state.queue.finish(&id, worker, &outcome, now),
+            )
+            .await;
             if matches!(r, Ok(true)) {
                 state.metrics.job_finished(status);
                 tracing::info!(status = status.as_str(), "job finished");

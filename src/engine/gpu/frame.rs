@@ -76,7 +76,11 @@ mod tests {
 
     #[test]
     fn normalised_frame_is_translation_and_scale_invariant() {
-        let pts = [Vec3::new(1.0, 2.0, 3.0), Vec3::new(4.0, -2.0, 5.0), Vec3::new(0.5, 0.0, 3.5)];
+        let pts = [
+            Vec3::new(1.0, 2.0, 3.0),
+            Vec3::new(4.0, -2.0, 5.0),
+            Vec3::new(0.5, 0.0, 3.5),
+        ];
         let a = SceneFrame::of_points(pts);
         let b = SceneFrame::of_points(pts.map(|p| p * 1e4 + Vec3::splat(1e5)));
         for p in pts {

@@ -139,5 +139,4 @@ impl MapScene {
             want_direct,
         }
     }
-
 }

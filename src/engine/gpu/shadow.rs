@@ -96,7 +96,12 @@ pub fn pack(sizes: &[u32], max_dim: u32) -> Result<ShadowAtlasLayout, AtlasTooLa
     }
     let height = y + row;
     if height > max_dim || largest > max_dim {
-        return Err(AtlasTooLarge { maps: sizes.len(), width, height, max_dim });
+        return Err(AtlasTooLarge {
+            maps: sizes.len(),
+            width,
+            height,
+            max_dim,
+        });
     }
     Ok(ShadowAtlasLayout { width, height, rects })
 }
@@ -216,7 +221,11 @@ impl ShadowAtlas {
             wgpu::TextureFormat::Rgba32Float,
             wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
         );
-        let depth = texture("depth", wgpu::TextureFormat::Depth32Float, wgpu::TextureUsages::RENDER_ATTACHMENT);
+        let depth = texture(
+            "depth",
+            wgpu::TextureFormat::Depth32Float,
+            wgpu::TextureUsages::RENDER_ATTACHMENT,
+        );
         let plane_view = plane.create_view(&wgpu::TextureViewDescriptor {
             label: Some(&format!("{label} atlas view")),
             ..Default::default()

@@ -8,8 +8,8 @@
 //! maps). Precision: f32 in the normalised scene frame ([`crate::engine::gpu::frame`]), so
 //! the map's pixel size is relative to the scene and scale-invariant.
 
-use glam::Vec3;
 use bytemuck::{Pod, Zeroable};
+use glam::Vec3;
 
 use crate::engine::gpu::map_scene::{MapTexel, MapTriangle};
 
@@ -165,14 +165,7 @@ pub fn fill_map(width: u32, height: u32, texels: &[MapTexel]) -> Vec<u32> {
 
 /// Orthographic frame for direction `d` over the normalised bounds `corners`, with the
 /// map origin shifted by `jitter` (in pixels, [0, 1)^2).
-pub fn make_view(
-    d: Vec3,
-    corners: &[Vec3; 8],
-    map_size: u32,
-    jitter: (f32, f32),
-    seed: u32,
-    mode: u32,
-) -> GpuView {
+pub fn make_view(d: Vec3, corners: &[Vec3; 8], map_size: u32, jitter: (f32, f32), seed: u32, mode: u32) -> GpuView {
     // Right-handed camera looking along +d (as a look-at camera would): screen x = right,
     // screen y = up, so counter-clockwise front faces stay counter-clockwise on screen.
     let helper = if d.y.abs() < 0.9 { Vec3::Y } else { Vec3::X };

@@ -179,10 +179,7 @@ pub fn encode_exr(
     );
     other.insert(Text::from("lightmapd:seconds"), AttributeValue::F64(meta.seconds));
     other.insert(Text::from("lightmapd:seed"), text(&meta.seed.to_string()));
-    other.insert(
-        Text::from("lightmapd:denoised"),
-        text(&meta.denoised),
-    );
+    other.insert(Text::from("lightmapd:denoised"), text(&meta.denoised));
     if let Some(e) = meta.raw_relative_error {
         other.insert(Text::from("lightmapd:raw_relative_error"), AttributeValue::F32(e));
     }

@@ -82,4 +82,3 @@ pub struct TechniqueEntry {
     /// Every WGSL pass it compiles (validated without a device, see the tests below).
     pub shaders: &'static [PassShader],
 }
-

@@ -6,14 +6,21 @@
 
 use serde_json::Value;
 
+use super::api::BakeInputs;
 pub use super::api::TechniqueEntry;
 use super::api::{EngineError, Technique};
-use super::api::BakeInputs;
 use super::{hemicube, obscurance, path, sdb, sdf, vpl};
 use crate::engine::plan::{Plan, SceneFeatures};
 
 /// Every technique, in the order the CLI and docs list them.
-pub const TABLE: &[TechniqueEntry] = &[path::ENTRY, sdb::ENTRY, vpl::ENTRY, obscurance::ENTRY, sdf::ENTRY, hemicube::ENTRY];
+pub const TABLE: &[TechniqueEntry] = &[
+    path::ENTRY,
+    sdb::ENTRY,
+    vpl::ENTRY,
+    obscurance::ENTRY,
+    sdf::ENTRY,
+    hemicube::ENTRY,
+];
 
 /// The identifiers [`create`] accepts, in table order.
 pub const TECHNIQUES: &[&str] = &{
@@ -122,7 +129,11 @@ mod tests {
         }
         // The shared layer's own passes use nothing of any technique.
         for pass in SHARED_PASSES {
-            assert!(pass.files().all(|f| f.starts_with("gpu/")), "{} uses a technique's WGSL", pass.name);
+            assert!(
+                pass.files().all(|f| f.starts_with("gpu/")),
+                "{} uses a technique's WGSL",
+                pass.name
+            );
         }
     }
 
@@ -135,6 +146,9 @@ mod tests {
         }
         let err = entry("nope").err().expect("an unknown id is rejected");
         assert!(err.is_bad_input());
-        assert!(err.to_string().contains("path, sdb, vpl, obscurance, sdf, hemicube"), "{err}");
+        assert!(
+            err.to_string().contains("path, sdb, vpl, obscurance, sdf, hemicube"),
+            "{err}"
+        );
     }
 }

@@ -176,10 +176,7 @@ pub fn rgba16f(exr_bytes: &[u8]) -> std::result::Result<(usize, usize, Vec<u8>),
         .all_attributes()
         .from_buffered(Cursor::new(exr_bytes))
         .map_err(|e| format!("cannot read the lightmap EXR: {e}"))?;
-    let layer = image
-        .layer_data
-        .first()
-        .ok_or("the lightmap EXR has no layer")?;
+    let layer = image.layer_data.first().ok_or("the lightmap EXR has no layer")?;
     let (w, h) = (layer.size.width(), layer.size.height());
     let channel = |name: &str| -> std::result::Result<Vec<f32>, String> {
         layer
@@ -215,7 +212,10 @@ mod tests {
         assert!(!p.contains("/*STYLE*/") && !p.contains("/*SCRIPT*/"));
         assert!(p.contains("class Viewer") && p.contains("function parseGlb"));
         // Nothing is fetched from another origin.
-        assert!(!p.contains("http://") && !p.contains("https://"), "the page refers to another origin");
+        assert!(
+            !p.contains("http://") && !p.contains("https://"),
+            "the page refers to another origin"
+        );
     }
 
     #[test]
@@ -224,8 +224,16 @@ mod tests {
         let ids: Vec<&str> = list.techniques.iter().map(|t| t.id.as_str()).collect();
         assert_eq!(ids, TECHNIQUES);
         let path = &list.techniques[0];
-        assert!(path.params.get("samples_per_step").is_some_and(Value::is_u64), "{}", path.params);
-        assert!(list.techniques.iter().all(|t| t.params.is_object() && !t.passes.is_empty()));
+        assert!(
+            path.params.get("samples_per_step").is_some_and(Value::is_u64),
+            "{}",
+            path.params
+        );
+        assert!(
+            list.techniques
+                .iter()
+                .all(|t| t.params.is_object() && !t.passes.is_empty())
+        );
         assert_eq!(list.outputs, ["validity", "direct", "indirect", "sh", "ao"]);
     }
 

@@ -316,10 +316,11 @@ impl Queue for PostgresQueue {
     }
 
     async fn scenes(&self, client: Option<&str>) -> QueueResult<Vec<SceneRecord>> {
-        let rows = sqlx::query("SELECT * FROM scenes WHERE ($1::text IS NULL OR client = $1) ORDER BY created_at DESC, id")
-            .bind(client)
-            .fetch_all(&self.pool)
-            .await?;
+        let rows =
+            sqlx::query("SELECT * FROM scenes WHERE ($1::text IS NULL OR client = $1) ORDER BY created_at DESC, id")
+                .bind(client)
+                .fetch_all(&self.pool)
+                .await?;
         rows.iter().map(scene_from_row).collect()
     }
 
@@ -627,8 +628,8 @@ impl Queue for PostgresQueue {
         .bind(t.revoked_at)
         .bind(t.role.as_str())
         .bind(&t.source)
-            .execute(&self.pool)
-            .await?;
+        .execute(&self.pool)
+        .await?;
         Ok(())
     }
 

@@ -461,8 +461,8 @@ impl Queue for SqliteQueue {
         .bind(t.revoked_at)
         .bind(t.role.as_str())
         .bind(&t.source)
-            .execute(&self.pool)
-            .await?;
+        .execute(&self.pool)
+        .await?;
         Ok(())
     }
 

@@ -115,18 +115,31 @@ async fn finished_jobs_are_deleted_and_found_by_age(f: &Fixture) {
     let q = &*f.queue;
     with_scene(q).await;
     for (id, at) in [("old", 10), ("new", 20), ("running", 30)] {
-        assert!(matches!(q.enqueue(id, &spec("s"), "c", 100, at).await.unwrap(), Enqueued::Queued(_)));
+        assert!(matches!(
+            q.enqueue(id, &spec("s"), "c", 100, at).await.unwrap(),
+            Enqueued::Queued(_)
+        ));
     }
     for (id, at) in [("old", 100), ("new", 200)] {
         let j = q.claim("w", Duration::from_secs(30), at).await.unwrap().unwrap();
         assert_eq!(j.id, id);
-        assert!(q.finish(id, "w", &Outcome::Failed { reason: "x".into() }, at).await.unwrap());
+        assert!(
+            q.finish(id, "w", &Outcome::Failed { reason: "x".into() }, at)
+                .await
+                .unwrap()
+        );
     }
     q.claim("w", Duration::from_secs(30), 300).await.unwrap().unwrap();
     assert_eq!(q.finished_before(150, 10).await.unwrap(), vec!["old".to_string()]);
-    assert_eq!(q.finished_before(1000, 10).await.unwrap(), vec!["old".to_string(), "new".into()]);
+    assert_eq!(
+        q.finished_before(1000, 10).await.unwrap(),
+        vec!["old".to_string(), "new".into()]
+    );
     assert_eq!(q.finished_before(1000, 1).await.unwrap(), vec!["old".to_string()]);
-    assert_eq!(q.delete_job("running").await.unwrap(), JobDeletion::Unfinished(JobStatus::Running));
+    assert_eq!(
+        q.delete_job("running").await.unwrap(),
+        JobDeletion::Unfinished(JobStatus::Running)
+    );
     assert_eq!(q.delete_job("old").await.unwrap(), JobDeletion::Deleted);
     assert_eq!(q.delete_job("old").await.unwrap(), JobDeletion::NotFound);
     assert!(q.job("old").await.unwrap().is_none());

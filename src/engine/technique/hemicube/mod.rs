@@ -107,11 +107,9 @@ use serde::{Deserialize, Serialize};
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
-use crate::engine::gpu::layout::{
-    Bind, compute_pipeline, group_at, group_of, layout_at, layout_of,
-};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
+use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, layout_at, layout_of};
 use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
@@ -851,9 +849,14 @@ impl Hemicube {
                 let [x, y, side, _] = self.tiles[v as usize];
                 // Side faces: only the half above the shooter's plane is ever looked up.
                 let rows = if v % 5 == 0 { side } else { side / 2 };
-                ShadowDraw { view: v, tile: [x, y, side], rows }
+                ShadowDraw {
+                    view: v,
+                    tile: [x, y, side],
+                    rows,
+                }
             });
-            self.shadow.render(&mut encoder, &self.vertex_buf, self.vertex_count, draws);
+            self.shadow
+                .render(&mut encoder, &self.vertex_buf, self.vertex_count, draws);
         }
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -891,7 +894,15 @@ impl Technique for Hemicube {
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let direct = (self.flags & HC_DIRECT != 0).then_some(&self.direct_acc_buf);
         // No directional layer: the plan lists it as left out.
-        read_halves(&self.ctx, "hemicube", &self.acc_buf, direct, self.n_texels as usize, self.half_steps).map_err(gpu_error)
+        read_halves(
+            &self.ctx,
+            "hemicube",
+            &self.acc_buf,
+            direct,
+            self.n_texels as usize,
+            self.half_steps,
+        )
+        .map_err(gpu_error)
     }
 
     fn accumulating_pass(&self) -> &'static str {

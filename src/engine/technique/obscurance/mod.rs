@@ -121,14 +121,14 @@ pub use update::{ObscuranceState, UpdateReach, UpdateReport};
 
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
-use crate::engine::gpu::layout::{
-    Bind, compute_pipeline, group_of, layout_of,
-};
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, sample_cone};
 use crate::engine::gpu::frame::SceneFrame;
+use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene};
 use crate::engine::gpu::texels::GpuTexelGeom;
-use crate::engine::gpu::view::{DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view};
+use crate::engine::gpu::view::{
+    DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view,
+};
 use crate::engine::gpu::{self, GpuContext, GpuError};
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::scene::Lighting;
@@ -509,7 +509,13 @@ impl Obscurance {
 
     fn with_params(inputs: BakeInputs, mut params: ObscuranceParams) -> Result<Self, EngineError> {
         params.validate()?;
-        let input = MapScene::new(&inputs.scene, &inputs.atlas, &inputs.lighting, inputs.seed, inputs.want_direct);
+        let input = MapScene::new(
+            &inputs.scene,
+            &inputs.atlas,
+            &inputs.lighting,
+            inputs.seed,
+            inputs.want_direct,
+        );
         let mut notes: Vec<String> = Vec::new();
         for n in &mut notes {
             *n = n.replace("sdb ignores", "obscurance ignores");
@@ -1212,7 +1218,6 @@ impl Obscurance {
     fn dims(&self) -> (u32, u32) {
         (self.width, self.height)
     }
-
 }
 
 fn obscurance_snapshot(halves: [ObscuranceHalf; 2], want_direct: bool) -> (Snapshot, Vec<f32>) {

@@ -30,15 +30,15 @@ use std::sync::{Arc, OnceLock};
 use glam::Vec3;
 use wgpu::BufferUsages;
 
+use super::shaders::PATH_TRACE;
 use super::{EmitterTable, PathParams};
-use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::bvh::{GpuBvh, check_binding_size};
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
-use super::shaders::PATH_TRACE;
 use crate::engine::gpu::{self, AdapterPreference, GpuContext, GpuError, Requirements, dispatch_size_64};
 use crate::engine::raytrace::Tracer;
 use crate::engine::scene::{Hemisphere, LightKind, Scene, Wrap};
+use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
 
 /// Where `path` runs (`params.device`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

@@ -52,14 +52,14 @@ use serde_json::Value;
 
 mod gpu;
 
-pub use gpu::{Device, hardware_adapter_present};
-use gpu::PathGpu;
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, parse_params};
 use crate::engine::accumulate::{HalfAccumulator, LUMINANCE, Snapshot};
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Scene};
+use gpu::PathGpu;
+pub use gpu::{Device, hardware_adapter_present};
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -155,12 +155,7 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "direct or indirect output asked for",
         "not asked for in outputs",
     );
-    p.decide(
-        SH_LAYER,
-        f.want_sh,
-        "sh output asked for",
-        "not asked for in outputs",
-    );
+    p.decide(SH_LAYER, f.want_sh, "sh output asked for", "not asked for in outputs");
     if f.glossy_materials > 0 {
         p.leave_out(
             "glossy transport",

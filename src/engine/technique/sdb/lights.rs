@@ -17,7 +17,13 @@ use crate::engine::technique::api::BakeInputs;
 
 /// The scene in `sdb`'s terms, and notes on what it leaves out.
 pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<String>) {
-    let map = MapScene::new(&inputs.scene, &inputs.atlas, &inputs.lighting, inputs.seed, inputs.want_direct);
+    let map = MapScene::new(
+        &inputs.scene,
+        &inputs.atlas,
+        &inputs.lighting,
+        inputs.seed,
+        inputs.want_direct,
+    );
     let (mut input, mut notes) = (SdbInput::from_map(map), Vec::new());
     let small = small_emitter_triangles(&inputs.scene, params.map_size);
     if !small.is_empty() {
@@ -55,7 +61,6 @@ pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<Stri
     input.ambient = Some(ambient_mode(&inputs.scene, &inputs.atlas, inputs.seed));
     (input, notes)
 }
-
 
 /// Emitters whose triangles' longest edge is under two illumination-map pixels: the map
 /// would show each as a pixel or none, and the k x k lookup would make it k pixels wide
@@ -239,4 +244,3 @@ pub fn ambient_mode(scene: &Scene, atlas: &Atlas, seed: u64) -> AmbientMode {
         texel_area,
     }
 }
-

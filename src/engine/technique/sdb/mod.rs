@@ -111,18 +111,18 @@ pub use lights::{ambient_mode, sdb_input};
 
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
-use crate::engine::gpu::layout::{
-    Bind, compute_pipeline, group_at, group_of, layout_at, layout_of,
-};
-pub use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, random_rotation, square_to_sphere};
 use crate::engine::gpu::directions::sample_cone;
+pub use crate::engine::gpu::directions::{
+    DirectionSequence, Directions, SplitMix64, random_rotation, square_to_sphere,
+};
 use crate::engine::gpu::frame::SceneFrame;
+use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, layout_at, layout_of};
 pub use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene, MapTexel, MapTriangle};
 use crate::engine::gpu::texels::GpuTexelGeom;
 pub use crate::engine::gpu::view::cullable_triangles;
-use crate::engine::gpu::view::{GpuDims, GpuVertex, 
-    DEPTH_NEAREST, DEPTH_STOCHASTIC, EMPTY_T, GpuView, NO_TEXEL, TRI_CULL_BACK, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION,
-    fill_map, make_view,
+use crate::engine::gpu::view::{
+    DEPTH_NEAREST, DEPTH_STOCHASTIC, EMPTY_T, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_CULL_BACK, TRI_DOUBLE_SIDED,
+    TRI_TEXTURED_EMISSION, fill_map, make_view,
 };
 use crate::engine::gpu::{self, GpuContext, GpuError};
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
@@ -130,7 +130,6 @@ use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 // ---------------------------------------------------------------------------------------
 // Parameters
 // ---------------------------------------------------------------------------------------
-
 
 /// How directions are accumulated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -319,7 +318,6 @@ const MAX_AMBIENT_GAIN: f32 = 0.9999;
 // GPU-side layouts (must match shaders/sdb/*.wgsl; the shared ones are in engine::gpu)
 // ---------------------------------------------------------------------------------------
 
-
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct GpuResolveParams {
@@ -350,7 +348,6 @@ struct GpuTriInfo {
     emission: [f32; 3],
     flags: u32,
 }
-
 
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]

@@ -193,7 +193,6 @@ impl Sdf {
             mean_bias,
         })
     }
-
 }
 
 /// Minimises `err(k)` over k in [1e-4, 100]: a log-spaced scan, then golden-section

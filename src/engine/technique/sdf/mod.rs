@@ -93,17 +93,17 @@ use serde::{Deserialize, Serialize};
 
 mod calibrate;
 
-#[cfg(test)]
-use calibrate::{fit_k, ray_hits_shape};
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
-use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::frame::SceneFrame;
+use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::{self, GpuContext, GpuError};
 use crate::engine::plan::{Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cosine_sample};
 use crate::engine::rng::Rng;
 use crate::engine::scene::Hemisphere;
+#[cfg(test)]
+use calibrate::{fit_k, ray_hits_shape};
 
 // ---------------------------------------------------------------------------------------
 // Parameters

@@ -99,10 +99,10 @@ use serde::{Deserialize, Serialize};
 use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
-use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
+use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::shadow::{
     self, ShadowAtlas, ShadowAtlasLayout, ShadowDraw, ShadowView, VIEW_ORTHO, VIEW_PERSPECTIVE, cube_faces,
 };
@@ -213,7 +213,6 @@ struct GpuLight {
     info: [u32; 4],
 }
 
-
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 struct GpuGatherParams {
@@ -228,8 +227,6 @@ fn v4(v: Vec3, w: f32) -> [f32; 4] {
 fn lum(v: Vec3) -> f64 {
     v.dot(LUMINANCE) as f64
 }
-
-
 
 /// The shared atlas layout, with `vpl`'s parameters named when it does not fit.
 fn pack(sizes: &[u32], max_dim: u32) -> Result<ShadowAtlasLayout, EngineError> {
@@ -296,7 +293,6 @@ fn surface_hit(scene: &Scene, tracer: &Tracer, origin: Vec3, dir: Vec3, tmax: f3
 // ---------------------------------------------------------------------------------------
 // The technique
 // ---------------------------------------------------------------------------------------
-
 
 pub struct Vpl {
     ctx: Arc<GpuContext>,
@@ -463,7 +459,8 @@ impl Vpl {
         );
 
         use wgpu::ShaderStages as S;
-        let shadow = ShadowAtlas::new(&ctx, "vpl shadow", layout.width, layout.height, &views_buf).map_err(gpu_error)?;
+        let shadow =
+            ShadowAtlas::new(&ctx, "vpl shadow", layout.width, layout.height, &views_buf).map_err(gpu_error)?;
         let gather_module = ctx.shader(&shaders::VPL_GATHER).map_err(gpu_error)?;
         let gather_binds = [
             Bind::Uniform(&gather_buf),
@@ -901,9 +898,14 @@ impl Vpl {
         if !step.draws.is_empty() {
             let draws = step.draws.iter().map(|&v| {
                 let tile = self.layout.rects[v as usize];
-                ShadowDraw { view: v, tile, rows: tile[2] }
+                ShadowDraw {
+                    view: v,
+                    tile,
+                    rows: tile[2],
+                }
             });
-            self.shadow.render(&mut encoder, &self.vertex_buf, self.vertex_count, draws);
+            self.shadow
+                .render(&mut encoder, &self.vertex_buf, self.vertex_count, draws);
         }
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -940,7 +942,15 @@ impl Technique for Vpl {
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let direct = (self.want_direct).then_some(&self.direct_acc_buf);
         // No directional layer: the plan lists it as left out.
-        read_halves(&self.ctx, "vpl", &self.acc_buf, direct, self.n_texels as usize, self.half_steps).map_err(gpu_error)
+        read_halves(
+            &self.ctx,
+            "vpl",
+            &self.acc_buf,
+            direct,
+            self.n_texels as usize,
+            self.half_steps,
+        )
+        .map_err(gpu_error)
     }
 
     fn accumulating_pass(&self) -> &'static str {
