@@ -388,6 +388,27 @@ impl GpuContext {
         )
     }
 
+    /// A single-mip, single-sample 2D (or 2D-array, `size.depth_or_array_layers` layers)
+    /// texture: the only kind the techniques render into or read.
+    pub fn texture_2d(
+        &self,
+        label: &str,
+        size: wgpu::Extent3d,
+        format: wgpu::TextureFormat,
+        usage: wgpu::TextureUsages,
+    ) -> wgpu::Texture {
+        self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some(label),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage,
+            view_formats: &[],
+        })
+    }
+
     /// Whether one storage binding of `bytes` fits this device; `what` names the buffer's
     /// owner and content for the error (e.g. "vpl: 40000 texels' accumulators"). Every
     /// technique checks its per-texel buffers with this before creating them, so a too

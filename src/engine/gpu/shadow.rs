@@ -204,18 +204,7 @@ impl ShadowAtlas {
             height,
             depth_or_array_layers: 1,
         };
-        let texture = |what: &str, format, usage| {
-            ctx.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(&format!("{label} atlas {what}")),
-                size,
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage,
-                view_formats: &[],
-            })
-        };
+        let texture = |what: &str, format, usage| ctx.texture_2d(&format!("{label} atlas {what}"), size, format, usage);
         let plane = texture(
             "(plane of the nearest surface)",
             wgpu::TextureFormat::Rgba32Float,

@@ -724,16 +724,12 @@ impl Obscurance {
             height: n,
             depth_or_array_layers: 1,
         };
-        let dummy = ctx.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("obscurance layers dummy target (write-masked)"),
-            size: extent,
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::R8Unorm,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            view_formats: &[],
-        });
+        let dummy = ctx.texture_2d(
+            "obscurance layers dummy target (write-masked)",
+            extent,
+            wgpu::TextureFormat::R8Unorm,
+            wgpu::TextureUsages::RENDER_ATTACHMENT,
+        );
         let dummy_view = dummy.create_view(&wgpu::TextureViewDescriptor {
             label: Some("obscurance layers dummy target view"),
             ..Default::default()
@@ -835,26 +831,18 @@ impl Obscurance {
         let shadow = if input.lights.is_empty() {
             None
         } else {
-            let color = ctx.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some("obscurance shadow map (t)"),
-                size: extent,
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::R32Float,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
-            });
-            let depth = ctx.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some("obscurance shadow map depth"),
-                size: extent,
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::Depth32Float,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-                view_formats: &[],
-            });
+            let color = ctx.texture_2d(
+                "obscurance shadow map (t)",
+                extent,
+                wgpu::TextureFormat::R32Float,
+                wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+            );
+            let depth = ctx.texture_2d(
+                "obscurance shadow map depth",
+                extent,
+                wgpu::TextureFormat::Depth32Float,
+                wgpu::TextureUsages::RENDER_ATTACHMENT,
+            );
             let shadow_binds = [Bind::Uniform(&shadow_view_buf)];
             let shadow_layout = layout_of(&ctx, "obscurance shadow layout", S::VERTEX_FRAGMENT, &shadow_binds);
             let pipeline = raster_pipeline(

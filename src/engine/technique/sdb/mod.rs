@@ -602,37 +602,25 @@ impl SdbEngine {
             depth_or_array_layers: layers,
             ..extent
         };
-        let illum_tex = ctx.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("sdb illumination map (rgb radiance, a distance), one layer per depth draw"),
-            size: layered,
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba32Float,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
-            view_formats: &[],
-        });
-        let depth_tex = ctx.device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("sdb illumination map depth"),
-            size: extent,
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Depth32Float,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            view_formats: &[],
-        });
+        let illum_tex = ctx.texture_2d(
+            "sdb illumination map (rgb radiance, a distance), one layer per depth draw",
+            layered,
+            wgpu::TextureFormat::Rgba32Float,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
+        let depth_tex = ctx.texture_2d(
+            "sdb illumination map depth",
+            extent,
+            wgpu::TextureFormat::Depth32Float,
+            wgpu::TextureUsages::RENDER_ATTACHMENT,
+        );
         let emission_tex = want_direct.then(|| {
-            ctx.device.create_texture(&wgpu::TextureDescriptor {
-                label: Some("sdb illumination map emission"),
-                size: layered,
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::Rgba32Float,
-                usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
-            })
+            ctx.texture_2d(
+                "sdb illumination map emission",
+                layered,
+                wgpu::TextureFormat::Rgba32Float,
+                wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+            )
         });
         // Per-layer views to render into; one array view for the compute passes.
         let layer_views = |t: &wgpu::Texture, label: &str| -> Vec<wgpu::TextureView> {
