@@ -270,3 +270,53 @@ fn directional_moments() {
 fn sky_plane_builder() -> SceneBuilder {
     lightmapd::engine::scene::library::sky_plane()
 }
+
+/// Coincident back-to-back single-sided sheets (issue 21): a 1 m² emitter facing down
+/// (radiance 1) with a black twin facing up at the same place, 1 m above a black floor,
+/// under an upper sky of radiance 1. Each side must read as if it were alone: the floor
+/// sees sky or emitter, radiance 1 either way, so it reads exactly 1 (the bug was the
+/// twin's black back hiding the emitter from half of the bounce rays); the twin's top
+/// sees only sky, 1; the emitter's face sees the black floor and the dark lower sky, 0.
+/// Both orders of the two sheets in the file, since the tie was the BVH's order.
+#[test]
+fn back_to_back_sheets_are_each_lit_as_if_alone() {
+    for emitter_first in [true, false] {
+        let mut b = SceneBuilder::new();
+        let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
+        let lamp = b.material(MaterialDesc::emissive("lamp", [0.0; 3], [1.0; 3]));
+        let top = Vec3::new(0.0, 1.0, 0.0);
+        b.square("floor", Vec3::ZERO, 1.0, Vec3::Y, black);
+        if emitter_first {
+            b.square("emitter", top, 1.0, Vec3::NEG_Y, lamp);
+            b.square("twin", top, 1.0, Vec3::Y, black);
+        } else {
+            b.square("twin", top, 1.0, Vec3::Y, black);
+            b.square("emitter", top, 1.0, Vec3::NEG_Y, lamp);
+        }
+        let scene = import(&b);
+        let offset = scene.origin_offset.as_vec3();
+        let (atlas, est) = bake(scene, 48, upper_sky(1.0), "path", json!({"samples_per_step": 8}), 16);
+        let label = if emitter_first { "emitter first" } else { "twin first" };
+        let height = |t: &lightmapd::engine::atlas::Texel| (t.position + offset).y;
+        let floor = |t: &lightmapd::engine::atlas::Texel| t.geo_normal.y > 0.99 && height(t) < 0.5;
+        let twin = |t: &lightmapd::engine::atlas::Texel| t.geo_normal.y > 0.99 && height(t) > 0.5;
+        // 1e-4: f32 rounding of sums of ones (the twin's top has no noise at all).
+        assert_unbiased(&atlas, &est, floor, |_| Vec3::ONE, 1e-4, &format!("floor, {label}"));
+        assert_unbiased(&atlas, &est, twin, |_| Vec3::ONE, 1e-4, &format!("twin's top, {label}"));
+        let faces_down = atlas
+            .texels
+            .iter()
+            .zip(&est.total)
+            .filter(|(t, _)| t.geo_normal.y < -0.99);
+        let mut n = 0;
+        for (_, v) in faces_down {
+            assert_eq!(
+                *v,
+                Vec3::ZERO,
+                "the emitter's face sees only black and dark sky ({label})"
+            );
+            n += 1;
+        }
+        assert!(n > 10, "{label}: the emitter has texels ({n})");
+    }
+}

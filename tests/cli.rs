@@ -204,6 +204,17 @@ fn bad_options_exit_2() {
         "angular_diameter_deg must be in (0, 180)",
     );
     assert_bad_input(&["--seconds=-1"], &scene, "stop.seconds must be a positive number");
+    // What the technique table's row does not allow, refused before baking (issue 21).
+    assert_bad_input(
+        &["--technique", "path", "--outputs", "ao", "--steps", "1"],
+        &scene,
+        "outputs[0]: path cannot write the \"ao\" layer; techniques that can: obscurance, sdf",
+    );
+    assert_bad_input(
+        &["--technique", "sdf", "--sun", "0,-1,0,0.5,1,1,1", "--steps", "1"],
+        &scene,
+        "lighting.sun: sdf does not bake the job's sun",
+    );
     // clap's own errors use exit code 2 as well.
     let o = bin().args(["bake", "--resolution", "abc"]).output().unwrap();
     assert_eq!(o.status.code(), Some(2));

@@ -56,7 +56,18 @@ async fn techniques_are_the_engines() {
     let path = &t["techniques"][0];
     let defaults = serde_json::to_value(lightmapd::engine::technique::path::PathParams::default()).unwrap();
     assert_eq!(path["params"], defaults);
-    assert_eq!(t["outputs"], json!(["validity", "direct", "indirect", "sh", "ao"]));
+    assert_eq!(
+        t["outputs"],
+        json!(["validity", "direct", "indirect", "sh", "ao", "debug"])
+    );
+    assert_eq!(
+        path["outputs"],
+        json!(["validity", "direct", "indirect", "sh", "debug"])
+    );
+    assert_eq!(
+        path["lights"],
+        json!(["sky", "sun", "directional_lights", "point_spot_lights", "emitters"])
+    );
     assert_eq!(t["defaults"]["resolution"], 256);
     assert_eq!(t["limits"]["max_job_steps"], 1_048_576);
     // The path tracer handles every light kind: nothing about lights is left out for it.
@@ -68,10 +79,24 @@ async fn techniques_are_the_engines() {
             .any(|p| p["name"] == "light sampling: sun"),
         "{path}"
     );
-    // Every output layer the catalogue lists is accepted by POST /v1/jobs's parser.
-    for o in t["outputs"].as_array().unwrap() {
-        let body = json!({"scene": "x", "outputs": [o]}).to_string();
-        lightmapd::service::model::JobSpec::parse(body.as_bytes()).unwrap();
+    // Every output layer a technique's entry lists is accepted with it by POST /v1/jobs's
+    // parser, and every other layer of the catalogue refused, naming the field.
+    for tech in t["techniques"].as_array().unwrap() {
+        let id = tech["id"].as_str().unwrap();
+        for o in t["outputs"].as_array().unwrap() {
+            let body = json!({"scene": "x", "technique": id, "outputs": [o]}).to_string();
+            let parsed = lightmapd::service::model::JobSpec::parse(body.as_bytes());
+            if tech["outputs"].as_array().unwrap().contains(o) {
+                parsed.unwrap();
+            } else {
+                let p = parsed.unwrap_err();
+                assert_eq!(
+                    (p.status, p.field.as_deref()),
+                    (422, Some("outputs[0]")),
+                    "{id} {o}: {p:?}"
+                );
+            }
+        }
     }
 }
 

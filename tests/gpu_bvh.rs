@@ -21,7 +21,7 @@ use lightmapd::engine::gpu::{GpuContext, GpuError, Requirements};
 use lightmapd::engine::raytrace::{Tracer, intersect};
 use lightmapd::engine::rng::Rng;
 use lightmapd::engine::scene::Scene;
-use lightmapd::engine::scene::build::cornell_box;
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box};
 use lightmapd::engine::scene::library::{closed_box, procedural_blocks, sphere_over_plane};
 
 fn context() -> Option<GpuContext> {
@@ -509,4 +509,61 @@ fn empty_scene_misses_everything() {
         .unwrap();
     assert_eq!(hits[0].slot, BVH_MISS);
     assert_eq!(hits[1].slot, 0);
+}
+
+/// Two single-sided sheets back to back at the same place (issue 21): a ray from either
+/// side hits the sheet facing it, never the black back of its twin, whichever order the
+/// triangles are in, on the CPU tracer and on the GPU BVH. A back face nearer than the
+/// tie tolerance still wins: a sheet 1 mm in front of its twin hides it.
+#[test]
+fn back_to_back_sheets_hit_the_face_toward_the_ray() {
+    for (order, gap) in [("up first", 0.0), ("down first", 0.0), ("up first, 1 mm apart", 1e-3)] {
+        let mut b = SceneBuilder::new();
+        let grey = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+        let (up, down) = (Vec3::new(0.0, -gap, 0.0), Vec3::ZERO);
+        if order.starts_with("down") {
+            b.square("down", down, 1.0, Vec3::NEG_Y, grey);
+            b.square("up", up, 1.0, Vec3::Y, grey);
+        } else {
+            b.square("up", up, 1.0, Vec3::Y, grey);
+            b.square("down", down, 1.0, Vec3::NEG_Y, grey);
+        }
+        let scene = common::import(&b);
+        let tracer = Tracer::new(&scene);
+        let mut rng = Rng::new(9, 0, 0, 0);
+        let mut rays = Vec::new();
+        for i in 0..256 {
+            let from_above = i % 2 == 0;
+            let (x, z) = (rng.next_f32() * 0.8 - 0.4, rng.next_f32() * 0.8 - 0.4);
+            let y = if from_above { 1.0 } else { -1.0 };
+            let d = Vec3::new(rng.next_f32() * 0.2 - 0.1, -y, rng.next_f32() * 0.2 - 0.1).normalize();
+            rays.push(ray(Vec3::new(x, y, z), d, f32::INFINITY, 0));
+        }
+        // The sheet a ray must hit: the one facing it; 1 mm apart (100 times the tie
+        // tolerance at 1 m) the nearer sheet's back instead, from either side.
+        let facing = |r: &QueryRay| {
+            let toward = if r.dir[1] < 0.0 { 1.0 } else { -1.0 };
+            if gap > 0.0 { -toward } else { toward }
+        };
+        let normal_of = |tri: u32| scene.triangles[tri as usize].geometric_normal().y.round();
+        for (i, r) in rays.iter().enumerate() {
+            let hit = tracer
+                .trace(&scene, r.origin.into(), r.dir.into(), f32::INFINITY)
+                .unwrap_or_else(|| panic!("{order}: CPU ray {i} missed"));
+            assert_eq!(normal_of(hit.triangle), facing(r), "{order}: CPU ray {i}");
+        }
+        let Some(ctx) = context() else { continue };
+        let data = BvhData::new(tracer.bvh(), &scene).unwrap();
+        let bvh = GpuBvh::new(&ctx, tracer.bvh(), &scene).unwrap();
+        let runner = QueryRunner::new(&ctx, &bvh, rays.len()).unwrap();
+        let hits = runner.run(&ctx, &rays).unwrap();
+        for (i, (r, h)) in rays.iter().zip(&hits).enumerate() {
+            assert_ne!(h.slot, BVH_MISS, "{order}: GPU ray {i} missed");
+            assert_eq!(
+                normal_of(data.tris[h.slot as usize].id),
+                facing(r),
+                "{order}: GPU ray {i}"
+            );
+        }
+    }
 }

@@ -233,9 +233,10 @@ fn dynamic_box_matches_the_same_box_as_geometry_and_moves() {
     assert!(changed > 0.05, "moving the box must move its shadow");
 }
 
-/// No sky: nothing to bake, exact zeros, and the plan lists what `sdf` leaves out.
+/// Emitters are light `sdf` does not transport: the job is refused before baking,
+/// naming them and the techniques that do (issue 21), not baked black.
 #[test]
-fn no_sky_is_zero_and_the_plan_names_what_is_not_baked() {
+fn emitters_are_refused_before_baking() {
     let mut b = SceneBuilder::new();
     let lamp = b.material(MaterialDesc::emissive("lamp", [0.5; 3], [1.0; 3]));
     b.square("lamp", Vec3::ZERO, 1.0, Vec3::Y, lamp);
@@ -244,13 +245,26 @@ fn no_sky_is_zero_and_the_plan_names_what_is_not_baked() {
         technique: "sdf".into(),
         ..Default::default()
     };
-    let p = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
-    assert!(
-        p.left_out
-            .iter()
-            .any(|i| i.name == "emitters" && i.why.contains("NOT baked")),
-        "{p:?}"
+    let e = lightmapd::engine::job::plan_for(&scene, &request).unwrap_err();
+    assert!(e.is_bad_input(), "{e}");
+    assert_eq!(
+        e.to_string(),
+        "technique: sdf does not bake the scene's 2 emissive triangle(s); techniques that do: path, sdb, vpl, obscurance, hemicube"
     );
+}
+
+/// No sky and no other light: nothing to bake, exact zeros, and the plan says why.
+#[test]
+fn no_sky_is_zero_and_the_plan_says_so() {
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("ground", Vec3::ZERO, 1.0, Vec3::Y, grey);
+    let scene = import(&b);
+    let request = lightmapd::engine::job::BakeRequest {
+        technique: "sdf".into(),
+        ..Default::default()
+    };
+    let p = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
     assert!(p.left_out.iter().any(|i| i.name == "distance volume"), "{p:?}");
     let (_, est) = bake(scene, 16, Lighting::default(), "sdf", json!({}), 2);
     assert!(est.total.iter().all(|v| *v == Vec3::ZERO));

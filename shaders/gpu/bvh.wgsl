@@ -39,6 +39,11 @@
 const BVH_STACK: u32 = 64u;
 const BVH_MISS: u32 = 0xffffffffu;
 const BVH_TRI_ALPHA_TEST: u32 = 1u;
+// A single-sided triangle: in `bvh_closest` a hit on its back counts BVH_BACK_FACE_TIE
+// times farther, so a coincident front face wins the tie (back-to-back single-sided
+// sheets); the CPU tracer's `raytrace::BACK_FACE_TIE`, the same factor.
+const BVH_TRI_SINGLE_SIDED: u32 = 2u;
+const BVH_BACK_FACE_TIE: f32 = 1.00001;
 // 1 + 2 gamma(3), gamma(n) = n u / (1 - n u), u = 2^-24.
 const BVH_ROBUST: f32 = 1.0000003576;
 
@@ -121,6 +126,8 @@ fn bvh_tri_test(tri: BvhTri, o: vec3<f32>, d: vec3<f32>, tmax: f32) -> vec3<f32>
 // Closest hit along o + t d, t in (0, tmax). `d` need not be unit length (t is in its units).
 fn bvh_closest(o: vec3<f32>, d: vec3<f32>, tmax: f32) -> BvhHit {
     var hit = BvhHit(tmax, BVH_MISS, 0.0, 0.0, false);
+    // The distance hits are compared by: hit.t, except for a single-sided back face.
+    var best = tmax;
     if arrayLength(&bvh_nodes) == 0u {
         return hit;
     }
@@ -140,8 +147,11 @@ fn bvh_closest(o: vec3<f32>, d: vec3<f32>, tmax: f32) -> BvhHit {
             for (var k = 0u; k < n.count; k++) {
                 let s = n.first + k;
                 let tri = bvh_tris[s];
-                let r = bvh_tri_test(tri, o, d, hit.t);
-                if r.x > 0.0 && ((tri.flags & BVH_TRI_ALPHA_TEST) == 0u || bvh_alpha_accept(s, r.y, r.z)) {
+                let r = bvh_tri_test(tri, o, d, best);
+                let back = (tri.flags & BVH_TRI_SINGLE_SIDED) != 0u && dot(d, cross(tri.e1, tri.e2)) > 0.0;
+                let key = select(r.x, r.x * BVH_BACK_FACE_TIE, back);
+                if r.x > 0.0 && key < best && ((tri.flags & BVH_TRI_ALPHA_TEST) == 0u || bvh_alpha_accept(s, r.y, r.z)) {
+                    best = key;
                     hit.t = r.x;
                     hit.slot = s;
                     hit.u = r.y;
@@ -151,8 +161,8 @@ fn bvh_closest(o: vec3<f32>, d: vec3<f32>, tmax: f32) -> BvhHit {
         } else {
             let a = bvh_nodes[n.first];
             let b = bvh_nodes[n.first + 1u];
-            let ta = bvh_slab(a.min, a.max, o, inv, hit.t);
-            let tb = bvh_slab(b.min, b.max, o, inv, hit.t);
+            let ta = bvh_slab(a.min, a.max, o, inv, best);
+            let tb = bvh_slab(b.min, b.max, o, inv, best);
             if ta >= 0.0 && tb >= 0.0 {
                 let a_first = ta <= tb;
                 next = select(n.first + 1u, n.first, a_first);
@@ -172,7 +182,7 @@ fn bvh_closest(o: vec3<f32>, d: vec3<f32>, tmax: f32) -> BvhHit {
         // Pop until a node still nearer than the closest hit.
         while next == BVH_MISS && sp > 0u {
             sp -= 1u;
-            if stack_t[sp] <= hit.t {
+            if stack_t[sp] <= best {
                 next = stack_node[sp];
             }
         }

@@ -83,6 +83,35 @@ pub struct Estimate {
     pub halves: Option<([Vec<Vec3>; 2], [u64; 2])>,
 }
 
+impl Estimate {
+    /// The first non-finite value in any layer it holds (total, direct, the directional
+    /// moments, ao, the per-texel error, both halves), as (layer, texel, value): the NaN
+    /// guard of DESIGN §5 reads every layer that can reach an output, not only `total`.
+    pub fn first_non_finite(&self) -> Option<(&'static str, usize, Vec<f32>)> {
+        fn rgb(layer: &'static str, v: &[Vec3]) -> Option<(&'static str, usize, Vec<f32>)> {
+            let (k, x) = v.iter().enumerate().find(|(_, x)| !x.is_finite())?;
+            Some((layer, k, x.to_array().to_vec()))
+        }
+        fn scalar(layer: &'static str, v: &[f32]) -> Option<(&'static str, usize, Vec<f32>)> {
+            let (k, x) = v.iter().enumerate().find(|(_, x)| !x.is_finite())?;
+            Some((layer, k, vec![*x]))
+        }
+        rgb("total", &self.total)
+            .or_else(|| self.direct.as_deref().and_then(|d| rgb("direct", d)))
+            .or_else(|| {
+                let m = self.moments.as_deref()?;
+                let (k, x) = m.iter().enumerate().find(|(_, x)| !x.iter().all(|a| a.is_finite()))?;
+                Some(("sh", k, x.iter().flat_map(|a| a.to_array()).collect()))
+            })
+            .or_else(|| self.ao.as_deref().and_then(|a| scalar("ao", a)))
+            .or_else(|| self.texel_error.as_deref().and_then(|e| scalar("texel error", e)))
+            .or_else(|| {
+                let ([a, b], _) = self.halves.as_ref()?;
+                rgb("even half", a).or_else(|| rgb("odd half", b))
+            })
+    }
+}
+
 #[derive(Clone, Copy, Debug, Serialize, PartialEq)]
 pub struct ErrorSummary {
     /// RMS standard error over RMS estimate; `None` before both halves have a step.

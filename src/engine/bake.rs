@@ -202,21 +202,19 @@ impl BakeLoop {
     }
 }
 
-/// The guard of DESIGN §5: a non-finite value fails the bake, naming the technique and
-/// the pass, so no NaN or infinity ever reaches an EXR.
+/// The guard of DESIGN §5: a non-finite value in any layer of a snapshot fails the bake,
+/// naming the technique, the layer and the pass, so no NaN or infinity ever reaches an
+/// EXR. (The delivered lightmap is checked again after denoising and seam stitching,
+/// channel by channel, in `output::lightmap_channels`.)
 fn check_finite(technique: &dyn Technique, estimate: &Estimate) -> Result<(), EngineError> {
-    let layers = std::iter::once(("total", &estimate.total)).chain(estimate.direct.iter().map(|d| ("direct", d)));
-    for (layer, values) in layers {
-        if let Some((k, v)) = values.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-            return Err(EngineError::Internal(format!(
-                "technique {} produced a non-finite value {:?} at texel {k} of the {layer} layer in pass \"{}\" \
-                 (by step {}); the lightmap was not written",
-                technique.id(),
-                v.to_array(),
-                technique.accumulating_pass(),
-                estimate.steps
-            )));
-        }
+    if let Some((layer, k, v)) = estimate.first_non_finite() {
+        return Err(EngineError::Internal(format!(
+            "technique {} produced a non-finite value {v:?} at texel {k} of the {layer} layer in pass \"{}\" \
+             (by step {}); the lightmap was not written",
+            technique.id(),
+            technique.accumulating_pass(),
+            estimate.steps
+        )));
     }
     Ok(())
 }
@@ -279,6 +277,31 @@ mod tests {
                 err.contains("at texel 1 of the total layer in pass \"test pass\""),
                 "{err}"
             );
+        }
+    }
+
+    /// The guard reads every layer a snapshot holds, not only `total` (issue 21).
+    #[test]
+    fn the_guard_reads_every_layer() {
+        let mut t = Fixed {
+            acc: HalfAccumulator::new(2, false),
+            value: Vec3::ONE,
+        };
+        t.step().unwrap();
+        t.step().unwrap();
+        let clean = t.snapshot().unwrap().estimate();
+        assert_eq!(clean.first_non_finite(), None);
+        let mut sh = clean.clone();
+        sh.moments = Some(vec![[Vec3::ZERO, Vec3::new(0.0, f32::NAN, 0.0), Vec3::ZERO]; 2]);
+        let mut ao = clean.clone();
+        ao.ao = Some(vec![0.5, f32::INFINITY]);
+        let mut direct = clean.clone();
+        direct.direct = Some(vec![Vec3::ONE, Vec3::NAN]);
+        for (e, layer, texel) in [(sh, "sh", 0), (ao, "ao", 1), (direct, "direct", 1)] {
+            let (l, k, _) = e.first_non_finite().unwrap();
+            assert_eq!((l, k), (layer, texel));
+            let err = check_finite(&t, &e).unwrap_err().to_string();
+            assert!(err.contains(&format!("at texel {texel} of the {layer} layer")), "{err}");
         }
     }
 

@@ -30,6 +30,10 @@ use crate::engine::technique::{self, BakeInputs, EngineError, Technique};
 /// bad-input error.
 pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineError> {
     let features = crate::engine::plan::SceneFeatures::of(scene, &request.lighting, &request.outputs);
+    // What the technique cannot do is refused here, before any GPU work: an output layer
+    // it does not write, parameters it does not take, light it does not transport.
+    technique::check_request(&request.technique, &request.params, &request.outputs)?;
+    technique::check_lights(&request.technique, &features)?;
     technique::plan(&request.technique, &features)
 }
 
@@ -123,7 +127,8 @@ impl Default for BakeOptions {
 }
 
 /// Runs `request` on `scene`; `on_atlas` is given the texel set before the first step
-/// (the service keeps it to encode snapshot EXRs with [`snapshot_exr`]).
+/// (the service keeps it to encode snapshot EXRs with [`delivered_exr`]). A bake the
+/// observer cancelled is delivered raw, not denoised.
 pub fn bake(
     scene: Arc<Scene>,
     request: &BakeRequest,
@@ -263,9 +268,15 @@ fn bake_impl(
     let mut bake_loop = BakeLoop::new(stop);
     bake_loop.snapshot_interval = options.snapshot_interval;
     let outcome = bake_loop.run(tech, observer)?;
-    // Denoised once: the EXR and the preview show the same delivered lightmap.
-    let finished = finish(&atlas, &outcome.estimate, request);
-    let exr = finished_exr(&atlas, &finished, request, &tech.params(), outcome.elapsed)?;
+    // Denoised once: the EXR and the preview show the same delivered lightmap. A
+    // cancelled bake is delivered raw: whoever cancelled does not keep it (the service
+    // discards it), and denoising would hold the cancellation up by a whole denoise.
+    let finished = if outcome.stopped_by == StopReason::Cancelled {
+        outcome.estimate.clone()
+    } else {
+        finish(&atlas, &outcome.estimate, request)
+    };
+    let exr = delivered_exr(&atlas, &finished, request, &tech.params(), outcome.elapsed)?;
     let preview_png = preview_png(&atlas, &finished)?;
     let summary = BakeSummary {
         technique: request.technique.clone(),
@@ -311,20 +322,10 @@ pub fn bake_unobserved(scene: Arc<Scene>, request: &BakeRequest) -> Result<BakeR
     )
 }
 
-/// The EXR for an estimate (final or snapshot): dilated lightmap, requested layers, and
-/// the header attributes of DESIGN §2.
-pub fn snapshot_exr(
-    atlas: &Atlas,
-    estimate: &Estimate,
-    request: &BakeRequest,
-    params: &Value,
-    elapsed: Duration,
-) -> Result<Vec<u8>, EngineError> {
-    finished_exr(atlas, &finish(atlas, estimate, request), request, params, elapsed)
-}
-
-/// [`snapshot_exr`] for an estimate [`finish`] already delivered.
-fn finished_exr(
+/// The EXR of an estimate [`finish`] already delivered (a snapshot's or the final one):
+/// dilated lightmap, requested layers, and the header attributes of DESIGN §2. The
+/// caller denoises once and hands the same estimate to [`preview_png`].
+pub fn delivered_exr(
     atlas: &Atlas,
     estimate: &Estimate,
     request: &BakeRequest,

@@ -101,7 +101,7 @@ impl Plan {
 }
 
 /// What the scene and the job contain, as far as any technique's plan cares.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Default, Serialize)]
 pub struct SceneFeatures {
     pub punctual_lights: usize,
     /// How many of `punctual_lights` are directional (the rest are point or spot).

@@ -10,7 +10,8 @@
 //! path's next bounce off a corner needs (`docs/stability.md`).
 //!
 //! Limits: single rays, no packets or SIMD streams; rays hit both faces of every
-//! triangle (callers decide what a back face means).
+//! triangle (callers decide what a back face means), except that a closest hit prefers a
+//! front face over a coincident single-sided back face ([`BACK_FACE_TIE`]).
 
 use std::f32::consts::PI;
 use std::time::Duration;
@@ -21,6 +22,12 @@ use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::ray::{Ray, RayHit};
 
 use crate::engine::scene::{Scene, Triangle};
+
+/// How much farther a back-face hit on a single-sided triangle counts in a closest-hit
+/// query ([`Tracer::trace`]; the GPU's `bvh_closest` uses the same factor): 1e-5
+/// relative, far above the few-ulp difference between the distances of two coincident
+/// triangles, far below any gap between surfaces a lightmap resolves (0.1 mm at 10 m).
+pub const BACK_FACE_TIE: f32 = 1.0 + 1e-5;
 
 /// A BVH over a scene's triangles.
 pub struct Tracer {
@@ -55,12 +62,24 @@ impl Tracer {
     }
 
     /// Closest hit along `origin + t·dir`, t in (0, tmax).
+    ///
+    /// Ties: a hit on the back of a single-sided triangle counts [`BACK_FACE_TIE`] times
+    /// farther than it is, so where a front face and a single-sided back face coincide
+    /// (back-to-back single-sided sheets, the usual way to give each side of a wall its
+    /// own lightmap) the front face is the hit, not whichever the BVH visits first. A
+    /// back face nearer by more than that still wins: it is a real occluder.
     pub fn trace(&self, scene: &Scene, origin: Vec3, dir: Vec3, tmax: f32) -> Option<Hit> {
         let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
         let mut hit = RayHit::none();
         let found = self.bvh.ray_traverse(ray, &mut hit, |r, id| {
             let tri = &scene.triangles[self.bvh.primitive_indices[id] as usize];
-            intersect(tri, r).map_or(f32::INFINITY, |(t, _)| t)
+            intersect(tri, r).map_or(f32::INFINITY, |(t, _)| {
+                if !scene.material(tri).double_sided && dir.dot(tri.cross()) > 0.0 {
+                    t * BACK_FACE_TIE
+                } else {
+                    t
+                }
+            })
         });
         if !found {
             return None;

@@ -209,6 +209,13 @@ impl JobSpec {
             return Err(Problem::invalid_field("params", "params must be a JSON object"));
         }
         let request = self.to_request();
+        // The technique's parameters and layers against its table row, so a job it
+        // cannot run is refused now rather than failing when it runs. The engine's
+        // message starts with the field ("params.samples_per_step ...", "outputs[1]: ...").
+        technique::check_request(&self.technique, &self.params, &request.outputs).map_err(|e| {
+            let m = e.to_string();
+            Problem::invalid_field(leading_field(&m), m)
+        })?;
         // The engine's messages start with the field they are about ("stop.steps must
         // be ...", "lighting.sun.radiance must be ..."): that is the field we name.
         request
@@ -316,6 +323,33 @@ fn leading_field(msg: &str) -> String {
         .unwrap_or("")
         .trim_end_matches(':')
         .to_string()
+}
+
+/// The light of a stored scene (read off its import report) and of the job, against the
+/// technique's table row: light the technique does not transport is refused at submit,
+/// naming the light (`lighting.sun`, or `technique` for the scene's own lights). The
+/// bake checks the scene itself again before it starts.
+pub fn check_lights(report: &Value, spec: &JobSpec) -> Result<(), Problem> {
+    let count = |k: &str| report.get(k).and_then(Value::as_u64).map(|n| n as usize);
+    let lighting = spec.to_request().lighting;
+    // A report stored before it counted directional lights: the scene's punctual lights
+    // are left to the bake's own check.
+    let (punctual_lights, directional_lights) = match count("directional_lights") {
+        Some(d) => (count("lights").unwrap_or(0), d),
+        None => (0, 0),
+    };
+    let features = crate::engine::plan::SceneFeatures {
+        punctual_lights,
+        directional_lights,
+        emissive_triangles: count("emissive_triangles").unwrap_or(0),
+        sky: lighting.sky.is_some_and(|s| s.radiance != glam::Vec3::ZERO),
+        sun: lighting.sun.is_some_and(|s| s.radiance != glam::Vec3::ZERO),
+        ..Default::default()
+    };
+    technique::check_lights(&spec.technique, &features).map_err(|e| {
+        let m = e.to_string();
+        Problem::invalid_field(leading_field(&m), m)
+    })
 }
 
 /// A job's lifecycle (DESIGN §7).

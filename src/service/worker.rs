@@ -4,7 +4,8 @@
 //! bake runs under `spawn_blocking` (the engine is CPU- or GPU-bound and must never
 //! stall the runtime's threads) with an observer that only touches shared memory: the
 //! latest progress, the history of (seconds, steps, error) points, and, every
-//! `snapshot_interval`, an encoded snapshot EXR and PNG handed over a channel. The async
+//! `snapshot_interval`, the raw estimate handed to an encoder thread, which denoises and
+//! encodes the snapshot EXR and PNG beside the bake and hands them over a channel. The async
 //! side ticks 4 times a second: it writes progress if it changed (so the database sees
 //! at most ~4 writes a second per job), renews the lease with the same statement, reads
 //! back the cancel flag, and uploads snapshots. The bake thread checks the job's
@@ -618,8 +619,22 @@ struct BakeThread {
     limits: crate::service::Limits,
 }
 
-/// The bake thread: import, bake with an observer that shares progress and encodes
-/// snapshots, return the result.
+/// A snapshot as the bake thread hands it to the encoder thread: the raw estimate.
+struct RawSnapshot {
+    atlas: Arc<Atlas>,
+    estimate: crate::engine::accumulate::Estimate,
+    elapsed: Duration,
+}
+
+/// The bake thread: import, bake with an observer that shares progress and hands
+/// snapshots to an encoder thread, return the result.
+///
+/// Why a separate encoder: a snapshot is denoised (OIDN: three filters, seconds on a
+/// loaded 2-core machine) and encoded twice (EXR, PNG). Done on the bake thread, that
+/// time sits between two checks of the stop flag, so a cancel waited for it. The
+/// encoder runs beside the bake; the channel holds one snapshot, and a snapshot due
+/// while the encoder is still busy is skipped (the next one is due at once), so the
+/// bake never waits for it. Once the stop flag is up the encoder drops what is pending.
 fn run_bake(
     files: SceneFiles,
     spec: &crate::service::model::JobSpec,
@@ -631,6 +646,73 @@ fn run_bake(
     drop(files);
     let request = spec.to_request();
     let options = BakeOptions { snapshot_interval };
+    let (raw_tx, raw_rx) = std::sync::mpsc::sync_channel::<RawSnapshot>(1);
+    std::thread::scope(|s| {
+        let encoder = std::thread::Builder::new()
+            .name("snapshot-encoder".into())
+            .spawn_scoped(s, || encode_snapshots(raw_rx, &request, flag, snapshots));
+        if let Err(e) = encoder {
+            return Err(EngineError::Internal(format!("cannot start the snapshot encoder: {e}")));
+        }
+        // `raw_tx` moves into the bake; dropping it at the end stops the encoder.
+        bake_observed(
+            scene,
+            spec,
+            &request,
+            &options,
+            shared,
+            flag,
+            metrics,
+            raw_tx,
+            snapshot_interval,
+        )
+    })
+}
+
+/// Encodes the snapshots the bake hands over and passes them to the async side.
+fn encode_snapshots(
+    raw: std::sync::mpsc::Receiver<RawSnapshot>,
+    request: &crate::engine::job::BakeRequest,
+    flag: &StopFlag,
+    snapshots: &mpsc::UnboundedSender<SnapshotFiles>,
+) {
+    for snap in raw {
+        if flag.get() != StopSignal::None {
+            continue;
+        }
+        // Denoised once: the EXR and the preview show the same delivered lightmap.
+        let delivered = job::finish(&snap.atlas, &snap.estimate, request);
+        let exr = job::delivered_exr(&snap.atlas, &delivered, request, &request.params, snap.elapsed);
+        let png = job::preview_png(&snap.atlas, &delivered);
+        match (exr, png) {
+            (Ok(exr), Ok(png)) => {
+                let _ = snapshots.send(SnapshotFiles {
+                    exr,
+                    png,
+                    steps: snap.estimate.steps,
+                    error: snap.estimate.error.relative,
+                });
+            }
+            (Err(e), _) | (_, Err(e)) => tracing::error!(error = %e, "cannot encode a snapshot"),
+        }
+    }
+}
+
+/// [`job::bake`] with the service's observer: progress and history into `shared`,
+/// snapshots to the encoder every `snapshot_interval`, the stop flag read after every
+/// step.
+#[allow(clippy::too_many_arguments)]
+fn bake_observed(
+    scene: Scene,
+    spec: &crate::service::model::JobSpec,
+    request: &crate::engine::job::BakeRequest,
+    options: &BakeOptions,
+    shared: &Shared,
+    flag: &StopFlag,
+    metrics: &crate::service::metrics::Metrics,
+    raw_tx: std::sync::mpsc::SyncSender<RawSnapshot>,
+    snapshot_interval: Duration,
+) -> Result<BakeResult, EngineError> {
     let atlas: OnceLock<Arc<Atlas>> = OnceLock::new();
     // The engine's plan (passes run and left out, with reasons) comes first; the texel
     // set is added to it once it is built.
@@ -687,20 +769,17 @@ fn run_bake(
                     && flag.get() == StopSignal::None
                     && let Some(a) = atlas.get()
                 {
-                    let exr = job::snapshot_exr(a, estimate, &request, &request.params, elapsed);
-                    // The preview shows what the EXR holds (denoised when the job is).
-                    let png = job::preview_png(a, &job::finish(a, estimate, &request));
-                    match (exr, png) {
-                        (Ok(exr), Ok(png)) => {
-                            last_stored = Some(elapsed);
-                            let _ = snapshots.send(SnapshotFiles {
-                                exr,
-                                png,
-                                steps: estimate.steps,
-                                error: estimate.error.relative,
-                            });
+                    match raw_tx.try_send(RawSnapshot {
+                        atlas: a.clone(),
+                        estimate: estimate.clone(),
+                        elapsed,
+                    }) {
+                        Ok(()) => last_stored = Some(elapsed),
+                        // The encoder is busy with the previous one: this one is skipped.
+                        Err(std::sync::mpsc::TrySendError::Full(_)) => {}
+                        Err(std::sync::mpsc::TrySendError::Disconnected(_)) => {
+                            tracing::error!("the snapshot encoder has stopped")
                         }
-                        (Err(e), _) | (_, Err(e)) => tracing::error!(error = %e, "cannot encode a snapshot"),
                     }
                 }
             }
@@ -713,8 +792,8 @@ fn run_bake(
     };
     job::bake(
         Arc::new(scene),
-        &request,
-        &options,
+        request,
+        options,
         &mut observer,
         &mut on_atlas,
         &mut on_plan,

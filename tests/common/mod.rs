@@ -30,10 +30,15 @@ pub fn bake(
     let request = lightmapd::engine::job::BakeRequest {
         technique: technique.into(),
         lighting,
-        outputs: vec![
+        // The direct layer, and the directional moments from a technique that keeps them
+        // (asking one that does not is refused before baking).
+        outputs: [
             lightmapd::engine::output::OutputLayer::Direct,
             lightmapd::engine::output::OutputLayer::Sh,
-        ],
+        ]
+        .into_iter()
+        .filter(|l| technique::entry(technique).unwrap().layers.contains(l))
+        .collect(),
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");

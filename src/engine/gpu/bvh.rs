@@ -17,7 +17,8 @@
 //! order ("slots") as the first vertex and two edges computed exactly as the CPU's
 //! Moller-Trumbore computes them, with the scene's triangle index and a flags word
 //! (the hook for issue 19's alpha test: `BVH_TRI_ALPHA_TEST`, unset today, so every
-//! triangle is opaque).
+//! triangle is opaque; and `BVH_TRI_SINGLE_SIDED`, the closest-hit tie rule of
+//! `raytrace::BACK_FACE_TIE`).
 //!
 //! Precision: world space (the scene as imported, re-centred on its bounds), f32, as the
 //! CPU tracer; see the shader's header for the traversal's robustness argument.
@@ -46,6 +47,9 @@ pub const BVH_MISS: u32 = u32::MAX;
 pub const QUERY_OVERFLOW: u32 = u32::MAX - 1;
 /// Per-triangle flag: candidate hits must pass the alpha test (issue 19; unused today).
 pub const BVH_TRI_ALPHA_TEST: u32 = 1;
+/// `GpuTri::flags`: the triangle is single-sided, so a coincident front face wins a
+/// closest-hit tie against its back (`raytrace::BACK_FACE_TIE`).
+pub const BVH_TRI_SINGLE_SIDED: u32 = 2;
 
 /// One BVH2 node as the shader reads it (`BvhNode`).
 #[repr(C)]
@@ -149,7 +153,11 @@ impl BvhData {
                     p0: t.p[0].to_array(),
                     id,
                     e1: (t.p[1] - t.p[0]).to_array(),
-                    flags: 0,
+                    flags: if scene.material(t).double_sided {
+                        0
+                    } else {
+                        BVH_TRI_SINGLE_SIDED
+                    },
                     e2: (t.p[2] - t.p[0]).to_array(),
                     pad: 0,
                 }

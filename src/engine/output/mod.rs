@@ -41,6 +41,16 @@ pub enum OutputLayer {
 }
 
 impl OutputLayer {
+    /// Every layer, in the order the docs list them.
+    pub const ALL: &'static [OutputLayer] = &[
+        OutputLayer::Validity,
+        OutputLayer::Direct,
+        OutputLayer::Indirect,
+        OutputLayer::Sh,
+        OutputLayer::Ao,
+        OutputLayer::Debug,
+    ];
+
     pub fn parse(s: &str) -> Result<OutputLayer, String> {
         match s {
             "validity" => Ok(OutputLayer::Validity),
@@ -48,9 +58,22 @@ impl OutputLayer {
             "indirect" => Ok(OutputLayer::Indirect),
             "sh" => Ok(OutputLayer::Sh),
             "ao" => Ok(OutputLayer::Ao),
+            "debug" => Ok(OutputLayer::Debug),
             other => Err(format!(
-                "unknown output layer {other:?}; available: validity, direct, indirect, sh, ao"
+                "unknown output layer {other:?}; available: validity, direct, indirect, sh, ao, debug"
             )),
+        }
+    }
+
+    /// The name a job gives it (the inverse of [`OutputLayer::parse`]).
+    pub fn name(self) -> &'static str {
+        match self {
+            OutputLayer::Validity => "validity",
+            OutputLayer::Direct => "direct",
+            OutputLayer::Indirect => "indirect",
+            OutputLayer::Sh => "sh",
+            OutputLayer::Ao => "ao",
+            OutputLayer::Debug => "debug",
         }
     }
 }
@@ -153,6 +176,19 @@ pub fn lightmap_channels(
     if layers.contains(&OutputLayer::Validity) {
         let ones = vec![1.0f32; atlas.texels.len()];
         channels.push(("validity.Y".into(), post::scatter_scalar(atlas, &ones)));
+    }
+    // The NaN guard (DESIGN §5) once more on what is written: after denoising, dilation
+    // and seam stitching, every channel of every layer.
+    for (name, data) in &channels {
+        if let Some((p, v)) = data.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+            let p = p as u32;
+            return Err(format!(
+                "the {name} channel holds the non-finite value {v} at pixel ({}, {}) after denoising and seam \
+                 stitching; the lightmap was not written",
+                p % atlas.width,
+                p / atlas.width
+            ));
+        }
     }
     Ok(channels)
 }

@@ -56,6 +56,9 @@ pub struct ImportReport {
     pub materials: usize,
     pub textures: usize,
     pub lights: usize,
+    /// How many of `lights` are directional (the rest are point or spot).
+    #[serde(default)]
+    pub directional_lights: usize,
     pub emissive_triangles: usize,
     /// Dropped because their world-space area is zero (or too small to have a normal).
     pub degenerate_triangles: usize,
@@ -236,6 +239,10 @@ pub fn import_slice_limited(
     report.materials = gltf.materials().len();
     report.textures = textures.len();
     report.lights = lights.len();
+    report.directional_lights = lights
+        .iter()
+        .filter(|l| matches!(l.light.kind, LightKind::Directional))
+        .count();
     report.emissive_triangles = tris
         .iter()
         .filter(|t| {

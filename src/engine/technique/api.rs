@@ -22,6 +22,7 @@ use crate::engine::accumulate::Snapshot;
 use crate::engine::atlas::Atlas;
 pub use crate::engine::error::{EngineError, gpu_error};
 use crate::engine::gpu::shaders::PassShader;
+use crate::engine::output::OutputLayer;
 use crate::engine::plan::{Plan, SceneFeatures};
 use crate::engine::scene::{Lighting, Scene};
 
@@ -81,4 +82,71 @@ pub struct TechniqueEntry {
     pub prepare: fn(BakeInputs, &Value) -> Result<Box<dyn Technique>, EngineError>,
     /// Every WGSL pass it compiles (validated without a device, see the tests below).
     pub shaders: &'static [PassShader],
+    /// The optional output layers it writes; `validity` and `debug` come from the texel
+    /// set and are there for every technique. A job asking for another layer is refused
+    /// before baking (`table::check_request`).
+    pub layers: &'static [OutputLayer],
+    /// The light it transports; a job whose scene or lighting has other light is refused
+    /// before baking rather than baked without it (`table::check_lights`).
+    pub lights: &'static [LightSource],
+    /// Parses and checks a parameter object without preparing anything, so a bad one is
+    /// caught when the job is submitted, not when it runs.
+    pub check_params: fn(&Value) -> Result<(), EngineError>,
+}
+
+/// A kind of light, as the technique table's `lights` column names it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LightSource {
+    /// The job's sky (`lighting.sky`).
+    Sky,
+    /// The job's sun (`lighting.sun`).
+    Sun,
+    /// The scene's directional `KHR_lights_punctual` lights.
+    DirectionalLights,
+    /// The scene's point and spot `KHR_lights_punctual` lights.
+    PointSpotLights,
+    /// The scene's emissive triangles.
+    Emitters,
+}
+
+impl LightSource {
+    pub const ALL: &'static [LightSource] = &[
+        LightSource::Sky,
+        LightSource::Sun,
+        LightSource::DirectionalLights,
+        LightSource::PointSpotLights,
+        LightSource::Emitters,
+    ];
+
+    /// How much of this light a scene and job have (0: none).
+    pub fn count(self, f: &SceneFeatures) -> usize {
+        match self {
+            LightSource::Sky => usize::from(f.sky),
+            LightSource::Sun => usize::from(f.sun),
+            LightSource::DirectionalLights => f.directional_lights,
+            LightSource::PointSpotLights => f.punctual_lights.saturating_sub(f.directional_lights),
+            LightSource::Emitters => f.emissive_triangles,
+        }
+    }
+
+    /// What the light is called in an error, with `n` of it.
+    pub fn describe(self, n: usize) -> String {
+        match self {
+            LightSource::Sky => "the job's sky".into(),
+            LightSource::Sun => "the job's sun".into(),
+            LightSource::DirectionalLights => format!("the scene's {n} directional light(s)"),
+            LightSource::PointSpotLights => format!("the scene's {n} point/spot light(s)"),
+            LightSource::Emitters => format!("the scene's {n} emissive triangle(s)"),
+        }
+    }
+
+    /// The job field that brings this light (scene lights come with the scene).
+    pub fn field(self) -> &'static str {
+        match self {
+            LightSource::Sky => "lighting.sky",
+            LightSource::Sun => "lighting.sun",
+            _ => "technique",
+        }
+    }
 }

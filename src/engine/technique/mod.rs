@@ -21,4 +21,4 @@ pub mod sdf;
 pub mod vpl;
 
 pub use api::{BakeInputs, EngineError, Technique, gpu_error, parse_params};
-pub use table::{TABLE, TECHNIQUES, TechniqueEntry, create, entry, plan};
+pub use table::{LightSource, TABLE, TECHNIQUES, TechniqueEntry, check_lights, check_request, create, entry, plan};

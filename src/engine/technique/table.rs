@@ -1,15 +1,18 @@
 //! The technique table: the one place a technique is registered. Each technique's folder
 //! exports a [`TechniqueEntry`] (`ENTRY`: id, summary, plan, prepare, its shaders); this
 //! table lists them, and the CLI, the service, the bench and the docs read it
-//! ([`TECHNIQUES`], [`create`], [`plan`], [`entry`]). Adding a technique touches its folder
+//! ([`TECHNIQUES`], [`create`], [`plan`], [`entry`]), and a job is checked against the row
+//! before it bakes ([`check_request`]: parameters and output layers; [`check_lights`]:
+//! the light it transports). Adding a technique touches its folder
 //! and one line here (docs/architecture.md walks through it).
 
 use serde_json::Value;
 
 use super::api::BakeInputs;
-pub use super::api::TechniqueEntry;
 use super::api::{EngineError, Technique};
+pub use super::api::{LightSource, TechniqueEntry};
 use super::{hemicube, obscurance, path, sdb, sdf, vpl};
+use crate::engine::output::OutputLayer;
 use crate::engine::plan::{Plan, SceneFeatures};
 
 /// Every technique, in the order the CLI and docs list them.
@@ -51,6 +54,53 @@ pub fn create(id: &str, inputs: BakeInputs, params: &Value) -> Result<Box<dyn Te
 /// The plan technique `id` makes for a scene with `features` (see `engine::plan`).
 pub fn plan(id: &str, features: &SceneFeatures) -> Result<Plan, EngineError> {
     Ok((entry(id)?.plan)(features))
+}
+
+/// The techniques whose table row lets `ok` through, for "use …" in an error.
+fn which(ok: impl Fn(&TechniqueEntry) -> bool) -> String {
+    let ids: Vec<&str> = TABLE.iter().filter(|e| ok(e)).map(|e| e.id).collect();
+    if ids.is_empty() { "none".into() } else { ids.join(", ") }
+}
+
+/// What a job asks of technique `id` that needs no scene: its parameters and its output
+/// layers, against the table. Run at submit (service) and before the bake (CLI, engine);
+/// each error starts with the field it is about.
+pub fn check_request(id: &str, params: &Value, outputs: &[OutputLayer]) -> Result<(), EngineError> {
+    let e = entry(id)?;
+    if !(params.is_null() || params.is_object()) {
+        return Err(EngineError::BadInput("params must be a JSON object".into()));
+    }
+    (e.check_params)(params)?;
+    for (i, layer) in outputs.iter().enumerate() {
+        let always = matches!(layer, OutputLayer::Validity | OutputLayer::Debug);
+        if !always && !e.layers.contains(layer) {
+            return Err(EngineError::BadInput(format!(
+                "outputs[{i}]: {id} cannot write the {:?} layer; techniques that can: {}",
+                layer.name(),
+                which(|t| t.layers.contains(layer))
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The light of a scene and job (`features`) against technique `id`'s `lights`: light it
+/// does not transport is refused before baking, naming the light and the techniques that
+/// do, instead of being dropped from the lightmap.
+pub fn check_lights(id: &str, features: &SceneFeatures) -> Result<(), EngineError> {
+    let e = entry(id)?;
+    for light in LightSource::ALL {
+        let n = light.count(features);
+        if n > 0 && !e.lights.contains(light) {
+            return Err(EngineError::BadInput(format!(
+                "{}: {id} does not bake {}; techniques that do: {}",
+                light.field(),
+                light.describe(n),
+                which(|t| t.lights.contains(light))
+            )));
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

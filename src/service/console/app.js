@@ -177,7 +177,9 @@ function techniqueChanged() {
   const t = state.techniques.techniques.find(x => x.id === $('f-technique').value);
   if (!t) return;
   const left = t.left_out.map(i => `${i.name} (${i.why})`);
-  $('technique-note').textContent = (left.length ? 'Cannot do: ' + left.join('; ') + '. ' : 'Handles every light and material kind. ') + 'Error estimate: ' + t.error_estimate + '.';
+  const lights = t.lights.map(l => l.replaceAll('_', ' ')).join(', ');
+  $('technique-note').textContent = t.summary + '. Bakes: ' + lights + '; writes: ' + t.outputs.join(', ') + ' (a job asking for other light or layers is refused). ' +
+    (left.length ? 'Leaves out: ' + left.join('; ') + '. ' : '') + 'Error estimate: ' + t.error_estimate + '.';
   const box = $('f-params');
   box.innerHTML = '';
   for (const [k, v] of Object.entries(t.params)) {

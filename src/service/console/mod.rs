@@ -57,6 +57,15 @@ pub fn page() -> &'static str {
 #[derive(Clone, Debug, Serialize, ToSchema)]
 pub struct TechniqueInfo {
     pub id: String,
+    /// The technique table's one-line description.
+    pub summary: String,
+    /// The output layers it can write (the technique table's row); a job asking for
+    /// another is refused with 422.
+    pub outputs: Vec<String>,
+    /// The light it transports (`sky`, `sun`, `directional_lights`, `point_spot_lights`,
+    /// `emitters`); a job with other light is refused with 422.
+    #[schema(value_type = Vec<String>)]
+    pub lights: Vec<technique::LightSource>,
     /// Every parameter with its default (the technique's parameter struct, serialised).
     #[schema(value_type = Object)]
     pub params: Value,
@@ -117,17 +126,9 @@ fn everything() -> SceneFeatures {
     }
 }
 
-/// The output layer names, as the engine's parser lists them in its error message (the
-/// engine has no list of them yet: this reads its one list rather than typing another).
+/// The output layer names a job may give.
 pub fn output_layers() -> Vec<String> {
-    let msg = OutputLayer::parse("").err().unwrap_or_default();
-    msg.rsplit("available: ")
-        .next()
-        .unwrap_or("")
-        .split(',')
-        .map(|s| s.trim().to_string())
-        .filter(|s| !s.is_empty() && OutputLayer::parse(s).is_ok())
-        .collect()
+    OutputLayer::ALL.iter().map(|l| l.name().to_string()).collect()
 }
 
 /// The catalogue the console's bake form is built from.
@@ -137,8 +138,19 @@ pub fn techniques(limits: &Limits) -> TechniqueList {
         .iter()
         .map(|id| {
             let plan = technique::plan(id, &features).unwrap_or_default();
+            let row = technique::entry(id).ok();
+            let outputs = OutputLayer::ALL
+                .iter()
+                .filter(|l| {
+                    matches!(l, OutputLayer::Validity | OutputLayer::Debug) || row.is_some_and(|r| r.layers.contains(l))
+                })
+                .map(|l| l.name().to_string())
+                .collect();
             TechniqueInfo {
                 id: id.to_string(),
+                summary: row.map_or("", |r| r.summary).to_string(),
+                outputs,
+                lights: row.map_or(&[][..], |r| r.lights).to_vec(),
                 params: default_params(id),
                 passes: plan.passes,
                 left_out: plan.left_out,
@@ -234,7 +246,14 @@ mod tests {
                 .iter()
                 .all(|t| t.params.is_object() && !t.passes.is_empty())
         );
-        assert_eq!(list.outputs, ["validity", "direct", "indirect", "sh", "ao"]);
+        assert_eq!(list.outputs, ["validity", "direct", "indirect", "sh", "ao", "debug"]);
+        // The table's rows: only path keeps directional moments, only sdf and obscurance
+        // write ao, and sdf transports sky light only.
+        let by_id = |id: &str| list.techniques.iter().find(|t| t.id == id).unwrap();
+        assert_eq!(by_id("path").outputs, ["validity", "direct", "indirect", "sh", "debug"]);
+        assert_eq!(by_id("sdf").outputs, ["validity", "direct", "indirect", "ao", "debug"]);
+        assert_eq!(by_id("sdf").lights, [technique::LightSource::Sky]);
+        assert_eq!(by_id("path").lights, technique::LightSource::ALL);
     }
 
     #[test]

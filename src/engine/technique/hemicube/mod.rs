@@ -104,7 +104,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::gpu::frame::SceneFrame;
@@ -113,6 +113,7 @@ use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, lay
 use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
+use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cone_sample, cosine_sample};
 use crate::engine::rng::Rng;
@@ -936,6 +937,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     plan,
     prepare: |inputs, params| Ok(Box::new(Hemicube::prepare(inputs, params)?)),
     shaders: shaders::ALL,
+    layers: &[OutputLayer::Direct, OutputLayer::Indirect],
+    lights: LightSource::ALL,
+    check_params: |p| parse_params::<HemicubeParams>("hemicube", p)?.validate(),
 };
 
 /// What `hemicube` runs for a scene and job, and what it leaves out (DESIGN §6).

@@ -119,7 +119,7 @@ mod update;
 
 pub use update::{ObscuranceState, UpdateReach, UpdateReport};
 
-use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, sample_cone};
 use crate::engine::gpu::frame::SceneFrame;
@@ -130,6 +130,7 @@ use crate::engine::gpu::view::{
     DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view,
 };
 use crate::engine::gpu::{self, GpuContext, GpuError};
+use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::scene::Lighting;
 
@@ -419,6 +420,14 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     plan,
     prepare: |inputs, params| Ok(Box::new(Obscurance::prepare(inputs, params)?)),
     shaders: shaders::ALL,
+    layers: &[OutputLayer::Direct, OutputLayer::Indirect, OutputLayer::Ao],
+    lights: &[
+        LightSource::Sky,
+        LightSource::Sun,
+        LightSource::DirectionalLights,
+        LightSource::Emitters,
+    ],
+    check_params: |p| ObscuranceParams::from_json(p).map(|_| ()),
 };
 
 /// What `obscurance` runs for a scene and job, and what it leaves out (DESIGN section 6).

@@ -52,8 +52,9 @@ use serde_json::Value;
 
 mod gpu;
 
-use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, parse_params};
 use crate::engine::accumulate::{HalfAccumulator, LUMINANCE, Snapshot};
+use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
@@ -126,6 +127,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     plan,
     prepare: |inputs, params| Ok(Box::new(PathTracer::prepare(inputs, params)?)),
     shaders: shaders::ALL,
+    layers: &[OutputLayer::Direct, OutputLayer::Indirect, OutputLayer::Sh],
+    lights: LightSource::ALL,
+    check_params: |p| parse_params::<PathParams>("path", p)?.validate(),
 };
 
 /// The path tracer's plan: one CPU pass, and light sampling only for the kinds of light

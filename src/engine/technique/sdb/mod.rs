@@ -109,7 +109,7 @@ mod lights;
 
 pub use lights::{ambient_mode, sdb_input};
 
-use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::directions::sample_cone;
 pub use crate::engine::gpu::directions::{
@@ -125,6 +125,7 @@ use crate::engine::gpu::view::{
     TRI_TEXTURED_EMISSION, fill_map, make_view,
 };
 use crate::engine::gpu::{self, GpuContext, GpuError};
+use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 
 // ---------------------------------------------------------------------------------------
@@ -1366,6 +1367,13 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     plan,
     prepare: |inputs, params| Ok(Box::new(Sdb::prepare(inputs, params)?)),
     shaders: shaders::ALL,
+    layers: &[OutputLayer::Direct, OutputLayer::Indirect],
+    lights: LightSource::ALL,
+    check_params: |p| {
+        parse_params::<SdbParams>("sdb", p)?
+            .validate()
+            .map_err(|e| EngineError::BadInput(e.to_string()))
+    },
 };
 
 /// What `sdb` runs for a scene and job, and what it leaves out (DESIGN section 6).

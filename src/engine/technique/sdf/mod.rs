@@ -93,11 +93,12 @@ use serde::{Deserialize, Serialize};
 
 mod calibrate;
 
-use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::{self, GpuContext, GpuError};
+use crate::engine::output::OutputLayer;
 use crate::engine::plan::{Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cosine_sample};
 use crate::engine::rng::Rng;
@@ -1056,6 +1057,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     plan,
     prepare: |inputs, params| Ok(Box::new(Sdf::prepare(inputs, params)?)),
     shaders: shaders::ALL,
+    layers: &[OutputLayer::Direct, OutputLayer::Indirect, OutputLayer::Ao],
+    lights: &[LightSource::Sky],
+    check_params: |p| parse_params::<SdfParams>("sdf", p)?.validate(),
 };
 
 /// What `sdf` runs for a scene and job, and what it leaves out (DESIGN section 6).

@@ -96,7 +96,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::api::{BakeInputs, EngineError, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
@@ -108,6 +108,7 @@ use crate::engine::gpu::shadow::{
 };
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
+use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, basis, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
@@ -975,6 +976,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     plan,
     prepare: |inputs, params| Ok(Box::new(Vpl::prepare(inputs, params)?)),
     shaders: shaders::ALL,
+    layers: &[OutputLayer::Direct, OutputLayer::Indirect],
+    lights: LightSource::ALL,
+    check_params: |p| parse_params::<VplParams>("vpl", p)?.validate(),
 };
 
 /// What `vpl` runs for a scene and job, and what it leaves out (DESIGN section 6).
