@@ -24,19 +24,23 @@ use serde_json::{Value, json};
 /// A technique under test: its parameters, the relative bias it is allowed on top of its
 /// noise (0 for an unbiased technique), and the cases it is known to fail, each documented
 /// with its measured value in `docs/stability.md`. A known failure still runs and still
-/// asserts what must hold whatever the technique (finite values, the light's ordering);
-/// only the comparison with the closed form is reported instead of asserted.
+/// asserts what must hold whatever the technique (finite values, the light's ordering),
+/// and its mean relative deviation from the closed form must stay within the bound the
+/// row states for it (measured, with a margin): a regression fails, an open failure
+/// stays visible.
 #[derive(Clone)]
 pub struct Row {
     pub technique: &'static str,
     pub params: Value,
     pub bias: f64,
-    pub open_failures: &'static [&'static str],
+    /// (case, largest |mean relative deviation| allowed).
+    pub open_failures: &'static [(&'static str, f64)],
 }
 
 impl Row {
-    fn fails(&self, case: &str) -> bool {
-        self.open_failures.contains(&case)
+    /// The bound of an open failure, or None when the case must pass.
+    fn fails(&self, case: &str) -> Option<f64> {
+        self.open_failures.iter().find(|(c, _)| *c == case).map(|(_, b)| *b)
     }
 }
 
@@ -107,14 +111,18 @@ pub fn stiff_closed_box(row: &Row, rho: f32) {
     }
     let (atlas, est) = bake(scene, 16, Lighting::default(), row.technique, row.params.clone(), 8);
     assert!(est.total.iter().all(|v| v.is_finite()), "non-finite texel");
-    if row.fails(STIFF_BOX) {
-        // Whatever the technique: finite and never negative; the comparison with the
-        // closed form (1) is reported, not asserted.
+    if let Some(bound) = row.fails(STIFF_BOX) {
+        // Whatever the technique: finite and never negative; the deviation from the
+        // closed form (1) within the row's stated bound.
         assert!(est.total.iter().all(|v| v.min_element() >= 0.0), "negative texel");
         let (dev, se) = common::mean_deviation(&atlas, &est, |_| true, |_| Vec3::ONE);
         eprintln!(
             "{} closed box rho={rho} (open failure): mean relative deviation {dev:+.4}, standard error {se:.4}",
             row.technique
+        );
+        assert!(
+            dev.abs() <= bound,
+            "closed box rho={rho}: deviation {dev:+.4} beyond the stated {bound}"
         );
         return;
     }
@@ -157,9 +165,9 @@ pub fn tiny_bright_emitter(row: &Row) {
         // The lamp's own square hides that much sky.
         Vec3::splat((1e6 * f + sky as f64 * (1.0 - f)) as f32)
     };
-    if row.fails(TINY_EMITTER) {
+    if let Some(bound) = row.fails(TINY_EMITTER) {
         // Whatever the technique: finite (checked above) and never below the sky's own
-        // light; the comparison with the closed form is reported, not asserted.
+        // light; the deviation from the closed form within the row's stated bound.
         let ground: Vec<f64> = atlas
             .texels
             .iter()
@@ -173,6 +181,10 @@ pub fn tiny_bright_emitter(row: &Row) {
         eprintln!(
             "{} tiny bright emitter (open failure): mean relative deviation {dev:+.3}, brightest ground texel {peak:.1} (exact 31.8)",
             row.technique
+        );
+        assert!(
+            dev.abs() <= bound,
+            "tiny emitter: deviation {dev:+.4} beyond the stated {bound}"
         );
         return;
     }
@@ -407,10 +419,124 @@ pub fn no_light_at_all(row: &Row) {
     assert!(plan.left_out.iter().any(|p| p.name == "light"), "{plan:?}");
 }
 
+// Measured at 32 steps, resolution 32, lavapipe (deviation of the lit / dark room mean
+// from the 1024-sample `path` reference; docs/stability.md): path −0.1 % / −1.0 %, path on
+// the GPU +0.8 % / +1.5 %, vpl −1.3 % / −2.9 %, obscurance −2.7 % / +4.3 %, sdf −43 % / −40 %
+// (sky visibility without interreflection), hemicube +4.6 % / +46 % (too bright in the
+// stiff room; +36 % with a 1 cm thick wall instead of coincident faces), sdb −48 % / −79 %
+// (open failure, not understood yet: issue 21). Each row's `rooms` bound is above its
+// measured value, so a regression fails and the open failures stay visible.
+
+/// Two rooms 2 m × 2 m × 2 m side by side, connected by a doorway in the wall they share
+/// (two single-sided faces back to back), one of albedo 0.3 open to an upper sky of
+/// radiance 1 on its far side, one of albedo 0.95 lit only through the doorway (issue
+/// 21): the dark room's light has bounced many times. The mean of each room against the
+/// `path` reference of the same scene: returns the relative deviations (lit, dark).
+pub fn connected_rooms(row: &Row) -> (f64, f64) {
+    const RESOLUTION: u32 = 32;
+    let (lit, dark) = room_means(row.technique, row.params.clone(), 32);
+    let (ref_lit, ref_dark) = reference_rooms();
+    let dev = |got: (f64, f64), want: (f64, f64)| (got.0 - want.0) / want.0;
+    let (dl, dd) = (dev(lit, ref_lit), dev(dark, ref_dark));
+    eprintln!(
+        "{} connected rooms: lit room {:.4} (path {:.4} ± {:.4}, {dl:+.4}), dark room {:.4} (path {:.4} ± {:.4}, {dd:+.4}) at {RESOLUTION}²",
+        row.technique, lit.0, ref_lit.0, ref_lit.1, dark.0, ref_dark.0, ref_dark.1
+    );
+    assert!(
+        lit.0.is_finite() && dark.0.is_finite() && dark.0 > 0.0,
+        "the dark room must receive light"
+    );
+    (dl, dd)
+}
+
+/// The connected rooms' scene (see [`connected_rooms`]).
+fn connected_rooms_scene() -> Scene {
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("lit room", [0.3; 3]));
+    let white = b.material(MaterialDesc::diffuse("dark room", [0.95; 3]));
+    // A rectangle from `corner` along `u` and `v`, facing `normal` (single-sided).
+    let mut rect = |name: &str, corner: Vec3, u: Vec3, v: Vec3, normal: Vec3, m: usize| {
+        if u.cross(v).dot(normal) > 0.0 {
+            b.quad(name, corner, u, v, m);
+        } else {
+            b.quad(name, corner, v, u, m);
+        }
+    };
+    for (room, x0, m) in [("lit", -2.0f32, grey), ("dark", 0.0, white)] {
+        let c = Vec3::new(x0, -1.0, -1.0);
+        rect(&format!("{room} floor"), c, Vec3::X * 2.0, Vec3::Z * 2.0, Vec3::Y, m);
+        rect(
+            &format!("{room} ceiling"),
+            c + Vec3::Y * 2.0,
+            Vec3::X * 2.0,
+            Vec3::Z * 2.0,
+            Vec3::NEG_Y,
+            m,
+        );
+        rect(&format!("{room} back"), c, Vec3::X * 2.0, Vec3::Y * 2.0, Vec3::Z, m);
+        rect(
+            &format!("{room} front"),
+            c + Vec3::Z * 2.0,
+            Vec3::X * 2.0,
+            Vec3::Y * 2.0,
+            Vec3::NEG_Z,
+            m,
+        );
+    }
+    // The dark room's far wall; the lit room's far side (x = -2) is open to the sky.
+    rect(
+        "dark end",
+        Vec3::new(2.0, -1.0, -1.0),
+        Vec3::Y * 2.0,
+        Vec3::Z * 2.0,
+        Vec3::NEG_X,
+        white,
+    );
+    // The shared wall at x = 0 around a doorway 0.8 m wide and 1.6 m high, one face per room.
+    let pieces = [
+        (Vec3::new(0.0, -1.0, -1.0), Vec3::Y * 2.0, Vec3::Z * 0.6),
+        (Vec3::new(0.0, -1.0, 0.4), Vec3::Y * 2.0, Vec3::Z * 0.6),
+        (Vec3::new(0.0, 0.6, -0.4), Vec3::Y * 0.4, Vec3::Z * 0.8),
+    ];
+    for (k, (corner, u, v)) in pieces.into_iter().enumerate() {
+        rect(&format!("wall {k} lit side"), corner, u, v, Vec3::NEG_X, grey);
+        rect(&format!("wall {k} dark side"), corner, u, v, Vec3::X, white);
+    }
+    import(&b)
+}
+
+/// Each room's mean texel luminance and its standard error, baked by `technique`.
+fn room_means(technique: &str, params: Value, steps: u64) -> ((f64, f64), (f64, f64)) {
+    let scene = connected_rooms_scene();
+    let offset = scene.origin_offset.as_vec3();
+    let (atlas, est) = bake(scene, 32, upper_sky(1.0), technique, params, steps);
+    let se = est.texel_error.clone().unwrap_or_else(|| vec![0.0; est.total.len()]);
+    let mean = |dark: bool| {
+        let (mut sum, mut var, mut n) = (0.0f64, 0.0f64, 0usize);
+        for (k, t) in atlas.texels.iter().enumerate() {
+            // A texel belongs to the room its surface faces into.
+            let p = t.position + offset + t.geo_normal * 1e-3;
+            if (p.x > 0.0) == dark {
+                sum += lum(est.total[k]);
+                var += (se[k] as f64).powi(2);
+                n += 1;
+            }
+        }
+        (sum / n as f64, var.sqrt() / n as f64)
+    };
+    (mean(false), mean(true))
+}
+
+/// The `path` reference of the connected rooms, baked once per test process.
+fn reference_rooms() -> ((f64, f64), (f64, f64)) {
+    static REFERENCE: std::sync::OnceLock<((f64, f64), (f64, f64))> = std::sync::OnceLock::new();
+    *REFERENCE.get_or_init(|| room_means("path", json!({"samples_per_step": 32, "device": "cpu"}), 32))
+}
+
 /// One test per case for technique row `$row` in module `$name`; `$leak` is the largest
 /// thin-wall leak the technique is allowed.
 macro_rules! stability_suite {
-    ($name:ident, $row:expr, leak <= $leak:expr) => {
+    ($name:ident, $row:expr, leak <= $leak:expr, rooms <= $rooms:expr) => {
         mod $name {
             use super::*;
             fn row() -> Row {
@@ -449,6 +575,15 @@ macro_rules! stability_suite {
             fn no_light() {
                 no_light_at_all(&row());
             }
+            #[test]
+            fn connected_rooms_against_path() {
+                let (lit, dark) = connected_rooms(&row());
+                assert!(
+                    lit.abs() <= $rooms && dark.abs() <= $rooms,
+                    "room means off the path reference by {lit:+.4} (lit) and {dark:+.4} (dark), bound {}",
+                    $rooms
+                );
+            }
         }
     };
 }
@@ -463,7 +598,8 @@ stability_suite!(
         bias: 0.0,
         open_failures: &[],
     },
-    leak <= 1e-4
+    leak <= 1e-4,
+    rooms <= 0.05
 );
 
 // `path` on the GPU (technique::path::gpu, a megakernel over the GPU BVH): the CPU's
@@ -478,9 +614,10 @@ stability_suite!(
         technique: "path",
         params: json!({"samples_per_step": 4, "device": "gpu"}),
         bias: 0.0,
-        open_failures: &[STIFF_BOX],
+        open_failures: &[(STIFF_BOX, 0.85)],
     },
-    leak <= 1e-4
+    leak <= 1e-4,
+    rooms <= 0.05
 );
 
 // `sdb` (average mode, 64 directions a step, default 5 x 5 neighbourhood): biased by
@@ -494,7 +631,8 @@ stability_suite!(
         bias: 0.02,
         open_failures: &[],
     },
-    leak <= 1e-2
+    leak <= 1e-2,
+    rooms <= 0.85
 );
 
 // vpl: unbiased but for the clamp of its VPLs' 1/d^2 (light lost within 0.02 of the scene
@@ -509,9 +647,10 @@ stability_suite!(
         technique: "vpl",
         params: json!({"vpls_per_step": 256, "vpl_map_size": 32}),
         bias: 0.02,
-        open_failures: &[STIFF_BOX],
+        open_failures: &[(STIFF_BOX, 0.06)],
     },
-    leak <= 1e-3
+    leak <= 1e-3,
+    rooms <= 0.06
 );
 
 // Obscurance is not a radiosity solver: one scene-wide ambient term I_A (seed Eq. 5)
@@ -527,9 +666,10 @@ stability_suite!(
         technique: "obscurance",
         params: json!({"map_size": 256}),
         bias: 0.02,
-        open_failures: &[STIFF_BOX, TINY_EMITTER],
+        open_failures: &[(STIFF_BOX, 0.12), (TINY_EMITTER, 1.0)],
     },
-    leak <= 0.35
+    leak <= 0.35,
+    rooms <= 0.08
 );
 
 // `sdf` bakes sky light only: its technique-table row has no emitters, so every case
@@ -545,7 +685,8 @@ stability_suite!(
         bias: 0.01,
         open_failures: &[],
     },
-    leak <= 1e-2
+    leak <= 1e-2,
+    rooms <= 0.5
 );
 
 // hemicube: stochastic iteration, one bounce deeper per step, so the stiff closed boxes
@@ -559,7 +700,8 @@ stability_suite!(
         technique: "hemicube",
         params: json!({"shooters_per_step": 16}),
         bias: 0.05,
-        open_failures: &[STIFF_BOX],
+        open_failures: &[(STIFF_BOX, 1.0)],
     },
-    leak <= 1e-2
+    leak <= 1e-2,
+    rooms <= 0.55
 );
