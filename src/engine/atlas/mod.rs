@@ -17,7 +17,12 @@
 //! The sample point is the surface point pushed off along the geometric normal by
 //! [`Atlas::surface_offset`], a fixed fraction (2e-5) of the scene's diagonal: relative,
 //! so a scene scaled by 1e-3 or 1e4 bakes the same lightmap, and small enough for walls
-//! much thinner than a texel (2 mm in a 100 m scene).
+//! much thinner than a texel (2 mm in a 100 m scene). Before that, the surface point is
+//! moved a tenth of that offset toward its triangle's centroid: a texel centre on a
+//! chart's border edge (half-texel chart margins put whole rows there) is on the crease
+//! with the next mesh, and a ray from there toward that mesh starts in its plane, where
+//! a hit at t = 0 does not count, so it passed behind the wall and read the sky (issue
+//! 21: in the connected-rooms case `path` read +48 % / +50 % through those texels).
 //!
 //! Limits: one sample per texel centre (no supersampling of texels half on a chart); a
 //! texel whose sample point lies inside closed geometry is still valid here (techniques
@@ -32,6 +37,10 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::engine::scene::Scene;
+
+/// How far a sample point on a triangle's edge is moved into the triangle, as a fraction
+/// of the surface offset (module doc).
+const EDGE_INSET: f32 = 0.1;
 
 /// Marks a pixel that holds no valid texel in [`Atlas::pixel_texel`].
 pub const NO_TEXEL: u32 = u32::MAX;
@@ -212,7 +221,15 @@ impl Atlas {
             .map(|(pix, c)| {
                 let t = &scene.triangles[c.triangle as usize];
                 let b = c.bary;
-                let surface = t.p[0] * b.x + t.p[1] * b.y + t.p[2] * b.z;
+                let mut surface = t.p[0] * b.x + t.p[1] * b.y + t.p[2] * b.z;
+                // A centre on or next to an edge (charts laid out with half-texel margins
+                // put whole rows exactly on one) puts the sample point on the crease with
+                // the next mesh, and a ray from it toward that mesh starts in its plane,
+                // where t = 0 is no hit: the ray passes behind it (module doc). Every
+                // sample point is moved a fixed small distance toward its triangle's
+                // centroid, so none lies on an edge.
+                let centroid = (t.p[0] + t.p[1] + t.p[2]) / 3.0;
+                surface += (centroid - surface).normalize_or_zero() * (EDGE_INSET * offset);
                 let geo = t.geometric_normal();
                 let mut n = (t.n[0] * b.x + t.n[1] * b.y + t.n[2] * b.z).normalize_or_zero();
                 // A shading normal on the far side of the surface is a broken export;
