@@ -318,3 +318,39 @@ fn device_auto_and_bad_device() {
         .expect("an unknown device is refused");
     assert!(err.is_bad_input() && err.to_string().contains("tpu"), "{err}");
 }
+
+/// The stiffest furnace, albedo 0.999 (paths of thousands of bounces): on a hardware
+/// adapter it reads 1 like the CPU; on lavapipe, whose llvmpipe ends an invocation's
+/// loops after 65535 iterations in all (about 1300 bounces of this kernel), the cut paths
+/// are detected and the bake is refused with that reason instead of reading dark (it read
+/// 0.73, 0.37 and 0.18 with 1, 2 and 4 samples a step before the check existed).
+#[test]
+fn gpu_paths_cut_by_the_adapters_loop_budget_are_refused() {
+    if !have_gpu() {
+        return;
+    }
+    let software = lightmapd::engine::gpu::shared(&lightmapd::engine::gpu::Requirements::default())
+        .unwrap()
+        .is_software();
+    let scene = import(&lightmapd::engine::scene::library::closed_box(0.999));
+    let baked = common::try_bake(
+        scene,
+        16,
+        Lighting::default(),
+        "path",
+        gpu(json!({"samples_per_step": 1})),
+        4,
+    );
+    match (software, baked) {
+        (true, Err(e)) => {
+            let msg = e.to_string();
+            assert!(msg.contains("cut short by the adapter's loop budget"), "{msg}");
+            assert!(msg.contains("\"device\": \"cpu\""), "{msg}");
+        }
+        (true, Ok((_, est))) => panic!("lavapipe cuts these paths; the bake must be refused: {:?}", est.error),
+        (false, Ok((atlas, est))) => {
+            assert_unbiased(&atlas, &est, |_| true, |_| Vec3::ONE, 0.0, "GPU closed box rho=0.999");
+        }
+        (false, Err(e)) => panic!("a hardware adapter has no loop budget: {e}"),
+    }
+}

@@ -109,7 +109,17 @@ pub fn stiff_closed_box(row: &Row, rho: f32) {
     if refused_for_emitters(row, &scene, Lighting::default()) {
         return;
     }
-    let (atlas, est) = bake(scene, 16, Lighting::default(), row.technique, row.params.clone(), 8);
+    let baked = common::try_bake(scene, 16, Lighting::default(), row.technique, row.params.clone(), 8);
+    let (atlas, est) = match baked {
+        Ok(b) => b,
+        // A bake the adapter cannot finish (llvmpipe's loop budget cuts `path`'s longest
+        // paths on the GPU) must be refused with that reason, never delivered dark.
+        Err(e) if row.fails(STIFF_BOX).is_some() && e.to_string().contains("loop budget") => {
+            eprintln!("{} closed box rho={rho} (open failure): refused: {e}", row.technique);
+            return;
+        }
+        Err(e) => panic!("{} closed box rho={rho}: {e}", row.technique),
+    };
     assert!(est.total.iter().all(|v| v.is_finite()), "non-finite texel");
     if let Some(bound) = row.fails(STIFF_BOX) {
         // Whatever the technique: finite and never negative; the deviation from the
@@ -603,11 +613,12 @@ stability_suite!(
 );
 
 // `path` on the GPU (technique::path::gpu, a megakernel over the GPU BVH): the CPU's
-// estimator with other random streams, so the CPU row's bounds. Open failure, a bug
-// found and not yet fixed (issue 20): the stiff closed boxes read low on lavapipe,
-// measured -30.4 % (rho 0.99) and -81.7 % (rho 0.999) with standard errors of 0.14 % and
-// 0.006 %, as if each bounce beyond the first hundred ended the path with probability
-// 0.45 %, while the furnace at rho 0.9 (tests/path_gpu.rs) agrees to 0.03 %.
+// estimator with other random streams, so the CPU row's bounds. Open failure on lavapipe
+// only: llvmpipe ends an invocation's loops after 65535 iterations in all, which cut the
+// stiff boxes' paths (measured -30.4 % at rho 0.99 and -81.7 % at 0.999 with 4 samples a
+// step; 0.73, 0.37, 0.18 at rho 0.999 with 1, 2, 4 samples: the budget, not the
+// estimator). The cut is now detected and the bake refused with that reason, which is
+// what the case asserts there; elsewhere the 0.85 bound holds it.
 stability_suite!(
     path_gpu,
     Row {

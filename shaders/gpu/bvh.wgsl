@@ -30,7 +30,10 @@
 // Stack: near child first, far child pushed with its entry distance, so the stack never
 // holds more than depth - 1 entries. The host refuses a tree deeper than BVH_STACK
 // (bvh.rs), so the stack cannot overflow; should it anyway, the push is dropped (never
-// out of bounds) and `overflow` is set on the result so a caller can report it.
+// out of bounds) and `overflow` is set on the result so a caller can report it. The same
+// flag is set when the traversal loop ends without reaching its own exit: llvmpipe
+// (lavapipe) ends every loop of an invocation once all its loops together have run
+// 65535 iterations, and a traversal cut that way would read as a miss.
 //
 // Alpha (issue 19): every triangle carries a flags word; BVH_TRI_ALPHA_TEST marks one
 // whose candidate hits must pass `bvh_alpha_accept`. Nothing sets the flag yet, and
@@ -140,6 +143,7 @@ fn bvh_closest(o: vec3<f32>, d: vec3<f32>, tmax: f32) -> BvhHit {
         return hit;
     }
     var idx = 0u;
+    var finished = false;
     loop {
         let n = bvh_nodes[idx];
         var next = BVH_MISS;
@@ -187,9 +191,13 @@ fn bvh_closest(o: vec3<f32>, d: vec3<f32>, tmax: f32) -> BvhHit {
             }
         }
         if next == BVH_MISS {
+            finished = true;
             break;
         }
         idx = next;
+    }
+    if !finished {
+        hit.overflow = true;  // the loop was ended from outside (header)
     }
     return hit;
 }

@@ -19,6 +19,12 @@
 // Bounds: a path ends at max_bounces vertices (<= 65536); steps are counted in 32 bits
 // here (4e9 steps); the accumulators are running means in f32 (blend 1/k of the k-th step
 // of a half), whose rounding is 1e-7 relative a step, far below any bake's noise.
+// llvmpipe (lavapipe) ends every loop of an invocation once all of them together have run
+// 65535 iterations (its `looplimiter`), about 1300 bounces here across a step's samples:
+// paths that long (albedo 0.99 and above in closed rooms) would be cut and read dark.
+// A path or sample loop ended from outside is detected (`cut`: no exit of its own taken,
+// or the traversal's `overflow`), marked in the accumulator's w, and the host refuses the
+// snapshot; hardware drivers have no such budget.
 
 struct PathUniform {
     counts: vec4<u32>,   // x: valid texels n, y: samples per step, z: max bounces, w: step index
@@ -382,6 +388,7 @@ struct PathSample {
     total: vec3<f32>,
     direct: vec3<f32>,
     m: Light,  // sum unused
+    cut: bool, // the path was ended from outside (the adapter's loop budget), not by its rules
 }
 
 // path::PathContext::radiance.
@@ -399,6 +406,7 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
     var first_nee = vec3<f32>(0.0);
     let tau = pu.f.x;
     let eps = pu.f.y;
+    var ended = false;
     loop {
         let nee = next_event(x, n, ng, rng);
         total += throughput * nee.sum;
@@ -412,6 +420,7 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
         let dir = cosine_sample(n, u1, u2);
         let cos_n = dot(dir, n);
         if dot(dir, ng) <= 0.0 || cos_n <= 0.0 {
+            ended = true;
             break;  // below the geometric surface: the surface itself blocks it
         }
         if bounce == 0u {
@@ -420,6 +429,9 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
         }
         let pdf_bsdf = cos_n * PATH_INV_PI;
         let hit = bvh_closest(x, dir, PATH_FAR);
+        if hit.overflow {
+            break;  // the traversal was cut: so is the path (`ended` stays false)
+        }
         if hit.slot == BVH_MISS {
             var l = sky_radiance(dir);
             if pu.sun.w > 0.0 && dot(dir, pu.sun_axis.xyz) >= pu.sun_axis.w {
@@ -429,6 +441,7 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
             if bounce == 0u {
                 direct += l;
             }
+            ended = true;
             break;
         }
         let slot = hit.slot;
@@ -437,6 +450,7 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
         let geo = tri_geo(slot);
         let front = dot(dir, geo) < 0.0;
         if !front && !mat_double_sided(m) {
+            ended = true;
             break;  // back of a single-sided surface: black and opaque
         }
         let p = tri_point(slot, inset(bary));
@@ -456,6 +470,7 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
         }
         bounce += 1u;
         if bounce >= pu.counts.z {
+            ended = true;
             break;
         }
         throughput *= albedo_at(slot, bary);
@@ -463,9 +478,11 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
         if peak < tau {
             // Below tau: survive with probability peak / tau, then carry on at tau.
             if peak <= 0.0 {
+                ended = true;
                 break;
             }
             if rng_next(rng) * tau >= peak {
+                ended = true;
                 break;
             }
             throughput *= tau / peak;
@@ -480,11 +497,11 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
     if have_first {
         moment_add(&moment, total - first_nee, first_dir);
     }
-    return PathSample(total, direct, moment);
+    return PathSample(total, direct, moment, !ended);
 }
 
 fn blend(old: vec4<f32>, v: vec3<f32>) -> vec4<f32> {
-    return vec4<f32>(old.xyz + (v - old.xyz) * pu.f.z, 0.0);
+    return vec4<f32>(old.xyz + (v - old.xyz) * pu.f.z, old.w);  // w: the cut mark, kept
 }
 
 @compute @workgroup_size(64)
@@ -502,9 +519,13 @@ fn trace(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     var m1 = vec3<f32>(0.0);
     var m2 = vec3<f32>(0.0);
     let spp = pu.counts.y;
+    var ran = 0u;
+    var cut = false;
     for (var s = 0u; s < spp; s++) {
         var rng = rng_for(i, s);
         let r = radiance(t.position.xyz, t.normal.xyz, t.geo_normal.xyz, &rng);
+        ran += 1u;
+        cut = cut || r.cut;
         total += r.total;
         direct += r.direct;
         m0 += r.m.m0;
@@ -514,6 +535,11 @@ fn trace(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     let k = 1.0 / f32(spp);
     let slot = pu.keys.z * n + i;
     acc_total[slot] = blend(acc_total[slot], total * k);
+    // A sample loop or a path ended from outside (llvmpipe's loop budget, see the header):
+    // marked in w, which the host checks at every snapshot rather than deliver it dark.
+    if cut || ran < spp {
+        acc_total[slot].w = 1.0;
+    }
     if (pu.keys.w & PATH_DIRECT) != 0u {
         acc_direct[slot] = blend(acc_direct[slot], direct * k);
     }

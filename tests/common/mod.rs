@@ -25,6 +25,18 @@ pub fn bake(
     params: serde_json::Value,
     steps: u64,
 ) -> (Arc<Atlas>, Estimate) {
+    try_bake(scene, resolution, lighting, technique, params, steps).expect("the bake")
+}
+
+/// [`bake`], returning the engine's error instead of panicking on it.
+pub fn try_bake(
+    scene: Scene,
+    resolution: u32,
+    lighting: Lighting,
+    technique: &str,
+    params: serde_json::Value,
+    steps: u64,
+) -> Result<(Arc<Atlas>, Estimate), lightmapd::engine::technique::EngineError> {
     let scene = Arc::new(scene);
     let atlas = Arc::new(Atlas::build(&scene, resolution, resolution).expect("atlas"));
     let request = lightmapd::engine::job::BakeRequest {
@@ -41,7 +53,7 @@ pub fn bake(
         .collect(),
         ..Default::default()
     };
-    let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
+    let plan = lightmapd::engine::job::plan_for(&scene, &request)?;
     let inputs = BakeInputs {
         scene,
         atlas: atlas.clone(),
@@ -50,11 +62,11 @@ pub fn bake(
         want_direct: true,
         plan,
     };
-    let mut tech = technique::create(technique, inputs, &params).expect("technique prepares");
+    let mut tech = technique::create(technique, inputs, &params)?;
     for _ in 0..steps {
-        tech.step().expect("step");
+        tech.step()?;
     }
-    (atlas, tech.snapshot().expect("snapshot").estimate())
+    Ok((atlas, tech.snapshot()?.estimate()))
 }
 
 pub fn lum(v: Vec3) -> f64 {

@@ -399,6 +399,18 @@ impl PathGpu {
         } else {
             None
         };
+        // The shader marks a texel whose paths were ended from outside (w, see its
+        // header): llvmpipe's loop budget. Its value would be too dark: refused.
+        if let Some(i) = total.iter().position(|a| a[3] != 0.0) {
+            return Err(EngineError::Gpu(format!(
+                "path on {}: the paths of texel {} were cut short by the adapter's loop budget \
+                 (llvmpipe ends an invocation's loops after 65535 iterations in all, about 1300 \
+                 bounces here), so the lightmap would read too dark; lower params.samples_per_step \
+                 or params.max_bounces, or use \"device\": \"cpu\"",
+                self.ctx.info.name,
+                i % n
+            )));
+        }
         let mut snap = Snapshot::from_gpu_halves(&total, direct.as_deref(), self.half_steps);
         if self.want_moments {
             let m: Vec<[f32; 4]> = ctx
