@@ -187,6 +187,30 @@ mod tests {
         }
     }
 
+    /// Every technique's plan says what its live error estimate covers (the job status
+    /// and the console show it), and only the unbiased `path` claims all of the error
+    /// (issue 21: sdb's said nothing, though docs/accuracy.md said "noise only").
+    #[test]
+    fn every_plan_says_what_its_error_estimate_covers() {
+        let f = SceneFeatures {
+            sky: true,
+            emissive_triangles: 2,
+            ..Default::default()
+        };
+        for e in TABLE {
+            let covers = (e.plan)(&f).error_estimate;
+            if e.id == "path" {
+                assert!(covers.starts_with("all of the error"), "{}: {covers}", e.id);
+            } else {
+                assert!(
+                    covers.starts_with("noise only") || covers.starts_with("only the jitter noise"),
+                    "{}: {covers:?}",
+                    e.id
+                );
+            }
+        }
+    }
+
     #[test]
     fn ids_are_unique_and_lookups_agree_with_the_table() {
         let ids: BTreeSet<&str> = TECHNIQUES.iter().copied().collect();

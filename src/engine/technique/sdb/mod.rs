@@ -1441,6 +1441,9 @@ pub fn plan(f: &SceneFeatures) -> Plan {
             "the scene and job have no light at all: the lightmap is exactly zero",
         );
     }
+    p.error_estimate = "noise only: the bias of the k x k neighbourhood lookup, the overdraw and the \
+                        bounce feedback's slow convergence in stiff rooms is not in it (docs/sdb.md)"
+        .into();
     p
 }
 
