@@ -406,6 +406,7 @@ fn bad_input(message: impl Into<String>) -> Failure {
 }
 
 fn main() -> ExitCode {
+    lightmapd::service::install_crypto_provider();
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,
         Err(e) if e.use_stderr() => {

@@ -898,10 +898,22 @@ async fn postgres_connections_use_tls_as_sslmode_says() {
     );
     // The default (prefer) takes TLS when offered.
     assert!(session(url.clone()).await.unwrap().0, "sslmode=prefer did not take TLS");
-    // Not checked: verify-ca / verify-full. With both rustls providers compiled in (ring
-    // for sqlx, aws-lc-rs for reqwest), rustls' certificate verifier builder panics for
-    // want of a process-wide default provider (KNOWN BUG, issue 24: install one at start).
-    let _ = &cert;
+    // verify-full against the self-signed server certificate, which no root trusts: the
+    // queue refuses to connect with a certificate error. (Before the queue installed a
+    // process-wide crypto provider, rustls' verifier builder panicked here: both ring
+    // and aws-lc-rs are compiled in, so it had no default.)
+    let schema = format!("tlsv_{}", uuid::Uuid::new_v4().simple());
+    let untrusted = PostgresQueue::open_in_schema(&with_query(&url, "sslmode=verify-full"), &schema).await;
+    let msg = untrusted
+        .err()
+        .expect("an untrusted self-signed certificate is refused")
+        .to_string();
+    assert!(msg.to_lowercase().contains("certificate"), "{msg}");
+    // verify-ca with the server's own certificate as the root: trusted, and TLS.
+    let with_root = with_query(&url, &format!("sslmode=verify-ca&sslrootcert={cert}"));
+    let q = PostgresQueue::open_in_schema(&with_root, &schema).await.unwrap();
+    assert!(q.counts().await.unwrap().iter().all(|(_, n)| *n == 0));
+    q.drop_schema(&schema).await.unwrap();
     // The queue itself opens, migrates and works over TLS.
     let schema = format!("tls_{}", uuid::Uuid::new_v4().simple());
     let q = PostgresQueue::open_in_schema(&with_query(&url, "sslmode=require"), &schema)

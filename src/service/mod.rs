@@ -99,6 +99,19 @@ pub const DEFAULT_JOB_RETENTION: Duration = Duration::from_secs(7 * 24 * 3600);
 /// Refuses to serve `listen` without tokens when it is not a loopback address, unless
 /// `insecure` says the network is trusted: without tokens every caller may list,
 /// download, cancel and delete every job.
+/// Installs aws-lc-rs as rustls' process-wide crypto provider, once (later calls do
+/// nothing). Why: the service's dependencies compile rustls with two providers (ring for
+/// sqlx, aws-lc-rs for reqwest and object_store), and rustls then has no default, so the
+/// certificate verifier sqlx builds for `sslmode=verify-ca` / `verify-full` panicked. The
+/// PostgreSQL queue calls this before it connects, and so does `main`.
+pub fn install_crypto_provider() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        // Err only when some provider is installed already, which is all this wants.
+        let _ = rustls::crypto::aws_lc_rs::default_provider().install_default();
+    });
+}
+
 pub fn check_exposure(listen: SocketAddr, auth: bool, insecure: bool) -> Result<(), String> {
     if auth || insecure || listen.ip().is_loopback() {
         return Ok(());

@@ -129,6 +129,7 @@ impl PostgresQueue {
     pub async fn open_in_schema(url: &str, schema: &str) -> QueueResult<PostgresQueue> {
         let schema = plain_identifier(schema)?;
         let opts = PgConnectOptions::from_str(url)?;
+        crate::service::install_crypto_provider();
         let admin = PgPoolOptions::new()
             .max_connections(1)
             .connect_with(opts.clone())
@@ -141,6 +142,7 @@ impl PostgresQueue {
     }
 
     async fn connect(opts: PgConnectOptions) -> QueueResult<PostgresQueue> {
+        crate::service::install_crypto_provider();
         let pool = PgPoolOptions::new()
             .max_connections(MAX_CONNECTIONS + 1)
             .acquire_timeout(Duration::from_secs(10))
