@@ -131,6 +131,14 @@ pub fn spawn_serve(dir: &Path, workers: usize, extra: &[&str]) -> (Child, String
     spawn_serve_env(dir, workers, extra, &[])
 }
 
+/// Where a spawned server's log goes: appended to `$LIGHTMAPD_TEST_SERVE_LOG` when set
+/// (to read after a failure), else nowhere.
+fn serve_log() -> Stdio {
+    std::env::var_os("LIGHTMAPD_TEST_SERVE_LOG")
+        .and_then(|p| std::fs::OpenOptions::new().create(true).append(true).open(p).ok())
+        .map_or_else(Stdio::null, Stdio::from)
+}
+
 /// [`spawn_serve`] with extra environment variables (an S3 store's `AWS_*`).
 pub fn spawn_serve_env(dir: &Path, workers: usize, extra: &[&str], env: &[(&str, String)]) -> (Child, String) {
     let mut child = Command::new(bin())
@@ -141,7 +149,7 @@ pub fn spawn_serve_env(dir: &Path, workers: usize, extra: &[&str], env: &[(&str,
         .args(extra)
         .envs(env.iter().map(|(k, v)| (k, v)))
         .stdout(Stdio::piped())
-        .stderr(Stdio::null())
+        .stderr(serve_log())
         .spawn()
         .unwrap();
     let mut line = String::new();

@@ -396,8 +396,14 @@ function showProgress(j) {
   $('job-progress').textContent = `${p.steps} steps · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %`);
 }
 
+const TERMINAL = ['succeeded', 'failed', 'cancelled'];
+
 function showJob(j) {
   const changed = state.job?.id !== j.id;
+  // Views arrive out of order (the cancel request's answer, a snapshot's re-fetch, the
+  // event stream's final status): a job never leaves a terminal state, so an older,
+  // non-terminal view of the same job is not shown over a terminal one.
+  if (!changed && TERMINAL.includes(state.job.status) && !TERMINAL.includes(j.status)) return;
   state.job = j;
   $('job-id').textContent = j.id;
   const st = $('job-status');
