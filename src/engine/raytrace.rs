@@ -21,6 +21,7 @@ use obvhs::bvh2::Bvh2;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::ray::{Ray, RayHit};
 
+use crate::engine::accumulate::LUMINANCE;
 use crate::engine::scene::{Scene, Triangle};
 
 /// How much farther a back-face hit on a single-sided triangle counts in a closest-hit
@@ -162,6 +163,48 @@ pub fn cone_sample(axis: Vec3, cos_max: f32, u1: f32, u2: f32) -> Vec3 {
 pub fn inset(b: Vec3) -> Vec3 {
     const DELTA: f32 = 1e-5;
     b * (1.0 - DELTA) + Vec3::splat(DELTA / 3.0)
+}
+
+/// The light-sampling tables: emissive triangles chosen in proportion to area × emitted
+/// luminance. Shared by the CPU `path` and the GPU scene tables (`gpu::scene_lights`), so
+/// every estimator picks emitters with the same probabilities.
+pub struct EmitterTable {
+    pub(crate) emitters: Vec<u32>,
+    pub(crate) emitter_cdf: Vec<f32>,
+    /// Selection probability of each scene triangle as an emitter (0 for non-emitters).
+    pub(crate) emitter_pick: Vec<f32>,
+}
+
+impl EmitterTable {
+    pub fn new(scene: &Scene) -> Self {
+        let mut emitters = Vec::new();
+        let mut weights = Vec::new();
+        for (i, t) in scene.triangles.iter().enumerate() {
+            let e = scene.materials[t.material as usize].emissive;
+            let w = t.area() * e.dot(LUMINANCE).max(e.max_element() * 1e-3);
+            if w > 0.0 && w.is_finite() {
+                emitters.push(i as u32);
+                weights.push(w as f64);
+            }
+        }
+        let sum: f64 = weights.iter().sum();
+        let mut emitter_pick = vec![0.0f32; scene.triangles.len()];
+        let mut acc = 0.0f64;
+        let mut emitter_cdf = Vec::with_capacity(weights.len());
+        for (k, w) in weights.iter().enumerate() {
+            acc += w / sum;
+            emitter_cdf.push(acc as f32);
+            emitter_pick[emitters[k] as usize] = (w / sum) as f32;
+        }
+        if let Some(last) = emitter_cdf.last_mut() {
+            *last = 1.0;
+        }
+        EmitterTable {
+            emitters,
+            emitter_cdf,
+            emitter_pick,
+        }
+    }
 }
 
 #[cfg(test)]

@@ -27,11 +27,13 @@
 //! snapshots only, never once per step.
 
 pub mod bvh;
+pub mod direct_light;
 pub mod directions;
 pub mod frame;
 pub mod halves;
 pub mod layout;
 pub mod map_scene;
+pub mod scene_lights;
 pub mod shaders;
 pub mod shadow;
 pub mod texels;

@@ -78,8 +78,16 @@ pub const BVH: WgslFile = wgsl_file!("gpu/bvh.wgsl");
 /// GPU BVH: one closest-hit or any-hit query per invocation (tests, benchmarks).
 pub const BVH_QUERY: PassShader = pass!("gpu/bvh_query.wgsl", [BVH]);
 
+/// The scene's shading data, its lights and next-event estimation to them
+/// (`engine::gpu::scene_lights`; no entry points, owns bindings 2-4): prelude, after
+/// [`BVH`], of every pass that samples light with rays.
+pub const LIGHTS: WgslFile = wgsl_file!("gpu/lights.wgsl");
+
+/// The shared direct-light pass (`engine::gpu::direct_light`).
+pub const DIRECT_LIGHT: PassShader = pass!("gpu/direct_light.wgsl", [BVH, LIGHTS]);
+
 /// The passes of the shared GPU layer (the technique table adds every technique's).
-pub const SHARED_PASSES: &[PassShader] = &[SHADOW_ATLAS, BVH_QUERY];
+pub const SHARED_PASSES: &[PassShader] = &[SHADOW_ATLAS, BVH_QUERY, DIRECT_LIGHT];
 
 impl PassShader {
     /// The full source handed to the compiler: common prelude, the pass's preludes, then

@@ -31,13 +31,13 @@ use glam::Vec3;
 use wgpu::BufferUsages;
 
 use super::shaders::PATH_TRACE;
-use super::{EmitterTable, PathParams};
+use super::PathParams;
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
-use crate::engine::gpu::bvh::{GpuBvh, check_binding_size};
+use crate::engine::gpu::bvh::check_binding_size;
+use crate::engine::gpu::scene_lights::{GpuSceneLights, LightSources};
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::{self, AdapterPreference, GpuContext, GpuError, Requirements, dispatch_size_64};
-use crate::engine::raytrace::Tracer;
-use crate::engine::scene::{Hemisphere, LightKind, Scene, Wrap};
+use crate::engine::raytrace::{EmitterTable, Tracer};
 use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
 
 /// Where `path` runs (`params.device`).
@@ -96,106 +96,7 @@ const PATH_MOMENTS: u32 = 2;
 struct PathUniform {
     counts: [u32; 4],
     keys: [u32; 4],
-    tables: [u32; 4],
-    tables2: [u32; 4],
-    sky: [f32; 4],
-    sun_axis: [f32; 4],
-    sun: [f32; 4],
     f: [f32; 4],
-}
-
-fn bits(u: u32) -> f32 {
-    f32::from_bits(u)
-}
-
-/// The per-slot shading data and the table buffer (materials, lights, emitters, texture
-/// headers, texels), with the table offsets.
-struct SceneTables {
-    shade: Vec<[f32; 4]>,
-    tables: Vec<[f32; 4]>,
-    /// materials, lights, light count, emitters, emitter count, texture headers.
-    offsets: [u32; 6],
-}
-
-fn scene_tables(scene: &Scene, emitters: &EmitterTable, slot_ids: &[u32], slot_of: &[u32]) -> SceneTables {
-    let mut shade = Vec::with_capacity(slot_ids.len() * 6);
-    for &id in slot_ids {
-        let t = &scene.triangles[id as usize];
-        let pick = emitters.emitter_pick.get(id as usize).copied().unwrap_or(0.0);
-        shade.push([t.n[0].x, t.n[0].y, t.n[0].z, bits(t.material)]);
-        shade.push([t.n[1].x, t.n[1].y, t.n[1].z, pick]);
-        shade.push([t.n[2].x, t.n[2].y, t.n[2].z, t.area()]);
-        shade.push([t.uv[0].x, t.uv[0].y, t.uv[1].x, t.uv[1].y]);
-        shade.push([t.uv[2].x, t.uv[2].y, t.lm[0].x, t.lm[0].y]);
-        shade.push([t.lm[1].x, t.lm[1].y, t.lm[2].x, t.lm[2].y]);
-    }
-    let mut tables: Vec<[f32; 4]> = Vec::new();
-    let mat_off = tables.len() as u32;
-    for m in &scene.materials {
-        let tex = |r: Option<crate::engine::scene::TextureRef>| r.map_or(u32::MAX, |r| r.texture);
-        let set = |r: Option<crate::engine::scene::TextureRef>| r.map_or(0, |r| r.texcoord);
-        let c = m.base_color;
-        tables.push([c.x, c.y, c.z, bits(tex(m.base_color_texture))]);
-        let e = m.emissive;
-        tables.push([e.x, e.y, e.z, bits(tex(m.emissive_texture))]);
-        tables.push([
-            bits(set(m.base_color_texture)),
-            bits(set(m.emissive_texture)),
-            bits(m.double_sided as u32),
-            0.0,
-        ]);
-    }
-    let light_off = tables.len() as u32;
-    for l in &scene.lights {
-        let (kind, cos_outer, scale) = match l.kind {
-            LightKind::Directional => (0u32, 0.0, 0.0),
-            LightKind::Point => (1, 0.0, 0.0),
-            LightKind::Spot { inner_cone, outer_cone } => (
-                2,
-                outer_cone.cos(),
-                1.0 / (inner_cone.cos() - outer_cone.cos()).max(1e-3),
-            ),
-        };
-        tables.push([l.intensity.x, l.intensity.y, l.intensity.z, bits(kind)]);
-        tables.push([l.position.x, l.position.y, l.position.z, l.range.unwrap_or(-1.0)]);
-        tables.push([l.direction.x, l.direction.y, l.direction.z, 0.0]);
-        tables.push([cos_outer, scale, 0.0, 0.0]);
-    }
-    let emit_off = tables.len() as u32;
-    for (k, &id) in emitters.emitters.iter().enumerate() {
-        tables.push([bits(slot_of[id as usize]), emitters.emitter_cdf[k], 0.0, 0.0]);
-    }
-    let tex_off = tables.len() as u32;
-    let mut texel_off = tex_off + scene.textures.len() as u32;
-    let wrap = |w: Wrap| match w {
-        Wrap::Repeat => 0u32,
-        Wrap::Mirror => 1,
-        Wrap::Clamp => 2,
-    };
-    for t in &scene.textures {
-        tables.push([
-            bits(texel_off),
-            bits(t.width),
-            bits(t.height),
-            bits(wrap(t.wrap_u) | (wrap(t.wrap_v) << 8)),
-        ]);
-        texel_off += t.texels.len() as u32;
-    }
-    for t in &scene.textures {
-        tables.extend(t.texels.iter().map(|c| c.to_array()));
-    }
-    SceneTables {
-        shade,
-        tables,
-        offsets: [
-            mat_off,
-            light_off,
-            scene.lights.len() as u32,
-            emit_off,
-            emitters.emitters.len() as u32,
-            tex_off,
-        ],
-    }
 }
 
 /// The GPU half of `path`: buffers, the pass, and the half accumulators on the GPU.
@@ -212,7 +113,7 @@ pub struct PathGpu {
     want_direct: bool,
     want_moments: bool,
     half_steps: [u64; 2],
-    _bvh: GpuBvh,
+    _lights: GpuSceneLights,
 }
 
 impl PathGpu {
@@ -234,21 +135,15 @@ impl PathGpu {
         emitters: &EmitterTable,
     ) -> Result<Self, GpuError> {
         let scene = &inputs.scene;
-        let bvh = GpuBvh::new(&ctx, tracer.bvh(), scene)?;
-        let slot_ids: Vec<u32> = if scene.triangles.is_empty() {
-            vec![0]
-        } else {
-            bvh.data.tris.iter().map(|t| t.id).collect()
-        };
-        let st = if scene.triangles.is_empty() {
-            SceneTables {
-                shade: vec![[0.0; 4]; 6],
-                tables: vec![[0.0; 4]],
-                offsets: [0; 6],
-            }
-        } else {
-            scene_tables(scene, emitters, &slot_ids, &bvh.data.slot_of)
-        };
+        let lights = GpuSceneLights::new(
+            &ctx,
+            "path",
+            scene,
+            &inputs.lighting,
+            tracer,
+            emitters,
+            LightSources::ALL,
+        )?;
         let n = inputs.atlas.texels.len();
         let want_direct = inputs.want_direct;
         let want_moments = inputs.plan.runs("directional (sh) layer");
@@ -266,12 +161,6 @@ impl PathGpu {
             .collect();
         let vec4 = 16u64;
         check_binding_size(&ctx, "path: the texels", texel_geom.len() as u64 * vec4)?;
-        check_binding_size(&ctx, "path: the triangles' shading data", st.shade.len() as u64 * vec4)?;
-        check_binding_size(
-            &ctx,
-            "path: the materials, lights and textures",
-            st.tables.len() as u64 * vec4,
-        )?;
         let acc_len = |keep: bool, per: u64| if keep { 2 * n as u64 * per * vec4 } else { vec4 };
         check_binding_size(&ctx, "path: the accumulators", acc_len(true, 1))?;
         check_binding_size(&ctx, "path: the directional moments", acc_len(want_moments, 3))?;
@@ -279,45 +168,28 @@ impl PathGpu {
         let read = BufferUsages::STORAGE | BufferUsages::COPY_DST;
         let rw = BufferUsages::STORAGE | BufferUsages::COPY_SRC | BufferUsages::COPY_DST;
         let texel_buf = ctx.buffer_init("path texels", &texel_geom, read);
-        let shade_buf = ctx.buffer_init("path triangle shading", &st.shade, read);
-        let tables_buf = ctx.buffer_init("path tables", &st.tables, read);
         let acc_total = ctx.buffer_zeroed("path accumulators", acc_len(true, 1), rw);
         let acc_direct = ctx.buffer_zeroed("path direct accumulators", acc_len(want_direct, 1), rw);
         let acc_moment = ctx.buffer_zeroed("path moment accumulators", acc_len(want_moments, 3), rw);
 
-        let l = &inputs.lighting;
-        let (sky, sky_mode) = match l.sky {
-            Some(s) => (s.radiance, if s.hemisphere == Hemisphere::Full { 2.0 } else { 1.0 }),
-            None => (Vec3::ZERO, 0.0),
-        };
-        let (sun_axis, sun) = match &l.sun {
-            Some(s) => (
-                (-s.direction.normalize()).extend(s.cos_half_angle()).to_array(),
-                s.radiance.extend(s.solid_angle()).to_array(),
-            ),
-            None => ([0.0, 1.0, 0.0, 2.0], [0.0; 4]),
-        };
         let seed = inputs.seed;
         let flags = if want_direct { PATH_DIRECT } else { 0 } | if want_moments { PATH_MOMENTS } else { 0 };
         let uniform = PathUniform {
             counts: [n as u32, params.samples_per_step, params.max_bounces, 0],
             keys: [seed as u32, (seed >> 32) as u32, 0, flags],
-            tables: [st.offsets[0], st.offsets[1], st.offsets[2], st.offsets[3]],
-            tables2: [st.offsets[4], st.offsets[5], 0, 0],
-            sky: sky.extend(sky_mode).to_array(),
-            sun_axis,
-            sun,
             f: [params.rr_threshold, inputs.atlas.surface_offset, 1.0, 0.0],
         };
         let uniform_buf = ctx.uniform("path params", &uniform);
         let module = ctx.shader(&PATH_TRACE)?;
+        let [b0, b1, b2, b3, b4] = lights.binds();
         let binds = [
-            Bind::Read(&bvh.nodes),
-            Bind::Read(&bvh.tris),
+            b0,
+            b1,
+            b2,
+            b3,
+            b4,
             Bind::Uniform(&uniform_buf),
             Bind::Read(&texel_buf),
-            Bind::Read(&shade_buf),
-            Bind::Read(&tables_buf),
             Bind::Write(&acc_total),
             Bind::Write(&acc_direct),
             Bind::Write(&acc_moment),
@@ -329,8 +201,8 @@ impl PathGpu {
         tracing::info!(
             adapter = %ctx.info.name,
             triangles = scene.triangles.len(),
-            bvh_nodes = bvh.data.nodes.len(),
-            bvh_depth = bvh.data.depth,
+            bvh_nodes = lights.bvh.data.nodes.len(),
+            bvh_depth = lights.bvh.data.depth,
             texels = n,
             "path on the GPU"
         );
@@ -347,7 +219,7 @@ impl PathGpu {
             want_direct,
             want_moments,
             half_steps: [0, 0],
-            _bvh: bvh,
+            _lights: lights,
         })
     }
 

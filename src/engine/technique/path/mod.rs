@@ -53,10 +53,10 @@ use serde_json::Value;
 mod gpu;
 
 use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, parse_params};
-use crate::engine::accumulate::{HalfAccumulator, LUMINANCE, Snapshot};
+use crate::engine::accumulate::{HalfAccumulator, Snapshot};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
-use crate::engine::raytrace::{Tracer, cone_sample, cosine_sample, inset};
+use crate::engine::raytrace::{EmitterTable, Tracer, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Scene};
 use gpu::PathGpu;
@@ -112,10 +112,10 @@ impl PathParams {
 
 /// `path`'s GPU pass, WGSL in `shaders/path/` (the CPU route needs none).
 pub mod shaders {
-    use crate::engine::gpu::shaders::{BVH, PassShader, pass};
+    use crate::engine::gpu::shaders::{BVH, LIGHTS, PassShader, pass};
 
     /// The whole estimator per texel and sample (megakernel) over the GPU BVH.
-    pub const PATH_TRACE: PassShader = pass!("path/path_trace.wgsl", [BVH]);
+    pub const PATH_TRACE: PassShader = pass!("path/path_trace.wgsl", [BVH, LIGHTS]);
     /// Every pass of `path`.
     pub const ALL: &[PassShader] = &[PATH_TRACE];
 }
@@ -296,47 +296,6 @@ impl Technique for PathTracer {
 
     fn accumulating_pass(&self) -> &'static str {
         "path trace"
-    }
-}
-
-/// The light-sampling tables: emissive triangles chosen in proportion to area × emitted
-/// luminance.
-pub struct EmitterTable {
-    pub(crate) emitters: Vec<u32>,
-    pub(crate) emitter_cdf: Vec<f32>,
-    /// Selection probability of each scene triangle as an emitter (0 for non-emitters).
-    pub(crate) emitter_pick: Vec<f32>,
-}
-
-impl EmitterTable {
-    pub fn new(scene: &Scene) -> Self {
-        let mut emitters = Vec::new();
-        let mut weights = Vec::new();
-        for (i, t) in scene.triangles.iter().enumerate() {
-            let e = scene.materials[t.material as usize].emissive;
-            let w = t.area() * e.dot(LUMINANCE).max(e.max_element() * 1e-3);
-            if w > 0.0 && w.is_finite() {
-                emitters.push(i as u32);
-                weights.push(w as f64);
-            }
-        }
-        let sum: f64 = weights.iter().sum();
-        let mut emitter_pick = vec![0.0f32; scene.triangles.len()];
-        let mut acc = 0.0f64;
-        let mut emitter_cdf = Vec::with_capacity(weights.len());
-        for (k, w) in weights.iter().enumerate() {
-            acc += w / sum;
-            emitter_cdf.push(acc as f32);
-            emitter_pick[emitters[k] as usize] = (w / sum) as f32;
-        }
-        if let Some(last) = emitter_cdf.last_mut() {
-            *last = 1.0;
-        }
-        EmitterTable {
-            emitters,
-            emitter_cdf,
-            emitter_pick,
-        }
     }
 }
 

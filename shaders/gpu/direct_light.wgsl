@@ -1,0 +1,51 @@
+// gpu/direct_light.wgsl: the shared direct-light pass (src/engine/gpu/direct_light.rs).
+// One invocation per valid texel estimates E/pi, the incident irradiance over pi from
+// the sources the host selected (scene_u.tables2.z: sun, directional, point and spot
+// lights, emitters), with `samples` next-event estimates of gpu/lights.wgsl per step and
+// no continuation ray, so every sample is weighted 1 (plain light sampling: unbiased on
+// its own, where `path`'s power heuristic needs the continuation's half). The step's mean
+// is blended into its half's running mean (even and odd steps, DESIGN section 4).
+//
+// Randomness: the PCG-RXS-M-XS 32/32 streams of gpu/lights.wgsl, keyed as `path` keys
+// them (increment from the seed and texel, state from the seed, step and sample) but with
+// a different salt, so a technique that runs this pass beside `path`'s control texels
+// never shares a stream with them. Bounds: `samples` <= 65535 / (lights + 2) keeps the
+// invocation far inside llvmpipe's loop budget (the host caps it); steps in 32 bits.
+// Precision: world space f32; running means in f32 (1e-7 relative a step).
+
+struct DirectUniform {
+    counts: vec4<u32>,  // x: valid texels n, y: samples per step, z: step index, w: half (0 even, 1 odd)
+    keys: vec4<u32>,    // x: seed low 32 bits, y: seed high; z, w: unused
+    f: vec4<f32>,       // x: blend 1/k of the half's k-th step; y, z, w: unused
+}
+
+@group(0) @binding(5) var<uniform> du: DirectUniform;
+@group(0) @binding(6) var<storage, read> texels: array<TexelGeom>;
+@group(0) @binding(7) var<storage, read_write> acc: array<vec4<f32>>;  // 2n: rgb E/pi, even half then odd
+
+fn direct_rng(texel: u32, sample: u32) -> Rng {
+    let base = pcg(du.keys.x ^ pcg(du.keys.y ^ 0x2c1b3c6du));
+    var r = Rng(pcg(du.counts.z ^ pcg(sample ^ base)), (pcg(texel ^ pcg(base ^ 0x68e31da4u)) << 1u) | 1u);
+    rng_next(&r);
+    return r;
+}
+
+@compute @workgroup_size(64)
+fn direct(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+          @builtin(local_invocation_index) lid: u32) {
+    let i = invocation_index(wid, nwg, lid);
+    let n = du.counts.x;
+    if i >= n {
+        return;
+    }
+    let t = texels[i];
+    let spp = du.counts.y;
+    var e = vec3<f32>(0.0);
+    for (var s = 0u; s < spp; s++) {
+        var rng = direct_rng(i, s);
+        e += next_event(t.position.xyz, t.normal.xyz, t.geo_normal.xyz, false, &rng).sum;
+    }
+    let slot = du.counts.w * n + i;
+    let old = acc[slot].xyz;
+    acc[slot] = vec4<f32>(old + (e / f32(spp) - old) * du.f.x, 0.0);
+}
