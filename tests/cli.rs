@@ -211,9 +211,9 @@ fn bad_options_exit_2() {
         "outputs[0]: path cannot write the \"ao\" layer; techniques that can: obscurance, sdf",
     );
     assert_bad_input(
-        &["--technique", "sdf", "--sun", "0,-1,0,0.5,1,1,1", "--steps", "1"],
+        &["--technique", "sdf", "--outputs", "sh", "--steps", "1"],
         &scene,
-        "lighting.sun: sdf does not bake the job's sun",
+        "outputs[0]: sdf cannot write the \"sh\" layer; techniques that can: path",
     );
     // clap's own errors use exit code 2 as well.
     let o = bin().args(["bake", "--resolution", "abc"]).output().unwrap();

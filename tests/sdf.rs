@@ -233,26 +233,6 @@ fn dynamic_box_matches_the_same_box_as_geometry_and_moves() {
     assert!(changed > 0.05, "moving the box must move its shadow");
 }
 
-/// Emitters are light `sdf` does not transport: the job is refused before baking,
-/// naming them and the techniques that do (issue 21), not baked black.
-#[test]
-fn emitters_are_refused_before_baking() {
-    let mut b = SceneBuilder::new();
-    let lamp = b.material(MaterialDesc::emissive("lamp", [0.5; 3], [1.0; 3]));
-    b.square("lamp", Vec3::ZERO, 1.0, Vec3::Y, lamp);
-    let scene = import(&b);
-    let request = lightmapd::engine::job::BakeRequest {
-        technique: "sdf".into(),
-        ..Default::default()
-    };
-    let e = lightmapd::engine::job::plan_for(&scene, &request).unwrap_err();
-    assert!(e.is_bad_input(), "{e}");
-    assert_eq!(
-        e.to_string(),
-        "technique: sdf does not bake the scene's 2 emissive triangle(s); techniques that do: path, sdb, vpl, obscurance, hemicube"
-    );
-}
-
 /// No sky and no other light: nothing to bake, exact zeros, and the plan says why.
 #[test]
 fn no_sky_is_zero_and_the_plan_says_so() {
@@ -282,6 +262,7 @@ fn bad_params_name_the_parameter() {
             "radii",
         ),
         (json!({"unknown": 1}), "unknown"),
+        (json!({"light_samples": 0}), "light_samples"),
     ] {
         let inputs = BakeInputs {
             scene: scene.clone(),

@@ -596,7 +596,8 @@ async fn every_error_status_has_its_problem_body() {
             "unknown output layer \"bent_normals\"; available: validity, direct, indirect, sh, ao, debug".into(),
         ),
         // What the technique table's row does not allow is refused at submit (issue 21):
-        // a layer the technique cannot write, a bad parameter, light it does not bake.
+        // a layer the technique cannot write, a bad parameter (every technique bakes every
+        // light now; the light check's refusal is tested on a synthetic row in table.rs).
         (
             json!({"scene": scene, "technique": "sdb", "outputs": ["direct", "sh"]}).to_string(),
             "outputs[1]",
@@ -606,16 +607,6 @@ async fn every_error_status_has_its_problem_body() {
             json!({"scene": scene, "technique": "path", "params": {"samples_per_step": 0}}).to_string(),
             "params.samples_per_step",
             "params.samples_per_step must be in 1..=4096, got 0".into(),
-        ),
-        (
-            json!({"scene": scene, "technique": "sdf", "lighting": {"sun": {"direction": [0, -1, 0], "radiance": [1, 1, 1]}}}).to_string(),
-            "lighting.sun",
-            "lighting.sun: sdf does not bake the job's sun; techniques that do: path, sdb, vpl, obscurance, hemicube".into(),
-        ),
-        (
-            json!({"scene": scene, "technique": "sdf"}).to_string(),
-            "technique",
-            "technique: sdf does not bake the scene's 2 emissive triangle(s); techniques that do: path, sdb, vpl, obscurance, hemicube".into(),
         ),
         (
             json!({"scene": scene, "lighting": {"sky": {"radiance": [1, -1, 1]}}}).to_string(),

@@ -554,7 +554,7 @@ fn reference_rooms() -> ((f64, f64), (f64, f64)) {
 /// Measured (48², 8 steps, lavapipe), floor / twin's top: path −0.4 % / 0, the GPU path
 /// +0.1 % / 0, sdb 0 / 0, vpl +0.2 % / −1.8 %, hemicube +1.3 % / 0; obscurance's floor
 /// −30.2 % (open failure: its depth layers see the twin's black back where the emitter
-/// is); sdf refuses the emitter.
+/// is); sdf's floor +18 % (open failure: its sky visibility under the thin sheet).
 pub fn back_to_back_sheets(row: &Row) {
     let mut b = SceneBuilder::new();
     let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
@@ -714,8 +714,9 @@ stability_suite!(
 
 // Obscurance is not a radiosity solver: one scene-wide ambient term I_A (seed Eq. 5)
 // stands in for the bounces. Measured (docs/obscurance.md): the stiff closed boxes read
-// 9.7 % low (corners and edges within dmax), the 1 cm^2 emitter is smaller than a map
-// pixel and is missed, and the dark room of the thin-wall case reads 0.30 of the lit one
+// 9.7 % low (corners and edges within dmax); the 1 cm^2 emitter, smaller than a map
+// pixel, is light-sampled by the shared direct-light module (`emitters = auto`) and its
+// brightest ground texel reads the closed form (it was missed before, -99.98 %); the dark room of the thin-wall case reads 0.30 of the lit one
 // through the scene-wide I_A W, by design (its direct light, which is what would pass the
 // wall, is checked to be below 1e-3 in tests/obscurance.rs), hence the leak bound. The
 // bias allowance is the lateral map-pixel error of the open cases.
@@ -725,26 +726,34 @@ stability_suite!(
         technique: "obscurance",
         params: json!({"map_size": 256}),
         bias: 0.02,
-        open_failures: &[(STIFF_BOX, 0.12), (TINY_EMITTER, 1.0), (BACK_TO_BACK, 0.35)],
+        open_failures: &[(STIFF_BOX, 0.12), (BACK_TO_BACK, 0.35)],
     },
     leak <= 0.35,
     rooms <= 0.65
 );
 
-// `sdf` bakes sky light only: its technique-table row has no emitters, so every case
-// lit by emitters is refused before baking, and the refusal is what those cases check
-// (issue 21); the scale and half-float cases run under a sky, emitters off, instead. The one closed-form comparison left, the
-// open coplanar ground, measured -3e-5; the 1 % allowance is the model's error on open
-// geometry far from borders (docs/sdf.md).
+// `sdf`: sky light from its distance volume, every other light from the shared
+// direct-light module (GPU rays), bounced by one scene-wide ambient. Measured (lavapipe):
+// - the stiff closed boxes -5.4 % at both albedos: the noise of the emitters' light
+//   sampling (8 steps x 4 samples a texel here), which the scene-wide ambient shares by
+//   all texels, so the texels' mean does not average it away (the furnace at 32 steps x
+//   16 samples reads -0.4 %, tests/direct_light.rs); bound 0.08;
+// - the back-to-back sheets' floor +18 %: the distance field's sky visibility under a
+//   thin sheet (a sign the two faces disagree on, docs/sdf.md) on top of the exact
+//   emitter; bound 0.25;
+// - the thin wall's dark room 0.33 of the lit one: the scene-wide ambient reaches it, as
+//   obscurance's does (by design; its direct light is 0, tests/direct_light.rs);
+// - the open coplanar ground -3e-5 and the tiny emitter exact; the 1 % allowance is the
+//   model's error on open geometry far from borders (docs/sdf.md).
 stability_suite!(
     sdf,
     Row {
         technique: "sdf",
         params: json!({"resolution": 32}),
         bias: 0.01,
-        open_failures: &[],
+        open_failures: &[(STIFF_BOX, 0.08), (BACK_TO_BACK, 0.25)],
     },
-    leak <= 1e-2,
+    leak <= 0.35,
     rooms <= 0.7
 );
 

@@ -5,6 +5,10 @@
 // no continuation ray, so every sample is weighted 1 (plain light sampling: unbiased on
 // its own, where `path`'s power heuristic needs the continuation's half). The step's mean
 // is blended into its half's running mean (even and odd steps, DESIGN section 4).
+// With DIRECT_HITS each sample also casts one cosine-distributed ray to any distance and
+// w accumulates the fraction that hits a surface (directions below the geometric plane
+// count as hits: the surface itself blocks them): the cosine-weighted fraction of the
+// hemisphere that sees the scene, which a technique's bounce model weights its ambient by.
 //
 // Randomness: the PCG-RXS-M-XS 32/32 streams of gpu/lights.wgsl, keyed as `path` keys
 // them (increment from the seed and texel, state from the seed, step and sample) but with
@@ -15,13 +19,15 @@
 
 struct DirectUniform {
     counts: vec4<u32>,  // x: valid texels n, y: samples per step, z: step index, w: half (0 even, 1 odd)
-    keys: vec4<u32>,    // x: seed low 32 bits, y: seed high; z, w: unused
+    keys: vec4<u32>,    // x: seed low 32 bits, y: seed high; z: DIRECT_* flags; w: unused
     f: vec4<f32>,       // x: blend 1/k of the half's k-th step; y, z, w: unused
 }
 
 @group(0) @binding(5) var<uniform> du: DirectUniform;
 @group(0) @binding(6) var<storage, read> texels: array<TexelGeom>;
-@group(0) @binding(7) var<storage, read_write> acc: array<vec4<f32>>;  // 2n: rgb E/pi, even half then odd
+@group(0) @binding(7) var<storage, read_write> acc: array<vec4<f32>>;  // 2n: rgb E/pi, w hit fraction; even half then odd
+
+const DIRECT_HITS: u32 = 1u;
 
 fn direct_rng(texel: u32, sample: u32) -> Rng {
     let base = pcg(du.keys.x ^ pcg(du.keys.y ^ 0x2c1b3c6du));
@@ -41,11 +47,22 @@ fn direct(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     let t = texels[i];
     let spp = du.counts.y;
     var e = vec3<f32>(0.0);
+    var hits = 0.0;
+    let x = t.position.xyz;
     for (var s = 0u; s < spp; s++) {
         var rng = direct_rng(i, s);
-        e += next_event(t.position.xyz, t.normal.xyz, t.geo_normal.xyz, false, &rng).sum;
+        e += next_event(x, t.normal.xyz, t.geo_normal.xyz, false, &rng).sum;
+        if (du.keys.z & DIRECT_HITS) != 0u {
+            let u1 = rng_next(&rng);
+            let u2 = rng_next(&rng);
+            let d = cosine_sample(t.normal.xyz, u1, u2);
+            if dot(d, t.geo_normal.xyz) <= 0.0 || !bvh_unoccluded(x, d, RAY_FAR) {
+                hits += 1.0;
+            }
+        }
     }
     let slot = du.counts.w * n + i;
-    let old = acc[slot].xyz;
-    acc[slot] = vec4<f32>(old + (e / f32(spp) - old) * du.f.x, 0.0);
+    let old = acc[slot];
+    let k = 1.0 / f32(spp);
+    acc[slot] = old + (vec4<f32>(e * k, hits * k) - old) * du.f.x;
 }

@@ -52,7 +52,9 @@ const FALLOFF_STEP: u32 = 2u;
 const FALLOFF_EXP: u32 = 3u;
 const FLAG_BACKGROUND_AMBIENT: u32 = 1u;
 const FLAG_SUBSET: u32 = 2u;
+
 const TRI_TEXTURED_ALBEDO: u32 = 8u;
+const TRI_SAMPLED_EMISSION: u32 = 16u;  // its emission comes from the shared direct-light module
 const NO_NODE: u32 = 0xffffffffu;
 // counters[]: 0 fragments this direction, 1 most fragments in any direction, 2 longest
 // list a texel walked, 3 directions that overflowed the node pool; masks from 4 on.
@@ -165,9 +167,11 @@ fn gather(
             }
             // Front-facing means facing -d: the layer faces x when x looks along +d.
             let facing = (front == (sgn > 0.0)) || (flags & TRI_DOUBLE_SIDED) != 0u;
+            if !facing || (flags & TRI_SAMPLED_EMISSION) != 0u {
+                emission = vec3<f32>(0.0);
+            }
             if !facing {
                 albedo = vec3<f32>(0.0);
-                emission = vec3<f32>(0.0);
             }
             let dmax = params.env_back.w;
             var rho = 1.0;

@@ -177,9 +177,18 @@ pub struct EmitterTable {
 
 impl EmitterTable {
     pub fn new(scene: &Scene) -> Self {
+        Self::of(scene, |_| true)
+    }
+
+    /// The table over the emissive triangles `keep` accepts (by scene triangle index);
+    /// the others are never picked.
+    pub fn of(scene: &Scene, keep: impl Fn(usize) -> bool) -> Self {
         let mut emitters = Vec::new();
         let mut weights = Vec::new();
         for (i, t) in scene.triangles.iter().enumerate() {
+            if !keep(i) {
+                continue;
+            }
             let e = scene.materials[t.material as usize].emissive;
             let w = t.area() * e.dot(LUMINANCE).max(e.max_element() * 1e-3);
             if w > 0.0 && w.is_finite() {

@@ -17,6 +17,10 @@
 //! else); emitters are one triangle point per sample, picked by area x luminance
 //! (`raytrace::EmitterTable`).
 //!
+//! With `hits` the pass also estimates, per texel, the cosine-weighted fraction of its
+//! hemisphere that sees a surface (one ray to any distance per sample, directions below
+//! the geometric plane counted as hits), which `sdf` weights its bounce by.
+//!
 //! Space: the world space the atlas's sample points are in (the BVH's), not the
 //! normalised frame the raster techniques use; the texels are uploaded again here in
 //! that space (48 B a texel), so this module depends on no technique's buffers.
@@ -54,6 +58,17 @@ struct DirectUniform {
     f: [f32; 4],
 }
 
+/// One half's running means per valid texel.
+pub struct DirectHalf {
+    /// E/pi from the selected sources.
+    pub light: Vec<Vec3>,
+    /// The fraction of the cosine-weighted hemisphere that sees a surface (0 unless the
+    /// pass was made with `hits`).
+    pub hit: Vec<f32>,
+}
+
+const DIRECT_HITS: u32 = 1;
+
 /// The direct light of one bake's texels, accumulated on the GPU.
 pub struct DirectLight {
     ctx: Arc<GpuContext>,
@@ -73,7 +88,8 @@ pub struct DirectLight {
 impl DirectLight {
     /// Prepares the pass for `sources` of `scene` and `lighting` at `atlas`'s texels, or
     /// `None` when the scene has none of them (nothing to add, no GPU work). `label`
-    /// names the technique in labels and errors.
+    /// names the technique in labels and errors; `emitters` restricts the emitters to
+    /// those scene triangles (all when `None`); `hits` adds the hit-fraction estimate.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: Arc<GpuContext>,
@@ -83,9 +99,14 @@ impl DirectLight {
         lighting: &Lighting,
         seed: u64,
         sources: LightSources,
+        emitters: Option<&[bool]>,
         samples_per_step: u32,
+        hits: bool,
     ) -> Result<Option<Self>, GpuError> {
-        let emitters = EmitterTable::new(scene);
+        let emitters = match emitters {
+            Some(keep) => EmitterTable::of(scene, |i| keep.get(i).copied().unwrap_or(false)),
+            None => EmitterTable::new(scene),
+        };
         let sources = sources.present(scene, lighting, &emitters);
         if sources == LightSources::NONE {
             return Ok(None);
@@ -103,7 +124,11 @@ impl DirectLight {
                 geo_normal: t.geo_normal.normalize_or_zero().extend(0.0).to_array(),
             })
             .collect();
-        let geom = if geom.is_empty() { vec![GpuTexelGeom::zeroed()] } else { geom };
+        let geom = if geom.is_empty() {
+            vec![GpuTexelGeom::zeroed()]
+        } else {
+            geom
+        };
         let acc_bytes = 2 * n.max(1) as u64 * 16;
         check_binding_size(&ctx, &format!("{what}: the texels"), geom.len() as u64 * 48)?;
         check_binding_size(&ctx, &format!("{what}: the accumulators"), acc_bytes)?;
@@ -119,7 +144,7 @@ impl DirectLight {
         );
         let uniform = DirectUniform {
             counts: [n as u32, samples_per_step.clamp(1, MAX_SAMPLES_PER_STEP), 0, 0],
-            keys: [seed as u32, (seed >> 32) as u32, 0, 0],
+            keys: [seed as u32, (seed >> 32) as u32, if hits { DIRECT_HITS } else { 0 }, 0],
             f: [1.0, 0.0, 0.0, 0.0],
         };
         let uniform_buf = ctx.uniform(&format!("{what} params"), &uniform);
@@ -139,7 +164,12 @@ impl DirectLight {
         let group = group_of(&ctx, &what, &layout, &binds);
         let pipeline = compute_pipeline(&ctx, &what, &module, "direct", &layout);
         ctx.take_error(&format!("{what}: preparing the GPU pass"))?;
-        tracing::debug!(technique = label, texels = n, sources = sources.0, "shared direct light");
+        tracing::debug!(
+            technique = label,
+            texels = n,
+            sources = sources.0,
+            "shared direct light"
+        );
         Ok(Some(DirectLight {
             ctx,
             label: what,
@@ -199,15 +229,22 @@ impl DirectLight {
         Ok(())
     }
 
-    /// Both halves' running means of E/pi per valid texel (blocks on the device). A half
-    /// no step has reached yet reads 0.
-    pub fn halves(&self) -> Result<[Vec<Vec3>; 2], GpuError> {
+    /// Both halves' running means per valid texel (blocks on the device). A half no
+    /// step has reached yet reads 0.
+    pub fn halves(&self) -> Result<[DirectHalf; 2], GpuError> {
         let n = self.texels;
-        if n == 0 {
-            return Ok([Vec::new(), Vec::new()]);
-        }
-        let raw: Vec<[f32; 4]> = self.ctx.read_buffer(&self.label, &self.acc, 2 * n)?;
-        let half = |h: usize| raw[h * n..(h + 1) * n].iter().map(|a| Vec3::new(a[0], a[1], a[2])).collect();
+        let raw: Vec<[f32; 4]> = if n == 0 {
+            Vec::new()
+        } else {
+            self.ctx.read_buffer(&self.label, &self.acc, 2 * n)?
+        };
+        let half = |h: usize| {
+            let r = &raw[h * n..(h + 1) * n];
+            DirectHalf {
+                light: r.iter().map(|a| Vec3::new(a[0], a[1], a[2])).collect(),
+                hit: r.iter().map(|a| a[3]).collect(),
+            }
+        };
         Ok([half(0), half(1)])
     }
 }

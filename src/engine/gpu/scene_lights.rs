@@ -121,7 +121,6 @@ fn scene_tables(scene: &Scene, emitters: &EmitterTable, slot_ids: &[u32], slot_o
     }
 }
 
-
 /// Which light a pass estimates by next-event estimation (`LIGHTS_*` in
 /// `shaders/gpu/lights.wgsl`); the sky is never sampled this way (techniques and `path`
 /// find it with their own rays).

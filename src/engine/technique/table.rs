@@ -88,7 +88,14 @@ pub fn check_request(id: &str, params: &Value, outputs: &[OutputLayer]) -> Resul
 /// does not transport is refused before baking, naming the light and the techniques that
 /// do, instead of being dropped from the lightmap.
 pub fn check_lights(id: &str, features: &SceneFeatures) -> Result<(), EngineError> {
-    let e = entry(id)?;
+    lights_of(entry(id)?, features)
+}
+
+/// [`check_lights`] against one row. Every row of [`TABLE`] bakes every light since the
+/// shared direct-light module (`engine::gpu::direct_light`); the check stays so that a
+/// technique added with a shorter `lights` list is refused, not silently dark.
+fn lights_of(e: &TechniqueEntry, features: &SceneFeatures) -> Result<(), EngineError> {
+    let id = e.id;
     for light in LightSource::ALL {
         let n = light.count(features);
         if n > 0 && !e.lights.contains(light) {
@@ -208,6 +215,55 @@ mod tests {
                     e.id
                 );
             }
+        }
+    }
+
+    /// A row that does not list a light refuses a job with it, naming the field, the
+    /// light and the techniques that bake it; every row of the table bakes everything.
+    #[test]
+    fn light_a_row_does_not_list_is_refused_by_name() {
+        let sky_only = TechniqueEntry {
+            id: "sky_only",
+            lights: &[LightSource::Sky],
+            ..sdf::ENTRY
+        };
+        let f = SceneFeatures {
+            sky: true,
+            sun: true,
+            ..Default::default()
+        };
+        let e = lights_of(&sky_only, &f).expect_err("the sun is refused");
+        assert!(e.is_bad_input());
+        assert_eq!(
+            e.to_string(),
+            "lighting.sun: sky_only does not bake the job's sun; techniques that do: path, sdb, vpl, obscurance, sdf, hemicube"
+        );
+        let f = SceneFeatures {
+            sky: true,
+            emissive_triangles: 2,
+            ..Default::default()
+        };
+        let e = lights_of(&sky_only, &f).expect_err("emitters are refused");
+        assert_eq!(
+            e.to_string(),
+            "technique: sky_only does not bake the scene's 2 emissive triangle(s); techniques that do: path, sdb, vpl, obscurance, sdf, hemicube"
+        );
+        let sky = SceneFeatures {
+            sky: true,
+            ..Default::default()
+        };
+        assert!(lights_of(&sky_only, &sky).is_ok());
+        let everything = SceneFeatures {
+            sky: true,
+            sun: true,
+            punctual_lights: 3,
+            directional_lights: 1,
+            emissive_triangles: 4,
+            ..Default::default()
+        };
+        for row in TABLE {
+            assert_eq!(row.lights, LightSource::ALL, "{}", row.id);
+            lights_of(row, &everything).unwrap();
         }
     }
 

@@ -121,10 +121,12 @@ pub use update::{ObscuranceState, UpdateReach, UpdateReport};
 
 use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, sample_cone};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene};
+use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::view::{
     DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view,
@@ -200,6 +202,28 @@ pub enum AmbientSource {
     Emitters,
 }
 
+/// How emitters reach the direct light.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum EmitterLight {
+    /// Emissive triangles smaller than [`SAMPLED_EMITTER_PIXELS`] map pixels through the
+    /// shared module's light sampling, larger ones through the gather (default): the
+    /// parallel bundles find a large emitter with every direction and no noise from its
+    /// shape, and miss one smaller than a few pixels.
+    #[default]
+    Auto,
+    /// Every emitter through the shared module's light sampling.
+    Sampled,
+    /// Only the gather's rays (the seed): noise-free for large emitters, blind to small ones.
+    Gathered,
+}
+
+/// An emissive triangle with less area than this many pixels of the largest map pixel
+/// (the scene's bounding-box diagonal over `map_size`) is light-sampled under
+/// `emitters = auto`: 64 pixels is where the gather's per-direction hit count stops being
+/// a few pixels' worth of aliasing.
+pub const SAMPLED_EMITTER_PIXELS: f32 = 64.0;
+
 /// `obscurance` parameters (the job's `params` object). Unknown fields are rejected.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -220,6 +244,12 @@ pub struct ObscuranceParams {
     pub background: Background,
     /// I_A: `measured` (default) or `emitters` (Eq. 5 as printed).
     pub ambient: AmbientSource,
+    /// Emitters: `auto` (default: small ones through the shared direct-light module,
+    /// large ones through the gather), `sampled` or `gathered`.
+    pub emitters: EmitterLight,
+    /// Next-event estimates per texel and step of the shared direct light (point and
+    /// spot lights, sampled emitters), 1..=64; default 4.
+    pub light_samples: u32,
 }
 
 impl Default for ObscuranceParams {
@@ -232,6 +262,8 @@ impl Default for ObscuranceParams {
             directions: DirectionSequence::Stratified,
             background: Background::None,
             ambient: AmbientSource::Measured,
+            emitters: EmitterLight::Auto,
+            light_samples: 4,
         }
     }
 }
@@ -252,6 +284,12 @@ impl ObscuranceParams {
         }
         if !(64..=4096).contains(&self.map_size) {
             return bad(format!("map_size: {} is outside 64..=4096", self.map_size));
+        }
+        if !(1..=MAX_SAMPLES_PER_STEP).contains(&self.light_samples) {
+            return bad(format!(
+                "light_samples: {} is outside 1..={MAX_SAMPLES_PER_STEP}",
+                self.light_samples
+            ));
         }
         if !(1..=256).contains(&self.directions_per_step) {
             return bad(format!(
@@ -295,6 +333,8 @@ struct GpuDirectParams {
 }
 
 const TRI_TEXTURED_ALBEDO: u32 = 8;
+/// The triangle's emission comes from the shared direct-light module, not the gather.
+const TRI_SAMPLED_EMISSION: u32 = 16;
 const FLAG_BACKGROUND_AMBIENT: u32 = 1;
 const FLAG_SUBSET: u32 = 2;
 /// counters[0..4] in obscurance/gather.wgsl; influence masks follow.
@@ -369,6 +409,9 @@ pub struct Obscurance {
     node_capacity: u32,
     last_ao: Option<Vec<f32>>,
     last_stats: LayerStats,
+    /// Point and spot lights, and emitters unless `emitters = gathered`: the shared
+    /// direct-light module, stepped once per step.
+    shared_direct: Option<DirectLight>,
 
     vertex_count: u32,
     vertex_buf: wgpu::Buffer,
@@ -421,12 +464,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     prepare: |inputs, params| Ok(Box::new(Obscurance::prepare(inputs, params)?)),
     shaders: shaders::ALL,
     layers: &[OutputLayer::Direct, OutputLayer::Indirect, OutputLayer::Ao],
-    lights: &[
-        LightSource::Sky,
-        LightSource::Sun,
-        LightSource::DirectionalLights,
-        LightSource::Emitters,
-    ],
+    lights: LightSource::ALL,
     check_params: |p| ObscuranceParams::from_json(p).map(|_| ()),
 };
 
@@ -472,16 +510,14 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     } else {
         p.leave_out(SH_LAYER, "not asked for in outputs");
     }
-    let ignored = f.punctual_lights.saturating_sub(f.directional_lights);
-    if ignored > 0 {
-        p.leave_out(
-            "point and spot lights",
-            &format!(
-                "obscurance has shadow maps only for the sun and directional lights: the scene's {ignored} \
-                 point/spot light(s) are NOT baked (use `path`)"
-            ),
-        );
-    }
+    let point_spot = f.punctual_lights.saturating_sub(f.directional_lights);
+    p.decide(
+        "shared direct light",
+        point_spot > 0 || f.emissive_triangles > 0,
+        "point and spot lights, and emitters smaller than 64 map pixels (params.emitters = auto): E/pi with shadow rays \
+         on the GPU BVH (engine::gpu::direct_light), feeding I_A like the rest of the direct light",
+        "no point or spot light and no emitter",
+    );
     if f.glossy_materials > 0 {
         p.leave_out(
             "glossy transport",
@@ -604,6 +640,17 @@ impl Obscurance {
             });
         }
         let mut norm_area = 0.0f64;
+        // Which emitters the shared module samples (`params.emitters`).
+        let world_pixel = (hi - lo).length() / params.map_size as f32;
+        let sampled: Vec<bool> = scene
+            .triangles
+            .iter()
+            .map(|t| match params.emitters {
+                EmitterLight::Sampled => true,
+                EmitterLight::Gathered => false,
+                EmitterLight::Auto => t.area() < SAMPLED_EMITTER_PIXELS * world_pixel * world_pixel,
+            })
+            .collect();
         for (i, (t, st)) in input.triangles.iter().zip(&scene.triangles).enumerate() {
             for k in 0..3 {
                 vertices.push(GpuVertex {
@@ -623,6 +670,9 @@ impl Obscurance {
             }
             if m.base_color_texture.is_some() {
                 flags |= TRI_TEXTURED_ALBEDO;
+            }
+            if sampled[i] {
+                flags |= TRI_SAMPLED_EMISSION;
             }
             let albedo = m.base_color.truncate();
             materials.push([albedo.x, albedo.y, albedo.z, f32::from_bits(flags)]);
@@ -896,6 +946,23 @@ impl Obscurance {
             })
         };
         ctx.take_error("obscurance setup").map_err(gpu_error)?;
+        let mut sources = LightSources::PUNCTUAL;
+        if params.emitters != EmitterLight::Gathered {
+            sources = sources.with(LightSources::EMITTERS);
+        }
+        let shared_direct = DirectLight::new(
+            ctx.clone(),
+            "obscurance",
+            scene,
+            atlas,
+            &inputs.lighting,
+            inputs.seed,
+            sources,
+            Some(&sampled),
+            params.light_samples,
+            false,
+        )
+        .map_err(gpu_error)?;
 
         Ok(Obscurance {
             directions: Directions::new(params.directions, inputs.seed),
@@ -926,6 +993,7 @@ impl Obscurance {
             node_capacity,
             last_ao: None,
             last_stats: LayerStats::default(),
+            shared_direct,
             vertex_count: vertices.len() as u32,
             vertex_buf,
             view_buf,
@@ -1123,6 +1191,9 @@ impl Obscurance {
                 }
             }
         }
+        if let Some(d) = &mut self.shared_direct {
+            d.step()?;
+        }
         self.half_steps[parity] += 1;
         self.steps_done += 1;
         self.ctx.take_error("obscurance step")
@@ -1167,6 +1238,10 @@ impl Obscurance {
             .map(|a| *a as f64)
             .sum::<f64>()
             .max(f64::MIN_POSITIVE);
+        let shared: Option<[DirectHalf; 2]> = match &self.shared_direct {
+            Some(d) => Some(d.halves().map_err(gpu_error)?),
+            None => None,
+        };
         let half = |h: usize| {
             let (mut w, mut ao, mut dir, mut hit) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
             for k in 0..n {
@@ -1180,6 +1255,13 @@ impl Obscurance {
                 ao.push(a[3] * inv);
                 dir.push(Vec3::new(d[0], d[1], d[2]) * inv + Vec3::new(sun[0], sun[1], sun[2]));
                 hit.push(d[3] * inv);
+            }
+            // The shared module's light is direct light like the rest: it feeds I_A
+            // through D_ave, so its first (and every further) bounce is the model's.
+            if let Some(sh) = &shared {
+                for (d, e) in dir.iter_mut().zip(&sh[h].light) {
+                    *d += *e;
+                }
             }
             let ambient = match self.params.ambient {
                 AmbientSource::Emitters => self.eq5_ambient,

@@ -30,12 +30,12 @@ use std::sync::{Arc, OnceLock};
 use glam::Vec3;
 use wgpu::BufferUsages;
 
-use super::shaders::PATH_TRACE;
 use super::PathParams;
+use super::shaders::PATH_TRACE;
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::bvh::check_binding_size;
-use crate::engine::gpu::scene_lights::{GpuSceneLights, LightSources};
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
+use crate::engine::gpu::scene_lights::{GpuSceneLights, LightSources};
 use crate::engine::gpu::{self, AdapterPreference, GpuContext, GpuError, Requirements, dispatch_size_64};
 use crate::engine::raytrace::{EmitterTable, Tracer};
 use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};

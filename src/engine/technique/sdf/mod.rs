@@ -95,8 +95,10 @@ mod calibrate;
 
 use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
+use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::{self, GpuContext, GpuError};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{Plan, SH_LAYER, SceneFeatures};
@@ -223,6 +225,13 @@ pub struct SdfParams {
     pub calibration_rays: u32,
     /// Analytic dynamic objects, at most 64.
     pub dynamic: Vec<DynamicShape>,
+    /// Bounce the shared direct light (sun, directional, point and spot lights, emitters)
+    /// with the one-ambient model of the module doc; default true. False: that light is
+    /// direct only (the sky's bounce is `bleed` either way).
+    pub bounce: bool,
+    /// Next-event estimates per texel and step of the shared direct light, 1..=64;
+    /// default 4.
+    pub light_samples: u32,
     /// Output only: the calibration's fit (ignored on input).
     pub calibration: Option<CalibrationReport>,
 }
@@ -243,6 +252,8 @@ impl Default for SdfParams {
             calibration_texels: 256,
             calibration_rays: 64,
             dynamic: Vec::new(),
+            bounce: true,
+            light_samples: 4,
             calibration: None,
         }
     }
@@ -256,6 +267,12 @@ impl SdfParams {
         }
         if !(1..=10).contains(&self.samples) {
             return bad(format!("samples: {} is outside 1..=10", self.samples));
+        }
+        if !(1..=MAX_SAMPLES_PER_STEP).contains(&self.light_samples) {
+            return bad(format!(
+                "light_samples: {} is outside 1..={MAX_SAMPLES_PER_STEP}",
+                self.light_samples
+            ));
         }
         if let Some(k) = self.k
             && !(k > 0.0 && k <= 100.0)
@@ -485,6 +502,13 @@ pub struct Sdf {
     half_steps: [u64; 2],
     /// Sky visibility per valid texel as of the last snapshot (the `ao.Y` layer).
     last_ao: Option<Vec<f32>>,
+    /// The shared direct light (everything but the sky), when the scene and job have any.
+    direct: Option<DirectLight>,
+    /// Per valid texel: albedo and area, for the bounce's scene averages.
+    texel_albedo: Vec<Vec3>,
+    texel_area: Vec<f32>,
+    /// Area-weighted mean albedo R_ave.
+    r_ave: Vec3,
     k: f32,
     alpha: f32,
     gpu: Option<SdfGpu>,
@@ -517,23 +541,44 @@ impl Sdf {
         params.validate()?;
         params.calibration = None;
         let sky = inputs.lighting.sky.filter(|s| s.radiance != Vec3::ZERO);
-        let mut notes = Vec::new();
+        let notes = Vec::new();
         let scene = &inputs.scene;
-        let emissive = scene
-            .triangles
+        let atlas = &inputs.atlas;
+        // Everything but the sky comes from the shared direct-light module (GPU rays).
+        let has_other_light = !scene.lights.is_empty()
+            || inputs.lighting.sun.is_some()
+            || scene.triangles.iter().any(|t| scene.material(t).emissive != Vec3::ZERO);
+        let ctx = if (sky.is_some() || has_other_light) && !atlas.texels.is_empty() {
+            Some(gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?)
+        } else {
+            None
+        };
+        let direct = match &ctx {
+            Some(ctx) if has_other_light => DirectLight::new(
+                ctx.clone(),
+                "sdf",
+                scene,
+                atlas,
+                &inputs.lighting,
+                inputs.seed,
+                LightSources::ALL,
+                None,
+                params.light_samples,
+                params.bounce,
+            )
+            .map_err(gpu_error)?,
+            _ => None,
+        };
+        let texel_area: Vec<f32> = atlas.texels.iter().map(|t| t.size * t.size).collect();
+        let area_sum: f64 = texel_area.iter().map(|a| *a as f64).sum::<f64>().max(f64::MIN_POSITIVE);
+        let r_ave = (atlas
+            .texels
             .iter()
-            .filter(|t| scene.material(t).emissive != Vec3::ZERO)
-            .count();
-        if emissive > 0 || !scene.lights.is_empty() || inputs.lighting.sun.is_some() {
-            notes.push(format!(
-                "sdf bakes sky light only: {emissive} emissive triangle(s), {} punctual light(s) and {} sun are not baked (use path or sdb)",
-                scene.lights.len(),
-                if inputs.lighting.sun.is_some() { "the" } else { "no" }
-            ));
-        }
-        for n in &notes {
-            tracing::warn!("{n}");
-        }
+            .zip(&texel_area)
+            .map(|(t, a)| t.albedo.as_dvec3() * *a as f64)
+            .sum::<glam::DVec3>()
+            / area_sum)
+            .as_vec3();
         let mut sdf = Sdf {
             k: params.k.unwrap_or(DEFAULT_K),
             alpha: params.alpha.unwrap_or(DEFAULT_ALPHA),
@@ -546,16 +591,20 @@ impl Sdf {
             steps_done: 0,
             half_steps: [0, 0],
             last_ao: None,
+            direct: None,
+            texel_albedo: atlas.texels.iter().map(|t| t.albedo).collect(),
+            texel_area,
+            r_ave,
             gpu: None,
             timings: BuildTimings::default(),
             notes,
         };
-        // No sky, or nothing to bake: the lightmap is exactly zero and no GPU work is made
-        // (the plan lists the volume as left out).
-        if sky.is_none() || sdf.n_texels == 0 {
+        sdf.direct = direct;
+        // No sky, or nothing to bake: no volume (the plan lists it as left out); the
+        // shared direct light and its bounce need none.
+        let Some(ctx) = ctx.filter(|_| sky.is_some()) else {
             return Ok(sdf);
-        }
-        let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
+        };
         let t0 = Instant::now();
         sdf.gpu = Some(sdf.build(ctx, &inputs).map_err(gpu_error)?);
         sdf.timings.volume = t0.elapsed().as_secs_f64();
@@ -584,7 +633,7 @@ impl Sdf {
         self.timings
     }
 
-    /// The volume's layout (None when no volume was built: no sky).
+    /// The volume's layout (None when no volume was built: no sky and nothing to bounce).
     pub fn layout(&self) -> Option<&VolumeLayout> {
         self.gpu.as_ref().map(|g| &g.layout)
     }
@@ -927,6 +976,29 @@ impl SdfGpu {
     }
 }
 
+/// Guard on 1 - c R_ave: an albedo-1 closed scene has no finite ambient.
+const MIN_ABSORPTION: f32 = 1e-3;
+
+/// The ambient radiance the shared direct light leaves on surfaces, after every bounce
+/// of the one-ambient model (the module doc's *Bounce*): B1 = sum(A rho D) / sum(A), the
+/// area-weighted outgoing radiance of the directly lit surfaces, closed over further
+/// bounces by the geometric series B = B1 / (1 - c R_ave), c = sum(A h) / sum(A) the
+/// mean fraction h of a texel's hemisphere that sees surfaces (the shared pass's rays).
+fn shared_bounce(d: &DirectHalf, albedo: &[Vec3], area: &[f32], r_ave: Vec3) -> Vec3 {
+    let (mut b1, mut c, mut a_sum) = (glam::DVec3::ZERO, 0.0f64, 0.0f64);
+    for k in 0..d.light.len() {
+        let a = area[k] as f64;
+        b1 += (albedo[k] * d.light[k]).as_dvec3() * a;
+        c += d.hit[k].clamp(0.0, 1.0) as f64 * a;
+        a_sum += a;
+    }
+    if a_sum <= 0.0 {
+        return Vec3::ZERO;
+    }
+    let (b1, c) = ((b1 / a_sum).as_vec3(), (c / a_sum) as f32);
+    b1 / (Vec3::ONE - c * r_ave).max(Vec3::splat(MIN_ABSORPTION))
+}
+
 impl Technique for Sdf {
     fn id(&self) -> &'static str {
         "sdf"
@@ -968,6 +1040,9 @@ impl Technique for Sdf {
             g.ctx.queue.submit([encoder.finish()]);
             g.ctx.take_error("sdf step").map_err(gpu_error)?;
         }
+        if let Some(d) = &mut self.direct {
+            d.step().map_err(gpu_error)?;
+        }
         self.half_steps[parity] += 1;
         self.steps_done += 1;
         Ok(())
@@ -986,18 +1061,38 @@ impl Technique for Sdf {
                 .map_err(gpu_error)?,
             None => vec![[0.0; 4]; 2 * n],
         };
+        let shared: Option<[DirectHalf; 2]> = match &self.direct {
+            Some(d) => Some(d.halves().map_err(gpu_error)?),
+            None => None,
+        };
+        let bounce = self.params.bounce;
         let half = |h: usize| {
             let steps = self.half_steps[h];
             let scale = if steps > 0 { 1.0 / steps as f32 } else { 0.0 };
             let slice = &acc[h * n..(h + 1) * n];
+            // Sky light straight from the sky is all direct (path's first vertex); only
+            // the bleed term would be indirect, so the sky's direct is the bleed-free
+            // visibility times the sky.
+            let sky_total: Vec<Vec3> = slice.iter().map(|a| Vec3::from_slice(&a[..3]) * scale).collect();
+            let mut direct: Vec<Vec3> = slice.iter().map(|a| self.sky * (a[3] * scale)).collect();
+            let mut total = sky_total;
+            if let Some(sh) = &shared {
+                let d = &sh[h];
+                for k in 0..n {
+                    direct[k] += d.light[k];
+                    total[k] += d.light[k];
+                }
+                if bounce {
+                    let b = shared_bounce(d, &self.texel_albedo, &self.texel_area, self.r_ave);
+                    for k in 0..n {
+                        total[k] += b * d.hit[k].clamp(0.0, 1.0);
+                    }
+                }
+            }
             HalfEstimate {
                 steps,
-                total: slice.iter().map(|a| Vec3::from_slice(&a[..3]) * scale).collect(),
-                // Sky light straight from the sky is all direct (path's first vertex); only
-                // the bleed term would be indirect, so direct is the bleed-free visibility.
-                direct: self
-                    .want_direct
-                    .then(|| slice.iter().map(|a| self.sky * (a[3] * scale)).collect()),
+                total,
+                direct: self.want_direct.then_some(direct),
                 moments: None,
             }
         };
@@ -1053,18 +1148,19 @@ pub mod shaders {
 /// `sdf` in the technique table (`technique/table.rs`).
 pub const ENTRY: TechniqueEntry = TechniqueEntry {
     id: "sdf",
-    summary: "sky light from a signed-distance volume with calibrated constants and movable analytic occluders (GPU; sky light only)",
+    summary: "sky light from a signed-distance volume with calibrated constants and movable analytic occluders; other light from the shared GPU direct-light module with a one-ambient bounce (GPU)",
     plan,
     prepare: |inputs, params| Ok(Box::new(Sdf::prepare(inputs, params)?)),
     shaders: shaders::ALL,
     layers: &[OutputLayer::Direct, OutputLayer::Indirect, OutputLayer::Ao],
-    lights: &[LightSource::Sky],
+    lights: LightSource::ALL,
     check_params: |p| parse_params::<SdfParams>("sdf", p)?.validate(),
 };
 
 /// What `sdf` runs for a scene and job, and what it leaves out (DESIGN section 6).
 pub fn plan(f: &SceneFeatures) -> Plan {
     let mut p = Plan::new("sdf");
+    let other_light = f.sun || f.punctual_lights > 0 || f.emissive_triangles > 0;
     if f.sky {
         p.run(
             "voxelise",
@@ -1084,38 +1180,23 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         );
         p.run("sky", "samples along the bent normal per texel, jittered per step");
     } else {
-        p.leave_out(
-            "distance volume",
-            "the job has no sky: sdf bakes sky light only, so its lightmap is zero",
-        );
+        p.leave_out("distance volume", "the job has no sky: the volume serves the sky only");
     }
-    if f.emissive_triangles > 0 {
-        p.leave_out(
-            "emitters",
-            &format!(
-                "sdf bakes sky light only: the scene's {} emissive triangle(s) are NOT baked (use `path` or `sdb`)",
-                f.emissive_triangles
-            ),
-        );
-    }
-    if f.sun {
-        p.leave_out(
-            "sun",
-            "sdf bakes sky light only: the job's sun is NOT baked (use `sdb` or `path`)",
-        );
-    }
-    if f.punctual_lights > 0 {
-        p.leave_out(
-            "punctual lights",
-            &format!(
-                "sdf bakes sky light only: the scene's {} punctual light(s) are NOT baked (use `path`; `sdb` for directional)",
-                f.punctual_lights
-            ),
-        );
-    }
+    p.decide(
+        "shared direct light",
+        other_light,
+        "sun, directional, point and spot lights and emitters: E/pi with shadow rays on the GPU BVH (engine::gpu::direct_light)",
+        "no sun, no punctual light and no emitter",
+    );
+    p.decide(
+        "bounce of the shared direct light",
+        other_light,
+        "one scene-wide ambient (the obscurance model): h B1 / (1 - c R_ave), h each texel's hit fraction from the shared pass's rays; off with params.bounce = false",
+        "nothing but the sky to bounce",
+    );
     p.leave_out(
-        "interreflection",
-        "sdf computes sky visibility; bounced light only through the `bleed` approximation (off by default)",
+        "interreflection of the sky",
+        "the sky's bounce only through the `bleed` approximation (off by default)",
     );
     if f.want_sh {
         p.leave_out(
@@ -1134,7 +1215,7 @@ pub fn plan(f: &SceneFeatures) -> Plan {
             "the scene and job have no light at all: the lightmap is exactly zero",
         );
     }
-    p.error_estimate = "only the jitter noise: sdf is a calibrated approximation, its bias (see params().calibration and docs/sdf.md) is not in the half-difference estimate".into();
+    p.error_estimate = "noise only (the jitter and the shared direct light's samples): sdf is a calibrated approximation and its bounce a one-ambient model, and that bias (see params().calibration and docs/sdf.md) is not in the half-difference estimate".into();
     p
 }
 
