@@ -79,8 +79,12 @@
 //!   open one it accounts for the sky and for the reflected light that escapes.
 //!   `ambient = emitters` is Eq. 5 as printed.
 //! - Two half accumulators (even and odd steps) for the error estimate.
-//! - Point and spot lights are not handled (no cube shadow maps): the plan lists them as
-//!   left out, never silently dropped.
+//! - Point and spot lights, which parallel bundles cannot find, come from the shared
+//!   direct-light module (`engine::gpu::direct_light`: shadow rays on the GPU BVH), and
+//!   so do emitters under `emitters = auto` when a triangle is smaller than
+//!   [`SAMPLED_EMITTER_PIXELS`] map pixels (`sampled`: every emitter; `gathered`: none, the
+//!   seed), whose emission the gather then ignores (`TRI_SAMPLED_EMISSION`). Their light is
+//!   added to the direct light of each half before D_ave, so I_A bounces it like the rest.
 //!
 //! # Incremental update (seed section 5)
 //! During a bake every hit ORs two bits for the mesh it hit into the texel's influence
@@ -106,8 +110,8 @@
 //!   docs/obscurance.md and docs/stability.md.
 //! - Lateral resolution: list samples sit at pixel centres, up to half a pixel from the
 //!   texel's ray, which blurs contact shadows over a map pixel.
-//! - Small emitters are found only by the rays that hit them (noisy); point and spot
-//!   lights are not baked.
+//! - Large emitters are found only by the rays that hit them (under `auto`); their noise
+//!   is the directions', not light sampling's.
 
 use std::sync::Arc;
 

@@ -64,10 +64,25 @@
 //! - Colour bleed (section 9.9) scales each channel's terms by (1 - bleed albedo) of the
 //!   surface nearest the sample instead of adding a per-object constant; off by default.
 //!
+//! 7. *Other light* (`engine::gpu::direct_light`, issue 21): the sun, directional, point
+//!    and spot lights and emitters are not sky light, so the volume has nothing to say
+//!    about them: the shared direct-light module estimates their E/pi per texel with
+//!    shadow rays on the GPU BVH (`light_samples` a step, light sampling only) and, with
+//!    `bounce` (default), the fraction h of each texel's cosine-weighted hemisphere that
+//!    sees a surface (one ray per sample).
+//! 8. *Bounce* of that light, sdf's own model (the obscurance seed's ambient closure,
+//!    since sdf has no transport between surfaces): B1 = sum(A rho D) / sum(A), the
+//!    area-weighted mean outgoing radiance of the directly lit surfaces, closed over
+//!    further bounces as B = B1 / (1 - c R_ave), c the area-weighted mean of h; each
+//!    texel adds h B to its indirect light. Exact in a closed room of one albedo (the
+//!    furnace: tests/direct_light.rs), zero on open ground (h = 0); light does not
+//!    prefer the room it was emitted in (one ambient for the whole scene). Computed per
+//!    half from that half's estimates, so the halves stay independent.
+//!
 //! # Limits
-//! - Sky light only: emitters, the sun and punctual lights are listed as left out in the
-//!   plan and are not baked (no shared GPU direct-light path exists to reuse); bounced
-//!   light only through `bleed`.
+//! - The sky's own bounce only through `bleed`; the bounce of the other light is one
+//!   scene-wide ambient (above), so a dark room beside a lit one gets the same ambient
+//!   (docs/stability.md measures it).
 //! - The volume covers the scene's bounds: detail smaller than a voxel is blurred, and
 //!   occluders outside the volume (dynamic shapes moved out) are not seen.
 //! - The model is a heuristic: its error against the true visibility is what the
