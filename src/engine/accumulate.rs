@@ -114,8 +114,23 @@ impl Estimate {
 
 #[derive(Clone, Copy, Debug, Serialize, PartialEq)]
 pub struct ErrorSummary {
-    /// RMS standard error over RMS estimate; `None` before both halves have a step.
+    /// The relative error the bake reports and stops on: the RMS standard error from the
+    /// halves over the RMS estimate (noise) for an unbiased technique; for a biased one
+    /// with control texels (`engine::control`) the measured RMS error, bias and noise,
+    /// never below the noise. `None` before both halves have a step.
     pub relative: Option<f32>,
+    /// The noise part alone (the halves' difference), when `relative` covers more.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub noise: Option<f32>,
+    /// The bias part measured at the control texels, relative.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub bias: Option<f32>,
+    /// 90 % interval of `relative` from the control texels' spread.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub interval: Option<[f32; 2]>,
+    /// How many control texels measured the bias.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub control_texels: Option<u32>,
     /// RMS of the luminance estimate over valid texels.
     pub rms_luminance: f32,
     /// After denoising, `relative` is the estimated error of the denoised lightmap and
@@ -183,6 +198,10 @@ impl Snapshot {
             texel_error,
             error: ErrorSummary {
                 relative,
+                noise: None,
+                bias: None,
+                interval: None,
+                control_texels: None,
                 rms_luminance,
                 raw_relative: None,
             },

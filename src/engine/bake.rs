@@ -22,6 +22,7 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 
 use crate::engine::accumulate::Estimate;
+use crate::engine::control::ControlTexels;
 use crate::engine::error::EngineError;
 use crate::engine::technique::api::Technique;
 
@@ -112,6 +113,9 @@ pub struct BakeLoop {
     pub stop: StopCriteria,
     /// Longest time between snapshots once the doubling schedule has thinned out.
     pub snapshot_interval: Duration,
+    /// The bias measurement of a biased technique (`engine::control`): stepped alongside,
+    /// folded into every snapshot's error, which the target error then stops on.
+    pub control: Option<ControlTexels>,
 }
 
 impl BakeLoop {
@@ -119,11 +123,12 @@ impl BakeLoop {
         BakeLoop {
             stop,
             snapshot_interval: Duration::from_secs(5),
+            control: None,
         }
     }
 
     pub fn run(
-        &self,
+        &mut self,
         technique: &mut dyn Technique,
         observer: &mut dyn BakeObserver,
     ) -> Result<BakeOutcome, EngineError> {
@@ -132,10 +137,16 @@ impl BakeLoop {
         let mut last_snapshot = start;
         let mut next_doubling = 2u64;
         let mut longest_step = Duration::ZERO;
+        let mut technique_time = Duration::ZERO;
         loop {
             let step_start = Instant::now();
             technique.step()?;
-            longest_step = longest_step.max(step_start.elapsed());
+            let step_time = step_start.elapsed();
+            longest_step = longest_step.max(step_time);
+            technique_time += step_time;
+            if let Some(c) = &mut self.control {
+                c.keep_up(technique_time)?;
+            }
             let steps = technique.steps_done();
             let elapsed = start.elapsed();
             let cancelled = observer
@@ -164,6 +175,9 @@ impl BakeLoop {
             let mut estimate = technique.snapshot()?.estimate();
             estimate.ao = technique.ao();
             check_finite(technique, &estimate)?;
+            if let Some(c) = &mut self.control {
+                c.assess(&mut estimate)?;
+            }
             tracing::debug!(
                 technique = technique.id(),
                 step = steps,

@@ -15,6 +15,7 @@ use crate::engine::atlas::unwrap::{self, LightmapUvs, UnwrapReport};
 use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
+use crate::engine::control::{CONTROL_TEXELS, ControlTexels};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
 use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
@@ -116,12 +117,16 @@ pub struct BakeOptions {
     /// Longest time between snapshots (each costs a readback and, in the service, an
     /// EXR upload).
     pub snapshot_interval: Duration,
+    /// Measure a biased technique's bias at control texels (`engine::control`), so the
+    /// reported error covers it; default true.
+    pub control_texels: bool,
 }
 
 impl Default for BakeOptions {
     fn default() -> Self {
         BakeOptions {
             snapshot_interval: Duration::from_secs(5),
+            control_texels: true,
         }
     }
 }
@@ -186,6 +191,20 @@ fn bake_impl(
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
     let mut plan = plan_for(&scene, request)?;
+    let control = options.control_texels && !technique::entry(&request.technique)?.unbiased;
+    if control {
+        plan.run(
+            "control texels",
+            &format!(
+                "up to {CONTROL_TEXELS} stratified texels traced by path alongside (at most a fifth of the time) to measure the bias"
+            ),
+        );
+        plan.error_estimate = format!(
+            "noise and bias, measured at up to {CONTROL_TEXELS} control texels against path (90 % interval in error.interval); \
+             without them: {}",
+            plan.error_estimate
+        );
+    }
     let denoiser = request.denoise.resolve().map_err(EngineError::BadInput)?;
     if denoiser == Used::None {
         plan.leave_out("denoiser", "the job asks for the raw estimate");
@@ -267,6 +286,9 @@ fn bake_impl(
     };
     let mut bake_loop = BakeLoop::new(stop);
     bake_loop.snapshot_interval = options.snapshot_interval;
+    if control && !atlas.texels.is_empty() {
+        bake_loop.control = Some(ControlTexels::new(&scene, &atlas, request.lighting, request.seed)?);
+    }
     let outcome = bake_loop.run(tech, observer)?;
     // Denoised once: the EXR and the preview show the same delivered lightmap. A
     // cancelled bake is delivered raw: whoever cancelled does not keep it (the service

@@ -6,6 +6,7 @@
 pub mod accumulate;
 pub mod atlas;
 pub mod bake;
+pub mod control;
 pub mod error;
 pub mod footprint;
 pub mod gpu;

@@ -645,7 +645,10 @@ fn run_bake(
     let (scene, _report) = import_files(&files, &ctx.limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
     drop(files);
     let request = spec.to_request();
-    let options = BakeOptions { snapshot_interval };
+    let options = BakeOptions {
+        snapshot_interval,
+        ..Default::default()
+    };
     let (raw_tx, raw_rx) = std::sync::mpsc::sync_channel::<RawSnapshot>(1);
     std::thread::scope(|s| {
         let encoder = std::thread::Builder::new()

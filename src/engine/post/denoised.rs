@@ -273,7 +273,17 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
     let rms = (out.total.iter().map(|v| (v.dot(LUMINANCE) as f64).powi(2)).sum::<f64>() / count).sqrt();
     let rms_err = (blend.texel_error.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / count).sqrt();
     out.error.raw_relative = estimate.error.relative;
-    out.error.relative = Some(if rms > 0.0 { (rms_err / rms) as f32 } else { 0.0 });
+    let noise = if rms > 0.0 { (rms_err / rms) as f32 } else { 0.0 };
+    // The bias the control texels measured is still there after denoising (the filter
+    // only trades noise for its own blur): added back to the denoised noise.
+    out.error.relative = Some(match estimate.error.bias {
+        Some(b) => (noise * noise + b * b).sqrt(),
+        None => noise,
+    });
+    if estimate.error.bias.is_some() {
+        out.error.noise = Some(noise);
+        out.error.interval = None;
+    }
     out.error.rms_luminance = rms as f32;
     out.texel_error = Some(blend.texel_error);
     out.halves = None;

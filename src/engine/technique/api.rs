@@ -92,6 +92,10 @@ pub struct TechniqueEntry {
     /// Parses and checks a parameter object without preparing anything, so a bad one is
     /// caught when the job is submitted, not when it runs.
     pub check_params: fn(&Value) -> Result<(), EngineError>,
+    /// The estimator converges to the answer (only `path`, the reference): its noise is
+    /// its whole error. A biased technique's bake measures its bias at control texels
+    /// (`engine::control`).
+    pub unbiased: bool,
 }
 
 /// A kind of light, as the technique table's `lights` column names it.

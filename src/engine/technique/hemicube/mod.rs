@@ -940,6 +940,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     layers: &[OutputLayer::Direct, OutputLayer::Indirect],
     lights: LightSource::ALL,
     check_params: |p| parse_params::<HemicubeParams>("hemicube", p)?.validate(),
+    unbiased: false,
 };
 
 /// What `hemicube` runs for a scene and job, and what it leaves out (DESIGN §6).

@@ -470,6 +470,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     layers: &[OutputLayer::Direct, OutputLayer::Indirect, OutputLayer::Ao],
     lights: LightSource::ALL,
     check_params: |p| ObscuranceParams::from_json(p).map(|_| ()),
+    unbiased: false,
 };
 
 /// What `obscurance` runs for a scene and job, and what it leaves out (DESIGN section 6).

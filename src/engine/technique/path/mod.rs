@@ -130,6 +130,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     layers: &[OutputLayer::Direct, OutputLayer::Indirect, OutputLayer::Sh],
     lights: LightSource::ALL,
     check_params: |p| parse_params::<PathParams>("path", p)?.validate(),
+    unbiased: true,
 };
 
 /// The path tracer's plan: one CPU pass, and light sampling only for the kinds of light

@@ -1374,6 +1374,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
             .validate()
             .map_err(|e| EngineError::BadInput(e.to_string()))
     },
+    unbiased: false,
 };
 
 /// What `sdb` runs for a scene and job, and what it leaves out (DESIGN section 6).

@@ -1170,6 +1170,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     layers: &[OutputLayer::Direct, OutputLayer::Indirect, OutputLayer::Ao],
     lights: LightSource::ALL,
     check_params: |p| parse_params::<SdfParams>("sdf", p)?.validate(),
+    unbiased: false,
 };
 
 /// What `sdf` runs for a scene and job, and what it leaves out (DESIGN section 6).

@@ -979,6 +979,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     layers: &[OutputLayer::Direct, OutputLayer::Indirect],
     lights: LightSource::ALL,
     check_params: |p| parse_params::<VplParams>("vpl", p)?.validate(),
+    unbiased: false,
 };
 
 /// What `vpl` runs for a scene and job, and what it leaves out (DESIGN section 6).

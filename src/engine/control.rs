@@ -1,0 +1,198 @@
+//! Control texels: the bias of a biased technique, measured while it bakes (issue 21
+//! point 2), so the error a job reports and stops on covers its bias as well as its noise.
+//!
+//! What: a stratified random subset of the atlas's texels (systematic sampling over the
+//! texels in atlas order with a random start, so every region of the page is represented
+//! in proportion to its texels) is baked alongside by the unbiased reference, `path`
+//! (through the technique table, on the GPU when there is a hardware adapter, else the
+//! CPU), on a sub-atlas that holds only those texels. At every snapshot the technique's
+//! values T_k at the control texels are compared with path's P_k:
+//!
+//! - d_k = (T_k - P_k)^2 - sP_k^2 estimates the technique's mean squared error at texel
+//!   k, bias and noise together (E[(T - P)^2] = (T's bias)^2 + sT^2 + sP^2 for independent
+//!   estimates; subtracting path's own variance sP^2, from its halves, leaves T's error);
+//! - their mean over the M control texels estimates the technique's mean squared error
+//!   over the page; its standard error s_d / sqrt(M) gives the stated confidence interval
+//!   (90 %, normal approximation: mean +- 1.645 standard errors);
+//! - the reported relative error is sqrt(max(mean d, noise^2)) over the RMS luminance of
+//!   the answer (estimated from path's values, less path's variance: relative to the
+//!   answer, not to the technique's own values, which a biased technique gets wrong),
+//!   never below the technique's own half-difference noise estimate; the bias part is
+//!   sqrt(max(mean d - mean sT_k^2, 0)) on the same scale.
+//!
+//! Luminance (`accumulate::LUMINANCE`) throughout, as the noise estimate.
+//!
+//! Budget: the control is stepped after a technique step while its time is below
+//! [`CONTROL_SHARE`] of the technique's, so it costs at most about a fifth of the bake (and
+//! one step at least, so a bake of one long step still has a control estimate).
+//!
+//! Limits: M texels resolve a bias that covers a fraction f of the page only when f M is
+//! several texels (a bias confined to 1 % of the texels is seen by about 2.6 of 256);
+//! path's noise at the control texels limits how small a bias can be told from zero (the
+//! estimate is clamped at the noise figure, never reported as less); the control's own
+//! estimate carries path's limits (its `max_bounces`, the adapter's loop budget on
+//! lavapipe, for which path runs on the CPU here).
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use serde::Serialize;
+
+use crate::engine::accumulate::{Estimate, LUMINANCE};
+use crate::engine::atlas::Atlas;
+use crate::engine::error::EngineError;
+use crate::engine::plan::SceneFeatures;
+use crate::engine::rng::Rng;
+use crate::engine::scene::{Lighting, Scene};
+use crate::engine::technique::{self, BakeInputs, Technique};
+
+/// Control texels per bake (fewer when the atlas has fewer texels).
+pub const CONTROL_TEXELS: usize = 256;
+/// The control's share of the technique's stepping time.
+pub const CONTROL_SHARE: f64 = 0.25;
+/// z of the two-sided 90 % interval.
+const Z90: f64 = 1.645;
+
+/// The bias measurement of one snapshot.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+pub struct ControlReport {
+    /// Control texels compared.
+    pub texels: usize,
+    /// path's steps at the control texels.
+    pub reference_steps: u64,
+    /// Relative RMS error over the control texels, noise and bias (before the noise floor).
+    pub relative: f32,
+    /// The bias part, relative.
+    pub bias: f32,
+    /// 90 % interval of the reported relative error.
+    pub interval: [f32; 2],
+}
+
+/// The control texels of one bake and their `path` reference.
+pub struct ControlTexels {
+    indices: Vec<usize>,
+    reference: Box<dyn Technique>,
+    time: Duration,
+}
+
+impl ControlTexels {
+    /// Picks up to [`CONTROL_TEXELS`] texels of `atlas` and prepares `path` on them.
+    pub fn new(scene: &Arc<Scene>, atlas: &Atlas, lighting: Lighting, seed: u64) -> Result<Self, EngineError> {
+        let n = atlas.texels.len();
+        let m = n.min(CONTROL_TEXELS);
+        let mut rng = Rng::new(seed, 0xC0_17_20_1E, 0x51, 0);
+        let stride = n as f64 / m.max(1) as f64;
+        let start = rng.next_f32() as f64 * stride;
+        let indices: Vec<usize> = (0..m)
+            .map(|i| ((start + i as f64 * stride) as usize).min(n - 1))
+            .collect();
+        let sub = Atlas {
+            width: atlas.width,
+            height: atlas.height,
+            texels: indices.iter().map(|&k| atlas.texels[k]).collect(),
+            pixel_texel: Vec::new(),
+            links: Vec::new(),
+            overlapping_texels: 0,
+            surface_offset: atlas.surface_offset,
+            overlap_pixels: Vec::new(),
+            inside_pixels: Vec::new(),
+            validation: None,
+            seams: Vec::new(),
+        };
+        let features = SceneFeatures::of(scene, &lighting, &[]);
+        let inputs = BakeInputs {
+            scene: scene.clone(),
+            atlas: Arc::new(sub),
+            lighting,
+            seed: seed ^ 0x5EED_C0A7_0000_0001,
+            want_direct: false,
+            plan: technique::plan("path", &features)?,
+        };
+        let reference = technique::create("path", inputs, &serde_json::json!({"samples_per_step": 4}))?;
+        Ok(ControlTexels {
+            indices,
+            reference,
+            time: Duration::ZERO,
+        })
+    }
+
+    pub fn texels(&self) -> usize {
+        self.indices.len()
+    }
+
+    /// Steps the reference while its time is below [`CONTROL_SHARE`] of `technique_time`
+    /// (at least once in all).
+    pub fn keep_up(&mut self, technique_time: Duration) -> Result<(), EngineError> {
+        while self.reference.steps_done() < 2 || self.time.as_secs_f64() < CONTROL_SHARE * technique_time.as_secs_f64()
+        {
+            let t0 = Instant::now();
+            self.reference.step()?;
+            self.time += t0.elapsed();
+        }
+        Ok(())
+    }
+
+    /// Compares `estimate` with the reference at the control texels, and folds the result
+    /// into `estimate.error` (see the module doc). Does nothing before both halves of both
+    /// have a step.
+    pub fn assess(&mut self, estimate: &mut Estimate) -> Result<Option<ControlReport>, EngineError> {
+        let (Some(se_t), Some(noise)) = (estimate.texel_error.as_ref(), estimate.error.relative) else {
+            return Ok(None);
+        };
+        let reference = self.reference.snapshot()?.estimate();
+        let Some(se_p) = reference.texel_error.as_ref() else {
+            return Ok(None);
+        };
+        let rms_t = estimate.error.rms_luminance as f64;
+        let lum = |v: Vec3| v.dot(LUMINANCE) as f64;
+        let m = self.indices.len() as f64;
+        // The error relative to the answer, not to the technique's own values (a
+        // technique that reads 3x too bright would otherwise divide its error by 3):
+        // the RMS of the answer estimated from path's values, less path's variance.
+        let ms_ref = reference
+            .total
+            .iter()
+            .zip(se_p)
+            .map(|(p, s)| lum(*p).powi(2) - (*s as f64).powi(2))
+            .sum::<f64>()
+            / m;
+        let rms = ms_ref.max(0.0).sqrt();
+        if rms <= 0.0 || rms_t <= 0.0 || self.indices.is_empty() {
+            return Ok(None);
+        }
+        let mut d = Vec::with_capacity(self.indices.len());
+        let mut noise_at_control = 0.0f64;
+        for (j, &k) in self.indices.iter().enumerate() {
+            let diff = lum(estimate.total[k]) - lum(reference.total[j]);
+            d.push(diff * diff - (se_p[j] as f64).powi(2));
+            noise_at_control += (se_t[k] as f64).powi(2);
+        }
+        let mean = d.iter().sum::<f64>() / m;
+        let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1.0).max(1.0);
+        let se = (var / m).sqrt();
+        let noise_ms = (noise as f64 * rms_t).powi(2);
+        let rel = |ms: f64| (ms.max(noise_ms).sqrt() / rms) as f32;
+        let report = ControlReport {
+            texels: self.indices.len(),
+            reference_steps: reference.steps,
+            relative: (mean.max(0.0).sqrt() / rms) as f32,
+            bias: ((mean - noise_at_control / m).max(0.0).sqrt() / rms) as f32,
+            interval: [rel(mean - Z90 * se), rel(mean + Z90 * se)],
+        };
+        estimate.error.noise = Some(noise);
+        estimate.error.relative = Some(rel(mean));
+        estimate.error.bias = Some(report.bias);
+        estimate.error.interval = Some(report.interval);
+        estimate.error.control_texels = Some(report.texels as u32);
+        tracing::debug!(
+            control_texels = report.texels,
+            reference_steps = report.reference_steps,
+            noise,
+            bias = report.bias,
+            relative = ?estimate.error.relative,
+            "control texels"
+        );
+        Ok(Some(report))
+    }
+}
