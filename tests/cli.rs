@@ -215,6 +215,20 @@ fn bad_options_exit_2() {
         &scene,
         "outputs[0]: sdf cannot write the \"sh\" layer; techniques that can: path",
     );
+    let probes = tmp("never-probes.json");
+    assert_bad_input(
+        &[
+            "--probes",
+            probes.to_str().unwrap(),
+            "--probe-spacing",
+            "0",
+            "--steps",
+            "1",
+        ],
+        &scene,
+        "--probe-spacing must be a positive distance, got 0",
+    );
+    assert!(!probes.exists());
     // clap's own errors use exit code 2 as well.
     let o = bin().args(["bake", "--resolution", "abc"]).output().unwrap();
     assert_eq!(o.status.code(), Some(2));
@@ -297,4 +311,49 @@ fn scene_without_lightmap_uvs_bakes_and_writes_them() {
     let (_, report) = lightmapd::engine::scene::import_file(&gltf).unwrap();
     assert!(report.has_lightmap_uvs);
     assert!(out.exists());
+}
+
+/// `--probes` writes the documented JSON: convention, basis, and probes with world
+/// positions, nine RGB coefficients, validity and an error; the bundled Cornell box is
+/// closed, so probes inside its walls' thickness-free box are valid and lit.
+#[test]
+fn bake_writes_probes_beside_the_lightmap() {
+    let out = tmp("probes.exr");
+    let probes = tmp("probes.json");
+    let o = bin()
+        .arg("bake")
+        .arg(bundled())
+        .args(["-o"])
+        .arg(&out)
+        .args([
+            "--resolution",
+            "16",
+            "--steps",
+            "2",
+            "--probe-spacing",
+            "0.25",
+            "--probe-steps",
+            "2",
+            "--probes",
+        ])
+        .arg(&probes)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(stderr.contains("probes ("), "{stderr}");
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&probes).unwrap()).unwrap();
+    assert!(v["convention"].as_str().unwrap().starts_with("incident radiance"));
+    let list = v["probes"].as_array().unwrap();
+    assert!(list.len() >= 8, "{} probes", list.len());
+    let lit = list
+        .iter()
+        .filter(|p| p["valid"].as_bool().unwrap() && p["sh"][0][0].as_f64().unwrap() > 0.0)
+        .count();
+    assert!(lit > 0, "no lit probe");
+    for p in list {
+        assert_eq!(p["sh"].as_array().unwrap().len(), 9);
+        assert_eq!(p["position"].as_array().unwrap().len(), 3);
+        assert!(p["error"].as_f64().unwrap() >= 0.0);
+    }
 }

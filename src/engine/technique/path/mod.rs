@@ -51,6 +51,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 mod gpu;
+pub mod probes;
 
 use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, parse_params};
 use crate::engine::accumulate::{HalfAccumulator, Snapshot};

@@ -1,0 +1,411 @@
+//! Light probes baked by `path` (issue 26 point 1): the incident radiance at points in
+//! free space as real spherical harmonics up to L2, for the dynamic objects a lightmap
+//! cannot light.
+//!
+//! # Convention
+//! Each probe stores the SH projection of the *incident radiance* L(w) (w pointing away
+//! from the probe, toward where the light comes from): c_i = integral over the sphere of
+//! L(w) Y_i(w) dw, RGB, nine coefficients in the order
+//! Y_00; Y_1-1, Y_10, Y_11; Y_2-2, Y_2-1, Y_20, Y_21, Y_22 with the usual real,
+//! orthonormal basis in *world* axes (x, y, z; y is up in glTF):
+//! Y_00 = 0.282095, Y_1-1 = 0.488603 y, Y_10 = 0.488603 z, Y_11 = 0.488603 x,
+//! Y_2-2 = 1.092548 x y, Y_2-1 = 1.092548 y z, Y_20 = 0.315392 (3 z^2 - 1),
+//! Y_21 = 1.092548 x z, Y_22 = 0.546274 (x^2 - y^2) ([`sh9`]). L1 is the first four.
+//! A renderer gets irradiance E(n) = sum_i A_l c_i Y_i(n) with A_0 = pi, A_1 = 2 pi / 3,
+//! A_2 = pi / 4 (Ramamoorthi & Hanrahan 2001), and the lightmap's quantity, E / pi
+//! (DESIGN section 2), by dividing by pi ([`irradiance_over_pi`]).
+//!
+//! # How (per probe and sample, on all CPU cores)
+//! - One direction w uniform on the sphere (density 1 / 4 pi); the ray's radiance is the
+//!   sky where it leaves the scene (not the sun's disc: that is sampled below), black on
+//!   the back of a single-sided surface, else the surface's emission plus albedo times
+//!   `path`'s own estimate of E / pi there (next-event estimation and a cosine-sampled
+//!   continuation: the same estimator as a texel's). Weighted 4 pi Y_i(w).
+//! - Next-event estimation for the light a uniform direction cannot find: every point,
+//!   spot and directional light (a delta in direction d with E_perp = I att / r^2, or the
+//!   directional light's irradiance: E_perp Y_i(d)) and the sun (one direction in its
+//!   cone, radiance x solid angle x Y_i(d)), each with a shadow ray. Emitters are found by
+//!   the uniform directions only (no light sampling for probes yet: small emitters are
+//!   noisy, not biased).
+//! - Two half accumulators (even and odd steps) as for texels; a probe's error is the
+//!   standard error of its L0 luminance, |even - odd| sqrt(n_e n_o) / (n_e + n_o), over
+//!   its L0 luminance.
+//!
+//! # Placement
+//! Given positions, or a grid at `spacing` over the scene's bounds (cell centres). A
+//! probe inside geometry would read the black backs of the surfaces around it: 64
+//! stratified directions are cast from it, and a probe that sees the back face of a
+//! single-sided surface in more than half of them is marked invalid (`valid = false`)
+//! and not baked; a probe in open space or beside a wall sees back faces in none.
+//!
+//! Limits: CPU only (the GPU megakernel bakes texels; probes are few); no light sampling
+//! of emitters; no adaptive density.
+
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::{PathContext, PathParams};
+use crate::engine::accumulate::LUMINANCE;
+use crate::engine::error::EngineError;
+use crate::engine::raytrace::{EmitterTable, Tracer, cone_sample, inset};
+use crate::engine::rng::Rng;
+use crate::engine::scene::{LightKind, Lighting, Scene};
+
+/// Coefficients of L2 spherical harmonics.
+pub const SH9: usize = 9;
+/// Directions of the inside test.
+const INSIDE_RAYS: u32 = 64;
+
+/// The real SH basis up to L2 at unit direction `w` (order in the module doc).
+pub fn sh9(w: Vec3) -> [f32; SH9] {
+    let (x, y, z) = (w.x, w.y, w.z);
+    [
+        0.282_095,
+        0.488_603 * y,
+        0.488_603 * z,
+        0.488_603 * x,
+        1.092_548 * x * y,
+        1.092_548 * y * z,
+        0.315_392 * (3.0 * z * z - 1.0),
+        1.092_548 * x * z,
+        0.546_274 * (x * x - y * y),
+    ]
+}
+
+/// E(n) / pi from radiance coefficients `c`: the cosine lobe's convolution, band by band.
+pub fn irradiance_over_pi(c: &[Vec3; SH9], n: Vec3) -> Vec3 {
+    let y = sh9(n);
+    let band = [1.0, 2.0 / 3.0, 2.0 / 3.0, 2.0 / 3.0, 0.25, 0.25, 0.25, 0.25, 0.25];
+    (0..SH9).map(|i| c[i] * (band[i] * y[i])).sum()
+}
+
+fn uniform_sphere(u1: f32, u2: f32) -> Vec3 {
+    let z = 1.0 - 2.0 * u1;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let phi = 2.0 * std::f32::consts::PI * u2;
+    Vec3::new(r * phi.cos(), r * phi.sin(), z)
+}
+
+/// One baked probe.
+#[derive(Clone, Debug, Serialize)]
+pub struct Probe {
+    /// World space (the glTF's coordinates).
+    pub position: [f32; 3],
+    /// False when the probe lies inside geometry (not baked; its coefficients are 0).
+    pub valid: bool,
+    /// Radiance SH, 9 x RGB (module doc).
+    pub sh: [[f32; 3]; SH9],
+    /// Relative standard error of the L0 luminance (0 for an invalid or black probe).
+    pub error: f32,
+}
+
+/// The probes file's body (`--probes`): convention, basis and the probes.
+#[derive(Clone, Debug, Serialize)]
+pub struct ProbeSet {
+    pub convention: &'static str,
+    pub basis: &'static str,
+    pub steps: u64,
+    pub probes: Vec<Probe>,
+}
+
+/// Positions of a grid of cells of side `spacing` over the scene's bounds (cell centres),
+/// at most `max` of them.
+pub fn grid_positions(scene: &Scene, spacing: f32, max: usize) -> Result<Vec<Vec3>, EngineError> {
+    if !(spacing.is_finite() && spacing > 0.0) {
+        return Err(EngineError::BadInput(format!(
+            "probes.spacing must be a positive distance, got {spacing}"
+        )));
+    }
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for t in &scene.triangles {
+        for p in t.p {
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+    }
+    if scene.triangles.is_empty() {
+        return Ok(vec![Vec3::ZERO]);
+    }
+    let cells = ((hi - lo) / spacing).ceil().max(Vec3::ONE);
+    let count = cells.x as f64 * cells.y as f64 * cells.z as f64;
+    if count > max as f64 {
+        return Err(EngineError::BadInput(format!(
+            "probes.spacing {spacing} makes {count} probes over the scene's bounds; at most {max}"
+        )));
+    }
+    let step = (hi - lo) / cells;
+    let mut out = Vec::with_capacity(count as usize);
+    for k in 0..cells.z as u32 {
+        for j in 0..cells.y as u32 {
+            for i in 0..cells.x as u32 {
+                out.push(lo + step * (Vec3::new(i as f32, j as f32, k as f32) + 0.5));
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Bakes probes at `positions` (the scene's own frame: world minus `Scene::origin_offset`,
+/// as [`grid_positions`] gives them; [`Probe::position`] is world space again) with
+/// `path`'s estimator.
+pub struct ProbeBaker<'a> {
+    scene: &'a Scene,
+    lighting: Lighting,
+    tracer: Tracer,
+    emitters: EmitterTable,
+    params: PathParams,
+    positions: Vec<Vec3>,
+    valid: Vec<bool>,
+    seed: u64,
+    halves: [Vec<[Vec3; SH9]>; 2],
+    steps: [u64; 2],
+    /// Offset of secondary rays off surfaces (the atlas's surface offset for the scene).
+    eps: f32,
+}
+
+impl<'a> ProbeBaker<'a> {
+    pub fn new(
+        scene: &'a Scene,
+        lighting: Lighting,
+        positions: Vec<Vec3>,
+        params: &serde_json::Value,
+        seed: u64,
+    ) -> Result<Self, EngineError> {
+        let params: PathParams = crate::engine::technique::api::parse_params("path", params)?;
+        params.validate()?;
+        if let Some(k) = positions.iter().position(|p| !p.is_finite()) {
+            return Err(EngineError::BadInput(format!("probes.positions[{k}] is not finite")));
+        }
+        let tracer = Tracer::new(scene);
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for t in &scene.triangles {
+            for p in t.p {
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        // As the atlas sizes it: relative to the scene, far below any feature.
+        let eps = if scene.triangles.is_empty() {
+            1e-4
+        } else {
+            ((hi - lo).length() * 1e-5).max(1e-6)
+        };
+        let valid: Vec<bool> = positions
+            .par_iter()
+            .map(|p| !inside_geometry(scene, &tracer, *p))
+            .collect();
+        let n = positions.len();
+        Ok(ProbeBaker {
+            scene,
+            lighting,
+            emitters: EmitterTable::new(scene),
+            tracer,
+            params,
+            positions,
+            valid,
+            seed,
+            halves: [vec![[Vec3::ZERO; SH9]; n], vec![[Vec3::ZERO; SH9]; n]],
+            steps: [0, 0],
+            eps,
+        })
+    }
+
+    pub fn valid(&self) -> &[bool] {
+        &self.valid
+    }
+
+    /// One step: `samples_per_step` samples for every valid probe, into the half of the
+    /// step's parity (running means).
+    pub fn step(&mut self) {
+        let step = self.steps[0] + self.steps[1];
+        let half = (step % 2) as usize;
+        let k = self.steps[half] + 1;
+        let ctx = PathContext {
+            scene: self.scene,
+            tracer: &self.tracer,
+            emitters: &self.emitters,
+            lighting: &self.lighting,
+            max_bounces: self.params.max_bounces,
+            rr_threshold: self.params.rr_threshold,
+            eps: self.eps,
+        };
+        let spp = self.params.samples_per_step;
+        let seed = self.seed;
+        let this = &*self;
+        let means: Vec<[Vec3; SH9]> = (0..this.positions.len())
+            .into_par_iter()
+            .map(|i| {
+                if !this.valid[i] {
+                    return [Vec3::ZERO; SH9];
+                }
+                let mut sum = [Vec3::ZERO; SH9];
+                for s in 0..spp {
+                    let mut rng = Rng::new(seed ^ 0x9B0B_E5, step, i as u64, s as u64);
+                    this.sample(&ctx, this.positions[i], &mut rng, &mut sum);
+                }
+                sum.map(|c| c / spp as f32)
+            })
+            .collect();
+        let blend = 1.0 / k as f32;
+        for (acc, m) in self.halves[half].iter_mut().zip(&means) {
+            for c in 0..SH9 {
+                acc[c] += (m[c] - acc[c]) * blend;
+            }
+        }
+        self.steps[half] = k;
+    }
+
+    /// Adds one sample's SH estimate at `x` to `sum`.
+    fn sample(&self, ctx: &PathContext<'_>, x: Vec3, rng: &mut Rng, sum: &mut [Vec3; SH9]) {
+        let scene = self.scene;
+        let mut add = |l: Vec3, w: Vec3, weight: f32| {
+            let y = sh9(w);
+            for c in 0..SH9 {
+                sum[c] += l * (y[c] * weight);
+            }
+        };
+        // A uniform direction: sky, or a surface's emitted + reflected radiance.
+        let w = uniform_sphere(rng.next_f32(), rng.next_f32());
+        let four_pi = 4.0 * std::f32::consts::PI;
+        match self.tracer.trace(scene, x, w, f32::INFINITY) {
+            None => add(self.lighting.sky_radiance(w), w, four_pi),
+            Some(hit) => {
+                let tri = &scene.triangles[hit.triangle as usize];
+                let material = scene.material(tri);
+                let geo = tri.geometric_normal();
+                let front = w.dot(geo) < 0.0;
+                if front || material.double_sided {
+                    let side = if front { 1.0 } else { -1.0 };
+                    let ng = geo * side;
+                    let shading = (tri.n[0] * hit.bary.x + tri.n[1] * hit.bary.y + tri.n[2] * hit.bary.z)
+                        .normalize_or_zero()
+                        * side;
+                    let n = if shading.dot(ng) > 0.0 { shading } else { ng };
+                    let p = tri.point(inset(hit.bary)) + ng * self.eps;
+                    let reflected = scene.albedo(tri, hit.bary) * ctx.radiance(p, n, ng, rng).total;
+                    add(scene.emission(tri, hit.bary) + reflected, w, four_pi);
+                }
+            }
+        }
+        // Delta lights and the sun, which uniform directions cannot find.
+        for light in &scene.lights {
+            match light.kind {
+                LightKind::Directional => {
+                    let d = -light.direction;
+                    if self.tracer.unoccluded(scene, x, d, f32::INFINITY) {
+                        add(light.intensity, d, 1.0);
+                    }
+                }
+                LightKind::Point | LightKind::Spot { .. } => {
+                    let to = light.position - x;
+                    let dist2 = to.length_squared();
+                    if dist2 <= 0.0 {
+                        continue;
+                    }
+                    let dist = dist2.sqrt();
+                    let d = to / dist;
+                    let falloff = light.attenuation(dist, -d) / dist2;
+                    if falloff > 0.0 && self.tracer.unoccluded(scene, x, d, dist * (1.0 - 1e-4)) {
+                        add(light.intensity * falloff, d, 1.0);
+                    }
+                }
+            }
+        }
+        if let Some(sun) = &self.lighting.sun {
+            let axis = -sun.direction.normalize();
+            let d = cone_sample(axis, sun.cos_half_angle(), rng.next_f32(), rng.next_f32());
+            if self.tracer.unoccluded(scene, x, d, f32::INFINITY) {
+                add(sun.radiance, d, sun.solid_angle());
+            }
+        }
+    }
+
+    /// The probes as of now.
+    pub fn result(&self) -> ProbeSet {
+        let (ne, no) = (self.steps[0] as f32, self.steps[1] as f32);
+        let n = (ne + no).max(1.0);
+        let k = (ne * no).sqrt() / n;
+        let probes = (0..self.positions.len())
+            .map(|i| {
+                let (a, b) = (&self.halves[0][i], &self.halves[1][i]);
+                let c: [Vec3; SH9] = std::array::from_fn(|j| (a[j] * ne + b[j] * no) / n);
+                let l0 = c[0].dot(LUMINANCE);
+                let se = ((a[0] - b[0]).dot(LUMINANCE) * k).abs();
+                Probe {
+                    position: (self.positions[i].as_dvec3() + self.scene.origin_offset)
+                        .as_vec3()
+                        .to_array(),
+                    valid: self.valid[i],
+                    sh: c.map(|v| v.to_array()),
+                    error: if l0 > 0.0 { se / l0 } else { 0.0 },
+                }
+            })
+            .collect();
+        ProbeSet {
+            convention: "incident radiance, projected on real orthonormal SH to L2 (W m^-2 sr^-1 x sr); E(n)/pi = sum_i A_l c_i Y_i(n) / pi with A = pi, 2pi/3, pi/4",
+            basis: "world axes; order Y00, Y1-1 (y), Y10 (z), Y11 (x), Y2-2 (xy), Y2-1 (yz), Y20 (3z^2-1), Y21 (xz), Y22 (x^2-y^2)",
+            steps: self.steps[0] + self.steps[1],
+            probes,
+        }
+    }
+}
+
+/// True when `x` sees the back of a single-sided surface in more than half of
+/// [`INSIDE_RAYS`] stratified directions (module doc, *Placement*).
+fn inside_geometry(scene: &Scene, tracer: &Tracer, x: Vec3) -> bool {
+    let side = (INSIDE_RAYS as f32).sqrt() as u32;
+    let mut backs = 0;
+    for i in 0..side {
+        for j in 0..side {
+            let w = uniform_sphere((i as f32 + 0.5) / side as f32, (j as f32 + 0.5) / side as f32);
+            if let Some(hit) = tracer.trace(scene, x, w, f32::INFINITY) {
+                let tri = &scene.triangles[hit.triangle as usize];
+                if w.dot(tri.geometric_normal()) > 0.0 && !scene.material(tri).double_sided {
+                    backs += 1;
+                }
+            }
+        }
+    }
+    backs * 2 > side * side
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The basis is orthonormal: a Monte Carlo-free check on a fine stratified grid.
+    #[test]
+    fn basis_is_orthonormal() {
+        let n = 400;
+        let mut gram = [[0.0f64; SH9]; SH9];
+        for i in 0..n {
+            for j in 0..n {
+                let w = uniform_sphere((i as f32 + 0.5) / n as f32, (j as f32 + 0.5) / n as f32);
+                let y = sh9(w);
+                for a in 0..SH9 {
+                    for b in 0..SH9 {
+                        gram[a][b] += (y[a] * y[b]) as f64;
+                    }
+                }
+            }
+        }
+        let da = 4.0 * std::f64::consts::PI / (n * n) as f64;
+        for (a, row) in gram.iter().enumerate() {
+            for (b, g) in row.iter().enumerate() {
+                let want = if a == b { 1.0 } else { 0.0 };
+                assert!((g * da - want).abs() < 2e-3, "<Y{a}, Y{b}> = {}", g * da);
+            }
+        }
+    }
+
+    /// A constant radiance L gives c_0 = L sqrt(4 pi) and E/pi = L for every normal.
+    #[test]
+    fn constant_radiance_has_irradiance_over_pi_equal_to_it() {
+        let mut c = [Vec3::ZERO; SH9];
+        c[0] = Vec3::splat(2.0 * (4.0 * std::f32::consts::PI).sqrt());
+        for n in [Vec3::Y, Vec3::X, Vec3::new(0.3, -0.8, 0.52).normalize()] {
+            assert!((irradiance_over_pi(&c, n) - Vec3::splat(2.0)).abs().max_element() < 1e-5);
+        }
+    }
+}

@@ -1,0 +1,141 @@
+//! Light probes baked by `path` (`technique::path::probes`, issue 26) against closed forms:
+//! a probe in open sky over a black plane (the upper hemisphere's L0 and L1 exactly, every
+//! other coefficient 0, E/pi = 1 up and 0 down), a probe at the centre of the furnace
+//! (uniform radiance Le / (1 - rho)), and automatic placement removing the probes inside a
+//! closed box. CPU only.
+
+mod common;
+
+use std::f32::consts::PI;
+
+use common::import;
+use glam::Vec3;
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
+use lightmapd::engine::scene::library::closed_box;
+use lightmapd::engine::scene::{Hemisphere, Lighting, Sky};
+use lightmapd::engine::technique::path::probes::{ProbeBaker, SH9, grid_positions, irradiance_over_pi};
+use serde_json::json;
+
+fn bake(
+    scene: &lightmapd::engine::scene::Scene,
+    lighting: Lighting,
+    at: Vec<Vec3>,
+    steps: u32,
+) -> lightmapd::engine::technique::path::probes::ProbeSet {
+    let mut b = ProbeBaker::new(scene, lighting, at, &json!({"samples_per_step": 64}), 3).unwrap();
+    for _ in 0..steps {
+        b.step();
+    }
+    b.result()
+}
+
+fn v(a: [f32; 3]) -> Vec3 {
+    Vec3::from_array(a)
+}
+
+#[test]
+fn probe_in_open_sky_over_a_black_plane() {
+    let mut b = SceneBuilder::new();
+    let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
+    b.square("ground", Vec3::ZERO, 10.0, Vec3::Y, black);
+    let scene = import(&b);
+    let offset = scene.origin_offset.as_vec3();
+    let sky = Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::splat(1.0),
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: None,
+    };
+    let set = bake(&scene, sky, vec![Vec3::new(0.0, 1.0, 0.0) - offset], 64);
+    let p = &set.probes[0];
+    eprintln!("open sky probe: {:?}, relative error {}", p.sh, p.error);
+    assert!(p.valid);
+    // c_00 = 2 pi Y_00, c_1-1 = pi 0.488603 (the y band), every other coefficient 0.
+    let c0 = 2.0 * PI * 0.282_095;
+    let c1 = PI * 0.488_603;
+    let se = p.error * c0;
+    assert!(se > 0.0 && se < 0.05, "standard error {se}");
+    assert!(
+        (p.sh[0][1] - c0).abs() < 5.0 * se,
+        "c00 {} vs {c0} (se {se})",
+        p.sh[0][1]
+    );
+    // The y band's estimator spreads 1.12x as much per sample as c_00's (2 pi^2 (4/3) Y_1^2
+    // against (2 pi Y_00)^2): bounded with that factor and margin.
+    assert!((p.sh[1][1] - c1).abs() < 5.0 * se * 1.5, "c1-1 {} vs {c1}", p.sh[1][1]);
+    for (i, c) in p.sh.iter().enumerate().skip(2) {
+        assert!(c[1].abs() < 0.3, "c{i} = {}", c[1]);
+    }
+    let sh: [Vec3; SH9] = p.sh.map(v);
+    let up = irradiance_over_pi(&sh, Vec3::Y);
+    let down = irradiance_over_pi(&sh, Vec3::NEG_Y);
+    assert!(
+        (up.y - 1.0).abs() < 0.1 && down.y.abs() < 0.1,
+        "E/pi up {up}, down {down}"
+    );
+}
+
+#[test]
+fn probe_in_the_furnace_sees_uniform_radiance() {
+    let scene = import(&closed_box(0.5));
+    let offset = scene.origin_offset.as_vec3();
+    let set = bake(
+        &scene,
+        Lighting::default(),
+        vec![-offset, Vec3::new(0.3, -0.4, 0.2) - offset],
+        16,
+    );
+    for p in &set.probes {
+        eprintln!(
+            "furnace probe at {:?}: {:?}, relative error {}",
+            p.position, p.sh, p.error
+        );
+        assert!(p.valid);
+        // Radiance 1 from every direction: c_00 = sqrt(4 pi), E/pi = 1 for every normal.
+        let c0 = (4.0 * PI).sqrt();
+        let se = p.error * c0;
+        assert!(
+            (p.sh[0][0] - c0).abs() < 5.0 * se + 1e-3,
+            "c00 {} vs {c0} (se {se})",
+            p.sh[0][0]
+        );
+        let sh: [Vec3; SH9] = p.sh.map(v);
+        for n in [Vec3::X, Vec3::NEG_Y, Vec3::new(0.5, 0.5, -0.7).normalize()] {
+            let e = irradiance_over_pi(&sh, n);
+            assert!((e.x - 1.0).abs() < 0.1, "E/pi along {n}: {e}");
+        }
+    }
+}
+
+#[test]
+fn placed_probes_inside_a_closed_box_are_removed() {
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    // A solid box (outward faces) from -1 to 1 on a 6 m ground at y = -1.
+    for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z] {
+        b.square(&format!("box {n}"), n, 2.0, n, grey);
+    }
+    b.square("ground", Vec3::new(0.0, -1.0, 0.0), 6.0, Vec3::Y, grey);
+    let scene = import(&b);
+    let offset = scene.origin_offset.as_vec3();
+    let at = grid_positions(&scene, 0.5, 10_000).unwrap();
+    assert_eq!(at.len(), 12 * 4 * 12);
+    let baker = ProbeBaker::new(&scene, Lighting::default(), at.clone(), &json!({}), 1).unwrap();
+    let (mut inside, mut outside) = (0, 0);
+    for (p, valid) in at.iter().zip(baker.valid()) {
+        let w = *p + offset;
+        let in_box = w.x.abs() < 1.0 && w.z.abs() < 1.0 && w.y > -1.0 && w.y < 1.0;
+        assert_eq!(*valid, !in_box, "probe at {w}");
+        if in_box { inside += 1 } else { outside += 1 }
+    }
+    assert_eq!(inside, 16 * 4);
+    assert!(outside > 400);
+    assert!(grid_positions(&scene, 0.0, 10).is_err());
+    assert!(
+        grid_positions(&scene, 0.01, 1000)
+            .unwrap_err()
+            .to_string()
+            .contains("at most 1000")
+    );
+}
