@@ -99,8 +99,8 @@ fn steps_for(technique: &str) -> u64 {
 /// techniques' stratified step sequences make conservative (the union of both halves is
 /// better stratified than either half, so it errs less than |even - odd| / 2 says).
 /// Under-reporting (below 0.5) is never allowed.
-/// Measured at these steps: sdb 2.63, obscurance 2.07 (vpl 0.64, hemicube 0.99, sdf 1.04
-/// in range); at 20 s vpl and hemicube over-report too (docs/accuracy.md).
+/// Measured at these steps: sdb 2.19, obscurance 2.07 (vpl 0.64, hemicube 0.99, sdf 1.04
+/// in range; docs/accuracy.md has the 20-s table).
 const OVER_REPORTED: &[(&str, &str, f64)] = &[("sdb", "parallel-plates", 4.0), ("obscurance", "parallel-plates", 3.0)];
 
 #[test]

@@ -335,6 +335,54 @@ fn problem(status: u16, title: &str, kind: &str, detail: &str, field: Option<&st
     v
 }
 
+/// A biased technique's job reports an error that covers its bias (issue 21): the plan
+/// says so, the summary carries the noise, bias, 90 % interval and control texels, and
+/// every history point its noise and bias beside the total.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_biased_bake_reports_bias_and_noise() {
+    let s = start(1, |_| {}).await;
+    let h = &s.http;
+    let r = h.post(format!("{}/v1/scenes", s.url)).body(glb()).send().await.unwrap();
+    let scene: Value = r.json().await.unwrap();
+    let id = s
+        .submit(
+            json!({"scene": scene["id"], "technique": "sdb", "resolution": 16, "stop": {"steps": 6},
+                       "params": {"map_size": 128}, "denoise": "none"}),
+        )
+        .await;
+    read_events(h, &format!("{}/v1/jobs/{id}/events", s.url)).await;
+    let job = s.job(&id).await;
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let covers = job["plan"]["error_estimate"].as_str().unwrap();
+    assert!(
+        covers.starts_with("noise and bias, measured at up to 256 control texels"),
+        "{covers}"
+    );
+    let e = &job["summary"]["error"];
+    let (total, noise, bias) = (
+        e["relative"].as_f64().unwrap(),
+        e["noise"].as_f64().unwrap(),
+        e["bias"].as_f64().unwrap(),
+    );
+    assert!(total >= noise && total >= bias, "{e}");
+    assert!(e["control_texels"].as_u64().unwrap() > 0, "{e}");
+    let [lo, hi] = [0, 1].map(|i| e["interval"][i].as_f64().unwrap());
+    assert!(lo <= total && total <= hi, "{e}");
+    let history = job["history"].as_array().unwrap();
+    assert!(!history.is_empty());
+    // Before both halves have a step there is no error, and while the estimate is still
+    // black (sdb's first step only bootstraps) it is 0 with nothing to compare; every
+    // point with an error above 0 has its parts.
+    let measured: Vec<&Value> = history
+        .iter()
+        .filter(|p| p["error"].as_f64().unwrap_or(0.0) > 0.0)
+        .collect();
+    assert!(!measured.is_empty(), "{history:?}");
+    for p in measured {
+        assert!(p["noise"].is_f64() && p["bias"].is_f64(), "{p}");
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_error_status_has_its_problem_body() {
     // No workers: a job stays queued, which the 409 cases need.

@@ -432,7 +432,15 @@ impl Progress {
 pub struct HistoryPoint {
     pub seconds: f64,
     pub steps: u64,
+    /// The relative error the bake reports and stops on (for a biased technique, bias
+    /// and noise measured at control texels; `docs/accuracy.md`).
     pub error: Option<f32>,
+    /// Its noise part (the halves' difference), when `error` covers bias too.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise: Option<f32>,
+    /// Its bias part, measured at control texels against `path`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bias: Option<f32>,
 }
 
 /// `GET /v1/jobs/{id}`.

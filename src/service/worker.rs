@@ -753,6 +753,8 @@ fn bake_observed(
                     seconds: elapsed.as_secs_f64(),
                     steps: estimate.steps,
                     error: estimate.error.relative,
+                    noise: estimate.error.noise,
+                    bias: estimate.error.bias,
                 };
                 if let Ok(mut h) = shared.history.lock()
                     && h.len() < MAX_HISTORY

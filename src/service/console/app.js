@@ -393,7 +393,10 @@ async function onEvent(id, name, data) {
 function showProgress(j) {
   const p = j.progress || {steps: 0, fraction: 0, elapsed_s: 0, error: null};
   $('job-bar').style.width = (p.fraction * 100).toFixed(1) + '%';
-  $('job-progress').textContent = `${p.steps} steps · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %`);
+  // A biased technique's error is bias and noise measured at control texels: say so.
+  const last = (j.history || []).at(-1);
+  const parts = last && last.bias != null ? ` (bias ${(last.bias * 100).toFixed(2)} %, noise ${(last.noise * 100).toFixed(2)} %)` : '';
+  $('job-progress').textContent = `${p.steps} steps · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %${parts}`);
 }
 
 const TERMINAL = ['succeeded', 'failed', 'cancelled'];
@@ -465,6 +468,7 @@ function drawPlot(j) {
   if (!pts.length) { $('plot').innerHTML = `<svg viewBox="0 0 ${W} ${H}"><text x="${W / 2}" y="${H / 2}" text-anchor="middle">no error estimate yet</text></svg>`; return; }
   const xs = pts.map(p => Math.log10(p.seconds)), ys = pts.map(p => Math.log10(p.error));
   if (target > 0) ys.push(Math.log10(target));
+  for (const p of pts) if (p.noise > 0) ys.push(Math.log10(p.noise));
   let x0 = Math.floor(Math.min(...xs)), x1 = Math.ceil(Math.max(...xs)), y0 = Math.floor(Math.min(...ys)), y1 = Math.ceil(Math.max(...ys));
   if (x1 === x0) x1++; if (y1 === y0) y1++;
   const X = v => L + (v - x0) / (x1 - x0) * (W - L - R), Y = v => H - B - (v - y0) / (y1 - y0) * (H - B - T);
@@ -473,6 +477,9 @@ function drawPlot(j) {
   for (let e = x0; e <= x1; e++) s += `<line x1="${X(e)}" x2="${X(e)}" y1="${T}" y2="${H - B}" stroke="#333"/><text x="${X(e)}" y="${H - 8}" text-anchor="middle">${label(e)} s</text>`;
   for (let e = y0; e <= y1; e++) s += `<line x1="${L}" x2="${W - R}" y1="${Y(e)}" y2="${Y(e)}" stroke="#333"/><text x="${L - 3}" y="${Y(e) + 3}" text-anchor="end">${label(e + 2)}%</text>`;
   if (target > 0) s += `<line x1="${L}" x2="${W - R}" y1="${Y(Math.log10(target))}" y2="${Y(Math.log10(target))}" stroke="#f0b849" stroke-dasharray="4 3"/>`;
+  // The noise part alone (grey, dashed) under a biased technique's total.
+  const noisy = pts.filter(p => p.noise > 0);
+  if (noisy.length) s += `<polyline fill="none" stroke="#999" stroke-dasharray="3 2" stroke-width="1" points="${noisy.map(p => `${X(Math.log10(p.seconds)).toFixed(1)},${Y(Math.log10(p.noise)).toFixed(1)}`).join(' ')}"/>`;
   s += `<polyline fill="none" stroke="#7cc4ff" stroke-width="1.5" points="${pts.map(p => `${X(Math.log10(p.seconds)).toFixed(1)},${Y(Math.log10(p.error)).toFixed(1)}`).join(' ')}"/>`;
   s += pts.map(p => `<circle cx="${X(Math.log10(p.seconds)).toFixed(1)}" cy="${Y(Math.log10(p.error)).toFixed(1)}" r="2.5" fill="#7cc4ff"/>`).join('');
   $('plot').innerHTML = s + '</svg>';

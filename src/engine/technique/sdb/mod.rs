@@ -30,7 +30,9 @@
 //!    resolve pass adds, so these lights also feed the bounces (the seed's section 7
 //!    suggests exactly this).
 //! 5. *Ambient mode* (`shaders/sdb/resolve.wgsl`, `average` mode, before step 1): a coarse
-//!    correction of the feedback on the span of the current estimate, with the ambient
+//!    correction of the feedback on the span of the current estimate (with it on, a step
+//!    gathers `directions_per_step` antipodal *pairs* d, -d, so every closed-surface texel
+//!    records each step's feed: see `SdbEngine::step`), with the ambient
 //!    gain g measured by CPU rays ([`ambient_mode`]); it makes stiff rooms (albedo 0.99,
 //!    0.999) converge in a few steps instead of never.
 //!
@@ -158,7 +160,8 @@ pub struct SdbParams {
     /// see docs/sdb.md.
     pub neighbourhood: u32,
     /// Directions gathered per step: 1..=256; default 1, so steps count the seed's
-    /// iterations. More per step amortises per-step overhead on a fast GPU.
+    /// iterations. More per step amortises per-step overhead on a fast GPU. With the
+    /// ambient-mode correction on, each is an antipodal pair (two maps).
     pub directions_per_step: u32,
     /// Direction sequence: `stratified` (default) or `random`.
     pub directions: DirectionSequence,
@@ -1104,8 +1107,23 @@ impl SdbEngine {
 
         // What this step's blends leave of the old mean: prod(1 - b).
         let mut decay = 1.0f64;
-        for _ in 0..self.params.directions_per_step {
-            let d = self.directions.next_direction();
+        // With the ambient-mode correction, directions come in antipodal pairs (d, -d)
+        // within one step: every texel of a closed surface then gathers (and records the
+        // step's feed in its fed mean M) in exactly one of the two, which the correction's
+        // model x = T M + e needs. With one direction a step, the surfaces a texel sees
+        // along d face -d and do not gather that step, M lags the feed their neighbours
+        // used, <x - M> is biased, and the gain g / (1 - g) (9 at albedo 0.9) fed that bias
+        // back: the closed box of albedo 0.9 read 17.6 instead of 1 with seed 7 (issue 21).
+        let pairs = self.ambient_factor.is_some();
+        let count = self.params.directions_per_step * if pairs { 2 } else { 1 };
+        let mut previous = Vec3::Z;
+        for j in 0..count {
+            let d = if pairs && j % 2 == 1 {
+                -previous
+            } else {
+                self.directions.next_direction()
+            };
+            previous = d;
             let dir_index = self.dirs[0] + self.dirs[1];
             let blend = self.next_blend(parity as usize);
             decay *= 1.0 - blend as f64;
