@@ -139,3 +139,90 @@ fn placed_probes_inside_a_closed_box_are_removed() {
             .contains("at most 1000")
     );
 }
+
+/// A probe under the black sphere of sphere-over-plane (radius 1, centre 2 m up, black
+/// ground), upper sky of 1: its coefficients are the SH projection of the sky it sees,
+/// computed here independently by a fine midpoint quadrature over the sphere of
+/// directions with an analytic ray-sphere test.
+#[test]
+fn probe_under_a_black_sphere_sees_the_sky_around_it() {
+    let scene = import(&lightmapd::engine::scene::library::sphere_over_plane());
+    let offset = scene.origin_offset.as_vec3();
+    let sky = Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::splat(1.0),
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: None,
+    };
+    let x = Vec3::new(0.0, 0.5, 0.0);
+    let set = bake(&scene, sky, vec![x - offset], 64);
+    let p = &set.probes[0];
+    assert!(p.valid);
+    // Quadrature: directions on a 1024 x 2048 (theta, phi) grid, solid angle sin(theta).
+    let (nt, np) = (1024, 2048);
+    let mut want = [0.0f64; SH9];
+    let centre = Vec3::new(0.0, 2.0, 0.0);
+    for i in 0..nt {
+        let theta = (i as f64 + 0.5) / nt as f64 * std::f64::consts::PI;
+        for j in 0..np {
+            let phi = (j as f64 + 0.5) / np as f64 * 2.0 * std::f64::consts::PI;
+            let w = Vec3::new(
+                (theta.sin() * phi.cos()) as f32,
+                theta.cos() as f32,
+                (theta.sin() * phi.sin()) as f32,
+            );
+            if w.y <= 0.0 {
+                continue; // the black ground or the empty lower sky
+            }
+            // Ray x + t w against the sphere |p - c| = 1: hit when the discriminant is >= 0
+            // with t > 0.
+            let oc = x - centre;
+            let b = oc.dot(w);
+            let disc = b * b - (oc.length_squared() - 1.0);
+            if disc >= 0.0 && -b - disc.sqrt() > 0.0 {
+                continue;
+            }
+            let d_omega = theta.sin() * (std::f64::consts::PI / nt as f64) * (2.0 * std::f64::consts::PI / np as f64);
+            let y = lightmapd::engine::technique::path::probes::sh9(w);
+            for c in 0..SH9 {
+                want[c] += y[c] as f64 * d_omega;
+            }
+        }
+    }
+    eprintln!(
+        "probe under the sphere: {:?}, relative error {}; quadrature {want:?}",
+        p.sh, p.error
+    );
+    // The sphere hides the cone of half angle asin(1/1.5) straight up: c00 is
+    // Y00 (2 pi - 2 pi (1 - cos a)), cos a = sqrt(1 - 1/2.25).
+    let cos_a = (1.0f64 - 1.0 / 2.25).sqrt();
+    let c00 = 0.282_095 * 2.0 * std::f64::consts::PI * cos_a;
+    assert!(
+        (want[0] - c00).abs() < 1e-3,
+        "quadrature {} vs closed form {c00}",
+        want[0]
+    );
+    let se = (p.error * p.sh[0][1]) as f64;
+    assert!(se > 0.0 && se < 0.05, "standard error {se}");
+    assert!(
+        (p.sh[0][1] as f64 - want[0]).abs() < 5.0 * se,
+        "c00 {} vs {}",
+        p.sh[0][1],
+        want[0]
+    );
+    assert!(
+        (p.sh[1][1] as f64 - want[1]).abs() < 8.0 * se,
+        "c1-1 {} vs {}",
+        p.sh[1][1],
+        want[1]
+    );
+    for c in 2..SH9 {
+        assert!(
+            (p.sh[c][1] as f64 - want[c]).abs() < 0.15,
+            "c{c} {} vs {}",
+            p.sh[c][1],
+            want[c]
+        );
+    }
+}
