@@ -15,24 +15,12 @@
 
 mod common;
 
-use common::{assert_unbiased, bake, import, lum};
+use common::{assert_unbiased, bake, have_adapter, import, lum};
 use glam::Vec3;
-use lightmapd::engine::gpu::{self, GpuError, Requirements};
 use lightmapd::engine::scene::build::{LightDesc, MaterialDesc, SceneBuilder};
 use lightmapd::engine::scene::library::{closed_box, rect_form_factor};
 use lightmapd::engine::scene::{Lighting, Sun};
 use serde_json::json;
-
-fn have_adapter() -> bool {
-    match gpu::shared(&Requirements::default()) {
-        Ok(_) => true,
-        Err(GpuError::NoAdapter) if std::env::var("LIGHTMAPD_REQUIRE_GPU").as_deref() != Ok("1") => {
-            eprintln!("SKIPPED: no GPU adapter on this machine (install mesa-vulkan-drivers for lavapipe)");
-            false
-        }
-        Err(e) => panic!("GPU context (LIGHTMAPD_REQUIRE_GPU=1 makes a missing adapter fatal): {e}"),
-    }
-}
 
 /// Small maps and few directions: `obscurance`'s own passes are not what is tested.
 fn params_for(technique: &str) -> serde_json::Value {

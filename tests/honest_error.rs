@@ -8,28 +8,19 @@
 //! techniques lose or gain light) and the parallel plates (the receiver reads the form
 //! factor, every other texel 0).
 
+mod common;
+
 use std::sync::Arc;
 
+use common::have_adapter;
 use glam::Vec3;
 use lightmapd::engine::accumulate::LUMINANCE;
 use lightmapd::engine::bake::StopCriteria;
-use lightmapd::engine::gpu::{self, GpuError, Requirements};
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::post::denoised::Denoiser;
 use lightmapd::engine::scene::import_slice;
 use lightmapd::engine::scene::library::benchmark_scenes;
 use lightmapd::engine::technique::TABLE;
-
-fn have_adapter() -> bool {
-    match gpu::shared(&Requirements::default()) {
-        Ok(_) => true,
-        Err(GpuError::NoAdapter) if std::env::var("LIGHTMAPD_REQUIRE_GPU").as_deref() != Ok("1") => {
-            eprintln!("SKIPPED: no GPU adapter on this machine (install mesa-vulkan-drivers for lavapipe)");
-            false
-        }
-        Err(e) => panic!("GPU context (LIGHTMAPD_REQUIRE_GPU=1 makes a missing adapter fatal): {e}"),
-    }
-}
 
 /// (reported, true) relative error of a bake of `technique` on the library scene `name`
 /// at `resolution`, stopped by `stop`.

@@ -69,6 +69,20 @@ pub fn try_bake(
     Ok((atlas, tech.snapshot()?.estimate()))
 }
 
+/// True when a GPU adapter (lavapipe counts) is there; without one the calling test
+/// skips with a message, or fails under `LIGHTMAPD_REQUIRE_GPU=1` (set in `.ci/run`).
+pub fn have_adapter() -> bool {
+    use lightmapd::engine::gpu::{self, GpuError, Requirements};
+    match gpu::shared(&Requirements::default()) {
+        Ok(_) => true,
+        Err(GpuError::NoAdapter) if std::env::var("LIGHTMAPD_REQUIRE_GPU").as_deref() != Ok("1") => {
+            eprintln!("SKIPPED: no GPU adapter on this machine (install mesa-vulkan-drivers for lavapipe)");
+            false
+        }
+        Err(e) => panic!("GPU context (LIGHTMAPD_REQUIRE_GPU=1 makes a missing adapter fatal): {e}"),
+    }
+}
+
 pub fn lum(v: Vec3) -> f64 {
     v.dot(LUMINANCE) as f64
 }

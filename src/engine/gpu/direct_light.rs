@@ -42,7 +42,7 @@ use super::layout::{Bind, compute_pipeline, group_of, layout_of};
 use super::scene_lights::{GpuSceneLights, LightSources};
 use super::shaders::DIRECT_LIGHT;
 use super::texels::GpuTexelGeom;
-use super::{GpuContext, GpuError, dispatch_size_64};
+use super::{GpuContext, GpuError};
 use crate::engine::atlas::Atlas;
 use crate::engine::raytrace::{EmitterTable, Tracer};
 use crate::engine::scene::{Lighting, Scene};
@@ -210,20 +210,7 @@ impl DirectLight {
         let ctx = &self.ctx;
         ctx.queue
             .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some(&self.label),
-        });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some(&self.label),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &self.group, &[]);
-            let (x, y) = dispatch_size_64(self.texels as u32);
-            pass.dispatch_workgroups(x, y, 1);
-        }
-        ctx.queue.submit([enc.finish()]);
+        ctx.submit_compute(&self.label, &self.pipeline, &self.group, self.texels as u32);
         ctx.take_error(&self.label)?;
         self.half_steps[half] = k;
         Ok(())

@@ -476,6 +476,26 @@ impl GpuContext {
         Ok(out)
     }
 
+    /// Submits one labelled compute pass of `pipeline` over `n` items of a 64-wide 1D
+    /// kernel (`dispatch_size_64`) with `group` at slot 0, in its own command buffer; does
+    /// not wait. Errors are the caller's to take (`take_error`).
+    pub fn submit_compute(&self, label: &str, pipeline: &wgpu::ComputePipeline, group: &wgpu::BindGroup, n: u32) {
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(label),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, group, &[]);
+            let (x, y) = dispatch_size_64(n);
+            pass.dispatch_workgroups(x, y, 1);
+        }
+        self.queue.submit([enc.finish()]);
+    }
+
     /// Block until all submitted work is done (benchmarks, tests).
     pub fn wait_idle(&self) -> Result<(), GpuError> {
         self.device

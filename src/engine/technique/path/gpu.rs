@@ -36,7 +36,7 @@ use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::bvh::check_binding_size;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::scene_lights::{GpuSceneLights, LightSources};
-use crate::engine::gpu::{self, AdapterPreference, GpuContext, GpuError, Requirements, dispatch_size_64};
+use crate::engine::gpu::{self, AdapterPreference, GpuContext, GpuError, Requirements};
 use crate::engine::raytrace::{EmitterTable, Tracer};
 use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
 
@@ -238,20 +238,7 @@ impl PathGpu {
         let ctx = &self.ctx;
         ctx.queue
             .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("path trace"),
-        });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                label: Some("path trace"),
-                timestamp_writes: None,
-            });
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &self.group, &[]);
-            let (x, y) = dispatch_size_64(self.texels as u32);
-            pass.dispatch_workgroups(x, y, 1);
-        }
-        ctx.queue.submit([enc.finish()]);
+        ctx.submit_compute("path trace", &self.pipeline, &self.group, self.texels as u32);
         ctx.take_error("path trace").map_err(gpu_error)?;
         self.half_steps[half] = k;
         Ok(())

@@ -117,16 +117,9 @@ pub fn grid_positions(scene: &Scene, spacing: f32, max: usize) -> Result<Vec<Vec
             "probes.spacing must be a positive distance, got {spacing}"
         )));
     }
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for t in &scene.triangles {
-        for p in t.p {
-            lo = lo.min(p);
-            hi = hi.max(p);
-        }
-    }
-    if scene.triangles.is_empty() {
+    let Some((lo, hi)) = bounds(scene) else {
         return Ok(vec![Vec3::ZERO]);
-    }
+    };
     let cells = ((hi - lo) / spacing).ceil().max(Vec3::ONE);
     let count = cells.x as f64 * cells.y as f64 * cells.z as f64;
     if count > max as f64 {
@@ -178,19 +171,8 @@ impl<'a> ProbeBaker<'a> {
             return Err(EngineError::BadInput(format!("probes.positions[{k}] is not finite")));
         }
         let tracer = Tracer::new(scene);
-        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-        for t in &scene.triangles {
-            for p in t.p {
-                lo = lo.min(p);
-                hi = hi.max(p);
-            }
-        }
-        // As the atlas sizes it: relative to the scene, far below any feature.
-        let eps = if scene.triangles.is_empty() {
-            1e-4
-        } else {
-            ((hi - lo).length() * 1e-5).max(1e-6)
-        };
+        // Relative to the scene, far below any feature.
+        let eps = bounds(scene).map_or(1e-4, |(lo, hi)| ((hi - lo).length() * 1e-5).max(1e-6));
         let valid: Vec<bool> = positions
             .par_iter()
             .map(|p| !inside_geometry(scene, &tracer, *p))
@@ -351,7 +333,16 @@ impl<'a> ProbeBaker<'a> {
     }
 }
 
-/// True when `x` sees the back of a single-sided surface in more than half of
+/// The scene's bounding box, `None` without triangles.
+fn bounds(scene: &Scene) -> Option<(Vec3, Vec3)> {
+    let mut points = scene.triangles.iter().flat_map(|t| t.p);
+    let first = points.next()?;
+    Some(points.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
+}
+
+/// True when `x` sees the back of a single-sided surface (the rule of
+/// `atlas::validate::backface_fractions` for texels, here over the whole sphere since a
+/// probe has no normal) in more than half of
 /// [`INSIDE_RAYS`] stratified directions (module doc, *Placement*).
 fn inside_geometry(scene: &Scene, tracer: &Tracer, x: Vec3) -> bool {
     let side = (INSIDE_RAYS as f32).sqrt() as u32;
