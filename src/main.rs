@@ -231,9 +231,13 @@ struct SubmitArgs {
     target_error: Option<f32>,
     #[arg(long)]
     seed: Option<u64>,
-    /// Extra layers: validity, direct, indirect, sh, ao (comma separated).
+    /// Extra layers: validity, direct, indirect, sh, ao, debug, shadowmask (comma separated).
     #[arg(long, value_delimiter = ',')]
     outputs: Vec<String>,
+    /// The shadowmask's lights, one per channel: sun, a light's name or #index (comma
+    /// separated; default: the sun and the scene's lights, at most four).
+    #[arg(long, value_delimiter = ',')]
+    shadowmask_lights: Vec<String>,
     /// Technique parameters as a JSON object.
     #[arg(long)]
     params: Option<String>,
@@ -314,9 +318,14 @@ struct BakeArgs {
     target_error: Option<f32>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Extra layers: validity, direct, indirect, sh, ao (comma separated).
+    /// Extra layers: validity, direct, indirect, sh, ao, debug, shadowmask (comma separated).
     #[arg(long, value_delimiter = ',', value_parser = OutputLayer::parse)]
     outputs: Vec<OutputLayer>,
+    /// The shadowmask's lights, one per channel: sun, a light's name or #index (comma
+    /// separated; default: the sun and the scene's lights, at most four). Their direct
+    /// light is left out of the lightmap and direct.* (a renderer adds it times the mask).
+    #[arg(long, value_delimiter = ',')]
+    shadowmask_lights: Vec<String>,
     /// Write the raw estimate, without a denoiser (same as `--denoiser none`).
     #[arg(long)]
     no_denoise: bool,
@@ -719,6 +728,9 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
     if !args.outputs.is_empty() {
         job.insert("outputs".into(), args.outputs.clone().into());
     }
+    if !args.shadowmask_lights.is_empty() {
+        job.insert("shadowmask_lights".into(), args.shadowmask_lights.clone().into());
+    }
     if let Some(v) = args.seed {
         job.insert("seed".into(), v.into());
     }
@@ -872,6 +884,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         },
         lightmap_uvs: args.lightmap_uvs,
         texels_per_unit: args.texels_per_unit,
+        shadowmask_lights: args.shadowmask_lights.clone(),
     };
 
     let (scene, report) =

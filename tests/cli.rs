@@ -215,6 +215,21 @@ fn bad_options_exit_2() {
         &scene,
         "outputs[0]: sdf cannot write the \"sh\" layer; techniques that can: path",
     );
+    // The shadowmask's lights are checked against the scene before baking (issue 26).
+    assert_bad_input(
+        &[
+            "--sun",
+            "0,-1,0,0.5,1,1,1",
+            "--outputs",
+            "shadowmask",
+            "--shadowmask-lights",
+            "sun,Lamp",
+            "--steps",
+            "1",
+        ],
+        &scene,
+        "shadowmask_lights[1]: no light is called \"Lamp\"; the job has: sun",
+    );
     let probes = tmp("never-probes.json");
     assert_bad_input(
         &[

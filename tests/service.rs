@@ -631,7 +631,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "samples": 4}).to_string(),
             "samples",
-            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `priority`, `seed`, `denoise`".into(),
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `priority`, `seed`, `denoise`".into(),
         ),
         (
             json!({"scene": scene, "denoise": "bm3d"}).to_string(),
@@ -641,7 +641,20 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "outputs": ["bent_normals"]}).to_string(),
             "outputs[0]",
-            "unknown output layer \"bent_normals\"; available: validity, direct, indirect, sh, ao, debug".into(),
+            "unknown output layer \"bent_normals\"; available: validity, direct, indirect, sh, ao, debug, shadowmask".into(),
+        ),
+        // The shadowmask's lights against the stored scene's (issue 26): the Cornell box
+        // has an emissive ceiling and no KHR_lights_punctual light.
+        (
+            json!({"scene": scene, "outputs": ["shadowmask"]}).to_string(),
+            "outputs",
+            "outputs: \"shadowmask\" needs a light to mask, and the job has no lighting.sun and the scene no KHR_lights_punctual light".into(),
+        ),
+        (
+            json!({"scene": scene, "outputs": ["shadowmask"], "shadowmask_lights": ["sun", "Lamp"],
+                   "lighting": {"sun": {"direction": [0, -1, 0], "radiance": [1, 1, 1], "angular_diameter_deg": 0.5}}}).to_string(),
+            "shadowmask_lights[1]",
+            "shadowmask_lights[1]: no light is called \"Lamp\"; the job has: sun".into(),
         ),
         // What the technique table's row does not allow is refused at submit (issue 21):
         // a layer the technique cannot write, a bad parameter (every technique bakes every

@@ -81,6 +81,9 @@ pub struct Estimate {
     /// the denoiser filters each on its own to estimate its own error
     /// (`engine::post::denoised`).
     pub halves: Option<([Vec<Vec3>; 2], [u64; 2])>,
+    /// The chosen lights' baked visibility (`engine::shadowmask`), when asked for; the
+    /// bake loop fills it in.
+    pub shadowmask: Option<crate::engine::shadowmask::ShadowmaskLayer>,
 }
 
 impl Estimate {
@@ -108,6 +111,15 @@ impl Estimate {
             .or_else(|| {
                 let ([a, b], _) = self.halves.as_ref()?;
                 rgb("even half", a).or_else(|| rgb("odd half", b))
+            })
+            .or_else(|| {
+                let m = self.shadowmask.as_ref()?;
+                let (k, x) = m
+                    .values
+                    .iter()
+                    .enumerate()
+                    .find(|(_, x)| !x.iter().all(|a| a.is_finite()))?;
+                Some(("shadowmask", k, x.to_vec()))
             })
     }
 }
@@ -196,6 +208,7 @@ impl Snapshot {
             ao: None,
             halves: (na > 0 && nb > 0).then(|| ([self.even.total.clone(), self.odd.total.clone()], [na, nb])),
             texel_error,
+            shadowmask: None,
             error: ErrorSummary {
                 relative,
                 noise: None,

@@ -24,6 +24,7 @@ use serde::{Deserialize, Serialize};
 use crate::engine::accumulate::Estimate;
 use crate::engine::control::ControlTexels;
 use crate::engine::error::EngineError;
+use crate::engine::shadowmask::ShadowmaskBake;
 use crate::engine::technique::api::Technique;
 
 /// A target error is not trusted before this many steps: with few steps per half the
@@ -116,6 +117,9 @@ pub struct BakeLoop {
     /// The bias measurement of a biased technique (`engine::control`): stepped alongside,
     /// folded into every snapshot's error, which the target error then stops on.
     pub control: Option<ControlTexels>,
+    /// The shadowmask pass (`engine::shadowmask`): stepped once per technique step; every
+    /// snapshot loses its lights' direct light after the control texels assessed it.
+    pub shadowmask: Option<ShadowmaskBake>,
 }
 
 impl BakeLoop {
@@ -124,6 +128,7 @@ impl BakeLoop {
             stop,
             snapshot_interval: Duration::from_secs(5),
             control: None,
+            shadowmask: None,
         }
     }
 
@@ -146,6 +151,9 @@ impl BakeLoop {
             technique_time += step_time;
             if let Some(c) = &mut self.control {
                 c.keep_up(technique_time)?;
+            }
+            if let Some(s) = &mut self.shadowmask {
+                s.step()?;
             }
             let steps = technique.steps_done();
             let elapsed = start.elapsed();
@@ -172,11 +180,16 @@ impl BakeLoop {
                 next_doubling = steps.saturating_mul(2);
             }
             last_snapshot = Instant::now();
-            let mut estimate = technique.snapshot()?.estimate();
+            let snapshot = technique.snapshot()?;
+            let mut estimate = snapshot.estimate();
             estimate.ao = technique.ao();
             check_finite(technique, &estimate)?;
             if let Some(c) = &mut self.control {
                 c.assess(&mut estimate)?;
+            }
+            if let Some(s) = &self.shadowmask {
+                estimate = s.apply(snapshot, &estimate)?;
+                check_finite(technique, &estimate)?;
             }
             tracing::debug!(
                 technique = technique.id(),

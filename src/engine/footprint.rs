@@ -39,6 +39,7 @@ pub struct JobShape {
     pub indirect: bool,
     pub sh: bool,
     pub debug: bool,
+    pub shadowmask: bool,
 }
 
 impl JobShape {
@@ -53,6 +54,7 @@ impl JobShape {
             indirect: outputs.contains(&OutputLayer::Indirect),
             sh: outputs.contains(&OutputLayer::Sh),
             debug: outputs.contains(&OutputLayer::Debug),
+            shadowmask: outputs.contains(&OutputLayer::Shadowmask),
         }
     }
 }
@@ -64,10 +66,18 @@ pub fn estimate_bytes(s: &JobShape) -> u64 {
     const RGB: u64 = 12;
     // Accumulated per texel: the total, the direct part when split, three moment vectors.
     let accumulated = RGB + if s.direct { RGB } else { 0 } + if s.sh { 3 * RGB } else { 0 };
-    let per_texel = std::mem::size_of::<Texel>() as u64 + 4 + ACCUMULATOR_COPIES * accumulated + 4;
+    // The shadowmask: its two halves read back (visibility and light, 32 B each) and the
+    // delivered layer (16 B).
+    let mask = if s.shadowmask { 2 * 32 + 16 } else { 0 };
+    let per_texel = std::mem::size_of::<Texel>() as u64 + 4 + ACCUMULATOR_COPIES * accumulated + 4 + mask;
     // Written per pixel: R,G,B, the optional layers (validity and debug are one channel
     // each, counted as RGB to stay on the high side), and the encoded file.
-    let layers = 2 + u64::from(s.direct) + u64::from(s.indirect) + 3 * u64::from(s.sh) + 3 * u64::from(s.debug);
+    let layers = 2
+        + u64::from(s.direct)
+        + u64::from(s.indirect)
+        + 3 * u64::from(s.sh)
+        + 3 * u64::from(s.debug)
+        + 2 * u64::from(s.shadowmask);
     let per_pixel = per_texel + 2 * layers * RGB + 4;
     BASE_BYTES
         .saturating_add(pixels.saturating_mul(per_pixel))

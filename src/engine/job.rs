@@ -21,6 +21,7 @@ use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
 use crate::engine::post::denoised::{self, Denoiser, Used};
 use crate::engine::scene::{Lighting, Scene};
+use crate::engine::shadowmask::{self, ShadowmaskBake};
 use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateReach};
 use crate::engine::technique::{self, BakeInputs, EngineError, Technique};
 
@@ -35,7 +36,29 @@ pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineErro
     // it does not write, parameters it does not take, light it does not transport.
     technique::check_request(&request.technique, &request.params, &request.outputs)?;
     technique::check_lights(&request.technique, &features)?;
-    technique::plan(&request.technique, &features)
+    let masked = shadowmask::resolve(
+        &request.outputs,
+        &request.shadowmask_lights,
+        &shadowmask::light_names(scene),
+        request.lighting.sun.is_some(),
+    )
+    .map_err(EngineError::BadInput)?;
+    let mut plan = technique::plan(&request.technique, &features)?;
+    if !masked.is_empty() {
+        let channels: Vec<String> = masked
+            .iter()
+            .zip(shadowmask::CHANNEL_NAMES)
+            .map(|((name, _), c)| format!("{name} in {c}"))
+            .collect();
+        plan.run(
+            "shadowmask",
+            &format!(
+                "{}; their direct light is left out of the lightmap and direct.* for the renderer to add times the mask (their bounce stays baked)",
+                channels.join(", ")
+            ),
+        );
+    }
+    Ok(plan)
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -60,6 +83,10 @@ pub struct BakeRequest {
     /// Charts that need more than one page get several, stacked in one taller page.
     #[serde(default)]
     pub texels_per_unit: Option<f32>,
+    /// The lights of the `shadowmask` layer, one per channel (`engine::shadowmask`):
+    /// `sun`, a light's name or `#index`; empty: the sun and the scene's lights.
+    #[serde(default)]
+    pub shadowmask_lights: Vec<String>,
 }
 
 impl Default for BakeRequest {
@@ -79,6 +106,7 @@ impl Default for BakeRequest {
             denoise: Denoiser::Auto,
             lightmap_uvs: LightmapUvs::default(),
             texels_per_unit: None,
+            shadowmask_lights: Vec::new(),
         }
     }
 }
@@ -289,6 +317,14 @@ fn bake_impl(
     if control && !atlas.texels.is_empty() {
         bake_loop.control = Some(ControlTexels::new(&scene, &atlas, request.lighting, request.seed)?);
     }
+    bake_loop.shadowmask = ShadowmaskBake::new(
+        &scene,
+        &atlas,
+        &request.lighting,
+        request.seed,
+        &request.outputs,
+        &request.shadowmask_lights,
+    )?;
     let outcome = bake_loop.run(tech, observer)?;
     // Denoised once: the EXR and the preview show the same delivered lightmap. A
     // cancelled bake is delivered raw: whoever cancelled does not keep it (the service
@@ -369,6 +405,11 @@ pub fn delivered_exr(
             "no".into()
         },
         raw_relative_error: estimate.error.raw_relative,
+        shadowmask: estimate
+            .shadowmask
+            .as_ref()
+            .map(|m| m.lights.clone())
+            .unwrap_or_default(),
     };
     output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)
 }

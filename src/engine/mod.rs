@@ -17,4 +17,5 @@ pub mod post;
 pub mod raytrace;
 pub mod rng;
 pub mod scene;
+pub mod shadowmask;
 pub mod technique;

@@ -56,9 +56,15 @@ pub struct JobSpec {
     #[serde(default)]
     #[schema(value_type = Object)]
     pub params: Value,
-    /// Extra EXR layers: `validity`, `direct`, `indirect`, `sh`, `ao` (techniques that compute it).
+    /// Extra EXR layers: `validity`, `direct`, `indirect`, `sh`, `ao` (techniques that compute it),
+    /// `debug`, `shadowmask`.
     #[serde(default)]
     pub outputs: Vec<String>,
+    /// The `shadowmask` layer's lights, one per channel (R, G, B, A): `sun`, a light's name
+    /// in the scene, or `#index`. Absent: the sun and the scene's lights, at most four.
+    /// Their direct light is left out of the lightmap and `direct.*`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub shadowmask_lights: Vec<String>,
     /// Higher runs first; equal priorities run oldest first.
     #[serde(default)]
     pub priority: i32,
@@ -294,6 +300,7 @@ impl JobSpec {
                 .unwrap_or_default(),
             lightmap_uvs: Default::default(),
             texels_per_unit: None,
+            shadowmask_lights: self.shadowmask_lights.clone(),
         }
     }
 }
@@ -349,7 +356,21 @@ pub fn check_lights(report: &Value, spec: &JobSpec) -> Result<(), Problem> {
     technique::check_lights(&spec.technique, &features).map_err(|e| {
         let m = e.to_string();
         Problem::invalid_field(leading_field(&m), m)
-    })
+    })?;
+    // The shadowmask's lights against the scene's, by name; a report stored before it
+    // listed light names leaves the names to the bake's own check.
+    if let Some(names) = report.get("light_names").and_then(Value::as_array) {
+        let names: Vec<String> = names.iter().filter_map(|n| n.as_str().map(str::to_string)).collect();
+        let request = spec.to_request();
+        crate::engine::shadowmask::resolve(
+            &request.outputs,
+            &request.shadowmask_lights,
+            &names,
+            lighting.sun.is_some(),
+        )
+        .map_err(|m| Problem::invalid_field(leading_field(&m), m))?;
+    }
+    Ok(())
 }
 
 /// A job's lifecycle (DESIGN §7).

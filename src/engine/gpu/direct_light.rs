@@ -33,7 +33,6 @@
 
 use std::sync::Arc;
 
-use bytemuck::Zeroable;
 use glam::Vec3;
 use wgpu::BufferUsages;
 
@@ -41,7 +40,7 @@ use super::bvh::check_binding_size;
 use super::layout::{Bind, compute_pipeline, group_of, layout_of};
 use super::scene_lights::{GpuSceneLights, LightSources};
 use super::shaders::DIRECT_LIGHT;
-use super::texels::GpuTexelGeom;
+use super::texels::world_texels;
 use super::{GpuContext, GpuError};
 use crate::engine::atlas::Atlas;
 use crate::engine::raytrace::{EmitterTable, Tracer};
@@ -115,20 +114,7 @@ impl DirectLight {
         let tracer = Tracer::new(scene);
         let scene_gpu = GpuSceneLights::new(&ctx, &what, scene, lighting, &tracer, &emitters, sources)?;
         let n = atlas.texels.len();
-        let geom: Vec<GpuTexelGeom> = atlas
-            .texels
-            .iter()
-            .map(|t| GpuTexelGeom {
-                position: t.position.extend(0.0).to_array(),
-                normal: t.normal.normalize_or_zero().extend(0.0).to_array(),
-                geo_normal: t.geo_normal.normalize_or_zero().extend(0.0).to_array(),
-            })
-            .collect();
-        let geom = if geom.is_empty() {
-            vec![GpuTexelGeom::zeroed()]
-        } else {
-            geom
-        };
+        let geom = world_texels(atlas);
         let acc_bytes = 2 * n.max(1) as u64 * 16;
         check_binding_size(&ctx, &format!("{what}: the texels"), geom.len() as u64 * 48)?;
         check_binding_size(&ctx, &format!("{what}: the accumulators"), acc_bytes)?;

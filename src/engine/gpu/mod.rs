@@ -36,6 +36,7 @@ pub mod map_scene;
 pub mod scene_lights;
 pub mod shaders;
 pub mod shadow;
+pub mod shadowmask;
 pub mod texels;
 pub mod view;
 

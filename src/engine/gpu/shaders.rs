@@ -86,8 +86,11 @@ pub const LIGHTS: WgslFile = wgsl_file!("gpu/lights.wgsl");
 /// The shared direct-light pass (`engine::gpu::direct_light`).
 pub const DIRECT_LIGHT: PassShader = pass!("gpu/direct_light.wgsl", [BVH, LIGHTS]);
 
+/// The shadowmask pass (`engine::gpu::shadowmask`).
+pub const SHADOWMASK: PassShader = pass!("gpu/shadowmask.wgsl", [BVH, LIGHTS]);
+
 /// The passes of the shared GPU layer (the technique table adds every technique's).
-pub const SHARED_PASSES: &[PassShader] = &[SHADOW_ATLAS, BVH_QUERY, DIRECT_LIGHT];
+pub const SHARED_PASSES: &[PassShader] = &[SHADOW_ATLAS, BVH_QUERY, DIRECT_LIGHT, SHADOWMASK];
 
 impl PassShader {
     /// The full source handed to the compiler: common prelude, the pass's preludes, then

@@ -38,3 +38,22 @@ pub fn texel_geometry<'a>(
         .map(|(p, n, g)| GpuTexelGeom::new(frame, p, n, g))
         .collect()
 }
+
+/// Every valid texel of `atlas` in world space (the BVH's space, not a normalised frame):
+/// what the ray-traced shared passes (`gpu::direct_light`, `gpu::shadowmask`) upload. At
+/// least one element, so an empty atlas still binds a buffer.
+pub fn world_texels(atlas: &crate::engine::atlas::Atlas) -> Vec<GpuTexelGeom> {
+    let mut geom: Vec<GpuTexelGeom> = atlas
+        .texels
+        .iter()
+        .map(|t| GpuTexelGeom {
+            position: t.position.extend(0.0).to_array(),
+            normal: t.normal.normalize_or_zero().extend(0.0).to_array(),
+            geo_normal: t.geo_normal.normalize_or_zero().extend(0.0).to_array(),
+        })
+        .collect();
+    if geom.is_empty() {
+        geom.push(GpuTexelGeom::zeroed());
+    }
+    geom
+}

@@ -38,6 +38,9 @@ pub enum OutputLayer {
     /// The validation report as images: `debug.inside.Y` (texels inside geometry),
     /// `debug.overlap.Y` (overlapping charts), `debug.density.Y` (texels per metre).
     Debug,
+    /// Baked visibility of up to four chosen lights (`shadowmask.R` … `.A`,
+    /// `engine::shadowmask`); the lightmap and `direct.*` then leave their direct light out.
+    Shadowmask,
 }
 
 impl OutputLayer {
@@ -49,6 +52,7 @@ impl OutputLayer {
         OutputLayer::Sh,
         OutputLayer::Ao,
         OutputLayer::Debug,
+        OutputLayer::Shadowmask,
     ];
 
     pub fn parse(s: &str) -> Result<OutputLayer, String> {
@@ -59,8 +63,9 @@ impl OutputLayer {
             "sh" => Ok(OutputLayer::Sh),
             "ao" => Ok(OutputLayer::Ao),
             "debug" => Ok(OutputLayer::Debug),
+            "shadowmask" => Ok(OutputLayer::Shadowmask),
             other => Err(format!(
-                "unknown output layer {other:?}; available: validity, direct, indirect, sh, ao, debug"
+                "unknown output layer {other:?}; available: validity, direct, indirect, sh, ao, debug, shadowmask"
             )),
         }
     }
@@ -74,6 +79,7 @@ impl OutputLayer {
             OutputLayer::Sh => "sh",
             OutputLayer::Ao => "ao",
             OutputLayer::Debug => "debug",
+            OutputLayer::Shadowmask => "shadowmask",
         }
     }
 }
@@ -92,6 +98,8 @@ pub struct ExrMetadata {
     pub denoised: String,
     /// The raw estimate's relative error, when the lightmap was denoised.
     pub raw_relative_error: Option<f32>,
+    /// The light of each `shadowmask.*` channel, in channel order (empty: no shadowmask).
+    pub shadowmask: Vec<String>,
 }
 
 /// Builds the channel list for `estimate` (dilated) plus the requested layers.
@@ -144,7 +152,7 @@ pub fn lightmap_channels(
                     rgb(&format!("sh.{axis}"), &values);
                 }
             }
-            OutputLayer::Validity | OutputLayer::Debug | OutputLayer::Ao => {}
+            OutputLayer::Validity | OutputLayer::Debug | OutputLayer::Ao | OutputLayer::Shadowmask => {}
         }
     }
     if layers.contains(&OutputLayer::Ao) {
@@ -156,6 +164,32 @@ pub fn lightmap_channels(
         let as_rgb: Vec<Vec3> = ao.iter().map(|a| Vec3::splat(*a)).collect();
         let img = post::dilate(atlas, &as_rgb, rings);
         channels.push(("ao.Y".into(), img.iter().map(|v| v.x).collect()));
+    }
+    if layers.contains(&OutputLayer::Shadowmask) {
+        let mask = estimate
+            .shadowmask
+            .as_ref()
+            .ok_or("the bake kept no shadowmask layer")?;
+        // Dilated and stitched like the lightmap, three channels at a time.
+        let mut planes: Vec<Vec<f32>> = Vec::new();
+        for first in [0, 3] {
+            let values: Vec<Vec3> = mask
+                .values
+                .iter()
+                .map(|v| Vec3::from_array(std::array::from_fn(|k| v.get(first + k).copied().unwrap_or(0.0))))
+                .collect();
+            let mut img = post::dilate(atlas, &values, rings);
+            post::seams::stitch(&mut img, atlas.width, atlas.height, &atlas.pixel_texel, &atlas.seams);
+            // The seam solver's least squares can overshoot a step from 0 to 1 (seen: 1.37
+            // on the Kenney level); a visibility stays a fraction.
+            planes.extend((0..3).map(|k| img.iter().map(|v| v[k].clamp(0.0, 1.0)).collect::<Vec<f32>>()));
+        }
+        for (c, plane) in planes.into_iter().take(mask.lights.len()).enumerate() {
+            channels.push((
+                format!("shadowmask.{}", crate::engine::shadowmask::CHANNEL_NAMES[c]),
+                plane,
+            ));
+        }
     }
     if layers.contains(&OutputLayer::Debug) {
         let size = (atlas.width * atlas.height) as usize;
@@ -216,6 +250,13 @@ pub fn encode_exr(
     other.insert(Text::from("lightmapd:seconds"), AttributeValue::F64(meta.seconds));
     other.insert(Text::from("lightmapd:seed"), text(&meta.seed.to_string()));
     other.insert(Text::from("lightmapd:denoised"), text(&meta.denoised));
+    if !meta.shadowmask.is_empty() {
+        // The light of each shadowmask channel, R first, as JSON text.
+        other.insert(
+            Text::from("lightmapd:shadowmask"),
+            text(&serde_json::to_string(&meta.shadowmask).unwrap_or_default()),
+        );
+    }
     if let Some(e) = meta.raw_relative_error {
         other.insert(Text::from("lightmapd:raw_relative_error"), AttributeValue::F32(e));
     }

@@ -59,6 +59,10 @@ pub struct ImportReport {
     /// How many of `lights` are directional (the rest are point or spot).
     #[serde(default)]
     pub directional_lights: usize,
+    /// The lights' names in import order (a glTF light without one is `light <index>`),
+    /// which a job's `shadowmask_lights` names.
+    #[serde(default)]
+    pub light_names: Vec<String>,
     pub emissive_triangles: usize,
     /// Dropped because their world-space area is zero (or too small to have a normal).
     pub degenerate_triangles: usize,
@@ -239,6 +243,7 @@ pub fn import_slice_limited(
     report.materials = gltf.materials().len();
     report.textures = textures.len();
     report.lights = lights.len();
+    report.light_names = lights.iter().map(|l| l.light.name.clone()).collect();
     report.directional_lights = lights
         .iter()
         .filter(|l| matches!(l.light.kind, LightKind::Directional))

@@ -83,7 +83,8 @@ pub struct TechniqueEntry {
     /// Every WGSL pass it compiles (validated without a device, see the tests below).
     pub shaders: &'static [PassShader],
     /// The optional output layers it writes; `validity` and `debug` come from the texel
-    /// set and are there for every technique. A job asking for another layer is refused
+    /// set and `shadowmask` from the shared GPU pass, for every technique
+    /// ([`TechniqueEntry::writes`]). A job asking for another layer is refused
     /// before baking (`table::check_request`).
     pub layers: &'static [OutputLayer],
     /// The light it transports; a job whose scene or lighting has other light is refused
@@ -96,6 +97,18 @@ pub struct TechniqueEntry {
     /// its whole error. A biased technique's bake measures its bias at control texels
     /// (`engine::control`).
     pub unbiased: bool,
+}
+
+impl TechniqueEntry {
+    /// Whether a job with this technique may ask for `layer`: the row's own layers, and
+    /// those the engine writes for every technique (`validity` and `debug` from the texel
+    /// set, `shadowmask` from `gpu::shadowmask`).
+    pub fn writes(&self, layer: OutputLayer) -> bool {
+        matches!(
+            layer,
+            OutputLayer::Validity | OutputLayer::Debug | OutputLayer::Shadowmask
+        ) || self.layers.contains(&layer)
+    }
 }
 
 /// A kind of light, as the technique table's `lights` column names it.

@@ -72,8 +72,7 @@ pub fn check_request(id: &str, params: &Value, outputs: &[OutputLayer]) -> Resul
     }
     (e.check_params)(params)?;
     for (i, layer) in outputs.iter().enumerate() {
-        let always = matches!(layer, OutputLayer::Validity | OutputLayer::Debug);
-        if !always && !e.layers.contains(layer) {
+        if !e.writes(*layer) {
             return Err(EngineError::BadInput(format!(
                 "outputs[{i}]: {id} cannot write the {:?} layer; techniques that can: {}",
                 layer.name(),
@@ -264,6 +263,38 @@ mod tests {
         for row in TABLE {
             assert_eq!(row.lights, LightSource::ALL, "{}", row.id);
             lights_of(row, &everything).unwrap();
+        }
+    }
+
+    /// A row that lists the direct (or sh) layer must plan to keep it when asked, else the
+    /// job asks the technique for nothing and the output fails after the whole bake (sdf
+    /// did, until its plan decided `DIRECT_LAYER`).
+    #[test]
+    fn every_layer_a_row_lists_is_kept_by_its_plan_when_asked() {
+        for row in TABLE {
+            for (layer, item) in [
+                (OutputLayer::Direct, crate::engine::plan::DIRECT_LAYER),
+                (OutputLayer::Indirect, crate::engine::plan::DIRECT_LAYER),
+                (OutputLayer::Sh, crate::engine::plan::SH_LAYER),
+            ] {
+                if !row.layers.contains(&layer) {
+                    continue;
+                }
+                let f = SceneFeatures {
+                    sky: true,
+                    sun: true,
+                    want_direct: matches!(layer, OutputLayer::Direct | OutputLayer::Indirect),
+                    want_sh: layer == OutputLayer::Sh,
+                    ..Default::default()
+                };
+                let p = plan(row.id, &f).unwrap();
+                assert!(
+                    p.runs(item),
+                    "{}: {:?} is listed but its plan does not keep {item:?}",
+                    row.id,
+                    layer.name()
+                );
+            }
         }
     }
 

@@ -141,9 +141,7 @@ pub fn techniques(limits: &Limits) -> TechniqueList {
             let row = technique::entry(id).ok();
             let outputs = OutputLayer::ALL
                 .iter()
-                .filter(|l| {
-                    matches!(l, OutputLayer::Validity | OutputLayer::Debug) || row.is_some_and(|r| r.layers.contains(l))
-                })
+                .filter(|l| row.is_some_and(|r| r.writes(**l)))
                 .map(|l| l.name().to_string())
                 .collect();
             TechniqueInfo {
@@ -246,12 +244,21 @@ mod tests {
                 .iter()
                 .all(|t| t.params.is_object() && !t.passes.is_empty())
         );
-        assert_eq!(list.outputs, ["validity", "direct", "indirect", "sh", "ao", "debug"]);
+        assert_eq!(
+            list.outputs,
+            ["validity", "direct", "indirect", "sh", "ao", "debug", "shadowmask"]
+        );
         // The table's rows: only path keeps directional moments, only sdf and obscurance
         // write ao, and every technique bakes every light (the shared direct-light module).
         let by_id = |id: &str| list.techniques.iter().find(|t| t.id == id).unwrap();
-        assert_eq!(by_id("path").outputs, ["validity", "direct", "indirect", "sh", "debug"]);
-        assert_eq!(by_id("sdf").outputs, ["validity", "direct", "indirect", "ao", "debug"]);
+        assert_eq!(
+            by_id("path").outputs,
+            ["validity", "direct", "indirect", "sh", "debug", "shadowmask"]
+        );
+        assert_eq!(
+            by_id("sdf").outputs,
+            ["validity", "direct", "indirect", "ao", "debug", "shadowmask"]
+        );
         for t in &list.techniques {
             assert_eq!(t.lights, technique::LightSource::ALL, "{}", t.id);
         }

@@ -116,7 +116,7 @@ use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::{self, GpuContext, GpuError};
 use crate::engine::output::OutputLayer;
-use crate::engine::plan::{Plan, SH_LAYER, SceneFeatures};
+use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, cosine_sample};
 use crate::engine::rng::Rng;
 use crate::engine::scene::Hemisphere;
@@ -1209,6 +1209,14 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         other_light,
         "one scene-wide ambient (the obscurance model): h B1 / (1 - c R_ave), h each texel's hit fraction from the shared pass's rays; off with params.bounce = false",
         "nothing but the sky to bounce",
+    );
+    // Without this item the job never asks the technique to keep its direct light, and a
+    // `direct` or `indirect` output failed after the whole bake.
+    p.decide(
+        DIRECT_LAYER,
+        f.want_direct,
+        "direct or indirect output asked for: the sky straight from the sky (visibility times its radiance) and the shared direct light; the bleed and the bounce are indirect",
+        "not asked for in outputs",
     );
     p.leave_out(
         "interreflection of the sky",
