@@ -366,9 +366,10 @@ struct BakeArgs {
     /// paper's set, faster, misses far sky occlusion).
     #[arg(long, value_enum, default_value = "all")]
     update_reach: ReachArg,
-    /// Also bake light probes (irradiance SH to L2 by `path` on the CPU, docs/probes.md)
-    /// on a grid of --probe-spacing over the scene's bounds, written here as JSON.
-    #[arg(long, requires = "probe_spacing")]
+    /// Also bake light probes (radiance SH to L2 by `path` on the CPU, docs/probes.md)
+    /// on a grid of --probe-spacing over the scene's bounds and at the glTF nodes whose
+    /// extras.light_probe is true, written here as JSON.
+    #[arg(long)]
     probes: Option<PathBuf>,
     /// Probe grid spacing in metres.
     #[arg(long)]
@@ -885,21 +886,16 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         lightmap_uvs: args.lightmap_uvs,
         texels_per_unit: args.texels_per_unit,
         shadowmask_lights: args.shadowmask_lights.clone(),
+        // Checked with the rest of the request before the bake (exit 2 naming the field).
+        probes: args.probes.as_ref().map(|_| lightmapd::engine::job::ProbeRequest {
+            spacing: args.probe_spacing,
+            positions: Vec::new(),
+            steps: args.probe_steps,
+        }),
     };
 
     let (scene, report) =
         scene::import_file(&args.scene).map_err(|e| bad_input(format!("{}: {e}", args.scene.display())))?;
-    // Probe positions are checked before the bake: a bad spacing is bad input (exit 2).
-    let probe_positions = match (&args.probes, args.probe_spacing) {
-        (Some(_), Some(spacing)) => Some(
-            lightmapd::engine::technique::path::probes::grid_positions(&scene, spacing, MAX_PROBES)
-                .map_err(|e| bad_input(e.to_string().replace("probes.spacing", "--probe-spacing")))?,
-        ),
-        _ => None,
-    };
-    if args.probes.is_some() && args.probe_steps == 0 {
-        return Err(bad_input("--probe-steps must be at least 1"));
-    }
     for w in &report.warnings {
         eprintln!("warning: {w}");
     }
@@ -1007,8 +1003,8 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             message: format!("cannot write {}: {e}", p.display()),
         })?;
     }
-    if let (Some(path), Some(at)) = (&args.probes, probe_positions) {
-        bake_probes(&result.scene, &request, at, args.probe_steps, path)?;
+    if let (Some(path), Some(set)) = (&args.probes, &result.probes) {
+        write_probes(set, path)?;
     }
     let s = &result.summary;
     eprintln!("plan: {}", s.plan.summary_line());
@@ -1045,38 +1041,12 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
     Ok(())
 }
 
-/// The most probes `--probe-spacing` may place.
-const MAX_PROBES: usize = 100_000;
-
-/// Bakes probes at `at` (the scene's frame) and writes them as JSON to `path`.
-fn bake_probes(
-    scene: &lightmapd::engine::scene::Scene,
-    request: &BakeRequest,
-    at: Vec<glam::Vec3>,
-    steps: u32,
+/// Writes the baked probes as JSON to `path`.
+fn write_probes(
+    set: &lightmapd::engine::technique::path::probes::ProbeSet,
     path: &std::path::Path,
 ) -> Result<(), Failure> {
-    use lightmapd::engine::technique::path::probes::ProbeBaker;
-    let started = std::time::Instant::now();
-    let mut baker = ProbeBaker::new(
-        scene,
-        request.lighting,
-        at,
-        &serde_json::json!({"samples_per_step": 64}),
-        request.seed,
-    )
-    .map_err(|e| Failure {
-        code: if e.is_bad_input() { 2 } else { 1 },
-        message: e.to_string(),
-    })?;
-    let bar = indicatif::ProgressBar::new(steps as u64);
-    for _ in 0..steps {
-        baker.step();
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    let set = baker.result();
-    let json = serde_json::to_vec_pretty(&set).map_err(|e| Failure {
+    let json = serde_json::to_vec_pretty(set).map_err(|e| Failure {
         code: 1,
         message: format!("encoding the probes: {e}"),
     })?;
@@ -1086,9 +1056,9 @@ fn bake_probes(
     })?;
     let invalid = set.probes.iter().filter(|p| !p.valid).count();
     eprintln!(
-        "baked {} probes ({invalid} inside geometry, not baked) in {:.2} s -> {}",
+        "baked {} probes ({invalid} inside geometry, not baked), error {:.2} % -> {}",
         set.probes.len(),
-        started.elapsed().as_secs_f64(),
+        100.0 * set.error,
         path.display()
     );
     Ok(())

@@ -241,7 +241,7 @@ fn bad_options_exit_2() {
             "1",
         ],
         &scene,
-        "--probe-spacing must be a positive distance, got 0",
+        "probes.spacing must be a positive distance, got 0",
     );
     assert!(!probes.exists());
     // clap's own errors use exit code 2 as well.

@@ -226,3 +226,52 @@ fn probe_under_a_black_sphere_sees_the_sky_around_it() {
         );
     }
 }
+
+/// Probes at glTF nodes marked `extras.light_probe` (issue 26 point 1), through the job:
+/// placed at the nodes' world positions (the scene is off the origin, so the import's
+/// re-centring is undone), with the same answer as anywhere else: over a black plane
+/// under an upper sky of 1, E/pi up is 1.
+#[test]
+fn probes_at_marked_nodes_are_baked_by_the_job() {
+    let mut b = SceneBuilder::new();
+    let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
+    let far = Vec3::new(1000.0, 0.0, -500.0);
+    b.square("ground", far, 10.0, Vec3::Y, black);
+    b.probes = vec![far + Vec3::new(0.0, 1.0, 0.0), far + Vec3::new(2.0, 0.5, 1.0)];
+    let scene = std::sync::Arc::new(import(&b));
+    assert_eq!(scene.probe_nodes.len(), 2);
+    let request = lightmapd::engine::job::BakeRequest {
+        resolution: 8,
+        lighting: Lighting {
+            sky: Some(Sky {
+                radiance: Vec3::ONE,
+                hemisphere: Hemisphere::Upper,
+            }),
+            sun: None,
+        },
+        stop: lightmapd::engine::bake::StopCriteria {
+            steps: Some(2),
+            seconds: None,
+            target_error: None,
+        },
+        probes: Some(lightmapd::engine::job::ProbeRequest {
+            spacing: None,
+            positions: Vec::new(),
+            steps: 32,
+        }),
+        denoise: lightmapd::engine::post::denoised::Denoiser::None,
+        ..Default::default()
+    };
+    let result = lightmapd::engine::job::bake_unobserved(scene, &request).unwrap();
+    let set = result.probes.expect("probes were asked for");
+    assert_eq!(set.probes.len(), 2);
+    for (p, want) in set.probes.iter().zip(&b.probes) {
+        assert!((v(p.position) - *want).length() < 1e-3, "{:?} vs {want}", p.position);
+        assert!(p.valid);
+        let c: [Vec3; SH9] = std::array::from_fn(|i| v(p.sh[i]));
+        let up = irradiance_over_pi(&c, Vec3::Y);
+        // L2's band limit on a hemisphere step: E/pi up of the projection is 1 within 3 %.
+        assert!((up.x - 1.0).abs() < 0.05, "E/pi up {up} at {:?}", p.position);
+    }
+    assert!(set.error > 0.0 && set.error < 0.05, "set error {}", set.error);
+}

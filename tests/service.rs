@@ -383,6 +383,109 @@ async fn a_biased_bake_reports_bias_and_noise() {
     }
 }
 
+/// A job's light probes (issue 26 point 2): baked after the lightmap, stored as the job's
+/// `probes.json` artifact; a job without `probes` has none (404), and a job whose probes
+/// have nowhere to go is refused at submit.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn probes_are_an_artifact_of_the_job() {
+    let s = start(1, |_| {}).await;
+    let h = &s.http;
+    let r = h.post(format!("{}/v1/scenes", s.url)).body(glb()).send().await.unwrap();
+    let scene: Value = r.json().await.unwrap();
+    assert_eq!(scene["report"]["probe_nodes"], 0);
+    // The bundled Cornell box is 2 m on a side: a 0.7 m grid is 3 x 3 x 3 probes, plus one
+    // given at the room's centre.
+    let id = s
+        .submit(
+            json!({"scene": scene["id"], "resolution": 16, "stop": {"steps": 4}, "denoise": "none",
+                       "probes": {"spacing": 0.7, "positions": [[0.0, 1.0, 0.0]], "steps": 4}}),
+        )
+        .await;
+    read_events(h, &format!("{}/v1/jobs/{id}/events", s.url)).await;
+    let job = s.job(&id).await;
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    assert!(
+        job["plan"]["passes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|p| p["name"] == "light probes"),
+        "{job:#}"
+    );
+    let r = h
+        .get(format!("{}/v1/jobs/{id}/probes.json", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "application/json");
+    let set: Value = r.json().await.unwrap();
+    let probes = set["probes"].as_array().unwrap();
+    let n = probes.len();
+    assert_eq!(n, 28, "{set:#}");
+    assert_eq!(set["steps"], 4);
+    assert!(set["error"].as_f64().unwrap() > 0.0, "{}", set["error"]);
+    let given = &probes[n - 1];
+    assert_eq!(given["position"], json!([0.0, 1.0, 0.0]));
+    assert_eq!(given["valid"], true);
+    assert_eq!(given["sh"].as_array().unwrap().len(), 9);
+    // Lit by the ceiling: the centre's L0 is positive in every channel.
+    assert!(
+        given["sh"][0]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|c| c.as_f64().unwrap() > 0.0),
+        "{given}"
+    );
+
+    let plain = s
+        .submit(json!({"scene": scene["id"], "resolution": 8, "stop": {"steps": 2}, "denoise": "none"}))
+        .await;
+    read_events(h, &format!("{}/v1/jobs/{plain}/events", s.url)).await;
+    expect_problem(
+        h.get(format!("{}/v1/jobs/{plain}/probes.json", s.url)),
+        404,
+        problem(
+            404,
+            "Not Found",
+            "not-found",
+            &format!("job {plain} asked for no probes (job field `probes`)"),
+            None,
+        ),
+    )
+    .await;
+    expect_problem(
+        h.post(format!("{}/v1/jobs", s.url)).header("content-type", "application/json").body(
+            json!({"scene": scene["id"], "probes": {"steps": 4}}).to_string(),
+        ),
+        422,
+        problem(
+            422,
+            "Unprocessable Entity",
+            "invalid-field",
+            "probes: no position: give probes.spacing or probes.positions, or mark glTF nodes with extras.light_probe = true",
+            Some("probes"),
+        ),
+    )
+    .await;
+    expect_problem(
+        h.post(format!("{}/v1/jobs", s.url))
+            .header("content-type", "application/json")
+            .body(json!({"scene": scene["id"], "probes": {"spacing": -1}}).to_string()),
+        422,
+        problem(
+            422,
+            "Unprocessable Entity",
+            "invalid-field",
+            "probes.spacing must be a positive distance, got -1",
+            Some("probes.spacing"),
+        ),
+    )
+    .await;
+    s.running.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_error_status_has_its_problem_body() {
     // No workers: a job stays queued, which the 409 cases need.

@@ -23,6 +23,7 @@ use crate::engine::post::denoised::{self, Denoiser, Used};
 use crate::engine::scene::{Lighting, Scene};
 use crate::engine::shadowmask::{self, ShadowmaskBake};
 use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateReach};
+use crate::engine::technique::path::probes::{self, ProbeBaker, ProbeSet};
 use crate::engine::technique::{self, BakeInputs, EngineError, Technique};
 
 /// What to bake, independent of where the scene came from.
@@ -44,6 +45,22 @@ pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineErro
     )
     .map_err(EngineError::BadInput)?;
     let mut plan = technique::plan(&request.technique, &features)?;
+
+    if let Some(p) = &request.probes {
+        p.validate().map_err(EngineError::BadInput)?;
+        let at = probes::positions_for(scene, p.spacing, &p.positions)?;
+        plan.run(
+            "light probes",
+            &format!(
+                "{} probes (grid {}, {} given, {} glTF nodes), radiance SH to L2 by path after the lightmap, {} steps",
+                at.len(),
+                p.spacing.map_or("none".into(), |s| format!("{s} m")),
+                p.positions.len(),
+                scene.probe_nodes.len(),
+                p.steps
+            ),
+        );
+    }
     if !masked.is_empty() {
         let channels: Vec<String> = masked
             .iter()
@@ -87,6 +104,48 @@ pub struct BakeRequest {
     /// `sun`, a light's name or `#index`; empty: the sun and the scene's lights.
     #[serde(default)]
     pub shadowmask_lights: Vec<String>,
+    /// Light probes to bake after the lightmap (`technique::path::probes`); none when
+    /// absent.
+    #[serde(default)]
+    pub probes: Option<ProbeRequest>,
+}
+
+/// Where and how long to bake light probes (issue 26; docs/probes.md).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ProbeRequest {
+    /// A grid of cells of this side (metres) over the scene's bounds, a probe at each
+    /// cell's centre.
+    #[serde(default)]
+    pub spacing: Option<f32>,
+    /// Probes at these world positions (the glTF's coordinates).
+    #[serde(default)]
+    pub positions: Vec<[f64; 3]>,
+    /// Steps of `path`'s probe estimator, 64 samples a probe each.
+    #[serde(default = "default_probe_steps")]
+    pub steps: u32,
+}
+
+fn default_probe_steps() -> u32 {
+    16
+}
+
+impl ProbeRequest {
+    /// Checks what needs no scene; errors name the field.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(1..=4096).contains(&self.steps) {
+            return Err(format!("probes.steps must be in 1..=4096, got {}", self.steps));
+        }
+        if let Some(s) = self.spacing
+            && !(s.is_finite() && s > 0.0)
+        {
+            return Err(format!("probes.spacing must be a positive distance, got {s}"));
+        }
+        if let Some(k) = self.positions.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+            return Err(format!("probes.positions[{k}] is not finite"));
+        }
+        Ok(())
+    }
 }
 
 impl Default for BakeRequest {
@@ -107,6 +166,7 @@ impl Default for BakeRequest {
             lightmap_uvs: LightmapUvs::default(),
             texels_per_unit: None,
             shadowmask_lights: Vec::new(),
+            probes: None,
         }
     }
 }
@@ -137,6 +197,8 @@ pub struct BakeResult {
     pub estimate: Estimate,
     pub atlas: Arc<Atlas>,
     pub summary: BakeSummary,
+    /// The light probes, when the request asked for them.
+    pub probes: Option<ProbeSet>,
 }
 
 /// How a caller wants a bake run, beyond what is baked.
@@ -353,6 +415,10 @@ fn bake_impl(
         },
     };
     let state = concrete.map(|t| t.state()).transpose()?;
+    let probes = match &request.probes {
+        Some(p) if outcome.stopped_by != StopReason::Cancelled => Some(bake_probes(&scene, request, p)?),
+        _ => None,
+    };
     Ok((
         BakeResult {
             scene,
@@ -361,9 +427,37 @@ fn bake_impl(
             estimate: finished,
             atlas,
             summary,
+            probes,
         },
         state,
     ))
+}
+
+/// The request's probes, baked by `path`'s probe estimator on the baked scene (the one
+/// with generated lightmap UVs, the same geometry).
+fn bake_probes(scene: &Scene, request: &BakeRequest, p: &ProbeRequest) -> Result<ProbeSet, EngineError> {
+    let started = std::time::Instant::now();
+    let at = probes::positions_for(scene, p.spacing, &p.positions)?;
+    let mut baker = ProbeBaker::new(
+        scene,
+        request.lighting,
+        at,
+        &serde_json::json!({"samples_per_step": 64}),
+        request.seed,
+    )?;
+    for _ in 0..p.steps {
+        baker.step();
+    }
+    let set = baker.result();
+    tracing::info!(
+        probes = set.probes.len(),
+        invalid = set.probes.iter().filter(|x| !x.valid).count(),
+        steps = set.steps,
+        relative_error = set.error,
+        seconds = started.elapsed().as_secs_f64(),
+        "light probes baked"
+    );
+    Ok(set)
 }
 
 /// [`bake`] with default options and nobody watching: for tests and tools that only

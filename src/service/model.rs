@@ -65,6 +65,10 @@ pub struct JobSpec {
     /// Their direct light is left out of the lightmap and `direct.*`.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub shadowmask_lights: Vec<String>,
+    /// Light probes to bake after the lightmap (radiance SH to L2, docs/probes.md); the
+    /// job's `probes.json` artifact. Absent: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub probes: Option<ProbeSpec>,
     /// Higher runs first; equal priorities run oldest first.
     #[serde(default)]
     pub priority: i32,
@@ -113,6 +117,37 @@ pub struct SunSpec {
     #[schema(default = 0.53)]
     pub angular_diameter_deg: f32,
     pub radiance: [f32; 3],
+}
+
+/// Where light probes go: a grid, given positions, and the scene's glTF nodes with
+/// `extras.light_probe: true`, all together.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ProbeSpec {
+    /// Grid cell side in metres over the scene's bounds (a probe at each cell's centre).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spacing: Option<f32>,
+    /// Probe positions in the glTF's world coordinates.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub positions: Vec<[f64; 3]>,
+    /// Steps of the probe bake, 64 samples a probe each (1 to 4096).
+    #[serde(default = "default_probe_steps")]
+    #[schema(default = 16)]
+    pub steps: u32,
+}
+
+fn default_probe_steps() -> u32 {
+    16
+}
+
+impl ProbeSpec {
+    fn to_request(&self) -> crate::engine::job::ProbeRequest {
+        crate::engine::job::ProbeRequest {
+            spacing: self.spacing,
+            positions: self.positions.clone(),
+            steps: self.steps,
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
@@ -215,6 +250,9 @@ impl JobSpec {
             return Err(Problem::invalid_field("params", "params must be a JSON object"));
         }
         let request = self.to_request();
+        if let Some(p) = &request.probes {
+            p.validate().map_err(|m| Problem::invalid_field(leading_field(&m), m))?;
+        }
         // The technique's parameters and layers against its table row, so a job it
         // cannot run is refused now rather than failing when it runs. The engine's
         // message starts with the field ("params.samples_per_step ...", "outputs[1]: ...").
@@ -301,6 +339,7 @@ impl JobSpec {
             lightmap_uvs: Default::default(),
             texels_per_unit: None,
             shadowmask_lights: self.shadowmask_lights.clone(),
+            probes: self.probes.as_ref().map(ProbeSpec::to_request),
         }
     }
 }
@@ -357,6 +396,17 @@ pub fn check_lights(report: &Value, spec: &JobSpec) -> Result<(), Problem> {
         let m = e.to_string();
         Problem::invalid_field(leading_field(&m), m)
     })?;
+    // Probes need somewhere to go: a grid, positions, or the scene's probe nodes.
+    if let Some(p) = &spec.probes
+        && p.spacing.is_none()
+        && p.positions.is_empty()
+        && report.get("probe_nodes").and_then(Value::as_u64) == Some(0)
+    {
+        return Err(Problem::invalid_field(
+            "probes",
+            "probes: no position: give probes.spacing or probes.positions, or mark glTF nodes with extras.light_probe = true",
+        ));
+    }
     // The shadowmask's lights against the scene's, by name; a report stored before it
     // listed light names leaves the names to the bake's own check.
     if let Some(names) = report.get("light_names").and_then(Value::as_array) {

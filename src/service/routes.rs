@@ -75,6 +75,7 @@ pub const RETRY_AFTER_S: u64 = 10;
         events::job_events,
         get_lightmap,
         get_preview,
+        get_probes,
         get_generated_scene,
         healthz,
         metrics,
@@ -121,6 +122,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/jobs/{id}/events", get(events::job_events))
         .route("/v1/jobs/{id}/lightmap.exr", get(get_lightmap))
         .route("/v1/jobs/{id}/preview.png", get(get_preview))
+        .route("/v1/jobs/{id}/probes.json", get(get_probes))
         .route("/v1/jobs/{id}/scene.glb", get(get_generated_scene))
         .route("/healthz", get(healthz))
         .route("/metrics", get(metrics))
@@ -997,6 +999,41 @@ async fn get_preview(
         ));
     };
     download(&state, &key, "image/png", None).await
+}
+
+/// The job's light probes: positions, validity, radiance SH to L2 and error estimates
+/// (docs/probes.md), stored with the final lightmap.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/probes.json",
+    tag = "jobs",
+    params(("id" = String, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "The probes file", content_type = "application/json", body = Object),
+        (status = 404, description = "No such job, or the job asked for no probes", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The job has not succeeded", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_probes(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, Problem> {
+    let job = find_job(&state, &caller, &id).await?;
+    if job.spec.probes.is_none() {
+        return Err(Problem::new(
+            StatusCode::NOT_FOUND,
+            "not-found",
+            format!("job {id} asked for no probes (job field `probes`)"),
+        ));
+    }
+    if job.status != JobStatus::Succeeded {
+        return Err(Problem::conflict(format!(
+            "job {id} is {}; its probes come with the final lightmap",
+            job.status.as_str()
+        )));
+    }
+    download(&state, &store::probes_json(&id), "application/json", None).await
 }
 
 /// The scene with the lightmap UVs the engine generated for it (only when it had none:

@@ -438,6 +438,11 @@ pub fn final_png(job: &str) -> Path {
     Path::from(format!("jobs/{job}/preview.png"))
 }
 
+/// The job's light probes (`probes` in the job), JSON as `lightmapd bake --probes` writes.
+pub fn probes_json(job: &str) -> Path {
+    Path::from(format!("jobs/{job}/probes.json"))
+}
+
 pub fn generated_scene(job: &str) -> Path {
     Path::from(format!("jobs/{job}/scene.glb"))
 }

@@ -488,6 +488,13 @@ async fn store_final(state: &AppState, job: &str, r: &BakeResult) -> Result<(), 
             .put(&store::generated_scene(job), Bytes::from(glb))
             .await?;
     }
+    if let Some(set) = &r.probes {
+        let json = serde_json::to_vec(set).map_err(|e| object_store::Error::Generic {
+            store: "probes",
+            source: format!("cannot encode the probes: {e}").into(),
+        })?;
+        state.artifacts.put(&store::probes_json(job), Bytes::from(json)).await?;
+    }
     state
         .artifacts
         .put(&store::final_exr(job), Bytes::from(r.exr.clone()))

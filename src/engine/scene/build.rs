@@ -100,6 +100,8 @@ pub struct SceneBuilder {
     pub materials: Vec<MaterialDesc>,
     pub meshes: Vec<MeshDesc>,
     pub lights: Vec<LightDesc>,
+    /// Light probe positions, written as nodes with `extras.light_probe: true`.
+    pub probes: Vec<Vec3>,
     /// Margin around each chart in its grid cell, as a fraction of the cell (default 1/16).
     pub margin: Option<f32>,
 }
@@ -357,6 +359,11 @@ impl SceneBuilder {
             let mut node = node;
             node["extensions"] = json!({"KHR_lights_punctual": {"light": lights.len() - 1}});
             nodes.push(node);
+        }
+        for (k, p) in self.probes.iter().enumerate() {
+            nodes.push(
+                json!({"name": format!("probe {k}"), "translation": p.to_array(), "extras": {"light_probe": true}}),
+            );
         }
         let materials: Vec<Value> = self
             .materials

@@ -63,6 +63,9 @@ pub struct ImportReport {
     /// which a job's `shadowmask_lights` names.
     #[serde(default)]
     pub light_names: Vec<String>,
+    /// Nodes marked `extras.light_probe` (probe positions a job's `probes` bakes).
+    #[serde(default)]
+    pub probe_nodes: usize,
     pub emissive_triangles: usize,
     /// Dropped because their world-space area is zero (or too small to have a normal).
     pub degenerate_triangles: usize,
@@ -149,6 +152,7 @@ pub fn import_slice_limited(
         buffers: &buffers,
         triangles: Vec::new(),
         lights: Vec::new(),
+        probe_nodes: Vec::new(),
         meshes: gltf
             .meshes()
             .map(|m| MeshInfo {
@@ -182,6 +186,7 @@ pub fn import_slice_limited(
     let Flatten {
         mut triangles,
         mut lights,
+        probe_nodes,
         meshes,
         missing_lightmap_uvs,
         local_meshes,
@@ -244,6 +249,7 @@ pub fn import_slice_limited(
     report.textures = textures.len();
     report.lights = lights.len();
     report.light_names = lights.iter().map(|l| l.light.name.clone()).collect();
+    report.probe_nodes = probe_nodes.len();
     report.directional_lights = lights
         .iter()
         .filter(|l| matches!(l.light.kind, LightKind::Directional))
@@ -265,6 +271,10 @@ pub fn import_slice_limited(
         materials,
         textures,
         lights: lights.into_iter().map(|l| l.light).collect(),
+        probe_nodes: probe_nodes
+            .into_iter()
+            .map(|(name, p)| (name, (p - offset).as_vec3()))
+            .collect(),
         meshes,
         bounds,
         origin_offset: offset,
@@ -611,6 +621,14 @@ struct RawTriangle {
     source: TriSource,
 }
 
+/// Whether a node's `extras.light_probe` is `true` (a light probe position, issue 26).
+fn is_probe_node(node: &gltf::Node) -> bool {
+    node.extras()
+        .as_ref()
+        .and_then(|raw| serde_json::from_str::<serde_json::Value>(raw.get()).ok())
+        .is_some_and(|v| v.get("light_probe") == Some(&serde_json::Value::Bool(true)))
+}
+
 struct RawLight {
     light: PunctualLight,
     world_position: DVec3,
@@ -620,6 +638,8 @@ struct Flatten<'a> {
     buffers: &'a [Vec<u8>],
     triangles: Vec<RawTriangle>,
     lights: Vec<RawLight>,
+    /// Nodes marked `extras.light_probe`: name and world position.
+    probe_nodes: Vec<(String, DVec3)>,
     meshes: Vec<MeshInfo>,
     report: &'a mut ImportReport,
     materials_len: usize,
@@ -906,6 +926,9 @@ impl Flatten<'_> {
         }
         if let Some(light) = node.light() {
             self.light(&light, &world, node.index())?;
+        }
+        if is_probe_node(node) {
+            self.probe_nodes.push((node_name(node), world.w_axis.truncate()));
         }
         for child in node.children() {
             self.visit(&child, world, seen)?;

@@ -278,6 +278,9 @@ pub struct Scene {
     pub materials: Vec<Material>,
     pub textures: Vec<Texture>,
     pub lights: Vec<PunctualLight>,
+    /// Light probe positions the file gives: every node whose `extras.light_probe` is
+    /// true, at its world translation (relative to `origin_offset`), with its name.
+    pub probe_nodes: Vec<(String, Vec3)>,
     pub meshes: Vec<MeshInfo>,
     /// Bounds of `triangles` (after re-centring).
     pub bounds: Bounds,

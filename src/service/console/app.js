@@ -421,6 +421,7 @@ function showJob(j) {
     dl.push(`<a href="/v1/jobs/${j.id}/lightmap.exr" data-fetch="${j.id}.exr">lightmap.exr</a>`);
     dl.push(`<a href="/v1/jobs/${j.id}/preview.png" data-fetch="${j.id}.png">preview.png</a>`);
     if (j.summary?.generated_uvs) dl.push(`<a href="/v1/jobs/${j.id}/scene.glb" data-fetch="${j.id}.glb">scene.glb (generated UVs)</a>`);
+    if (j.spec?.probes) dl.push(`<a href="/v1/jobs/${j.id}/probes.json" data-fetch="${j.id}-probes.json">probes.json</a>`);
   } else if (j.snapshots > 0) dl.push(`<a href="/v1/jobs/${j.id}/lightmap.exr?snapshot=latest" data-fetch="${j.id}-snapshot.exr">latest snapshot.exr</a>`);
   dl.push(`<a href="/v1/jobs/${j.id}" data-fetch="${j.id}.json">job.json</a>`);
   $('job-downloads').innerHTML = dl.join('');
@@ -522,6 +523,16 @@ async function updateLightmap(j) {
   state.lightmap = {w, h, halves, label: j.status === 'succeeded' ? 'final lightmap' : `snapshot ${j.snapshots}`};
   if (state.viewer && state.geometryFor) state.viewer.setLightmap(w, h, halves);
   drawLightmap2d();
+  await updateProbes(j);
+}
+
+// A finished job's light probes, as spheres in the 3D view (shaded by their SH).
+async function updateProbes(j) {
+  if (!state.viewer || !state.geometryFor) return;
+  if (j.status !== 'succeeded' || !j.spec?.probes) { state.viewer.setProbes(null); return; }
+  const set = await json(`/v1/jobs/${j.id}/probes.json`).catch(() => null);
+  const shown = state.viewer.setProbes(set);
+  if (set) $('v-note').textContent = `${shown} light probes shown (of ${set.probes.length}; ${set.probes.filter(p => !p.valid).length} inside geometry), error ${(100 * set.error).toFixed(2)} %.`;
 }
 
 function drawLightmap2d() {

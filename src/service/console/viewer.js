@@ -109,6 +109,48 @@ void main() {
   color = vec4(srgb(clamp(c * exposure, 0.0, 1.0)), 1.0);
 }`;
 
+// Light probes (docs/probes.md): a unit sphere per probe, shaded by the probe's radiance SH
+// convolved with the cosine lobe, E(n)/pi = sum_i A_l c_i Y_i(n) / pi with A = pi, 2pi/3, pi/4:
+// what a white diffuse sphere at the probe would show, so it reads like the walls beside it.
+const PROBE_VS = `#version 300 es
+layout(location=0) in vec3 pos;
+uniform mat4 viewProj; uniform vec4 sphere;
+out vec3 vN;
+void main() { vN = pos; gl_Position = viewProj * vec4(sphere.xyz + pos * sphere.w, 1.0); }`;
+const PROBE_FS = `#version 300 es
+precision highp float;
+in vec3 vN;
+uniform vec3 sh[9]; uniform float exposure;
+out vec4 color;
+vec3 srgb(vec3 c) { return mix(c * 12.92, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c)); }
+void main() {
+  vec3 n = normalize(vN);
+  float y[9] = float[9](0.282095, 0.488603 * n.y, 0.488603 * n.z, 0.488603 * n.x,
+    1.092548 * n.x * n.y, 1.092548 * n.y * n.z, 0.315392 * (3.0 * n.z * n.z - 1.0), 1.092548 * n.x * n.z,
+    0.546274 * (n.x * n.x - n.y * n.y));
+  float band[9] = float[9](1.0, 0.666667, 0.666667, 0.666667, 0.25, 0.25, 0.25, 0.25, 0.25);
+  vec3 e = vec3(0.0);
+  for (int i = 0; i < 9; i++) e += sh[i] * band[i] * y[i];
+  color = vec4(srgb(clamp(max(e, 0.0) * exposure, 0.0, 1.0)), 1.0);
+}`;
+
+// A UV sphere of unit radius (positions only; the normal is the position).
+function sphereMesh(rings, segments) {
+  const p = [], idx = [];
+  for (let r = 0; r <= rings; r++) for (let s = 0; s <= segments; s++) {
+    const th = Math.PI * r / rings, ph = 2 * Math.PI * s / segments;
+    p.push(Math.sin(th) * Math.cos(ph), Math.cos(th), Math.sin(th) * Math.sin(ph));
+  }
+  for (let r = 0; r < rings; r++) for (let s = 0; s < segments; s++) {
+    const a = r * (segments + 1) + s, b = a + segments + 1;
+    idx.push(a, b, a + 1, a + 1, b, b + 1);
+  }
+  return {positions: new Float32Array(p), indices: new Uint16Array(idx)};
+}
+
+// The most probe spheres drawn (one draw call each); a denser set shows an even subset.
+const MAX_PROBE_SPHERES = 4096;
+
 class Viewer {
   constructor(canvas) {
     this.canvas = canvas;
@@ -122,6 +164,7 @@ class Viewer {
     this.white = this.texture(1, 1, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array([255, 255, 255, 255]));
     this.lightmap = null;
     this.draws = [];
+    this.probes = [];
     this.mode = 0; this.nearest = false; this.exposureEv = 0;
     this.cam = {yaw: 0, pitch: 0.15, dist: 3, target: [0, 0, 0], home: null};
     this.controls();
@@ -225,6 +268,45 @@ class Viewer {
     return {vao, buffers, n, indexType, model, hasUv1: a.TEXCOORD_1 !== undefined,
       baseColor: pbr.baseColorFactor || [1, 1, 1, 1], tex: tex || this.white,
       emissive: (mat?.emissiveFactor || [0, 0, 0]).map(v => v * strength)};
+  }
+
+  // The probes of a probes.json body: valid ones drawn as spheres of `radius` (default: a
+  // fifth of the smallest distance between probes, within 0.2 % to 3 % of the scene's size).
+  setProbes(set, radius) {
+    const gl = this.gl;
+    if (!this.probeProg) {
+      this.probeProg = this.program(PROBE_VS, PROBE_FS);
+      this.pu = {};
+      for (const n of ['viewProj', 'sphere', 'sh', 'exposure']) this.pu[n] = gl.getUniformLocation(this.probeProg, n);
+      const m = sphereMesh(12, 24);
+      this.probeVao = gl.createVertexArray();
+      gl.bindVertexArray(this.probeVao);
+      const vb = gl.createBuffer();
+      gl.bindBuffer(gl.ARRAY_BUFFER, vb);
+      gl.bufferData(gl.ARRAY_BUFFER, m.positions, gl.STATIC_DRAW);
+      gl.enableVertexAttribArray(0);
+      gl.vertexAttribPointer(0, 3, gl.FLOAT, false, 0, 0);
+      const ib = gl.createBuffer();
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, ib);
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, m.indices, gl.STATIC_DRAW);
+      gl.bindVertexArray(null);
+      this.probeCount = m.indices.length;
+    }
+    let valid = (set?.probes || []).filter(p => p.valid);
+    if (valid.length > MAX_PROBE_SPHERES) {
+      const k = valid.length / MAX_PROBE_SPHERES;
+      valid = Array.from({length: MAX_PROBE_SPHERES}, (_, i) => valid[Math.floor(i * k)]);
+    }
+    const size = this.cam.home?.radius || 1;
+    if (!radius) {
+      let d = Infinity;
+      for (let i = 0; i < Math.min(valid.length, 256); i++) for (let j = 0; j < valid.length; j++) if (i !== j)
+        d = Math.min(d, Math.hypot(...valid[i].position.map((v, k) => v - valid[j].position[k])));
+      radius = Math.min(Math.max(isFinite(d) ? d / 5 : size * 0.02, size * 0.002), size * 0.03);
+    }
+    this.probes = valid.map(p => ({sphere: [...p.position, radius], sh: new Float32Array(p.sh.flat())}));
+    this.draw();
+    return this.probes.length;
   }
 
   // A lightmap of w×h texels of four half floats each (the service's lightmap.rgba16f).
@@ -339,6 +421,18 @@ class Viewer {
       else gl.drawArrays(gl.TRIANGLES, 0, d.n);
     }
     gl.bindVertexArray(null);
+    if (this.probes.length) {
+      gl.useProgram(this.probeProg);
+      gl.uniformMatrix4fv(this.pu.viewProj, false, M4.mul(proj, M4.lookAt(this.eye(), c.target, [0, 1, 0])));
+      gl.uniform1f(this.pu.exposure, 2 ** this.exposureEv);
+      gl.bindVertexArray(this.probeVao);
+      for (const p of this.probes) {
+        gl.uniform4fv(this.pu.sphere, p.sphere);
+        gl.uniform3fv(this.pu.sh, p.sh);
+        gl.drawElements(gl.TRIANGLES, this.probeCount, gl.UNSIGNED_SHORT, 0);
+      }
+      gl.bindVertexArray(null);
+    }
     this.frames = (this.frames || 0) + 1;
   }
 }

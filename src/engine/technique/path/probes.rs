@@ -106,7 +106,44 @@ pub struct ProbeSet {
     pub convention: &'static str,
     pub basis: &'static str,
     pub steps: u64,
+    /// The whole set's relative error: the RMS over valid probes of the L0 luminance's
+    /// standard error, over the RMS L0 luminance (the texels' estimate, DESIGN section 4).
+    pub error: f32,
     pub probes: Vec<Probe>,
+}
+
+/// The most probes a bake places.
+pub const MAX_PROBES: usize = 100_000;
+
+/// Where a job's probes go, in the scene's frame: a grid at `spacing` (if given), the
+/// `given` world positions, and the scene's probe nodes (`extras.light_probe`), at most
+/// [`MAX_PROBES`]. Errors name the job field (`probes.spacing`, `probes.positions[k]`).
+pub fn positions_for(scene: &Scene, spacing: Option<f32>, given: &[[f64; 3]]) -> Result<Vec<Vec3>, EngineError> {
+    let mut out = match spacing {
+        Some(s) => grid_positions(scene, s, MAX_PROBES)?,
+        None => Vec::new(),
+    };
+    for (k, p) in given.iter().enumerate() {
+        let p = glam::DVec3::from_array(*p);
+        if !p.is_finite() {
+            return Err(EngineError::BadInput(format!("probes.positions[{k}] is not finite")));
+        }
+        out.push((p - scene.origin_offset).as_vec3());
+    }
+    out.extend(scene.probe_nodes.iter().map(|(_, p)| *p));
+    if out.is_empty() {
+        return Err(EngineError::BadInput(
+            "probes: no position: give probes.spacing or probes.positions, or mark glTF nodes with extras.light_probe = true"
+                .into(),
+        ));
+    }
+    if out.len() > MAX_PROBES {
+        return Err(EngineError::BadInput(format!(
+            "probes: {} probes, at most {MAX_PROBES}",
+            out.len()
+        )));
+    }
+    Ok(out)
 }
 
 /// Positions of a grid of cells of side `spacing` over the scene's bounds (cell centres),
@@ -308,12 +345,18 @@ impl<'a> ProbeBaker<'a> {
         let (ne, no) = (self.steps[0] as f32, self.steps[1] as f32);
         let n = (ne + no).max(1.0);
         let k = (ne * no).sqrt() / n;
-        let probes = (0..self.positions.len())
+        let (mut se2, mut l02, mut valid) = (0.0f64, 0.0f64, 0usize);
+        let probes: Vec<Probe> = (0..self.positions.len())
             .map(|i| {
                 let (a, b) = (&self.halves[0][i], &self.halves[1][i]);
                 let c: [Vec3; SH9] = std::array::from_fn(|j| (a[j] * ne + b[j] * no) / n);
                 let l0 = c[0].dot(LUMINANCE);
                 let se = ((a[0] - b[0]).dot(LUMINANCE) * k).abs();
+                if self.valid[i] {
+                    se2 += (se as f64).powi(2);
+                    l02 += (l0 as f64).powi(2);
+                    valid += 1;
+                }
                 Probe {
                     position: (self.positions[i].as_dvec3() + self.scene.origin_offset)
                         .as_vec3()
@@ -328,6 +371,11 @@ impl<'a> ProbeBaker<'a> {
             convention: "incident radiance, projected on real orthonormal SH to L2 (W m^-2 sr^-1 x sr); E(n)/pi = sum_i A_l c_i Y_i(n) / pi with A = pi, 2pi/3, pi/4",
             basis: "world axes; order Y00, Y1-1 (y), Y10 (z), Y11 (x), Y2-2 (xy), Y2-1 (yz), Y20 (3z^2-1), Y21 (xz), Y22 (x^2-y^2)",
             steps: self.steps[0] + self.steps[1],
+            error: if valid > 0 && l02 > 0.0 {
+                (se2 / l02).sqrt() as f32
+            } else {
+                0.0
+            },
             probes,
         }
     }
