@@ -62,6 +62,20 @@ impl Snapshot {
     }
 }
 
+/// The channels a shadowmask has (RGBA, as the engines that read one expect), and their
+/// names in the EXR (`shadowmask.R` …).
+pub const MASK_CHANNELS: usize = 4;
+pub const MASK_CHANNEL_NAMES: [&str; MASK_CHANNELS] = ["R", "G", "B", "A"];
+
+/// What the delivered lightmap carries of the shadowmask (`engine::shadowmask`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ShadowmaskLayer {
+    /// The light of each channel (`sun` or the light's name), in channel order.
+    pub lights: Vec<String>,
+    /// Visibility per valid texel and channel (channels past `lights.len()` are 0).
+    pub values: Vec<[f32; MASK_CHANNELS]>,
+}
+
 /// The combined estimate with its error.
 #[derive(Clone, Debug)]
 pub struct Estimate {
@@ -83,7 +97,7 @@ pub struct Estimate {
     pub halves: Option<([Vec<Vec3>; 2], [u64; 2])>,
     /// The chosen lights' baked visibility (`engine::shadowmask`), when asked for; the
     /// bake loop fills it in.
-    pub shadowmask: Option<crate::engine::shadowmask::ShadowmaskLayer>,
+    pub shadowmask: Option<ShadowmaskLayer>,
 }
 
 impl Estimate {

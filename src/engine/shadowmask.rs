@@ -29,6 +29,7 @@
 //! lights' direct light.
 
 use crate::engine::accumulate::{Estimate, Snapshot};
+pub use crate::engine::accumulate::{MASK_CHANNEL_NAMES as CHANNEL_NAMES, ShadowmaskLayer};
 use crate::engine::atlas::Atlas;
 use crate::engine::gpu::{self, shadowmask as pass};
 use crate::engine::output::OutputLayer;
@@ -45,18 +46,6 @@ pub const SUN_SAMPLES_PER_STEP: u32 = 8;
 /// Steps before the technique's first (both halves, and 128 sun directions a texel, so a
 /// bake of few steps still gets a usable penumbra).
 pub const STEPS_BEFORE: u32 = 16;
-
-/// The channel names, in order.
-pub const CHANNEL_NAMES: [&str; CHANNELS] = ["R", "G", "B", "A"];
-
-/// What the delivered lightmap carries of the shadowmask.
-#[derive(Clone, Debug, PartialEq)]
-pub struct ShadowmaskLayer {
-    /// The light of each channel (`sun` or the light's name), in channel order.
-    pub lights: Vec<String>,
-    /// Visibility per valid texel and channel (channels past `lights.len()` are 0).
-    pub values: Vec<[f32; CHANNELS]>,
-}
 
 /// The chosen lights, in channel order: what each is called in the job and what it is.
 /// `light_names` are the scene's lights in import order, `has_sun` whether the job has a

@@ -36,8 +36,7 @@ use crate::engine::scene::{Lighting, Scene};
 /// The most sun directions a texel takes per step.
 pub const MAX_SAMPLES_PER_STEP: u32 = 64;
 
-/// The channels a shadowmask has (RGBA, as the engines that read one expect).
-pub const CHANNELS: usize = 4;
+pub use crate::engine::accumulate::MASK_CHANNELS as CHANNELS;
 
 /// `MASK_SUN` of the shader: the channel holds the job's sun.
 const MASK_SUN: u32 = u32::MAX;

@@ -186,7 +186,7 @@ pub fn lightmap_channels(
         }
         for (c, plane) in planes.into_iter().take(mask.lights.len()).enumerate() {
             channels.push((
-                format!("shadowmask.{}", crate::engine::shadowmask::CHANNEL_NAMES[c]),
+                format!("shadowmask.{}", crate::engine::accumulate::MASK_CHANNEL_NAMES[c]),
                 plane,
             ));
         }
