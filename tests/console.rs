@@ -58,11 +58,11 @@ async fn techniques_are_the_engines() {
     assert_eq!(path["params"], defaults);
     assert_eq!(
         t["outputs"],
-        json!(["validity", "direct", "indirect", "sh", "ao", "debug"])
+        json!(["validity", "direct", "indirect", "sh", "ao", "debug", "shadowmask"])
     );
     assert_eq!(
         path["outputs"],
-        json!(["validity", "direct", "indirect", "sh", "debug"])
+        json!(["validity", "direct", "indirect", "sh", "debug", "shadowmask"])
     );
     assert_eq!(
         path["lights"],
@@ -687,6 +687,35 @@ fn the_console_bakes_in_a_real_browser() {
         Duration::from_secs(30),
     );
     std::fs::write(shots.join("6-cancelled.png"), b.screenshot(None)).unwrap();
+
+    // 5. A job with light probes (issue 26), submitted through the API: its page draws the
+    // 27 grid probes and the given one as spheres in the 3D view.
+    let probe_job = b.eval(
+        "fetch('/v1/jobs', {method: 'POST', headers: {'content-type': 'application/json'}, body: JSON.stringify({scene: window.lightmapdConsole.scenes[0].id, resolution: 16, stop: {steps: 4}, denoise: 'none', probes: {spacing: 0.7, positions: [[0, 1, 0]], steps: 2}})}).then(r => r.json()).then(j => j.id)",
+    );
+    let probe_job = probe_job.as_str().expect("the probe job's id").to_string();
+    // A fresh load: the console reads the job from the address when it starts.
+    b.call("Page.navigate", json!({"url": "about:blank"}));
+    b.call("Page.navigate", json!({"url": format!("{url}/#job={probe_job}")}));
+    let shown = b.wait(
+        "the probes in the 3D view",
+        "window.lightmapdConsole.viewer?.probes?.length === 28 && document.getElementById('v-note').textContent",
+        Duration::from_secs(60),
+    );
+    assert!(
+        shown
+            .as_str()
+            .unwrap()
+            .starts_with("28 light probes shown (of 28; 0 inside geometry)"),
+        "{shown}"
+    );
+    assert!(
+        b.eval("[...document.querySelectorAll('#job-downloads a')].some(a => a.textContent === 'probes.json')")
+            == json!(true),
+        "the probes file is linked"
+    );
+    b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
+    std::fs::write(shots.join("7-probes.png"), b.screenshot(Some("#view3d"))).unwrap();
 
     let errors = b.unexpected_errors(&["422"]);
     assert!(errors.is_empty(), "browser errors: {errors:#?}");

@@ -271,7 +271,8 @@ class Viewer {
   }
 
   // The probes of a probes.json body: valid ones drawn as spheres of `radius` (default: a
-  // fifth of the smallest distance between probes, within 0.2 % to 3 % of the scene's size).
+  // fifth of the smallest distance between distinct probes, within 0.2 % to 3 % of the
+  // scene's size).
   setProbes(set, radius) {
     const gl = this.gl;
     if (!this.probeProg) {
@@ -299,9 +300,12 @@ class Viewer {
     }
     const size = this.cam.home?.radius || 1;
     if (!radius) {
+      // The nearest distinct neighbour (a given probe may sit on a grid point).
       let d = Infinity;
-      for (let i = 0; i < Math.min(valid.length, 256); i++) for (let j = 0; j < valid.length; j++) if (i !== j)
-        d = Math.min(d, Math.hypot(...valid[i].position.map((v, k) => v - valid[j].position[k])));
+      for (let i = 0; i < Math.min(valid.length, 256); i++) for (let j = 0; j < valid.length; j++) {
+        const e = Math.hypot(...valid[i].position.map((v, k) => v - valid[j].position[k]));
+        if (e > size * 1e-4) d = Math.min(d, e);
+      }
       radius = Math.min(Math.max(isFinite(d) ? d / 5 : size * 0.02, size * 0.002), size * 0.03);
     }
     this.probes = valid.map(p => ({sphere: [...p.position, radius], sh: new Float32Array(p.sh.flat())}));
