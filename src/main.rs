@@ -19,6 +19,7 @@ use lightmapd::engine::bake::{BakeEvent, StopCriteria};
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::{OutputLayer, write_atomically};
 use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
+use lightmapd::engine::tasks;
 use lightmapd::engine::technique::obscurance::{ObscuranceState, UpdateReach};
 use lightmapd::service;
 use lightmapd::service::store::StoreUrl;
@@ -51,6 +52,24 @@ enum Command {
     Submit(Box<SubmitArgs>),
     /// Create, list or revoke the bearer tokens of a server run with `--auth`.
     Token(TokenArgs),
+    /// Merge the task results of a bake split with `bake --task K/N` into its lightmap.
+    Merge(MergeArgs),
+}
+
+#[derive(clap::Args)]
+struct MergeArgs {
+    /// The scene the tasks baked.
+    #[arg(long)]
+    scene: PathBuf,
+    /// Every task's result (`bake --task K/N -o FILE`), in any order.
+    #[arg(required = true)]
+    parts: Vec<PathBuf>,
+    /// Where to write the lightmap (OpenEXR).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Also write a tone-mapped PNG preview of the lightmap here.
+    #[arg(long)]
+    preview: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -377,6 +396,24 @@ struct BakeArgs {
     /// Steps of the probe bake (64 samples a probe each).
     #[arg(long, default_value_t = 16)]
     probe_steps: u32,
+    /// Bake only task K of N (0-based) of a bake split across processes or machines:
+    /// its share of `--steps`, written to -o as a task result for `lightmapd merge`
+    /// (docs/scaling.md). Every task takes the same options.
+    #[arg(long, value_parser = parse_task)]
+    task: Option<(u32, u32)>,
+}
+
+fn parse_task(s: &str) -> Result<(u32, u32), String> {
+    let bad = || format!("--task takes K/N with 0 <= K < N (task K of N), got {s:?}");
+    let (k, n) = s.split_once('/').ok_or_else(bad)?;
+    let (k, n) = (
+        k.trim().parse::<u32>().map_err(|_| bad())?,
+        n.trim().parse::<u32>().map_err(|_| bad())?,
+    );
+    if k >= n {
+        return Err(bad());
+    }
+    Ok((k, n))
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -463,6 +500,7 @@ fn main() -> ExitCode {
         Command::Submit(args) => submit(*args),
         Command::Token(args) => token(args),
         Command::Bake(args) => bake(*args),
+        Command::Merge(args) => merge(args),
         Command::Bench(args) => bench(args),
         Command::Example {
             name: Example::CornellBox,
@@ -936,6 +974,18 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         code: if e.is_bad_input() { 2 } else { 1 },
         message: e.to_string(),
     };
+    if let Some((k, n)) = args.task {
+        return bake_task(
+            &args,
+            Arc::new(scene),
+            &request,
+            k,
+            n,
+            &mut observer,
+            &mut on_atlas,
+            &bar,
+        );
+    }
     let result = if args.save_state.is_some() || args.update_from.is_some() {
         let previous: Option<ObscuranceState> = match &args.update_from {
             Some(p) => {
@@ -1036,6 +1086,116 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         1e3 * s.seconds / s.steps.max(1) as f64,
         err,
         s.stopped_by,
+        args.output.display()
+    );
+    Ok(())
+}
+
+/// `bake --task K/N`: one task's result to `args.output` (`engine::tasks`).
+#[allow(clippy::too_many_arguments)]
+fn bake_task(
+    args: &BakeArgs,
+    scene: Arc<scene::Scene>,
+    request: &BakeRequest,
+    k: u32,
+    n: u32,
+    observer: &mut dyn lightmapd::engine::bake::BakeObserver,
+    on_atlas: &mut dyn FnMut(&Arc<lightmapd::engine::atlas::Atlas>),
+    bar: &ProgressBar,
+) -> Result<(), Failure> {
+    let elsewhere = [
+        (
+            args.save_state.is_some() || args.update_from.is_some(),
+            "--save-state/--update-from",
+        ),
+        (args.probes.is_some(), "--probes"),
+        (args.write_gltf.is_some(), "--write-gltf"),
+        (args.preview.is_some(), "--preview (give it to `lightmapd merge`)"),
+    ];
+    if let Some((_, flag)) = elsewhere.iter().find(|(given, _)| *given) {
+        return Err(bad_input(format!("--task: {flag} is not for a task of a split bake")));
+    }
+    let engine_failure = |e: lightmapd::engine::technique::EngineError| Failure {
+        code: if e.is_bad_input() { 2 } else { 1 },
+        message: e.to_string(),
+    };
+    let tasks = tasks::split(request, n).map_err(engine_failure)?;
+    let task = tasks[k as usize];
+    bar.set_length(task.steps);
+    let partial = tasks::bake_task(
+        scene,
+        request,
+        task,
+        &job::BakeOptions::default(),
+        observer,
+        on_atlas,
+        &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
+    )
+    .map_err(engine_failure)?;
+    bar.finish_and_clear();
+    let bytes = partial.encode().map_err(engine_failure)?;
+    write_atomically(&args.output, &bytes).map_err(|e| Failure {
+        code: 1,
+        message: format!("cannot write {}: {e}", args.output.display()),
+    })?;
+    let h = &partial.header;
+    eprintln!(
+        "baked task {k}/{n} of {}: steps {}..{} ({} steps in {:.2} s, stopped by {:?}) -> {}",
+        args.scene.display(),
+        task.first_step,
+        task.first_step + h.half_steps[0] + h.half_steps[1],
+        h.half_steps[0] + h.half_steps[1],
+        h.seconds,
+        h.stopped_by,
+        args.output.display()
+    );
+    Ok(())
+}
+
+/// `lightmapd merge`: every task's result into the job's lightmap, checked to be all
+/// the tasks of one request on this scene (`engine::tasks::merge`).
+fn merge(args: MergeArgs) -> Result<(), Failure> {
+    let mut parts = Vec::with_capacity(args.parts.len());
+    for p in &args.parts {
+        let bytes = std::fs::read(p).map_err(|e| bad_input(format!("{}: {e}", p.display())))?;
+        let what = p.display().to_string();
+        parts.push(tasks::Partial::decode(&bytes, &what).map_err(|e| bad_input(e.to_string()))?);
+    }
+    let (scene, report) =
+        scene::import_file(&args.scene).map_err(|e| bad_input(format!("{}: {e}", args.scene.display())))?;
+    for w in &report.warnings {
+        eprintln!("warning: {w}");
+    }
+    let result =
+        tasks::merge(Arc::new(scene), &parts, &job::BakeOptions::default(), &mut |_| {}).map_err(|e| Failure {
+            code: if e.is_bad_input() { 2 } else { 1 },
+            message: e.to_string(),
+        })?;
+    write_atomically(&args.output, &result.exr).map_err(|e| Failure {
+        code: 1,
+        message: format!("cannot write {}: {e}", args.output.display()),
+    })?;
+    if let Some(p) = &args.preview {
+        write_atomically(p, &result.preview_png).map_err(|e| Failure {
+            code: 1,
+            message: format!("cannot write {}: {e}", p.display()),
+        })?;
+    }
+    let s = &result.summary;
+    let err = s
+        .error
+        .relative
+        .map(|e| format!("{:.2}%", e * 100.0))
+        .unwrap_or_else(|| "n/a".into());
+    eprintln!(
+        "merged {} tasks of {} ({} texels) with {}: {} steps, {:.2} s of task time, estimated error {} -> {}",
+        parts.len(),
+        args.scene.display(),
+        s.atlas.valid_texels,
+        s.technique,
+        s.steps,
+        s.seconds,
+        err,
         args.output.display()
     );
     Ok(())

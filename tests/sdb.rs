@@ -168,6 +168,7 @@ fn mean(v: &[Vec3]) -> Vec3 {
 
 #[test]
 fn open_plane_under_uniform_sky_sees_the_sky() {
+    let _gpu = common::gpu_serial();
     // Single-sided quad facing +Y under a uniform sky of radiance 1 over the full sphere:
     // E/pi = 1 exactly (the upper hemisphere is unoccluded; the plane's own back face, a
     // black blocker, lies in the texels' normal plane and must be rejected).
@@ -224,6 +225,7 @@ fn inward_cube(albedo: f32, emission: f32) -> Vec<Quad> {
 
 #[test]
 fn closed_emissive_box_converges_to_the_furnace_solution() {
+    let _gpu = common::gpu_serial();
     // Inside a closed box whose walls all emit L_e and reflect with albedo a, radiance is
     // L_e / (1 - a) in every direction, so E/pi = L_e / (1 - a) = 2 for a = 0.5. The
     // box is closed and single-sided: back faces are culled, overdraw is 1, and the only
@@ -257,6 +259,7 @@ fn closed_emissive_box_converges_to_the_furnace_solution() {
 
 #[test]
 fn leaky_mode_reaches_the_same_solution() {
+    let _gpu = common::gpu_serial();
     // The seed's leaky integration, with the start-up correction, must agree with the
     // furnace answer once its memory (1/b = 50 directions) is short against the run;
     // its noise is larger (it averages only about 2/b directions), hence the tolerance.
@@ -288,6 +291,7 @@ fn leaky_mode_reaches_the_same_solution() {
 
 #[test]
 fn sun_direct_light_and_shadow() {
+    let _gpu = common::gpu_serial();
     // A floor quad lit by a directional light from 60 degrees off vertical, with a
     // single-sided blocker above half of it. Unshadowed: E/pi = E_perp/pi * cos 60 = 0.5;
     // shadowed: 0 (no sky, black blocker back face... and its reflected light is zero
@@ -355,6 +359,7 @@ fn sun_direct_light_and_shadow() {
 
 #[test]
 fn random_and_stratified_directions_agree() {
+    let _gpu = common::gpu_serial();
     let Some(ctx) = context() else { return };
     let quad = Quad::new(Vec3::ZERO, Vec3::Y, 0.5, [0.0, 0.0, 1.0, 1.0]);
     let (triangles, texels, _) = build(&[quad], 8, 8);
@@ -406,6 +411,7 @@ fn upper_sky(l: f32) -> Lighting {
 
 #[test]
 fn imported_closed_cube_furnace() {
+    let _gpu = common::gpu_serial();
     // Six separate square meshes, inward, albedo 0.5, emission 1: E/pi = 2 everywhere.
     // Known bias: the feedback transient (about 2 / n for ramp 1, i.e. 0.2% after 1024
     // directions) and, where welding does not close the box, overdraw 2 (a wall's back
@@ -438,6 +444,7 @@ fn imported_closed_cube_furnace() {
 
 #[test]
 fn imported_plane_under_upper_sky() {
+    let _gpu = common::gpu_serial();
     // An upward 10 m square under an upper-hemisphere sky: nothing but the plane itself,
     // so E/pi = L exactly; stratified directions leave well under 1% after 256.
     if !have_adapter() {
@@ -472,6 +479,7 @@ fn rect_form_factor(px: f64, pz: f64, x0: f64, x1: f64, z0: f64, z1: f64, c: f64
 
 #[test]
 fn imported_parallel_squares_form_factor() {
+    let _gpu = common::gpu_serial();
     // A black receiver under a unit emitter one unit up: E/pi = the point-to-rectangle
     // form factor (0.23946 at the centre). Tolerances: see the bias note below for the
     // mean over the receiver, and the noise note for the RMS per texel.
@@ -529,6 +537,7 @@ fn imported_parallel_squares_form_factor() {
 
 #[test]
 fn imported_sun_on_a_plane() {
+    let _gpu = common::gpu_serial();
     // A sun 60 degrees off vertical on an open plane: E/pi = L Omega cos(60) / pi at every
     // texel (no occluder, no bounce), all of it direct.
     if !have_adapter() {
@@ -559,6 +568,7 @@ fn imported_sun_on_a_plane() {
 
 #[test]
 fn plan_reports_point_lights_and_the_sh_layer() {
+    let _gpu = common::gpu_serial();
     use lightmapd::engine::plan::SceneFeatures;
     let f = SceneFeatures {
         punctual_lights: 3,
@@ -592,6 +602,7 @@ fn plan_reports_point_lights_and_the_sh_layer() {
 
 #[test]
 fn point_and_spot_lights_with_a_hard_shadow() {
+    let _gpu = common::gpu_serial();
     // A black floor (no bounce anywhere) under a point light and a spot, with a black
     // 0.6 m square 0.5 m up casting the point light's shadow. Per texel, in closed form:
     // point: I h / (pi d^3), and no light where the segment to the light crosses the
@@ -673,6 +684,7 @@ fn point_and_spot_lights_with_a_hard_shadow() {
 
 #[test]
 fn cornell_box_against_path() {
+    let _gpu = common::gpu_serial();
     // The bundled Cornell box: sdb against a path-traced reference of the same atlas.
     // Relative RMSE (luminance) = sqrt(mean (sdb - path)^2) / sqrt(mean path^2).
     // Budget, justified by the numbers printed: the reference's own noise (its halves'
@@ -733,6 +745,7 @@ fn cornell_box_against_path() {
 #[test]
 #[ignore = "diagnostic: per-surface sdb / path ratios on the Cornell box"]
 fn cornell_per_surface() {
+    let _gpu = common::gpu_serial();
     if !have_adapter() {
         return;
     }
@@ -775,6 +788,7 @@ fn cornell_per_surface() {
 
 #[test]
 fn depth_layers_recover_surfaces_lost_to_overdraw() {
+    let _gpu = common::gpu_serial();
     // A receiver under a 1 m emitter (as in the form-factor test), with four double-sided
     // black planes below the receiver: along every vertical map ray there are then 6
     // layers (4 blockers x 1 + the receiver's black back face + the emitter), of which
@@ -841,6 +855,7 @@ fn depth_layers_recover_surfaces_lost_to_overdraw() {
 #[test]
 #[ignore = "measurement for docs/sdb.md: stratified vs random directions at equal steps"]
 fn measure_stratified_vs_random() {
+    let _gpu = common::gpu_serial();
     // RMS relative error over the receiver of the parallel-squares scene (closed form),
     // for both sequences at equal direction counts, averaged over 4 seeds. Map 256, k = 3.
     let Some(ctx) = context() else { return };

@@ -269,15 +269,28 @@ pub fn bake_obscurance(
 
 type ObscuranceUpdate<'a> = Option<(&'a ObscuranceState, &'a [String], UpdateReach)>;
 
-fn bake_impl(
+/// What every bake of a request starts from, before a technique is prepared: the plan,
+/// the scene as baked (with generated lightmap UVs when it had none) and its texel set.
+/// Deterministic for a scene and request, so the tasks of a split bake and their merge
+/// (`engine::tasks`) each build the same one.
+pub(crate) struct Prepared {
+    pub scene: Arc<Scene>,
+    pub atlas: Arc<Atlas>,
+    pub plan: Plan,
+    pub validation: ValidationReport,
+    pub unwrap: Option<UnwrapReport>,
+    pub denoiser: Used,
+    /// Control texels measure the technique's bias (`engine::control`).
+    pub control: bool,
+}
+
+pub(crate) fn prepare(
     scene: Arc<Scene>,
     request: &BakeRequest,
     options: &BakeOptions,
-    observer: &mut dyn BakeObserver,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
     on_plan: &mut dyn FnMut(&Plan),
-    obscurance: Option<ObscuranceUpdate<'_>>,
-) -> Result<(BakeResult, Option<ObscuranceState>), EngineError> {
+) -> Result<Prepared, EngineError> {
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
     let mut plan = plan_for(&scene, request)?;
@@ -341,17 +354,92 @@ fn bake_impl(
     let mut atlas = Atlas::build(&scene, width, height).map_err(|e| EngineError::BadInput(e.to_string()))?;
     let validation = validate::validate(&scene, &mut atlas);
     let atlas = Arc::new(atlas);
-    let report = atlas.report();
     on_atlas(&atlas);
-    let want_direct = plan.runs(crate::engine::plan::DIRECT_LAYER);
-    let inputs = BakeInputs {
-        scene: scene.clone(),
-        atlas: atlas.clone(),
-        lighting: request.lighting,
-        seed: request.seed,
-        want_direct,
-        plan: plan.clone(),
-    };
+    Ok(Prepared {
+        scene,
+        atlas,
+        plan,
+        validation,
+        unwrap,
+        denoiser,
+        control,
+    })
+}
+
+impl Prepared {
+    pub fn inputs(&self, request: &BakeRequest) -> BakeInputs {
+        BakeInputs {
+            scene: self.scene.clone(),
+            atlas: self.atlas.clone(),
+            lighting: request.lighting,
+            seed: request.seed,
+            want_direct: self.plan.runs(crate::engine::plan::DIRECT_LAYER),
+            plan: self.plan.clone(),
+        }
+    }
+
+    /// What is delivered for a bake's final raw estimate: denoised (unless cancelled:
+    /// whoever cancelled does not keep it, and denoising would hold the cancellation up by
+    /// a whole denoise), the EXR, the preview, the summary, and the probes when asked for.
+    pub fn deliver(
+        self,
+        request: &BakeRequest,
+        raw: &Estimate,
+        params: &Value,
+        elapsed: Duration,
+        stopped_by: StopReason,
+    ) -> Result<BakeResult, EngineError> {
+        // Denoised once: the EXR and the preview show the same delivered lightmap.
+        let finished = if stopped_by == StopReason::Cancelled {
+            raw.clone()
+        } else {
+            finish(&self.atlas, raw, request)
+        };
+        let exr = delivered_exr(&self.atlas, &finished, request, params, elapsed)?;
+        let preview_png = preview_png(&self.atlas, &finished)?;
+        let summary = BakeSummary {
+            technique: request.technique.clone(),
+            atlas: self.atlas.report(),
+            steps: raw.steps,
+            seconds: elapsed.as_secs_f64(),
+            stopped_by,
+            error: finished.error,
+            plan: self.plan,
+            validation: self.validation,
+            generated_uvs: self.unwrap,
+            denoiser: if finished.error.raw_relative.is_some() {
+                self.denoiser.to_string()
+            } else {
+                "none".into()
+            },
+        };
+        let probes = match &request.probes {
+            Some(p) if stopped_by != StopReason::Cancelled => Some(bake_probes(&self.scene, request, p)?),
+            _ => None,
+        };
+        Ok(BakeResult {
+            scene: self.scene,
+            exr,
+            preview_png,
+            estimate: finished,
+            atlas: self.atlas,
+            summary,
+            probes,
+        })
+    }
+}
+
+fn bake_impl(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    options: &BakeOptions,
+    observer: &mut dyn BakeObserver,
+    on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+    on_plan: &mut dyn FnMut(&Plan),
+    obscurance: Option<ObscuranceUpdate<'_>>,
+) -> Result<(BakeResult, Option<ObscuranceState>), EngineError> {
+    let prepared = prepare(scene, request, options, on_atlas, on_plan)?;
+    let inputs = prepared.inputs(request);
     let mut stop = request.stop;
     // An obscurance bake whose state is kept is held by its concrete type, so the state
     // can be read after the loop; every other bake goes through the trait object.
@@ -374,63 +462,43 @@ fn bake_impl(
         (None, Some(t)) => t.as_mut(),
         (None, None) => return Err(EngineError::Internal("no technique was prepared".into())),
     };
-    let mut bake_loop = BakeLoop::new(stop);
-    bake_loop.snapshot_interval = options.snapshot_interval;
-    if control && !atlas.texels.is_empty() {
-        bake_loop.control = Some(ControlTexels::new(&scene, &atlas, request.lighting, request.seed)?);
-    }
-    bake_loop.shadowmask = ShadowmaskBake::new(
-        &scene,
-        &atlas,
-        &request.lighting,
-        request.seed,
-        &request.outputs,
-        &request.shadowmask_lights,
-    )?;
+    let mut bake_loop = prepared.bake_loop(request, stop, options)?;
     let outcome = bake_loop.run(tech, observer)?;
-    // Denoised once: the EXR and the preview show the same delivered lightmap. A
-    // cancelled bake is delivered raw: whoever cancelled does not keep it (the service
-    // discards it), and denoising would hold the cancellation up by a whole denoise.
-    let finished = if outcome.stopped_by == StopReason::Cancelled {
-        outcome.estimate.clone()
-    } else {
-        finish(&atlas, &outcome.estimate, request)
-    };
-    let exr = delivered_exr(&atlas, &finished, request, &tech.params(), outcome.elapsed)?;
-    let preview_png = preview_png(&atlas, &finished)?;
-    let summary = BakeSummary {
-        technique: request.technique.clone(),
-        atlas: report,
-        steps: outcome.estimate.steps,
-        seconds: outcome.elapsed.as_secs_f64(),
-        stopped_by: outcome.stopped_by,
-        error: finished.error,
-        plan,
-        validation,
-        generated_uvs: unwrap,
-        denoiser: if finished.error.raw_relative.is_some() {
-            denoiser.to_string()
-        } else {
-            "none".into()
-        },
-    };
+    let params = tech.params();
     let state = concrete.map(|t| t.state()).transpose()?;
-    let probes = match &request.probes {
-        Some(p) if outcome.stopped_by != StopReason::Cancelled => Some(bake_probes(&scene, request, p)?),
-        _ => None,
-    };
-    Ok((
-        BakeResult {
-            scene,
-            exr,
-            preview_png,
-            estimate: finished,
-            atlas,
-            summary,
-            probes,
-        },
-        state,
-    ))
+    let result = prepared.deliver(request, &outcome.estimate, &params, outcome.elapsed, outcome.stopped_by)?;
+    Ok((result, state))
+}
+
+impl Prepared {
+    /// The bake loop for `stop`, with the control texels and the shadowmask pass the
+    /// request and plan call for.
+    pub fn bake_loop(
+        &self,
+        request: &BakeRequest,
+        stop: StopCriteria,
+        options: &BakeOptions,
+    ) -> Result<BakeLoop, EngineError> {
+        let mut bake_loop = BakeLoop::new(stop);
+        bake_loop.snapshot_interval = options.snapshot_interval;
+        if self.control && !self.atlas.texels.is_empty() {
+            bake_loop.control = Some(ControlTexels::new(
+                &self.scene,
+                &self.atlas,
+                request.lighting,
+                request.seed,
+            )?);
+        }
+        bake_loop.shadowmask = ShadowmaskBake::new(
+            &self.scene,
+            &self.atlas,
+            &request.lighting,
+            request.seed,
+            &request.outputs,
+            &request.shadowmask_lights,
+        )?;
+        Ok(bake_loop)
+    }
 }
 
 /// The request's probes, baked by `path`'s probe estimator on the baked scene (the one

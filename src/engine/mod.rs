@@ -1,7 +1,7 @@
 //! The bake engine: everything between a glTF scene and a lightmap, with no knowledge of
 //! HTTP, SQL or storage (DESIGN §1). A bake is: [`scene`] import → [`atlas`] texel set →
 //! a [`technique`] stepped by [`bake`] into the half-accumulators of [`accumulate`] →
-//! [`post`] dilation → [`output`] EXR.
+//! [`post`] dilation → [`output`] EXR; [`tasks`] splits one bake over several workers.
 
 pub mod accumulate;
 pub mod atlas;
@@ -18,4 +18,5 @@ pub mod raytrace;
 pub mod rng;
 pub mod scene;
 pub mod shadowmask;
+pub mod tasks;
 pub mod technique;

@@ -69,6 +69,15 @@ pub fn try_bake(
     Ok((atlas, tech.snapshot()?.estimate()))
 }
 
+/// Runs the GPU-heavy tests of one test binary one at a time: lavapipe already spreads
+/// each dispatch over every core, and two bakes at once on CI's two cores took longer
+/// together than one after the other (`tests/sdb.rs`: 256 s with two test threads,
+/// 157 s with one). Hold the guard for the whole test.
+pub fn gpu_serial() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// True when a GPU adapter (lavapipe counts) is there; without one the calling test
 /// skips with a message, or fails under `LIGHTMAPD_REQUIRE_GPU=1` (set in `.ci/run`).
 pub fn have_adapter() -> bool {

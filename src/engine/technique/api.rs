@@ -55,6 +55,31 @@ pub trait Technique: Send {
     fn ao(&self) -> Option<Vec<f32>> {
         None
     }
+    /// Makes this bake's first step the job's step `first` (a task of a split bake,
+    /// `engine::tasks`): the random streams are keyed by the global step, so the task
+    /// draws exactly the samples a whole bake would at those steps. Called once, before
+    /// the first step, only for techniques whose row says [`TaskSplit::StepRanges`].
+    fn start_at_step(&mut self, first: u64) -> Result<(), EngineError> {
+        if first == 0 {
+            return Ok(());
+        }
+        Err(EngineError::Internal(format!(
+            "technique {} cannot start at step {first}: its bakes are not split into step ranges",
+            self.id()
+        )))
+    }
+}
+
+/// How a bake of a technique may be split into tasks that several workers bake at once
+/// (`engine::tasks`, docs/scaling.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TaskSplit {
+    /// Every step is an independent batch of samples drawn from streams keyed by
+    /// (seed, global step, texel, sample): a task bakes a range of steps, and the sums
+    /// of its two half-accumulators add to the whole bake's exactly.
+    StepRanges,
+    /// Not split; the reason, for the error a split request gets.
+    Whole(&'static str),
 }
 
 /// Parses a technique's parameter object, naming the technique in the error.
@@ -97,6 +122,8 @@ pub struct TechniqueEntry {
     /// its whole error. A biased technique's bake measures its bias at control texels
     /// (`engine::control`).
     pub unbiased: bool,
+    /// How its bakes split into tasks.
+    pub tasks: TaskSplit,
 }
 
 impl TechniqueEntry {

@@ -38,6 +38,32 @@ use tokio::task::JoinHandle;
 use crate::service::Hub;
 use crate::service::model::{JobSpec, JobStatus};
 
+/// The schema's migrations, embedded in the binary: (version, description, SQL) as
+/// `NNNN_description.sql` files in `migrations/<store>/` spell them. Built here rather
+/// than by `sqlx::migrate!` so that sqlx's macros are not compiled at all: they build
+/// sqlx's SQLite (with its C library) and PostgreSQL drivers a second time, for the
+/// compiler, about 3 CPU-minutes of every cold build and of CI's budget. Version,
+/// description and checksum (SHA-384 of the text) are what the macro records, so a
+/// database migrated by an earlier build is recognised, not migrated again.
+pub(crate) fn migrator(files: &'static [(i64, &'static str, &'static str)]) -> sqlx::migrate::Migrator {
+    use sqlx::SqlSafeStr;
+    use sqlx::migrate::{Migration, MigrationType, Migrator};
+    Migrator::with_migrations(
+        files
+            .iter()
+            .map(|(version, description, sql)| {
+                Migration::new(
+                    *version,
+                    (*description).into(),
+                    MigrationType::Simple,
+                    sql.into_sql_str(),
+                    sql.starts_with("-- no-transaction"),
+                )
+            })
+            .collect(),
+    )
+}
+
 /// A job that has lost its lease this many times fails instead of being re-queued.
 pub const MAX_ATTEMPTS: u32 = 3;
 

@@ -68,7 +68,19 @@ use super::{
 use crate::service::model::{JobSpec, JobStatus};
 use crate::service::{Hub, shutting_down};
 
-static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("migrations/postgres");
+/// `migrations/postgres/`, embedded (`super::migrator`; a test checks the folder holds
+/// exactly these).
+pub(crate) const MIGRATIONS: &[(i64, &str, &str)] = &[
+    (1, "init", include_str!("../../../migrations/postgres/0001_init.sql")),
+    (
+        2,
+        "roles and retention",
+        include_str!("../../../migrations/postgres/0002_roles_and_retention.sql"),
+    ),
+];
+
+static MIGRATOR: std::sync::LazyLock<sqlx::migrate::Migrator> =
+    std::sync::LazyLock::new(|| super::migrator(MIGRATIONS));
 
 /// Connections per process, besides the one LISTEN holds.
 pub const MAX_CONNECTIONS: u32 = 8;

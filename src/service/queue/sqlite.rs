@@ -28,7 +28,24 @@ use super::{
 };
 use crate::service::model::{JobSpec, JobStatus};
 
-static MIGRATOR: sqlx::migrate::Migrator = sqlx::migrate!("migrations/sqlite");
+/// `migrations/sqlite/`, embedded (`super::migrator`; a test checks the folder holds
+/// exactly these).
+pub(crate) const MIGRATIONS: &[(i64, &str, &str)] = &[
+    (1, "init", include_str!("../../../migrations/sqlite/0001_init.sql")),
+    (
+        2,
+        "clients and tokens",
+        include_str!("../../../migrations/sqlite/0002_clients_and_tokens.sql"),
+    ),
+    (
+        3,
+        "roles and retention",
+        include_str!("../../../migrations/sqlite/0003_roles_and_retention.sql"),
+    ),
+];
+
+static MIGRATOR: std::sync::LazyLock<sqlx::migrate::Migrator> =
+    std::sync::LazyLock::new(|| super::migrator(MIGRATIONS));
 
 #[derive(Clone)]
 pub struct SqliteQueue {

@@ -501,3 +501,38 @@ async fn other_processes_hear_of_new_work_and_job_changes(f: &Fixture) {
     let _ = stop_tx.send(true);
     task.await.unwrap();
 }
+
+/// The embedded migrations are exactly the files of `migrations/<store>/`, with the
+/// version and description sqlx's macro would read off each name (so a database an
+/// earlier build migrated is recognised), and a new file cannot be forgotten.
+#[test]
+fn embedded_migrations_are_the_migration_folders() {
+    for (store, embedded) in [
+        ("sqlite", super::sqlite::MIGRATIONS),
+        ("postgres", super::postgres::MIGRATIONS),
+    ] {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("migrations")
+            .join(store);
+        let mut files: Vec<(i64, String, String)> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|x| x == "sql"))
+            .map(|p| {
+                let name = p.file_stem().unwrap().to_string_lossy().into_owned();
+                let (version, description) = name.split_once('_').unwrap();
+                (
+                    version.parse().unwrap(),
+                    description.replace('_', " "),
+                    std::fs::read_to_string(&p).unwrap(),
+                )
+            })
+            .collect();
+        files.sort();
+        let embedded: Vec<(i64, String, String)> = embedded
+            .iter()
+            .map(|(v, d, s)| (*v, d.to_string(), s.to_string()))
+            .collect();
+        assert_eq!(embedded, files, "migrations/{store}/ and {store}::MIGRATIONS differ");
+    }
+}

@@ -104,7 +104,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::gpu::frame::SceneFrame;
@@ -941,6 +941,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| parse_params::<HemicubeParams>("hemicube", p)?.validate(),
     unbiased: false,
+    tasks: TaskSplit::Whole(
+        "each step is one iteration of the random transport operator applied to the radiosity the steps before it left, a chain over the whole scene: a range of steps cannot start without them",
+    ),
 };
 
 /// What `hemicube` runs for a scene and job, and what it leaves out (DESIGN §6).

@@ -123,7 +123,7 @@ mod update;
 
 pub use update::{ObscuranceState, UpdateReach, UpdateReport};
 
-use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, sample_cone};
@@ -471,6 +471,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| ObscuranceParams::from_json(p).map(|_| ()),
     unbiased: false,
+    tasks: TaskSplit::Whole(
+        "its halves are running ratios over a stratified direction sequence rotated once per bake, not sums of independent steps",
+    ),
 };
 
 /// What `obscurance` runs for a scene and job, and what it leaves out (DESIGN section 6).

@@ -113,6 +113,9 @@ pub struct PathGpu {
     want_direct: bool,
     want_moments: bool,
     half_steps: [u64; 2],
+    /// The job's index of the first step (a task's, `engine::tasks`): the streams are
+    /// keyed by the global step.
+    pub first_step: u64,
     _lights: GpuSceneLights,
 }
 
@@ -219,6 +222,7 @@ impl PathGpu {
             want_direct,
             want_moments,
             half_steps: [0, 0],
+            first_step: 0,
             _lights: lights,
         })
     }
@@ -232,7 +236,7 @@ impl PathGpu {
         let step = self.steps();
         let half = (step % 2) as usize;
         let k = self.half_steps[half] + 1;
-        self.uniform.counts[3] = step as u32;
+        self.uniform.counts[3] = (self.first_step + step) as u32;
         self.uniform.keys[2] = half as u32;
         self.uniform.f[2] = 1.0 / k as f32;
         let ctx = &self.ctx;

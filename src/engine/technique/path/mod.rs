@@ -53,7 +53,7 @@ use serde_json::Value;
 mod gpu;
 pub mod probes;
 
-use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params};
 use crate::engine::accumulate::{HalfAccumulator, Snapshot};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
@@ -132,6 +132,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| parse_params::<PathParams>("path", p)?.validate(),
     unbiased: true,
+    tasks: TaskSplit::StepRanges,
 };
 
 /// The path tracer's plan: one CPU pass, and light sampling only for the kinds of light
@@ -187,6 +188,9 @@ pub struct PathTracer {
     acc: HalfAccumulator,
     /// The GPU estimator, when `params.device` resolved to the GPU.
     gpu: Option<PathGpu>,
+    /// The job's index of this bake's first step (a task's, `engine::tasks`; else 0):
+    /// the random streams are keyed by the global step.
+    first_step: u64,
 }
 
 impl PathTracer {
@@ -209,6 +213,7 @@ impl PathTracer {
             emitters,
             acc,
             gpu,
+            first_step: 0,
         })
     }
 }
@@ -226,7 +231,7 @@ impl Technique for PathTracer {
         if let Some(gpu) = self.gpu.as_mut() {
             return gpu.step();
         }
-        let step = self.acc.steps();
+        let step = self.first_step + self.acc.steps();
         let spp = self.params.samples_per_step;
         let ctx = PathContext {
             scene: &self.inputs.scene,
@@ -294,6 +299,20 @@ impl Technique for PathTracer {
             Some(gpu) => gpu.snapshot(),
             None => Ok(self.acc.snapshot()),
         }
+    }
+
+    fn start_at_step(&mut self, first: u64) -> Result<(), EngineError> {
+        if self.steps_done() > 0 {
+            return Err(EngineError::Internal(format!(
+                "path: start_at_step({first}) after {} steps",
+                self.steps_done()
+            )));
+        }
+        self.first_step = first;
+        if let Some(gpu) = self.gpu.as_mut() {
+            gpu.first_step = first;
+        }
+        Ok(())
     }
 
     fn accumulating_pass(&self) -> &'static str {

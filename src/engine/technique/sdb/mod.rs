@@ -111,7 +111,7 @@ mod lights;
 
 pub use lights::{ambient_mode, sdb_input};
 
-use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::directions::sample_cone;
 pub use crate::engine::gpu::directions::{
@@ -1393,6 +1393,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
             .map_err(|e| EngineError::BadInput(e.to_string()))
     },
     unbiased: false,
+    tasks: TaskSplit::Whole(
+        "each step gathers the reflected light of the running estimate all earlier steps built, a chain over the whole scene: a range of steps cannot start without them",
+    ),
 };
 
 /// What `sdb` runs for a scene and job, and what it leaves out (DESIGN section 6).

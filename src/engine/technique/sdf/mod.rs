@@ -108,7 +108,7 @@ use serde::{Deserialize, Serialize};
 
 mod calibrate;
 
-use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
 use crate::engine::gpu::frame::SceneFrame;
@@ -1171,6 +1171,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| parse_params::<SdfParams>("sdf", p)?.validate(),
     unbiased: false,
+    tasks: TaskSplit::Whole(
+        "its bias is measured at control texels stepped beside the bake by time (engine::control), and tasks do not merge those measurements",
+    ),
 };
 
 /// What `sdf` runs for a scene and job, and what it leaves out (DESIGN section 6).

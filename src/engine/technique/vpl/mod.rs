@@ -96,7 +96,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::api::{BakeInputs, EngineError, LightSource, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
@@ -980,6 +980,9 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| parse_params::<VplParams>("vpl", p)?.validate(),
     unbiased: false,
+    tasks: TaskSplit::Whole(
+        "its bias is measured at control texels stepped beside the bake by time (engine::control), and tasks do not merge those measurements",
+    ),
 };
 
 /// What `vpl` runs for a scene and job, and what it leaves out (DESIGN section 6).

@@ -1,0 +1,592 @@
+//! One bake split into tasks that several workers (or processes, or machines) bake at
+//! once, and the exact merge of what they baked (issue 25; docs/scaling.md).
+//!
+//! What a task is depends on the technique (its table row's [`TaskSplit`]):
+//! - `path` (`StepRanges`): a task bakes a range of the job's steps. Every random stream
+//!   is keyed by (seed, *global* step, texel, sample) (`Technique::start_at_step`), so
+//!   task k draws exactly the samples a single bake draws at those steps. Each range but
+//!   the last has an even length, so every task starts on an even step and its local
+//!   even/odd halves are the job's even/odd halves. The merge adds the halves' sums
+//!   (mean × steps) and step counts: the merged halves are the single bake's halves up
+//!   to float rounding (the order of the additions), so the merged estimate, its error
+//!   estimate from the halves' difference (DESIGN §4) and the delivered lightmap are a
+//!   single bake's, not a different bake "within noise".
+//! - every other technique (`Whole`): one task. Their steps are chains over the whole
+//!   scene (`sdb`, `hemicube`), running ratios (`obscurance`), or their error includes a
+//!   bias measured at control texels stepped by time (`vpl`, `sdf`); the row says which.
+//!   Splitting them by lightmap pages waits for pages (issue 19).
+//!
+//! A split bake's stop rule is `stop.steps`, the job's total; `stop.seconds` bounds
+//! each task on its own (a task that runs out of time delivers fewer steps, and the
+//! merge counts what each delivered); `stop.target_error` is refused, since it is a rule
+//! about the whole bake's error that no task sees.
+//!
+//! A task's result is a [`Partial`]: the request, the task's range, a fingerprint of
+//! the texel set it baked and both halves' means with their step counts. Its file
+//! format is this module's own (an 8-byte magic, the JSON header's length and the
+//! header, then little-endian f32 arrays; docs/scaling.md has the layout): the data is
+//! per valid texel, not per pixel, so an image format would only add a layout to undo,
+//! and the header is plain JSON any tool reads.
+//!
+//! The merge rebuilds the texel set from the scene and request (deterministic,
+//! `job::prepare`) and refuses partials of another request, another texel set, a
+//! missing or repeated task, or a cancelled one, naming which.
+//!
+//! Limits: no shadowmask layer in a split bake yet (its pass would need the same step
+//! offset); a task's probes are not baked (the merge bakes them, once).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use sha2::{Digest, Sha256};
+
+use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::atlas::Atlas;
+use crate::engine::bake::{BakeObserver, StopCriteria, StopReason};
+use crate::engine::job::{self, BakeOptions, BakeRequest, BakeResult};
+use crate::engine::output::OutputLayer;
+use crate::engine::plan::Plan;
+use crate::engine::scene::Scene;
+use crate::engine::technique::api::TaskSplit;
+use crate::engine::technique::{self, EngineError};
+
+/// At most this many tasks per bake.
+pub const MAX_TASKS: u32 = 1024;
+
+/// The format version a [`Partial`] file carries; a merge refuses others.
+pub const PARTIAL_FORMAT: u32 = 1;
+
+const MAGIC: &[u8; 8] = b"LMDTASK1";
+
+/// One task of a split bake: the `index`-th of `count`, baking the job's steps
+/// `first_step .. first_step + steps`.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+pub struct TaskRange {
+    pub index: u32,
+    pub count: u32,
+    pub first_step: u64,
+    pub steps: u64,
+}
+
+/// The tasks `request` splits into with `count` tasks, or why it cannot be. One task is
+/// always possible: it is the whole bake.
+pub fn split(request: &BakeRequest, count: u32) -> Result<Vec<TaskRange>, EngineError> {
+    let bad = |m: String| Err(EngineError::BadInput(m));
+    if !(1..=MAX_TASKS).contains(&count) {
+        return bad(format!("tasks must be in 1..={MAX_TASKS}, got {count}"));
+    }
+    let entry = technique::entry(&request.technique)?;
+    if count == 1 {
+        let steps = request.stop.steps.unwrap_or(u64::MAX);
+        return Ok(vec![TaskRange {
+            index: 0,
+            count: 1,
+            first_step: 0,
+            steps,
+        }]);
+    }
+    if let TaskSplit::Whole(why) = entry.tasks {
+        return bad(format!(
+            "tasks: {} bakes are not split into tasks ({why}); bake it as one task",
+            request.technique
+        ));
+    }
+    if request.stop.target_error.is_some() {
+        return bad(
+            "tasks: stop.target_error is a rule about the whole bake's error, which no task sees alone; \
+             give stop.steps (the job's total) instead"
+                .into(),
+        );
+    }
+    let Some(total) = request.stop.steps else {
+        return bad("tasks: a split bake needs stop.steps, the job's total steps that its tasks share".into());
+    };
+    if total < 2 * count as u64 {
+        return bad(format!(
+            "tasks: stop.steps ({total}) must be at least twice the tasks ({count}): each task bakes a step of each half"
+        ));
+    }
+    if request.outputs.contains(&OutputLayer::Shadowmask) {
+        return bad("tasks: the shadowmask layer is not baked in split bakes yet; bake it as one task".into());
+    }
+    // Pairs of steps dealt out evenly, so every range starts on an even step; an odd
+    // total leaves one step for the last task.
+    let (pairs, odd) = (total / 2, total % 2);
+    let n = count as u64;
+    let mut first = 0;
+    Ok((0..count)
+        .map(|i| {
+            let i64_ = i as u64;
+            let steps = 2 * (pairs / n + u64::from(i64_ < pairs % n)) + if i == count - 1 { odd } else { 0 };
+            let t = TaskRange {
+                index: i,
+                count,
+                first_step: first,
+                steps,
+            };
+            first += steps;
+            t
+        })
+        .collect())
+}
+
+/// What a task baked: its halves' means and step counts, and what the merge checks.
+#[derive(Clone, Debug)]
+pub struct Partial {
+    pub header: PartialHeader,
+    pub snapshot: Snapshot,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct PartialHeader {
+    pub format: u32,
+    /// The whole job's request (every task of a job carries the same one).
+    pub request: BakeRequest,
+    pub task: TaskRange,
+    /// The technique's parameters in effect (defaults filled in).
+    pub params: Value,
+    /// The texel set baked: its size, and a SHA-256 of its sample points and normals.
+    pub width: u32,
+    pub height: u32,
+    pub texels: u64,
+    pub fingerprint: String,
+    pub half_steps: [u64; 2],
+    pub direct: bool,
+    pub moments: bool,
+    /// The task's own bake time.
+    pub seconds: f64,
+    pub stopped_by: StopReason,
+}
+
+/// The texel set's fingerprint: SHA-256 over the page size and every valid texel's
+/// pixel, sample point and normal, so a merge notices partials of another texel set even
+/// when it has as many texels.
+pub fn fingerprint(atlas: &Atlas) -> String {
+    let mut h = Sha256::new();
+    h.update(atlas.width.to_le_bytes());
+    h.update(atlas.height.to_le_bytes());
+    for t in &atlas.texels {
+        h.update(t.pixel.to_le_bytes());
+        for v in [t.position, t.normal] {
+            for c in v.to_array() {
+                h.update(c.to_le_bytes());
+            }
+        }
+    }
+    let digest = h.finalize();
+    digest.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Bakes one task of `request`: the bake loop over the task's steps, keyed by the
+/// job's step numbers, and its halves read back raw (not denoised: the merge denoises
+/// the whole). `observer` sees the task's own steps.
+pub fn bake_task(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    task: TaskRange,
+    options: &BakeOptions,
+    observer: &mut dyn BakeObserver,
+    on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+    on_plan: &mut dyn FnMut(&Plan),
+) -> Result<Partial, EngineError> {
+    let tasks = split(request, task.count)?;
+    if tasks.get(task.index as usize) != Some(&task) {
+        return Err(EngineError::BadInput(format!(
+            "task {}/{} is not one of this request's tasks",
+            task.index, task.count
+        )));
+    }
+    // The task's probes are the merge's to bake, once.
+    let mut own = request.clone();
+    own.probes = None;
+    let prepared = job::prepare(scene, &own, options, on_atlas, on_plan)?;
+    let mut tech = technique::create(&request.technique, prepared.inputs(request), &request.params)?;
+    tech.start_at_step(task.first_step)?;
+    let stop = StopCriteria {
+        steps: Some(task.steps),
+        seconds: request.stop.seconds,
+        target_error: None,
+    };
+    let outcome = prepared
+        .bake_loop(request, stop, options)?
+        .run(tech.as_mut(), observer)?;
+    let snapshot = tech.snapshot()?;
+    let header = PartialHeader {
+        format: PARTIAL_FORMAT,
+        request: request.clone(),
+        task,
+        params: tech.params(),
+        width: prepared.atlas.width,
+        height: prepared.atlas.height,
+        texels: prepared.atlas.texels.len() as u64,
+        fingerprint: fingerprint(&prepared.atlas),
+        half_steps: [snapshot.even.steps, snapshot.odd.steps],
+        direct: snapshot.even.direct.is_some(),
+        moments: snapshot.even.moments.is_some(),
+        seconds: outcome.elapsed.as_secs_f64(),
+        stopped_by: outcome.stopped_by,
+    };
+    tracing::info!(
+        task = task.index,
+        tasks = task.count,
+        first_step = task.first_step,
+        steps = snapshot.even.steps + snapshot.odd.steps,
+        seconds = header.seconds,
+        "task baked"
+    );
+    Ok(Partial { header, snapshot })
+}
+
+impl Partial {
+    pub fn encode(&self) -> Result<Vec<u8>, EngineError> {
+        let header = serde_json::to_vec(&self.header)
+            .map_err(|e| EngineError::Internal(format!("encoding a task's header: {e}")))?;
+        let n = self.header.texels as usize;
+        let mut out = Vec::with_capacity(16 + header.len() + 2 * n * 4 * 15);
+        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+        out.extend_from_slice(&header);
+        for half in [&self.snapshot.even, &self.snapshot.odd] {
+            let mut put = |v: &[Vec3]| {
+                for x in v {
+                    for c in x.to_array() {
+                        out.extend_from_slice(&c.to_le_bytes());
+                    }
+                }
+            };
+            put(&half.total);
+            if let Some(d) = &half.direct {
+                put(d);
+            }
+            if let Some(m) = &half.moments {
+                let flat: Vec<Vec3> = m.iter().flatten().copied().collect();
+                put(&flat);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Reads a partial; `what` names it in errors (a file name, a task).
+    pub fn decode(bytes: &[u8], what: &str) -> Result<Partial, EngineError> {
+        let bad = |m: String| EngineError::BadInput(format!("{what}: {m}"));
+        if bytes.len() < 16 || &bytes[..8] != MAGIC {
+            return Err(bad("not a lightmapd task result (no LMDTASK1 magic)".into()));
+        }
+        let len = u64::from_le_bytes(bytes[8..16].try_into().expect("8 bytes")) as usize;
+        let body = bytes
+            .get(16..16usize.saturating_add(len))
+            .ok_or_else(|| bad(format!("header of {len} bytes runs past the end of the file")))?;
+        let header: PartialHeader =
+            serde_json::from_slice(body).map_err(|e| bad(format!("header is not valid: {e}")))?;
+        if header.format != PARTIAL_FORMAT {
+            return Err(bad(format!(
+                "format {} (this lightmapd reads {PARTIAL_FORMAT})",
+                header.format
+            )));
+        }
+        let n = usize::try_from(header.texels).map_err(|_| bad("texel count too large".into()))?;
+        let per_texel = 1 + usize::from(header.direct) + 3 * usize::from(header.moments);
+        let want = n
+            .checked_mul(per_texel * 2 * 12)
+            .ok_or_else(|| bad("texel count too large".into()))?;
+        let data = &bytes[16 + len..];
+        if data.len() != want {
+            return Err(bad(format!(
+                "{} bytes of accumulators, {want} expected for {n} texels",
+                data.len()
+            )));
+        }
+        let mut at = 0usize;
+        let mut take = |count: usize| -> Vec<Vec3> {
+            let v = data[at..at + count * 12]
+                .chunks_exact(12)
+                .map(|c| {
+                    let f = |k: usize| f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().expect("4 bytes"));
+                    Vec3::new(f(0), f(1), f(2))
+                })
+                .collect();
+            at += count * 12;
+            v
+        };
+        let mut halves = [0usize, 1].map(|h| {
+            let total = take(n);
+            let direct = header.direct.then(|| take(n));
+            let moments = header
+                .moments
+                .then(|| take(3 * n).chunks_exact(3).map(|m| [m[0], m[1], m[2]]).collect());
+            HalfEstimate {
+                steps: header.half_steps[h],
+                total,
+                direct,
+                moments,
+            }
+        });
+        let [even, odd] = std::mem::take(&mut halves);
+        Ok(Partial {
+            header,
+            snapshot: Snapshot { even, odd },
+        })
+    }
+}
+
+/// The halves of a bake from its tasks' halves: per half, the step-weighted mean of the
+/// tasks' means (the sum of their sums over the sum of their steps), in f64.
+pub fn merge_halves(parts: &[&Snapshot]) -> Snapshot {
+    let n = parts.first().map_or(0, |p| p.even.total.len());
+    let half = |pick: fn(&Snapshot) -> &HalfEstimate| {
+        let steps: u64 = parts.iter().map(|p| pick(p).steps).sum();
+        let w: Vec<f64> = parts
+            .iter()
+            .map(|p| pick(p).steps as f64 / steps.max(1) as f64)
+            .collect();
+        let mix = |layer: fn(&HalfEstimate) -> Option<&[Vec3]>, len: usize| -> Option<Vec<Vec3>> {
+            let mut acc = vec![[0f64; 3]; len];
+            for (p, w) in parts.iter().zip(&w) {
+                let v = layer(pick(p))?;
+                for (a, x) in acc.iter_mut().zip(v) {
+                    for c in 0..3 {
+                        a[c] += w * x[c] as f64;
+                    }
+                }
+            }
+            Some(
+                acc.into_iter()
+                    .map(|a| Vec3::new(a[0] as f32, a[1] as f32, a[2] as f32))
+                    .collect(),
+            )
+        };
+        HalfEstimate {
+            steps,
+            total: mix(|h| Some(h.total.as_slice()), n).unwrap_or_default(),
+            direct: mix(|h| h.direct.as_deref(), n),
+            moments: mix(|h| h.moments.as_deref().map(|m| m.as_flattened()), 3 * n)
+                .map(|flat| flat.chunks_exact(3).map(|m| [m[0], m[1], m[2]]).collect()),
+        }
+    };
+    Snapshot {
+        even: half(|s| &s.even),
+        odd: half(|s| &s.odd),
+    }
+}
+
+/// Checks that `partials` are every task of one request, baked on the texel set of
+/// `atlas` (when given), and returns them in task order.
+pub fn check_partials<'a>(partials: &'a [Partial], atlas: Option<&Atlas>) -> Result<Vec<&'a Partial>, EngineError> {
+    let bad = |m: String| Err(EngineError::BadInput(m));
+    let Some(first) = partials.first() else {
+        return bad("merge: no task results given".into());
+    };
+    let h0 = &first.header;
+    let tasks = split(&h0.request, h0.task.count)?;
+    let mut by_index: Vec<Option<&Partial>> = vec![None; tasks.len()];
+    let print = atlas.map(fingerprint);
+    for (k, p) in partials.iter().enumerate() {
+        let h = &p.header;
+        let name = format!("task result {k} (task {}/{})", h.task.index, h.task.count);
+        if h.request != h0.request || h.task.count != h0.task.count {
+            return bad(format!("{name} is of another request than task result 0"));
+        }
+        if tasks.get(h.task.index as usize) != Some(&h.task) {
+            return bad(format!("{name}: its step range is not one the request splits into"));
+        }
+        if h.stopped_by == StopReason::Cancelled {
+            return bad(format!("{name} was cancelled; bake it again"));
+        }
+        if (h.direct, h.moments, &h.params) != (h0.direct, h0.moments, &h0.params) {
+            return bad(format!("{name} kept other layers or parameters than task result 0"));
+        }
+        if let Some(f) = &print
+            && (h.fingerprint != *f || atlas.is_some_and(|a| a.texels.len() as u64 != h.texels))
+        {
+            return bad(format!(
+                "{name} was baked on another texel set (fingerprint {}…, this scene's {}…): another scene or version",
+                &h.fingerprint[..12.min(h.fingerprint.len())],
+                &f[..12]
+            ));
+        }
+        let slot = &mut by_index[h.task.index as usize];
+        if slot.is_some() {
+            return bad(format!("{name}: task {} is given twice", h.task.index));
+        }
+        *slot = Some(p);
+    }
+    let missing: Vec<String> = by_index
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| p.is_none())
+        .map(|(i, _)| i.to_string())
+        .collect();
+    if !missing.is_empty() {
+        return bad(format!(
+            "merge: tasks {} of {} are missing",
+            missing.join(", "),
+            tasks.len()
+        ));
+    }
+    Ok(by_index.into_iter().flatten().collect())
+}
+
+/// The job's result from all its tasks: the merged halves, then what a single bake
+/// delivers (denoised lightmap, EXR, preview, summary, probes). The summary's `seconds`
+/// is the tasks' bake time added up (machine time, not wall time).
+pub fn merge(
+    scene: Arc<Scene>,
+    partials: &[Partial],
+    options: &BakeOptions,
+    on_plan: &mut dyn FnMut(&Plan),
+) -> Result<BakeResult, EngineError> {
+    let first = partials
+        .first()
+        .ok_or_else(|| EngineError::BadInput("merge: no task results given".into()))?;
+    let request = first.header.request.clone();
+    let prepared = job::prepare(scene, &request, options, &mut |_| {}, on_plan)?;
+    let ordered = check_partials(partials, Some(&prepared.atlas))?;
+    let snapshot = merge_halves(&ordered.iter().map(|p| &p.snapshot).collect::<Vec<_>>());
+    let estimate = snapshot.estimate();
+    if let Some((layer, k, v)) = estimate.first_non_finite() {
+        return Err(EngineError::Internal(format!(
+            "merged tasks hold a non-finite value {v:?} at texel {k} of the {layer} layer; the lightmap was not written"
+        )));
+    }
+    let seconds: f64 = ordered.iter().map(|p| p.header.seconds).sum();
+    let stopped_by = ordered
+        .iter()
+        .map(|p| p.header.stopped_by)
+        .find(|r| *r != StopReason::Steps)
+        .unwrap_or(StopReason::Steps);
+    let params = first.header.params.clone();
+    prepared.deliver(
+        &request,
+        &estimate,
+        &params,
+        Duration::from_secs_f64(seconds),
+        stopped_by,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn request(technique: &str, steps: Option<u64>) -> BakeRequest {
+        BakeRequest {
+            technique: technique.into(),
+            stop: StopCriteria {
+                steps,
+                seconds: None,
+                target_error: None,
+            },
+            ..BakeRequest::default()
+        }
+    }
+
+    #[test]
+    fn ranges_cover_the_steps_once_and_start_even() {
+        for (total, count) in [(64u64, 3u32), (7, 3), (6, 3), (101, 10), (2048, 1024)] {
+            let t = split(&request("path", Some(total)), count).unwrap();
+            assert_eq!(t.len(), count as usize);
+            let mut next = 0;
+            for (i, r) in t.iter().enumerate() {
+                assert_eq!((r.index, r.count, r.first_step), (i as u32, count, next));
+                assert_eq!(r.first_step % 2, 0, "{r:?}");
+                assert!(r.steps >= 2, "{r:?}");
+                next += r.steps;
+            }
+            assert_eq!(next, total);
+            let (lo, hi) = (
+                t.iter().map(|r| r.steps).min().unwrap(),
+                t.iter().map(|r| r.steps).max().unwrap(),
+            );
+            assert!(hi - lo <= 3, "uneven {total}/{count}: {lo}..{hi}");
+        }
+    }
+
+    #[test]
+    fn what_cannot_be_split_is_refused_naming_why() {
+        let err = |r: &BakeRequest, n| split(r, n).unwrap_err().to_string();
+        assert!(err(&request("sdb", Some(64)), 2).contains("sdb bakes are not split into tasks"));
+        assert!(err(&request("path", None), 2).contains("needs stop.steps"));
+        assert!(err(&request("path", Some(3)), 2).contains("at least twice the tasks"));
+        assert!(err(&request("path", Some(64)), 0).contains("tasks must be in 1..=1024"));
+        let mut r = request("path", Some(64));
+        r.stop.target_error = Some(0.01);
+        assert!(err(&r, 2).contains("stop.target_error"));
+        let mut r = request("path", Some(64));
+        r.outputs = vec![OutputLayer::Shadowmask];
+        assert!(err(&r, 2).contains("shadowmask"));
+        // One task is the whole bake, for every technique.
+        assert_eq!(split(&request("sdb", Some(64)), 1).unwrap()[0].steps, 64);
+    }
+
+    fn half(steps: u64, v: f32, n: usize) -> HalfEstimate {
+        HalfEstimate {
+            steps,
+            total: vec![Vec3::splat(v); n],
+            direct: Some(vec![Vec3::splat(v / 2.0); n]),
+            moments: Some(vec![[Vec3::splat(v), Vec3::ZERO, Vec3::splat(-v)]; n]),
+        }
+    }
+
+    /// Merged means are the step-weighted means: (3·1 + 1·5) / 4 = 2.
+    #[test]
+    fn halves_merge_by_their_step_counts() {
+        let a = Snapshot {
+            even: half(3, 1.0, 2),
+            odd: half(2, 4.0, 2),
+        };
+        let b = Snapshot {
+            even: half(1, 5.0, 2),
+            odd: half(2, 2.0, 2),
+        };
+        let m = merge_halves(&[&a, &b]);
+        assert_eq!((m.even.steps, m.odd.steps), (4, 4));
+        assert_eq!(m.even.total[1], Vec3::splat(2.0));
+        assert_eq!(m.odd.total[0], Vec3::splat(3.0));
+        assert_eq!(m.even.direct.as_ref().unwrap()[0], Vec3::splat(1.0));
+        assert_eq!(m.odd.moments.as_ref().unwrap()[1][2], Vec3::splat(-3.0));
+    }
+
+    #[test]
+    fn a_partial_survives_its_file_and_a_damaged_one_is_refused() {
+        let header = PartialHeader {
+            format: PARTIAL_FORMAT,
+            request: request("path", Some(8)),
+            task: split(&request("path", Some(8)), 2).unwrap()[1],
+            params: serde_json::json!({"samples_per_step": 4}),
+            width: 4,
+            height: 4,
+            texels: 3,
+            fingerprint: "ab".repeat(32),
+            half_steps: [2, 2],
+            direct: true,
+            moments: true,
+            seconds: 0.5,
+            stopped_by: StopReason::Steps,
+        };
+        let p = Partial {
+            header,
+            snapshot: Snapshot {
+                even: half(2, 1.5, 3),
+                odd: half(2, 0.25, 3),
+            },
+        };
+        let bytes = p.encode().unwrap();
+        let back = Partial::decode(&bytes, "t").unwrap();
+        assert_eq!(back.header, p.header);
+        assert_eq!(back.snapshot.odd.moments, p.snapshot.odd.moments);
+        assert_eq!(back.snapshot.even.direct, p.snapshot.even.direct);
+        let short = Partial::decode(&bytes[..bytes.len() - 4], "t.lmtask")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            short.contains("t.lmtask:") && short.contains("expected for 3 texels"),
+            "{short}"
+        );
+        let junk = Partial::decode(b"not a task result", "x").unwrap_err().to_string();
+        assert!(junk.contains("no LMDTASK1 magic"), "{junk}");
+    }
+}

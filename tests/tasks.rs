@@ -1,0 +1,316 @@
+//! A bake split into tasks (issue 25, `engine::tasks`): the merged tasks are the single
+//! bake, not another bake within noise. `path` on the CPU and on the GPU (lavapipe in
+//! CI): every half, layer and the error estimate of three merged tasks equal the whole
+//! bake's to float rounding; the command line does the same with three processes at
+//! once; and the merge refuses what is not every task of one request on this scene.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::Arc;
+
+use exr::prelude::{ReadChannels, ReadLayers};
+use glam::Vec3;
+use lightmapd::engine::accumulate::{Estimate, LUMINANCE};
+use lightmapd::engine::bake::{BakeEvent, StopCriteria};
+use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
+use lightmapd::engine::output::OutputLayer;
+use lightmapd::engine::post::denoised::Denoiser;
+use lightmapd::engine::scene::{self, Scene};
+use lightmapd::engine::tasks::{self, Partial};
+
+fn cornell() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb")
+}
+
+fn scene() -> Arc<Scene> {
+    Arc::new(scene::import_file(&cornell()).expect("bundled scene").0)
+}
+
+fn request(device: &str, steps: u64) -> BakeRequest {
+    BakeRequest {
+        technique: "path".into(),
+        resolution: 20,
+        stop: StopCriteria {
+            steps: Some(steps),
+            seconds: None,
+            target_error: None,
+        },
+        params: serde_json::json!({"device": device, "samples_per_step": 2}),
+        outputs: vec![OutputLayer::Direct, OutputLayer::Sh],
+        seed: 11,
+        denoise: Denoiser::None,
+        ..BakeRequest::default()
+    }
+}
+
+fn bake_tasks(scene: &Arc<Scene>, request: &BakeRequest, count: u32) -> Vec<Partial> {
+    tasks::split(request, count)
+        .unwrap()
+        .into_iter()
+        .map(|t| {
+            let p = tasks::bake_task(
+                scene.clone(),
+                request,
+                t,
+                &BakeOptions::default(),
+                &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+                &mut |_| {},
+                &mut |_| {},
+            )
+            .unwrap();
+            // Through the file format, as a farm moves them.
+            Partial::decode(&p.encode().unwrap(), "task").unwrap()
+        })
+        .collect()
+}
+
+/// Largest difference between two layers over the RMS luminance of the first.
+fn worst(a: &[Vec3], b: &[Vec3]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let rms = (a.iter().map(|v| (v.dot(LUMINANCE) as f64).powi(2)).sum::<f64>() / a.len() as f64).sqrt();
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (*x - *y).abs().max_element() as f64)
+        .fold(0.0, f64::max)
+        / rms
+}
+
+fn assert_same_bake(whole: &Estimate, merged: &Estimate) {
+    assert_eq!(merged.steps, whole.steps);
+    let ([we, wo], wn) = whole.halves.clone().unwrap();
+    let ([me, mo], mn) = merged.halves.clone().unwrap();
+    assert_eq!(mn, wn, "half step counts");
+    for (name, d) in [
+        ("even half", worst(&we, &me)),
+        ("odd half", worst(&wo, &mo)),
+        ("total", worst(&whole.total, &merged.total)),
+        (
+            "direct",
+            worst(whole.direct.as_ref().unwrap(), merged.direct.as_ref().unwrap()),
+        ),
+        (
+            "sh",
+            worst(
+                whole.moments.as_ref().unwrap().as_flattened(),
+                merged.moments.as_ref().unwrap().as_flattened(),
+            ),
+        ),
+    ] {
+        // f32 rounding of a different order of additions, nothing more (a different
+        // random stream would differ by the noise, ~10 % at 8 samples a texel).
+        assert!(
+            d < 1e-5,
+            "{name}: merged differs from the whole bake by {d:e} of the RMS"
+        );
+    }
+    let (we, me) = (whole.error.relative.unwrap(), merged.error.relative.unwrap());
+    assert!(we > 0.01, "the bake has noise to measure: {we}");
+    assert!(
+        (me / we - 1.0).abs() < 1e-4,
+        "merged error estimate {me} vs the whole bake's {we}"
+    );
+}
+
+fn whole(scene: &Arc<Scene>, request: &BakeRequest) -> Estimate {
+    job::bake_unobserved(scene.clone(), request).unwrap().estimate
+}
+
+#[test]
+fn three_cpu_tasks_merge_to_the_single_bake() {
+    let scene = scene();
+    let request = request("cpu", 9);
+    let parts = bake_tasks(&scene, &request, 3);
+    assert_eq!(parts.iter().map(|p| p.header.task.steps).collect::<Vec<_>>(), [4, 2, 3]);
+    let merged = tasks::merge(scene.clone(), &parts, &BakeOptions::default(), &mut |_| {}).unwrap();
+    assert_eq!(merged.summary.steps, 9);
+    assert_same_bake(&whole(&scene, &request), &merged.estimate);
+    // Any order of task results merges alike.
+    let mut reversed = parts.clone();
+    reversed.reverse();
+    let again = tasks::merge(scene, &reversed, &BakeOptions::default(), &mut |_| {}).unwrap();
+    assert_eq!(again.estimate.total, merged.estimate.total);
+}
+
+#[test]
+fn three_gpu_tasks_merge_to_the_single_bake() {
+    if !common::have_adapter() {
+        return;
+    }
+    let scene = scene();
+    let request = request("gpu", 8);
+    let parts = bake_tasks(&scene, &request, 3);
+    assert_eq!(parts[0].header.params["device"], "gpu");
+    let merged = tasks::merge(scene.clone(), &parts, &BakeOptions::default(), &mut |_| {}).unwrap();
+    assert_same_bake(&whole(&scene, &request), &merged.estimate);
+}
+
+#[test]
+fn the_merge_refuses_what_is_not_every_task_of_one_request() {
+    let scene = scene();
+    let request = request("cpu", 4);
+    let parts = bake_tasks(&scene, &request, 2);
+    let merge = |p: &[Partial]| {
+        tasks::merge(scene.clone(), p, &BakeOptions::default(), &mut |_| {})
+            .err()
+            .expect("refused")
+            .to_string()
+    };
+    let e = merge(&parts[1..]);
+    assert!(e.contains("merge: tasks 0 of 2 are missing"), "{e}");
+    let e = merge(&[parts[0].clone(), parts[0].clone(), parts[1].clone()]);
+    assert!(e.contains("task 0 is given twice"), "{e}");
+    let mut other = request.clone();
+    other.seed = 12;
+    let foreign = bake_tasks(&scene, &other, 2);
+    let e = merge(&[parts[0].clone(), foreign[1].clone()]);
+    assert!(e.contains("task result 1 (task 1/2) is of another request"), "{e}");
+    let mut moved = parts.clone();
+    moved[1].header.fingerprint = "0".repeat(64);
+    let e = merge(&moved);
+    assert!(e.contains("was baked on another texel set"), "{e}");
+}
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("lightmapd-tasks-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+const BAKE: &[&str] = &[
+    "--resolution",
+    "20",
+    "--steps",
+    "6",
+    "--seed",
+    "3",
+    "--denoiser",
+    "none",
+    "--params",
+    r#"{"device": "cpu", "samples_per_step": 2}"#,
+];
+
+fn channels(path: &Path) -> Vec<(String, Vec<f32>)> {
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_file(path)
+        .unwrap();
+    image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
+        .collect()
+}
+
+/// Three `bake --task K/3` processes at once, then `merge`: the EXR of a single
+/// `bake`, channel for channel.
+#[test]
+fn three_processes_and_a_merge_write_the_single_bakes_lightmap() {
+    let whole = tmp("whole.exr");
+    let out = bin()
+        .arg("bake")
+        .arg(cornell())
+        .arg("-o")
+        .arg(&whole)
+        .args(BAKE)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let parts: Vec<PathBuf> = (0..3).map(|k| tmp(&format!("task-{k}.lmtask"))).collect();
+    let children: Vec<_> = parts
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            bin()
+                .arg("bake")
+                .arg(cornell())
+                .arg("-o")
+                .arg(p)
+                .args(BAKE)
+                .args(["--task", &format!("{k}/3")])
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    for c in children {
+        let out = c.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{stderr}");
+        assert!(stderr.contains("baked task") && stderr.contains("2 steps"), "{stderr}");
+    }
+    let merged = tmp("merged.exr");
+    let out = bin()
+        .arg("merge")
+        .arg("--scene")
+        .arg(cornell())
+        .args([&parts[2], &parts[0], &parts[1]])
+        .arg("-o")
+        .arg(&merged)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("merged 3 tasks") && stderr.contains("6 steps"),
+        "{stderr}"
+    );
+    let (a, b) = (channels(&whole), channels(&merged));
+    assert_eq!(
+        a.iter().map(|c| &c.0).collect::<Vec<_>>(),
+        b.iter().map(|c| &c.0).collect::<Vec<_>>()
+    );
+    for ((name, x), (_, y)) in a.iter().zip(&b) {
+        let peak = x.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-3);
+        let d = x.iter().zip(y).map(|(p, q)| (p - q).abs()).fold(0f32, f32::max);
+        assert!(d <= 1e-5 * peak, "channel {name}: merged differs by {d} (peak {peak})");
+    }
+    // A task missing: exit 2, naming it.
+    let out = bin()
+        .arg("merge")
+        .arg("--scene")
+        .arg(cornell())
+        .args([&parts[0], &parts[2]])
+        .arg("-o")
+        .arg(tmp("never.exr"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("tasks 1 of 3 are missing"), "{stderr}");
+}
+
+#[test]
+fn a_technique_that_does_not_split_is_refused_before_baking() {
+    let out = bin()
+        .arg("bake")
+        .arg(cornell())
+        .arg("-o")
+        .arg(tmp("never.lmtask"))
+        .args(["--technique", "hemicube", "--steps", "8", "--task", "0/2"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("hemicube bakes are not split into tasks"), "{stderr}");
+    let out = bin()
+        .arg("bake")
+        .arg(cornell())
+        .arg("-o")
+        .arg(tmp("never.lmtask"))
+        .args(["--steps", "8", "--task", "2/2"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--task takes K/N with 0 <= K < N"));
+}
