@@ -199,9 +199,21 @@ struct Tuning {
     /// by a worker whose own limit is lower.
     #[arg(long, default_value_t = 8192)]
     max_job_memory_mb: u64,
-    /// Time to answer a request, in seconds (an event stream's body is not limited).
+    /// Time to answer a request, in seconds (an event stream's body is not limited; a
+    /// scene upload has --upload-idle-timeout-s instead).
     #[arg(long, default_value_t = 60.0)]
     request_timeout_s: f64,
+    /// Longest wait in seconds for the next chunk of a scene upload (408 beyond): uploads
+    /// have no total time, so a large scene on a slow link succeeds.
+    #[arg(long, default_value_t = 30.0)]
+    upload_idle_timeout_s: f64,
+    /// Large bodies in flight at once: uploads above 16 MiB or of unknown length, and
+    /// downloads above 16 MiB (503 with Retry-After beyond).
+    #[arg(long, default_value_t = 8)]
+    max_large_bodies: usize,
+    /// Scene imports at once (each holds its scene in memory); more wait their turn.
+    #[arg(long, default_value_t = 2)]
+    max_concurrent_imports: usize,
     /// A worker's claim on a job lasts this long without renewal; a job whose worker
     /// died is taken up again after it (within it plus 1 s).
     #[arg(long, default_value_t = 5.0)]
@@ -542,6 +554,17 @@ fn limits(t: &Tuning) -> Result<service::Limits, Failure> {
             t.request_timeout_s
         )));
     }
+    if !(t.upload_idle_timeout_s.is_finite() && t.upload_idle_timeout_s > 0.0) {
+        return Err(bad_input(format!(
+            "--upload-idle-timeout-s must be a positive number, got {}",
+            t.upload_idle_timeout_s
+        )));
+    }
+    if t.max_large_bodies == 0 || t.max_concurrent_imports == 0 {
+        return Err(bad_input(
+            "--max-large-bodies and --max-concurrent-imports must be at least 1".to_string(),
+        ));
+    }
     Ok(service::Limits {
         max_scene_bytes: t.max_scene_bytes,
         max_body_bytes: t.max_body_bytes,
@@ -554,6 +577,10 @@ fn limits(t: &Tuning) -> Result<service::Limits, Failure> {
         max_event_streams: t.max_event_streams,
         max_job_memory_bytes: t.max_job_memory_mb.saturating_mul(1 << 20),
         request_timeout: Duration::from_secs_f64(t.request_timeout_s),
+        upload_idle_timeout: Duration::from_secs_f64(t.upload_idle_timeout_s),
+        max_large_bodies: t.max_large_bodies,
+        large_body_bytes: service::LARGE_BODY_BYTES,
+        max_concurrent_imports: t.max_concurrent_imports,
         max_priority: t.max_priority,
     })
 }

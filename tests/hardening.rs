@@ -223,11 +223,103 @@ async fn limits_answer_with_their_status_and_field() {
     s.running.shutdown().await;
 }
 
+/// Files left in the server's upload spool (every upload's folder is removed when its
+/// request ends, whatever happened).
+fn spool_entries(dir: &std::path::Path) -> usize {
+    std::fs::read_dir(dir.join("spool")).map(|d| d.count()).unwrap_or(0)
+}
+
+/// A body sent as `chunks` pieces, each after `gap`.
+fn trickled(bytes: Vec<u8>, chunks: usize, gap: Duration) -> reqwest::Body {
+    let size = bytes.len().div_ceil(chunks);
+    let pieces: Vec<bytes::Bytes> = bytes.chunks(size).map(bytes::Bytes::copy_from_slice).collect();
+    reqwest::Body::wrap_stream(futures_util::stream::iter(pieces).then(move |piece| async move {
+        tokio::time::sleep(gap).await;
+        Ok::<_, std::io::Error>(piece)
+    }))
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_slow_request_times_out_with_408_and_a_big_scene_is_422() {
+async fn a_slow_upload_succeeds_a_stalled_one_is_408_and_a_big_scene_is_422() {
     let dir = tempfile::tempdir().unwrap();
     let mut config = test_config(dir.path(), 0);
     config.limits.request_timeout = Duration::from_millis(300);
+    config.limits.upload_idle_timeout = Duration::from_millis(700);
+    let mut s = Server::start(config).await;
+    // A refused upload's connection is closed by the server: no client-side pooling.
+    s.http = reqwest::Client::builder().pool_max_idle_per_host(0).build().unwrap();
+    // Issue 24 point 4: an upload has no total time, only an idle one. The Cornell box
+    // in 10 pieces 150 ms apart takes 1.5 s, five times the request time limit.
+    let started = std::time::Instant::now();
+    let r = s
+        .post("/v1/scenes")
+        .header("content-type", "model/gltf-binary")
+        .body(trickled(cornell_glb(), 10, Duration::from_millis(150)))
+        .send()
+        .await
+        .unwrap();
+    let took = started.elapsed();
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    assert!(took > Duration::from_millis(1400), "the upload took only {took:?}");
+    let slow: Value = r.json().await.unwrap();
+    // The spooled upload keeps the content-addressed id: the same bytes sent at once
+    // are the same scene (200), and its report is the whole scene's.
+    let r = s.post("/v1/scenes").body(cornell_glb()).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let fast: Value = r.json().await.unwrap();
+    assert_eq!(fast["id"], slow["id"]);
+    assert_eq!(slow["report"]["triangles"], 32, "{slow:#}");
+    let stored = s
+        .get(&format!("/v1/scenes/{}/scene.glb", slow["id"].as_str().unwrap()))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(stored.status(), 200);
+    // A body that stops arriving for longer than the idle time is cut off.
+    let stalled = futures_util::stream::iter([0u64, 2000]).then(|wait| async move {
+        tokio::time::sleep(Duration::from_millis(wait)).await;
+        Ok::<_, std::io::Error>(bytes::Bytes::from_static(b"glTF"))
+    });
+    expect_problem(
+        s.post("/v1/scenes")
+            .header("content-type", "model/gltf-binary")
+            .body(reqwest::Body::wrap_stream(stalled)),
+        408,
+        problem(
+            408,
+            "Request Timeout",
+            "timeout",
+            "the upload sent nothing for 0.7 s after 4 bytes (--upload-idle-timeout-s)",
+            None,
+        ),
+    )
+    .await;
+    // Every other route keeps the request time limit: a job body that takes 2 s.
+    let slow_job = futures_util::stream::once(async {
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        Ok::<_, std::io::Error>(bytes::Bytes::from_static(b"{}"))
+    });
+    expect_problem(
+        s.post("/v1/jobs")
+            .header("content-type", "application/json")
+            .body(reqwest::Body::wrap_stream(slow_job)),
+        408,
+        problem(
+            408,
+            "Request Timeout",
+            "timeout",
+            "the request took longer than this server's limit of 0.3 s (--request-timeout-s)",
+            None,
+        ),
+    )
+    .await;
+    assert_eq!(spool_entries(dir.path()), 0, "an upload left files in the spool");
+    // Quick requests are unaffected.
+    assert_eq!(s.get("/healthz").send().await.unwrap().status(), 200);
+    s.running.shutdown().await;
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = test_config(dir.path(), 0);
     config.limits.max_triangles = 31;
     let s = Server::start(config).await;
     // The Cornell box has 32 triangles.
@@ -240,27 +332,96 @@ async fn a_slow_request_times_out_with_408_and_a_big_scene_is_422() {
         ),
     )
     .await;
-    // A body that takes longer to arrive than the server waits.
-    let slow = futures_util::stream::once(async {
-        tokio::time::sleep(Duration::from_secs(2)).await;
-        Ok::<_, std::io::Error>(bytes::Bytes::from_static(b"glTF"))
+    assert_eq!(spool_entries(dir.path()), 0, "a refused upload left files in the spool");
+    s.running.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn large_bodies_past_the_cap_wait_with_503_and_retry_after() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut config = test_config(dir.path(), 0);
+    config.limits.max_large_bodies = 1;
+    let mut s = Server::start(config).await;
+    // A refused upload's connection is closed by the server: no client-side pooling.
+    s.http = reqwest::Client::builder().pool_max_idle_per_host(0).build().unwrap();
+    let glb = cornell_glb();
+    // An upload of unknown length (a stream) is a large body: it holds the one permit
+    // until its last piece, which the test releases.
+    let (release, released) = tokio::sync::oneshot::channel::<()>();
+    let (head, tail) = glb.split_at(glb.len() / 2);
+    let (head, tail) = (bytes::Bytes::copy_from_slice(head), bytes::Bytes::copy_from_slice(tail));
+    let held = futures_util::stream::iter([Some(head), None, Some(tail)]).then({
+        let mut released = Some(released);
+        move |piece| {
+            let wait = if piece.is_none() { released.take() } else { None };
+            async move {
+                if let Some(rx) = wait {
+                    let _ = rx.await;
+                }
+                Ok::<_, std::io::Error>(piece.unwrap_or_default())
+            }
+        }
     });
-    expect_problem(
+    let first = tokio::spawn(
         s.post("/v1/scenes")
             .header("content-type", "model/gltf-binary")
-            .body(reqwest::Body::wrap_stream(slow)),
-        408,
+            .body(reqwest::Body::wrap_stream(held))
+            .send(),
+    );
+    // Wait until the server holds the first upload's first half.
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while spool_entries(dir.path()) == 0 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the first upload never reached the spool"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let second = s
+        .post("/v1/scenes")
+        .header("content-type", "model/gltf-binary")
+        .body(reqwest::Body::wrap_stream(futures_util::stream::iter([Ok::<
+            _,
+            std::io::Error,
+        >(
+            bytes::Bytes::from(glb.clone()),
+        )])))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(second.status(), 503);
+    assert_eq!(second.headers()["retry-after"], "10");
+    assert_eq!(
+        second.json::<Value>().await.unwrap(),
         problem(
-            408,
-            "Request Timeout",
-            "timeout",
-            "the request took longer than this server's limit of 0.3 s (--request-timeout-s)",
+            503,
+            "Service Unavailable",
+            "too-many-bodies",
+            "1 large uploads or downloads are in flight, this server's limit (--max-large-bodies); try again later",
             None,
-        ),
-    )
-    .await;
-    // Quick requests are unaffected.
-    assert_eq!(s.get("/healthz").send().await.unwrap().status(), 200);
+        )
+    );
+    // A small body of known length is not held back.
+    let r = s.post("/v1/jobs").json(&json!({"scene": "nope"})).send().await.unwrap();
+    assert_ne!(r.status(), 503);
+    // The first upload finishes, and its permit is free again.
+    release.send(()).unwrap();
+    let first = first.await.unwrap().unwrap();
+    assert_eq!(first.status(), 201, "{}", first.text().await.unwrap());
+    let third = s
+        .post("/v1/scenes")
+        .header("content-type", "model/gltf-binary")
+        .body(reqwest::Body::wrap_stream(futures_util::stream::iter([Ok::<
+            _,
+            std::io::Error,
+        >(
+            bytes::Bytes::from(glb),
+        )])))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(third.status(), 200, "the same scene again");
+    assert_eq!(spool_entries(dir.path()), 0);
     s.running.shutdown().await;
 }
 

@@ -17,7 +17,7 @@
 //! Hostile clients (issue 12): every size and budget a request can ask for is capped by
 //! [`Limits`] (413 for bodies, 422 naming the field, 429 with `Retry-After` for a full
 //! per-client queue, 503 for too many event streams); [`auth`] adds optional bearer
-//! tokens; every request has a time limit; artifacts are written to a temporary file,
+//! tokens; every request has a time limit (a scene upload, an idle limit per chunk: [`upload`]); artifacts are written to a temporary file,
 //! synced, then renamed, before the job that made them is marked succeeded.
 //!
 //! Deployed (issue 24): [`check_exposure`] refuses to serve a non-loopback address
@@ -25,7 +25,9 @@
 //! ([`auth::sync_tokens_file`]); snapshot retention ([`store::snapshot_kept`]) and the
 //! retention sweeper ([`retention_loop`]) bound the store; leases are short (5 s by
 //! default, renewed until the job's end is recorded) and measured on the database's clock
-//! ([`queue::Queue::clock`]).
+//! ([`queue::Queue::clock`]). Uploads are spooled to disk ([`upload`]), imports run at
+//! most `--max-concurrent-imports` at once, and large bodies in flight are capped
+//! (`--max-large-bodies`, 503 beyond).
 //!
 //! Limits: API and worker processes on several machines need PostgreSQL and an artifact
 //! store they all reach (an S3 bucket, [`store`], or a shared filesystem).
@@ -40,6 +42,7 @@ pub mod problem;
 pub mod queue;
 pub mod routes;
 pub mod store;
+pub mod upload;
 pub mod worker;
 
 use std::collections::HashMap;
@@ -169,7 +172,19 @@ pub struct Limits {
     /// (422 `resolution`) and by a worker whose own limit is lower.
     pub max_job_memory_bytes: u64,
     /// Time to answer a request (the headers; an event stream's body is not limited).
+    /// A scene upload is not under it: its body only has to keep arriving
+    /// ([`Limits::upload_idle_timeout`]).
     pub request_timeout: Duration,
+    /// Longest wait for the next chunk of an upload's body (408 beyond), instead of a
+    /// time for the whole upload, so a large scene on a slow link succeeds.
+    pub upload_idle_timeout: Duration,
+    /// Large bodies (uploads without a `Content-Length` or above `large_body_bytes`,
+    /// downloads above it) in flight at once; past it, 503 with `Retry-After`.
+    pub max_large_bodies: usize,
+    /// What counts as a large body ([`LARGE_BODY_BYTES`] unless a test says otherwise).
+    pub large_body_bytes: u64,
+    /// Scene imports at once (an import holds the scene in memory); more wait.
+    pub max_concurrent_imports: usize,
     /// Highest job priority an editor token (or any caller without tokens) may set; an
     /// admin token may set any (403 beyond).
     pub max_priority: i32,
@@ -189,10 +204,17 @@ impl Default for Limits {
             max_event_streams: 256,
             max_job_memory_bytes: 8 << 30,
             request_timeout: Duration::from_secs(60),
+            upload_idle_timeout: Duration::from_secs(30),
+            max_large_bodies: 8,
+            large_body_bytes: LARGE_BODY_BYTES,
+            max_concurrent_imports: 2,
             max_priority: 10,
         }
     }
 }
+
+/// A body larger than this counts against [`Limits::max_large_bodies`].
+pub const LARGE_BODY_BYTES: u64 = 16 << 20;
 
 /// Why a local bake is being stopped early.
 #[repr(u8)]
@@ -291,6 +313,10 @@ pub struct AppState {
     pub shutdown: watch::Receiver<bool>,
     /// One permit per open event stream (`Limits::max_event_streams`).
     pub streams: Arc<tokio::sync::Semaphore>,
+    /// One permit per large body in flight (`Limits::max_large_bodies`).
+    pub large_bodies: Arc<tokio::sync::Semaphore>,
+    /// One permit per scene import running (`Limits::max_concurrent_imports`).
+    pub imports: Arc<tokio::sync::Semaphore>,
     /// The database's clock minus this process's, in ms ([`AppState::db_now`]).
     clock_offset: Arc<AtomicI64>,
 }
@@ -303,10 +329,24 @@ impl AppState {
             metrics: Arc::new(Metrics::default()),
             hub: Arc::new(Hub::default()),
             streams: Arc::new(tokio::sync::Semaphore::new(config.limits.max_event_streams)),
+            large_bodies: Arc::new(tokio::sync::Semaphore::new(config.limits.max_large_bodies)),
+            imports: Arc::new(tokio::sync::Semaphore::new(config.limits.max_concurrent_imports.max(1))),
             config: Arc::new(config.clone()),
             shutdown,
             clock_offset: Arc::new(AtomicI64::new(0)),
         }
+    }
+
+    /// A state over an SQLite queue and a local store in `config.data_dir`, for unit tests
+    /// of routes.
+    #[cfg(test)]
+    pub(crate) async fn for_tests(config: &Config) -> AppState {
+        let queue = queue::sqlite::SqliteQueue::open(&config.data_dir.join("lightmapd.db"))
+            .await
+            .unwrap();
+        let artifacts = Artifacts::local(&config.data_dir.join("objects")).unwrap();
+        let (_tx, rx) = watch::channel(false);
+        AppState::new(Arc::new(queue), artifacts, config, rx)
     }
 
     /// Now on the database's clock (Unix ms): this process's clock plus the offset last
@@ -445,6 +485,8 @@ pub async fn start_with(config: Config, queue: Arc<dyn Queue>, artifacts: Artifa
     if let Err(e) = state.sync_clock().await {
         tracing::warn!(error = %e, "cannot read the database's clock; using this machine's until it answers");
     }
+    // Uploads a killed process was receiving are of no use to anyone.
+    upload::clear_spool(&config.data_dir.join("spool"));
     let mut tasks = vec![tokio::spawn(worker::recovery_loop(state.clone()))];
     tasks.push(tokio::spawn(retention_loop(state.clone())));
     tasks.extend(state.queue.listen(state.hub.clone(), rx.clone()));

@@ -23,11 +23,13 @@
 //! (issue 24), so a large EXR is never held whole by the API; snapshot EXRs (small, and
 //! checked against snapshot retention) are read whole.
 //!
-//! Limits: uploads are buffered in memory up to `max_scene_bytes`, once (the importer
-//! parses from memory, and the store writes from the same buffer: [`store`]); a `.glb`
-//! goes into one buffer sized from `Content-Length`, while multipart parts are gathered
-//! by multer into buffers that grow as each part arrives (a reallocation briefly holds a
-//! part twice); `.gltf` URIs must be
+//! Limits: uploads are received into a spool folder on disk as they arrive
+//! ([`upload`]), with an idle timeout per chunk instead of the request time limit, then
+//! imported (at most `--max-concurrent-imports` at once; the importer parses from memory,
+//! so an import holds its scene) and written to the store from the file in parts. Large
+//! bodies (uploads of unknown length or over 16 MiB, downloads over 16 MiB) take one of
+//! `--max-large-bodies` permits for as long as they run; past it, 503 with
+//! `Retry-After`. `.gltf` URIs must be
 //! data URIs or the plain names of uploaded parts (no folders), so an upload can never
 //! make the server read its own files.
 
@@ -46,13 +48,11 @@ use utoipa::OpenApi;
 
 use crate::service::auth::{self, Caller};
 use crate::service::console::{TechniqueInfo, TechniqueList};
-use crate::service::model::{
-    Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339, uri_file_name,
-};
+use crate::service::model::{Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339};
 use crate::service::problem::{PROBLEM_JSON, Problem};
 use crate::service::queue::{Cancellation, Enqueued, JobDeletion, JobRecord, SceneDeletion, SceneRecord, now_ms};
-use crate::service::worker::{ImportFailure, SceneFiles, import_files, job_memory};
-use crate::service::{AppState, StopSignal, events, store};
+use crate::service::worker::{ImportFailure, SceneFiles, import_dir, import_files, job_memory};
+use crate::service::{AppState, StopSignal, events, store, upload};
 
 /// What a client told to come back later is told to wait, in seconds.
 pub const RETRY_AFTER_S: u64 = 10;
@@ -61,7 +61,7 @@ pub const RETRY_AFTER_S: u64 = 10;
 #[openapi(
     info(
         title = "lightmapd",
-        description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7). With `serve --auth`, every route but /healthz needs `Authorization: Bearer TOKEN` (401 otherwise) and sees only that token's scenes and jobs. Any route may answer 408 (request timeout) or 413 (body over the limit); every error is application/problem+json."
+        description = "Lightmap bake service: glTF in, EXR lightmaps out (DESIGN §7). With `serve --auth`, every route but /healthz needs `Authorization: Bearer TOKEN` (401 otherwise) and sees only that token's scenes and jobs. Any route may answer 408 (request timeout; for a scene upload, its body stopped arriving for longer than the idle timeout) or 413 (body over the limit); a large upload or download may answer 503 with Retry-After when too many are in flight; every error is application/problem+json."
     ),
     paths(
         upload_scene,
@@ -137,12 +137,22 @@ pub fn router(state: AppState) -> Router {
         // any of them (or of axum's extractors) rewritten as problem+json.
         .layer(DefaultBodyLimit::max(limits.max_body_bytes))
         .layer(axum::middleware::from_fn_with_state(state.clone(), auth::authenticate))
-        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
-            StatusCode::REQUEST_TIMEOUT,
-            limits.request_timeout,
-        ))
+        .layer(axum::middleware::from_fn_with_state(state.clone(), time_limit))
         .layer(axum::middleware::map_response_with_state(state.clone(), problem_bodies))
         .with_state(state)
+}
+
+/// The request time limit (`--request-timeout-s`, 408), on every route but a scene
+/// upload: an upload's body only has to keep arriving (`--upload-idle-timeout-s`,
+/// `service::upload`), so a large scene on a slow link is not cut off by a total time.
+async fn time_limit(State(state): State<AppState>, req: Request, next: axum::middleware::Next) -> Response {
+    if req.method() == axum::http::Method::POST && req.uri().path() == "/v1/scenes" {
+        return next.run(req).await;
+    }
+    match tokio::time::timeout(state.config.limits.request_timeout, next.run(req)).await {
+        Ok(resp) => resp,
+        Err(_) => StatusCode::REQUEST_TIMEOUT.into_response(),
+    }
 }
 
 /// Rewrites an error answer that is not problem+json (axum's extractor rejections, the
@@ -221,14 +231,6 @@ fn content_type(headers: &HeaderMap) -> String {
         .unwrap_or_default()
 }
 
-fn too_large(max: usize) -> Problem {
-    Problem::new(
-        StatusCode::PAYLOAD_TOO_LARGE,
-        "too-large",
-        format!("the scene is larger than this server's limit of {max} bytes (--max-scene-bytes)"),
-    )
-}
-
 /// Upload a scene.
 #[utoipa::path(
     post,
@@ -247,8 +249,10 @@ fn too_large(max: usize) -> Problem {
         (status = 400, description = "Empty or malformed upload", body = Problem, content_type = "application/problem+json"),
         (status = 401, description = "A bearer token is required (`serve --auth`)", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Larger than the server's limit", body = Problem, content_type = "application/problem+json"),
+        (status = 408, description = "The body stopped arriving for longer than the idle timeout (--upload-idle-timeout-s); an upload has no total time limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "Neither a .glb nor multipart", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "The importer rejected the scene, or it is over a limit (`field`: `triangles`, `textures`)", body = Problem, content_type = "application/problem+json")
+        (status = 422, description = "The importer rejected the scene, or it is over a limit (`field`: `triangles`, `textures`)", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Too many large uploads and downloads in flight (--max-large-bodies); retry after Retry-After seconds", body = Problem, content_type = "application/problem+json")
     )
 )]
 async fn upload_scene(
@@ -256,30 +260,37 @@ async fn upload_scene(
     Extension(caller): Extension<Caller>,
     req: Request,
 ) -> Result<Response, Problem> {
-    let max = state.config.limits.max_scene_bytes;
+    let limits = &state.config.limits;
+    let max = limits.max_scene_bytes;
     let declared = req
         .headers()
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
     if declared.is_some_and(|len| len > max as u64) {
-        return Err(too_large(max));
+        return Err(upload::too_large(max));
     }
+    // A body of unknown or large size takes a large-body permit for the whole request.
+    let _permit = match declared {
+        Some(n) if n <= limits.large_body_bytes => None,
+        _ => match large_body_permit(&state) {
+            Ok(p) => Some(p),
+            Err(busy) => return Ok(busy),
+        },
+    };
+    let into = upload::UploadLimits {
+        spool: state.config.data_dir.join("spool"),
+        max_bytes: max,
+        idle: limits.upload_idle_timeout,
+    };
     let ct = content_type(req.headers());
-    let (files, main, format) = if ct == "multipart/form-data" {
+    let spooled = if ct == "multipart/form-data" {
         let mp = Multipart::from_request(req, &state)
             .await
             .map_err(|e| Problem::bad_request(format!("malformed multipart body: {}", e.body_text())))?;
-        let (files, main) = read_gltf_parts(mp, max).await?;
-        (files, main, "gltf")
+        upload::receive_gltf(mp, &into).await?
     } else if ct.is_empty() || ct == "model/gltf-binary" || ct == "application/octet-stream" {
-        let body = read_glb_body(req.into_body(), max, declared).await?;
-        if body.is_empty() {
-            return Err(Problem::bad_request(
-                "empty body: send a .glb (model/gltf-binary) or multipart/form-data with a .gltf and its files",
-            ));
-        }
-        (vec![("scene.glb".to_string(), body)], "scene.glb".to_string(), "glb")
+        upload::receive_glb(req.into_body(), &into).await?
     } else {
         return Err(Problem::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -289,20 +300,10 @@ async fn upload_scene(
             ),
         ));
     };
+    let format = spooled.format;
 
-    // The id follows the content: every file's name and bytes, in name order.
-    let mut sorted: Vec<&(String, Bytes)> = files.iter().collect();
-    sorted.sort_by(|a, b| a.0.cmp(&b.0));
-    let mut h = Sha256::new();
-    for (name, bytes) in &sorted {
-        if format == "gltf" {
-            h.update((name.len() as u64).to_le_bytes());
-            h.update(name.as_bytes());
-            h.update((bytes.len() as u64).to_le_bytes());
-        }
-        h.update(bytes);
-    }
-    let digest: String = h.finalize().iter().map(|b| format!("{b:02x}")).collect();
+    // The id follows the content (`upload::Spooled::content_digest`).
+    let digest = spooled.content_digest().await?;
     // With tokens, each token has its own scenes: the id also hashes the owner, so the
     // same bytes from two tokens are two scenes and neither learns of the other's.
     let id = match &caller.token {
@@ -320,16 +321,23 @@ async fn upload_scene(
         return Ok((StatusCode::OK, axum::Json(scene_view(&existing))).into_response());
     }
 
-    let scene_files = if format == "glb" {
-        SceneFiles::Glb(files[0].1.clone())
+    // Import is CPU work and holds the scene in memory: off the runtime's threads, and
+    // at most `--max-concurrent-imports` at once (the others wait their turn).
+    let _importing = state.imports.clone().acquire_owned().await.map_err(Problem::internal)?;
+    let glb = if format == "glb" {
+        Some(upload::read_file(&spooled.path(&spooled.main)).await?)
     } else {
-        SceneFiles::Gltf(main.clone(), files.clone())
+        None
     };
-    // Import is CPU work: off the runtime's threads.
+    let (dir, main) = (spooled.dir().to_path_buf(), spooled.main.clone());
     let limits = state.config.limits.clone();
-    let imported = tokio::task::spawn_blocking(move || import_files(&scene_files, &limits).map(|(_, r)| r))
-        .await
-        .map_err(Problem::internal)?;
+    let imported = tokio::task::spawn_blocking(move || match glb {
+        Some(bytes) => import_files(&SceneFiles::Glb(bytes), &limits).map(|(_, r)| r),
+        None => import_dir(&dir, &main, &limits).map(|(_, r)| r),
+    })
+    .await
+    .map_err(Problem::internal)?;
+    drop(_importing);
     let report = imported.map_err(|e| match e {
         ImportFailure::Limit { what, detail } => {
             let (field, flag) = match what {
@@ -341,25 +349,25 @@ async fn upload_scene(
         ImportFailure::Invalid(msg) => Problem::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid-scene", msg),
     })?;
 
-    for (name, bytes) in &files {
+    for (name, _) in &spooled.files {
         state
             .artifacts
-            .put(&store::scene_file(&id, name), bytes.clone())
+            .put_file(&store::scene_file(&id, name), &spooled.path(name))
             .await?;
     }
     let rec = SceneRecord {
         id: id.clone(),
         content_hash: format!("sha256:{digest}"),
         format: format.to_string(),
-        main_file: main,
-        files: files.iter().map(|(n, _)| n.clone()).collect(),
-        size_bytes: files.iter().map(|(_, b)| b.len() as u64).sum(),
+        main_file: spooled.main.clone(),
+        files: spooled.files.iter().map(|(n, _)| n.clone()).collect(),
+        size_bytes: spooled.total_bytes(),
         report: serde_json::to_value(&report).map_err(Problem::internal)?,
         created_at: now_ms(),
         client: caller.token.clone(),
     };
     let created = state.queue.insert_scene(&rec).await?;
-    tracing::info!(scene = %id, format, triangles = report.triangles, "scene stored");
+    tracing::info!(scene = %id, format, bytes = rec.size_bytes, triangles = report.triangles, "scene stored");
     let status = if created { StatusCode::CREATED } else { StatusCode::OK };
     let mut resp = (status, axum::Json(scene_view(&rec))).into_response();
     if let Ok(loc) = HeaderValue::from_str(&format!("/v1/scenes/{id}")) {
@@ -368,119 +376,19 @@ async fn upload_scene(
     Ok(resp)
 }
 
-/// Reads a .glb body into one buffer, sized from `Content-Length` when the client sent
-/// one: each chunk is copied in and dropped as it arrives, so the peak is the scene plus
-/// one chunk (issue 11: uploads never buffer a whole scene twice). Measured on the
-/// development machine with a 200 MiB body, the server's peak RSS grew by 207 MiB, with
-/// or without `Content-Length`; `axum::body::to_bytes`, used before, measured the same
-/// (its copy into one buffer frees each chunk as it goes), so this form changes no
-/// number: it states the bound here instead of relying on a library's internals, and
-/// tells a body cut short (400) from one over the limit (413), which `to_bytes` did not.
-async fn read_glb_body(body: Body, max: usize, declared: Option<u64>) -> Result<Bytes, Problem> {
-    use futures_util::StreamExt;
-    let mut stream = body.into_data_stream();
-    // A lying Content-Length costs at most `max` of reserved memory, which the limit allows.
-    let mut buf = bytes::BytesMut::with_capacity(declared.map_or(0, |n| n.min(max as u64) as usize));
-    while let Some(chunk) = stream.next().await {
-        let chunk = chunk.map_err(|e| Problem::bad_request(format!("the upload was cut short: {e}")))?;
-        if buf.len() + chunk.len() > max {
-            return Err(too_large(max));
-        }
-        buf.extend_from_slice(&chunk);
-    }
-    Ok(buf.freeze())
-}
-
-/// Reads a multipart .gltf upload: the parts, and the name of the one .gltf among them.
-async fn read_gltf_parts(mut mp: Multipart, max: usize) -> Result<(Vec<(String, Bytes)>, String), Problem> {
-    let mut files: Vec<(String, Bytes)> = Vec::new();
-    let mut total = 0usize;
-    loop {
-        let field = match mp.next_field().await {
-            Ok(Some(f)) => f,
-            Ok(None) => break,
-            Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => return Err(too_large(max)),
-            Err(e) => {
-                return Err(Problem::bad_request(format!(
-                    "malformed multipart body: {}",
-                    e.body_text()
-                )));
-            }
-        };
-        let name = field
-            .file_name()
-            .or(field.name())
-            .map(str::to_string)
-            .unwrap_or_default();
-        // The name becomes a file in a temporary folder at import: a plain name only.
-        if name.is_empty()
-            || name.len() > 255
-            || name.contains(['/', '\\', ':'])
-            || name.starts_with('.')
-            || name.chars().any(char::is_control)
-        {
-            return Err(Problem::invalid_field(
-                "files",
-                format!("part name {name:?}: give each part the plain file name the .gltf uses"),
-            ));
-        }
-        let bytes = field.bytes().await.map_err(|e| {
-            if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-                too_large(max)
-            } else {
-                Problem::bad_request(format!("malformed multipart body: {}", e.body_text()))
-            }
-        })?;
-        total += bytes.len();
-        if total > max {
-            return Err(too_large(max));
-        }
-        if files.iter().any(|(n, _)| *n == name) {
-            return Err(Problem::invalid_field("files", format!("file {name:?} is given twice")));
-        }
-        files.push((name, bytes));
-    }
-    let mains: Vec<&String> = files
-        .iter()
-        .map(|(n, _)| n)
-        .filter(|n| n.to_ascii_lowercase().ends_with(".gltf"))
-        .collect();
-    let main = match mains.as_slice() {
-        [one] => (*one).clone(),
-        [] => {
-            return Err(Problem::invalid_field(
-                "files",
-                "no .gltf part: a multipart upload is one .gltf and the files it refers to",
-            ));
-        }
-        _ => return Err(Problem::invalid_field("files", "more than one .gltf part")),
-    };
-    // Every URI must be a data URI or an uploaded part: never a path on this server.
-    let json: serde_json::Value = files
-        .iter()
-        .find(|(n, _)| *n == main)
-        .and_then(|(_, b)| serde_json::from_slice(b).ok())
-        .ok_or_else(|| {
-            Problem::new(
-                StatusCode::UNPROCESSABLE_ENTITY,
-                "invalid-scene",
-                format!("{main} is not JSON"),
-            )
-        })?;
-    for kind in ["buffers", "images"] {
-        for (i, item) in json[kind].as_array().into_iter().flatten().enumerate() {
-            if let Some(uri) = item["uri"].as_str()
-                && !uri.starts_with("data:")
-                && !files.iter().any(|(n, _)| *n == uri_file_name(uri))
-            {
-                return Err(Problem::invalid_field(
-                    format!("{kind}[{i}].uri"),
-                    format!("{main} refers to {uri:?}, which is not among the uploaded parts"),
-                ));
-            }
-        }
-    }
-    Ok((files, main))
+/// A permit for one large body, or 503 with `Retry-After` when `--max-large-bodies` are
+/// in flight.
+fn large_body_permit(state: &AppState) -> Result<tokio::sync::OwnedSemaphorePermit, Response> {
+    state.large_bodies.clone().try_acquire_owned().map_err(|_| {
+        retry_later(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "too-many-bodies",
+            format!(
+                "{} large uploads or downloads are in flight, this server's limit (--max-large-bodies); try again later",
+                state.config.limits.max_large_bodies
+            ),
+        )
+    })
 }
 
 fn scene_view(s: &SceneRecord) -> SceneView {
@@ -862,10 +770,34 @@ async fn download(
         .get_stream(key)
         .await?
         .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?;
-    let mut resp = binary_body(Body::from_stream(stream), content_type, filename);
+    Ok(streamed(state, size, stream, content_type, filename))
+}
+
+/// A streamed body of `size` bytes; a large one holds a large-body permit until it has
+/// been sent (or the client went away), and gets 503 with `Retry-After` when none is free.
+fn streamed(
+    state: &AppState,
+    size: u64,
+    stream: futures_util::stream::BoxStream<'static, object_store::Result<Bytes>>,
+    content_type: &'static str,
+    filename: Option<String>,
+) -> Response {
+    let permit = if size > state.config.limits.large_body_bytes {
+        match large_body_permit(state) {
+            Ok(p) => Some(p),
+            Err(busy) => return busy,
+        }
+    } else {
+        None
+    };
+    let body = Body::from_stream(upload::Permitted {
+        inner: stream,
+        _permit: permit,
+    });
+    let mut resp = binary_body(body, content_type, filename);
     resp.headers_mut()
         .insert(header::CONTENT_LENGTH, HeaderValue::from(size));
-    Ok(resp)
+    resp
 }
 
 fn binary(bytes: Bytes, content_type: &'static str, filename: Option<String>) -> Response {
@@ -1062,16 +994,13 @@ async fn get_generated_scene(
         )));
     }
     match state.artifacts.get_stream(&store::generated_scene(&id)).await? {
-        Some((size, stream)) => {
-            let mut resp = binary_body(
-                Body::from_stream(stream),
-                "model/gltf-binary",
-                Some(format!("{id}.glb")),
-            );
-            resp.headers_mut()
-                .insert(header::CONTENT_LENGTH, HeaderValue::from(size));
-            Ok(resp)
-        }
+        Some((size, stream)) => Ok(streamed(
+            &state,
+            size,
+            stream,
+            "model/gltf-binary",
+            Some(format!("{id}.glb")),
+        )),
         None => Err(Problem::new(
             StatusCode::NOT_FOUND,
             "not-found",
@@ -1182,6 +1111,17 @@ async fn get_scene_glb(
     Path(id): Path<String>,
 ) -> Result<Response, Problem> {
     let rec = find_scene(&state, &caller, &id).await?;
+    // The scene is read, imported and exported in memory: a large one takes a large-body
+    // permit and waits for an import slot, like an upload.
+    let _permit = if rec.size_bytes > state.config.limits.large_body_bytes {
+        match large_body_permit(&state) {
+            Ok(p) => Some(p),
+            Err(busy) => return Ok(busy),
+        }
+    } else {
+        None
+    };
+    let _importing = state.imports.clone().acquire_owned().await.map_err(Problem::internal)?;
     let mut files = Vec::new();
     for name in &rec.files {
         let key = store::scene_file(&id, name);
@@ -1293,4 +1233,43 @@ async fn get_lightmap_rgba16f(
     headers.insert("x-lightmap-width", HeaderValue::from(w));
     headers.insert("x-lightmap-height", HeaderValue::from(h));
     Ok(resp)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use futures_util::StreamExt;
+
+    /// A large streamed download holds its permit until its body is dropped (sent, or
+    /// the client gone), and one past `--max-large-bodies` is 503 with `Retry-After`;
+    /// a small one takes no permit.
+    #[tokio::test]
+    async fn a_large_download_holds_its_permit_until_its_body_ends() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut config = crate::service::Config {
+            data_dir: dir.path().to_path_buf(),
+            workers: 0,
+            ..Default::default()
+        };
+        config.limits.max_large_bodies = 1;
+        config.limits.large_body_bytes = 100;
+        let state = AppState::for_tests(&config).await;
+        let never = || futures_util::stream::pending::<object_store::Result<Bytes>>().boxed();
+        let first = streamed(&state, 101, never(), "application/octet-stream", None);
+        assert_eq!(first.status(), StatusCode::OK);
+        assert_eq!(state.large_bodies.available_permits(), 0);
+        let small = streamed(&state, 100, never(), "application/octet-stream", None);
+        assert_eq!(small.status(), StatusCode::OK, "a small body takes no permit");
+        let second = streamed(&state, 101, never(), "application/octet-stream", None);
+        assert_eq!(second.status(), StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(second.headers()[header::RETRY_AFTER], "10");
+        drop(first);
+        assert_eq!(
+            state.large_bodies.available_permits(),
+            1,
+            "the permit goes with the body"
+        );
+        let third = streamed(&state, 101, never(), "application/octet-stream", None);
+        assert_eq!(third.status(), StatusCode::OK);
+    }
 }

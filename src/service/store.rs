@@ -36,13 +36,14 @@
 //! incomplete multipart uploads removes: docs/deploy.md says so).
 //!
 //! What is buffered, and why: [`Artifacts::put`] takes the object as one `Bytes`, because
-//! every caller already holds it whole: a scene upload must be imported (validated) before
-//! it is kept, and the importer parses from memory; an EXR is encoded in memory by the
+//! its callers already hold it whole: an EXR or a preview is encoded in memory by the
 //! engine. Nothing is copied on the way out: on S3, an object larger than
 //! [`MULTIPART_THRESHOLD`] goes up as a multipart upload of [`PART_SIZE`] parts that are
-//! slices of the caller's buffer (at most [`PART_CONCURRENCY`] in flight), so a 256 MiB
-//! scene is neither copied into request bodies nor sent as one request that a network
+//! slices of the caller's buffer (at most [`PART_CONCURRENCY`] in flight), so a large
+//! object is neither copied into request bodies nor sent as one request that a network
 //! hiccup restarts from byte 0. The local store writes the buffer to its temporary file.
+//! A scene upload is not held whole: the API spools it to disk (`service::upload`) and
+//! [`Artifacts::put_file`] sends the file in parts read one at a time.
 //!
 //! Snapshot retention (issue 24): a running bake stores a snapshot every
 //! `--snapshot-interval-s`, so a long bake would store hundreds. [`snapshot_kept`] says
@@ -53,8 +54,8 @@
 //! (and each divides the next), a snapshot removed once is never wanted again. The
 //! worker deletes what stopped being kept right after it stores a new one.
 //!
-//! Limits: objects are held whole in memory while they are written (scenes up to
-//! `--max-scene-bytes`, lightmaps are megabytes) and when a worker reads a scene; API
+//! Limits: EXRs are held whole in memory while they are written, and a worker reads its
+//! scene whole (the importer parses from memory); API
 //! downloads are streamed ([`Artifacts::get_stream`]). Only S3 and local directories are wired up (object_store's GCS and Azure
 //! back-ends are not compiled in). Listing a prefix to delete a scene is eventually
 //! consistent on some S3-compatible servers (AWS itself is strongly consistent).
@@ -289,6 +290,43 @@ impl Artifacts {
             w.put(part);
         }
         // `finish` aborts the upload itself when a part or the completion fails.
+        w.finish().await.map(|_| ())
+    }
+
+    /// Stores the file at `path` under `key` without reading it whole (a spooled upload,
+    /// `service::upload`): a file of at most one part is read and put; a larger one goes
+    /// up as a multipart upload read from the file one part at a time, on either back-end
+    /// (the local store's multipart upload is its staged write-sync-rename too), so the
+    /// memory held is at most [`PART_CONCURRENCY`] parts.
+    pub async fn put_file(&self, key: &Path, path: &FsPath) -> Result<(), object_store::Error> {
+        use tokio::io::AsyncReadExt;
+        let io = |e: std::io::Error| object_store::Error::Generic {
+            store: "spool",
+            source: Box::new(e),
+        };
+        let size = tokio::fs::metadata(path).await.map_err(io)?.len();
+        if size <= PART_SIZE as u64 {
+            let bytes = tokio::fs::read(path).await.map_err(io)?;
+            return self.store.put(key, PutPayload::from(bytes)).await.map(|_| ());
+        }
+        let mut file = tokio::fs::File::open(path).await.map_err(io)?;
+        let upload = self.store.put_multipart(key).await?;
+        let mut w = WriteMultipart::new_with_chunk_size(upload, PART_SIZE);
+        let mut left = size;
+        while left > 0 {
+            if let Err(e) = w.wait_for_capacity(PART_CONCURRENCY - 1).await {
+                let _ = w.abort().await;
+                return Err(e);
+            }
+            let n = (PART_SIZE as u64).min(left) as usize;
+            let mut part = vec![0u8; n];
+            if let Err(e) = file.read_exact(&mut part).await {
+                let _ = w.abort().await;
+                return Err(io(e));
+            }
+            left -= n as u64;
+            w.put(Bytes::from(part));
+        }
         w.finish().await.map(|_| ())
     }
 

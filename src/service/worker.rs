@@ -194,15 +194,34 @@ async fn run_job(state: &AppState, worker: &str, job: JobRecord, engine: &Arc<En
                 Outcome::Cancelled => JobStatus::Cancelled,
             };
             // Still renewing while the end is written (a slow database must not let the
-            // lease lapse between the stored artifacts and the recorded end).
-            let r = while_holding(
-                state,
-                &id,
-                worker,
-                &flag,
-                state.queue.finish(&id, worker, &outcome, now),
-            )
-            .await;
+            // lease lapse between the stored artifacts and the recorded end), and written
+            // again after a database error (a restart, a dropped connection) for as long
+            // as the lease is ours and the database has not been gone for
+            // `--database-timeout-s`: a finished bake is not thrown away for a hiccup.
+            // `finish` is guarded by the lease, so a retry can never record it twice.
+            let first_try = Instant::now();
+            let mut wait = Duration::from_millis(100);
+            let r = loop {
+                let r = while_holding(
+                    state,
+                    &id,
+                    worker,
+                    &flag,
+                    state.queue.finish(&id, worker, &outcome, state.db_now()),
+                )
+                .await;
+                match r {
+                    Err(e)
+                        if flag.get() != StopSignal::LeaseLost
+                            && first_try.elapsed() + wait < state.config.database_timeout =>
+                    {
+                        tracing::warn!(error = %e, retry_in_ms = wait.as_millis() as u64, "cannot record the end of the job; trying again");
+                        tokio::time::sleep(wait).await;
+                        wait = (wait * 2).min(Duration::from_secs(2));
+                    }
+                    r => break r,
+                }
+            };
             if matches!(r, Ok(true)) {
                 state.metrics.job_finished(status);
                 tracing::info!(status = status.as_str(), "job finished");
@@ -272,13 +291,16 @@ async fn supervise(
             Some(files) = snap_rx.recv() => {
                 if flag.get() != StopSignal::LeaseLost {
                     let (step, error) = (files.steps, files.error);
-                    match store_snapshot(state, &job.id, snapshots + 1, files).await {
+                    // The lease is renewed while the store is slow or unreachable (its
+                    // client retries for minutes): this loop's own ticker waits meanwhile.
+                    let stored = while_holding(state, &job.id, worker, &flag, store_snapshot(state, &job.id, snapshots + 1, files)).await;
+                    match stored {
                         Ok(()) => {
                             snapshots += 1;
                             let update = JobUpdate { snapshots: Some(snapshots), ..collect(&shared, &mut written_progress, &mut written_plan, true) };
                             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
                             tracing::info!(snapshot = snapshots, step, error, "snapshot stored");
-                            thin_snapshots(state, &job.id, snapshots).await;
+                            while_holding(state, &job.id, worker, &flag, thin_snapshots(state, &job.id, snapshots)).await;
                         }
                         Err(e) => tracing::error!(error = %e, "cannot store a snapshot"),
                     }
@@ -302,14 +324,23 @@ async fn supervise(
         if flag.get() == StopSignal::LeaseLost {
             break;
         }
-        if store_snapshot(state, &job.id, snapshots + 1, files).await.is_ok() {
+        if while_holding(
+            state,
+            &job.id,
+            worker,
+            &flag,
+            store_snapshot(state, &job.id, snapshots + 1, files),
+        )
+        .await
+        .is_ok()
+        {
             snapshots += 1;
             let update = JobUpdate {
                 snapshots: Some(snapshots),
                 ..collect(&shared, &mut written_progress, &mut written_plan, true)
             };
             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
-            thin_snapshots(state, &job.id, snapshots).await;
+            while_holding(state, &job.id, worker, &flag, thin_snapshots(state, &job.id, snapshots)).await;
         }
     }
     let result = match result {
@@ -570,23 +601,17 @@ pub fn import_files(
     files: &SceneFiles,
     limits: &crate::service::Limits,
 ) -> Result<(Scene, scene::ImportReport), ImportFailure> {
-    let caps = scene::ImportLimits {
-        max_triangles: limits.max_triangles,
-        max_texture_side: limits.max_texture_side,
-    };
-    let failure = |e: scene::ImportError, tmp: Option<&std::path::Path>| match e {
-        scene::ImportError::Limit { what, detail } => ImportFailure::Limit { what, detail },
-        other => {
-            let msg = other.to_string();
-            // The temporary path means nothing to the user; the file name does.
-            ImportFailure::Invalid(match tmp {
-                Some(dir) => msg.replace(&format!("{}/", dir.display()), ""),
-                None => msg,
+    match files {
+        SceneFiles::Glb(b) => {
+            let caps = scene::ImportLimits {
+                max_triangles: limits.max_triangles,
+                max_texture_side: limits.max_texture_side,
+            };
+            scene::import_slice_limited(b, None, &caps).map_err(|e| match e {
+                scene::ImportError::Limit { what, detail } => ImportFailure::Limit { what, detail },
+                other => ImportFailure::Invalid(other.to_string()),
             })
         }
-    };
-    match files {
-        SceneFiles::Glb(b) => scene::import_slice_limited(b, None, &caps).map_err(|e| failure(e, None)),
         SceneFiles::Gltf(main, parts) => {
             let dir = tempfile::tempdir()
                 .map_err(|e| ImportFailure::Invalid(format!("cannot make a temporary folder: {e}")))?;
@@ -594,11 +619,28 @@ pub fn import_files(
                 std::fs::write(dir.path().join(name), bytes)
                     .map_err(|e| ImportFailure::Invalid(format!("cannot write {name}: {e}")))?;
             }
-            let bytes = std::fs::read(dir.path().join(main))
-                .map_err(|e| ImportFailure::Invalid(format!("cannot read {main}: {e}")))?;
-            scene::import_slice_limited(&bytes, Some(dir.path()), &caps).map_err(|e| failure(e, Some(dir.path())))
+            import_dir(dir.path(), main, limits)
         }
     }
+}
+
+/// Imports a `.gltf` whose files are in `dir` (a spooled upload, `service::upload`),
+/// under the server's limits; messages name files, not the folder.
+pub fn import_dir(
+    dir: &std::path::Path,
+    main: &str,
+    limits: &crate::service::Limits,
+) -> Result<(Scene, scene::ImportReport), ImportFailure> {
+    let caps = scene::ImportLimits {
+        max_triangles: limits.max_triangles,
+        max_texture_side: limits.max_texture_side,
+    };
+    let bytes =
+        std::fs::read(dir.join(main)).map_err(|e| ImportFailure::Invalid(format!("cannot read {main}: {e}")))?;
+    scene::import_slice_limited(&bytes, Some(dir), &caps).map_err(|e| match e {
+        scene::ImportError::Limit { what, detail } => ImportFailure::Limit { what, detail },
+        other => ImportFailure::Invalid(other.to_string().replace(&format!("{}/", dir.display()), "")),
+    })
 }
 
 /// A job's estimated peak memory (`engine::footprint`) from its scene's import report.

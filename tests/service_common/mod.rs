@@ -2,6 +2,8 @@
 //! a `lightmapd serve` / `lightmapd worker` child, and check problem+json answers.
 #![allow(dead_code)]
 
+pub mod pg;
+
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -107,6 +109,13 @@ pub async fn expect_problem(req: reqwest::RequestBuilder, status: u16, body: Val
     let got: Value = serde_json::from_str(&text).unwrap();
     assert_eq!(got, body);
     headers
+}
+
+/// Submits a job (202 expected); its id.
+pub async fn submit(http: &reqwest::Client, url: &str, body: Value) -> String {
+    let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+    assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+    r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
 }
 
 pub fn problem(status: u16, title: &str, kind: &str, detail: &str, field: Option<&str>) -> Value {
@@ -251,4 +260,85 @@ impl S3 {
     pub fn fresh_url(&self, test: &str) -> String {
         format!("s3://{}/{test}-{}", self.bucket, uuid::Uuid::new_v4().simple())
     }
+}
+
+/// A TCP proxy on loopback in front of a real service (PostgreSQL, the S3 server), so a
+/// fault test can break the network between lightmapd and it: [`FaultProxy::cut`] closes
+/// every open connection at once (a dropped link, or what a restarting server does to
+/// its clients), and [`FaultProxy::set_down`] makes the service unreachable (open
+/// connections cut, new ones closed as soon as they are accepted) until it is set up
+/// again. Runs on the calling test's tokio runtime.
+pub struct FaultProxy {
+    pub port: u16,
+    down: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    cut: tokio::sync::watch::Sender<u64>,
+    /// Connections accepted, and those refused while down.
+    pub accepted: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    pub refused: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+impl FaultProxy {
+    pub async fn start(target: String) -> FaultProxy {
+        use std::sync::Arc;
+        use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let down = Arc::new(AtomicBool::new(false));
+        let (cut, cuts) = tokio::sync::watch::channel(0u64);
+        let accepted = Arc::new(AtomicU64::new(0));
+        let refused = Arc::new(AtomicU64::new(0));
+        let (d, a, r) = (down.clone(), accepted.clone(), refused.clone());
+        tokio::spawn(async move {
+            loop {
+                let Ok((mut client, _)) = listener.accept().await else {
+                    return;
+                };
+                if d.load(Ordering::SeqCst) {
+                    r.fetch_add(1, Ordering::Relaxed);
+                    drop(client);
+                    continue;
+                }
+                a.fetch_add(1, Ordering::Relaxed);
+                let mut cuts = cuts.clone();
+                cuts.borrow_and_update();
+                let target = target.clone();
+                tokio::spawn(async move {
+                    let Ok(mut server) = tokio::net::TcpStream::connect(&target).await else {
+                        return;
+                    };
+                    tokio::select! {
+                        _ = tokio::io::copy_bidirectional(&mut client, &mut server) => {}
+                        _ = cuts.changed() => {}
+                    }
+                });
+            }
+        });
+        FaultProxy {
+            port,
+            down,
+            cut,
+            accepted,
+            refused,
+        }
+    }
+
+    /// Closes every connection open now.
+    pub fn cut(&self) {
+        self.cut.send_modify(|n| *n += 1);
+    }
+
+    /// Down: every open connection is cut and new ones are closed at once; up: normal.
+    pub fn set_down(&self, down: bool) {
+        self.down.store(down, std::sync::atomic::Ordering::SeqCst);
+        if down {
+            self.cut();
+        }
+    }
+}
+
+/// `HOST:PORT` of a URL (`postgres://u:p@127.0.0.1:5432/db?…`, `http://127.0.0.1:9000`).
+pub fn host_port(url: &str) -> String {
+    let rest = url.split_once("://").map_or(url, |(_, r)| r);
+    let rest = rest.rsplit_once('@').map_or(rest, |(_, r)| r);
+    rest.split(['/', '?']).next().unwrap().to_string()
 }
