@@ -68,6 +68,36 @@ async fn techniques_are_the_engines() {
         path["lights"],
         json!(["sky", "sun", "directional_lights", "point_spot_lights", "emitters"])
     );
+    // Every technique's parameters are its struct's defaults, read from the table.
+    let hemicube = t["techniques"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|x| x["id"] == "hemicube")
+        .unwrap();
+    assert_eq!(
+        hemicube["params"],
+        serde_json::to_value(lightmapd::engine::technique::hemicube::HemicubeParams::default()).unwrap()
+    );
+    // The denoiser choices, each with whether this server has it: `oidn` exactly when
+    // its library loads here, and `auto` names what it would run.
+    use lightmapd::engine::post::denoised::Denoiser;
+    let denoisers: Vec<(&str, bool)> = t["denoisers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| (d["id"].as_str().unwrap(), d["available"].as_bool().unwrap()))
+        .collect();
+    let oidn = Denoiser::Oidn.resolve().is_ok();
+    assert_eq!(
+        denoisers,
+        [("auto", true), ("oidn", oidn), ("own", true), ("none", true)]
+    );
+    let auto = t["denoisers"][0]["detail"].as_str().unwrap();
+    assert!(
+        auto.starts_with(if oidn { "oidn" } else { "own" }),
+        "auto runs {auto:?} (OIDN here: {oidn})"
+    );
     assert_eq!(t["defaults"]["resolution"], 256);
     assert_eq!(t["limits"]["max_job_steps"], 1_048_576);
     // The path tracer handles every light kind: nothing about lights is left out for it.
@@ -572,7 +602,7 @@ fn the_console_bakes_in_a_real_browser() {
         b.key("Tab", "Tab", 9);
         reached.push(b.eval("document.activeElement.id || document.activeElement.tagName"));
     }
-    for id in ["drop", "f-technique", "f-resolution", "f-steps", "submit"] {
+    for id in ["drop", "f-technique", "f-resolution", "f-steps", "f-denoise", "submit"] {
         assert!(reached.contains(&json!(id)), "Tab never reaches #{id}: {reached:?}");
     }
 
@@ -614,8 +644,11 @@ fn the_console_bakes_in_a_real_browser() {
     assert_eq!(b.eval("document.querySelectorAll('#bake-form .invalid').length"), 1);
     std::fs::write(shots.join("2-field-error.png"), b.screenshot(None)).unwrap();
 
-    // 3. A short bake, followed live.
+    // 3. A short bake, followed live, with the denoiser chosen in the form.
     b.fill("#f-steps", "48");
+    b.eval("(() => { const d = document.getElementById('f-denoise'); d.value = 'own'; d.dispatchEvent(new Event('change')); })()");
+    let note = b.eval("document.getElementById('denoise-note').textContent");
+    assert!(note.as_str().unwrap().starts_with("the own edge-aware"), "{note}");
     b.click("#submit");
     b.wait(
         "the job page",
@@ -632,6 +665,11 @@ fn the_console_bakes_in_a_real_browser() {
         "succeeded",
         "{:?}",
         b.eval("JSON.stringify(window.lightmapdConsole.job)")
+    );
+    let denoiser = b.eval("window.lightmapdConsole.job.summary?.denoiser");
+    assert!(
+        denoiser.as_str().unwrap_or("").starts_with("own"),
+        "the form's denoiser did not reach the job: {denoiser}"
     );
     b.wait(
         "the final lightmap in the viewer",

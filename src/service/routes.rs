@@ -47,7 +47,7 @@ use sha2::{Digest, Sha256};
 use utoipa::OpenApi;
 
 use crate::service::auth::{self, Caller};
-use crate::service::console::{TechniqueInfo, TechniqueList};
+use crate::service::console::{DenoiserInfo, TechniqueInfo, TechniqueList};
 use crate::service::model::{Health, JobCreated, JobList, JobSpec, JobStatus, JobView, Progress, SceneView, rfc3339};
 use crate::service::problem::{PROBLEM_JSON, Problem};
 use crate::service::queue::{Cancellation, Enqueued, JobDeletion, JobRecord, SceneDeletion, SceneRecord, now_ms};
@@ -98,7 +98,8 @@ pub const RETRY_AFTER_S: u64 = 10;
         Health,
         SceneList,
         TechniqueList,
-        TechniqueInfo
+        TechniqueInfo,
+        DenoiserInfo
     ))
 )]
 pub struct ApiDoc;

@@ -69,6 +69,28 @@ pub enum Denoiser {
 
 impl Denoiser {
     pub const NAMES: &'static str = "auto, oidn, own, none";
+    /// Every choice, in the order `NAMES` lists them.
+    pub const ALL: [Denoiser; 4] = [Denoiser::Auto, Denoiser::Oidn, Denoiser::Own, Denoiser::None];
+
+    /// The name a request gives (`--denoiser`, the job field `denoise`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Denoiser::Auto => "auto",
+            Denoiser::Oidn => "oidn",
+            Denoiser::Own => "own",
+            Denoiser::None => "none",
+        }
+    }
+
+    /// One line on what the choice does.
+    pub fn summary(self) -> &'static str {
+        match self {
+            Denoiser::Auto => "Intel Open Image Denoise when its library is installed, else the own filter",
+            Denoiser::Oidn => "Intel Open Image Denoise (RTLightmap, HDR), blended by the bake's error estimate",
+            Denoiser::Own => "the own edge-aware a-trous filter, guided by chart, blended by the error estimate",
+            Denoiser::None => "the raw estimate",
+        }
+    }
 
     pub fn parse(s: &str) -> Result<Denoiser, String> {
         match s {

@@ -124,6 +124,9 @@ pub struct TechniqueEntry {
     pub unbiased: bool,
     /// How its bakes split into tasks.
     pub tasks: TaskSplit,
+    /// Its parameter object with every default filled in (what `params: {}` means):
+    /// the names, types and defaults the service's bake form is built from.
+    pub default_params: fn() -> Value,
 }
 
 impl TechniqueEntry {

@@ -170,6 +170,11 @@ async function loadTechniques() {
   $('f-seconds').title = `at most ${t.limits.max_job_seconds} s on this server`;
   $('f-outputs').innerHTML = t.outputs.map((o, i) =>
     `<label class="check field"><input type="checkbox" value="${esc(o)}"> ${esc(o)}</label>`).join('');
+  // A choice this server cannot run stays listed, disabled, with the reason as its title.
+  $('f-denoise').innerHTML = t.denoisers.map(d =>
+    `<option value="${esc(d.id)}"${d.available ? '' : ' disabled'} title="${esc(d.detail)}">${esc(d.id)}${d.available ? '' : ' (not on this server)'}</option>`).join('');
+  $('f-denoise').value = 'auto';
+  denoiserChanged();
   techniqueChanged();
 }
 
@@ -198,6 +203,12 @@ function techniqueChanged() {
   }
 }
 $('f-technique').addEventListener('change', techniqueChanged);
+
+function denoiserChanged() {
+  const d = state.techniques.denoisers.find(x => x.id === $('f-denoise').value);
+  $('denoise-note').textContent = d ? d.summary + (d.id === 'auto' ? ' (here: ' + d.detail + ')' : '') + '.' : '';
+}
+$('f-denoise').addEventListener('change', denoiserChanged);
 for (const [on, ids] of [['f-sky-on', ['f-sky', 'f-sky-hemi']], ['f-sun-on', ['f-sun', 'f-sun-dir']]])
   $(on).addEventListener('change', () => { for (const i of ids) $(i).disabled = !$(on).checked; drawDial(); });
 
@@ -263,6 +274,7 @@ function buildBody() {
   for (const l of $('f-outputs').querySelectorAll('label')) delete l.dataset.field;
   checked.forEach((i, k) => { i.closest('label').dataset.field = `outputs[${k}]`; });
   body.outputs = checked.map(i => i.value);
+  body.denoise = $('f-denoise').value;
   const params = {};
   for (const input of $('f-params').querySelectorAll('input')) {
     const now = input.type === 'checkbox' ? String(input.checked) : input.value;

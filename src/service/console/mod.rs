@@ -6,11 +6,11 @@
 //!   request (and no route besides `/` has to be reachable without a token under
 //!   `--auth`: the page itself holds no data), and there is no build step, npm or CDN.
 //! - [`techniques`]: the technique catalogue the bake form is built from (`GET
-//!   /v1/techniques`). It is read from the engine's [`TECHNIQUES`], each technique's
-//!   parameter struct (its `Default`, serialised: the names, types and defaults) and its
-//!   `plan()` for a scene that has every kind of light and material (what is left out
-//!   then is what the technique cannot do). The lead is turning the technique module
-//!   into one table (issue 17); this is the one function to point at it then.
+//!   /v1/techniques`). It is read from the engine's technique table (each row's
+//!   summary, lights, layers and `default_params`: the names, types and defaults) and
+//!   each technique's `plan()` for a scene that has every kind of light and material
+//!   (what is left out then is what the technique cannot do), and the denoiser choices
+//!   from the engine's `Denoiser::ALL`: no list is typed twice.
 //! - [`rgba16f`]: a lightmap EXR as half floats (`GET /v1/jobs/{id}/lightmap.rgba16f`),
 //!   which WebGL2 uploads as an `RGBA16F` texture as it is (filterable without any
 //!   extension), and the page tone-maps for the 2D view with a 64 Ki lookup table. Half
@@ -34,6 +34,7 @@ use utoipa::ToSchema;
 use crate::engine::job::BakeRequest;
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{PlanItem, SceneFeatures};
+use crate::engine::post::denoised::Denoiser;
 use crate::engine::technique::{self, TECHNIQUES};
 use crate::service::Limits;
 
@@ -79,33 +80,53 @@ pub struct TechniqueInfo {
     pub error_estimate: String,
 }
 
+/// One choice of the job field `denoise`.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct DenoiserInfo {
+    pub id: String,
+    pub summary: String,
+    /// Whether this server can run it.
+    pub available: bool,
+    /// What runs when it is chosen here (`auto`: OIDN or the own filter), or why it
+    /// cannot.
+    pub detail: String,
+}
+
+/// The denoiser choices, from the engine's own list.
+fn denoisers() -> Vec<DenoiserInfo> {
+    Denoiser::ALL
+        .iter()
+        .map(|d| {
+            let resolved = d.resolve();
+            DenoiserInfo {
+                id: d.name().to_string(),
+                summary: d.summary().to_string(),
+                available: resolved.is_ok(),
+                detail: match resolved {
+                    Ok(used) => used.to_string(),
+                    Err(e) => e,
+                },
+            }
+        })
+        .collect()
+}
+
 /// `GET /v1/techniques`.
 #[derive(Clone, Debug, Serialize, ToSchema)]
 pub struct TechniqueList {
     pub techniques: Vec<TechniqueInfo>,
     /// The extra EXR layers a job may ask for in `outputs`.
     pub outputs: Vec<String>,
+    /// The choices of the job field `denoise`, and whether this server's machine has
+    /// each (`oidn` needs Intel Open Image Denoise's library; a worker elsewhere may
+    /// differ, and refuses the job if it lacks it).
+    pub denoisers: Vec<DenoiserInfo>,
     /// The job body's defaults (`technique`, `resolution`, `stop`).
     #[schema(value_type = Object)]
     pub defaults: Value,
     /// This server's limits on a job.
     #[schema(value_type = Object)]
     pub limits: Value,
-}
-
-/// The parameters of technique `id` with their defaults.
-fn default_params(id: &str) -> Value {
-    use crate::engine::technique::{hemicube, obscurance, path, sdb, sdf, vpl};
-    let v = match id {
-        "path" => serde_json::to_value(path::PathParams::default()),
-        "sdb" => serde_json::to_value(sdb::SdbParams::default()),
-        "vpl" => serde_json::to_value(vpl::VplParams::default()),
-        "obscurance" => serde_json::to_value(obscurance::ObscuranceParams::default()),
-        "sdf" => serde_json::to_value(sdf::SdfParams::default()),
-        "hemicube" => serde_json::to_value(hemicube::HemicubeParams::default()),
-        _ => Ok(json!({})),
-    };
-    v.unwrap_or_else(|_| json!({}))
 }
 
 /// A scene and job with every feature a plan looks at, so that what a technique leaves
@@ -149,7 +170,7 @@ pub fn techniques(limits: &Limits) -> TechniqueList {
                 summary: row.map_or("", |r| r.summary).to_string(),
                 outputs,
                 lights: row.map_or(&[][..], |r| r.lights).to_vec(),
-                params: default_params(id),
+                params: row.map_or_else(|| json!({}), |r| (r.default_params)()),
                 passes: plan.passes,
                 left_out: plan.left_out,
                 error_estimate: plan.error_estimate,
@@ -160,6 +181,7 @@ pub fn techniques(limits: &Limits) -> TechniqueList {
     TechniqueList {
         techniques,
         outputs: output_layers(),
+        denoisers: denoisers(),
         defaults: json!({
             "technique": d.technique,
             "resolution": d.resolution,

@@ -932,6 +932,7 @@ pub mod shaders {
 
 /// `hemicube` in the technique table (`technique/table.rs`).
 pub const ENTRY: TechniqueEntry = TechniqueEntry {
+    default_params: || serde_json::to_value(HemicubeParams::default()).unwrap_or_default(),
     id: "hemicube",
     summary: "stochastic iteration by random hemicube shooting with glossy (Phong-type) transport and texel merging (GPU)",
     plan,

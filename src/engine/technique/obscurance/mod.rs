@@ -462,6 +462,7 @@ pub mod shaders {
 
 /// `obscurance` in the technique table (`technique/table.rs`).
 pub const ENTRY: TechniqueEntry = TechniqueEntry {
+    default_params: || serde_json::to_value(ObscuranceParams::default()).unwrap_or_default(),
     id: "obscurance",
     summary: "obscurances with colour bleeding along random directions with all depth layers, an ao layer and incremental updates (GPU)",
     plan,

@@ -123,6 +123,7 @@ pub mod shaders {
 
 /// `path` in the technique table (`technique/table.rs`).
 pub const ENTRY: TechniqueEntry = TechniqueEntry {
+    default_params: || serde_json::to_value(PathParams::default()).unwrap_or_default(),
     id: "path",
     summary: "the unbiased reference: Monte Carlo path tracing with next-event estimation and MIS (CPU, all cores)",
     plan,

@@ -1380,6 +1380,7 @@ pub mod shaders {
 
 /// `sdb` in the technique table (`technique/table.rs`).
 pub const ENTRY: TechniqueEntry = TechniqueEntry {
+    default_params: || serde_json::to_value(SdbParams::default()).unwrap_or_default(),
     id: "sdb",
     summary: "radiosity by stochastic depth buffering: multi-bounce diffuse light gathered along random global parallel directions (GPU)",
     plan,

@@ -1162,6 +1162,7 @@ pub mod shaders {
 
 /// `sdf` in the technique table (`technique/table.rs`).
 pub const ENTRY: TechniqueEntry = TechniqueEntry {
+    default_params: || serde_json::to_value(SdfParams::default()).unwrap_or_default(),
     id: "sdf",
     summary: "sky light from a signed-distance volume with calibrated constants and movable analytic occluders; other light from the shared GPU direct-light module with a one-ambient bounce (GPU)",
     plan,

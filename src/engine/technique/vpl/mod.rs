@@ -971,6 +971,7 @@ pub mod shaders {
 
 /// `vpl` in the technique table (`technique/table.rs`).
 pub const ENTRY: TechniqueEntry = TechniqueEntry {
+    default_params: || serde_json::to_value(VplParams::default()).unwrap_or_default(),
     id: "vpl",
     summary: "instant radiosity: reflective shadow maps turned into shadow-mapped virtual point lights (GPU)",
     plan,
