@@ -272,6 +272,15 @@ struct SubmitArgs {
     /// Technique parameters as a JSON object.
     #[arg(long)]
     params: Option<String>,
+    /// Denoiser: auto (OIDN when installed, else own), oidn, own, none (the job's `denoise`).
+    #[arg(long)]
+    denoiser: Option<String>,
+    /// Lightmap UVs: keep (authored only), generate-missing (the server's default), regenerate-all.
+    #[arg(long)]
+    lightmap_uvs: Option<String>,
+    /// Texel density of generated lightmap UVs (texels per metre).
+    #[arg(long)]
+    texels_per_unit: Option<f32>,
     /// Higher runs first.
     #[arg(long)]
     priority: Option<i32>,
@@ -796,6 +805,16 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
     }
     if !args.shadowmask_lights.is_empty() {
         job.insert("shadowmask_lights".into(), args.shadowmask_lights.clone().into());
+    }
+    // Checked by the server (422 naming the field), like every other job field.
+    if let Some(d) = &args.denoiser {
+        job.insert("denoise".into(), d.clone().into());
+    }
+    if let Some(m) = &args.lightmap_uvs {
+        job.insert("lightmap_uvs".into(), m.clone().into());
+    }
+    if let Some(t) = args.texels_per_unit {
+        job.insert("texels_per_unit".into(), t.into());
     }
     if let Some(v) = args.seed {
         job.insert("seed".into(), v.into());

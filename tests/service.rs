@@ -737,7 +737,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "samples": 4}).to_string(),
             "samples",
-            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`".into(),
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`".into(),
         ),
         (
             json!({"scene": scene, "denoise": "bm3d"}).to_string(),
@@ -1246,13 +1246,51 @@ async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
     assert_eq!(r.status(), 201);
     let scene: Value = r.json().await.unwrap();
     assert_eq!(scene["report"]["has_lightmap_uvs"], false);
+    // The job's UV fields (issue 19): refused at submit, naming the field, when they
+    // cannot work for this scene or are malformed.
+    for (body, field, detail) in [
+        (
+            json!({"lightmap_uvs": "keep"}),
+            "lightmap_uvs",
+            "lightmap_uvs is keep, and the scene has meshes without TEXCOORD_1 (its report lists them): use generate-missing",
+        ),
+        (
+            json!({"lightmap_uvs": "sometimes"}),
+            "lightmap_uvs",
+            "lightmap_uvs must be keep, generate-missing or regenerate-all, got \"sometimes\"",
+        ),
+        (
+            json!({"texels_per_unit": 0.0}),
+            "texels_per_unit",
+            "texels_per_unit must be a positive number, got 0",
+        ),
+    ] {
+        let mut job = json!({"scene": scene["id"], "resolution": 32, "stop": {"steps": 2}});
+        job.as_object_mut().unwrap().extend(body.as_object().unwrap().clone());
+        let r = s
+            .http
+            .post(format!("{}/v1/jobs", s.url))
+            .json(&job)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 422);
+        let p: Value = r.json().await.unwrap();
+        assert_eq!(
+            (p["field"].as_str(), p["detail"].as_str()),
+            (Some(field), Some(detail)),
+            "{p:#}"
+        );
+    }
+    // A density the job asks for is the one the generated UVs get.
     let id = s
-        .submit(json!({"scene": scene["id"], "resolution": 32, "stop": {"steps": 2}}))
+        .submit(json!({"scene": scene["id"], "resolution": 32, "stop": {"steps": 2}, "texels_per_unit": 6.0}))
         .await;
     let job = s
         .wait_job(&id, "finished", |j| j["status"] != "queued" && j["status"] != "running")
         .await;
     assert_eq!(job["status"], "succeeded", "{job:#}");
+    assert_eq!(job["summary"]["generated_uvs"]["texels_per_metre"], 6.0, "{job:#}");
     let glb = s
         .http
         .get(format!("{}/v1/jobs/{id}/scene.glb", s.url))

@@ -19,6 +19,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use utoipa::ToSchema;
 
+use crate::engine::atlas::unwrap::LightmapUvs;
 use crate::engine::bake::StopCriteria;
 use crate::engine::job::BakeRequest;
 use crate::engine::output::OutputLayer;
@@ -79,6 +80,16 @@ pub struct JobSpec {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schema(default = "auto")]
     pub denoise: Option<String>,
+    /// Lightmap UVs: `keep` (authored `TEXCOORD_1` only; a scene with a mesh without it is
+    /// refused), `generate-missing` (authored kept, the others generated) or
+    /// `regenerate-all`. Absent: `generate-missing`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(default = "generate-missing")]
+    pub lightmap_uvs: Option<String>,
+    /// Texel density of generated lightmap UVs in texels per metre (more texels than fit
+    /// one page make more pages). Absent: the highest density at which they fit one page.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub texels_per_unit: Option<f32>,
 }
 
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
@@ -246,6 +257,18 @@ impl JobSpec {
             let d = Denoiser::parse(d).map_err(|e| Problem::invalid_field("denoise", e))?;
             d.resolve().map_err(|e| Problem::invalid_field("denoise", e))?;
         }
+        if let Some(m) = &self.lightmap_uvs {
+            m.parse::<LightmapUvs>()
+                .map_err(|e| Problem::invalid_field("lightmap_uvs", e))?;
+        }
+        if let Some(t) = self.texels_per_unit
+            && !(t.is_finite() && t > 0.0)
+        {
+            return Err(Problem::invalid_field(
+                "texels_per_unit",
+                format!("texels_per_unit must be a positive number, got {t}"),
+            ));
+        }
         if !(self.params.is_null() || self.params.is_object()) {
             return Err(Problem::invalid_field("params", "params must be a JSON object"));
         }
@@ -336,8 +359,12 @@ impl JobSpec {
                 .as_deref()
                 .and_then(|d| Denoiser::parse(d).ok())
                 .unwrap_or_default(),
-            lightmap_uvs: Default::default(),
-            texels_per_unit: None,
+            lightmap_uvs: self
+                .lightmap_uvs
+                .as_deref()
+                .and_then(|m| m.parse().ok())
+                .unwrap_or_default(),
+            texels_per_unit: self.texels_per_unit,
             shadowmask_lights: self.shadowmask_lights.clone(),
             probes: self.probes.as_ref().map(ProbeSpec::to_request),
         }
@@ -371,11 +398,12 @@ fn leading_field(msg: &str) -> String {
         .to_string()
 }
 
-/// The light of a stored scene (read off its import report) and of the job, against the
-/// technique's table row: light the technique does not transport is refused at submit,
-/// naming the light (`lighting.sun`, or `technique` for the scene's own lights). The
-/// bake checks the scene itself again before it starts.
-pub fn check_lights(report: &Value, spec: &JobSpec) -> Result<(), Problem> {
+/// The job against its stored scene (read off the scene's import report), at submit: the
+/// scene's and the job's light against the technique's table row (light the technique
+/// does not transport is refused, naming `lighting.sun`, or `technique` for the scene's
+/// own lights), `lightmap_uvs: keep` against a scene with meshes without UVs, and probes
+/// that have nowhere to go. The bake checks the scene itself again before it starts.
+pub fn check_against_scene(report: &Value, spec: &JobSpec) -> Result<(), Problem> {
     let count = |k: &str| report.get(k).and_then(Value::as_u64).map(|n| n as usize);
     let lighting = spec.to_request().lighting;
     // A report stored before it counted directional lights: the scene's punctual lights
@@ -396,6 +424,15 @@ pub fn check_lights(report: &Value, spec: &JobSpec) -> Result<(), Problem> {
         let m = e.to_string();
         Problem::invalid_field(leading_field(&m), m)
     })?;
+    // `keep` bakes authored UVs only: a scene with a mesh without them cannot bake.
+    if spec.to_request().lightmap_uvs == LightmapUvs::Keep
+        && report.get("has_lightmap_uvs").and_then(Value::as_bool) == Some(false)
+    {
+        return Err(Problem::invalid_field(
+            "lightmap_uvs",
+            "lightmap_uvs is keep, and the scene has meshes without TEXCOORD_1 (its report lists them): use generate-missing",
+        ));
+    }
     // Probes need somewhere to go: a grid, positions, or the scene's probe nodes.
     if let Some(p) = &spec.probes
         && p.spacing.is_none()

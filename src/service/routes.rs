@@ -533,7 +533,7 @@ async fn create_job(
         Some(s) if caller.owns(s.client.as_deref()) => s,
         _ => return Err(no_scene()),
     };
-    crate::service::model::check_lights(&scene.report, &spec)?;
+    crate::service::model::check_against_scene(&scene.report, &spec)?;
     let need = job_memory(&scene.report, &spec);
     if need > limits.max_job_memory_bytes {
         return Err(Problem::invalid_field(
