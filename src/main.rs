@@ -1005,6 +1005,8 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
                     bar.set_message(format!("error {:.2}%", err * 100.0));
                 }
             }
+            // Written with the lightmap (`--write-gltf`).
+            BakeEvent::GeneratedUvs { .. } => {}
         }
         ControlFlow::Continue(())
     };

@@ -629,7 +629,7 @@ async fn every_error_status_has_its_problem_body() {
             409,
             "Conflict",
             "conflict",
-            &format!("job {job} is queued; the scene with generated UVs comes with the final lightmap"),
+            &format!("job {job} is queued and has no scene with generated UVs yet (a job's plan names it once stored; a scene with its own TEXCOORD_1 gets none)"),
             None,
         ),
     )
@@ -1304,6 +1304,36 @@ async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
         report.has_lightmap_uvs,
         "the returned scene carries the generated TEXCOORD_1"
     );
+    // While a bake runs (issue 23): the scene with its generated UVs is stored once they
+    // are made, the job's plan names it, and it is the scene the final lightmap fits.
+    let long = s
+        .submit(json!({"scene": scene["id"], "resolution": 32, "stop": {"seconds": 60, "steps": 1000000}, "texels_per_unit": 6.0}))
+        .await;
+    let running = s
+        .wait_job(&long, "the generated scene in the plan", |j| {
+            j["status"] == "running" && j["plan"]["generated_scene"].is_string()
+        })
+        .await;
+    assert_eq!(running["plan"]["generated_scene"], format!("/v1/jobs/{long}/scene.glb"));
+    let early = s
+        .http
+        .get(format!("{}/v1/jobs/{long}/scene.glb", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(early.status(), 200, "while the job is running");
+    let early = early.bytes().await.unwrap();
+    assert_eq!(
+        early, bytes,
+        "the same scene and UVs as the finished job's (same density)"
+    );
+    let c = s
+        .http
+        .post(format!("{}/v1/jobs/{long}/cancel", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(c.status(), 202);
     s.running.shutdown().await;
 }
 

@@ -17,6 +17,7 @@
 //! file).
 
 use std::ops::ControlFlow;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
@@ -24,6 +25,7 @@ use serde::{Deserialize, Serialize};
 use crate::engine::accumulate::Estimate;
 use crate::engine::control::ControlTexels;
 use crate::engine::error::EngineError;
+use crate::engine::scene::Scene;
 use crate::engine::shadowmask::ShadowmaskBake;
 use crate::engine::technique::api::Technique;
 
@@ -89,6 +91,13 @@ pub enum BakeEvent<'a> {
     Snapshot {
         estimate: &'a Estimate,
         elapsed: Duration,
+    },
+    /// Once, before the first step, when the engine generated lightmap UVs (the scene had
+    /// none, or the request regenerates them): the scene as baked, whose `TEXCOORD_1` the
+    /// lightmap and every snapshot fit, so a viewer can show snapshots on it while the
+    /// bake runs.
+    GeneratedUvs {
+        scene: &'a Arc<Scene>,
     },
 }
 

@@ -14,7 +14,7 @@ use crate::engine::accumulate::{ErrorSummary, Estimate};
 use crate::engine::atlas::unwrap::{self, LightmapUvs, UnwrapReport};
 use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
-use crate::engine::bake::{BakeLoop, BakeObserver, StopCriteria, StopReason};
+use crate::engine::bake::{BakeEvent, BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::control::{CONTROL_TEXELS, ControlTexels};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
 use crate::engine::plan::Plan;
@@ -439,6 +439,10 @@ fn bake_impl(
     obscurance: Option<ObscuranceUpdate<'_>>,
 ) -> Result<(BakeResult, Option<ObscuranceState>), EngineError> {
     let prepared = prepare(scene, request, options, on_atlas, on_plan)?;
+    if prepared.unwrap.is_some() {
+        // A cancellation asked for here is seen by the loop before its first step.
+        let _ = observer.event(BakeEvent::GeneratedUvs { scene: &prepared.scene });
+    }
     let inputs = prepared.inputs(request);
     let mut stop = request.stop;
     // An obscurance bake whose state is kept is held by its concrete type, so the state

@@ -774,6 +774,23 @@ async fn download(
     Ok(streamed(state, size, stream, content_type, filename))
 }
 
+/// A download's stream with the large-body permit it holds: dropped together when the
+/// body has been sent or the client went away.
+struct Permitted<S> {
+    inner: S,
+    _permit: Option<tokio::sync::OwnedSemaphorePermit>,
+}
+
+impl<S: futures_util::Stream + Unpin> futures_util::Stream for Permitted<S> {
+    type Item = S::Item;
+    fn poll_next(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Self::Item>> {
+        std::pin::Pin::new(&mut self.inner).poll_next(cx)
+    }
+}
+
 /// A streamed body of `size` bytes; a large one holds a large-body permit until it has
 /// been sent (or the client went away), and gets 503 with `Retry-After` when none is free.
 fn streamed(
@@ -791,7 +808,7 @@ fn streamed(
     } else {
         None
     };
-    let body = Body::from_stream(upload::Permitted {
+    let body = Body::from_stream(Permitted {
         inner: stream,
         _permit: permit,
     });
@@ -979,7 +996,7 @@ async fn get_probes(
     responses(
         (status = 200, description = "glTF binary with TEXCOORD_1", content_type = "model/gltf-binary", body = Vec<u8>),
         (status = 404, description = "No such job, or its scene had lightmap UVs of its own", body = Problem, content_type = "application/problem+json"),
-        (status = 409, description = "The job has not succeeded", body = Problem, content_type = "application/problem+json")
+        (status = 409, description = "The job has not succeeded and its UVs are not generated yet (its plan's `generated_scene` names this route once they are)", body = Problem, content_type = "application/problem+json")
     )
 )]
 async fn get_generated_scene(
@@ -988,12 +1005,8 @@ async fn get_generated_scene(
     Path(id): Path<String>,
 ) -> Result<Response, Problem> {
     let job = find_job(&state, &caller, &id).await?;
-    if job.status != JobStatus::Succeeded {
-        return Err(Problem::conflict(format!(
-            "job {id} is {}; the scene with generated UVs comes with the final lightmap",
-            job.status.as_str()
-        )));
-    }
+    // Stored as soon as the engine has made the UVs (before the bake's first snapshot,
+    // usually), so snapshots can be shown on it; it does not change afterwards.
     match state.artifacts.get_stream(&store::generated_scene(&id)).await? {
         Some((size, stream)) => Ok(streamed(
             &state,
@@ -1002,11 +1015,15 @@ async fn get_generated_scene(
             "model/gltf-binary",
             Some(format!("{id}.glb")),
         )),
-        None => Err(Problem::new(
+        None if job.status == JobStatus::Succeeded => Err(Problem::new(
             StatusCode::NOT_FOUND,
             "not-found",
             format!("job {id} baked the scene's own lightmap UVs (TEXCOORD_1): use the uploaded scene"),
         )),
+        None => Err(Problem::conflict(format!(
+            "job {id} is {} and has no scene with generated UVs yet (a job's plan names it once stored; a scene with its own TEXCOORD_1 gets none)",
+            job.status.as_str()
+        ))),
     }
 }
 

@@ -304,22 +304,6 @@ pub fn clear_spool(spool: &Path) {
     }
 }
 
-/// Holds a large-body permit for as long as a streamed download runs.
-pub struct Permitted<S> {
-    pub inner: S,
-    pub _permit: Option<tokio::sync::OwnedSemaphorePermit>,
-}
-
-impl<S: futures_util::Stream + Unpin> futures_util::Stream for Permitted<S> {
-    type Item = S::Item;
-    fn poll_next(
-        mut self: std::pin::Pin<&mut Self>,
-        cx: &mut std::task::Context<'_>,
-    ) -> std::task::Poll<Option<Self::Item>> {
-        std::pin::Pin::new(&mut self.inner).poll_next(cx)
-    }
-}
-
 /// Bytes of the spooled file, read once for the importer.
 pub async fn read_file(path: &Path) -> Result<Bytes, Problem> {
     tokio::fs::read(path).await.map(Bytes::from).map_err(spool_error)

@@ -156,6 +156,11 @@ struct Shared {
     progress: Mutex<Option<Progress>>,
     history: Mutex<Vec<HistoryPoint>>,
     plan: Mutex<Option<Value>>,
+    /// The scene with the UVs the engine generated, from the bake thread, until the
+    /// supervising task stores it (so the console can show snapshots on it).
+    generated_scene: Mutex<Option<Arc<Scene>>>,
+    /// It is stored: the final upload need not store it again.
+    generated_scene_stored: std::sync::atomic::AtomicBool,
 }
 
 struct SnapshotFiles {
@@ -307,6 +312,20 @@ async fn supervise(
                 }
             }
             _ = ticker.tick() => {
+                let generated = shared.generated_scene.lock().ok().and_then(|mut g| g.take());
+                if let Some(scene) = generated && flag.get() != StopSignal::LeaseLost {
+                    match while_holding(state, &job.id, worker, &flag, store_generated_scene(state, &job.id, scene)).await {
+                        Ok(()) => {
+                            shared.generated_scene_stored.store(true, Ordering::Relaxed);
+                            // The job's plan says where it is; the next beat writes it.
+                            if let Ok(mut p) = shared.plan.lock() {
+                                p.get_or_insert_with(|| json!({}))["generated_scene"] = json!(format!("/v1/jobs/{}/scene.glb", job.id));
+                            }
+                            tracing::info!("scene with generated UVs stored");
+                        }
+                        Err(e) => tracing::warn!(error = %e, "cannot store the scene with generated UVs now; it goes with the final lightmap"),
+                    }
+                }
                 let update = collect(&shared, &mut written_progress, &mut written_plan, false);
                 let changed = update.progress.is_some() || update.plan.is_some();
                 if (changed || last_renewal.elapsed() >= lease / 3) && flag.get() != StopSignal::LeaseLost {
@@ -376,7 +395,16 @@ async fn supervise(
                 "bake finished"
             );
             state.metrics.observe_bake(&job.spec.technique, r.summary.seconds);
-            if let Err(e) = while_holding(state, &job.id, worker, &flag, store_final(state, &job.id, &r)).await {
+            let scene_stored = shared.generated_scene_stored.load(Ordering::Relaxed);
+            if let Err(e) = while_holding(
+                state,
+                &job.id,
+                worker,
+                &flag,
+                store_final(state, &job.id, &r, scene_stored),
+            )
+            .await
+            {
                 return End::Finish(Outcome::Failed {
                     reason: format!("cannot store the lightmap: {e}"),
                 });
@@ -502,22 +530,34 @@ async fn store_snapshot(state: &AppState, job: &str, n: u32, files: SnapshotFile
         .await
 }
 
-async fn store_final(state: &AppState, job: &str, r: &BakeResult) -> Result<(), object_store::Error> {
-    if r.summary.generated_uvs.is_some() {
+/// Exports the scene with its generated UVs as `.glb` (off the runtime's threads) and
+/// stores it as the job's `scene.glb`.
+async fn store_generated_scene(state: &AppState, job: &str, scene: Arc<Scene>) -> Result<(), object_store::Error> {
+    let glb = tokio::task::spawn_blocking(move || crate::engine::scene::export::to_glb(&scene))
+        .await
+        .map_err(|e| e.to_string())
+        .and_then(|r| r)
+        .map_err(|e| object_store::Error::Generic {
+            store: "export",
+            source: format!("cannot export the scene with generated UVs: {e}").into(),
+        })?;
+    state
+        .artifacts
+        .put(&store::generated_scene(job), Bytes::from(glb))
+        .await
+}
+
+/// The final artifacts; `scene_stored`: the scene with generated UVs was stored while
+/// the bake ran (it does not change after the UVs are made).
+async fn store_final(
+    state: &AppState,
+    job: &str,
+    r: &BakeResult,
+    scene_stored: bool,
+) -> Result<(), object_store::Error> {
+    if r.summary.generated_uvs.is_some() && !scene_stored {
         // The lightmap is only usable with the UVs it was baked for (DESIGN §2).
-        let scene = r.scene.clone();
-        let glb = tokio::task::spawn_blocking(move || crate::engine::scene::export::to_glb(&scene))
-            .await
-            .map_err(|e| e.to_string())
-            .and_then(|r| r)
-            .map_err(|e| object_store::Error::Generic {
-                store: "export",
-                source: format!("cannot export the scene with generated UVs: {e}").into(),
-            })?;
-        state
-            .artifacts
-            .put(&store::generated_scene(job), Bytes::from(glb))
-            .await?;
+        store_generated_scene(state, job, r.scene.clone()).await?;
     }
     if let Some(set) = &r.probes {
         let json = serde_json::to_vec(set).map_err(|e| object_store::Error::Generic {
@@ -789,6 +829,11 @@ fn bake_observed(
     let mut latest_error: Option<f32> = None;
     let mut observer = |e: BakeEvent<'_>| {
         match e {
+            BakeEvent::GeneratedUvs { scene } => {
+                if let Ok(mut g) = shared.generated_scene.lock() {
+                    *g = Some(scene.clone());
+                }
+            }
             BakeEvent::Progress { steps, elapsed, .. } => {
                 metrics.observe_step(&request.technique, (elapsed - last_step_at).as_secs_f64());
                 last_step_at = elapsed;

@@ -511,12 +511,13 @@ const HALF = (() => {
 
 async function updateGeometry(j) {
   if (!state.viewer) return;
-  // The lightmap fits the scene's own TEXCOORD_1, or the UVs the engine generated (their .glb
-  // comes with the final lightmap).
+  // The lightmap fits the scene's own TEXCOORD_1, or the UVs the engine generated: their .glb
+  // is stored once they are made (the job's plan then names it), before most snapshots.
   const scene = state.scenes.find(s => s.id === j.scene) || await json('/v1/scenes/' + j.scene).catch(() => null);
   const own = scene?.report?.has_lightmap_uvs;
-  const src = j.status === 'succeeded' && j.summary?.generated_uvs ? `/v1/jobs/${j.id}/scene.glb` : (own !== false ? `/v1/scenes/${j.scene}/scene.glb` : null);
-  if (!src) { $('v-note').textContent = 'This scene gets generated lightmap UVs: the 3D view shows the lightmap when the bake has finished.'; return; }
+  const generated = j.plan?.generated_scene || (j.status === 'succeeded' && j.summary?.generated_uvs ? `/v1/jobs/${j.id}/scene.glb` : null);
+  const src = generated || (own !== false ? `/v1/scenes/${j.scene}/scene.glb` : null);
+  if (!src) { $('v-note').textContent = 'This scene gets generated lightmap UVs: the 3D view shows the lightmap once they are made.'; return; }
   if (state.geometryFor === src) return;
   state.geometryFor = src;
   const buf = await (await api(src)).arrayBuffer();
