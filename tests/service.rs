@@ -201,6 +201,19 @@ async fn happy_path_upload_bake_follow_download() {
     let history = job["history"].as_array().unwrap();
     assert!(!history.is_empty(), "{job:#}");
     assert!(history.iter().all(|p| p["steps"].as_u64().unwrap() <= 8));
+    // The curve ends at the final lightmap's figure, the summary's (issue 22 point 4: what
+    // is reported is the delivered lightmap's error; the raw one beside it).
+    let last = history.last().unwrap();
+    assert_eq!(last["steps"], 8);
+    // (f32 in the history, the same f32 widened to f64 in the summary.)
+    let f = |v: &Value| v.as_f64().map(|x| x as f32);
+    assert_eq!(f(&last["error"]), f(&job["summary"]["error"]["relative"]), "{job:#}");
+    assert_eq!(
+        f(&last["raw_error"]),
+        f(&job["summary"]["error"]["raw_relative"]),
+        "{job:#}"
+    );
+    assert!(last["raw_error"].as_f64().unwrap() > 0.0, "{last}");
     assert!(job["snapshots"].as_u64().unwrap() >= 1, "{job:#}");
     assert!(job["failure"].is_null());
 

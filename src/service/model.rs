@@ -535,14 +535,19 @@ impl Progress {
     }
 }
 
-/// One point of a bake's error against time (taken at every snapshot).
+/// One point of a bake's error against time: one per stored snapshot, and the final
+/// lightmap's last.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
 pub struct HistoryPoint {
     pub seconds: f64,
     pub steps: u64,
-    /// The relative error the bake reports and stops on (for a biased technique, bias
-    /// and noise measured at control texels; `docs/accuracy.md`).
+    /// The relative error of the lightmap as delivered at that point (the snapshot EXR's
+    /// `lightmapd:relative_error`: denoised and blended when a denoiser runs; for a biased
+    /// technique, bias and noise measured at control texels; `docs/accuracy.md`).
     pub error: Option<f32>,
+    /// The raw estimate's, before denoising (what `stop.target_error` is checked against).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw_error: Option<f32>,
     /// Its noise part (the halves' difference), when `error` covers bias too.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise: Option<f32>,

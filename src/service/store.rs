@@ -79,6 +79,24 @@ pub const PART_SIZE: usize = 8 << 20;
 /// Parts of one upload in flight at once.
 pub const PART_CONCURRENCY: usize = 4;
 
+/// How the S3 client retries a request that failed for a transient reason (no
+/// connection, a 5xx): for up to two minutes, with decorrelated jittered backoff from
+/// 200 ms growing up to 10 s between tries. object_store's default (10 tries from 100 ms)
+/// gave up after 2.2 to 3 s against a store that refused connections, failing jobs that
+/// stored their lightmap in a 6 s outage (tests/real_faults.rs); a store that is down for
+/// longer than two minutes fails the operation with its last error.
+fn s3_retry() -> object_store::RetryConfig {
+    object_store::RetryConfig {
+        backoff: object_store::BackoffConfig {
+            init_backoff: std::time::Duration::from_millis(200),
+            max_backoff: std::time::Duration::from_secs(10),
+            base: 3.0,
+        },
+        max_retries: 40,
+        retry_timeout: std::time::Duration::from_secs(120),
+    }
+}
+
 /// Where artifacts live, as `--store` spells it.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum StoreUrl {
@@ -183,7 +201,7 @@ impl Artifacts {
     /// (tests pass their endpoint and keys here rather than changing the process's
     /// environment); a store that cannot be reached is an error here.
     pub async fn open(url: &StoreUrl, overrides: &[(AmazonS3ConfigKey, String)]) -> anyhow::Result<Artifacts> {
-        let artifacts = match url {
+        let (artifacts, check) = match url {
             StoreUrl::Local(dir) => return Ok(Artifacts::local(dir)?),
             StoreUrl::S3 { bucket, prefix } => {
                 let mut b = AmazonS3Builder::from_env().with_bucket_name(bucket);
@@ -216,23 +234,31 @@ impl Artifacts {
                 if endpoint.starts_with("http://") && !allow_http {
                     anyhow::bail!("the S3 endpoint {endpoint} is plain HTTP: set AWS_ALLOW_HTTP=true to allow it");
                 }
-                let s3 = b.build()?;
-                let store: Arc<dyn ObjectStore> = if prefix.is_empty() {
-                    Arc::new(s3)
-                } else {
-                    Arc::new(PrefixStore::new(s3, prefix.as_str()))
+                // The start-up check below answers within seconds with object_store's
+                // own retries; the store kept for work retries through outages.
+                let prefixed = |s3: object_store::aws::AmazonS3| -> Arc<dyn ObjectStore> {
+                    if prefix.is_empty() {
+                        Arc::new(s3)
+                    } else {
+                        Arc::new(PrefixStore::new(s3, prefix.as_str()))
+                    }
                 };
-                Artifacts {
-                    store,
-                    multipart_above: Some(MULTIPART_THRESHOLD),
-                }
+                let check = prefixed(b.clone().build()?);
+                let store = prefixed(b.with_retry(s3_retry()).build()?);
+                (
+                    Artifacts {
+                        store,
+                        multipart_above: Some(MULTIPART_THRESHOLD),
+                    },
+                    check,
+                )
             }
         };
         // A listing, not a HEAD: a HEAD's 404 has no body, so a missing bucket would look
         // like a missing key. Any error (no bucket, refused keys, nothing listening) stops
         // the process before it accepts work it could not store.
         let probe = Path::from("lightmapd-store-check");
-        artifacts.store.list(Some(&probe)).try_next().await.map_err(|e| {
+        check.list(Some(&probe)).try_next().await.map_err(|e| {
             // object_store repeats each cause inside its parent's message, so the chain
             // is not kept: its top message and its root cause (say, "Connection
             // refused") say it all.

@@ -161,6 +161,8 @@ struct Shared {
     generated_scene: Mutex<Option<Arc<Scene>>>,
     /// It is stored: the final upload need not store it again.
     generated_scene_stored: std::sync::atomic::AtomicBool,
+    /// The latest stored snapshot's delivered (denoised) relative error.
+    delivered_error: Mutex<Option<f32>>,
 }
 
 struct SnapshotFiles {
@@ -257,9 +259,29 @@ async fn supervise(
     flag: Arc<StopFlag>,
     engine: Arc<EngineShared>,
 ) -> End {
-    let scene = match load_scene(state, job).await {
-        Ok(s) => s,
-        Err(reason) => return End::Finish(Outcome::Failed { reason }),
+    // A database or store outage when the job is claimed delays it (the lease held
+    // meanwhile) rather than failing it: measured in tests/real_faults.rs, where jobs
+    // claimed while the store was unreachable failed after object_store's own 10
+    // retries (2.7 s).
+    let started = Instant::now();
+    let mut wait = Duration::from_millis(200);
+    let scene = loop {
+        match while_holding(state, &job.id, worker, &flag, load_scene(state, job)).await {
+            Ok(s) => break s,
+            _ if flag.get() == StopSignal::LeaseLost => return End::Lost,
+            Err(LoadError::Transient(reason)) if started.elapsed() + wait < SCENE_LOAD_PATIENCE => {
+                tracing::warn!(
+                    reason,
+                    retry_in_ms = wait.as_millis() as u64,
+                    "cannot load the scene yet; trying again"
+                );
+                while_holding(state, &job.id, worker, &flag, tokio::time::sleep(wait)).await;
+                wait = (wait * 2).min(Duration::from_secs(5));
+            }
+            Err(LoadError::Transient(reason) | LoadError::Permanent(reason)) => {
+                return End::Finish(Outcome::Failed { reason });
+            }
+        }
     };
     let shared = Arc::new(Shared::default());
     let (snap_tx, mut snap_rx) = mpsc::unbounded_channel::<SnapshotFiles>();
@@ -415,7 +437,17 @@ async fn supervise(
                 r.summary.error.relative,
                 &job.spec.stop,
             );
-            let history = shared.history.lock().map(|h| h.clone()).unwrap_or_default();
+            let mut history = shared.history.lock().map(|h| h.clone()).unwrap_or_default();
+            // The final lightmap's point ends the curve, with the figure the summary gives.
+            let e = &r.summary.error;
+            history.push(HistoryPoint {
+                seconds: r.summary.seconds,
+                steps: r.summary.steps,
+                error: e.relative,
+                raw_error: e.raw_relative.or(e.relative),
+                noise: e.noise,
+                bias: e.bias,
+            });
             End::Finish(Outcome::Succeeded {
                 summary: serde_json::to_value(&r.summary).unwrap_or(Value::Null),
                 progress: serde_json::to_value(progress).unwrap_or(Value::Null),
@@ -583,29 +615,46 @@ pub enum SceneFiles {
     Gltf(String, Vec<(String, Bytes)>),
 }
 
-async fn load_scene(state: &AppState, job: &JobRecord) -> Result<SceneFiles, String> {
+/// Why a job's scene could not be loaded.
+enum LoadError {
+    /// It never will be (the scene is gone, the job is too big for this worker).
+    Permanent(String),
+    /// The database or the store did not answer: worth trying again.
+    Transient(String),
+}
+
+/// How long a worker keeps trying to load a claimed job's scene through a database or
+/// store outage (holding the lease) before it fails the job with the last error.
+const SCENE_LOAD_PATIENCE: Duration = Duration::from_secs(60);
+
+async fn load_scene(state: &AppState, job: &JobRecord) -> Result<SceneFiles, LoadError> {
+    use LoadError::{Permanent, Transient};
     let scene_id = job.scene_id.as_str();
     let rec = match state.queue.scene(scene_id).await {
         Ok(Some(r)) => r,
-        Ok(None) => return Err(format!("scene {scene_id} no longer exists")),
-        Err(e) => return Err(format!("cannot read scene {scene_id}: {e}")),
+        Ok(None) => return Err(Permanent(format!("scene {scene_id} no longer exists"))),
+        Err(e) => return Err(Transient(format!("cannot read scene {scene_id}: {e}"))),
     };
     // A worker process may have less memory than the server that accepted the job.
     let need = job_memory(&rec.report, &job.spec);
     let limit = state.config.limits.max_job_memory_bytes;
     if need > limit {
-        return Err(format!(
+        return Err(Permanent(format!(
             "the job needs an estimated {} MiB, more than this worker's limit of {} MiB (--max-job-memory-mb)",
             need >> 20,
             limit >> 20
-        ));
+        )));
     }
     let mut files = Vec::new();
     for f in &rec.files {
         match state.artifacts.get(&store::scene_file(scene_id, f)).await {
             Ok(Some(b)) => files.push((f.clone(), b)),
-            Ok(None) => return Err(format!("scene {scene_id}: file {f} is missing from the store")),
-            Err(e) => return Err(format!("scene {scene_id}: cannot read {f}: {e}")),
+            Ok(None) => {
+                return Err(Permanent(format!(
+                    "scene {scene_id}: file {f} is missing from the store"
+                )));
+            }
+            Err(e) => return Err(Transient(format!("scene {scene_id}: cannot read {f}: {e}"))),
         }
     }
     if rec.format == "glb" {
@@ -742,7 +791,7 @@ fn run_bake(
     std::thread::scope(|s| {
         let encoder = std::thread::Builder::new()
             .name("snapshot-encoder".into())
-            .spawn_scoped(s, || encode_snapshots(raw_rx, &request, flag, snapshots));
+            .spawn_scoped(s, || encode_snapshots(raw_rx, &request, flag, snapshots, shared));
         if let Err(e) = encoder {
             return Err(EngineError::Internal(format!("cannot start the snapshot encoder: {e}")));
         }
@@ -767,13 +816,31 @@ fn encode_snapshots(
     request: &crate::engine::job::BakeRequest,
     flag: &StopFlag,
     snapshots: &mpsc::UnboundedSender<SnapshotFiles>,
+    shared: &Shared,
 ) {
     for snap in raw {
         if flag.get() != StopSignal::None {
             continue;
         }
-        // Denoised once: the EXR and the preview show the same delivered lightmap.
+        // Denoised once: the EXR and the preview show the same delivered lightmap, and the
+        // history and the status report its error (issue 22 point 4).
         let delivered = job::finish(&snap.atlas, &snap.estimate, request);
+        let point = HistoryPoint {
+            seconds: snap.elapsed.as_secs_f64(),
+            steps: snap.estimate.steps,
+            error: delivered.error.relative,
+            raw_error: snap.estimate.error.relative,
+            noise: delivered.error.noise,
+            bias: delivered.error.bias,
+        };
+        if let Ok(mut h) = shared.history.lock()
+            && h.len() < MAX_HISTORY
+        {
+            h.push(point);
+        }
+        if let Ok(mut e) = shared.delivered_error.lock() {
+            *e = delivered.error.relative;
+        }
         let exr = job::delivered_exr(&snap.atlas, &delivered, request, &request.params, snap.elapsed);
         let png = job::preview_png(&snap.atlas, &delivered);
         match (exr, png) {
@@ -782,7 +849,7 @@ fn encode_snapshots(
                     exr,
                     png,
                     steps: snap.estimate.steps,
-                    error: snap.estimate.error.relative,
+                    error: delivered.error.relative,
                 });
             }
             (Err(e), _) | (_, Err(e)) => tracing::error!(error = %e, "cannot encode a snapshot"),
@@ -837,24 +904,19 @@ fn bake_observed(
             BakeEvent::Progress { steps, elapsed, .. } => {
                 metrics.observe_step(&request.technique, (elapsed - last_step_at).as_secs_f64());
                 last_step_at = elapsed;
+                if let Some(e) = shared.delivered_error.lock().ok().and_then(|e| *e) {
+                    latest_error = Some(e);
+                }
                 if let Ok(mut p) = shared.progress.lock() {
                     *p = Some(Progress::new(steps, elapsed.as_secs_f64(), latest_error, &spec.stop));
                 }
             }
             BakeEvent::Snapshot { estimate, elapsed } => {
-                latest_error = estimate.error.relative;
-                let point = HistoryPoint {
-                    seconds: elapsed.as_secs_f64(),
-                    steps: estimate.steps,
-                    error: estimate.error.relative,
-                    noise: estimate.error.noise,
-                    bias: estimate.error.bias,
-                };
-                if let Ok(mut h) = shared.history.lock()
-                    && h.len() < MAX_HISTORY
-                {
-                    h.push(point);
-                }
+                // The history and the status's error are the delivered (denoised)
+                // lightmap's, which the encoder thread computes for the snapshots it
+                // stores (`encode_snapshots`); until the first, the raw estimate's.
+                let delivered = shared.delivered_error.lock().ok().and_then(|e| *e);
+                latest_error = delivered.or(estimate.error.relative);
                 if let Ok(mut p) = shared.progress.lock() {
                     *p = Some(Progress::new(
                         estimate.steps,
