@@ -87,6 +87,11 @@ fn texels_per_unit_sets_the_density_and_adds_pages() {
     let (mut scene, _) = import_slice(&glb, None).unwrap();
     let r = generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(8.0), &UvUnwrap).unwrap();
     assert_eq!(r.texels_per_metre, 8.0);
+    assert!(
+        r.warnings.iter().all(|w| !w.contains("scaled down")),
+        "{:?}",
+        r.warnings
+    );
     let atlas = Atlas::build(&scene, r.width, r.height).unwrap();
     // Two 32 x 32 texel charts.
     let n = atlas.texels.len() as f32;
@@ -104,6 +109,33 @@ fn texels_per_unit_sets_the_density_and_adds_pages() {
     assert_eq!(atlas.overlapping_texels, 0);
     let per = texels_per_instance(&scene, &atlas);
     assert!(per.iter().all(|n| *n > 200 * 200), "{per:?}");
+    // Both are named as scaled down, with the density they got.
+    let scaled: Vec<&String> = r.warnings.iter().filter(|w| w.contains("scaled down")).collect();
+    assert_eq!(scaled.len(), 2, "{:?}", r.warnings);
+    assert!(
+        scaled[0].starts_with("mesh 0 \"a\": its charts were scaled down to fit a 256x256 page, ")
+            && scaled[0].contains(" texels/m instead of 100.00"),
+        "{scaled:?}"
+    );
+    assert!(scaled[1].starts_with("mesh 1 \"b\": "), "{scaled:?}");
+
+    // A small mesh beside a large one at that density: only the large one is named.
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("large", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.square("small", Vec3::new(10.0, 0.0, 0.0), 0.5, Vec3::Y, m);
+    let (mut json, bin) = b.to_gltf();
+    for mesh in json["meshes"].as_array_mut().unwrap() {
+        mesh["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
+    }
+    let (mut scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    let r = generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(100.0), &UvUnwrap).unwrap();
+    let scaled: Vec<&String> = r.warnings.iter().filter(|w| w.contains("scaled down")).collect();
+    assert_eq!(scaled.len(), 1, "{:?}", r.warnings);
+    assert!(scaled[0].starts_with("mesh 0 \"large\": "), "{scaled:?}");
 
     let (mut scene, _) = import_slice(&glb, None).unwrap();
     let e =
