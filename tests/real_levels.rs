@@ -137,6 +137,28 @@ fn texels_per_unit_sets_the_density_and_adds_pages() {
     assert_eq!(scaled.len(), 1, "{:?}", r.warnings);
     assert!(scaled[0].starts_with("mesh 0 \"large\": "), "{scaled:?}");
 
+    // The Kenney level at 40 texels/m: an instanced mesh's charts make a layout taller
+    // than a 256 page, which the unwrapper does not scale down; the density is lowered
+    // until it fits, with a warning, instead of the bake failing.
+    let mut kenney = level("kenney_fps_level.glb");
+    let r = generate_lightmap_uvs_with(&mut kenney, 256, LightmapUvs::GenerateMissing, Some(40.0), &UvUnwrap).unwrap();
+    let lowered: Vec<&String> = r.warnings.iter().filter(|w| w.contains("baked at")).collect();
+    assert_eq!(lowered.len(), 1, "{:?}", r.warnings);
+    assert!(
+        lowered[0].starts_with("texels_per_unit 40: chart of ") && lowered[0].contains("doesn't fit a 256x256 page"),
+        "{lowered:?}"
+    );
+    assert!(
+        r.texels_per_metre < 40.0 && r.texels_per_metre >= 40.0 * 0.75f32.powi(8),
+        "{r:?}"
+    );
+    assert!(
+        lowered[0].contains(&format!("baked at {:.2} texels/m", r.texels_per_metre)),
+        "{lowered:?}"
+    );
+    let atlas = Atlas::build(&kenney, r.width, r.height).unwrap();
+    assert_eq!(atlas.overlapping_texels, 0);
+
     let (mut scene, _) = import_slice(&glb, None).unwrap();
     let e =
         generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(-1.0), &UvUnwrap).unwrap_err();

@@ -312,7 +312,13 @@ pub fn generate_lightmap_uvs_with(
     let unwrapped = if inputs.is_empty() {
         None
     } else {
-        Some(unwrapper.unwrap(&inputs, resolution, texels_per_unit)?)
+        Some(unwrap_fitting(
+            unwrapper,
+            &inputs,
+            resolution,
+            texels_per_unit,
+            &mut warnings,
+        )?)
     };
     // Page rows: the authored page first, then each generated page.
     let (page_h, pages) = unwrapped.as_ref().map_or((0, 0), |u| (u.page_height, u.pages));
@@ -466,6 +472,42 @@ pub fn generate_lightmap_uvs_with(
     scene.layout = Some(std::sync::Arc::new(layout));
     scene.needs_lightmap_uvs = false;
     Ok(report)
+}
+
+/// The unwrap at `texels_per_unit`, or, when a layout does not fit a page at that fixed
+/// density, at the highest of 8 densities lowered by a quarter each that fits, with a
+/// warning. Why: uvunwrap 0.3 scales a single chart down to fit a page
+/// (`max_chart_size`), but not the layout of an instanced mesh's charts, which it places
+/// as one rectangle per instance; at a fixed density that layout can be taller than a
+/// page and the whole unwrap fails (the Kenney level at 40 texels/m on 256-wide pages:
+/// "chart of 209x947 texels doesn't fit a 256x256 page"). A bake at a lower density with
+/// a warning is what a level designer can use; a failure is not.
+fn unwrap_fitting(
+    unwrapper: &dyn Unwrapper,
+    inputs: &[UnwrapMesh],
+    resolution: u32,
+    texels_per_unit: Option<f32>,
+    warnings: &mut Vec<String>,
+) -> Result<Unwrapped, String> {
+    let first = unwrapper.unwrap(inputs, resolution, texels_per_unit);
+    let (Err(e), Some(asked)) = (&first, texels_per_unit) else {
+        return first;
+    };
+    if !e.contains("doesn't fit") {
+        return first;
+    }
+    let why = e.split(';').next().unwrap_or(e);
+    let mut t = asked;
+    for _ in 0..8 {
+        t *= 0.75;
+        if let Ok(u) = unwrapper.unwrap(inputs, resolution, Some(t)) {
+            warnings.push(format!(
+                "texels_per_unit {asked}: {why}; baked at {t:.2} texels/m instead (an instanced mesh's charts are not scaled down alone; raise the resolution for the density asked)"
+            ));
+            return Ok(u);
+        }
+    }
+    first
 }
 
 /// Below this fraction of the asked density, a mesh's charts count as scaled down. Area
