@@ -70,20 +70,26 @@ fn kenney_instances_each_get_their_own_texels() {
 /// A texel density in texels per metre: a 4 m square at 8 texels/m spans 32 texels
 /// (padding aside); a density too high for one page gives several pages stacked in one
 /// taller page instead of an error.
-#[test]
-fn texels_per_unit_sets_the_density_and_adds_pages() {
-    let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
-    b.square("a", Vec3::ZERO, 4.0, Vec3::Y, m);
-    b.square("b", Vec3::new(10.0, 0.0, 0.0), 4.0, Vec3::Y, m);
-    let (mut json, bin) = b.to_gltf();
+/// Two upward grey squares, `a` of side `a` and `b` of side `b` beside it, as a .glb
+/// without lightmap UVs.
+fn two_squares_without_uvs(names: [&str; 2], a: f32, b: f32) -> Vec<u8> {
+    let mut builder = SceneBuilder::new();
+    let m = builder.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    builder.square(names[0], Vec3::ZERO, a, Vec3::Y, m);
+    builder.square(names[1], Vec3::new(10.0, 0.0, 0.0), b, Vec3::Y, m);
+    let (mut json, bin) = builder.to_gltf();
     for mesh in json["meshes"].as_array_mut().unwrap() {
         mesh["primitives"][0]["attributes"]
             .as_object_mut()
             .unwrap()
             .remove("TEXCOORD_1");
     }
-    let glb = write_glb(&json, &bin);
+    write_glb(&json, &bin)
+}
+
+#[test]
+fn texels_per_unit_sets_the_density_and_adds_pages() {
+    let glb = two_squares_without_uvs(["a", "b"], 4.0, 4.0);
     let (mut scene, _) = import_slice(&glb, None).unwrap();
     let r = generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(8.0), &UvUnwrap).unwrap();
     assert_eq!(r.texels_per_metre, 8.0);
@@ -120,18 +126,7 @@ fn texels_per_unit_sets_the_density_and_adds_pages() {
     assert!(scaled[1].starts_with("mesh 1 \"b\": "), "{scaled:?}");
 
     // A small mesh beside a large one at that density: only the large one is named.
-    let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
-    b.square("large", Vec3::ZERO, 4.0, Vec3::Y, m);
-    b.square("small", Vec3::new(10.0, 0.0, 0.0), 0.5, Vec3::Y, m);
-    let (mut json, bin) = b.to_gltf();
-    for mesh in json["meshes"].as_array_mut().unwrap() {
-        mesh["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
-    let (mut scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    let (mut scene, _) = import_slice(&two_squares_without_uvs(["large", "small"], 4.0, 0.5), None).unwrap();
     let r = generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(100.0), &UvUnwrap).unwrap();
     let scaled: Vec<&String> = r.warnings.iter().filter(|w| w.contains("scaled down")).collect();
     assert_eq!(scaled.len(), 1, "{:?}", r.warnings);
