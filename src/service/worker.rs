@@ -284,7 +284,10 @@ async fn supervise(
         }
     };
     let shared = Arc::new(Shared::default());
-    let (snap_tx, mut snap_rx) = mpsc::unbounded_channel::<SnapshotFiles>();
+    // One encoded snapshot waits at most: while one is being stored (a slow or
+    // unreachable store), the encoder waits, the bake thread finds it busy and skips
+    // snapshots, so an outage costs no memory beyond two snapshots.
+    let (snap_tx, mut snap_rx) = mpsc::channel::<SnapshotFiles>(1);
     let bake = {
         let ctx = BakeThread {
             shared: shared.clone(),
@@ -752,7 +755,7 @@ struct BakeThread {
     /// Unused until a technique needs shared engine state; then handed to `job::bake`.
     #[allow(dead_code)]
     engine: Arc<EngineShared>,
-    snapshots: mpsc::UnboundedSender<SnapshotFiles>,
+    snapshots: mpsc::Sender<SnapshotFiles>,
     snapshot_interval: Duration,
     limits: crate::service::Limits,
 }
@@ -815,7 +818,7 @@ fn encode_snapshots(
     raw: std::sync::mpsc::Receiver<RawSnapshot>,
     request: &crate::engine::job::BakeRequest,
     flag: &StopFlag,
-    snapshots: &mpsc::UnboundedSender<SnapshotFiles>,
+    snapshots: &mpsc::Sender<SnapshotFiles>,
     shared: &Shared,
 ) {
     for snap in raw {
@@ -845,7 +848,8 @@ fn encode_snapshots(
         let png = job::preview_png(&snap.atlas, &delivered);
         match (exr, png) {
             (Ok(exr), Ok(png)) => {
-                let _ = snapshots.send(SnapshotFiles {
+                // Waits while the previous one is being stored (this is a plain thread).
+                let _ = snapshots.blocking_send(SnapshotFiles {
                     exr,
                     png,
                     steps: snap.estimate.steps,
