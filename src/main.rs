@@ -476,6 +476,19 @@ struct Failure {
     message: String,
 }
 
+/// An engine error as the process's failure: exit code 2 for bad input, else 1.
+fn engine_failure(e: lightmapd::engine::technique::EngineError) -> Failure {
+    Failure {
+        code: if e.is_bad_input() { 2 } else { 1 },
+        message: e.to_string(),
+    }
+}
+
+/// A relative error estimate as printed: "1.23%", or "n/a" without one.
+fn error_text(relative: Option<f32>) -> String {
+    relative.map_or_else(|| "n/a".into(), |e| format!("{:.2}%", e * 100.0))
+}
+
 fn bad_input(message: impl Into<String>) -> Failure {
     Failure {
         code: 2,
@@ -1018,10 +1031,6 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             "texel set built"
         );
     };
-    let engine_failure = |e: lightmapd::engine::technique::EngineError| Failure {
-        code: if e.is_bad_input() { 2 } else { 1 },
-        message: e.to_string(),
-    };
     if let Some((k, n)) = args.task {
         return bake_task(
             &args,
@@ -1117,11 +1126,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
     for w in &s.validation.warnings {
         eprintln!("warning: {w}");
     }
-    let err = s
-        .error
-        .relative
-        .map(|e| format!("{:.2}%", e * 100.0))
-        .unwrap_or_else(|| "n/a".into());
+    let err = error_text(s.error.relative);
     eprintln!(
         "baked {} ({}x{}, {} texels) with {}: {} steps in {:.2} s ({:.2} ms a step), estimated error {} (stopped by {:?}) -> {}",
         args.scene.display(),
@@ -1163,10 +1168,6 @@ fn bake_task(
     if let Some((_, flag)) = elsewhere.iter().find(|(given, _)| *given) {
         return Err(bad_input(format!("--task: {flag} is not for a task of a split bake")));
     }
-    let engine_failure = |e: lightmapd::engine::technique::EngineError| Failure {
-        code: if e.is_bad_input() { 2 } else { 1 },
-        message: e.to_string(),
-    };
     let tasks = tasks::split(request, n).map_err(engine_failure)?;
     let task = tasks[k as usize];
     bar.set_length(task.steps);
@@ -1215,10 +1216,7 @@ fn merge(args: MergeArgs) -> Result<(), Failure> {
         eprintln!("warning: {w}");
     }
     let result =
-        tasks::merge(Arc::new(scene), &parts, &job::BakeOptions::default(), &mut |_| {}).map_err(|e| Failure {
-            code: if e.is_bad_input() { 2 } else { 1 },
-            message: e.to_string(),
-        })?;
+        tasks::merge(Arc::new(scene), &parts, &job::BakeOptions::default(), &mut |_| {}).map_err(engine_failure)?;
     write_atomically(&args.output, &result.exr).map_err(|e| Failure {
         code: 1,
         message: format!("cannot write {}: {e}", args.output.display()),
@@ -1230,11 +1228,7 @@ fn merge(args: MergeArgs) -> Result<(), Failure> {
         })?;
     }
     let s = &result.summary;
-    let err = s
-        .error
-        .relative
-        .map(|e| format!("{:.2}%", e * 100.0))
-        .unwrap_or_else(|| "n/a".into());
+    let err = error_text(s.error.relative);
     eprintln!(
         "merged {} tasks of {} ({} texels) with {}: {} steps, {:.2} s of task time, estimated error {} -> {}",
         parts.len(),
@@ -1296,10 +1290,7 @@ fn bench(args: BenchArgs) -> Result<(), Failure> {
         out_dir: args.out.clone(),
         cache_dir: args.cache,
     };
-    let samples = lightmapd::bench::run(&cfg, &mut |line| eprintln!("bench: {line}")).map_err(|e| Failure {
-        code: if e.is_bad_input() { 2 } else { 1 },
-        message: e.to_string(),
-    })?;
+    let samples = lightmapd::bench::run(&cfg, &mut |line| eprintln!("bench: {line}")).map_err(engine_failure)?;
     eprintln!(
         "bench: {} measurements written to {}",
         samples.len(),
