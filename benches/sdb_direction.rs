@@ -78,14 +78,7 @@ fn main() {
                 ..Default::default()
             };
             let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
-            let inputs = BakeInputs {
-                scene: scene.clone(),
-                atlas: atlas.clone(),
-                lighting,
-                seed: 1,
-                want_direct: false,
-                plan,
-            };
+            let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 1, plan);
             for k in [3u32, 5] {
                 let params = SdbParams {
                     map_size: 512,

@@ -42,14 +42,7 @@ fn path_tech(scene: &Arc<Scene>, atlas: &Arc<Atlas>, lighting: Lighting, seed: u
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(scene, &request).unwrap();
-    let inputs = BakeInputs {
-        scene: scene.clone(),
-        atlas: atlas.clone(),
-        lighting,
-        seed,
-        want_direct: false,
-        plan,
-    };
+    let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, seed, plan);
     technique::create("path", inputs, &serde_json::json!({ "samples_per_step": spp })).unwrap()
 }
 

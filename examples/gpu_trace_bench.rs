@@ -175,14 +175,7 @@ fn path_steps(steps: u64, res: u32) {
         };
         let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
         for device in ["gpu", "cpu"] {
-            let inputs = BakeInputs {
-                scene: scene.clone(),
-                atlas: atlas.clone(),
-                lighting,
-                seed: 1,
-                want_direct: false,
-                plan: plan.clone(),
-            };
+            let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 1, plan.clone());
             let mut tech =
                 technique::create("path", inputs, &json!({"samples_per_step": 4, "device": device})).unwrap();
             tech.step().unwrap();

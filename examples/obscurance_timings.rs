@@ -56,14 +56,8 @@ fn inputs(scene: &Arc<Scene>, atlas: &Arc<Atlas>) -> BakeInputs {
         lighting: lighting(),
         ..Default::default()
     };
-    BakeInputs {
-        scene: scene.clone(),
-        atlas: atlas.clone(),
-        lighting: lighting(),
-        seed: 1,
-        want_direct: false,
-        plan: lightmapd::engine::job::plan_for(scene, &request).expect("plan"),
-    }
+    let plan = lightmapd::engine::job::plan_for(scene, &request).expect("plan");
+    BakeInputs::new(scene.clone(), atlas.clone(), lighting(), 1, plan)
 }
 
 fn main() {

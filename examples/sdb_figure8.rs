@@ -66,14 +66,7 @@ fn bake(scene: &Arc<Scene>, atlas: &Arc<Atlas>, technique: &str, params: serde_j
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(scene, &request).expect("plan");
-    let inputs = BakeInputs {
-        scene: scene.clone(),
-        atlas: atlas.clone(),
-        lighting,
-        seed: 1,
-        want_direct: false,
-        plan,
-    };
+    let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 1, plan);
     let mut t = technique::create(technique, inputs, &params).expect("technique");
     for _ in 0..steps {
         t.step().expect("step");

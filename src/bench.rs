@@ -25,6 +25,7 @@ use serde_json::json;
 
 use crate::engine::accumulate::{Estimate, LUMINANCE};
 use crate::engine::atlas::Atlas;
+use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::job::BakeRequest;
 use crate::engine::scene::library::{LibraryScene, benchmark_scenes};
 use crate::engine::scene::{Scene, import_slice};
@@ -93,6 +94,8 @@ fn fnv1a(bytes: &[u8], mut h: u64) -> u64 {
 
 pub struct PreparedScene {
     pub scene: Arc<Scene>,
+    /// The scene's rays, shared by every bake of the scene in the benchmark.
+    pub rays: Arc<SceneRays>,
     pub atlas: Arc<Atlas>,
     pub glb: Vec<u8>,
 }
@@ -107,7 +110,12 @@ pub fn prepare(lib: &LibraryScene) -> Result<PreparedScene, EngineError> {
     let atlas = Arc::new(
         Atlas::build(&scene, lib.resolution, lib.resolution).map_err(|e| EngineError::Internal(e.to_string()))?,
     );
-    Ok(PreparedScene { scene, atlas, glb })
+    Ok(PreparedScene {
+        rays: SceneRays::new(scene.clone()),
+        scene,
+        atlas,
+        glb,
+    })
 }
 
 fn inputs(p: &PreparedScene, lib: &LibraryScene, technique: &str, seed: u64) -> Result<BakeInputs, EngineError> {
@@ -118,14 +126,13 @@ fn inputs(p: &PreparedScene, lib: &LibraryScene, technique: &str, seed: u64) -> 
         ..Default::default()
     };
     let plan = crate::engine::job::plan_for(&p.scene, &request)?;
-    Ok(BakeInputs {
-        scene: p.scene.clone(),
-        atlas: p.atlas.clone(),
-        lighting: lib.lighting,
+    Ok(BakeInputs::sharing(
+        p.rays.clone(),
+        p.atlas.clone(),
+        lib.lighting,
         seed,
-        want_direct: false,
         plan,
-    })
+    ))
 }
 
 /// The reference for `lib`: its closed form, or a cached long `path` bake.

@@ -32,14 +32,7 @@ fn track(scene_name: &str) {
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(&p.scene, &request).unwrap();
-    let inputs = BakeInputs {
-        scene: p.scene.clone(),
-        atlas: p.atlas.clone(),
-        lighting: lib.lighting,
-        seed: 3,
-        want_direct: false,
-        plan,
-    };
+    let inputs = BakeInputs::new(p.scene.clone(), p.atlas.clone(), lib.lighting, 3, plan);
     let mut tech = technique::create("path", inputs, &serde_json::json!({"samples_per_step": 1})).unwrap();
     let mut checkpoints = vec![2u64, 4, 8, 16, 32, 64];
     while let Some(&next) = checkpoints.first() {
@@ -85,14 +78,7 @@ fn denoising_lowers_true_error() {
             ..Default::default()
         };
         let plan = lightmapd::engine::job::plan_for(&p.scene, &request).unwrap();
-        let inputs = BakeInputs {
-            scene: p.scene.clone(),
-            atlas: p.atlas.clone(),
-            lighting: lib.lighting,
-            seed: 9,
-            want_direct: false,
-            plan,
-        };
+        let inputs = BakeInputs::new(p.scene.clone(), p.atlas.clone(), lib.lighting, 9, plan);
         let mut tech = technique::create("path", inputs, &serde_json::json!({"samples_per_step": 2})).unwrap();
         tech.step().unwrap();
         tech.step().unwrap();

@@ -54,14 +54,7 @@ fn errors(scene: &str, spp: u32, steps: u64, used: Used) -> (f64, f64, f32) {
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(&p.scene, &request).unwrap();
-    let inputs = BakeInputs {
-        scene: p.scene.clone(),
-        atlas: p.atlas.clone(),
-        lighting: lib.lighting,
-        seed: 3,
-        want_direct: false,
-        plan,
-    };
+    let inputs = BakeInputs::new(p.scene.clone(), p.atlas.clone(), lib.lighting, 3, plan);
     let mut tech = technique::create("path", inputs, &serde_json::json!({ "samples_per_step": spp })).unwrap();
     for _ in 0..steps {
         tech.step().unwrap();

@@ -425,14 +425,7 @@ fn ms_per_step(
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
-    let inputs = BakeInputs {
-        scene,
-        atlas: atlas.clone(),
-        lighting,
-        seed: 1,
-        want_direct: false,
-        plan,
-    };
+    let inputs = BakeInputs::new(scene, atlas.clone(), lighting, 1, plan);
     let mut tech = technique::create("hemicube", inputs, &params).expect("prepares");
     for _ in 0..2 {
         tech.step().unwrap();

@@ -49,14 +49,7 @@ fn mutated_glb_files_never_panic() {
                 let scene = Arc::new(scene);
                 let request = BakeRequest::default();
                 let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
-                let inputs = BakeInputs {
-                    scene,
-                    atlas: Arc::new(atlas),
-                    lighting: Default::default(),
-                    seed: 0,
-                    want_direct: false,
-                    plan,
-                };
+                let inputs = BakeInputs::new(scene, Arc::new(atlas), Default::default(), 0, plan);
                 let mut t = technique::create("path", inputs, &serde_json::Value::Null).unwrap();
                 t.step().unwrap();
                 assert!(t.snapshot().unwrap().estimate().total.iter().all(|v| v.is_finite()));

@@ -56,12 +56,8 @@ fn inputs(scene: Arc<Scene>, atlas: Arc<Atlas>, lighting: Lighting, seed: u64) -
     };
     let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
     BakeInputs {
-        scene,
-        atlas,
-        lighting,
-        seed,
         want_direct: true,
-        plan,
+        ..BakeInputs::new(scene, atlas, lighting, seed, plan)
     }
 }
 

@@ -305,14 +305,8 @@ fn device_auto_and_bad_device() {
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
-    let inputs = lightmapd::engine::technique::BakeInputs {
-        scene: std::sync::Arc::new(scene),
-        atlas,
-        lighting: upper_sky(1.0),
-        seed: 1,
-        want_direct: false,
-        plan,
-    };
+    let inputs =
+        lightmapd::engine::technique::BakeInputs::new(std::sync::Arc::new(scene), atlas, upper_sky(1.0), 1, plan);
     let err = lightmapd::engine::technique::create("path", inputs, &json!({"device": "tpu"}))
         .err()
         .expect("an unknown device is refused");

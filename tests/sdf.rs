@@ -125,14 +125,7 @@ fn prepare(scene: Scene, atlas: Arc<Atlas>, params: serde_json::Value) -> Sdf {
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
-    let inputs = BakeInputs {
-        scene,
-        atlas,
-        lighting,
-        seed: 7,
-        want_direct: false,
-        plan,
-    };
+    let inputs = BakeInputs::new(scene, atlas, lighting, 7, plan);
     Sdf::prepare(inputs, &params).expect("sdf prepares")
 }
 
@@ -264,14 +257,7 @@ fn bad_params_name_the_parameter() {
         (json!({"unknown": 1}), "unknown"),
         (json!({"light_samples": 0}), "light_samples"),
     ] {
-        let inputs = BakeInputs {
-            scene: scene.clone(),
-            atlas: atlas.clone(),
-            lighting: upper_sky(1.0),
-            seed: 0,
-            want_direct: false,
-            plan: Default::default(),
-        };
+        let inputs = BakeInputs::new(scene.clone(), atlas.clone(), upper_sky(1.0), 0, Default::default());
         let e = Sdf::prepare(inputs, &params).err().expect("rejected");
         assert!(e.is_bad_input() && e.to_string().contains(name), "{e}");
     }
@@ -295,14 +281,13 @@ fn timings_for_the_docs() {
             lighting: s.lighting,
             ..Default::default()
         };
-        let inputs = BakeInputs {
-            scene: scene.clone(),
-            atlas: atlas.clone(),
-            lighting: s.lighting,
-            seed: 1,
-            want_direct: false,
-            plan: lightmapd::engine::job::plan_for(&scene, &request).unwrap(),
-        };
+        let inputs = BakeInputs::new(
+            scene.clone(),
+            atlas.clone(),
+            s.lighting,
+            1,
+            lightmapd::engine::job::plan_for(&scene, &request).unwrap(),
+        );
         let t = std::time::Instant::now();
         let mut sdf = Sdf::prepare(inputs, &json!({})).unwrap();
         let prepare = t.elapsed().as_secs_f64();

@@ -539,14 +539,7 @@ fn ms_per_step(scene: Scene, res: u32, lighting: Lighting, params: serde_json::V
         ..Default::default()
     };
     let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
-    let inputs = BakeInputs {
-        scene,
-        atlas: atlas.clone(),
-        lighting,
-        seed: 1,
-        want_direct: false,
-        plan,
-    };
+    let inputs = BakeInputs::new(scene, atlas.clone(), lighting, 1, plan);
     let mut tech = technique::create("vpl", inputs, &params).expect("vpl prepares");
     for _ in 0..2 {
         tech.step().unwrap();

@@ -42,9 +42,10 @@ use serde::Serialize;
 use crate::engine::accumulate::{Estimate, LUMINANCE};
 use crate::engine::atlas::Atlas;
 use crate::engine::error::EngineError;
+use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::plan::SceneFeatures;
 use crate::engine::rng::Rng;
-use crate::engine::scene::{Lighting, Scene};
+use crate::engine::scene::Lighting;
 use crate::engine::technique::{self, BakeInputs, Technique};
 
 /// Control texels per bake (fewer when the atlas has fewer texels).
@@ -78,7 +79,8 @@ pub struct ControlTexels {
 
 impl ControlTexels {
     /// Picks up to [`CONTROL_TEXELS`] texels of `atlas` and prepares `path` on them.
-    pub fn new(scene: &Arc<Scene>, atlas: &Atlas, lighting: Lighting, seed: u64) -> Result<Self, EngineError> {
+    pub fn new(rays: &Arc<SceneRays>, atlas: &Atlas, lighting: Lighting, seed: u64) -> Result<Self, EngineError> {
+        let scene = rays.scene();
         let n = atlas.texels.len();
         let m = n.min(CONTROL_TEXELS);
         let mut rng = Rng::new(seed, 0xC0_17_20_1E, 0x51, 0);
@@ -101,14 +103,14 @@ impl ControlTexels {
             seams: Vec::new(),
         };
         let features = SceneFeatures::of(scene, &lighting, &[]);
-        let inputs = BakeInputs {
-            scene: scene.clone(),
-            atlas: Arc::new(sub),
+        // The bake's rays: the reference traces the BVH the technique's passes use.
+        let inputs = BakeInputs::sharing(
+            rays.clone(),
+            Arc::new(sub),
             lighting,
-            seed: seed ^ 0x5EED_C0A7_0000_0001,
-            want_direct: false,
-            plan: technique::plan("path", &features)?,
-        };
+            seed ^ 0x5EED_C0A7_0000_0001,
+            technique::plan("path", &features)?,
+        );
         let reference = technique::create("path", inputs, &serde_json::json!({"samples_per_step": 4}))?;
         Ok(ControlTexels {
             indices,

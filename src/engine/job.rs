@@ -16,6 +16,7 @@ use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeEvent, BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::control::{CONTROL_TEXELS, ControlTexels};
+use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
 use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
@@ -275,6 +276,9 @@ type ObscuranceUpdate<'a> = Option<(&'a ObscuranceState, &'a [String], UpdateRea
 /// (`engine::tasks`) each build the same one.
 pub(crate) struct Prepared {
     pub scene: Arc<Scene>,
+    /// The scene's rays, shared by the technique, the control texels, the shadowmask and
+    /// the validation: one BVH and one GPU upload per bake.
+    pub rays: Arc<SceneRays>,
     pub atlas: Arc<Atlas>,
     pub plan: Plan,
     pub validation: ValidationReport,
@@ -352,11 +356,13 @@ pub(crate) fn prepare(
         .as_ref()
         .map_or((request.resolution, request.resolution), |l| (l.width, l.height));
     let mut atlas = Atlas::build(&scene, width, height).map_err(|e| EngineError::BadInput(e.to_string()))?;
-    let validation = validate::validate(&scene, &mut atlas);
+    let rays = SceneRays::new(scene.clone());
+    let validation = validate::validate_with(&scene, &rays.tracer(), &mut atlas);
     let atlas = Arc::new(atlas);
     on_atlas(&atlas);
     Ok(Prepared {
         scene,
+        rays,
         atlas,
         plan,
         validation,
@@ -369,12 +375,14 @@ pub(crate) fn prepare(
 impl Prepared {
     pub fn inputs(&self, request: &BakeRequest) -> BakeInputs {
         BakeInputs {
-            scene: self.scene.clone(),
-            atlas: self.atlas.clone(),
-            lighting: request.lighting,
-            seed: request.seed,
             want_direct: self.plan.runs(crate::engine::plan::DIRECT_LAYER),
-            plan: self.plan.clone(),
+            ..BakeInputs::sharing(
+                self.rays.clone(),
+                self.atlas.clone(),
+                request.lighting,
+                request.seed,
+                self.plan.clone(),
+            )
         }
     }
 
@@ -414,7 +422,7 @@ impl Prepared {
             },
         };
         let probes = match &request.probes {
-            Some(p) if stopped_by != StopReason::Cancelled => Some(bake_probes(&self.scene, request, p)?),
+            Some(p) if stopped_by != StopReason::Cancelled => Some(bake_probes(&self.rays, request, p)?),
             _ => None,
         };
         Ok(BakeResult {
@@ -487,14 +495,14 @@ impl Prepared {
         bake_loop.snapshot_interval = options.snapshot_interval;
         if self.control && !self.atlas.texels.is_empty() {
             bake_loop.control = Some(ControlTexels::new(
-                &self.scene,
+                &self.rays,
                 &self.atlas,
                 request.lighting,
                 request.seed,
             )?);
         }
         bake_loop.shadowmask = ShadowmaskBake::new(
-            &self.scene,
+            &self.rays,
             &self.atlas,
             &request.lighting,
             request.seed,
@@ -507,11 +515,11 @@ impl Prepared {
 
 /// The request's probes, baked by `path`'s probe estimator on the baked scene (the one
 /// with generated lightmap UVs, the same geometry).
-fn bake_probes(scene: &Scene, request: &BakeRequest, p: &ProbeRequest) -> Result<ProbeSet, EngineError> {
+fn bake_probes(rays: &SceneRays, request: &BakeRequest, p: &ProbeRequest) -> Result<ProbeSet, EngineError> {
     let started = std::time::Instant::now();
-    let at = probes::positions_for(scene, p.spacing, &p.positions)?;
-    let mut baker = ProbeBaker::new(
-        scene,
+    let at = probes::positions_for(rays.scene(), p.spacing, &p.positions)?;
+    let mut baker = ProbeBaker::sharing(
+        rays,
         request.lighting,
         at,
         &serde_json::json!({"samples_per_step": 64}),

@@ -28,9 +28,12 @@
 //! are refused beside a shadowmask: their directional moments would still hold the chosen
 //! lights' direct light.
 
+use std::sync::Arc;
+
 use crate::engine::accumulate::{Estimate, Snapshot};
 pub use crate::engine::accumulate::{MASK_CHANNEL_NAMES as CHANNEL_NAMES, ShadowmaskLayer};
 use crate::engine::atlas::Atlas;
+use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::gpu::{self, shadowmask as pass};
 use crate::engine::output::OutputLayer;
 use crate::engine::scene::{Lighting, Scene};
@@ -176,13 +179,14 @@ impl ShadowmaskBake {
     /// Resolves the request's lights and prepares the GPU pass; `None` when the job asks
     /// for no shadowmask.
     pub fn new(
-        scene: &Scene,
-        atlas: &Atlas,
+        rays: &SceneRays,
+        atlas: &Arc<Atlas>,
         lighting: &Lighting,
         seed: u64,
         outputs: &[OutputLayer],
         names: &[String],
     ) -> Result<Option<Self>, EngineError> {
+        let scene = rays.scene();
         let chosen =
             resolve(outputs, names, &light_names(scene), lighting.sun.is_some()).map_err(EngineError::BadInput)?;
         if chosen.is_empty() {
@@ -190,7 +194,7 @@ impl ShadowmaskBake {
         }
         let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
         let sources: Vec<MaskSource> = chosen.iter().map(|(_, s)| *s).collect();
-        let mut pass = pass::ShadowmaskPass::new(ctx, scene, atlas, lighting, seed, &sources, SUN_SAMPLES_PER_STEP)
+        let mut pass = pass::ShadowmaskPass::new(ctx, rays, atlas, lighting, seed, &sources, SUN_SAMPLES_PER_STEP)
             .map_err(|e| EngineError::Gpu(e.to_string()))?;
         // Both halves, and a floor on the samples, before the technique's first snapshot.
         for _ in 0..STEPS_BEFORE {

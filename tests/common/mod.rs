@@ -55,12 +55,8 @@ pub fn try_bake(
     };
     let plan = lightmapd::engine::job::plan_for(&scene, &request)?;
     let inputs = BakeInputs {
-        scene,
-        atlas: atlas.clone(),
-        lighting,
-        seed: 1,
         want_direct: true,
-        plan,
+        ..BakeInputs::new(scene, atlas.clone(), lighting, 1, plan)
     };
     let mut tech = technique::create(technique, inputs, &params)?;
     for _ in 0..steps {

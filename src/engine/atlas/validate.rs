@@ -85,8 +85,12 @@ pub fn backface_fractions(scene: &Scene, tracer: &Tracer, texels: &[Texel]) -> V
 
 /// Validates `atlas` in place (removing texels inside geometry) and reports.
 pub fn validate(scene: &Scene, atlas: &mut Atlas) -> ValidationReport {
-    let tracer = Tracer::new(scene);
-    let fractions = backface_fractions(scene, &tracer, &atlas.texels);
+    validate_with(scene, &Tracer::new(scene), atlas)
+}
+
+/// [`validate`] with the scene's BVH already built (a bake's, shared with its passes).
+pub fn validate_with(scene: &Scene, tracer: &Tracer, atlas: &mut Atlas) -> ValidationReport {
+    let fractions = backface_fractions(scene, tracer, &atlas.texels);
     let inside: Vec<bool> = fractions.iter().map(|f| *f > BACKFACE_TOLERANCE).collect();
     let inside_count = inside.iter().filter(|i| **i).count();
     if inside_count > 0 && inside_count < atlas.texels.len() {

@@ -22,8 +22,9 @@
 //! the geometric plane counted as hits), which `sdf` weights its bounce by.
 //!
 //! Space: the world space the atlas's sample points are in (the BVH's), not the
-//! normalised frame the raster techniques use; the texels are uploaded again here in
-//! that space (48 B a texel), so this module depends on no technique's buffers.
+//! normalised frame the raster techniques use. The scene and the texels are the bake's
+//! shared uploads (`gpu::scene_rays`); the pass itself is a `gpu::texel_pass`, so this
+//! module depends on no technique's buffers.
 //!
 //! Limits: the BVH and tables must fit the adapter's storage-binding limit
 //! (`gpu::scene_lights`); `samples_per_step` is capped at [`MAX_SAMPLES_PER_STEP`] so an
@@ -34,17 +35,15 @@
 use std::sync::Arc;
 
 use glam::Vec3;
-use wgpu::BufferUsages;
 
-use super::bvh::check_binding_size;
-use super::layout::{Bind, compute_pipeline, group_of, layout_of};
-use super::scene_lights::{GpuSceneLights, LightSources};
+use super::scene_lights::LightSources;
+use super::scene_rays::SceneRays;
 use super::shaders::DIRECT_LIGHT;
-use super::texels::world_texels;
+use super::texel_pass::{PassSpec, StepUniform, TexelRayPass};
 use super::{GpuContext, GpuError};
 use crate::engine::atlas::Atlas;
-use crate::engine::raytrace::{EmitterTable, Tracer};
-use crate::engine::scene::{Lighting, Scene};
+use crate::engine::raytrace::EmitterTable;
+use crate::engine::scene::Lighting;
 
 /// The most next-event estimates a texel takes per step.
 pub const MAX_SAMPLES_PER_STEP: u32 = 64;
@@ -55,6 +54,14 @@ struct DirectUniform {
     counts: [u32; 4],
     keys: [u32; 4],
     f: [f32; 4],
+}
+
+impl StepUniform for DirectUniform {
+    fn set_step(&mut self, step: u64, half: u32, weight: f32) {
+        self.counts[2] = step as u32;
+        self.counts[3] = half;
+        self.f[0] = weight;
+    }
 }
 
 /// One half's running means per valid texel.
@@ -70,31 +77,22 @@ const DIRECT_HITS: u32 = 1;
 
 /// The direct light of one bake's texels, accumulated on the GPU.
 pub struct DirectLight {
-    ctx: Arc<GpuContext>,
-    label: String,
-    pipeline: wgpu::ComputePipeline,
-    group: wgpu::BindGroup,
-    uniform_buf: wgpu::Buffer,
-    uniform: DirectUniform,
-    acc: wgpu::Buffer,
-    texels: usize,
-    half_steps: [u64; 2],
+    pass: TexelRayPass<DirectUniform>,
     sources: LightSources,
-    _scene: GpuSceneLights,
-    _texel_buf: wgpu::Buffer,
 }
 
 impl DirectLight {
-    /// Prepares the pass for `sources` of `scene` and `lighting` at `atlas`'s texels, or
-    /// `None` when the scene has none of them (nothing to add, no GPU work). `label`
-    /// names the technique in labels and errors; `emitters` restricts the emitters to
-    /// those scene triangles (all when `None`); `hits` adds the hit-fraction estimate.
+    /// Prepares the pass for `sources` of the scene of `rays` and `lighting` at `atlas`'s
+    /// texels, or `None` when the scene has none of them (nothing to add, no GPU work).
+    /// `label` names the technique in labels and errors; `emitters` restricts the
+    /// emitters to those scene triangles (all when `None`); `hits` adds the hit-fraction
+    /// estimate.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: Arc<GpuContext>,
         label: &str,
-        scene: &Scene,
-        atlas: &Atlas,
+        rays: &SceneRays,
+        atlas: &Arc<Atlas>,
         lighting: &Lighting,
         seed: u64,
         sources: LightSources,
@@ -102,74 +100,38 @@ impl DirectLight {
         samples_per_step: u32,
         hits: bool,
     ) -> Result<Option<Self>, GpuError> {
+        let scene = rays.scene();
         let emitters = match emitters {
-            Some(keep) => EmitterTable::of(scene, |i| keep.get(i).copied().unwrap_or(false)),
-            None => EmitterTable::new(scene),
+            Some(keep) => Arc::new(EmitterTable::of(scene, |i| keep.get(i).copied().unwrap_or(false))),
+            None => rays.emitters(),
         };
         let sources = sources.present(scene, lighting, &emitters);
         if sources == LightSources::NONE {
             return Ok(None);
         }
         let what = format!("{label} direct light");
-        let tracer = Tracer::new(scene);
-        let scene_gpu = GpuSceneLights::new(&ctx, &what, scene, lighting, &tracer, &emitters, sources)?;
         let n = atlas.texels.len();
-        let geom = world_texels(atlas);
-        let acc_bytes = 2 * n.max(1) as u64 * 16;
-        check_binding_size(&ctx, &format!("{what}: the texels"), geom.len() as u64 * 48)?;
-        check_binding_size(&ctx, &format!("{what}: the accumulators"), acc_bytes)?;
-        let texel_buf = ctx.buffer_init(
-            &format!("{what} texels"),
-            &geom,
-            BufferUsages::STORAGE | BufferUsages::COPY_DST,
-        );
-        let acc = ctx.buffer_zeroed(
-            &format!("{what} accumulators"),
-            acc_bytes,
-            BufferUsages::STORAGE | BufferUsages::COPY_SRC | BufferUsages::COPY_DST,
-        );
         let uniform = DirectUniform {
             counts: [n as u32, samples_per_step.clamp(1, MAX_SAMPLES_PER_STEP), 0, 0],
             keys: [seed as u32, (seed >> 32) as u32, if hits { DIRECT_HITS } else { 0 }, 0],
             f: [1.0, 0.0, 0.0, 0.0],
         };
-        let uniform_buf = ctx.uniform(&format!("{what} params"), &uniform);
-        let module = ctx.shader(&DIRECT_LIGHT)?;
-        let [b0, b1, b2, b3, b4] = scene_gpu.binds();
-        let binds = [
-            b0,
-            b1,
-            b2,
-            b3,
-            b4,
-            Bind::Uniform(&uniform_buf),
-            Bind::Read(&texel_buf),
-            Bind::Write(&acc),
-        ];
-        let layout = layout_of(&ctx, &what, wgpu::ShaderStages::COMPUTE, &binds);
-        let group = group_of(&ctx, &what, &layout, &binds);
-        let pipeline = compute_pipeline(&ctx, &what, &module, "direct", &layout);
-        ctx.take_error(&format!("{what}: preparing the GPU pass"))?;
+        let spec = PassSpec {
+            what: &what,
+            shader: &DIRECT_LIGHT,
+            entry: "direct",
+            sources,
+            emitters: &emitters,
+            accumulators: &[("accumulators", 2 * n as u64 * 16)],
+        };
+        let pass = TexelRayPass::new(ctx, rays, atlas, lighting, spec, uniform)?;
         tracing::debug!(
             technique = label,
             texels = n,
             sources = sources.0,
             "shared direct light"
         );
-        Ok(Some(DirectLight {
-            ctx,
-            label: what,
-            pipeline,
-            group,
-            uniform_buf,
-            uniform,
-            acc,
-            texels: n,
-            half_steps: [0, 0],
-            sources,
-            _scene: scene_gpu,
-            _texel_buf: texel_buf,
-        }))
+        Ok(Some(DirectLight { pass, sources }))
     }
 
     /// The sources this pass estimates (those asked for that the scene has).
@@ -179,38 +141,19 @@ impl DirectLight {
 
     /// Steps blended into each half so far.
     pub fn half_steps(&self) -> [u64; 2] {
-        self.half_steps
+        self.pass.half_steps()
     }
 
     /// Submits one step (one dispatch) into the half of its parity; does not wait.
     pub fn step(&mut self) -> Result<(), GpuError> {
-        if self.texels == 0 {
-            return Ok(());
-        }
-        let step = self.half_steps[0] + self.half_steps[1];
-        let half = (step % 2) as usize;
-        let k = self.half_steps[half] + 1;
-        self.uniform.counts[2] = step as u32;
-        self.uniform.counts[3] = half as u32;
-        self.uniform.f[0] = 1.0 / k as f32;
-        let ctx = &self.ctx;
-        ctx.queue
-            .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
-        ctx.submit_compute(&self.label, &self.pipeline, &self.group, self.texels as u32);
-        ctx.take_error(&self.label)?;
-        self.half_steps[half] = k;
-        Ok(())
+        self.pass.step()
     }
 
     /// Both halves' running means per valid texel (blocks on the device). A half no
     /// step has reached yet reads 0.
     pub fn halves(&self) -> Result<[DirectHalf; 2], GpuError> {
-        let n = self.texels;
-        let raw: Vec<[f32; 4]> = if n == 0 {
-            Vec::new()
-        } else {
-            self.ctx.read_buffer(&self.label, &self.acc, 2 * n)?
-        };
+        let n = self.pass.texels();
+        let raw = self.pass.read(0, 2 * n)?;
         let half = |h: usize| {
             let r = &raw[h * n..(h + 1) * n];
             DirectHalf {

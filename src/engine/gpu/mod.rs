@@ -34,9 +34,11 @@ pub mod halves;
 pub mod layout;
 pub mod map_scene;
 pub mod scene_lights;
+pub mod scene_rays;
 pub mod shaders;
 pub mod shadow;
 pub mod shadowmask;
+pub mod texel_pass;
 pub mod texels;
 pub mod view;
 

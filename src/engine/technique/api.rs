@@ -21,6 +21,7 @@ use serde_json::Value;
 use crate::engine::accumulate::Snapshot;
 use crate::engine::atlas::Atlas;
 pub use crate::engine::error::{EngineError, gpu_error};
+use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::gpu::shaders::PassShader;
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{Plan, SceneFeatures};
@@ -30,6 +31,10 @@ use crate::engine::scene::{Lighting, Scene};
 #[derive(Clone)]
 pub struct BakeInputs {
     pub scene: Arc<Scene>,
+    /// `scene`'s ray-tracing structures (CPU BVH, emitter table, GPU uploads), built on
+    /// first use and shared by every pass of the bake: a technique asks here instead of
+    /// building its own.
+    pub rays: Arc<SceneRays>,
     pub atlas: Arc<Atlas>,
     pub lighting: Lighting,
     pub seed: u64,
@@ -37,6 +42,27 @@ pub struct BakeInputs {
     pub want_direct: bool,
     /// What to create: a technique builds only the passes its plan lists.
     pub plan: Plan,
+}
+
+impl BakeInputs {
+    /// Inputs for `scene` with its own [`SceneRays`], no direct layer and `plan`.
+    pub fn new(scene: Arc<Scene>, atlas: Arc<Atlas>, lighting: Lighting, seed: u64, plan: Plan) -> Self {
+        Self::sharing(SceneRays::new(scene), atlas, lighting, seed, plan)
+    }
+
+    /// Inputs for the scene of `rays`, sharing them (the bake's other passes hold the
+    /// same `rays`).
+    pub fn sharing(rays: Arc<SceneRays>, atlas: Arc<Atlas>, lighting: Lighting, seed: u64, plan: Plan) -> Self {
+        BakeInputs {
+            scene: rays.scene().clone(),
+            rays,
+            atlas,
+            lighting,
+            seed,
+            want_direct: false,
+            plan,
+        }
+    }
 }
 
 pub trait Technique: Send {

@@ -284,7 +284,7 @@ pub struct Hemicube {
     flags: u32,
     centre: Vec3,
     radius: f32,
-    tracer: Option<Tracer>,
+    tracer: Option<Arc<Tracer>>,
     emitters: Vec<Emitter>,
     emitter_cdf: Vec<f64>,
     k_emit: u32,
@@ -594,7 +594,7 @@ impl Hemicube {
         let transfer_bg = group_of(&ctx, "hemicube transfer bindings", &transfer_layout, &transfer_binds);
         ctx.take_error("hemicube setup").map_err(gpu_error)?;
 
-        let tracer = cpu_light.then(|| Tracer::new(&scene));
+        let tracer = cpu_light.then(|| inputs.rays.tracer());
         Ok(Hemicube {
             ctx,
             params,

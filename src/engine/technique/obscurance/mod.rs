@@ -962,7 +962,7 @@ impl Obscurance {
         let shared_direct = DirectLight::new(
             ctx.clone(),
             "obscurance",
-            scene,
+            &inputs.rays,
             atlas,
             &inputs.lighting,
             inputs.seed,

@@ -28,16 +28,13 @@
 use std::sync::{Arc, OnceLock};
 
 use glam::Vec3;
-use wgpu::BufferUsages;
 
 use super::PathParams;
 use super::shaders::PATH_TRACE;
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
-use crate::engine::gpu::bvh::check_binding_size;
-use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
-use crate::engine::gpu::scene_lights::{GpuSceneLights, LightSources};
+use crate::engine::gpu::scene_lights::LightSources;
+use crate::engine::gpu::texel_pass::{PassSpec, StepUniform, TexelRayPass};
 use crate::engine::gpu::{self, AdapterPreference, GpuContext, GpuError, Requirements};
-use crate::engine::raytrace::{EmitterTable, Tracer};
 use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
 
 /// Where `path` runs (`params.device`).
@@ -99,82 +96,36 @@ struct PathUniform {
     f: [f32; 4],
 }
 
-/// The GPU half of `path`: buffers, the pass, and the half accumulators on the GPU.
+impl StepUniform for PathUniform {
+    fn set_step(&mut self, step: u64, half: u32, weight: f32) {
+        self.counts[3] = step as u32;
+        self.keys[2] = half;
+        self.f[2] = weight;
+    }
+}
+
+/// The GPU half of `path`: the pass and its half accumulators on the GPU (total, direct,
+/// directional moments).
 pub struct PathGpu {
-    ctx: Arc<GpuContext>,
-    pipeline: wgpu::ComputePipeline,
-    group: wgpu::BindGroup,
-    uniform_buf: wgpu::Buffer,
-    uniform: PathUniform,
-    acc_total: wgpu::Buffer,
-    acc_direct: wgpu::Buffer,
-    acc_moment: wgpu::Buffer,
+    pass: TexelRayPass<PathUniform>,
     texels: usize,
     want_direct: bool,
     want_moments: bool,
-    half_steps: [u64; 2],
-    /// The job's index of the first step (a task's, `engine::tasks`): the streams are
-    /// keyed by the global step.
-    pub first_step: u64,
-    _lights: GpuSceneLights,
 }
 
 impl PathGpu {
-    pub fn new(
-        ctx: Arc<GpuContext>,
-        inputs: &BakeInputs,
-        params: &PathParams,
-        tracer: &Tracer,
-        emitters: &EmitterTable,
-    ) -> Result<Self, EngineError> {
-        Self::build(ctx, inputs, params, tracer, emitters).map_err(gpu_error)
+    /// `path` on `ctx` for `inputs`, its scene from the bake's shared uploads.
+    pub fn new(ctx: Arc<GpuContext>, inputs: &BakeInputs, params: &PathParams) -> Result<Self, EngineError> {
+        Self::build(ctx, inputs, params).map_err(gpu_error)
     }
 
-    fn build(
-        ctx: Arc<GpuContext>,
-        inputs: &BakeInputs,
-        params: &PathParams,
-        tracer: &Tracer,
-        emitters: &EmitterTable,
-    ) -> Result<Self, GpuError> {
-        let scene = &inputs.scene;
-        let lights = GpuSceneLights::new(
-            &ctx,
-            "path",
-            scene,
-            &inputs.lighting,
-            tracer,
-            emitters,
-            LightSources::ALL,
-        )?;
+    fn build(ctx: Arc<GpuContext>, inputs: &BakeInputs, params: &PathParams) -> Result<Self, GpuError> {
         let n = inputs.atlas.texels.len();
         let want_direct = inputs.want_direct;
         let want_moments = inputs.plan.runs("directional (sh) layer");
-        let texel_geom: Vec<[f32; 4]> = inputs
-            .atlas
-            .texels
-            .iter()
-            .flat_map(|t| {
-                [
-                    t.position.extend(0.0).to_array(),
-                    t.normal.extend(0.0).to_array(),
-                    t.geo_normal.extend(0.0).to_array(),
-                ]
-            })
-            .collect();
         let vec4 = 16u64;
-        check_binding_size(&ctx, "path: the texels", texel_geom.len() as u64 * vec4)?;
+        // A layer not kept still binds one vec4.
         let acc_len = |keep: bool, per: u64| if keep { 2 * n as u64 * per * vec4 } else { vec4 };
-        check_binding_size(&ctx, "path: the accumulators", acc_len(true, 1))?;
-        check_binding_size(&ctx, "path: the directional moments", acc_len(want_moments, 3))?;
-
-        let read = BufferUsages::STORAGE | BufferUsages::COPY_DST;
-        let rw = BufferUsages::STORAGE | BufferUsages::COPY_SRC | BufferUsages::COPY_DST;
-        let texel_buf = ctx.buffer_init("path texels", &texel_geom, read);
-        let acc_total = ctx.buffer_zeroed("path accumulators", acc_len(true, 1), rw);
-        let acc_direct = ctx.buffer_zeroed("path direct accumulators", acc_len(want_direct, 1), rw);
-        let acc_moment = ctx.buffer_zeroed("path moment accumulators", acc_len(want_moments, 3), rw);
-
         let seed = inputs.seed;
         let flags = if want_direct { PATH_DIRECT } else { 0 } | if want_moments { PATH_MOMENTS } else { 0 };
         let uniform = PathUniform {
@@ -182,83 +133,55 @@ impl PathGpu {
             keys: [seed as u32, (seed >> 32) as u32, 0, flags],
             f: [params.rr_threshold, inputs.atlas.surface_offset, 1.0, 0.0],
         };
-        let uniform_buf = ctx.uniform("path params", &uniform);
-        let module = ctx.shader(&PATH_TRACE)?;
-        let [b0, b1, b2, b3, b4] = lights.binds();
-        let binds = [
-            b0,
-            b1,
-            b2,
-            b3,
-            b4,
-            Bind::Uniform(&uniform_buf),
-            Bind::Read(&texel_buf),
-            Bind::Write(&acc_total),
-            Bind::Write(&acc_direct),
-            Bind::Write(&acc_moment),
-        ];
-        let layout = layout_of(&ctx, "path trace", wgpu::ShaderStages::COMPUTE, &binds);
-        let group = group_of(&ctx, "path trace", &layout, &binds);
-        let pipeline = compute_pipeline(&ctx, "path trace", &module, "trace", &layout);
-        ctx.take_error("path: preparing the GPU pass")?;
+        let spec = PassSpec {
+            what: "path trace",
+            shader: &PATH_TRACE,
+            entry: "trace",
+            sources: LightSources::ALL,
+            emitters: &inputs.rays.emitters(),
+            accumulators: &[
+                ("accumulators", acc_len(true, 1)),
+                ("direct accumulators", acc_len(want_direct, 1)),
+                ("moment accumulators", acc_len(want_moments, 3)),
+            ],
+        };
+        let pass = TexelRayPass::new(ctx, &inputs.rays, &inputs.atlas, &inputs.lighting, spec, uniform)?;
         tracing::info!(
-            adapter = %ctx.info.name,
-            triangles = scene.triangles.len(),
-            bvh_nodes = lights.bvh.data.nodes.len(),
-            bvh_depth = lights.bvh.data.depth,
+            adapter = %pass.ctx().info.name,
+            triangles = inputs.scene.triangles.len(),
+            bvh_nodes = pass.lights.bvh.data.nodes.len(),
+            bvh_depth = pass.lights.bvh.data.depth,
             texels = n,
             "path on the GPU"
         );
         Ok(PathGpu {
-            ctx,
-            pipeline,
-            group,
-            uniform_buf,
-            uniform,
-            acc_total,
-            acc_direct,
-            acc_moment,
+            pass,
             texels: n,
             want_direct,
             want_moments,
-            half_steps: [0, 0],
-            first_step: 0,
-            _lights: lights,
         })
     }
 
     pub fn steps(&self) -> u64 {
-        self.half_steps[0] + self.half_steps[1]
+        let [a, b] = self.pass.half_steps();
+        a + b
+    }
+
+    /// Makes the next step the job's step `first` (a task's, `engine::tasks`).
+    pub fn start_at_step(&mut self, first: u64) {
+        self.pass.first_step = first;
     }
 
     /// Submits one step (one dispatch); does not wait for it.
     pub fn step(&mut self) -> Result<(), EngineError> {
-        let step = self.steps();
-        let half = (step % 2) as usize;
-        let k = self.half_steps[half] + 1;
-        self.uniform.counts[3] = (self.first_step + step) as u32;
-        self.uniform.keys[2] = half as u32;
-        self.uniform.f[2] = 1.0 / k as f32;
-        let ctx = &self.ctx;
-        ctx.queue
-            .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
-        ctx.submit_compute("path trace", &self.pipeline, &self.group, self.texels as u32);
-        ctx.take_error("path trace").map_err(gpu_error)?;
-        self.half_steps[half] = k;
-        Ok(())
+        self.pass.step().map_err(gpu_error)
     }
 
     pub fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let n = self.texels;
-        let ctx = &self.ctx;
-        let total: Vec<[f32; 4]> = ctx
-            .read_buffer("path accumulators", &self.acc_total, 2 * n)
-            .map_err(gpu_error)?;
-        let direct: Option<Vec<[f32; 4]>> = if self.want_direct {
-            Some(
-                ctx.read_buffer("path direct accumulators", &self.acc_direct, 2 * n)
-                    .map_err(gpu_error)?,
-            )
+        let total = self.pass.read(0, 2 * n).map_err(gpu_error)?;
+        let direct = if self.want_direct {
+            Some(self.pass.read(1, 2 * n).map_err(gpu_error)?)
         } else {
             None
         };
@@ -270,15 +193,13 @@ impl PathGpu {
                  (llvmpipe ends an invocation's loops after 65535 iterations in all, about 1300 \
                  bounces here), so the lightmap would read too dark; lower params.samples_per_step \
                  or params.max_bounces, or use \"device\": \"cpu\"",
-                self.ctx.info.name,
+                self.pass.ctx().info.name,
                 i % n
             )));
         }
-        let mut snap = Snapshot::from_gpu_halves(&total, direct.as_deref(), self.half_steps);
+        let mut snap = Snapshot::from_gpu_halves(&total, direct.as_deref(), self.pass.half_steps());
         if self.want_moments {
-            let m: Vec<[f32; 4]> = ctx
-                .read_buffer("path moment accumulators", &self.acc_moment, 6 * n)
-                .map_err(gpu_error)?;
+            let m = self.pass.read(2, 6 * n).map_err(gpu_error)?;
             let v = |a: [f32; 4]| Vec3::new(a[0], a[1], a[2]);
             let half = |h: usize| -> Vec<[Vec3; 3]> {
                 (0..n)

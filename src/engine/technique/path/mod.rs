@@ -44,6 +44,7 @@
 //! point of a texel inside closed geometry sees back faces and bakes black.
 
 use std::f32::consts::FRAC_1_PI;
+use std::sync::Arc;
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -184,8 +185,8 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 pub struct PathTracer {
     inputs: BakeInputs,
     params: PathParams,
-    tracer: Tracer,
-    emitters: EmitterTable,
+    tracer: Arc<Tracer>,
+    emitters: Arc<EmitterTable>,
     acc: HalfAccumulator,
     /// The GPU estimator, when `params.device` resolved to the GPU.
     gpu: Option<PathGpu>,
@@ -198,10 +199,10 @@ impl PathTracer {
     pub fn prepare(inputs: BakeInputs, params: &Value) -> Result<Self, EngineError> {
         let mut params: PathParams = parse_params("path", params)?;
         params.validate()?;
-        let tracer = Tracer::new(&inputs.scene);
-        let emitters = EmitterTable::new(&inputs.scene);
+        let tracer = inputs.rays.tracer();
+        let emitters = inputs.rays.emitters();
         let gpu = match gpu::resolve(params.device)? {
-            Some(ctx) => Some(PathGpu::new(ctx, &inputs, &params, &tracer, &emitters)?),
+            Some(ctx) => Some(PathGpu::new(ctx, &inputs, &params)?),
             None => None,
         };
         params.device = if gpu.is_some() { Device::Gpu } else { Device::Cpu };
@@ -311,7 +312,7 @@ impl Technique for PathTracer {
         }
         self.first_step = first;
         if let Some(gpu) = self.gpu.as_mut() {
-            gpu.first_step = first;
+            gpu.start_at_step(first);
         }
         Ok(())
     }

@@ -41,6 +41,8 @@
 //! Limits: CPU only (the GPU megakernel bakes texels; probes are few); no light sampling
 //! of emitters; no adaptive density.
 
+use std::sync::Arc;
+
 use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
@@ -48,6 +50,7 @@ use serde::Serialize;
 use super::{PathContext, PathParams};
 use crate::engine::accumulate::LUMINANCE;
 use crate::engine::error::EngineError;
+use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::raytrace::{EmitterTable, Tracer, cone_sample, inset};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Lighting, Scene};
@@ -182,8 +185,8 @@ pub fn grid_positions(scene: &Scene, spacing: f32, max: usize) -> Result<Vec<Vec
 pub struct ProbeBaker<'a> {
     scene: &'a Scene,
     lighting: Lighting,
-    tracer: Tracer,
-    emitters: EmitterTable,
+    tracer: Arc<Tracer>,
+    emitters: Arc<EmitterTable>,
     params: PathParams,
     positions: Vec<Vec3>,
     valid: Vec<bool>,
@@ -202,12 +205,35 @@ impl<'a> ProbeBaker<'a> {
         params: &serde_json::Value,
         seed: u64,
     ) -> Result<Self, EngineError> {
+        let parts = (Arc::new(Tracer::new(scene)), Arc::new(EmitterTable::new(scene)));
+        Self::build(scene, parts, lighting, positions, params, seed)
+    }
+
+    /// [`ProbeBaker::new`] on the scene of `rays`, tracing the BVH the bake built.
+    pub fn sharing(
+        rays: &'a SceneRays,
+        lighting: Lighting,
+        positions: Vec<Vec3>,
+        params: &serde_json::Value,
+        seed: u64,
+    ) -> Result<Self, EngineError> {
+        let parts = (rays.tracer(), rays.emitters());
+        Self::build(rays.scene(), parts, lighting, positions, params, seed)
+    }
+
+    fn build(
+        scene: &'a Scene,
+        (tracer, emitters): (Arc<Tracer>, Arc<EmitterTable>),
+        lighting: Lighting,
+        positions: Vec<Vec3>,
+        params: &serde_json::Value,
+        seed: u64,
+    ) -> Result<Self, EngineError> {
         let params: PathParams = crate::engine::technique::api::parse_params("path", params)?;
         params.validate()?;
         if let Some(k) = positions.iter().position(|p| !p.is_finite()) {
             return Err(EngineError::BadInput(format!("probes.positions[{k}] is not finite")));
         }
-        let tracer = Tracer::new(scene);
         // Relative to the scene, far below any feature.
         let eps = bounds(scene).map_or(1e-4, |(lo, hi)| ((hi - lo).length() * 1e-5).max(1e-6));
         let valid: Vec<bool> = positions
@@ -218,7 +244,7 @@ impl<'a> ProbeBaker<'a> {
         Ok(ProbeBaker {
             scene,
             lighting,
-            emitters: EmitterTable::new(scene),
+            emitters,
             tracer,
             params,
             positions,

@@ -58,7 +58,12 @@ pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<Stri
             None => Box::new(move |_| direct.clone()),
         });
     }
-    input.ambient = Some(ambient_mode(&inputs.scene, &inputs.atlas, inputs.seed));
+    input.ambient = Some(ambient_mode(
+        &inputs.scene,
+        &inputs.rays.tracer(),
+        &inputs.atlas,
+        inputs.seed,
+    ));
     (input, notes)
 }
 
@@ -114,7 +119,7 @@ fn small_emitter_sampler(inputs: &BakeInputs, small: Vec<usize>) -> EmitterSampl
             Some(*acc)
         })
         .collect();
-    let tracer = Tracer::new(&scene);
+    let tracer = inputs.rays.tracer();
     Box::new(move |step: u64| {
         atlas
             .texels
@@ -158,7 +163,7 @@ fn small_emitter_sampler(inputs: &BakeInputs, small: Vec<usize>) -> EmitterSampl
 /// point source, so it is computed once, not per step.
 fn punctual_direct(inputs: &BakeInputs) -> Vec<Vec3> {
     let scene = &inputs.scene;
-    let tracer = Tracer::new(scene);
+    let tracer = inputs.rays.tracer();
     let lights: Vec<&PunctualLight> = scene
         .lights
         .iter()
@@ -201,7 +206,7 @@ const AMBIENT_RAYS: u32 = 65_536;
 /// from area-weighted random texels on the CPU, with the `path` reference's rules: the
 /// back of a single-sided surface is black, a double-sided one reflects on both faces.
 /// A few tens of milliseconds at 64k rays.
-pub fn ambient_mode(scene: &Scene, atlas: &Atlas, seed: u64) -> AmbientMode {
+pub fn ambient_mode(scene: &Scene, tracer: &Tracer, atlas: &Atlas, seed: u64) -> AmbientMode {
     let texel_area: Vec<f32> = atlas.texels.iter().map(|t| t.size * t.size).collect();
     let mut cdf = Vec::with_capacity(texel_area.len());
     let mut total = 0.0f64;
@@ -215,7 +220,6 @@ pub fn ambient_mode(scene: &Scene, atlas: &Atlas, seed: u64) -> AmbientMode {
             texel_area,
         };
     }
-    let tracer = Tracer::new(scene);
     let gain = (0..AMBIENT_RAYS)
         .into_par_iter()
         .map(|i| {

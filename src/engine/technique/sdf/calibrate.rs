@@ -50,7 +50,7 @@ impl Sdf {
         }
         // The reference: cosine rays that escape into the sky (path's first bounce).
         let rays = self.params.calibration_rays;
-        let tracer = Tracer::new(scene);
+        let tracer = inputs.rays.tracer();
         let shapes: Vec<(DynamicShape, Vec3)> = self
             .params
             .dynamic

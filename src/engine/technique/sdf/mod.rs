@@ -117,7 +117,7 @@ use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::{self, GpuContext, GpuError};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
-use crate::engine::raytrace::{Tracer, cosine_sample};
+use crate::engine::raytrace::cosine_sample;
 use crate::engine::rng::Rng;
 use crate::engine::scene::Hemisphere;
 #[cfg(test)]
@@ -572,7 +572,7 @@ impl Sdf {
             Some(ctx) if has_other_light => DirectLight::new(
                 ctx.clone(),
                 "sdf",
-                scene,
+                &inputs.rays,
                 atlas,
                 &inputs.lighting,
                 inputs.seed,

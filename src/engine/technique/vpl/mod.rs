@@ -299,7 +299,7 @@ pub struct Vpl {
     ctx: Arc<GpuContext>,
     params: VplParams,
     scene: Arc<Scene>,
-    tracer: Tracer,
+    tracer: Arc<Tracer>,
     lighting: Lighting,
     seed: u64,
     want_direct: bool,
@@ -478,7 +478,7 @@ impl Vpl {
         let gather_bg = group_of(&ctx, "vpl gather bindings", &gather_layout, &gather_binds);
         ctx.take_error("vpl setup").map_err(gpu_error)?;
 
-        let tracer = Tracer::new(&scene);
+        let tracer = inputs.rays.tracer();
         let ray_offset = SURFACE_OFFSET * scene.scale();
         Ok(Vpl {
             texel_dispatch: gpu::dispatch_size_64(n_texels),

@@ -1,0 +1,157 @@
+//! A compute pass that traces rays from every valid texel and keeps the even/odd half
+//! running means on the GPU (DESIGN §4): what `path` on the GPU, the shared direct-light
+//! pass (`gpu::direct_light`) and the shadowmask pass (`gpu::shadowmask`) each are. One
+//! type owns their common part, so the bind list, the pipeline and the half bookkeeping
+//! exist once: bindings 0-4 are the scene's rays and lights ([`GpuSceneLights`], the
+//! bake's shared uploads), 5 the pass's uniform, 6 the world-space texels (shared per
+//! texel set, `gpu::scene_rays`), then the pass's accumulators, in the order given.
+//!
+//! How a step runs: the step's parity picks its half; the half's k-th step is blended
+//! with weight 1/k into that half's running mean (the shader reads the weight), so a
+//! half is the mean of its steps and the two halves are independent estimates whose
+//! difference is the noise. One dispatch of one invocation per texel; nothing is waited
+//! for until a read-back ([`TexelRayPass::read`]), which happens at snapshots only.
+//!
+//! Limits: each accumulator must fit the storage-binding limit (checked here, naming the
+//! pass); the step counts go to the shader in 32 bits.
+
+use std::sync::Arc;
+
+use bytemuck::Pod;
+
+use super::bvh::check_binding_size;
+use super::layout::{Bind, compute_pipeline, group_of, layout_of};
+use super::scene_lights::{GpuSceneLights, LightSources};
+use super::scene_rays::SceneRays;
+use super::shaders::PassShader;
+use super::{GpuContext, GpuError};
+use crate::engine::atlas::Atlas;
+use crate::engine::raytrace::EmitterTable;
+use crate::engine::scene::Lighting;
+
+/// A pass's uniform (binding 5), told which step it is about to run.
+pub trait StepUniform: Pod {
+    /// `step`: the job's global step index; `half`: 0 (even) or 1 (odd); `weight`: 1/k
+    /// for the half's k-th step.
+    fn set_step(&mut self, step: u64, half: u32, weight: f32);
+}
+
+/// What a [`TexelRayPass`] is made of beyond the scene and its texels.
+pub struct PassSpec<'a> {
+    /// Names the pass in labels and errors.
+    pub what: &'a str,
+    pub shader: &'a PassShader,
+    pub entry: &'a str,
+    /// The lights its next-event estimation samples, and the emitters it may pick.
+    pub sources: LightSources,
+    pub emitters: &'a EmitterTable,
+    /// Each accumulator's label and size in bytes (bindings 7, 8, ...).
+    pub accumulators: &'a [(&'a str, u64)],
+}
+
+/// One texel pass of one bake (see the module doc).
+pub struct TexelRayPass<U: StepUniform> {
+    ctx: Arc<GpuContext>,
+    label: String,
+    pipeline: wgpu::ComputePipeline,
+    group: wgpu::BindGroup,
+    uniform_buf: wgpu::Buffer,
+    /// The uniform as last written; fields a pass owns may be changed between steps.
+    pub uniform: U,
+    accumulators: Vec<(String, wgpu::Buffer)>,
+    texels: usize,
+    half_steps: [u64; 2],
+    /// The job's index of this bake's first step (a task's, `engine::tasks`).
+    pub first_step: u64,
+    pub lights: GpuSceneLights,
+    _texels: Arc<wgpu::Buffer>,
+}
+
+impl<U: StepUniform> TexelRayPass<U> {
+    pub fn new(
+        ctx: Arc<GpuContext>,
+        rays: &SceneRays,
+        atlas: &Arc<Atlas>,
+        lighting: &Lighting,
+        spec: PassSpec<'_>,
+        uniform: U,
+    ) -> Result<Self, GpuError> {
+        let what = spec.what;
+        let lights = GpuSceneLights::new(&ctx, what, rays, lighting, spec.emitters, spec.sources)?;
+        let texels = rays.gpu_texels(&ctx, what, atlas)?;
+        let mut accumulators = Vec::with_capacity(spec.accumulators.len());
+        for (name, bytes) in spec.accumulators {
+            check_binding_size(&ctx, &format!("{what}: the {name}"), *bytes)?;
+            let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
+            let label = format!("{what} {name}");
+            let buffer = ctx.buffer_zeroed(&label, (*bytes).max(16), usage);
+            accumulators.push((label, buffer));
+        }
+        let uniform_buf = ctx.uniform(&format!("{what} params"), &uniform);
+        let module = ctx.shader(spec.shader)?;
+        let mut binds: Vec<Bind<'_>> = lights.binds().to_vec();
+        binds.push(Bind::Uniform(&uniform_buf));
+        binds.push(Bind::Read(&texels));
+        binds.extend(accumulators.iter().map(|(_, b)| Bind::Write(b)));
+        let layout = layout_of(&ctx, what, wgpu::ShaderStages::COMPUTE, &binds);
+        let group = group_of(&ctx, what, &layout, &binds);
+        let pipeline = compute_pipeline(&ctx, what, &module, spec.entry, &layout);
+        ctx.take_error(&format!("{what}: preparing the GPU pass"))?;
+        Ok(TexelRayPass {
+            ctx,
+            label: what.to_string(),
+            pipeline,
+            group,
+            uniform_buf,
+            uniform,
+            accumulators,
+            texels: atlas.texels.len(),
+            half_steps: [0, 0],
+            first_step: 0,
+            lights,
+            _texels: texels,
+        })
+    }
+
+    pub fn ctx(&self) -> &Arc<GpuContext> {
+        &self.ctx
+    }
+
+    /// The valid texels the pass runs over.
+    pub fn texels(&self) -> usize {
+        self.texels
+    }
+
+    /// Steps blended into each half so far.
+    pub fn half_steps(&self) -> [u64; 2] {
+        self.half_steps
+    }
+
+    /// Submits one step (one dispatch) into the half of its parity; does not wait.
+    pub fn step(&mut self) -> Result<(), GpuError> {
+        let step = self.half_steps[0] + self.half_steps[1];
+        let half = (step % 2) as usize;
+        let k = self.half_steps[half] + 1;
+        if self.texels > 0 {
+            self.uniform
+                .set_step(self.first_step + step, half as u32, 1.0 / k as f32);
+            self.ctx
+                .queue
+                .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
+            self.ctx
+                .submit_compute(&self.label, &self.pipeline, &self.group, self.texels as u32);
+            self.ctx.take_error(&self.label)?;
+        }
+        self.half_steps[half] = k;
+        Ok(())
+    }
+
+    /// The first `count` vec4 of accumulator `index` (blocks on the device).
+    pub fn read(&self, index: usize, count: usize) -> Result<Vec<[f32; 4]>, GpuError> {
+        if count == 0 {
+            return Ok(Vec::new());
+        }
+        let (label, buffer) = &self.accumulators[index];
+        self.ctx.read_buffer(label, buffer, count)
+    }
+}
