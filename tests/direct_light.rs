@@ -264,3 +264,76 @@ fn no_direct_light_passes_a_thin_wall() {
         assert_eq!(dark, 0.0, "{technique}: direct light in the dark room");
     }
 }
+
+/// Issue 18 point 2: one bake builds its scene's BVH once and holds the scene on the GPU
+/// once, however many passes trace it. Here `sdf` (its calibration's CPU rays and its
+/// direct-light pass), the shadowmask pass and the control texels' `path` share one
+/// [`SceneRays`]; each used to build its own BVH and upload its own copy (three GPU
+/// copies, four CPU BVHs).
+#[test]
+fn one_bake_builds_its_bvh_once_and_uploads_the_scene_once() {
+    use lightmapd::engine::control::ControlTexels;
+    use lightmapd::engine::gpu::scene_rays::{Builds, SceneRays};
+    use lightmapd::engine::job::{BakeRequest, plan_for};
+    use lightmapd::engine::output::OutputLayer;
+    use lightmapd::engine::shadowmask::ShadowmaskBake;
+    use lightmapd::engine::technique::{self, BakeInputs};
+    use std::sync::Arc;
+
+    if !have_adapter() {
+        return;
+    }
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("ground", [0.5; 3]));
+    b.square("ground", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.light(LightDesc::Point {
+        position: Vec3::new(0.3, 1.5, -0.2),
+        color: [1.0; 3],
+        intensity: 3.0,
+    });
+    let scene = Arc::new(import(&b));
+    let lighting = Lighting {
+        sky: None,
+        sun: Some(Sun {
+            direction: Vec3::new(0.3, -1.0, 0.2),
+            radiance: Vec3::splat(1.0),
+            angular_diameter: 0.53f32.to_radians(),
+        }),
+    };
+    let atlas = Arc::new(lightmapd::engine::atlas::Atlas::build(&scene, 16, 16).expect("atlas"));
+    let request = BakeRequest {
+        technique: "sdf".into(),
+        lighting,
+        ..Default::default()
+    };
+    let plan = plan_for(&scene, &request).expect("plan");
+    let rays = SceneRays::new(scene.clone());
+    let inputs = BakeInputs::sharing(rays.clone(), atlas.clone(), lighting, 1, plan);
+    let mut tech = technique::create("sdf", inputs, &json!({})).expect("sdf prepares");
+    let mut mask = ShadowmaskBake::new(&rays, &atlas, &lighting, 1, &[OutputLayer::Shadowmask], &["sun".into()])
+        .expect("shadowmask prepares")
+        .expect("a sun to mask");
+    let mut control = ControlTexels::new(&rays, &atlas, lighting, 1).expect("control texels");
+    tech.step().expect("sdf step");
+    mask.step().expect("shadowmask step");
+    control
+        .keep_up(std::time::Duration::from_secs(1))
+        .expect("control step");
+    let built = rays.builds();
+    // The control's `path` runs on the CPU on lavapipe (its own texel upload only on a
+    // hardware GPU, where its sub-atlas is a second texel set).
+    use lightmapd::engine::gpu::AdapterPreference;
+    let path_on_gpu = lightmapd::engine::technique::path::hardware_adapter_present()
+        && AdapterPreference::from_env() != AdapterPreference::Cpu;
+    let texel_sets = if path_on_gpu { 2 } else { 1 };
+    assert_eq!(
+        built,
+        Builds {
+            cpu_bvh: 1,
+            gpu_bvh: 1,
+            gpu_tables: 1,
+            gpu_texels: texel_sets,
+        },
+        "one BVH, one GPU scene, one texel upload per texel set"
+    );
+}

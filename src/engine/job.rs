@@ -403,6 +403,7 @@ impl Prepared {
         } else {
             finish(&self.atlas, raw, request)
         };
+        tracing::debug!(builds = ?self.rays.builds(), "the bake's shared scene rays");
         let exr = delivered_exr(&self.atlas, &finished, request, params, elapsed)?;
         let preview_png = preview_png(&self.atlas, &finished)?;
         let summary = BakeSummary {

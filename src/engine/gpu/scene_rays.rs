@@ -54,6 +54,17 @@ pub struct SceneRays {
     tracer: OnceLock<Arc<Tracer>>,
     emitters: OnceLock<Arc<EmitterTable>>,
     gpu: Mutex<GpuCache>,
+    built: Mutex<Builds>,
+}
+
+/// How many times each structure was built or uploaded: what the sharing saves is
+/// checked on these (`tests/direct_light.rs`) and logged at the end of a bake.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Builds {
+    pub cpu_bvh: u32,
+    pub gpu_bvh: u32,
+    pub gpu_tables: u32,
+    pub gpu_texels: u32,
 }
 
 #[derive(Default)]
@@ -75,7 +86,17 @@ impl SceneRays {
             tracer: OnceLock::new(),
             emitters: OnceLock::new(),
             gpu: Mutex::new(GpuCache::default()),
+            built: Mutex::new(Builds::default()),
         })
+    }
+
+    /// The builds and uploads so far.
+    pub fn builds(&self) -> Builds {
+        *self.built.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn count(&self, f: impl FnOnce(&mut Builds)) {
+        f(&mut self.built.lock().unwrap_or_else(|p| p.into_inner()));
     }
 
     /// The scene these rays trace.
@@ -85,7 +106,12 @@ impl SceneRays {
 
     /// The CPU BVH (built on first use).
     pub fn tracer(&self) -> Arc<Tracer> {
-        self.tracer.get_or_init(|| Arc::new(Tracer::new(&self.scene))).clone()
+        self.tracer
+            .get_or_init(|| {
+                self.count(|b| b.cpu_bvh += 1);
+                Arc::new(Tracer::new(&self.scene))
+            })
+            .clone()
     }
 
     /// The table over every emissive triangle (built on first use).
@@ -113,13 +139,17 @@ impl SceneRays {
 
     /// The BVH on `ctx` (uploaded on first use).
     pub fn gpu_bvh(&self, ctx: &Arc<GpuContext>) -> Result<Arc<GpuBvh>, GpuError> {
+        let upload = || -> Result<Arc<GpuBvh>, GpuError> {
+            self.count(|b| b.gpu_bvh += 1);
+            Ok(Arc::new(GpuBvh::new(ctx, self.tracer().bvh(), &self.scene)?))
+        };
         let Some(mut cache) = self.cache(ctx) else {
-            return Ok(Arc::new(GpuBvh::new(ctx, self.tracer().bvh(), &self.scene)?));
+            return upload();
         };
         if let Some(b) = &cache.bvh {
             return Ok(b.clone());
         }
-        let bvh = Arc::new(GpuBvh::new(ctx, self.tracer().bvh(), &self.scene)?);
+        let bvh = upload()?;
         cache.bvh = Some(bvh.clone());
         Ok(bvh)
     }
@@ -133,13 +163,17 @@ impl SceneRays {
         emitters: &EmitterTable,
     ) -> Result<Arc<GpuTables>, GpuError> {
         let bvh = self.gpu_bvh(ctx)?;
+        let upload = || -> Result<Arc<GpuTables>, GpuError> {
+            self.count(|b| b.gpu_tables += 1);
+            Ok(Arc::new(upload_tables(ctx, what, &self.scene, emitters, &bvh)?))
+        };
         let Some(mut cache) = self.cache(ctx) else {
-            return Ok(Arc::new(upload_tables(ctx, what, &self.scene, emitters, &bvh)?));
+            return upload();
         };
         if let Some((_, t)) = cache.tables.iter().find(|(ids, _)| *ids == emitters.emitters) {
             return Ok(t.clone());
         }
-        let t = Arc::new(upload_tables(ctx, what, &self.scene, emitters, &bvh)?);
+        let t = upload()?;
         cache.tables.push((emitters.emitters.clone(), t.clone()));
         Ok(t)
     }
@@ -153,6 +187,7 @@ impl SceneRays {
         atlas: &Arc<Atlas>,
     ) -> Result<Arc<wgpu::Buffer>, GpuError> {
         let upload = || -> Result<Arc<wgpu::Buffer>, GpuError> {
+            self.count(|b| b.gpu_texels += 1);
             let geom = world_texels(atlas);
             check_binding_size(ctx, &format!("{what}: the texels"), geom.len() as u64 * 48)?;
             let usage = BufferUsages::STORAGE | BufferUsages::COPY_DST;
