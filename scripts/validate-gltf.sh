@@ -9,11 +9,16 @@ root="$(cd "$(dirname "$0")/.." && pwd)"
 dir="${CARGO_TARGET_DIR:-$root/target}/tools/gltf-validator"
 version="2.0.0-dev.3.10"
 command -v node >/dev/null || { echo "validate-gltf: node not found (apt-get install nodejs npm)" >&2; exit 2; }
+# Tests run this from several threads at once: the first installs while the others wait on
+# the lock (without it, one could find package.json written before the package was whole).
+mkdir -p "$dir"
+exec 9>"$dir/.install.lock"
+flock 9
 if [ ! -f "$dir/node_modules/gltf-validator/package.json" ] ||
     ! grep -q "\"version\": \"$version\"" "$dir/node_modules/gltf-validator/package.json"; then
-    mkdir -p "$dir"
     (cd "$dir" && npm install --silent --no-audit --no-fund --prefix "$dir" "gltf-validator@$version" >&2)
 fi
+flock -u 9
 NODE_PATH="$dir/node_modules" node - "$@" <<'JS'
 const validator = require('gltf-validator');
 const fs = require('fs');
