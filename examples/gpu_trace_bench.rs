@@ -15,7 +15,9 @@ use std::time::Instant;
 use glam::Vec3;
 use lightmapd::engine::atlas::Atlas;
 use lightmapd::engine::atlas::unwrap::{UvUnwrap, generate_lightmap_uvs};
-use lightmapd::engine::gpu::bvh::{BVH_MISS, GpuBvh, QueryRay, QueryRunner};
+use lightmapd::engine::gpu::bvh::{BVH_MISS, QueryRay, QueryRunner};
+use lightmapd::engine::gpu::scene_lights::{GpuSceneLights, LightSources};
+use lightmapd::engine::gpu::scene_rays::SceneRays;
 use lightmapd::engine::gpu::{GpuContext, Requirements};
 use lightmapd::engine::job::BakeRequest;
 use lightmapd::engine::raytrace::{Tracer, cosine_sample};
@@ -97,7 +99,7 @@ fn incoherent(scene: &Scene, n: usize) -> Vec<QueryRay> {
         .collect()
 }
 
-fn traversal(ctx: &GpuContext, rays_n: usize) {
+fn traversal(ctx: &Arc<GpuContext>, rays_n: usize) {
     println!(
         "| scene | triangles | BVH nodes / depth | rays | kind | hit % | GPU Mrays/s | CPU Mrays/s ({} threads) |",
         rayon::current_num_threads()
@@ -105,7 +107,9 @@ fn traversal(ctx: &GpuContext, rays_n: usize) {
     println!("| --- | --- | --- | --- | --- | --- | --- | --- |");
     for (name, scene) in scenes() {
         let tracer = Tracer::new(&scene);
-        let bvh = GpuBvh::new(ctx, tracer.bvh(), &scene).unwrap();
+        let shared = SceneRays::new(Arc::new(scene.clone()));
+        let emitters = shared.emitters();
+        let bvh = GpuSceneLights::new(ctx, "bvh query", &shared, &Lighting::default(), &emitters, LightSources::NONE).unwrap();
         for (kind, rays) in [
             ("coherent", coherent(&scene, rays_n)),
             ("incoherent", incoherent(&scene, rays_n)),
@@ -138,8 +142,8 @@ fn traversal(ctx: &GpuContext, rays_n: usize) {
             println!(
                 "| {name} | {} | {} / {} | {} | {kind} | {:.1} | {:.2} | {:.2} |",
                 scene.triangles.len(),
-                bvh.data.nodes.len(),
-                bvh.data.depth,
+                bvh.bvh.data.nodes.len(),
+                bvh.bvh.data.depth,
                 rays.len(),
                 100.0 * hit,
                 rays.len() as f64 / gpu_s / 1e6,
@@ -199,7 +203,7 @@ fn path_steps(steps: u64, res: u32) {
 
 fn main() {
     tracing_subscriber::fmt().with_writer(std::io::stderr).init();
-    let ctx = GpuContext::new(&Requirements::default()).expect("a GPU adapter (lavapipe will do)");
+    let ctx = Arc::new(GpuContext::new(&Requirements::default()).expect("a GPU adapter (lavapipe will do)"));
     println!(
         "adapter: {} ({:?}, {:?})",
         ctx.info.name, ctx.info.device_type, ctx.info.backend

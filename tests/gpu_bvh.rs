@@ -15,24 +15,44 @@
 
 mod common;
 
+use std::sync::Arc;
+
 use glam::Vec3;
-use lightmapd::engine::gpu::bvh::{BVH_MISS, BvhData, GpuBvh, QUERY_OVERFLOW, QueryHit, QueryRay, QueryRunner};
+use lightmapd::engine::gpu::bvh::{BVH_MISS, BvhData, QUERY_OVERFLOW, QueryHit, QueryRay, QueryRunner};
+use lightmapd::engine::gpu::scene_lights::{GpuSceneLights, LightSources};
+use lightmapd::engine::gpu::scene_rays::SceneRays;
 use lightmapd::engine::gpu::{GpuContext, GpuError, Requirements};
 use lightmapd::engine::raytrace::{Tracer, intersect};
 use lightmapd::engine::rng::Rng;
-use lightmapd::engine::scene::Scene;
+use lightmapd::engine::scene::{Lighting, Scene};
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box};
 use lightmapd::engine::scene::library::{closed_box, procedural_blocks, sphere_over_plane};
 
-fn context() -> Option<GpuContext> {
+fn context() -> Option<Arc<GpuContext>> {
     match GpuContext::new(&Requirements::default()) {
-        Ok(c) => Some(c),
+        Ok(c) => Some(Arc::new(c)),
         Err(GpuError::NoAdapter) if std::env::var("LIGHTMAPD_REQUIRE_GPU").as_deref() != Ok("1") => {
             eprintln!("SKIPPED: no GPU adapter on this machine (install mesa-vulkan-drivers for lavapipe)");
             None
         }
         Err(e) => panic!("GPU context (LIGHTMAPD_REQUIRE_GPU=1 makes a missing adapter fatal): {e}"),
     }
+}
+
+/// `scene` on the GPU as the query pass reads it (the BVH, and the materials the alpha
+/// test reads), and the CPU tracer whose tree the GPU's is.
+fn upload(ctx: &Arc<GpuContext>, scene: &Scene) -> (Arc<Tracer>, GpuSceneLights) {
+    let rays = SceneRays::new(Arc::new(scene.clone()));
+    let lights = GpuSceneLights::new(
+        ctx,
+        "bvh query",
+        &rays,
+        &Lighting::default(),
+        &rays.emitters(),
+        LightSources::NONE,
+    )
+    .unwrap();
+    (rays.tracer(), lights)
 }
 
 /// `scene` with every position mapped to p·scale + offset (normals unchanged).
@@ -364,13 +384,12 @@ fn gpu_closest_hits_match_the_cpu_at_every_scale() {
             (1.0, Vec3::new(1e5, -1e5, 1e5), "translated 1e5"),
         ] {
             let scene = transformed(base.clone(), scale, offset);
-            let tracer = Tracer::new(&scene);
-            let bvh = GpuBvh::new(&ctx, tracer.bvh(), &scene).unwrap();
+            let (tracer, bvh) = upload(&ctx, &scene);
             let rays = make_rays(&scene, 7, 4000);
             let runner = QueryRunner::new(&ctx, &bvh, rays.rays.len()).unwrap();
             let hits = runner.run(&ctx, &rays.rays).unwrap();
             let what = format!("{name}, {label}");
-            let t = compare(&scene, &tracer, &bvh.data, &rays, &hits, &what, offset != Vec3::ZERO);
+            let t = compare(&scene, &tracer, &bvh.bvh.data, &rays, &hits, &what, offset != Vec3::ZERO);
             eprintln!(
                 "{what}: {} rays, {} same, {} ties, {} edge cases, {} hits the CPU BVH lost, largest distance difference {:.2e} of the scene size",
                 t.rays, t.same, t.ties, t.edge_cases, t.cpu_bvh_lost, t.max_dt
@@ -384,8 +403,7 @@ fn gpu_rays_inside_a_closed_box_never_escape() {
     let Some(ctx) = context() else { return };
     for (scale, offset) in [(1.0f32, Vec3::ZERO), (1e-3, Vec3::ZERO), (1.0, Vec3::splat(1e5))] {
         let scene = transformed(common::import(&closed_box(0.5)), scale, offset);
-        let tracer = Tracer::new(&scene);
-        let bvh = GpuBvh::new(&ctx, tracer.bvh(), &scene).unwrap();
+        let (tracer, bvh) = upload(&ctx, &scene);
         let mut rng = Rng::new(11, 0, 0, 0);
         let (lo, hi) = (scene.bounds.min, scene.bounds.max);
         let size = scene.bounds.diagonal();
@@ -440,8 +458,7 @@ fn gpu_rays_inside_a_closed_box_never_escape() {
 fn gpu_any_hit_matches_the_cpu() {
     let Some(ctx) = context() else { return };
     for (name, scene) in scenes() {
-        let tracer = Tracer::new(&scene);
-        let bvh = GpuBvh::new(&ctx, tracer.bvh(), &scene).unwrap();
+        let (tracer, bvh) = upload(&ctx, &scene);
         let base = make_rays(&scene, 3, 4000);
         let mut rng = Rng::new(5, 0, 0, 0);
         let size = scene.bounds.diagonal();
@@ -495,8 +512,7 @@ fn empty_scene_misses_everything() {
     let Some(ctx) = context() else { return };
     let mut scene = common::import(&closed_box(0.5));
     scene.triangles.clear();
-    let tracer = Tracer::new(&scene);
-    let bvh = GpuBvh::new(&ctx, tracer.bvh(), &scene).unwrap();
+    let (_, bvh) = upload(&ctx, &scene);
     let runner = QueryRunner::new(&ctx, &bvh, 2).unwrap();
     let hits = runner
         .run(
@@ -554,7 +570,7 @@ fn back_to_back_sheets_hit_the_face_toward_the_ray() {
         }
         let Some(ctx) = context() else { continue };
         let data = BvhData::new(tracer.bvh(), &scene).unwrap();
-        let bvh = GpuBvh::new(&ctx, tracer.bvh(), &scene).unwrap();
+        let (_, bvh) = upload(&ctx, &scene);
         let runner = QueryRunner::new(&ctx, &bvh, rays.len()).unwrap();
         let hits = runner.run(&ctx, &rays).unwrap();
         for (i, (r, h)) in rays.iter().zip(&hits).enumerate() {

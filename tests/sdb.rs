@@ -100,6 +100,8 @@ impl Quad {
             emission_textured: false,
             double_sided: self.double_sided,
             mesh: self.mesh,
+            material: 0,
+            alpha_uv: [Vec2::ZERO; 3],
         };
         [tri(0, 1, 2), tri(0, 2, 3)]
     }
@@ -186,6 +188,7 @@ fn open_plane_under_uniform_sky_sees_the_sky() {
         want_direct: false,
         ambient: None,
         small_emitters: None,
+        tables: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 512);
@@ -243,6 +246,7 @@ fn closed_emissive_box_converges_to_the_furnace_solution() {
         want_direct: false,
         ambient: None,
         small_emitters: None,
+        tables: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(128, 3)).unwrap();
     let e = run(&mut engine, 1024);
@@ -276,6 +280,7 @@ fn leaky_mode_reaches_the_same_solution() {
         want_direct: false,
         ambient: None,
         small_emitters: None,
+        tables: None,
     };
     let p = SdbParams {
         mode: AccumulationMode::Leaky,
@@ -322,6 +327,7 @@ fn sun_direct_light_and_shadow() {
         want_direct: true,
         ambient: None,
         small_emitters: None,
+        tables: None,
     };
     let mut engine = SdbEngine::new(ctx, input, params(256, 3)).unwrap();
     let e = run(&mut engine, 8);
@@ -374,6 +380,7 @@ fn random_and_stratified_directions_agree() {
         want_direct: false,
         ambient: None,
         small_emitters: None,
+        tables: None,
     };
     // Sky radiance 3 cos(theta) over the upper hemisphere: E/pi = (1/pi) int 3 cos^2 = 2.
     let p = SdbParams {
@@ -579,6 +586,7 @@ fn plan_reports_point_lights_and_the_sh_layer() {
         glossy_materials: 0,
         textured_materials: 0,
         double_sided_triangles: 0,
+        alpha_materials: 0,
         want_direct: false,
         want_validity: false,
         want_sh: true,
@@ -829,6 +837,7 @@ fn depth_layers_recover_surfaces_lost_to_overdraw() {
             want_direct: false,
             ambient: None,
             small_emitters: None,
+            tables: None,
         };
         let p = SdbParams {
             depth_layers: layers,
@@ -888,6 +897,7 @@ fn measure_stratified_vs_random() {
                     want_direct: false,
                     ambient: None,
                     small_emitters: None,
+                    tables: None,
                 };
                 let p = SdbParams {
                     directions: seq,

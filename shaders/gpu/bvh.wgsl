@@ -35,9 +35,11 @@
 // (lavapipe) ends every loop of an invocation once all its loops together have run
 // 65535 iterations, and a traversal cut that way would read as a miss.
 //
-// Alpha (issue 19): every triangle carries a flags word; BVH_TRI_ALPHA_TEST marks one
-// whose candidate hits must pass `bvh_alpha_accept`. Nothing sets the flag yet, and
-// `bvh_alpha_accept` accepts every hit: every triangle is opaque today.
+// Alpha (issue 19): every triangle carries a flags word; BVH_TRI_ALPHA_TEST marks one of
+// a MASK or BLEND material, whose candidate hits must pass `bvh_alpha_accept(slot, u, v,
+// o, d)`. That function is gpu/lights.wgsl's (it reads the materials and textures there),
+// so every pass composed with this library composes that one too (WGSL resolves
+// module-scope names in any order).
 
 const BVH_STACK: u32 = 64u;
 const BVH_MISS: u32 = 0xffffffffu;
@@ -76,11 +78,6 @@ struct BvhHit {
 
 @group(0) @binding(0) var<storage, read> bvh_nodes: array<BvhNode>;
 @group(0) @binding(1) var<storage, read> bvh_tris: array<BvhTri>;
-
-// The alpha-test hook (issue 19): true keeps the candidate hit.
-fn bvh_alpha_accept(slot: u32, u: f32, v: f32) -> bool {
-    return true;
-}
 
 fn bvh_safe_inv(d: vec3<f32>) -> vec3<f32> {
     let tiny = vec3<f32>(1e-30);
@@ -154,7 +151,7 @@ fn bvh_closest(o: vec3<f32>, d: vec3<f32>, tmax: f32) -> BvhHit {
                 let r = bvh_tri_test(tri, o, d, best);
                 let back = (tri.flags & BVH_TRI_SINGLE_SIDED) != 0u && dot(d, cross(tri.e1, tri.e2)) > 0.0;
                 let key = select(r.x, r.x * BVH_BACK_FACE_TIE, back);
-                if r.x > 0.0 && key < best && ((tri.flags & BVH_TRI_ALPHA_TEST) == 0u || bvh_alpha_accept(s, r.y, r.z)) {
+                if r.x > 0.0 && key < best && ((tri.flags & BVH_TRI_ALPHA_TEST) == 0u || bvh_alpha_accept(s, r.y, r.z, o, d)) {
                     best = key;
                     hit.t = r.x;
                     hit.slot = s;
@@ -223,7 +220,7 @@ fn bvh_unoccluded(o: vec3<f32>, d: vec3<f32>, tmax: f32) -> bool {
                 let s = n.first + k;
                 let tri = bvh_tris[s];
                 let r = bvh_tri_test(tri, o, d, tmax);
-                if r.x > 0.0 && ((tri.flags & BVH_TRI_ALPHA_TEST) == 0u || bvh_alpha_accept(s, r.y, r.z)) {
+                if r.x > 0.0 && ((tri.flags & BVH_TRI_ALPHA_TEST) == 0u || bvh_alpha_accept(s, r.y, r.z, o, d)) {
                     return false;
                 }
             }

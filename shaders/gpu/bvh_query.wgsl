@@ -25,9 +25,11 @@ struct QueryParams {
     count: vec4<u32>,  // x: number of rays
 }
 
-@group(0) @binding(2) var<uniform> qp: QueryParams;
-@group(0) @binding(3) var<storage, read> rays: array<QueryRay>;
-@group(0) @binding(4) var<storage, read_write> results: array<QueryResult>;
+// Bindings 0-4: the scene (gpu/bvh.wgsl, gpu/lights.wgsl: the alpha test reads its
+// materials and textures).
+@group(0) @binding(5) var<uniform> qp: QueryParams;
+@group(0) @binding(6) var<storage, read> rays: array<QueryRay>;
+@group(0) @binding(7) var<storage, read_write> results: array<QueryResult>;
 
 @compute @workgroup_size(64)
 fn query(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,

@@ -1,8 +1,9 @@
 // gpu/lights.wgsl: the scene as rays shade it, and next-event estimation to its lights.
 // A library (no entry points), prepended after gpu/bvh.wgsl to every pass that samples the
 // scene's light with rays: `path` (path/path_trace.wgsl) and the shared direct-light pass
-// (gpu/direct_light.wgsl, src/engine/gpu/direct_light.rs). It owns bindings 2-4; the
-// buffers are built once by src/engine/gpu/scene_lights.rs.
+// (gpu/direct_light.wgsl, src/engine/gpu/direct_light.rs), after gpu/materials.wgsl, whose
+// `tables` it declares (binding 4). It owns bindings 2-4; the buffers are built once by
+// src/engine/gpu/scene_rays.rs. It also defines gpu/bvh.wgsl's alpha test.
 //
 // Sampling (engine::raytrace, line for line): cosine-weighted directions, cones, the
 // power heuristic. Next-event estimation (path::PathContext::next_event): every punctual
@@ -20,7 +21,9 @@
 // so the light's own surface does not occlude it.
 
 struct SceneUniform {
-    tables: vec4<u32>,   // x: materials offset, y: lights offset, z: light count, w: emitters offset
+    // x: materials offset, y: lights offset, z: light count, w: emitters offset (the
+    // materials and textures are found through the tables' own row 0, gpu/materials.wgsl)
+    tables: vec4<u32>,
     tables2: vec4<u32>,  // x: emitter count, y: texture headers offset, z: sources (LIGHTS_*), w: unused
     sky: vec4<f32>,      // rgb: radiance; w: SKY_*
     sun_axis: vec4<f32>, // xyz: unit direction toward the sun; w: cos of the disc's half angle
@@ -34,21 +37,19 @@ const LIGHTS_EMITTERS: u32 = 8u;     // emissive triangles
 const SKY_UPPER: f32 = 1.0;
 const SKY_FULL: f32 = 2.0;
 const LIGHT_DIRECTIONAL: u32 = 0u;
-const WRAP_MIRROR: u32 = 1u;
-const WRAP_CLAMP: u32 = 2u;
-const NO_TEXTURE: u32 = 0xffffffffu;
 const INV_PI: f32 = 0.31830988618;
 const TWO_PI: f32 = 6.28318530718;
 const RAY_FAR: f32 = 3.4e38;       // "no limit" for a ray
 const PDF_INFINITE: f32 = 3.0e38;  // a density that is a delta (power heuristic weight 1)
 const SHADE_STRIDE: u32 = 6u;
 
+
 @group(0) @binding(2) var<uniform> scene_u: SceneUniform;
 // Per triangle slot, 6 vec4: n0 | material (bits), n1 | emitter pick probability,
 // n2 | area, (uv0, uv1), (uv2, lm0), (lm1, lm2).
 @group(0) @binding(3) var<storage, read> shade: array<vec4<f32>>;
-// Materials (3 vec4 each), lights (4 each), emitters (1 each), texture headers (1 each)
-// and texture texels (1 each, linear RGBA), at the offsets in `scene_u.tables`.
+// The offsets row and the materials and textures that gpu/materials.wgsl reads, then the
+// lights (4 vec4 each) and emitters (1 each) at the offsets in `scene_u.tables`.
 @group(0) @binding(4) var<storage, read> tables: array<vec4<f32>>;
 
 // ---- randomness ------------------------------------------------------------------------
@@ -156,69 +157,32 @@ fn tri_shading_normal(slot: u32, b: vec3<f32>) -> vec3<f32> {
     return normalize_or_zero(shade[base].xyz * b.x + shade[base + 1u].xyz * b.y + shade[base + 2u].xyz * b.z);
 }
 
-fn mat_double_sided(m: u32) -> bool {
-    return bitcast<u32>(tables[scene_u.tables.x + m * 3u + 2u].z) != 0u;
-}
-
-fn wrap_index(i: i32, n: i32, mode: u32) -> i32 {
-    if mode == WRAP_CLAMP {
-        return clamp(i, 0, n - 1);
-    }
-    if mode == WRAP_MIRROR {
-        let p = ((i % (2 * n)) + 2 * n) % (2 * n);
-        return select(2 * n - 1 - p, p, p < n);
-    }
-    return ((i % n) + n) % n;
-}
-
-// Bilinear lookup with the texture's wrap modes, as scene::Texture::sample. Coordinates
-// beyond +-1e9 texels are clamped there (i32), where f32 has no fraction left anyway.
-fn tex_sample(t: u32, uv: vec2<f32>) -> vec4<f32> {
-    let h = tables[scene_u.tables2.y + t];
-    let off = bitcast<u32>(h.x);
-    let w = i32(bitcast<u32>(h.y));
-    let ht = i32(bitcast<u32>(h.z));
-    let modes = bitcast<u32>(h.w);
-    let x = uv.x * f32(w) - 0.5;
-    let y = uv.y * f32(ht) - 0.5;
-    let x0 = floor(x);
-    let y0 = floor(y);
-    let fx = x - x0;
-    let fy = y - y0;
-    let xi = i32(clamp(x0, -1e9, 1e9));
-    let yi = i32(clamp(y0, -1e9, 1e9));
-    let xa = wrap_index(xi, w, modes & 255u);
-    let xb = wrap_index(xi + 1, w, modes & 255u);
-    let ya = wrap_index(yi, ht, modes >> 8u);
-    let yb = wrap_index(yi + 1, ht, modes >> 8u);
-    let c00 = tables[off + u32(ya * w + xa)];
-    let c10 = tables[off + u32(ya * w + xb)];
-    let c01 = tables[off + u32(yb * w + xa)];
-    let c11 = tables[off + u32(yb * w + xb)];
-    let top = c00 + (c10 - c00) * fx;
-    let bottom = c01 + (c11 - c01) * fx;
-    return top + (bottom - top) * fy;
-}
-
 fn albedo_at(slot: u32, b: vec3<f32>) -> vec3<f32> {
     let m = tri_material(slot);
-    let row = tables[scene_u.tables.x + m * 3u];
+    let row = mat_row(m, 0u);
     var c = row.xyz;
     let tex = bitcast<u32>(row.w);
     if tex != NO_TEXTURE {
-        let uv_set = bitcast<u32>(tables[scene_u.tables.x + m * 3u + 2u].x);
-        c *= tex_sample(tex, tri_uv(slot, uv_set, b)).xyz;
+        c *= tex_sample(tex, tri_uv(slot, mat_base_uv_set(m), b)).xyz;
     }
     return c;
 }
 
+// The alpha test of gpu/bvh.wgsl (Scene::stops_ray) for a candidate hit at (u, v) on the
+// triangle in `slot`, of a MASK or BLEND material (gpu/materials.wgsl).
+fn bvh_alpha_accept(slot: u32, u: f32, v: f32, o: vec3<f32>, d: vec3<f32>) -> bool {
+    let m = tri_material(slot);
+    let a = mat_coverage(m, tri_uv(slot, mat_base_uv_set(m), vec3<f32>(1.0 - u - v, u, v)));
+    return alpha_keeps(m, a, alpha_draw(o, d, bvh_tris[slot].id));
+}
+
 fn emission_at(slot: u32, b: vec3<f32>) -> vec3<f32> {
     let m = tri_material(slot);
-    let row = tables[scene_u.tables.x + m * 3u + 1u];
+    let row = mat_row(m, 1u);
     var e = row.xyz;
     let tex = bitcast<u32>(row.w);
     if any(e != vec3<f32>(0.0)) && tex != NO_TEXTURE {
-        let uv_set = bitcast<u32>(tables[scene_u.tables.x + m * 3u + 2u].y);
+        let uv_set = bitcast<u32>(mat_row(m, 2u).y);
         e *= tex_sample(tex, tri_uv(slot, uv_set, b)).xyz;
     }
     return e;

@@ -15,18 +15,29 @@
 // of a pixel's footprint, centimetres for a distant wall, and leaked through 1 mm walls
 // here). Every face of every triangle is drawn (no culling): single-sided back faces are
 // black but still block light. Depth32Float orders the fragments.
+//
+// Alpha (gpu/materials.wgsl): a fragment that glTF alpha cuts away is discarded, so the
+// pixel keeps the next surface behind it. BLEND's draw hashes the pixel, the triangle's
+// plane offset and the view's origin and forward axis: a view that moves between steps
+// draws anew, a fixed one keeps a fixed dither whose pixels pass 1 - coverage of the light.
 
 @group(0) @binding(0) var<storage, read> views: array<ShadowView>;
+@group(0) @binding(1) var<storage, read> tables: array<vec4<f32>>;
 
 struct ShadowVsOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) @interpolate(flat) plane: vec4<f32>,
+    @location(1) alpha_uv: vec2<f32>,
+    @location(2) @interpolate(flat) material: u32,
+    @location(3) @interpolate(flat) view_index: u32,
 }
 
 @vertex
 fn vs_shadow(
     @location(0) position: vec3<f32>,
     @location(1) plane: vec4<f32>,  // the triangle's unit normal and <n, p>, same at its three corners
+    @location(2) alpha_uv: vec2<f32>,
+    @location(3) material: u32,
     @builtin(instance_index) view_index: u32,
 ) -> ShadowVsOut {
     let v = views[view_index];
@@ -45,10 +56,23 @@ fn vs_shadow(
         out.clip = vec4<f32>(x, y, (z - near) * far / (far - near), z);
     }
     out.plane = plane;
+    out.alpha_uv = alpha_uv;
+    out.material = material;
+    out.view_index = view_index;
     return out;
 }
 
 @fragment
 fn fs_shadow(in: ShadowVsOut) -> @location(0) vec4<f32> {
+    if mat_alpha_mode(in.material) != ALPHA_OPAQUE {
+        let v = views[in.view_index];
+        let px = vec2<u32>(in.clip.xy);
+        let h = pcg(bitcast<u32>(in.plane.w) ^ pcg(px.x ^ pcg(px.y ^ pcg(bitcast<u32>(v.origin.x)
+            ^ pcg(bitcast<u32>(v.origin.y) ^ pcg(bitcast<u32>(v.origin.z) ^ pcg(bitcast<u32>(v.fwd.x)
+            ^ pcg(bitcast<u32>(v.fwd.y) ^ pcg(in.view_index)))))))));
+        if !alpha_keeps(in.material, mat_coverage(in.material, in.alpha_uv), unit_float(h)) {
+            discard;
+        }
+    }
     return in.plane;
 }

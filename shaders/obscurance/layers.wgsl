@@ -16,11 +16,18 @@
 //
 // `fs_shadow`: an ordinary nearest-depth map along a sun or directional light, t in the
 // colour target (obscurance/direct.wgsl reads it).
+//
+// Alpha (gpu/materials.wgsl): both entry points drop a fragment that glTF alpha cuts away
+// (MASK below its cutoff; BLEND when a hash of the pixel, the triangle and the view's
+// direction, which changes every step, falls at or above the coverage), so that surface
+// is missing from that direction's layers and shadow map.
 
 struct Vertex {
     @location(0) position: vec3<f32>,
     @location(1) lightmap_uv: vec2<f32>,
     @location(2) triangle: u32,
+    @location(3) alpha_uv: vec2<f32>,
+    @location(4) material: u32,
 }
 
 struct VsOut {
@@ -28,6 +35,8 @@ struct VsOut {
     @location(0) world: vec3<f32>,
     @location(1) lightmap_uv: vec2<f32>,
     @location(2) @interpolate(flat) triangle: u32,
+    @location(3) alpha_uv: vec2<f32>,
+    @location(4) @interpolate(flat) material: u32,
 }
 
 // Must match obscurance/gather.wgsl and `GpuNode` in obscurance.rs.
@@ -42,11 +51,25 @@ struct LayerParams {
     dims: vec4<u32>,  // x: lightmap width, y: height, z: node capacity, w: map size N
 }
 
+// Bindings 0 and 1 are what both entry points read (the shadow map's layout has only
+// those two); the fragment lists follow.
 @group(0) @binding(0) var<uniform> view: View;
-@group(0) @binding(1) var<uniform> layer_params: LayerParams;
-@group(0) @binding(2) var<storage, read_write> heads: array<atomic<u32>>;     // N*N, node + 1 or 0
-@group(0) @binding(3) var<storage, read_write> nodes: array<Node>;            // capacity
-@group(0) @binding(4) var<storage, read_write> counters: array<atomic<u32>>;  // [0]: fragments this direction
+@group(0) @binding(1) var<storage, read> tables: array<vec4<f32>>;            // gpu/materials.wgsl
+@group(0) @binding(2) var<uniform> layer_params: LayerParams;
+@group(0) @binding(3) var<storage, read_write> heads: array<atomic<u32>>;     // N*N, node + 1 or 0
+@group(0) @binding(4) var<storage, read_write> nodes: array<Node>;            // capacity
+@group(0) @binding(5) var<storage, read_write> counters: array<atomic<u32>>;  // [0]: fragments this direction
+
+// True when glTF alpha removes this fragment's surface (module header).
+fn alpha_cut(in: VsOut) -> bool {
+    if mat_alpha_mode(in.material) == ALPHA_OPAQUE {
+        return false;
+    }
+    let px = vec2<u32>(in.clip.xy);
+    let h = pcg(in.triangle ^ pcg(px.x ^ pcg(px.y ^ pcg(bitcast<u32>(view.dir.x)
+        ^ pcg(bitcast<u32>(view.dir.y) ^ pcg(bitcast<u32>(view.dir.z)))))));
+    return !alpha_keeps(in.material, mat_coverage(in.material, in.alpha_uv), unit_float(h));
+}
 
 @vertex
 fn vs_main(v: Vertex) -> VsOut {
@@ -60,11 +83,16 @@ fn vs_main(v: Vertex) -> VsOut {
     out.world = v.position;
     out.lightmap_uv = v.lightmap_uv;
     out.triangle = v.triangle;
+    out.alpha_uv = v.alpha_uv;
+    out.material = v.material;
     return out;
 }
 
 @fragment
 fn fs_layers(in: VsOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
+    if alpha_cut(in) {
+        discard;
+    }
     let idx = atomicAdd(&counters[0], 1u);
     if idx < layer_params.dims.z {
         let n = layer_params.dims.w;
@@ -84,5 +112,8 @@ fn fs_layers(in: VsOut, @builtin(front_facing) front: bool) -> @location(0) vec4
 
 @fragment
 fn fs_shadow(in: VsOut) -> @location(0) vec4<f32> {
+    if alpha_cut(in) {
+        discard;
+    }
     return vec4<f32>(dot(in.world, view.dir.xyz), 0.0, 0.0, 0.0);
 }

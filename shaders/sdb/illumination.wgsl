@@ -14,6 +14,11 @@
 // DEPTH_NEAREST: ordinary nearest-to-camera depth with every face kept; used as a shadow
 // map for the sun and directional lights (sdb/direct.wgsl).
 //
+// Alpha (gpu/materials.wgsl): a fragment that glTF alpha cuts away is culled in both
+// modes (MASK below its cutoff; BLEND when a hash of the step seed, the layer, the
+// triangle and the pixel, salted apart from the depth's hash, falls at or above the
+// coverage), so the surface behind it is what the pixel sees.
+//
 // `fs_main_direct` (used when the job wants a direct-light layer) also writes the
 // fragment's emitted radiance alone to a second target, so the gather can tell light
 // coming straight from an emitter (direct) from light reflected by a surface.
@@ -22,6 +27,8 @@ struct Vertex {
     @location(0) position: vec3<f32>,
     @location(1) lightmap_uv: vec2<f32>,
     @location(2) triangle: u32,
+    @location(3) alpha_uv: vec2<f32>,
+    @location(4) material: u32,
 }
 
 struct VsOut {
@@ -30,6 +37,8 @@ struct VsOut {
     @location(1) lightmap_uv: vec2<f32>,
     @location(2) @interpolate(flat) triangle: u32,
     @location(3) @interpolate(flat) layer: u32,
+    @location(4) alpha_uv: vec2<f32>,
+    @location(5) @interpolate(flat) material: u32,
 }
 
 struct FsOut {
@@ -53,6 +62,7 @@ struct LightmapDims {
 @group(0) @binding(3) var<storage, read> radiance: array<vec4<f32>>;  // W*H: reflected (sdb_resolve)
 // Emitted radiance per lightmap pixel, static; used by triangles with TRI_TEXTURED_EMISSION.
 @group(0) @binding(4) var<storage, read> emission_px: array<vec4<f32>>;  // W*H
+@group(0) @binding(5) var<storage, read> tables: array<vec4<f32>>;  // gpu/materials.wgsl
 
 @vertex
 fn vs_main(v: Vertex, @builtin(instance_index) layer: u32) -> VsOut {
@@ -68,7 +78,19 @@ fn vs_main(v: Vertex, @builtin(instance_index) layer: u32) -> VsOut {
     out.lightmap_uv = v.lightmap_uv;
     out.triangle = v.triangle;
     out.layer = layer;
+    out.alpha_uv = v.alpha_uv;
+    out.material = v.material;
     return out;
+}
+
+// True when glTF alpha removes this fragment's surface (module header).
+fn alpha_cut(in: VsOut) -> bool {
+    if mat_alpha_mode(in.material) == ALPHA_OPAQUE {
+        return false;
+    }
+    let px = vec2<u32>(in.clip.xy);
+    let h = pcg(0xa1fa5eedu ^ pcg(view.params.x ^ pcg(in.layer ^ pcg(in.triangle ^ pcg(px.x ^ pcg(px.y))))));
+    return !alpha_keeps(in.material, mat_coverage(in.material, in.alpha_uv), unit_float(h));
 }
 
 // Bilinear taps of a lightmap lookup: pixel indices and weights (bilinear x coverage,
@@ -102,7 +124,6 @@ fn lightmap_taps(uv: vec2<f32>) -> Taps {
 }
 
 // What a fragment writes, before culling is applied by the entry point.
-// What a fragment writes, before culling is applied by the entry point.
 struct Shaded {
     sample: vec4<f32>,    // rgb: outgoing radiance, a: t
     emission: vec3<f32>,  // the emitted part of rgb
@@ -124,8 +145,11 @@ fn lookup(buffer_is_emission: bool, taps: Taps) -> vec3<f32> {
 fn shade(in: VsOut, front: bool) -> Shaded {
     let t = dot(in.world, view.dir.xyz);
     var out: Shaded;
-    out.culled = false;
+    out.culled = alpha_cut(in);
     out.emission = vec3<f32>(0.0);
+    if out.culled {
+        return out;
+    }
     if view.params.y == DEPTH_NEAREST {
         out.sample = vec4<f32>(0.0, 0.0, 0.0, t);
         out.depth = clamp((t - view.dir.w) / view.extent.y, 0.0, 1.0);

@@ -25,7 +25,7 @@ use crate::engine::scene::{Lighting, Scene};
 use crate::engine::shadowmask::{self, ShadowmaskBake};
 use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateReach};
 use crate::engine::technique::path::probes::{self, ProbeBaker, ProbeSet};
-use crate::engine::technique::{self, BakeInputs, EngineError, Technique};
+use crate::engine::technique::{self, AlphaSupport, BakeInputs, EngineError, Technique};
 
 /// What to bake, independent of where the scene came from.
 
@@ -46,6 +46,22 @@ pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineErro
     )
     .map_err(EngineError::BadInput)?;
     let mut plan = technique::plan(&request.technique, &features)?;
+    if features.alpha_materials > 0 {
+        let n = features.alpha_materials;
+        match technique::entry(&request.technique)?.alpha {
+            AlphaSupport::Everywhere => plan.run(
+                "alpha test",
+                &format!("{n} MASK/BLEND materials are alpha-tested in every visibility query (rays and maps)"),
+            ),
+            AlphaSupport::Partly { tested, opaque } => {
+                plan.run("alpha test", &format!("{n} MASK/BLEND materials are alpha-tested in {tested}"));
+                plan.leave_out(
+                    "alpha test elsewhere",
+                    &format!("{opaque} sees MASK/BLEND surfaces as opaque (they cast solid shadows there); path, vpl, hemicube and obscurance alpha-test everywhere"),
+                );
+            }
+        }
+    }
 
     if let Some(p) = &request.probes {
         p.validate().map_err(EngineError::BadInput)?;

@@ -113,6 +113,8 @@ pub struct SceneFeatures {
     pub glossy_materials: usize,
     pub textured_materials: usize,
     pub double_sided_triangles: usize,
+    /// Materials with `alphaMode` MASK or BLEND, on at least one triangle.
+    pub alpha_materials: usize,
     pub want_direct: bool,
     pub want_validity: bool,
     pub want_sh: bool,
@@ -147,6 +149,9 @@ impl SceneFeatures {
                 .filter(|m| m.base_color_texture.is_some() || m.emissive_texture.is_some())
                 .count(),
             double_sided_triangles,
+            alpha_materials: used_materials()
+                .filter(|m| m.alpha_mode != crate::engine::scene::AlphaMode::Opaque)
+                .count(),
             want_direct: outputs
                 .iter()
                 .any(|o| matches!(o, OutputLayer::Direct | OutputLayer::Indirect)),

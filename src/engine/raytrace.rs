@@ -9,6 +9,10 @@
 //! our closed-box test (rays from 7e-5 m off a wall toward it), exactly the hits a
 //! path's next bounce off a corner needs (`docs/stability.md`).
 //!
+//! Alpha: a candidate hit on a MASK or BLEND triangle counts only where
+//! [`Scene::stops_ray`] says the surface is there (glTF alpha, issue 19 point 5), in both
+//! queries; opaque triangles pay one material lookup per candidate hit.
+//!
 //! Limits: single rays, no packets or SIMD streams; rays hit both faces of every
 //! triangle (callers decide what a back face means), except that a closest hit prefers a
 //! front face over a coincident single-sided back face ([`BACK_FACE_TIE`]).
@@ -22,7 +26,7 @@ use obvhs::bvh2::builder::build_bvh2_from_tris;
 use obvhs::ray::{Ray, RayHit};
 
 use crate::engine::accumulate::LUMINANCE;
-use crate::engine::scene::{Scene, Triangle};
+use crate::engine::scene::{AlphaMode, Scene, Triangle};
 
 /// How much farther a back-face hit on a single-sided triangle counts in a closest-hit
 /// query ([`Tracer::trace`]; the GPU's `bvh_closest` uses the same factor): 1e-5
@@ -73,9 +77,13 @@ impl Tracer {
         let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
         let mut hit = RayHit::none();
         let found = self.bvh.ray_traverse(ray, &mut hit, |r, id| {
-            let tri = &scene.triangles[self.bvh.primitive_indices[id] as usize];
-            intersect(tri, r).map_or(f32::INFINITY, |(t, _)| {
-                if !scene.material(tri).double_sided && dir.dot(tri.cross()) > 0.0 {
+            let index = self.bvh.primitive_indices[id];
+            let tri = &scene.triangles[index as usize];
+            intersect(tri, r).map_or(f32::INFINITY, |(t, b)| {
+                let m = scene.material(tri);
+                if m.alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
+                    f32::INFINITY
+                } else if !m.double_sided && dir.dot(tri.cross()) > 0.0 {
                     t * BACK_FACE_TIE
                 } else {
                     t
@@ -95,8 +103,15 @@ impl Tracer {
     pub fn unoccluded(&self, scene: &Scene, origin: Vec3, dir: Vec3, tmax: f32) -> bool {
         let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
         self.bvh.ray_traverse_miss(ray, |r, id| {
-            let tri = &scene.triangles[self.bvh.primitive_indices[id] as usize];
-            intersect(tri, r).map_or(f32::INFINITY, |(t, _)| t)
+            let index = self.bvh.primitive_indices[id];
+            let tri = &scene.triangles[index as usize];
+            intersect(tri, r).map_or(f32::INFINITY, |(t, b)| {
+                if scene.material(tri).alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
+                    f32::INFINITY
+                } else {
+                    t
+                }
+            })
         })
     }
 }

@@ -16,6 +16,15 @@ pub fn splitmix64(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// The PCG hash of `gpu/common.wgsl`'s `pcg` (one LCG step and PCG's RXS-M-XS output
+/// permutation, Jarzynski & Olano 2020), for the decisions the CPU and the GPU must make
+/// alike (`scene::blend_draw`).
+pub fn pcg_hash(v: u32) -> u32 {
+    let state = v.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
+    let word = ((state >> ((state >> 28) + 4)) ^ state).wrapping_mul(277_803_737);
+    (word >> 22) ^ word
+}
+
 /// PCG32 XSH-RR with a fixed odd increment.
 #[derive(Clone, Debug)]
 pub struct Rng {

@@ -16,9 +16,12 @@
 //! never cull a box a ray touches. Triangles ([`GpuTri`], 48 bytes) are stored in leaf
 //! order ("slots") as the first vertex and two edges computed exactly as the CPU's
 //! Moller-Trumbore computes them, with the scene's triangle index and a flags word
-//! (the hook for issue 19's alpha test: `BVH_TRI_ALPHA_TEST`, unset today, so every
-//! triangle is opaque; and `BVH_TRI_SINGLE_SIDED`, the closest-hit tie rule of
-//! `raytrace::BACK_FACE_TIE`).
+//! (`BVH_TRI_ALPHA_TEST` on triangles of MASK and BLEND materials, whose candidate hits
+//! the shader tests against the material's alpha as `Scene::stops_ray` does; and
+//! `BVH_TRI_SINGLE_SIDED`, the closest-hit tie rule of `raytrace::BACK_FACE_TIE`).
+//! The alpha test reads the materials and textures of `gpu/lights.wgsl` (bindings 2-4),
+//! so every pass that traverses the BVH composes that library too, the query pass
+//! included.
 //!
 //! Precision: world space (the scene as imported, re-centred on its bounds), f32, as the
 //! CPU tracer; see the shader's header for the traversal's robustness argument.
@@ -35,9 +38,10 @@ use obvhs::bvh2::Bvh2;
 use wgpu::BufferUsages;
 
 use super::layout::{Bind, compute_pipeline, group_of, layout_of};
+use super::scene_lights::GpuSceneLights;
 use super::shaders::BVH_QUERY;
 use super::{GpuContext, GpuError, dispatch_size_64};
-use crate::engine::scene::Scene;
+use crate::engine::scene::{AlphaMode, Scene};
 
 /// Entries of the traversal stack in `shaders/gpu/bvh.wgsl` (keep the two equal).
 pub const BVH_STACK: u32 = 64;
@@ -45,7 +49,8 @@ pub const BVH_STACK: u32 = 64;
 pub const BVH_MISS: u32 = u32::MAX;
 /// `QueryHit::slot` when the traversal stack overflowed (never on an accepted tree).
 pub const QUERY_OVERFLOW: u32 = u32::MAX - 1;
-/// Per-triangle flag: candidate hits must pass the alpha test (issue 19; unused today).
+/// Per-triangle flag: the material is MASK or BLEND, so candidate hits must pass the
+/// alpha test (`bvh_alpha_accept` in `shaders/gpu/lights.wgsl`).
 pub const BVH_TRI_ALPHA_TEST: u32 = 1;
 /// `GpuTri::flags`: the triangle is single-sided, so a coincident front face wins a
 /// closest-hit tie against its back (`raytrace::BACK_FACE_TIE`).
@@ -153,10 +158,11 @@ impl BvhData {
                     p0: t.p[0].to_array(),
                     id,
                     e1: (t.p[1] - t.p[0]).to_array(),
-                    flags: if scene.material(t).double_sided {
-                        0
-                    } else {
-                        BVH_TRI_SINGLE_SIDED
+                    flags: {
+                        let m = scene.material(t);
+                        let sided = if m.double_sided { 0 } else { BVH_TRI_SINGLE_SIDED };
+                        let alpha = if m.alpha_mode == AlphaMode::Opaque { 0 } else { BVH_TRI_ALPHA_TEST };
+                        sided | alpha
                     },
                     e2: (t.p[2] - t.p[0]).to_array(),
                     pad: 0,
@@ -255,7 +261,8 @@ pub struct QueryHit {
     pub v: f32,
 }
 
-/// The query pass over one uploaded BVH, with buffers for up to `capacity` rays.
+/// The query pass over one uploaded scene (its BVH, and the materials the alpha test
+/// reads), with buffers for up to `capacity` rays.
 pub struct QueryRunner {
     pipeline: wgpu::ComputePipeline,
     group: wgpu::BindGroup,
@@ -266,7 +273,7 @@ pub struct QueryRunner {
 }
 
 impl QueryRunner {
-    pub fn new(ctx: &GpuContext, bvh: &GpuBvh, capacity: usize) -> Result<Self, GpuError> {
+    pub fn new(ctx: &GpuContext, scene: &GpuSceneLights, capacity: usize) -> Result<Self, GpuError> {
         let capacity = capacity.max(1);
         check_binding_size(ctx, "the query rays", (capacity * 32) as u64)?;
         let module = ctx.shader(&BVH_QUERY)?;
@@ -281,13 +288,8 @@ impl QueryRunner {
             (capacity * std::mem::size_of::<QueryHit>()) as u64,
             BufferUsages::STORAGE | BufferUsages::COPY_SRC,
         );
-        let binds = [
-            Bind::Read(&bvh.nodes),
-            Bind::Read(&bvh.tris),
-            Bind::Uniform(&params),
-            Bind::Read(&rays),
-            Bind::Write(&results),
-        ];
+        let [b0, b1, b2, b3, b4] = scene.binds();
+        let binds = [b0, b1, b2, b3, b4, Bind::Uniform(&params), Bind::Read(&rays), Bind::Write(&results)];
         let layout = layout_of(ctx, "bvh query", wgpu::ShaderStages::COMPUTE, &binds);
         let group = group_of(ctx, "bvh query", &layout, &binds);
         let pipeline = compute_pipeline(ctx, "bvh query", &module, "query", &layout);

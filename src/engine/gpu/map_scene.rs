@@ -28,6 +28,10 @@ pub struct MapTriangle {
     pub double_sided: bool,
     /// Mesh index (for reports).
     pub mesh: u32,
+    /// Material index (the scene's tables, for the alpha test of `gpu/materials.wgsl`).
+    pub material: u32,
+    /// Each corner's UV in the set its base colour texture reads (alpha).
+    pub alpha_uv: [Vec2; 3],
 }
 
 /// One valid lightmap texel.
@@ -90,6 +94,8 @@ impl MapScene {
                     emission_textured: m.emissive_texture.is_some(),
                     double_sided: m.double_sided,
                     mesh: t.mesh,
+                    material: t.material,
+                    alpha_uv: scene.base_color_uvs(t),
                 }
             })
             .collect();

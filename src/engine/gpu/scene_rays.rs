@@ -17,8 +17,12 @@
 //!
 //! Per slot (the BVH's leaf order), 6 vec4: the three shading normals with the material
 //! index, the emitter pick probability and the area, then the base-colour and lightmap
-//! UVs. Textures are linear RGBA f32, sampled bilinearly with `scene::Texture::sample`'s
-//! wrap rules. `shaders/gpu/lights.wgsl` reads these layouts.
+//! UVs. The tables: row 0 the offsets of the materials and texture headers, then the
+//! materials (4 rows each, with glTF alpha), lights, emitters, texture headers and
+//! texels. Textures are linear RGBA f32, sampled bilinearly with
+//! `scene::Texture::sample`'s wrap rules. `shaders/gpu/materials.wgsl` and
+//! `shaders/gpu/lights.wgsl` read these layouts; the raster passes that alpha-test
+//! (shadow atlas, sdb, obscurance) bind the tables alone.
 //!
 //! Limits: every buffer must fit the adapter's storage-binding limit (128 MiB on lavapipe:
 //! about 1.4M triangles' shading data, 8M texture texels), checked with an error naming
@@ -34,7 +38,7 @@ use super::texels::world_texels;
 use super::{GpuContext, GpuError};
 use crate::engine::atlas::Atlas;
 use crate::engine::raytrace::{EmitterTable, Tracer};
-use crate::engine::scene::{LightKind, Scene, TextureRef, Wrap};
+use crate::engine::scene::{AlphaMode, LightKind, Scene, TextureRef, Wrap};
 
 fn bits(u: u32) -> f32 {
     f32::from_bits(u)
@@ -219,7 +223,7 @@ fn upload_tables(
     bvh: &GpuBvh,
 ) -> Result<GpuTables, GpuError> {
     let (shade, tables, offsets) = if scene.triangles.is_empty() {
-        (vec![[0.0; 4]; 6], vec![[0.0; 4]], [0; 6])
+        (vec![[0.0; 4]; 6], vec![[bits(1), bits(1), 0.0, 0.0]], [1, 1, 0, 1, 0, 1])
     } else {
         let slot_ids: Vec<u32> = bvh.data.tris.iter().map(|t| t.id).collect();
         scene_tables(scene, emitters, &slot_ids, &bvh.data.slot_of)
@@ -245,6 +249,17 @@ fn upload_tables(
 
 type Tables = (Vec<[f32; 4]>, Vec<[f32; 4]>, [u32; 6]);
 
+/// Tables in `gpu/materials.wgsl`'s layout with `materials` opaque materials and no
+/// textures, for map passes fed by scenes made in code rather than imported (their
+/// triangles name material indices but no [`SceneRays`] holds their materials).
+pub fn opaque_material_tables(materials: u32) -> Vec<[f32; 4]> {
+    let mut t = vec![[bits(1), bits(1 + 4 * materials), 0.0, 0.0]];
+    for _ in 0..materials {
+        t.extend([[0.0, 0.0, 0.0, bits(u32::MAX)], [0.0, 0.0, 0.0, bits(u32::MAX)], [0.0; 4], [0.0, 0.0, 1.0, 0.0]]);
+    }
+    t
+}
+
 fn scene_tables(scene: &Scene, emitters: &EmitterTable, slot_ids: &[u32], slot_of: &[u32]) -> Tables {
     let mut shade = Vec::with_capacity(slot_ids.len() * 6);
     for &id in slot_ids {
@@ -257,7 +272,9 @@ fn scene_tables(scene: &Scene, emitters: &EmitterTable, slot_ids: &[u32], slot_o
         shade.push([t.uv[2].x, t.uv[2].y, t.lm[0].x, t.lm[0].y]);
         shade.push([t.lm[1].x, t.lm[1].y, t.lm[2].x, t.lm[2].y]);
     }
-    let mut tables: Vec<[f32; 4]> = Vec::new();
+    // Row 0: the offsets `gpu/materials.wgsl` reads (materials, texture headers), filled
+    // in below, so raster passes bind this one buffer and no uniform.
+    let mut tables: Vec<[f32; 4]> = vec![[0.0; 4]];
     let mat_off = tables.len() as u32;
     for m in &scene.materials {
         let tex = |r: Option<TextureRef>| r.map_or(u32::MAX, |r| r.texture);
@@ -272,6 +289,12 @@ fn scene_tables(scene: &Scene, emitters: &EmitterTable, slot_ids: &[u32], slot_o
             bits(m.double_sided as u32),
             0.0,
         ]);
+        let (mode, cutoff) = match m.alpha_mode {
+            AlphaMode::Opaque => (0u32, 0.0),
+            AlphaMode::Mask { cutoff } => (1, cutoff),
+            AlphaMode::Blend => (2, 0.0),
+        };
+        tables.push([bits(mode), cutoff, m.base_color.w, 0.0]);
     }
     let light_off = tables.len() as u32;
     for l in &scene.lights {
@@ -294,6 +317,7 @@ fn scene_tables(scene: &Scene, emitters: &EmitterTable, slot_ids: &[u32], slot_o
         tables.push([bits(slot_of[id as usize]), emitters.emitter_cdf[k], 0.0, 0.0]);
     }
     let tex_off = tables.len() as u32;
+    tables[0] = [bits(mat_off), bits(tex_off), 0.0, 0.0];
     let mut texel_off = tex_off + scene.textures.len() as u32;
     let wrap = |w: Wrap| match w {
         Wrap::Repeat => 0u32,

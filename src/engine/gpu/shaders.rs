@@ -69,14 +69,20 @@ pub const SHADOW_VIEW: WgslFile = wgsl_file!("gpu/shadow_view.wgsl");
 
 /// The shared shadow atlas: cube faces and orthographic maps of one step in one render
 /// pass (used by `vpl` for lights and VPLs, `hemicube` for its shooters).
-pub const SHADOW_ATLAS: PassShader = pass!("gpu/shadow_atlas.wgsl", [SHADOW_VIEW]);
+pub const SHADOW_ATLAS: PassShader = pass!("gpu/shadow_atlas.wgsl", [SHADOW_VIEW, MATERIALS]);
+
+/// The scene's materials, textures and glTF alpha (no entry points, no bindings: the
+/// composing pass declares `tables`): prelude of every pass that reads materials, the
+/// ray passes (before [`LIGHTS`]) and the raster passes that alpha-test.
+pub const MATERIALS: WgslFile = wgsl_file!("gpu/materials.wgsl");
 
 /// The GPU BVH traversal library (`engine::gpu::bvh`; no entry points, owns bindings 0
-/// and 1): prelude of every pass that casts rays.
+/// and 1): prelude of every pass that casts rays, always followed by [`MATERIALS`] and
+/// [`LIGHTS`], which define its alpha test.
 pub const BVH: WgslFile = wgsl_file!("gpu/bvh.wgsl");
 
 /// GPU BVH: one closest-hit or any-hit query per invocation (tests, benchmarks).
-pub const BVH_QUERY: PassShader = pass!("gpu/bvh_query.wgsl", [BVH]);
+pub const BVH_QUERY: PassShader = pass!("gpu/bvh_query.wgsl", [BVH, MATERIALS, LIGHTS]);
 
 /// The scene's shading data, its lights and next-event estimation to them
 /// (`engine::gpu::scene_lights`; no entry points, owns bindings 2-4): prelude, after
@@ -84,10 +90,10 @@ pub const BVH_QUERY: PassShader = pass!("gpu/bvh_query.wgsl", [BVH]);
 pub const LIGHTS: WgslFile = wgsl_file!("gpu/lights.wgsl");
 
 /// The shared direct-light pass (`engine::gpu::direct_light`).
-pub const DIRECT_LIGHT: PassShader = pass!("gpu/direct_light.wgsl", [BVH, LIGHTS]);
+pub const DIRECT_LIGHT: PassShader = pass!("gpu/direct_light.wgsl", [BVH, MATERIALS, LIGHTS]);
 
 /// The shadowmask pass (`engine::gpu::shadowmask`).
-pub const SHADOWMASK: PassShader = pass!("gpu/shadowmask.wgsl", [BVH, LIGHTS]);
+pub const SHADOWMASK: PassShader = pass!("gpu/shadowmask.wgsl", [BVH, MATERIALS, LIGHTS]);
 
 /// The passes of the shared GPU layer (the technique table adds every technique's).
 pub const SHARED_PASSES: &[PassShader] = &[SHADOW_ATLAS, BVH_QUERY, DIRECT_LIGHT, SHADOWMASK];

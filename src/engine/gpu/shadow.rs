@@ -10,14 +10,57 @@
 //! faces (their views written on the GPU). The layout is fixed for a bake: shelves of
 //! equal-height tiles, largest first.
 //!
+//! Alpha (issue 19 point 5): each corner carries its material and the UV its base colour
+//! texture reads ([`ShadowVertex`]), and the fragment shader drops what glTF alpha cuts
+//! away (`gpu/materials.wgsl`, the tables of `gpu::scene_rays`): MASK below its cutoff;
+//! BLEND with probability 1 − coverage, drawn from a hash of the pixel, the triangle's
+//! plane and the view, so a map that moves between steps (VPLs, the sun's jittered
+//! direction, the hemicube's shooters) redraws it, and a fixed one keeps a fixed dither
+//! that receivers average over its pixels.
+//!
 //! Limits: the atlas must fit the device's largest 2D texture; [`pack`] says how large it
 //! would have been when it does not, and the technique names its own parameters to lower.
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
+use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, group_of, layout_of};
 use crate::engine::gpu::{GpuContext, GpuError, shaders};
+use crate::engine::scene::Scene;
+
+/// One triangle corner as the atlas draws it (`vs_shadow`'s vertex inputs).
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+pub struct ShadowVertex {
+    /// In the technique's normalised frame.
+    pub position: [f32; 3],
+    /// The triangle's unit geometric normal and <n, p> in that frame, the same at its
+    /// three corners: what a map pixel stores.
+    pub plane: [f32; 4],
+    /// The corner's UV in the set its material's base colour texture reads (alpha).
+    pub alpha_uv: [f32; 2],
+    pub material: u32,
+}
+
+/// Every triangle of `scene` as three [`ShadowVertex`]es, in `frame`.
+pub fn shadow_vertices(scene: &Scene, frame: &SceneFrame) -> Vec<ShadowVertex> {
+    scene
+        .triangles
+        .iter()
+        .flat_map(|t| {
+            let n = t.geometric_normal();
+            let c = n.dot(frame.norm(t.p[0]));
+            let uv = scene.base_color_uvs(t);
+            [0, 1, 2].map(|k| ShadowVertex {
+                position: frame.norm(t.p[k]).to_array(),
+                plane: [n.x, n.y, n.z, c],
+                alpha_uv: uv[k].to_array(),
+                material: t.material,
+            })
+        })
+        .collect()
+}
 
 /// A perspective cube face (90 degrees) around a point.
 pub const VIEW_PERSPECTIVE: u32 = 0;
@@ -109,15 +152,17 @@ pub fn pack(sizes: &[u32], max_dim: u32) -> Result<ShadowAtlasLayout, AtlasTooLa
 /// The plane-storing shadow-map pass (`shaders/gpu/shadow_atlas.wgsl`): a render pipeline that
 /// draws the scene into one tile of an Rgba32Float + Depth32Float atlas per view (each
 /// pixel keeps the plane of the nearest surface, both faces of every triangle drawn),
-/// and its bind group on `views` (each view's matrix and tile). `hemicube` draws its
+/// and its bind group on `views` (each view's matrix and tile) and `tables` (the scene's
+/// materials and textures, `gpu::scene_rays`, for the alpha test). `hemicube` draws its
 /// hemicube faces with the same pass.
 pub fn shadow_pass(
     ctx: &GpuContext,
     label: &str,
     views: &wgpu::Buffer,
+    tables: &wgpu::Buffer,
 ) -> Result<(wgpu::RenderPipeline, wgpu::BindGroup), GpuError> {
     let module = ctx.shader(&shaders::SHADOW_ATLAS)?;
-    let binds = [Bind::Read(views)];
+    let binds = [Bind::Read(views), Bind::Read(tables)];
     let layout = layout_of(
         ctx,
         &format!("{label} layout"),
@@ -137,9 +182,9 @@ pub fn shadow_pass(
             entry_point: Some("vs_shadow"),
             compilation_options: Default::default(),
             buffers: &[Some(wgpu::VertexBufferLayout {
-                array_stride: 28,
+                array_stride: std::mem::size_of::<ShadowVertex>() as u64,
                 step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x4],
+                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x4, 2 => Float32x2, 3 => Uint32],
             })],
         },
         primitive: wgpu::PrimitiveState {
@@ -196,9 +241,16 @@ pub struct ShadowDraw {
 
 impl ShadowAtlas {
     /// A `width` x `height` atlas whose maps are described by `views` (an array of
-    /// [`ShadowView`], written by the technique on the CPU or the GPU). Labels start with
-    /// `label` ("vpl shadow", "hemicube depth").
-    pub fn new(ctx: &GpuContext, label: &str, width: u32, height: u32, views: &wgpu::Buffer) -> Result<Self, GpuError> {
+    /// [`ShadowView`], written by the technique on the CPU or the GPU), alpha-testing with
+    /// the scene's `tables`. Labels start with `label` ("vpl shadow", "hemicube depth").
+    pub fn new(
+        ctx: &GpuContext,
+        label: &str,
+        width: u32,
+        height: u32,
+        views: &wgpu::Buffer,
+        tables: &wgpu::Buffer,
+    ) -> Result<Self, GpuError> {
         let size = wgpu::Extent3d {
             width,
             height,
@@ -223,7 +275,7 @@ impl ShadowAtlas {
             label: Some(&format!("{label} atlas depth view")),
             ..Default::default()
         });
-        let (pipeline, bind_group) = shadow_pass(ctx, &format!("{label} maps"), views)?;
+        let (pipeline, bind_group) = shadow_pass(ctx, &format!("{label} maps"), views, tables)?;
         Ok(ShadowAtlas {
             plane_view,
             depth_view,
@@ -234,7 +286,7 @@ impl ShadowAtlas {
     }
 
     /// Records one render pass that clears the atlas and draws every map of `draws` with
-    /// the scene's vertices (`vertices`: position and plane per corner, 28 bytes).
+    /// the scene's vertices (`vertices`: [`shadow_vertices`]).
     pub fn render(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -281,6 +333,12 @@ impl ShadowAtlas {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_vertex_is_what_the_pipeline_reads() {
+        // Float32x3, Float32x4, Float32x2, Uint32, packed.
+        assert_eq!(std::mem::size_of::<ShadowVertex>(), 12 + 16 + 8 + 4);
+    }
 
     #[test]
     fn cube_faces_cover_every_axis() {

@@ -14,14 +14,33 @@ use glam::Vec3;
 use crate::engine::gpu::map_scene::{MapTexel, MapTriangle};
 
 /// One corner of a triangle as the map passes rasterise it: normalised position, lightmap
-/// UV, the triangle's index (for per-triangle data). `vertex_attr_array![0 => Float32x3,
-/// 1 => Float32x2, 2 => Uint32]`.
+/// UV, the triangle's index (for per-triangle data), and the alpha test's inputs (the UV
+/// the material's base colour texture reads, the material). [`GpuVertex::ATTRIBUTES`].
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 pub struct GpuVertex {
     pub position: [f32; 3],
     pub lightmap_uv: [f32; 2],
     pub triangle: u32,
+    pub alpha_uv: [f32; 2],
+    pub material: u32,
+}
+
+impl GpuVertex {
+    /// The vertex layout's attributes, locations 0-4 in field order.
+    pub const ATTRIBUTES: [wgpu::VertexAttribute; 5] =
+        wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x2, 2 => Uint32, 3 => Float32x2, 4 => Uint32];
+
+    /// The three corners of triangle `index`, positions mapped by `norm`.
+    pub fn corners(index: u32, t: &MapTriangle, norm: impl Fn(Vec3) -> Vec3) -> [GpuVertex; 3] {
+        [0, 1, 2].map(|k| GpuVertex {
+            position: norm(t.p[k]).to_array(),
+            lightmap_uv: t.lm[k].to_array(),
+            triangle: index,
+            alpha_uv: t.alpha_uv[k].to_array(),
+            material: t.material,
+        })
+    }
 }
 
 /// A lightmap's size and counts as one uniform (`dims.x` width, `dims.y` height, the rest

@@ -12,6 +12,8 @@
 //! build deliberately broken files that no writer crate would produce.
 
 use glam::{Quat, Vec2, Vec3};
+
+use super::AlphaMode;
 use serde_json::{Value, json};
 
 #[derive(Clone, Debug)]
@@ -26,6 +28,43 @@ pub struct MaterialDesc {
     pub metallic: f32,
     /// glTF `roughnessFactor` (1: fully rough, Lambertian for every technique).
     pub roughness: f32,
+    /// glTF `alphaMode` and `alphaCutoff` (the coverage is `base_color[3]` × the texture's
+    /// alpha).
+    pub alpha_mode: AlphaMode,
+    /// A base colour texture read at TEXCOORD_0 (the mesh's chart UVs), with repeat wrap.
+    pub texture: Option<TextureDesc>,
+}
+
+/// An RGBA8 image (sRGB colour, linear alpha, as glTF has it), written as an embedded PNG.
+#[derive(Clone, Debug)]
+pub struct TextureDesc {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major, top row first, `width * height` pixels.
+    pub rgba: Vec<[u8; 4]>,
+}
+
+impl TextureDesc {
+    /// White stripes along u, `period` texels wide, repeated `repeats` times across the
+    /// image: the first `period - cut` texels of each period are opaque (alpha 255), the
+    /// last `cut` transparent (0). Bilinear filtering crosses alpha 0.5 exactly on texel
+    /// edges, so with cutoff 0.5 a MASK material keeps exactly 1 − cut/period of the
+    /// surface.
+    pub fn alpha_stripes(period: u32, cut: u32, repeats: u32) -> Self {
+        let width = period * repeats;
+        let rgba = (0..width)
+            .map(|x| [255, 255, 255, if x % period < period - cut { 255 } else { 0 }])
+            .collect();
+        TextureDesc { width, height: 1, rgba }
+    }
+
+    fn png(&self) -> Vec<u8> {
+        let bytes: Vec<u8> = self.rgba.iter().flatten().copied().collect();
+        let img = image::RgbaImage::from_raw(self.width, self.height, bytes).expect("width * height pixels");
+        let mut out = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut out, image::ImageFormat::Png).expect("PNG encoding into memory");
+        out.into_inner()
+    }
 }
 
 impl MaterialDesc {
@@ -37,6 +76,8 @@ impl MaterialDesc {
             double_sided: false,
             metallic: 0.0,
             roughness: 1.0,
+            alpha_mode: AlphaMode::Opaque,
+            texture: None,
         }
     }
 
@@ -57,6 +98,18 @@ impl MaterialDesc {
 
     pub fn two_sided(mut self) -> Self {
         self.double_sided = true;
+        self
+    }
+
+    /// The same material with `alphaMode` (and `alphaCutoff` for MASK).
+    pub fn alpha(mut self, mode: AlphaMode) -> Self {
+        self.alpha_mode = mode;
+        self
+    }
+
+    /// The same material with a base colour texture.
+    pub fn textured(mut self, texture: TextureDesc) -> Self {
+        self.texture = Some(texture);
         self
     }
 }
@@ -365,6 +418,7 @@ impl SceneBuilder {
                 json!({"name": format!("probe {k}"), "translation": p.to_array(), "extras": {"light_probe": true}}),
             );
         }
+        let mut images = Vec::new();
         let materials: Vec<Value> = self
             .materials
             .iter()
@@ -375,6 +429,18 @@ impl SceneBuilder {
                     "pbrMetallicRoughness": {"baseColorFactor": m.base_color, "metallicFactor": m.metallic, "roughnessFactor": m.roughness},
                     "doubleSided": m.double_sided
                 });
+                match m.alpha_mode {
+                    AlphaMode::Opaque => {}
+                    AlphaMode::Mask { cutoff } => {
+                        v["alphaMode"] = json!("MASK");
+                        v["alphaCutoff"] = json!(cutoff);
+                    }
+                    AlphaMode::Blend => v["alphaMode"] = json!("BLEND"),
+                }
+                if let Some(t) = &m.texture {
+                    v["pbrMetallicRoughness"]["baseColorTexture"] = json!({"index": images.len(), "texCoord": 0});
+                    images.push(t.png());
+                }
                 if peak > 0.0 {
                     let (factor, strength) = if peak > 1.0 { (m.emission.map(|e| e / peak), peak) } else { (m.emission, 1.0) };
                     v["emissiveFactor"] = json!(factor);
@@ -385,6 +451,16 @@ impl SceneBuilder {
                 v
             })
             .collect();
+        // Images last, each in its own buffer view (no target: not vertex data).
+        let mut image_json = Vec::new();
+        for png in &images {
+            while !bin.len().is_multiple_of(4) {
+                bin.push(0);
+            }
+            views.push(json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": png.len()}));
+            bin.extend_from_slice(png);
+            image_json.push(json!({"bufferView": views.len() - 1, "mimeType": "image/png"}));
+        }
         let mut used = vec!["KHR_materials_emissive_strength"];
         let mut root = json!({
             "asset": {"version": "2.0", "generator": "lightmapd scene builder"},
@@ -397,6 +473,12 @@ impl SceneBuilder {
             "bufferViews": views,
             "buffers": [{"byteLength": bin.len()}],
         });
+        if !images.is_empty() {
+            root["images"] = json!(image_json);
+            // Repeat wrap, linear filtering (glTF's sampler codes).
+            root["samplers"] = json!([{"magFilter": 9729, "minFilter": 9729, "wrapS": 10497, "wrapT": 10497}]);
+            root["textures"] = json!((0..images.len()).map(|i| json!({"source": i, "sampler": 0})).collect::<Vec<_>>());
+        }
         if !lights.is_empty() {
             used.push("KHR_lights_punctual");
             root["extensions"] = json!({"KHR_lights_punctual": {"lights": lights}});

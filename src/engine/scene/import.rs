@@ -43,7 +43,7 @@ use serde::Serialize;
 
 use super::error::{ImportError, PrimitiveRef};
 use super::{
-    Bounds, Instance, LightKind, LocalMesh, LocalPrimitive, Material, MeshInfo, PunctualLight, Scene, SourceDocument,
+    AlphaMode, Bounds, Instance, LightKind, LocalMesh, LocalPrimitive, Material, MeshInfo, PunctualLight, Scene, SourceDocument,
     Texture, TextureRef, TriSource, Triangle, Wrap,
 };
 
@@ -84,6 +84,10 @@ pub struct ImportReport {
     pub default_material_albedo: f32,
     /// Some primitive has no material (glTF's default white is used).
     pub default_material_used: bool,
+    /// Materials with `alphaMode` MASK (with the cutoff) or BLEND, e.g. `leaves (MASK
+    /// 0.5)`: their surfaces are alpha-tested where the technique's plan says.
+    #[serde(default)]
+    pub alpha_materials: Vec<String>,
     pub warnings: Vec<String>,
 }
 
@@ -203,6 +207,7 @@ pub fn import_slice_limited(
     shared_authored_warning(&instances, &local_meshes, &gltf, &mut report.warnings);
     unread_features(&json, &mut report.warnings);
     bound_albedo(&mut materials, &mut report);
+    note_alpha(&materials, &mut report);
     if triangles.is_empty() {
         let why = if report.degenerate_triangles > 0 {
             format!(" (all {} triangles are degenerate)", report.degenerate_triangles)
@@ -594,7 +599,17 @@ fn load_materials(gltf: &gltf::Gltf) -> Result<Vec<Material>, ImportError> {
                 texcoord: i.tex_coord().min(1),
             })
         };
+        let alpha_mode = match m.alpha_mode() {
+            gltf::material::AlphaMode::Opaque => AlphaMode::Opaque,
+            gltf::material::AlphaMode::Blend => AlphaMode::Blend,
+            gltf::material::AlphaMode::Mask => {
+                let cutoff = m.alpha_cutoff().unwrap_or(0.5);
+                check("alphaCutoff", cutoff.is_finite() && cutoff >= 0.0)?;
+                AlphaMode::Mask { cutoff }
+            }
+        };
         out.push(Material {
+            alpha_mode,
             name,
             base_color,
             base_color_texture: tref(pbr.base_color_texture()),
@@ -651,6 +666,18 @@ struct Flatten<'a> {
     /// Per material, the base colour texture's `KHR_texture_transform` as
     /// `[a, b, c, d, ox, oy]`: uv' = (a·u + c·v + ox, b·u + d·v + oy).
     uv_transforms: Vec<Option<[f32; 6]>>,
+}
+
+/// Names the alpha-tested materials in the report.
+fn note_alpha(materials: &[Material], report: &mut ImportReport) {
+    report.alpha_materials = materials
+        .iter()
+        .filter_map(|m| match m.alpha_mode {
+            AlphaMode::Opaque => None,
+            AlphaMode::Mask { cutoff } => Some(format!("{} (MASK {cutoff})", m.name)),
+            AlphaMode::Blend => Some(format!("{} (BLEND)", m.name)),
+        })
+        .collect();
 }
 
 /// Bounds every material's diffuse albedo for bounced light (module doc of `scene`).
@@ -858,12 +885,6 @@ fn unread_features(json: &serde_json::Value, warnings: &mut Vec<String>) {
         .and_then(|v| v.as_array())
         .cloned()
         .unwrap_or_default();
-    if materials
-        .iter()
-        .any(|m| matches!(m.get("alphaMode").and_then(|v| v.as_str()), Some("MASK" | "BLEND")))
-    {
-        unread.push("alphaMode MASK/BLEND (every surface is opaque)".into());
-    }
     if materials.iter().any(|m| m.get("normalTexture").is_some()) {
         unread.push("normal textures".into());
     }

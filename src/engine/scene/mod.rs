@@ -22,8 +22,14 @@
 //! generated per mesh (`atlas::unwrap`, [`LightmapLayout`]) and `export` writes the same
 //! document back with them.
 //!
-//! Limits: alpha (MASK/BLEND) is ignored, every surface is opaque; morph targets and
-//! skins are ignored (the bind pose is baked). A base colour `KHR_texture_transform` is
+//! Alpha: a MASK material's surface is there where its coverage (`baseColorFactor` alpha
+//! × base colour texture alpha, [`Scene::coverage`]) reaches `alphaCutoff`; a BLEND one
+//! stops a ray with probability equal to its coverage ([`Scene::stops_ray`]), decided by a
+//! hash of the ray and the triangle so that the CPU and the GPU (`gpu/lights.wgsl`,
+//! `bvh_alpha_accept`) decide the same ray the same way. Which visibility queries of
+//! which technique honour it is each technique's `alpha` entry in the technique table.
+//!
+//! Limits: morph targets and skins are ignored (the bind pose is baked). A base colour `KHR_texture_transform` is
 //! applied to TEXCOORD_0 at import, so an emissive texture on the same material reads
 //! the transformed UVs too. Albedo is bounded by [`ALBEDO_BOUND`] and
 //! [`DEFAULT_MATERIAL_ALBEDO`].
@@ -164,6 +170,21 @@ pub struct Material {
     pub metallic: f32,
     pub roughness: f32,
     pub double_sided: bool,
+    /// glTF `alphaMode` / `alphaCutoff`: how the surface covers what is behind it.
+    pub alpha_mode: AlphaMode,
+}
+
+/// glTF `alphaMode`, as visibility uses it.
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+pub enum AlphaMode {
+    /// The surface is there everywhere; alpha is ignored.
+    #[default]
+    Opaque,
+    /// There where the coverage is at least `cutoff` (glTF's default 0.5).
+    Mask { cutoff: f32 },
+    /// Stops light in proportion to its coverage (a ray passes with probability
+    /// 1 − coverage).
+    Blend,
 }
 
 impl Default for Material {
@@ -178,6 +199,7 @@ impl Default for Material {
             metallic: 1.0,
             roughness: 1.0,
             double_sided: false,
+            alpha_mode: AlphaMode::Opaque,
         }
     }
 }
@@ -419,6 +441,60 @@ impl Scene {
 
     pub fn material(&self, t: &Triangle) -> &Material {
         &self.materials[t.material as usize]
+    }
+
+    /// The corners' UVs in the set `t`'s base colour texture reads (TEXCOORD_0 when the
+    /// material has no texture): what an alpha test interpolates.
+    pub fn base_color_uvs(&self, t: &Triangle) -> [Vec2; 3] {
+        match self.materials[t.material as usize].base_color_texture {
+            Some(r) if r.texcoord == 1 => t.lm,
+            _ => t.uv,
+        }
+    }
+
+    /// glTF alpha at barycentric `b` of `t`: `baseColorFactor` alpha × the base colour
+    /// texture's alpha (bilinear, at the texture's UV set), whatever the alpha mode.
+    pub fn coverage(&self, t: &Triangle, b: Vec3) -> f32 {
+        let m = &self.materials[t.material as usize];
+        let mut a = m.base_color.w;
+        if let Some(r) = m.base_color_texture {
+            a *= self.textures[r.texture as usize].sample(interp_uv(t, r.texcoord, b)).w;
+        }
+        a
+    }
+
+    /// Whether triangle `id`, hit at barycentric `b` by the ray `origin + t·dir`, stops
+    /// it: always for an opaque material; where the coverage reaches the cutoff for MASK;
+    /// for BLEND when [`blend_draw`] of the ray and the triangle falls below the coverage.
+    pub fn stops_ray(&self, id: u32, b: Vec3, origin: Vec3, dir: Vec3) -> bool {
+        let t = &self.triangles[id as usize];
+        match self.materials[t.material as usize].alpha_mode {
+            AlphaMode::Opaque => true,
+            AlphaMode::Mask { cutoff } => self.coverage(t, b) >= cutoff,
+            AlphaMode::Blend => blend_draw(origin, dir, id) < self.coverage(t, b),
+        }
+    }
+}
+
+/// The uniform number in [0, 1) that decides whether a BLEND surface stops a ray: a hash
+/// of the ray's origin and direction (their f32 bits) and the triangle's index, chained
+/// through the PCG hash as `gpu/lights.wgsl`'s `alpha_draw` chains it, so a ray decides
+/// the same on the CPU and the GPU. Rays with other origins or directions draw
+/// independently, which is what makes the transmission right on average; the same ray
+/// asked twice gets the same answer.
+pub fn blend_draw(origin: Vec3, dir: Vec3, id: u32) -> f32 {
+    use crate::engine::rng::pcg_hash as h;
+    let mut x = h(id);
+    for c in [dir.z, dir.y, dir.x, origin.z, origin.y, origin.x] {
+        x = h(c.to_bits() ^ x);
+    }
+    (x >> 8) as f32 * (1.0 / 16_777_216.0)
+}
+
+impl Scene {
+    /// Some material of the scene is MASK or BLEND.
+    pub fn has_alpha(&self) -> bool {
+        self.materials.iter().any(|m| m.alpha_mode != AlphaMode::Opaque)
     }
 
     /// The scale every relative epsilon is taken against.

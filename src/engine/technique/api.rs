@@ -108,6 +108,20 @@ pub enum TaskSplit {
     Whole(&'static str),
 }
 
+/// Which of a technique's visibility queries honour glTF alpha (`alphaMode` MASK and
+/// BLEND, `Scene::stops_ray`). Rays do (the CPU tracer and the GPU BVH), and so do the
+/// rasterised maps (the shared shadow atlas, sdb's illumination and shadow maps,
+/// obscurance's depth layers: `gpu/materials.wgsl`); a signed distance field holds
+/// occupancy, not partial coverage. A job on a scene with such materials gets a plan line
+/// saying which (`job::plan_for`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AlphaSupport {
+    /// Every visibility query of its bake tests alpha.
+    Everywhere,
+    /// Only some: `tested` names those, `opaque` the rest.
+    Partly { tested: &'static str, opaque: &'static str },
+}
+
 /// Parses a technique's parameter object, naming the technique in the error.
 pub fn parse_params<T: serde::de::DeserializeOwned + Default>(
     technique: &str,
@@ -148,6 +162,8 @@ pub struct TechniqueEntry {
     /// its whole error. A biased technique's bake measures its bias at control texels
     /// (`engine::control`).
     pub unbiased: bool,
+    /// Where it alpha-tests MASK and BLEND surfaces.
+    pub alpha: AlphaSupport,
     /// How its bakes split into tasks.
     pub tasks: TaskSplit,
     /// Its parameter object with every default filled in (what `params: {}` means):

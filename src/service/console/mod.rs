@@ -141,6 +141,7 @@ fn everything() -> SceneFeatures {
         glossy_materials: 1,
         textured_materials: 1,
         double_sided_triangles: 1,
+        alpha_materials: 1,
         want_direct: true,
         want_validity: true,
         want_sh: true,

@@ -104,13 +104,13 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, layout_at, layout_of};
-use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw};
+use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw, shadow_vertices};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
 use crate::engine::output::OutputLayer;
@@ -348,7 +348,6 @@ impl Hemicube {
         // Normalised space: the bounds of triangles and texel points together.
         let frame = SceneFrame::of(&scene, &atlas);
         let (centre, radius) = (frame.centre, frame.radius);
-        let norm = |p: Vec3| frame.norm(p);
         let area_scale = 1.0 / (radius * radius);
 
         // Emitters, sampled on the CPU by power.
@@ -488,19 +487,8 @@ impl Hemicube {
             U::STORAGE,
         );
         let tiles_buf = ctx.buffer_init("hemicube depth tiles", &tiles, U::STORAGE);
-        // Per corner: normalised position and the triangle's plane (unit normal, <n, p>).
-        let vertices: Vec<[f32; 7]> = scene
-            .triangles
-            .iter()
-            .flat_map(|t| {
-                let nrm = t.geometric_normal();
-                let c = nrm.dot(norm(t.p[0]));
-                t.p.map(|p| {
-                    let q = norm(p);
-                    [q.x, q.y, q.z, nrm.x, nrm.y, nrm.z, c]
-                })
-            })
-            .collect();
+        // Per corner: position, the triangle's plane and its alpha inputs (gpu::shadow).
+        let vertices = shadow_vertices(&scene, &frame);
         let vertex_buf = ctx.buffer_init("hemicube vertices (normalised, with planes)", &vertices, U::VERTEX);
 
         use wgpu::ShaderStages as S;
@@ -567,7 +555,9 @@ impl Hemicube {
         );
         let select_bg = group_of(&ctx, "hemicube select bindings", &select_layout, &select_binds);
         // Depth maps: the shared shadow atlas (gpu::shadow), views from the select pass.
-        let shadow = ShadowAtlas::new(&ctx, "hemicube depth", atlas_w, atlas_h, &views_buf).map_err(gpu_error)?;
+        let tables = inputs.rays.gpu_tables(&ctx, "hemicube", &inputs.rays.emitters()).map_err(gpu_error)?;
+        let shadow = ShadowAtlas::new(&ctx, "hemicube depth", atlas_w, atlas_h, &views_buf, &tables.tables)
+            .map_err(gpu_error)?;
         // Transfer and accumulation.
         let transfer_module = ctx.shader(&shaders::HEMICUBE_TRANSFER).map_err(gpu_error)?;
         let transfer_binds = [
@@ -942,6 +932,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| parse_params::<HemicubeParams>("hemicube", p)?.validate(),
     unbiased: false,
+    alpha: AlphaSupport::Everywhere,
     tasks: TaskSplit::Whole(
         "each step is one iteration of the random transport operator applied to the radiosity the steps before it left, a chain over the whole scene: a range of steps cannot start without them",
     ),

@@ -123,7 +123,7 @@ mod update;
 
 pub use update::{ObscuranceState, UpdateReach, UpdateReport};
 
-use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, sample_cone};
@@ -448,10 +448,10 @@ struct ShadowPass {
 
 /// `obscurance`'s passes, WGSL in `shaders/obscurance/`.
 pub mod shaders {
-    use crate::engine::gpu::shaders::{PassShader, pass};
+    use crate::engine::gpu::shaders::{MATERIALS, PassShader, pass};
 
     /// Every depth layer per pixel as fragment lists, and shadow maps.
-    pub const OBSCURANCE_LAYERS: PassShader = pass!("obscurance/layers.wgsl");
+    pub const OBSCURANCE_LAYERS: PassShader = pass!("obscurance/layers.wgsl", [MATERIALS]);
     /// Obscurance, colour bleeding and direct light along one direction.
     pub const OBSCURANCE_GATHER: PassShader = pass!("obscurance/gather.wgsl");
     /// Direct light from the sun and directional lights through a shadow map.
@@ -472,6 +472,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| ObscuranceParams::from_json(p).map(|_| ()),
     unbiased: false,
+    alpha: AlphaSupport::Everywhere,
     tasks: TaskSplit::Whole(
         "its halves are running ratios over a stratified direction sequence rotated once per bake, not sums of independent steps",
     ),
@@ -661,13 +662,7 @@ impl Obscurance {
             })
             .collect();
         for (i, (t, st)) in input.triangles.iter().zip(&scene.triangles).enumerate() {
-            for k in 0..3 {
-                vertices.push(GpuVertex {
-                    position: norm(t.p[k]).to_array(),
-                    lightmap_uv: t.lm[k].to_array(),
-                    triangle: i as u32,
-                });
-            }
+            vertices.extend(GpuVertex::corners(i as u32, t, norm));
             norm_area += (st.area() / (scale * scale)) as f64;
             let m = scene.material(st);
             let mut flags = 0;
@@ -806,8 +801,11 @@ impl Obscurance {
         use wgpu::ShaderStages as S;
         let layers_module = ctx.shader(&shaders::OBSCURANCE_LAYERS).map_err(gpu_error)?;
         let view_bind = Bind::Uniform(&view_buf);
+        // The scene's materials and textures, for the alpha test (gpu/materials.wgsl).
+        let tables = inputs.rays.gpu_tables(&ctx, "obscurance", &inputs.rays.emitters()).map_err(gpu_error)?;
         let layers_binds = [
             Bind::In(S::VERTEX_FRAGMENT, &view_bind),
+            Bind::Read(&tables.tables),
             Bind::Uniform(&layer_params),
             Bind::Write(&heads_buf),
             Bind::Write(&nodes_buf),
@@ -817,7 +815,7 @@ impl Obscurance {
         let vertex_layout = wgpu::VertexBufferLayout {
             array_stride: std::mem::size_of::<GpuVertex>() as u64,
             step_mode: wgpu::VertexStepMode::Vertex,
-            attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x2, 2 => Uint32],
+            attributes: &GpuVertex::ATTRIBUTES,
         };
         let raster_pipeline = |label: &str,
                                layout: &wgpu::BindGroupLayout,
@@ -911,7 +909,7 @@ impl Obscurance {
                 wgpu::TextureFormat::Depth32Float,
                 wgpu::TextureUsages::RENDER_ATTACHMENT,
             );
-            let shadow_binds = [Bind::Uniform(&shadow_view_buf)];
+            let shadow_binds = [Bind::Uniform(&shadow_view_buf), Bind::Read(&tables.tables)];
             let shadow_layout = layout_of(&ctx, "obscurance shadow layout", S::VERTEX_FRAGMENT, &shadow_binds);
             let pipeline = raster_pipeline(
                 "obscurance shadow map",

@@ -54,7 +54,7 @@ use serde_json::Value;
 mod gpu;
 pub mod probes;
 
-use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params};
+use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params};
 use crate::engine::accumulate::{HalfAccumulator, Snapshot};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
@@ -114,10 +114,10 @@ impl PathParams {
 
 /// `path`'s GPU pass, WGSL in `shaders/path/` (the CPU route needs none).
 pub mod shaders {
-    use crate::engine::gpu::shaders::{BVH, LIGHTS, PassShader, pass};
+    use crate::engine::gpu::shaders::{BVH, LIGHTS, MATERIALS, PassShader, pass};
 
     /// The whole estimator per texel and sample (megakernel) over the GPU BVH.
-    pub const PATH_TRACE: PassShader = pass!("path/path_trace.wgsl", [BVH, LIGHTS]);
+    pub const PATH_TRACE: PassShader = pass!("path/path_trace.wgsl", [BVH, MATERIALS, LIGHTS]);
     /// Every pass of `path`.
     pub const ALL: &[PassShader] = &[PATH_TRACE];
 }
@@ -134,6 +134,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| parse_params::<PathParams>("path", p)?.validate(),
     unbiased: true,
+    alpha: AlphaSupport::Everywhere,
     tasks: TaskSplit::StepRanges,
 };
 

@@ -108,7 +108,7 @@ use serde::{Deserialize, Serialize};
 
 mod calibrate;
 
-use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
 use crate::engine::gpu::frame::SceneFrame;
@@ -1172,6 +1172,10 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| parse_params::<SdfParams>("sdf", p)?.validate(),
     unbiased: false,
+    alpha: AlphaSupport::Partly {
+        tested: "the sun, directional, point and spot lights and emitters (the shared direct-light pass's GPU rays)",
+        opaque: "the signed distance field that gathers the sky and the bounce holds occupancy, not coverage (its k and alpha, fitted to alpha-tested CPU rays, absorb cut-outs only on average over the scene); it",
+    },
     tasks: TaskSplit::Whole(
         "its bias is measured at control texels stepped beside the bake by time (engine::control), and tasks do not merge those measurements",
     ),

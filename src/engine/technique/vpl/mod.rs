@@ -96,7 +96,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::api::{BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
@@ -104,6 +104,7 @@ use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::shadow::{
+    shadow_vertices,
     self, ShadowAtlas, ShadowAtlasLayout, ShadowDraw, ShadowView, VIEW_ORTHO, VIEW_PERSPECTIVE, cube_faces,
 };
 use crate::engine::gpu::texels::GpuTexelGeom;
@@ -356,7 +357,6 @@ impl Vpl {
         // Normalised space: the bounds of triangles and texel points together.
         let frame = SceneFrame::of(&scene, &atlas);
         let (centre, radius) = (frame.centre, frame.radius);
-        let norm = |p: Vec3| frame.norm(p);
 
         // Primary lights, fixed for the bake.
         let mut primaries = Vec::new();
@@ -420,20 +420,8 @@ impl Vpl {
             .map_err(gpu_error)?;
         let max_lights = primaries.len() as u32 + params.vpls_per_step;
         use wgpu::BufferUsages as U;
-        // Per corner: the normalised position and the triangle's plane (unit normal, <n, p>),
-        // which the shadow maps store (gpu/shadow_atlas.wgsl).
-        let vertices: Vec<[f32; 7]> = scene
-            .triangles
-            .iter()
-            .flat_map(|t| {
-                let n = t.geometric_normal();
-                let c = n.dot(norm(t.p[0]));
-                t.p.map(|p| {
-                    let q = norm(p);
-                    [q.x, q.y, q.z, n.x, n.y, n.z, c]
-                })
-            })
-            .collect();
+        // Per corner: position, the triangle's plane and its alpha inputs (gpu::shadow).
+        let vertices = shadow_vertices(&scene, &frame);
         let vertex_buf = ctx.buffer_init("vpl vertices (normalised, with planes)", &vertices, U::VERTEX);
         let geom: Vec<GpuTexelGeom> = atlas
             .texels
@@ -460,8 +448,9 @@ impl Vpl {
         );
 
         use wgpu::ShaderStages as S;
-        let shadow =
-            ShadowAtlas::new(&ctx, "vpl shadow", layout.width, layout.height, &views_buf).map_err(gpu_error)?;
+        let tables = inputs.rays.gpu_tables(&ctx, "vpl", &inputs.rays.emitters()).map_err(gpu_error)?;
+        let shadow = ShadowAtlas::new(&ctx, "vpl shadow", layout.width, layout.height, &views_buf, &tables.tables)
+            .map_err(gpu_error)?;
         let gather_module = ctx.shader(&shaders::VPL_GATHER).map_err(gpu_error)?;
         let gather_binds = [
             Bind::Uniform(&gather_buf),
@@ -981,6 +970,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     lights: LightSource::ALL,
     check_params: |p| parse_params::<VplParams>("vpl", p)?.validate(),
     unbiased: false,
+    alpha: AlphaSupport::Everywhere,
     tasks: TaskSplit::Whole(
         "its bias is measured at control texels stepped beside the bake by time (engine::control), and tasks do not merge those measurements",
     ),
