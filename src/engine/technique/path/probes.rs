@@ -24,9 +24,17 @@
 //! - Next-event estimation for the light a uniform direction cannot find: every point,
 //!   spot and directional light (a delta in direction d with E_perp = I att / r^2, or the
 //!   directional light's irradiance: E_perp Y_i(d)) and the sun (one direction in its
-//!   cone, radiance x solid angle x Y_i(d)), each with a shadow ray. Emitters are found by
-//!   the uniform directions only (no light sampling for probes yet: small emitters are
-//!   noisy, not biased).
+//!   cone, radiance x solid angle x Y_i(d)), each with a shadow ray.
+//! - Emitters both ways, combined by multiple importance sampling (Veach's power
+//!   heuristic): the uniform direction's hit counts its emission with weight
+//!   w(1/4pi, p_light), and one emissive triangle (picked by the bake's [`EmitterTable`],
+//!   in proportion to area x emitted luminance, a uniform point on it) is sampled with a
+//!   shadow ray and weight w(p_light, 1/4pi), p_light the solid-angle density
+//!   pick / area x d^2 / cos. A small emitter a uniform direction rarely finds is then
+//!   found every sample (measured in tests/probes.rs, a 0.2 m emitter 1 m up, 16 x 64
+//!   samples: with uniform directions alone c00 read 24 % high with an estimated error of
+//!   50 %; with emitter sampling it is within 0.04 % of the closed form, estimated error
+//!   0.006 %).
 //! - Two half accumulators (even and odd steps) as for texels; a probe's error is the
 //!   standard error of its L0 luminance, |even - odd| sqrt(n_e n_o) / (n_e + n_o), over
 //!   its L0 luminance.
@@ -38,8 +46,8 @@
 //! single-sided surface in more than half of them is marked invalid (`valid = false`)
 //! and not baked; a probe in open space or beside a wall sees back faces in none.
 //!
-//! Limits: CPU only (the GPU megakernel bakes texels; probes are few); no light sampling
-//! of emitters; no adaptive density.
+//! Limits: CPU only (the GPU megakernel bakes texels; probes are few); no adaptive
+//! density.
 
 use std::sync::Arc;
 
@@ -47,7 +55,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::{PathContext, PathParams};
+use super::{PathContext, PathParams, power_heuristic};
 use crate::engine::accumulate::LUMINANCE;
 use crate::engine::error::EngineError;
 use crate::engine::gpu::scene_rays::SceneRays;
@@ -329,7 +337,17 @@ impl<'a> ProbeBaker<'a> {
                     let n = if shading.dot(ng) > 0.0 { shading } else { ng };
                     let p = tri.point(inset(hit.bary)) + ng * self.eps;
                     let reflected = scene.albedo(tri, hit.bary) * ctx.radiance(p, n, ng, rng).total;
-                    add(scene.emission(tri, hit.bary) + reflected, w, four_pi);
+                    let emitted = scene.emission(tri, hit.bary);
+                    // The emitter sampling below could have drawn this direction too.
+                    let weight = if emitted == Vec3::ZERO {
+                        1.0
+                    } else {
+                        let pick = self.emitters.emitter_pick.get(hit.triangle as usize).copied().unwrap_or(0.0);
+                        let cos_l = w.dot(geo).abs();
+                        let pdf_light = pick / tri.area() * hit.t * hit.t / cos_l.max(f32::MIN_POSITIVE);
+                        power_heuristic(1.0 / four_pi, pdf_light)
+                    };
+                    add(emitted * weight + reflected, w, four_pi);
                 }
             }
         }
@@ -362,6 +380,34 @@ impl<'a> ProbeBaker<'a> {
             let d = cone_sample(axis, sun.cos_half_angle(), rng.next_f32(), rng.next_f32());
             if self.tracer.unoccluded(scene, x, d, f32::INFINITY) {
                 add(sun.radiance, d, sun.solid_angle());
+            }
+        }
+        // One emitter sample (module doc), MIS-weighted against the uniform direction.
+        let table = &*self.emitters;
+        if !table.emitters.is_empty() {
+            let u = rng.next_f32();
+            let k = table.emitter_cdf.partition_point(|c| *c <= u).min(table.emitters.len() - 1);
+            let ti = table.emitters[k];
+            let tri = &scene.triangles[ti as usize];
+            let (mut b1, mut b2) = (rng.next_f32(), rng.next_f32());
+            if b1 + b2 > 1.0 {
+                b1 = 1.0 - b1;
+                b2 = 1.0 - b2;
+            }
+            let bary = Vec3::new(1.0 - b1 - b2, b1, b2);
+            let to = tri.point(bary) - x;
+            let dist2 = to.length_squared();
+            let dist = dist2.sqrt();
+            if dist > 0.0 {
+                let d = to / dist;
+                let cos_l = -d.dot(tri.geometric_normal());
+                let cos_l = if scene.material(tri).double_sided { cos_l.abs() } else { cos_l };
+                let emitted = scene.emission(tri, bary);
+                // Stop short of the emitter so it does not occlude its own sample.
+                if cos_l > 0.0 && emitted != Vec3::ZERO && self.tracer.unoccluded(scene, x, d, dist * (1.0 - 1e-4)) {
+                    let pdf_light = table.emitter_pick[ti as usize] / tri.area() * dist2 / cos_l;
+                    add(emitted, d, power_heuristic(pdf_light, 1.0 / four_pi) / pdf_light);
+                }
             }
         }
     }
