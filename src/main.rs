@@ -1020,6 +1020,9 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             }
             // Written with the lightmap (`--write-gltf`).
             BakeEvent::GeneratedUvs { .. } => {}
+            BakeEvent::Probes { steps, of, probes } => {
+                bar.set_message(format!("light probes: {probes} probes, step {steps} of {of}"));
+            }
         }
         ControlFlow::Continue(())
     };

@@ -314,3 +314,67 @@ fn probe_under_a_small_emitter_finds_it_by_light_sampling() {
     let noise = 0.1 * c1 as f32 / 1024f32.sqrt();
     assert!(p.sh[3][1].abs() < 5.0 * noise && p.sh[2][1].abs() < 5.0 * noise, "x and z moments within {noise} x 5");
 }
+
+/// The job tells its observer how far the probes are (issue 26: probe progress), before
+/// the first probe step and after each, and an observer that breaks (a cancelled job)
+/// stops them with the steps done so far.
+#[test]
+fn probe_steps_are_reported_and_a_break_stops_them() {
+    use lightmapd::engine::bake::BakeEvent;
+    use std::ops::ControlFlow;
+    let mut b = SceneBuilder::new();
+    let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
+    b.square("ground", Vec3::ZERO, 4.0, Vec3::Y, black);
+    b.probes = vec![Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.5, 0.0), Vec3::new(-1.0, 0.5, 0.5)];
+    let scene = std::sync::Arc::new(import(&b));
+    let request = lightmapd::engine::job::BakeRequest {
+        resolution: 8,
+        lighting: Lighting {
+            sky: Some(Sky {
+                radiance: Vec3::ONE,
+                hemisphere: Hemisphere::Upper,
+            }),
+            sun: None,
+        },
+        stop: lightmapd::engine::bake::StopCriteria {
+            steps: Some(1),
+            seconds: None,
+            target_error: None,
+        },
+        probes: Some(lightmapd::engine::job::ProbeRequest {
+            spacing: None,
+            positions: Vec::new(),
+            steps: 6,
+        }),
+        denoise: lightmapd::engine::post::denoised::Denoiser::None,
+        ..Default::default()
+    };
+    let run = |break_at: Option<u32>| {
+        let mut seen = Vec::new();
+        let mut observer = |e: BakeEvent<'_>| {
+            if let BakeEvent::Probes { steps, of, probes } = e {
+                seen.push((steps, of, probes));
+                if Some(steps) == break_at {
+                    return ControlFlow::Break(());
+                }
+            }
+            ControlFlow::Continue(())
+        };
+        let result = lightmapd::engine::job::bake(
+            scene.clone(),
+            &request,
+            &Default::default(),
+            &mut observer,
+            &mut |_| {},
+            &mut |_| {},
+        )
+        .unwrap();
+        (seen, result.probes.expect("probes asked for").steps)
+    };
+    let (seen, steps) = run(None);
+    assert_eq!(seen, (0..=6).map(|k| (k, 6, 3)).collect::<Vec<_>>());
+    assert_eq!(steps, 6);
+    let (seen, steps) = run(Some(2));
+    assert_eq!(seen, vec![(0, 6, 3), (1, 6, 3), (2, 6, 3)]);
+    assert_eq!(steps, 2, "the probes stop where the observer broke");
+}

@@ -412,6 +412,7 @@ impl Prepared {
         params: &Value,
         elapsed: Duration,
         stopped_by: StopReason,
+        observer: &mut dyn BakeObserver,
     ) -> Result<BakeResult, EngineError> {
         // Denoised once: the EXR and the preview show the same delivered lightmap.
         let finished = if stopped_by == StopReason::Cancelled {
@@ -439,7 +440,7 @@ impl Prepared {
             },
         };
         let probes = match &request.probes {
-            Some(p) if stopped_by != StopReason::Cancelled => Some(bake_probes(&self.rays, request, p)?),
+            Some(p) if stopped_by != StopReason::Cancelled => Some(bake_probes(&self.rays, request, p, observer)?),
             _ => None,
         };
         Ok(BakeResult {
@@ -495,7 +496,14 @@ fn bake_impl(
     let outcome = bake_loop.run(tech, observer)?;
     let params = tech.params();
     let state = concrete.map(|t| t.state()).transpose()?;
-    let result = prepared.deliver(request, &outcome.estimate, &params, outcome.elapsed, outcome.stopped_by)?;
+    let result = prepared.deliver(
+        request,
+        &outcome.estimate,
+        &params,
+        outcome.elapsed,
+        outcome.stopped_by,
+        observer,
+    )?;
     Ok((result, state))
 }
 
@@ -531,8 +539,14 @@ impl Prepared {
 }
 
 /// The request's probes, baked by `path`'s probe estimator on the baked scene (the one
-/// with generated lightmap UVs, the same geometry).
-fn bake_probes(rays: &SceneRays, request: &BakeRequest, p: &ProbeRequest) -> Result<ProbeSet, EngineError> {
+/// with generated lightmap UVs, the same geometry), telling `observer` after each step;
+/// an observer that breaks (a cancelled job) stops them with the steps done so far.
+fn bake_probes(
+    rays: &SceneRays,
+    request: &BakeRequest,
+    p: &ProbeRequest,
+    observer: &mut dyn BakeObserver,
+) -> Result<ProbeSet, EngineError> {
     let started = std::time::Instant::now();
     let at = probes::positions_for(rays.scene(), p.spacing, &p.positions)?;
     let mut baker = ProbeBaker::sharing(
@@ -542,8 +556,23 @@ fn bake_probes(rays: &SceneRays, request: &BakeRequest, p: &ProbeRequest) -> Res
         &serde_json::json!({"samples_per_step": 64}),
         request.seed,
     )?;
-    for _ in 0..p.steps {
+    let probes = baker.valid().len();
+    let mut go = observer.event(BakeEvent::Probes {
+        steps: 0,
+        of: p.steps,
+        probes,
+    });
+    for k in 1..=p.steps {
+        if go.is_break() {
+            tracing::info!(steps = k - 1, of = p.steps, "light probes stopped by the observer");
+            break;
+        }
         baker.step();
+        go = observer.event(BakeEvent::Probes {
+            steps: k,
+            of: p.steps,
+            probes,
+        });
     }
     let set = baker.result();
     tracing::info!(

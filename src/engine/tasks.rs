@@ -465,6 +465,8 @@ pub fn merge(
         &params,
         Duration::from_secs_f64(seconds),
         stopped_by,
+        // Nobody watches a merge: its probes (if any) run to the end.
+        &mut |_: crate::engine::bake::BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
     )
 }
 

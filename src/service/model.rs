@@ -509,6 +509,20 @@ pub struct Progress {
     /// The estimated relative error at the latest snapshot.
     #[serde(default)]
     pub error: Option<f32>,
+    /// Light probes baked after the lightmap, once they have started.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub probes: Option<ProbeProgress>,
+}
+
+/// How far the light probes of a job are (`probes` in the job; docs/probes.md).
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
+pub struct ProbeProgress {
+    /// Probe steps done (64 samples a probe each).
+    pub steps: u32,
+    /// Probe steps asked for.
+    pub of: u32,
+    /// Probes placed (valid and invalid).
+    pub probes: usize,
 }
 
 impl Progress {
@@ -531,6 +545,7 @@ impl Progress {
             fraction: f.clamp(0.0, 1.0),
             elapsed_s,
             error,
+            probes: None,
         }
     }
 }

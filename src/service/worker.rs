@@ -47,7 +47,7 @@ use crate::engine::job::{self, BakeOptions, BakeResult};
 use crate::engine::plan::Plan;
 use crate::engine::scene::{self, Scene};
 use crate::engine::technique::EngineError;
-use crate::service::model::{HistoryPoint, JobStatus, Progress};
+use crate::service::model::{HistoryPoint, JobStatus, ProbeProgress, Progress};
 use crate::service::queue::{JobRecord, JobUpdate, Lease, Outcome};
 use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
 
@@ -434,12 +434,14 @@ async fn supervise(
                     reason: format!("cannot store the lightmap: {e}"),
                 });
             }
-            let progress = Progress::new(
+            let mut progress = Progress::new(
                 r.summary.steps,
                 r.summary.seconds,
                 r.summary.error.relative,
                 &job.spec.stop,
             );
+            // The probes' last count stays in the finished job's progress.
+            progress.probes = shared.progress.lock().ok().and_then(|p| p.and_then(|p| p.probes));
             let mut history = shared.history.lock().map(|h| h.clone()).unwrap_or_default();
             // The final lightmap's point ends the curve, with the figure the summary gives.
             let e = &r.summary.error;
@@ -903,6 +905,13 @@ fn bake_observed(
             BakeEvent::GeneratedUvs { scene } => {
                 if let Ok(mut g) = shared.generated_scene.lock() {
                     *g = Some(scene.clone());
+                }
+            }
+            BakeEvent::Probes { steps, of, probes } => {
+                if let Ok(mut p) = shared.progress.lock()
+                    && let Some(p) = p.as_mut()
+                {
+                    p.probes = Some(ProbeProgress { steps, of, probes });
                 }
             }
             BakeEvent::Progress { steps, elapsed, .. } => {
