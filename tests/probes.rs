@@ -227,6 +227,33 @@ fn probe_under_a_black_sphere_sees_the_sky_around_it() {
     }
 }
 
+/// A job on an 8² page under an upper sky of 1, `steps` lightmap steps, then `probe_steps`
+/// probe steps at the scene's marked nodes, not denoised.
+fn probe_job(steps: u64, probe_steps: u32) -> lightmapd::engine::job::BakeRequest {
+    lightmapd::engine::job::BakeRequest {
+        resolution: 8,
+        lighting: Lighting {
+            sky: Some(Sky {
+                radiance: Vec3::ONE,
+                hemisphere: Hemisphere::Upper,
+            }),
+            sun: None,
+        },
+        stop: lightmapd::engine::bake::StopCriteria {
+            steps: Some(steps),
+            seconds: None,
+            target_error: None,
+        },
+        probes: Some(lightmapd::engine::job::ProbeRequest {
+            spacing: None,
+            positions: Vec::new(),
+            steps: probe_steps,
+        }),
+        denoise: lightmapd::engine::post::denoised::Denoiser::None,
+        ..Default::default()
+    }
+}
+
 /// Probes at glTF nodes marked `extras.light_probe` (issue 26 point 1), through the job:
 /// placed at the nodes' world positions (the scene is off the origin, so the import's
 /// re-centring is undone), with the same answer as anywhere else: over a black plane
@@ -240,28 +267,7 @@ fn probes_at_marked_nodes_are_baked_by_the_job() {
     b.probes = vec![far + Vec3::new(0.0, 1.0, 0.0), far + Vec3::new(2.0, 0.5, 1.0)];
     let scene = std::sync::Arc::new(import(&b));
     assert_eq!(scene.probe_nodes.len(), 2);
-    let request = lightmapd::engine::job::BakeRequest {
-        resolution: 8,
-        lighting: Lighting {
-            sky: Some(Sky {
-                radiance: Vec3::ONE,
-                hemisphere: Hemisphere::Upper,
-            }),
-            sun: None,
-        },
-        stop: lightmapd::engine::bake::StopCriteria {
-            steps: Some(2),
-            seconds: None,
-            target_error: None,
-        },
-        probes: Some(lightmapd::engine::job::ProbeRequest {
-            spacing: None,
-            positions: Vec::new(),
-            steps: 32,
-        }),
-        denoise: lightmapd::engine::post::denoised::Denoiser::None,
-        ..Default::default()
-    };
+    let request = probe_job(2, 32);
     let result = lightmapd::engine::job::bake_unobserved(scene, &request).unwrap();
     let set = result.probes.expect("probes were asked for");
     assert_eq!(set.probes.len(), 2);
@@ -327,28 +333,7 @@ fn probe_steps_are_reported_and_a_break_stops_them() {
     b.square("ground", Vec3::ZERO, 4.0, Vec3::Y, black);
     b.probes = vec![Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.5, 0.0), Vec3::new(-1.0, 0.5, 0.5)];
     let scene = std::sync::Arc::new(import(&b));
-    let request = lightmapd::engine::job::BakeRequest {
-        resolution: 8,
-        lighting: Lighting {
-            sky: Some(Sky {
-                radiance: Vec3::ONE,
-                hemisphere: Hemisphere::Upper,
-            }),
-            sun: None,
-        },
-        stop: lightmapd::engine::bake::StopCriteria {
-            steps: Some(1),
-            seconds: None,
-            target_error: None,
-        },
-        probes: Some(lightmapd::engine::job::ProbeRequest {
-            spacing: None,
-            positions: Vec::new(),
-            steps: 6,
-        }),
-        denoise: lightmapd::engine::post::denoised::Denoiser::None,
-        ..Default::default()
-    };
+    let request = probe_job(1, 6);
     let run = |break_at: Option<u32>| {
         let mut seen = Vec::new();
         let mut observer = |e: BakeEvent<'_>| {

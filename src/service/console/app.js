@@ -408,7 +408,9 @@ function showProgress(j) {
   // A biased technique's error is bias and noise measured at control texels: say so.
   const last = (j.history || []).at(-1);
   const parts = last && last.bias != null ? ` (bias ${(last.bias * 100).toFixed(2)} %, noise ${(last.noise * 100).toFixed(2)} %)` : '';
-  $('job-progress').textContent = `${p.steps} steps · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %${parts}`);
+  // Light probes are baked after the lightmap (progress.probes, docs/service.md).
+  const probes = p.probes ? ` · light probes: step ${p.probes.steps} of ${p.probes.of} (${p.probes.probes} probes)` : '';
+  $('job-progress').textContent = `${p.steps} steps · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %${parts}`) + probes;
 }
 
 const TERMINAL = ['succeeded', 'failed', 'cancelled'];
