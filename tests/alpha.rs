@@ -459,3 +459,16 @@ fn canopy_closed_form_holds_for_the_map_techniques() {
         }
     }
 }
+
+/// An alpha texture that cannot be decoded is refused at import, naming the image (a
+/// MASK material would otherwise have no coverage to test).
+#[test]
+fn an_unreadable_alpha_texture_names_the_image() {
+    let (json, mut bin) = canopy_scene(Canopy::Stripes).to_gltf();
+    let view = &json["bufferViews"][json["images"][0]["bufferView"].as_u64().unwrap() as usize];
+    let (at, len) = (view["byteOffset"].as_u64().unwrap() as usize, view["byteLength"].as_u64().unwrap() as usize);
+    bin[at..at + len].fill(0);
+    let err = import_slice(&write_glb(&json, &bin), None).expect_err("an undecodable image is refused");
+    let text = err.to_string();
+    assert!(text.contains("image 0") && text.contains("cannot decode"), "{text}");
+}

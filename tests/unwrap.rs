@@ -277,3 +277,33 @@ fn authored_uvs_are_kept_beside_generated_ones() {
     .unwrap();
     assert_eq!((r.generated_meshes, r.kept_meshes, r.width, r.height), (2, 0, 64, 64));
 }
+
+/// An instance whose transform is singular (a node scaled to 0 along an axis) cannot get a
+/// lightmap rectangle of its own: the bake is refused before sampling with an error naming
+/// the node and the mesh (issue 19's acceptance), not a panic or a silent zero-size chart.
+#[test]
+fn a_singular_instance_transform_names_the_node() {
+    let (mut json, bin) = sphere_over_plane().to_gltf();
+    for m in json["meshes"].as_array_mut().unwrap() {
+        m["primitives"][0]["attributes"]
+            .as_object_mut()
+            .unwrap()
+            .remove("TEXCOORD_1");
+    }
+    // A second node placing the ground, flattened along y.
+    let flat = json["nodes"].as_array().unwrap().len();
+    json["nodes"]
+        .as_array_mut()
+        .unwrap()
+        .push(json!({"name": "flattened ground", "mesh": 0, "translation": [0.0, 3.0, 0.0], "scale": [1.0, 0.0, 1.0]}));
+    json["scenes"][0]["nodes"].as_array_mut().unwrap().push(json!(flat));
+    let scene = import_slice(&write_glb(&json, &bin), None).expect("imports").0;
+    let err = job::bake_unobserved(Arc::new(scene), &sky_request(64))
+        .err()
+        .expect("a singular instance is refused");
+    let text = err.to_string();
+    assert!(
+        text.contains(&format!("node {flat}")) && text.contains("singular transform"),
+        "{text}"
+    );
+}
