@@ -4,7 +4,7 @@
 //! `path`'s probe estimator (64 samples a probe a step, all cores) in scenes whose probe
 //! coefficients have closed forms, and prints after 1, 2, 4, … MAX_STEPS (default 256)
 //! steps the wall time, the set's reported error (`ProbeSet::error`, the RMS of the L0
-//! standard errors over the RMS L0) and the true error (RMS over the valid probes of
+//! standard errors over the RMS L0; none after one step) and the true error (RMS over the valid probes of
 //! |c00 − exact| over the exact c00, luminance):
 //! - the furnace: inside a closed box of albedo ρ emitting 1 − ρ, the radiance is 1 in
 //!   every direction, so c00 = √(4π) at every probe (multi-bounce paths);
@@ -150,11 +150,11 @@ fn main() {
                 n += 1;
             }
             println!(
-                "| {} | {} | {step} | {} | {seconds:.3} | {:.3} % | {:.3} % |",
+                "| {} | {} | {step} | {} | {seconds:.3} | {} | {:.3} % |",
                 case.name,
                 n,
                 step * 64,
-                100.0 * set.error,
+                set.error.map_or("n/a (one half)".into(), |e| format!("{:.3} %", 100.0 * e)),
                 100.0 * (sq / n.max(1) as f64).sqrt()
             );
         }

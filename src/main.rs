@@ -1261,9 +1261,9 @@ fn write_probes(
     })?;
     let invalid = set.probes.iter().filter(|p| !p.valid).count();
     eprintln!(
-        "baked {} probes ({invalid} inside geometry, not baked), error {:.2} % -> {}",
+        "baked {} probes ({invalid} inside geometry, not baked), error {} -> {}",
         set.probes.len(),
-        100.0 * set.error,
+        set.error.map_or("n/a (one step)".into(), |e| format!("{:.2} %", 100.0 * e)),
         path.display()
     );
     Ok(())

@@ -547,7 +547,7 @@ async function updateProbes(j) {
   if (j.status !== 'succeeded' || !j.spec?.probes) { state.viewer.setProbes(null); return; }
   const set = await json(`/v1/jobs/${j.id}/probes.json`).catch(() => null);
   const shown = state.viewer.setProbes(set);
-  if (set) $('v-note').textContent = `${shown} light probes shown (of ${set.probes.length}; ${set.probes.filter(p => !p.valid).length} inside geometry), error ${(100 * set.error).toFixed(2)} %.`;
+  if (set) $('v-note').textContent = `${shown} light probes shown (of ${set.probes.length}; ${set.probes.filter(p => !p.valid).length} inside geometry), error ${set.error == null ? 'not known yet (one step)' : (100 * set.error).toFixed(2) + ' %'}.`;
 }
 
 function drawLightmap2d() {

@@ -107,8 +107,9 @@ pub struct Probe {
     pub valid: bool,
     /// Radiance SH, 9 x RGB (module doc).
     pub sh: [[f32; 3]; SH9],
-    /// Relative standard error of the L0 luminance (0 for an invalid or black probe).
-    pub error: f32,
+    /// Relative standard error of the L0 luminance (0 for an invalid or black probe);
+    /// None (JSON null) until both halves have a step: one half alone cannot estimate it.
+    pub error: Option<f32>,
 }
 
 /// The probes file's body (`--probes`): convention, basis and the probes.
@@ -118,8 +119,9 @@ pub struct ProbeSet {
     pub basis: &'static str,
     pub steps: u64,
     /// The whole set's relative error: the RMS over valid probes of the L0 luminance's
-    /// standard error, over the RMS L0 luminance (the texels' estimate, DESIGN section 4).
-    pub error: f32,
+    /// standard error, over the RMS L0 luminance (the texels' estimate, DESIGN section 4);
+    /// None (JSON null) until both halves have a step, as for texels.
+    pub error: Option<f32>,
     pub probes: Vec<Probe>,
 }
 
@@ -415,6 +417,7 @@ impl<'a> ProbeBaker<'a> {
     /// The probes as of now.
     pub fn result(&self) -> ProbeSet {
         let (ne, no) = (self.steps[0] as f32, self.steps[1] as f32);
+        let both_halves = ne > 0.0 && no > 0.0;
         let n = (ne + no).max(1.0);
         let k = (ne * no).sqrt() / n;
         let (mut se2, mut l02, mut valid) = (0.0f64, 0.0f64, 0usize);
@@ -435,7 +438,7 @@ impl<'a> ProbeBaker<'a> {
                         .to_array(),
                     valid: self.valid[i],
                     sh: c.map(|v| v.to_array()),
-                    error: if l0 > 0.0 { se / l0 } else { 0.0 },
+                    error: both_halves.then_some(if l0 > 0.0 { se / l0 } else { 0.0 }),
                 }
             })
             .collect();
@@ -443,11 +446,11 @@ impl<'a> ProbeBaker<'a> {
             convention: "incident radiance, projected on real orthonormal SH to L2 (W m^-2 sr^-1 x sr); E(n)/pi = sum_i A_l c_i Y_i(n) / pi with A = pi, 2pi/3, pi/4",
             basis: "world axes; order Y00, Y1-1 (y), Y10 (z), Y11 (x), Y2-2 (xy), Y2-1 (yz), Y20 (3z^2-1), Y21 (xz), Y22 (x^2-y^2)",
             steps: self.steps[0] + self.steps[1],
-            error: if valid > 0 && l02 > 0.0 {
+            error: both_halves.then_some(if valid > 0 && l02 > 0.0 {
                 (se2 / l02).sqrt() as f32
             } else {
                 0.0
-            },
+            }),
             probes,
         }
     }
