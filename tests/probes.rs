@@ -356,12 +356,17 @@ fn probe_steps_are_reported_and_a_break_stops_them() {
             &mut |_| {},
         )
         .unwrap();
-        (seen, result.probes.expect("probes asked for").steps)
+        let set = result.probes.expect("probes asked for");
+        (seen, set.steps, set.error)
     };
-    let (seen, steps) = run(None);
+    let (seen, steps, error) = run(None);
     assert_eq!(seen, (0..=6).map(|k| (k, 6, 3)).collect::<Vec<_>>());
     assert_eq!(steps, 6);
-    let (seen, steps) = run(Some(2));
+    assert!(error.is_some_and(|e| e > 0.0));
+    let (seen, steps, _) = run(Some(2));
     assert_eq!(seen, vec![(0, 6, 3), (1, 6, 3), (2, 6, 3)]);
     assert_eq!(steps, 2, "the probes stop where the observer broke");
+    // Stopped after one step, one half has nothing: the error is not known (null), not 0.
+    let (_, steps, error) = run(Some(1));
+    assert_eq!((steps, error), (1, None));
 }
