@@ -109,7 +109,15 @@ fn traversal(ctx: &Arc<GpuContext>, rays_n: usize) {
         let tracer = Tracer::new(&scene);
         let shared = SceneRays::new(Arc::new(scene.clone()));
         let emitters = shared.emitters();
-        let bvh = GpuSceneLights::new(ctx, "bvh query", &shared, &Lighting::default(), &emitters, LightSources::NONE).unwrap();
+        let bvh = GpuSceneLights::new(
+            ctx,
+            "bvh query",
+            &shared,
+            &Lighting::default(),
+            &emitters,
+            LightSources::NONE,
+        )
+        .unwrap();
         for (kind, rays) in [
             ("coherent", coherent(&scene, rays_n)),
             ("incoherent", incoherent(&scene, rays_n)),

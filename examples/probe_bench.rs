@@ -29,7 +29,8 @@ const Y00: f64 = 0.282_094_791_773_878;
 /// point (0, 0): the sum of four corner rectangles with signs, each
 /// atan(a b / (h √(h² + a² + b²))).
 fn rect_solid_angle(x0: f64, x1: f64, z0: f64, z1: f64, h: f64) -> f64 {
-    let corner = |a: f64, b: f64| a.signum() * b.signum() * (a.abs() * b.abs() / (h * (h * h + a * a + b * b).sqrt())).atan();
+    let corner =
+        |a: f64, b: f64| a.signum() * b.signum() * (a.abs() * b.abs() / (h * (h * h + a * a + b * b).sqrt())).atan();
     corner(x1, z1) - corner(x0, z1) - corner(x1, z0) + corner(x0, z0)
 }
 
@@ -128,8 +129,14 @@ fn main() {
     );
     for case in cases() {
         let positions: Vec<Vec3> = case.probes.iter().map(|(p, _)| *p).collect();
-        let mut baker = ProbeBaker::new(&case.scene, case.lighting, positions, &json!({"samples_per_step": 64}), 7)
-            .expect("probe baker");
+        let mut baker = ProbeBaker::new(
+            &case.scene,
+            case.lighting,
+            positions,
+            &json!({"samples_per_step": 64}),
+            7,
+        )
+        .expect("probe baker");
         let t = Instant::now();
         let mut next = 1;
         for step in 1..=max_steps {
@@ -154,7 +161,8 @@ fn main() {
                 case.name,
                 n,
                 step * 64,
-                set.error.map_or("n/a (one half)".into(), |e| format!("{:.3} %", 100.0 * e)),
+                set.error
+                    .map_or("n/a (one half)".into(), |e| format!("{:.3} %", 100.0 * e)),
                 100.0 * (sq / n.max(1) as f64).sqrt()
             );
         }

@@ -1263,7 +1263,8 @@ fn write_probes(
     eprintln!(
         "baked {} probes ({invalid} inside geometry, not baked), error {} -> {}",
         set.probes.len(),
-        set.error.map_or("n/a (one step)".into(), |e| format!("{:.2} %", 100.0 * e)),
+        set.error
+            .map_or("n/a (one step)".into(), |e| format!("{:.2} %", 100.0 * e)),
         path.display()
     );
     Ok(())

@@ -75,7 +75,13 @@ fn canopy_scene(canopy: Canopy) -> SceneBuilder {
     };
     let m = b.material(leaves);
     // u along +x (TEXCOORD_0's u, across the stripes), v along +z: u × v = −y, facing down.
-    b.quad("canopy", Vec3::new(-1.0, 1.0, -1.0), Vec3::new(2.0, 0.0, 0.0), Vec3::new(0.0, 0.0, 2.0), m);
+    b.quad(
+        "canopy",
+        Vec3::new(-1.0, 1.0, -1.0),
+        Vec3::new(2.0, 0.0, 0.0),
+        Vec3::new(0.0, 0.0, 2.0),
+        m,
+    );
     b
 }
 
@@ -131,7 +137,10 @@ fn canopy_closed_form_holds(params: serde_json::Value, device: &str) {
         assert!(n > 300, "{label}: {n} ground texels");
     }
     // The stripes' closed form is the 1 − (1 − c)·F to within their placement.
-    let (c, f) = (CUT as f64 / PERIOD as f64, rect_form_factor(0.3, 0.2, -1.0, 1.0, -1.0, 1.0, 1.0));
+    let (c, f) = (
+        CUT as f64 / PERIOD as f64,
+        rect_form_factor(0.3, 0.2, -1.0, 1.0, -1.0, 1.0, 1.0),
+    );
     let stripes = closed_form(Canopy::Stripes, 0.3, 0.2);
     assert!(
         (stripes - (1.0 - (1.0 - c) * f)).abs() < 2e-3,
@@ -294,7 +303,10 @@ fn gpu_alpha_decisions_are_the_cpus() {
             differ += usize::from(cpu_stops != gpu_stops);
             stopped += usize::from(gpu_stops);
         }
-        eprintln!("{canopy:?}: {stopped} of {} rays stopped, {differ} decided otherwise than the CPU", rays.len());
+        eprintln!(
+            "{canopy:?}: {stopped} of {} rays stopped, {differ} decided otherwise than the CPU",
+            rays.len()
+        );
         // MASK: only rays within an ulp of a stripe edge may differ; BLEND: the same hash
         // on both sides, only a draw within rounding of the coverage may differ.
         assert!(differ <= rays.len() / 1000, "{canopy:?}: {differ} rays differ");
@@ -330,8 +342,18 @@ fn the_direct_light_pass_passes_the_sun_through_blend_in_proportion() {
         let p = t.position + offset;
         t.geo_normal.y > 0.99 && p.y.abs() < 1e-3 && p.x.abs() < 0.8 && p.z.abs() < 0.8
     };
-    let (_, se, n) = assert_unbiased(&atlas, &est, under, |_| Vec3::splat(0.6 * e), 1e-3, "sun through BLEND 0.4");
-    assert!(n > 200 && se < 0.01, "{n} texels, standard error {se}: too few to tell 0.6 from 0.55");
+    let (_, se, n) = assert_unbiased(
+        &atlas,
+        &est,
+        under,
+        |_| Vec3::splat(0.6 * e),
+        1e-3,
+        "sun through BLEND 0.4",
+    );
+    assert!(
+        n > 200 && se < 0.01,
+        "{n} texels, standard error {se}: too few to tell 0.6 from 0.55"
+    );
 }
 
 #[test]
@@ -363,7 +385,11 @@ fn plans_say_where_alpha_is_tested() {
             .iter()
             .find(|i| i.name == "alpha test elsewhere")
             .unwrap_or_else(|| panic!("{technique} says what sees alpha as opaque"));
-        assert!(item.why.contains(what) && item.why.contains("opaque"), "{technique}: {}", item.why);
+        assert!(
+            item.why.contains(what) && item.why.contains("opaque"),
+            "{technique}: {}",
+            item.why
+        );
     }
     // No alpha material, no alpha line.
     let opaque = import(&canopy_scene(Canopy::Opaque));
@@ -423,8 +449,18 @@ fn canopy_closed_form_holds_for_the_map_techniques() {
         ("vpl", json!({"vpls_per_step": 256, "vpl_map_size": 32}), 8, (0.8, 1.25)),
         ("obscurance", json!({"map_size": 256}), 8, (0.8, 1.25)),
         ("hemicube", json!({"shooters_per_step": 16}), 8, (0.8, 1.25)),
-        ("sdb", json!({"map_size": 128, "directions_per_step": 64}), 4, (0.0, 0.25)),
-        ("sdb", json!({"map_size": 128, "directions_per_step": 64, "neighbourhood": 1}), 4, (0.35, 0.7)),
+        (
+            "sdb",
+            json!({"map_size": 128, "directions_per_step": 64}),
+            4,
+            (0.0, 0.25),
+        ),
+        (
+            "sdb",
+            json!({"map_size": 128, "directions_per_step": 64, "neighbourhood": 1}),
+            4,
+            (0.35, 0.7),
+        ),
     ];
     for (technique, params, steps, (lo, hi)) in runs {
         let means: Vec<(f64, f64)> = CANOPIES
@@ -434,7 +470,9 @@ fn canopy_closed_form_holds_for_the_map_techniques() {
         let line: Vec<String> = CANOPIES
             .iter()
             .zip(&means)
-            .map(|((_, label), (got, want))| format!("{label}: {got:.4} vs {want:.4} ({:+.2} %)", 100.0 * (got / want - 1.0)))
+            .map(|((_, label), (got, want))| {
+                format!("{label}: {got:.4} vs {want:.4} ({:+.2} %)", 100.0 * (got / want - 1.0))
+            })
             .collect();
         eprintln!("{technique} {params}: {}", line.join("; "));
         let (opaque, opaque_want) = means[0];
@@ -466,7 +504,10 @@ fn canopy_closed_form_holds_for_the_map_techniques() {
 fn an_unreadable_alpha_texture_names_the_image() {
     let (json, mut bin) = canopy_scene(Canopy::Stripes).to_gltf();
     let view = &json["bufferViews"][json["images"][0]["bufferView"].as_u64().unwrap() as usize];
-    let (at, len) = (view["byteOffset"].as_u64().unwrap() as usize, view["byteLength"].as_u64().unwrap() as usize);
+    let (at, len) = (
+        view["byteOffset"].as_u64().unwrap() as usize,
+        view["byteLength"].as_u64().unwrap() as usize,
+    );
     bin[at..at + len].fill(0);
     let err = import_slice(&write_glb(&json, &bin), None).expect_err("an undecodable image is refused");
     let text = err.to_string();

@@ -755,7 +755,9 @@ fn the_console_bakes_in_a_real_browser() {
     // The job line says how far the probes got (progress.probes).
     let line = b.eval("document.getElementById('job-progress').textContent");
     assert!(
-        line.as_str().unwrap().ends_with("light probes: step 2 of 2 (28 probes)"),
+        line.as_str()
+            .unwrap()
+            .ends_with("light probes: step 2 of 2 (28 probes)"),
         "{line}"
     );
     b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");

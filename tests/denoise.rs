@@ -255,7 +255,10 @@ fn the_job_choice_parses_names_and_old_booleans() {
 /// the blend keeps the raw moments: the weight follows the lightmap's own error.)
 #[test]
 fn directional_layers_are_never_worse_after_denoising() {
-    let lib = benchmark_scenes().into_iter().find(|s| s.name == "sphere-over-plane").unwrap();
+    let lib = benchmark_scenes()
+        .into_iter()
+        .find(|s| s.name == "sphere-over-plane")
+        .unwrap();
     let p = prepare(&lib).unwrap();
     let bake = |spp: u32, steps: u64, seed: u64| {
         let request = BakeRequest {
@@ -300,8 +303,14 @@ fn directional_layers_are_never_worse_after_denoising() {
             mean_y(m),
             mean_y(reference)
         );
-        assert!(delivered <= raw * 1.001, "{used}: delivered {delivered} above raw {raw}");
-        assert!(delivered < 0.9 * raw, "{used}: the filter did not act on the moments ({delivered} vs {raw})");
+        assert!(
+            delivered <= raw * 1.001,
+            "{used}: delivered {delivered} above raw {raw}"
+        );
+        assert!(
+            delivered < 0.9 * raw,
+            "{used}: the filter did not act on the moments ({delivered} vs {raw})"
+        );
         assert!(
             (mean_y(m) / mean_y(reference) - 1.0).abs() < 0.02,
             "{used}: mean y moment {} vs {}",

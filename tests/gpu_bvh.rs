@@ -24,9 +24,9 @@ use lightmapd::engine::gpu::scene_rays::SceneRays;
 use lightmapd::engine::gpu::{GpuContext, GpuError, Requirements};
 use lightmapd::engine::raytrace::{Tracer, intersect};
 use lightmapd::engine::rng::Rng;
-use lightmapd::engine::scene::{Lighting, Scene};
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box};
 use lightmapd::engine::scene::library::{closed_box, procedural_blocks, sphere_over_plane};
+use lightmapd::engine::scene::{Lighting, Scene};
 
 fn context() -> Option<Arc<GpuContext>> {
     match GpuContext::new(&Requirements::default()) {
@@ -389,7 +389,15 @@ fn gpu_closest_hits_match_the_cpu_at_every_scale() {
             let runner = QueryRunner::new(&ctx, &bvh, rays.rays.len()).unwrap();
             let hits = runner.run(&ctx, &rays.rays).unwrap();
             let what = format!("{name}, {label}");
-            let t = compare(&scene, &tracer, &bvh.bvh.data, &rays, &hits, &what, offset != Vec3::ZERO);
+            let t = compare(
+                &scene,
+                &tracer,
+                &bvh.bvh.data,
+                &rays,
+                &hits,
+                &what,
+                offset != Vec3::ZERO,
+            );
             eprintln!(
                 "{what}: {} rays, {} same, {} ties, {} edge cases, {} hits the CPU BVH lost, largest distance difference {:.2e} of the scene size",
                 t.rays, t.same, t.ties, t.edge_cases, t.cpu_bvh_lost, t.max_dt

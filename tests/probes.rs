@@ -314,13 +314,24 @@ fn probe_under_a_small_emitter_finds_it_by_light_sampling() {
     );
     let e = p.error.expect("16 steps: both halves");
     assert!(e < 0.05, "relative error {e} after 1024 samples");
-    assert!((p.sh[0][1] as f64 - c00).abs() < 5.0 * se + 1e-4, "c00 {} vs {c00} (se {se})", p.sh[0][1]);
-    assert!((p.sh[1][1] as f64 - c1).abs() < 8.0 * se + 1e-4, "c1-1 {} vs {c1}", p.sh[1][1]);
+    assert!(
+        (p.sh[0][1] as f64 - c00).abs() < 5.0 * se + 1e-4,
+        "c00 {} vs {c00} (se {se})",
+        p.sh[0][1]
+    );
+    assert!(
+        (p.sh[1][1] as f64 - c1).abs() < 8.0 * se + 1e-4,
+        "c1-1 {} vs {c1}",
+        p.sh[1][1]
+    );
     // The lamp is straight up: the x and z moments vanish up to noise (the sampled point's
     // x or z over its distance, about a / h = 0.1 of c1-1 per sample, over 1024 samples).
     eprintln!("c11 (x) {}, c10 (z) {}", p.sh[3][1], p.sh[2][1]);
     let noise = 0.1 * c1 as f32 / 1024f32.sqrt();
-    assert!(p.sh[3][1].abs() < 5.0 * noise && p.sh[2][1].abs() < 5.0 * noise, "x and z moments within {noise} x 5");
+    assert!(
+        p.sh[3][1].abs() < 5.0 * noise && p.sh[2][1].abs() < 5.0 * noise,
+        "x and z moments within {noise} x 5"
+    );
 }
 
 /// The job tells its observer how far the probes are (issue 26: probe progress), before
@@ -333,7 +344,11 @@ fn probe_steps_are_reported_and_a_break_stops_them() {
     let mut b = SceneBuilder::new();
     let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
     b.square("ground", Vec3::ZERO, 4.0, Vec3::Y, black);
-    b.probes = vec![Vec3::new(0.0, 1.0, 0.0), Vec3::new(1.0, 0.5, 0.0), Vec3::new(-1.0, 0.5, 0.5)];
+    b.probes = vec![
+        Vec3::new(0.0, 1.0, 0.0),
+        Vec3::new(1.0, 0.5, 0.0),
+        Vec3::new(-1.0, 0.5, 0.5),
+    ];
     let scene = std::sync::Arc::new(import(&b));
     let request = probe_job(1, 6);
     let run = |break_at: Option<u32>| {

@@ -422,7 +422,11 @@ async fn probes_are_an_artifact_of_the_job() {
     assert_eq!(job["status"], "succeeded", "{job:#}");
     eprintln!("progress {}", job["progress"]);
     // The probes' progress (issue 26): all 4 steps of the 28 probes.
-    assert_eq!(job["progress"]["probes"], json!({"steps": 4, "of": 4, "probes": 28}), "{job:#}");
+    assert_eq!(
+        job["progress"]["probes"],
+        json!({"steps": 4, "of": 4, "probes": 28}),
+        "{job:#}"
+    );
     assert!(
         job["plan"]["passes"]
             .as_array()

@@ -102,7 +102,11 @@ pub enum BakeEvent<'a> {
     /// Light probes after the lightmap (`job::BakeRequest::probes`): `steps` of `of` done
     /// for `probes` probes; sent before the first probe step and after each. Returning
     /// `Break` stops the probes where they are (the steps done are kept).
-    Probes { steps: u32, of: u32, probes: usize },
+    Probes {
+        steps: u32,
+        of: u32,
+        probes: usize,
+    },
 }
 
 /// Receives progress and snapshots; returning `Break` cancels the bake (the last

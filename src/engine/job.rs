@@ -54,7 +54,10 @@ pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineErro
                 &format!("{n} MASK/BLEND materials are alpha-tested in every visibility query (rays and maps)"),
             ),
             AlphaSupport::Partly { tested, opaque } => {
-                plan.run("alpha test", &format!("{n} MASK/BLEND materials are alpha-tested in {tested}"));
+                plan.run(
+                    "alpha test",
+                    &format!("{n} MASK/BLEND materials are alpha-tested in {tested}"),
+                );
                 plan.leave_out(
                     "alpha test elsewhere",
                     &format!("{opaque} sees MASK/BLEND surfaces as opaque (they cast solid shadows there); path, vpl, hemicube and obscurance alpha-test everywhere"),

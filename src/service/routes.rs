@@ -48,7 +48,9 @@ use utoipa::OpenApi;
 
 use crate::service::auth::{self, Caller};
 use crate::service::console::{DenoiserInfo, TechniqueInfo, TechniqueList};
-use crate::service::model::{Health, JobCreated, JobList, JobSpec, JobStatus, JobView, ProbeProgress, Progress, SceneView, rfc3339};
+use crate::service::model::{
+    Health, JobCreated, JobList, JobSpec, JobStatus, JobView, ProbeProgress, Progress, SceneView, rfc3339,
+};
 use crate::service::problem::{PROBLEM_JSON, Problem};
 use crate::service::queue::{Cancellation, Enqueued, JobDeletion, JobRecord, SceneDeletion, SceneRecord, now_ms};
 use crate::service::worker::{ImportFailure, SceneFiles, import_dir, import_files, job_memory};

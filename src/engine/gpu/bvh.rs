@@ -161,7 +161,11 @@ impl BvhData {
                     flags: {
                         let m = scene.material(t);
                         let sided = if m.double_sided { 0 } else { BVH_TRI_SINGLE_SIDED };
-                        let alpha = if m.alpha_mode == AlphaMode::Opaque { 0 } else { BVH_TRI_ALPHA_TEST };
+                        let alpha = if m.alpha_mode == AlphaMode::Opaque {
+                            0
+                        } else {
+                            BVH_TRI_ALPHA_TEST
+                        };
                         sided | alpha
                     },
                     e2: (t.p[2] - t.p[0]).to_array(),
@@ -289,7 +293,16 @@ impl QueryRunner {
             BufferUsages::STORAGE | BufferUsages::COPY_SRC,
         );
         let [b0, b1, b2, b3, b4] = scene.binds();
-        let binds = [b0, b1, b2, b3, b4, Bind::Uniform(&params), Bind::Read(&rays), Bind::Write(&results)];
+        let binds = [
+            b0,
+            b1,
+            b2,
+            b3,
+            b4,
+            Bind::Uniform(&params),
+            Bind::Read(&rays),
+            Bind::Write(&results),
+        ];
         let layout = layout_of(ctx, "bvh query", wgpu::ShaderStages::COMPUTE, &binds);
         let group = group_of(ctx, "bvh query", &layout, &binds);
         let pipeline = compute_pipeline(ctx, "bvh query", &module, "query", &layout);

@@ -223,7 +223,11 @@ fn upload_tables(
     bvh: &GpuBvh,
 ) -> Result<GpuTables, GpuError> {
     let (shade, tables, offsets) = if scene.triangles.is_empty() {
-        (vec![[0.0; 4]; 6], vec![[bits(1), bits(1), 0.0, 0.0]], [1, 1, 0, 1, 0, 1])
+        (
+            vec![[0.0; 4]; 6],
+            vec![[bits(1), bits(1), 0.0, 0.0]],
+            [1, 1, 0, 1, 0, 1],
+        )
     } else {
         let slot_ids: Vec<u32> = bvh.data.tris.iter().map(|t| t.id).collect();
         scene_tables(scene, emitters, &slot_ids, &bvh.data.slot_of)
@@ -255,7 +259,12 @@ type Tables = (Vec<[f32; 4]>, Vec<[f32; 4]>, [u32; 6]);
 pub fn opaque_material_tables(materials: u32) -> Vec<[f32; 4]> {
     let mut t = vec![[bits(1), bits(1 + 4 * materials), 0.0, 0.0]];
     for _ in 0..materials {
-        t.extend([[0.0, 0.0, 0.0, bits(u32::MAX)], [0.0, 0.0, 0.0, bits(u32::MAX)], [0.0; 4], [0.0, 0.0, 1.0, 0.0]]);
+        t.extend([
+            [0.0, 0.0, 0.0, bits(u32::MAX)],
+            [0.0, 0.0, 0.0, bits(u32::MAX)],
+            [0.0; 4],
+            [0.0, 0.0, 1.0, 0.0],
+        ]);
     }
     t
 }

@@ -62,7 +62,8 @@ impl TextureDesc {
         let bytes: Vec<u8> = self.rgba.iter().flatten().copied().collect();
         let img = image::RgbaImage::from_raw(self.width, self.height, bytes).expect("width * height pixels");
         let mut out = std::io::Cursor::new(Vec::new());
-        img.write_to(&mut out, image::ImageFormat::Png).expect("PNG encoding into memory");
+        img.write_to(&mut out, image::ImageFormat::Png)
+            .expect("PNG encoding into memory");
         out.into_inner()
     }
 }
@@ -477,7 +478,11 @@ impl SceneBuilder {
             root["images"] = json!(image_json);
             // Repeat wrap, linear filtering (glTF's sampler codes).
             root["samplers"] = json!([{"magFilter": 9729, "minFilter": 9729, "wrapS": 10497, "wrapT": 10497}]);
-            root["textures"] = json!((0..images.len()).map(|i| json!({"source": i, "sampler": 0})).collect::<Vec<_>>());
+            root["textures"] = json!(
+                (0..images.len())
+                    .map(|i| json!({"source": i, "sampler": 0}))
+                    .collect::<Vec<_>>()
+            );
         }
         if !lights.is_empty() {
             used.push("KHR_lights_punctual");

@@ -43,8 +43,8 @@ use serde::Serialize;
 
 use super::error::{ImportError, PrimitiveRef};
 use super::{
-    AlphaMode, Bounds, Instance, LightKind, LocalMesh, LocalPrimitive, Material, MeshInfo, PunctualLight, Scene, SourceDocument,
-    Texture, TextureRef, TriSource, Triangle, Wrap,
+    AlphaMode, Bounds, Instance, LightKind, LocalMesh, LocalPrimitive, Material, MeshInfo, PunctualLight, Scene,
+    SourceDocument, Texture, TextureRef, TriSource, Triangle, Wrap,
 };
 
 /// What import found, for the CLI summary and the service's scene report.

@@ -104,7 +104,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{
+    AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params,
+};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::gpu::frame::SceneFrame;
@@ -555,7 +557,10 @@ impl Hemicube {
         );
         let select_bg = group_of(&ctx, "hemicube select bindings", &select_layout, &select_binds);
         // Depth maps: the shared shadow atlas (gpu::shadow), views from the select pass.
-        let tables = inputs.rays.gpu_tables(&ctx, "hemicube", &inputs.rays.emitters()).map_err(gpu_error)?;
+        let tables = inputs
+            .rays
+            .gpu_tables(&ctx, "hemicube", &inputs.rays.emitters())
+            .map_err(gpu_error)?;
         let shadow = ShadowAtlas::new(&ctx, "hemicube depth", atlas_w, atlas_h, &views_buf, &tables.tables)
             .map_err(gpu_error)?;
         // Transfer and accumulation.

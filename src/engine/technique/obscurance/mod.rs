@@ -123,7 +123,9 @@ mod update;
 
 pub use update::{ObscuranceState, UpdateReach, UpdateReport};
 
-use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{
+    AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params,
+};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64, sample_cone};
@@ -802,7 +804,10 @@ impl Obscurance {
         let layers_module = ctx.shader(&shaders::OBSCURANCE_LAYERS).map_err(gpu_error)?;
         let view_bind = Bind::Uniform(&view_buf);
         // The scene's materials and textures, for the alpha test (gpu/materials.wgsl).
-        let tables = inputs.rays.gpu_tables(&ctx, "obscurance", &inputs.rays.emitters()).map_err(gpu_error)?;
+        let tables = inputs
+            .rays
+            .gpu_tables(&ctx, "obscurance", &inputs.rays.emitters())
+            .map_err(gpu_error)?;
         let layers_binds = [
             Bind::In(S::VERTEX_FRAGMENT, &view_bind),
             Bind::Read(&tables.tables),

@@ -54,7 +54,9 @@ use serde_json::Value;
 mod gpu;
 pub mod probes;
 
-use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params};
+use super::api::{
+    AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params,
+};
 use crate::engine::accumulate::{HalfAccumulator, Snapshot};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};

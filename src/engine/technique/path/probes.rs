@@ -344,7 +344,12 @@ impl<'a> ProbeBaker<'a> {
                     let weight = if emitted == Vec3::ZERO {
                         1.0
                     } else {
-                        let pick = self.emitters.emitter_pick.get(hit.triangle as usize).copied().unwrap_or(0.0);
+                        let pick = self
+                            .emitters
+                            .emitter_pick
+                            .get(hit.triangle as usize)
+                            .copied()
+                            .unwrap_or(0.0);
                         let cos_l = w.dot(geo).abs();
                         let pdf_light = pick / tri.area() * hit.t * hit.t / cos_l.max(f32::MIN_POSITIVE);
                         power_heuristic(1.0 / four_pi, pdf_light)
@@ -388,7 +393,10 @@ impl<'a> ProbeBaker<'a> {
         let table = &*self.emitters;
         if !table.emitters.is_empty() {
             let u = rng.next_f32();
-            let k = table.emitter_cdf.partition_point(|c| *c <= u).min(table.emitters.len() - 1);
+            let k = table
+                .emitter_cdf
+                .partition_point(|c| *c <= u)
+                .min(table.emitters.len() - 1);
             let ti = table.emitters[k];
             let tri = &scene.triangles[ti as usize];
             let (mut b1, mut b2) = (rng.next_f32(), rng.next_f32());
@@ -403,7 +411,11 @@ impl<'a> ProbeBaker<'a> {
             if dist > 0.0 {
                 let d = to / dist;
                 let cos_l = -d.dot(tri.geometric_normal());
-                let cos_l = if scene.material(tri).double_sided { cos_l.abs() } else { cos_l };
+                let cos_l = if scene.material(tri).double_sided {
+                    cos_l.abs()
+                } else {
+                    cos_l
+                };
                 let emitted = scene.emission(tri, bary);
                 // Stop short of the emitter so it does not occlude its own sample.
                 if cos_l > 0.0 && emitted != Vec3::ZERO && self.tracer.unoccluded(scene, x, d, dist * (1.0 - 1e-4)) {

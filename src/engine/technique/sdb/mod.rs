@@ -111,7 +111,9 @@ mod lights;
 
 pub use lights::{ambient_mode, sdb_input};
 
-use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{
+    AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params,
+};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::directions::sample_cone;
 pub use crate::engine::gpu::directions::{
@@ -1327,7 +1329,12 @@ impl Sdb {
         }
         // One device per process, shared by every sdb bake (`gpu::shared`).
         let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
-        input.tables = Some(inputs.rays.gpu_tables(&ctx, "sdb", &inputs.rays.emitters()).map_err(gpu_error)?);
+        input.tables = Some(
+            inputs
+                .rays
+                .gpu_tables(&ctx, "sdb", &inputs.rays.emitters())
+                .map_err(gpu_error)?,
+        );
         let engine = SdbEngine::new(ctx, input, params.clone()).map_err(gpu_error)?;
         Ok(Sdb { engine, params, notes })
     }

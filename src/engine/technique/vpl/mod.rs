@@ -96,7 +96,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::api::{AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params};
+use super::api::{
+    AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params,
+};
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::SURFACE_OFFSET;
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
@@ -104,8 +106,8 @@ use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::shadow::{
-    shadow_vertices,
     self, ShadowAtlas, ShadowAtlasLayout, ShadowDraw, ShadowView, VIEW_ORTHO, VIEW_PERSPECTIVE, cube_faces,
+    shadow_vertices,
 };
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
@@ -448,9 +450,19 @@ impl Vpl {
         );
 
         use wgpu::ShaderStages as S;
-        let tables = inputs.rays.gpu_tables(&ctx, "vpl", &inputs.rays.emitters()).map_err(gpu_error)?;
-        let shadow = ShadowAtlas::new(&ctx, "vpl shadow", layout.width, layout.height, &views_buf, &tables.tables)
+        let tables = inputs
+            .rays
+            .gpu_tables(&ctx, "vpl", &inputs.rays.emitters())
             .map_err(gpu_error)?;
+        let shadow = ShadowAtlas::new(
+            &ctx,
+            "vpl shadow",
+            layout.width,
+            layout.height,
+            &views_buf,
+            &tables.tables,
+        )
+        .map_err(gpu_error)?;
         let gather_module = ctx.shader(&shaders::VPL_GATHER).map_err(gpu_error)?;
         let gather_binds = [
             Bind::Uniform(&gather_buf),
