@@ -15,7 +15,8 @@ use lightmapd::engine::scene::library::{sphere_occlusion, sphere_over_plane};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, export, import_slice};
 use serde_json::json;
 
-fn without_lightmap_uvs() -> Vec<u8> {
+/// Sphere-over-plane's document with every mesh's TEXCOORD_1 removed, and its buffer.
+fn without_lightmap_uvs_gltf() -> (serde_json::Value, Vec<u8>) {
     let (mut json, bin) = sphere_over_plane().to_gltf();
     for m in json["meshes"].as_array_mut().unwrap() {
         m["primitives"][0]["attributes"]
@@ -23,6 +24,11 @@ fn without_lightmap_uvs() -> Vec<u8> {
             .unwrap()
             .remove("TEXCOORD_1");
     }
+    (json, bin)
+}
+
+fn without_lightmap_uvs() -> Vec<u8> {
+    let (json, bin) = without_lightmap_uvs_gltf();
     write_glb(&json, &bin)
 }
 
@@ -283,13 +289,7 @@ fn authored_uvs_are_kept_beside_generated_ones() {
 /// the node and the mesh (issue 19's acceptance), not a panic or a silent zero-size chart.
 #[test]
 fn a_singular_instance_transform_names_the_node() {
-    let (mut json, bin) = sphere_over_plane().to_gltf();
-    for m in json["meshes"].as_array_mut().unwrap() {
-        m["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
+    let (mut json, bin) = without_lightmap_uvs_gltf();
     // A second node placing the ground, flattened along y.
     let flat = json["nodes"].as_array().unwrap().len();
     json["nodes"]
