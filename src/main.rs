@@ -64,7 +64,8 @@ struct MergeArgs {
     /// Every task's result (`bake --task K/N -o FILE`), in any order.
     #[arg(required = true)]
     parts: Vec<PathBuf>,
-    /// Where to write the lightmap (OpenEXR).
+    /// Where to write the lightmap: a folder (`lightmap-P.exr` per page and
+    /// `lightmaps.json`) or, for one page, a path ending in `.exr`.
     #[arg(short, long)]
     output: PathBuf,
     /// Also write a tone-mapped PNG preview of the lightmap here.
@@ -239,7 +240,8 @@ struct SubmitArgs {
     /// Follow the job with a progress bar until it ends.
     #[arg(long)]
     wait: bool,
-    /// Download the final lightmap here (implies --wait).
+    /// Download the final lightmap here (implies --wait): a folder gets every page and
+    /// lightmaps.json, a path ending in .exr the one page of a one-page job.
     #[arg(short, long)]
     output: Option<PathBuf>,
     #[arg(long)]
@@ -331,7 +333,10 @@ enum HemisphereArg {
 struct BakeArgs {
     /// The scene: .glb, or .gltf with its buffers and images beside it.
     scene: PathBuf,
-    /// Where to write the lightmap (OpenEXR).
+    /// Where to write the lightmap: a folder (created if missing) gets one OpenEXR per
+    /// page, `lightmap-P.exr`, and `lightmaps.json`; a path ending in `.exr` gets the
+    /// lightmap of a one-page bake (a bake that needs several pages then stops before
+    /// baking, exit 2). With `--task K/N`: the task's result file.
     #[arg(short, long)]
     output: PathBuf,
     #[arg(long, default_value = "path")]
@@ -1010,7 +1015,13 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
     if let Some(n) = stop.steps {
         bar.set_length(n);
     }
+    // A one-file output for a bake that needs several pages stops the bake as soon as
+    // the texel grid (and so its pages) is known, before any sampling.
+    let pages_over = std::cell::Cell::new(None::<usize>);
     let mut observer = |e: BakeEvent<'_>| {
+        if pages_over.get().is_some() {
+            return ControlFlow::Break(());
+        }
         match e {
             BakeEvent::Progress { steps, .. } => bar.set_position(steps),
             BakeEvent::Snapshot { estimate, .. } => {
@@ -1026,13 +1037,18 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         }
         ControlFlow::Continue(())
     };
+    let single_file = is_exr_path(&args.output);
     let mut on_atlas = |atlas: &Arc<lightmapd::engine::atlas::Atlas>| {
         let a = atlas.report();
         tracing::info!(
             texels = a.valid_texels,
             overlapping = a.overlapping_texels,
+            pages = a.pages,
             "texel set built"
         );
+        if single_file && atlas.pages.len() > 1 {
+            pages_over.set(Some(atlas.pages.len()));
+        }
     };
     if let Some((k, n)) = args.task {
         return bake_task(
@@ -1093,10 +1109,10 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         .map_err(engine_failure)?
     };
     bar.finish_and_clear();
-    write_atomically(&args.output, &result.exr).map_err(|e| Failure {
-        code: 1,
-        message: format!("cannot write {}: {e}", args.output.display()),
-    })?;
+    if let Some(n) = pages_over.get() {
+        return Err(several_pages(&args.output, n));
+    }
+    let written = write_lightmaps(&args.output, &result)?;
     if let Some(p) = &args.write_gltf {
         let glb = lightmapd::engine::scene::export::to_glb(&result.scene).map_err(|e| Failure {
             code: 1,
@@ -1142,9 +1158,56 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         1e3 * s.seconds / s.steps.max(1) as f64,
         err,
         s.stopped_by,
-        args.output.display()
+        written
     );
     Ok(())
+}
+
+/// Whether `-o` names one EXR file rather than a folder of pages.
+fn is_exr_path(path: &std::path::Path) -> bool {
+    path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"))
+}
+
+fn several_pages(path: &std::path::Path, pages: usize) -> Failure {
+    bad_input(format!(
+        "the bake needs {pages} lightmap pages and -o {} names one EXR file: give -o a folder for lightmap-P.exr and lightmaps.json",
+        path.display()
+    ))
+}
+
+/// Writes a bake's pages to `-o`: a folder gets every `lightmap-P.exr` and
+/// `lightmaps.json` (the manifest last, so it names only pages on disk); an `.exr` path
+/// gets the one page. Returns what was written, for the summary line.
+fn write_lightmaps(output: &std::path::Path, result: &job::BakeResult) -> Result<String, Failure> {
+    let cannot = |p: &std::path::Path, e: std::io::Error| Failure {
+        code: 1,
+        message: format!("cannot write {}: {e}", p.display()),
+    };
+    if is_exr_path(output) {
+        if result.pages.len() > 1 {
+            return Err(several_pages(output, result.pages.len()));
+        }
+        write_atomically(output, result.first_page()).map_err(|e| cannot(output, e))?;
+        return Ok(output.display().to_string());
+    }
+    std::fs::create_dir_all(output).map_err(|e| cannot(output, e))?;
+    for page in &result.pages {
+        let p = output.join(&page.entry.file);
+        write_atomically(&p, &page.exr).map_err(|e| cannot(&p, e))?;
+    }
+    let manifest = serde_json::to_vec_pretty(&result.manifest).map_err(|e| Failure {
+        code: 1,
+        message: format!("encoding lightmaps.json: {e}"),
+    })?;
+    let p = output.join(lightmapd::engine::output::pages::MANIFEST_FILE);
+    write_atomically(&p, &manifest).map_err(|e| cannot(&p, e))?;
+    Ok(format!(
+        "{} ({} page{} and {})",
+        output.display(),
+        result.pages.len(),
+        if result.pages.len() == 1 { "" } else { "s" },
+        lightmapd::engine::output::pages::MANIFEST_FILE
+    ))
 }
 
 /// `bake --task K/N`: one task's result to `args.output` (`engine::tasks`).
@@ -1220,10 +1283,7 @@ fn merge(args: MergeArgs) -> Result<(), Failure> {
     }
     let result =
         tasks::merge(Arc::new(scene), &parts, &job::BakeOptions::default(), &mut |_| {}).map_err(engine_failure)?;
-    write_atomically(&args.output, &result.exr).map_err(|e| Failure {
-        code: 1,
-        message: format!("cannot write {}: {e}", args.output.display()),
-    })?;
+    let written = write_lightmaps(&args.output, &result)?;
     if let Some(p) = &args.preview {
         write_atomically(p, &result.preview_png).map_err(|e| Failure {
             code: 1,
@@ -1241,7 +1301,7 @@ fn merge(args: MergeArgs) -> Result<(), Failure> {
         s.steps,
         s.seconds,
         err,
-        args.output.display()
+        written
     );
     Ok(())
 }

@@ -191,13 +191,16 @@ fn small_bake(denoise: Denoiser) -> lightmapd::engine::job::BakeResult {
 #[test]
 fn header_plan_and_summary_name_the_denoiser() {
     let raw = small_bake(Denoiser::None);
-    assert_eq!(exr_string(&raw.exr, "lightmapd:denoised").as_deref(), Some("no"));
+    assert_eq!(
+        exr_string(raw.first_page(), "lightmapd:denoised").as_deref(),
+        Some("no")
+    );
     assert_eq!(raw.summary.denoiser, "none");
     assert!(raw.summary.plan.left_out.iter().any(|i| i.name == "denoiser"));
     assert_eq!(raw.summary.error.raw_relative, None);
 
     let own = small_bake(Denoiser::Own);
-    let header = exr_string(&own.exr, "lightmapd:denoised").unwrap();
+    let header = exr_string(own.first_page(), "lightmapd:denoised").unwrap();
     assert!(header.starts_with("own (edge-aware a-trous)"), "header {header:?}");
     assert_eq!(own.summary.denoiser, header);
     assert!(
@@ -219,7 +222,7 @@ fn header_plan_and_summary_name_the_denoiser() {
 
     if Oidn::available() {
         let oidn = small_bake(Denoiser::Auto);
-        let header = exr_string(&oidn.exr, "lightmapd:denoised").unwrap();
+        let header = exr_string(oidn.first_page(), "lightmapd:denoised").unwrap();
         assert!(header.starts_with("oidn 2."), "header {header:?}");
     }
 }

@@ -174,7 +174,7 @@ fn sigkill_at_random_points_loses_no_job() {
     // Every final EXR in the store is whole, and only succeeded jobs have one.
     let jobs_dir = store_dir(dir.path()).join("jobs");
     for entry in std::fs::read_dir(&jobs_dir).unwrap() {
-        let path = entry.unwrap().path().join("lightmap.exr");
+        let path = entry.unwrap().path().join("lightmap-0.exr");
         if let Ok(bytes) = std::fs::read(&path) {
             exr_is_whole(&bytes).unwrap_or_else(|e| panic!("{} is not whole: {e}", path.display()));
         }
@@ -190,7 +190,7 @@ fn sigkill_at_random_points_loses_no_job() {
 struct FullDisk {
     inner: LocalFileSystem,
     full: Arc<AtomicBool>,
-    /// How long each write of a final `lightmap.exr` takes (a slow link to the store).
+    /// How long each write of a final `lightmap-0.exr` takes (a slow link to the store).
     slow_final: Duration,
 }
 
@@ -217,7 +217,7 @@ impl ObjectStore for FullDisk {
                 )),
             });
         }
-        if location.as_ref().ends_with("/lightmap.exr") {
+        if location.as_ref().ends_with("/lightmap-0.exr") {
             tokio::time::sleep(self.slow_final).await;
         }
         self.inner.put_opts(location, payload, opts).await
@@ -294,7 +294,7 @@ async fn a_full_artifact_disk_fails_the_job_with_its_reason_and_no_lightmap() {
         ),
     )
     .await;
-    assert!(!dir.path().join(format!("objects/jobs/{id}/lightmap.exr")).exists());
+    assert!(!dir.path().join(format!("objects/jobs/{id}/lightmap-0.exr")).exists());
 
     // Space again: the same job body succeeds, with a whole lightmap.
     full.store(false, Ordering::SeqCst);

@@ -532,7 +532,15 @@ async fn tokens_guard_every_route_and_keep_clients_apart() {
         &format!("no job with id \"{job}\""),
         None,
     );
-    for path in ["", "/events", "/lightmap.exr", "/preview.png", "/scene.glb"] {
+    for path in [
+        "",
+        "/events",
+        "/lightmap.exr",
+        "/lightmap-0.exr",
+        "/lightmaps.json",
+        "/preview.png",
+        "/scene.glb",
+    ] {
         expect_problem(
             s.get(&format!("/v1/jobs/{job}{path}")).bearer_auth(&bob),
             404,

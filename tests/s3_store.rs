@@ -81,7 +81,7 @@ async fn artifacts_round_trip_on_s3() {
     // Over the threshold: a multipart upload of ceil(len / PART_SIZE) parts, the last short.
     let big_len = MULTIPART_THRESHOLD + PART_SIZE / 2 + 12_345;
     let big = pattern(big_len);
-    let big_key = store::final_exr("j1");
+    let big_key = store::page_exr("j1", 0);
     a.put(&big_key, big.clone()).await.unwrap();
     let back = a.get(&big_key).await.unwrap().expect("the multipart object exists");
     assert_eq!(back.len(), big_len);
@@ -228,7 +228,7 @@ fn service_bakes_through_an_s3_store() {
     // stored is the upload, byte for byte; nothing went to a local folder.
     rt.block_on(async {
         let a = open(&s3, &store).await;
-        assert_eq!(a.get(&store::final_exr(&job)).await.unwrap(), Some(exr.clone()));
+        assert_eq!(a.get(&store::page_exr(&job, 0)).await.unwrap(), Some(exr.clone()));
         assert_eq!(
             a.get(&store::scene_file(&scene, "scene.glb")).await.unwrap().as_deref(),
             Some(glb.as_slice())

@@ -1455,7 +1455,7 @@ async fn deleting_a_job_and_the_retention_sweeper_remove_its_artifacts() {
     }
     let b_done = Instant::now();
     let folder = |id: &str| s._dir.path().join(format!("objects/jobs/{id}"));
-    assert!(folder(&a).join("lightmap.exr").exists());
+    assert!(folder(&a).join("lightmap-0.exr").exists());
     // DELETE: 204, the folder is gone, the job is 404 (and a second DELETE too).
     let r = s.http.delete(format!("{}/v1/jobs/{a}", s.url)).send().await.unwrap();
     assert_eq!(r.status(), 204);

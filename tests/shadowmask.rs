@@ -313,7 +313,7 @@ fn the_exr_names_each_channels_light() {
         .all_channels()
         .all_layers()
         .all_attributes()
-        .from_buffered(std::io::Cursor::new(r.exr))
+        .from_buffered(std::io::Cursor::new(r.first_page().to_vec()))
         .unwrap();
     let layer = &image.layer_data[0];
     let names: Vec<String> = layer.channel_data.list.iter().map(|c| c.name.to_string()).collect();

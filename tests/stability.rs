@@ -390,7 +390,7 @@ pub fn beyond_half_float(row: &Row) {
         .all_channels()
         .all_layers()
         .all_attributes()
-        .from_buffered(std::io::Cursor::new(result.exr))
+        .from_buffered(std::io::Cursor::new(result.first_page().to_vec()))
         .unwrap();
     let r = image.layer_data[0]
         .channel_data

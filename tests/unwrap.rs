@@ -4,6 +4,7 @@
 
 use std::sync::Arc;
 
+use exr::prelude::{ReadChannels, ReadLayers};
 use glam::{Vec2, Vec3};
 use lightmapd::engine::atlas::unwrap::LightmapUvs;
 use lightmapd::engine::bake::StopCriteria;
@@ -12,7 +13,7 @@ use lightmapd::engine::post::{dilate, seams};
 use lightmapd::engine::rng::Rng;
 use lightmapd::engine::scene::build::write_glb;
 use lightmapd::engine::scene::library::{sphere_occlusion, sphere_over_plane};
-use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, export, import_slice};
+use lightmapd::engine::scene::{Hemisphere, Lighting, PageRows, Sky, export, import_slice};
 use serde_json::json;
 
 /// Sphere-over-plane's document with every mesh's TEXCOORD_1 removed, and its buffer.
@@ -139,6 +140,27 @@ fn lightmap_scale_from_extras() {
     );
 }
 
+/// One channel of an EXR, in pixel order.
+fn exr_channel(bytes: &[u8], name: &str) -> Vec<f32> {
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes.to_vec()))
+        .unwrap();
+    image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .find(|c| c.name.to_string() == name)
+        .unwrap_or_else(|| panic!("no channel {name}"))
+        .sample_data
+        .values_as_f32()
+        .collect()
+}
+
 /// Mean and worst relative error of bilinear lookups at the ground's lightmap UVs (what a
 /// renderer does) against the closed form of the sphere's occlusion.
 fn ground_error(result: &job::BakeResult) -> (f64, f64) {
@@ -253,13 +275,88 @@ fn authored_uvs_are_kept_beside_generated_ones() {
         bin[start..start + 8 * acc["count"].as_u64().unwrap() as usize].to_vec()
     };
     assert_eq!(uv(&json, &bin, 0), uv(&doc, out.bin.as_ref().unwrap(), 0));
-    let so = &doc["nodes"][0]["extras"]["lightmap"]["scale_offset"];
-    assert_eq!(so, &json!([1.0, squeeze, 0.0, 0.0]));
-    // Re-imported, the file bakes to the same page UVs.
+    // Two pages: the authored one as authored, the ball's below it in the bake's grid
+    // and written as a page of its own (issue 19 point 7).
+    let rows = result.atlas.height - 128;
+    assert_eq!(
+        result.atlas.pages,
+        vec![
+            PageRows {
+                first_row: 0,
+                rows: 128
+            },
+            PageRows { first_row: 128, rows }
+        ]
+    );
+    assert_eq!(
+        doc["nodes"][0]["extras"]["lightmap"],
+        json!({"page": 0, "scale_offset": [1.0, 1.0, 0.0, 0.0], "file": "lightmap-0.exr"})
+    );
+    let ball = &doc["nodes"][1]["extras"]["lightmap"];
+    assert_eq!(
+        (ball["page"].clone(), ball["file"].clone()),
+        (json!(1), json!("lightmap-1.exr"))
+    );
+    assert_eq!(result.pages.len(), 2);
+    assert_eq!(
+        result
+            .pages
+            .iter()
+            .map(|p| (p.entry.width, p.entry.height))
+            .collect::<Vec<_>>(),
+        vec![(128, 128), (128, rows)]
+    );
+    let manifest = serde_json::to_value(&result.manifest).unwrap();
+    let f32s = |v: &serde_json::Value| -> Vec<f32> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap() as f32)
+            .collect()
+    };
+    assert_eq!(f32s(&manifest["nodes"][1]["scale_offset"]), f32s(&ball["scale_offset"]));
+    assert_eq!(
+        manifest["pages"][0]["valid_texels"].as_u64().unwrap() as usize,
+        ground_texels,
+        "page 0 holds exactly the ground's texels"
+    );
+    // Each page is its rows of the grid: the pages one under another are the delivered
+    // grid, channel for channel and bit for bit.
+    let grid = job::delivered_exr(
+        &result.atlas,
+        &result.estimate,
+        &sky_request(128),
+        &json!({}),
+        std::time::Duration::ZERO,
+    )
+    .unwrap();
+    let stacked: Vec<f32> = result.pages.iter().flat_map(|p| exr_channel(&p.exr, "R")).collect();
+    assert_eq!(stacked, exr_channel(&grid, "R"));
+    // Re-imported, the file (authored UVs on two pages now) bakes to the same grid UVs:
+    // each node's page and scale/offset lead back to the texels it was baked on.
     let (back, _) = import_slice(&glb, None).unwrap();
-    for (a, b) in back.triangles.iter().zip(&baked.triangles) {
+    let again = job::bake_unobserved(
+        Arc::new(back),
+        &BakeRequest {
+            lightmap_uvs: LightmapUvs::Keep,
+            stop: StopCriteria {
+                steps: Some(1),
+                ..Default::default()
+            },
+            ..sky_request(128)
+        },
+    )
+    .unwrap();
+    assert_eq!(again.atlas.pages, result.atlas.pages);
+    assert_eq!(again.scene.triangles.len(), baked.triangles.len());
+    for (a, b) in again.scene.triangles.iter().zip(&baked.triangles) {
         for k in 0..3 {
-            assert!((a.lm[k] - b.lm[k]).abs().max_element() < 1e-6);
+            assert!(
+                (a.lm[k] - b.lm[k]).abs().max_element() < 1e-6,
+                "{:?} vs {:?}",
+                a.lm,
+                b.lm
+            );
         }
     }
 

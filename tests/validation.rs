@@ -57,7 +57,7 @@ fn overlap_and_inside_texels_are_reported_and_shown() {
         .all_channels()
         .all_layers()
         .all_attributes()
-        .from_buffered(std::io::Cursor::new(result.exr))
+        .from_buffered(std::io::Cursor::new(result.first_page().to_vec()))
         .unwrap();
     let count = |name: &str| {
         let c = image.layer_data[0]

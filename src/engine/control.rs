@@ -101,6 +101,7 @@ impl ControlTexels {
             inside_pixels: Vec::new(),
             validation: None,
             seams: Vec::new(),
+            pages: atlas.pages.clone(),
         };
         let features = SceneFeatures::of(scene, &lighting, &[]);
         // The bake's rays: the reference traces the BVH the technique's passes use.

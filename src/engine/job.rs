@@ -17,6 +17,7 @@ use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeEvent, BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::control::{CONTROL_TEXELS, ControlTexels};
 use crate::engine::gpu::scene_rays::SceneRays;
+use crate::engine::output::pages::{self, Manifest, PageEntry, PageFile};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
 use crate::engine::plan::Plan;
 use crate::engine::post::DEFAULT_RINGS;
@@ -117,7 +118,7 @@ pub struct BakeRequest {
     pub lightmap_uvs: LightmapUvs,
     /// Texel density of generated charts (texels per metre, times each node's and mesh's
     /// `extras.lightmap_scale`); None: the highest that fits one `resolution`-wide page.
-    /// Charts that need more than one page get several, stacked in one taller page.
+    /// Charts that need more than one page get several (`lightmap-P.exr` each).
     #[serde(default)]
     pub texels_per_unit: Option<f32>,
     /// The lights of the `shadowmask` layer, one per channel (`engine::shadowmask`):
@@ -206,13 +207,25 @@ pub struct BakeSummary {
     /// The denoiser that made the delivered lightmap (`none` for the raw estimate);
     /// `error` is the delivered lightmap's estimate, `error.raw_relative` the raw one's.
     pub denoiser: String,
+    /// The pages written (`lightmap-P.exr`), as `lightmaps.json` lists them.
+    pub pages: Vec<PageEntry>,
+}
+
+impl BakeResult {
+    /// Page 0's EXR: the whole lightmap of a one-page bake.
+    pub fn first_page(&self) -> &[u8] {
+        &self.pages[0].exr
+    }
 }
 
 pub struct BakeResult {
     /// The scene as baked: with generated lightmap UVs when it had none.
     pub scene: Arc<Scene>,
-    pub exr: Vec<u8>,
-    /// Tone-mapped PNG of the dilated lightmap.
+    /// One EXR per page (`lightmap-P.exr`, `output::pages`), in page order.
+    pub pages: Vec<PageFile>,
+    /// `lightmaps.json`.
+    pub manifest: Manifest,
+    /// Tone-mapped PNG of the dilated lightmap (the whole grid, pages one under another).
     pub preview_png: Vec<u8>,
     pub estimate: Estimate,
     pub atlas: Arc<Atlas>,
@@ -342,7 +355,10 @@ pub(crate) fn prepare(
     }
     on_plan(&plan);
     let regenerate = request.lightmap_uvs == LightmapUvs::RegenerateAll && scene.source.is_some();
-    let (scene, unwrap) = if (scene.needs_lightmap_uvs || regenerate) && scene.layout.is_none() {
+    // Authored UVs on several pages (a file a multi-page bake wrote) are stacked into
+    // one grid by the same layout step, with nothing to unwrap.
+    let stack_pages = scene.authored_pages() > 1;
+    let (scene, unwrap) = if (scene.needs_lightmap_uvs || regenerate || stack_pages) && scene.layout.is_none() {
         let mut generated = (*scene).clone();
         let started = std::time::Instant::now();
         let report = unwrap::generate_lightmap_uvs_with(
@@ -369,7 +385,7 @@ pub(crate) fn prepare(
     } else {
         (scene, None)
     };
-    // The page: W x W, or taller when generated charts sit below authored ones.
+    // The grid: one W x W page, or several one under another (`atlas::unwrap`).
     let (width, height) = scene
         .layout
         .as_ref()
@@ -424,7 +440,7 @@ impl Prepared {
             finish(&self.atlas, raw, request)
         };
         tracing::debug!(builds = ?self.rays.builds(), "the bake's shared scene rays");
-        let exr = delivered_exr(&self.atlas, &finished, request, params, elapsed)?;
+        let pages = delivered_pages(&self.atlas, &finished, request, params, elapsed)?;
         let preview_png = preview_png(&self.atlas, &finished)?;
         let summary = BakeSummary {
             technique: request.technique.clone(),
@@ -441,6 +457,18 @@ impl Prepared {
             } else {
                 "none".into()
             },
+            pages: pages.iter().map(|p| p.entry.clone()).collect(),
+        };
+        let manifest = Manifest {
+            format: pages::MANIFEST_FORMAT,
+            technique: summary.technique.clone(),
+            steps: summary.steps,
+            seconds: summary.seconds,
+            relative_error: summary.error.relative,
+            denoiser: summary.denoiser.clone(),
+            quantity: output::QUANTITY,
+            pages: summary.pages.clone(),
+            nodes: pages::node_entries(&self.scene),
         };
         let probes = match &request.probes {
             Some(p) if stopped_by != StopReason::Cancelled => Some(bake_probes(&self.rays, request, p, observer)?),
@@ -448,7 +476,8 @@ impl Prepared {
         };
         Ok(BakeResult {
             scene: self.scene,
-            exr,
+            pages,
+            manifest,
             preview_png,
             estimate: finished,
             atlas: self.atlas,
@@ -615,7 +644,43 @@ pub fn delivered_exr(
 ) -> Result<Vec<u8>, EngineError> {
     let channels =
         output::lightmap_channels(atlas, estimate, &request.outputs, DEFAULT_RINGS).map_err(EngineError::Internal)?;
-    let meta = ExrMetadata {
+    let meta = exr_metadata(estimate, request, params, elapsed);
+    output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)
+}
+
+/// The delivered estimate as one EXR per page (`output::pages`): the channels of
+/// [`delivered_exr`], cut into the atlas's pages, each with its page number in the header.
+pub fn delivered_pages(
+    atlas: &Atlas,
+    estimate: &Estimate,
+    request: &BakeRequest,
+    params: &Value,
+    elapsed: Duration,
+) -> Result<Vec<PageFile>, EngineError> {
+    let channels =
+        output::lightmap_channels(atlas, estimate, &request.outputs, DEFAULT_RINGS).map_err(EngineError::Internal)?;
+    let entries = pages::page_entries(atlas, estimate);
+    let count = entries.len() as u32;
+    entries
+        .into_iter()
+        .zip(&atlas.pages)
+        .map(|(entry, band)| {
+            let mut meta = exr_metadata(estimate, request, params, elapsed);
+            meta.page = Some((entry.page, count));
+            let exr = output::encode_exr(
+                atlas.width,
+                band.rows,
+                pages::crop_channels(&channels, atlas.width, *band),
+                &meta,
+            )
+            .map_err(EngineError::Internal)?;
+            Ok(PageFile { entry, exr })
+        })
+        .collect()
+}
+
+fn exr_metadata(estimate: &Estimate, request: &BakeRequest, params: &Value, elapsed: Duration) -> ExrMetadata {
+    ExrMetadata {
         technique: request.technique.clone(),
         params: params.clone(),
         steps: estimate.steps,
@@ -633,8 +698,8 @@ pub fn delivered_exr(
             .as_ref()
             .map(|m| m.lights.clone())
             .unwrap_or_default(),
-    };
-    output::encode_exr(atlas.width, atlas.height, channels, &meta).map_err(EngineError::Internal)
+        page: None,
+    }
 }
 
 /// The denoiser `request` gets: its choice, or the own filter where `oidn` was asked

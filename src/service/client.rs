@@ -40,7 +40,8 @@ pub struct Submit {
     pub job: Value,
     /// Follow the job until it ends.
     pub wait: bool,
-    /// Download the final lightmap here (implies `wait`).
+    /// Download the final lightmap here (implies `wait`): a folder gets every page and
+    /// `lightmaps.json`, a path ending in `.exr` the one page of a one-page job.
     pub output: Option<PathBuf>,
     /// A bearer token, for a server run with `--auth`.
     pub token: Option<String>,
@@ -188,17 +189,58 @@ pub async fn submit(s: Submit) -> Result<JobView, ClientError> {
         other => return Err(fail(1, format!("job {job_id} ended {}", other.as_str()))),
     }
     if let Some(out) = &s.output {
-        let resp = http
-            .get(format!("{server}/v1/jobs/{job_id}/lightmap.exr"))
-            .send()
-            .await
-            .map_err(|e| http_err(&server, e))?;
-        let bytes = check(resp, "download")
-            .await?
-            .bytes()
-            .await
-            .map_err(|e| fail(1, format!("download: {e}")))?;
-        write_atomically(out, &bytes).map_err(|e| fail(1, format!("cannot write {}: {e}", out.display())))?;
+        // The pages the job wrote (`summary.pages`), as `bake -o` writes them: a folder
+        // gets every page and the manifest, an `.exr` path the one page.
+        let pages: Vec<String> = job
+            .summary
+            .as_ref()
+            .and_then(|s| s.get("pages"))
+            .and_then(Value::as_array)
+            .map(|a| a.iter().filter_map(|p| p["file"].as_str().map(str::to_owned)).collect())
+            .unwrap_or_default();
+        let download = |file: String| {
+            let http = http.clone();
+            let url = format!("{server}/v1/jobs/{job_id}/{file}");
+            let server = server.clone();
+            async move {
+                let resp = http.get(url).send().await.map_err(|e| http_err(&server, e))?;
+                check(resp, "download")
+                    .await?
+                    .bytes()
+                    .await
+                    .map_err(|e| fail(1, format!("download {file}: {e}")))
+            }
+        };
+        let is_exr = out.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+        if is_exr {
+            if pages.len() > 1 {
+                return Err(fail(
+                    2,
+                    format!(
+                        "job {job_id} wrote {} lightmap pages and -o {} names one EXR file: give -o a folder",
+                        pages.len(),
+                        out.display()
+                    ),
+                ));
+            }
+            let bytes = download("lightmap.exr".into()).await?;
+            write_atomically(out, &bytes).map_err(|e| fail(1, format!("cannot write {}: {e}", out.display())))?;
+        } else {
+            std::fs::create_dir_all(out).map_err(|e| fail(1, format!("cannot create {}: {e}", out.display())))?;
+            let pages = if pages.is_empty() {
+                vec!["lightmap-0.exr".to_string()]
+            } else {
+                pages
+            };
+            for file in pages
+                .into_iter()
+                .chain([crate::engine::output::pages::MANIFEST_FILE.to_string()])
+            {
+                let bytes = download(file.clone()).await?;
+                let p = out.join(&file);
+                write_atomically(&p, &bytes).map_err(|e| fail(1, format!("cannot write {}: {e}", p.display())))?;
+            }
+        }
     }
     let p = job.progress.unwrap_or_default();
     eprintln!(

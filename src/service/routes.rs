@@ -86,7 +86,8 @@ pub const RETRY_AFTER_S: u64 = 10;
         list_scenes,
         get_scene_glb,
         list_techniques,
-        get_lightmap_rgba16f
+        get_lightmap_rgba16f,
+        get_job_file
     ),
     components(schemas(
         Problem,
@@ -135,6 +136,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/scenes/{id}/scene.glb", get(get_scene_glb))
         .route("/v1/techniques", get(list_techniques))
         .route("/v1/jobs/{id}/lightmap.rgba16f", get(get_lightmap_rgba16f))
+        .route("/v1/jobs/{id}/{file}", get(get_job_file))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         // Innermost first: body limit, caller, time limit, then plain-text errors of
@@ -873,7 +875,7 @@ async fn get_lightmap(
                     }
                 )));
             }
-            download(&state, &store::final_exr(&id), "image/x-exr", Some(format!("{id}.exr"))).await
+            final_page(&state, &id, 0, format!("{id}.exr")).await
         }
         Some(s) => {
             let n = if s == "latest" {
@@ -903,6 +905,98 @@ async fn get_lightmap(
                 None => Err(thinned(&job, n, keep)),
             }
         }
+    }
+}
+
+/// Page `page` of a succeeded job's final lightmap, streamed; page 0 of a job stored
+/// before pages existed is its one `lightmap.exr`.
+async fn final_page(state: &AppState, id: &str, page: u32, filename: String) -> Result<Response, Problem> {
+    if let Some((size, stream)) = state.artifacts.get_stream(&store::page_exr(id, page)).await? {
+        return Ok(streamed(state, size, stream, "image/x-exr", Some(filename)));
+    }
+    if page == 0
+        && let Some((size, stream)) = state.artifacts.get_stream(&store::legacy_final_exr(id)).await?
+    {
+        return Ok(streamed(state, size, stream, "image/x-exr", Some(filename)));
+    }
+    Err(Problem::new(
+        StatusCode::NOT_FOUND,
+        "not-found",
+        format!("job {id} has no lightmap page {page} (its summary lists the pages)"),
+    ))
+}
+
+/// The pages a succeeded job's summary lists (`[0]` for a job stored before pages).
+fn job_pages(job: &JobRecord) -> Vec<u32> {
+    let listed: Vec<u32> = job
+        .summary
+        .as_ref()
+        .and_then(|s| s.get("pages"))
+        .and_then(|p| p.as_array())
+        .map(|a| {
+            a.iter()
+                .filter_map(|e| e.get("page").and_then(|p| p.as_u64()).map(|p| p as u32))
+                .collect()
+        })
+        .unwrap_or_default();
+    if listed.is_empty() { vec![0] } else { listed }
+}
+
+/// One of a succeeded job's final files by name: a page (`lightmap-P.exr`) or the
+/// manifest (`lightmaps.json`), as `extras.lightmap.file` and the manifest name them.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/{file}",
+    tag = "jobs",
+    params(
+        ("id" = String, Path, description = "Job id"),
+        ("file" = String, Path, description = "`lightmap-P.exr` (page P = 0, 1, ...) or `lightmaps.json`")
+    ),
+    responses(
+        (status = 200, description = "The page (OpenEXR) or the manifest (JSON: format, pages, nodes)", content_type = "image/x-exr", body = Vec<u8>),
+        (status = 404, description = "No such job, file or page", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The job has not succeeded", body = Problem, content_type = "application/problem+json")
+    )
+)]
+async fn get_job_file(
+    State(state): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path((id, file)): Path<(String, String)>,
+) -> Result<Response, Problem> {
+    let page = crate::engine::output::pages::parse_page_file(&file);
+    if page.is_none() && file != crate::engine::output::pages::MANIFEST_FILE {
+        return Err(Problem::new(
+            StatusCode::NOT_FOUND,
+            "not-found",
+            format!("a job has no file {file:?}: its files are lightmap-P.exr (P = 0, 1, ...) and lightmaps.json"),
+        ));
+    }
+    let job = find_job(&state, &caller, &id).await?;
+    if job.status != JobStatus::Succeeded {
+        return Err(Problem::conflict(format!(
+            "job {id} is {} and has no final {file}",
+            job.status.as_str()
+        )));
+    }
+    match page {
+        Some(p) => {
+            if !job_pages(&job).contains(&p) {
+                return Err(Problem::new(
+                    StatusCode::NOT_FOUND,
+                    "not-found",
+                    format!("job {id} has {} page(s); there is no page {p}", job_pages(&job).len()),
+                ));
+            }
+            final_page(&state, &id, p, format!("{id}-{file}")).await
+        }
+        None => match state.artifacts.get_stream(&store::manifest_json(&id)).await? {
+            Some((size, stream)) => Ok(streamed(&state, size, stream, "application/json", None)),
+            None => Err(Problem::new(
+                StatusCode::NOT_FOUND,
+                "not-found",
+                format!("job {id} finished before lightmaps.json existed; its one page is lightmap-0.exr"),
+            )),
+        },
     }
 }
 
@@ -1216,7 +1310,7 @@ async fn get_lightmap_rgba16f(
     let job = find_job(&state, &caller, &id).await?;
     let none_yet = |what: String| Problem::new(StatusCode::NOT_FOUND, "not-found", what);
     let key = match q.get("snapshot").map(String::as_str) {
-        None if job.status == JobStatus::Succeeded => store::final_exr(&id),
+        None if job.status == JobStatus::Succeeded => return final_rgba16f(&state, &job).await,
         None | Some("latest") if job.snapshots > 0 => store::snapshot_exr(&id, job.snapshots),
         None | Some("latest") => {
             return Err(none_yet(format!(
@@ -1249,11 +1343,58 @@ async fn get_lightmap_rgba16f(
         .await
         .map_err(Problem::internal)?
         .map_err(Problem::internal)?;
+    Ok(rgba16f_response(w, h, data))
+}
+
+fn rgba16f_response(w: usize, h: usize, data: Vec<u8>) -> Response {
     let mut resp = binary(Bytes::from(data), "application/octet-stream", None);
     let headers = resp.headers_mut();
     headers.insert("x-lightmap-width", HeaderValue::from(w));
     headers.insert("x-lightmap-height", HeaderValue::from(h));
-    Ok(resp)
+    resp
+}
+
+/// The final lightmap as the bake's grid: its pages one under another (they share the
+/// width, in page order), as a snapshot holds it, so the console's view reads both alike.
+async fn final_rgba16f(state: &AppState, job: &JobRecord) -> Result<Response, Problem> {
+    let mut pages = Vec::new();
+    for p in job_pages(job) {
+        let key = store::page_exr(&job.id, p);
+        let bytes = match state.artifacts.get(&key).await? {
+            Some(b) => b,
+            None if p == 0 => state
+                .artifacts
+                .get(&store::legacy_final_exr(&job.id))
+                .await?
+                .ok_or_else(|| Problem::internal(format!("{key} is recorded but missing from the store")))?,
+            None => {
+                return Err(Problem::internal(format!(
+                    "{key} is recorded but missing from the store"
+                )));
+            }
+        };
+        pages.push(bytes);
+    }
+    let (w, h, data) = tokio::task::spawn_blocking(move || {
+        let mut out = Vec::new();
+        let (mut width, mut height) = (None, 0usize);
+        for exr in &pages {
+            let (w, h, data) = crate::service::console::rgba16f(exr)?;
+            if *width.get_or_insert(w) != w {
+                return Err(format!(
+                    "the job's pages differ in width ({} and {w})",
+                    width.unwrap_or(0)
+                ));
+            }
+            height += h;
+            out.extend(data);
+        }
+        Ok::<_, String>((width.unwrap_or(0), height, out))
+    })
+    .await
+    .map_err(Problem::internal)?
+    .map_err(Problem::internal)?;
+    Ok(rgba16f_response(w, h, data))
 }
 
 #[cfg(test)]

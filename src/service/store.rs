@@ -8,7 +8,10 @@
 //! scenes/{scene}/{file}            the uploaded .glb, or a .gltf and its buffers and images
 //! jobs/{job}/snapshots/{n}.exr     snapshot n (1, 2, ...) of the running bake
 //! jobs/{job}/snapshots/{n}.png     its tone-mapped preview
-//! jobs/{job}/lightmap.exr          the final lightmap
+//! jobs/{job}/lightmap-{p}.exr      page p (0, 1, ...) of the final lightmap
+//! jobs/{job}/lightmaps.json        the final lightmap's manifest (pages, nodes)
+//! jobs/{job}/lightmap.exr          the final lightmap of a job stored before pages
+//!                                  existed (read as its page 0; never written now)
 //! jobs/{job}/preview.png           its preview
 //! jobs/{job}/scene.glb             the scene with generated lightmap UVs (when it had none)
 //! ```
@@ -494,7 +497,19 @@ pub fn snapshots_to_drop(n: u32, keep: u32) -> Vec<u32> {
         .collect()
 }
 
-pub fn final_exr(job: &str) -> Path {
+/// Page `page` of the final lightmap (`lightmap-P.exr`, `engine::output::pages`).
+pub fn page_exr(job: &str, page: u32) -> Path {
+    Path::from(format!("jobs/{job}/lightmap-{page}.exr"))
+}
+
+/// The final lightmap's `lightmaps.json`.
+pub fn manifest_json(job: &str) -> Path {
+    Path::from(format!("jobs/{job}/lightmaps.json"))
+}
+
+/// Where jobs finished before pages existed keep their one final lightmap; the routes
+/// read it as page 0 when `lightmap-0.exr` is absent, so nothing stored is lost.
+pub fn legacy_final_exr(job: &str) -> Path {
     Path::from(format!("jobs/{job}/lightmap.exr"))
 }
 

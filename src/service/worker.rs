@@ -603,9 +603,21 @@ async fn store_final(
         })?;
         state.artifacts.put(&store::probes_json(job), Bytes::from(json)).await?;
     }
+    // Pages first, the manifest that lists them after, so a manifest never names a page
+    // that is not stored.
+    for page in &r.pages {
+        state
+            .artifacts
+            .put(&store::page_exr(job, page.entry.page), Bytes::from(page.exr.clone()))
+            .await?;
+    }
+    let manifest = serde_json::to_vec_pretty(&r.manifest).map_err(|e| object_store::Error::Generic {
+        store: "manifest",
+        source: format!("cannot encode lightmaps.json: {e}").into(),
+    })?;
     state
         .artifacts
-        .put(&store::final_exr(job), Bytes::from(r.exr.clone()))
+        .put(&store::manifest_json(job), Bytes::from(manifest))
         .await?;
     state
         .artifacts

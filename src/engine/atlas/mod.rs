@@ -36,6 +36,7 @@ use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use serde::Serialize;
 
+pub use crate::engine::scene::PageRows;
 use crate::engine::scene::Scene;
 
 /// How far a sample point on a triangle's edge is moved into the triangle, as a fraction
@@ -97,6 +98,9 @@ pub struct Atlas {
     pub validation: Option<validate::ValidationReport>,
     /// Sample pairs along UV seams, for `post::seams::stitch`.
     pub seams: Vec<seams::SeamSample>,
+    /// The output pages: row bands of this grid, top to bottom, covering it (one band of
+    /// every row unless `atlas::unwrap` stacked several pages).
+    pub pages: Vec<PageRows>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -108,6 +112,8 @@ pub struct AtlasReport {
     pub overlapping_texels: u32,
     /// Fraction of the lightmap covered by valid texels.
     pub utilisation: f32,
+    /// Output pages (`lightmap-P.exr`) the grid is cut into.
+    pub pages: u32,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -259,6 +265,20 @@ impl Atlas {
             pixel_texel[t.pixel as usize] = k as u32;
         }
         let links = gutter_links(scene, &pixel_texel, &texels, width, height);
+        // The layout's pages when it made this grid; otherwise the grid is one page.
+        let pages = scene
+            .layout
+            .as_deref()
+            .filter(|l| (l.width, l.height) == (width, height) && !l.pages.is_empty())
+            .map_or_else(
+                || {
+                    vec![PageRows {
+                        first_row: 0,
+                        rows: height,
+                    }]
+                },
+                |l| l.pages.clone(),
+            );
         Ok(Atlas {
             width,
             height,
@@ -271,7 +291,18 @@ impl Atlas {
             validation: None,
             surface_offset: offset,
             seams: seams::find_seams(scene, width, height),
+            pages,
         })
+    }
+
+    /// Per row of the grid, the index of the page holding it.
+    pub fn row_pages(&self) -> Vec<u32> {
+        let mut out = vec![0u32; self.height as usize];
+        for (p, band) in self.pages.iter().enumerate() {
+            let end = (band.first_row + band.rows).min(self.height);
+            out[band.first_row as usize..end as usize].fill(p as u32);
+        }
+        out
     }
 
     pub fn report(&self) -> AtlasReport {
@@ -282,6 +313,7 @@ impl Atlas {
             gutter_texels: self.links.len(),
             overlapping_texels: self.overlapping_texels,
             utilisation: self.texels.len() as f32 / (self.width as f32 * self.height as f32),
+            pages: self.pages.len() as u32,
         }
     }
 

@@ -15,14 +15,21 @@
 //!
 //! Authored UVs are kept bit for bit (`lightmap_uvs: generate-missing`, the default, or
 //! `keep`): a mesh is *authored* when every TRIANGLES primitive has `TEXCOORD_1`. The
-//! packer cannot place charts around existing ones, so when a scene has both kinds the
-//! page is made taller instead: rows `[0, W)` are the authored W × W page exactly as
-//! authored, the generated pages follow below it (each W wide), and the authored nodes'
-//! `scale_offset` becomes `[1, W/H, 0, 0]`. Generated content that needs several W × W
-//! pages is stacked the same way, so a scene never fails because its charts do not fit
-//! one page; the page may not exceed [`MAX_RESOLUTION`](super::MAX_RESOLUTION) rows.
-//! Without authored meshes and with one page the page stays W × W (`--resolution N` is
-//! one N × N page).
+//! packer cannot place charts around existing ones, so generated charts go on pages of
+//! their own. A bake runs on one texel grid W wide in which the pages lie one under
+//! another ([`PageRows`]): first the authored pages, W × W each, exactly as authored (an
+//! input written by a multi-page bake names each node's page in `extras.lightmap.page`),
+//! then the generated pages, also W × W (the last one too, however few rows the packer
+//! filled: the convention names a node's page, not the page's height, so only square
+//! pages are found again when a written file is read back). Each page is
+//! written as its own EXR (`lightmap-P.exr`), and each node's `extras.lightmap` names its
+//! page and its rectangle in that page ([`Scene::placements`]), so a scene never fails
+//! because its charts do not fit one page. Why one grid rather than one per page: every
+//! technique, the denoiser and the seam solver already work on one texel set, and pages
+//! of one width stack without waste; dilation keeps to each page's rows. The grid may not
+//! exceed [`MAX_RESOLUTION`](super::MAX_RESOLUTION) rows (the GPU techniques' maps of it
+//! are textures). Without authored meshes and with one page the page stays W × W
+//! (`--resolution N` is one N × N page).
 //!
 //! Padding: 3 texels (charts at least 6 apart): enough for the gutter links, bilinear
 //! filtering and one mip level; dilation fills the rest. `uvunwrap` is built without its
@@ -40,7 +47,7 @@ use std::collections::HashMap;
 use glam::{DMat3, Vec2};
 use serde::{Deserialize, Serialize};
 
-use crate::engine::scene::{GeneratedMesh, GeneratedPrimitive, LightmapLayout, Scene};
+use crate::engine::scene::{GeneratedMesh, GeneratedPrimitive, LightmapLayout, PageRows, Scene};
 
 /// Padding around each chart, in texels.
 pub const PADDING: u32 = 3;
@@ -118,8 +125,8 @@ pub struct UnwrapReport {
     /// Fraction of the page covered by the charts of generated meshes.
     pub utilisation: f32,
     pub texels_per_metre: f32,
-    /// The page: `width` × `height` texels (taller than wide when authored UVs were kept
-    /// beside generated ones, or the generated charts needed several pages).
+    /// The bake's grid: `width` × `height` texels, its W × W pages one under another
+    /// (authored first, then generated).
     pub width: u32,
     pub height: u32,
     /// W × W pages of generated charts stacked in it.
@@ -308,7 +315,16 @@ pub fn generate_lightmap_uvs_with(
     }
 
     let w = resolution;
-    let authored_rows = if kept.iter().any(|k| *k) { w } else { 0 };
+    // Authored pages (an input written by a multi-page bake names several) first, each
+    // W × W, in their own order.
+    let authored_pages = source
+        .instances
+        .iter()
+        .filter(|i| !i.opt_out && kept[i.mesh])
+        .map(|i| i.authored_page + 1)
+        .max()
+        .unwrap_or(0);
+    let authored_rows = authored_pages.saturating_mul(w);
     let unwrapped = if inputs.is_empty() {
         None
     } else {
@@ -322,14 +338,14 @@ pub fn generate_lightmap_uvs_with(
     };
     // Page rows: the authored page first, then each generated page.
     let (page_h, pages) = unwrapped.as_ref().map_or((0, 0), |u| (u.page_height, u.pages));
-    let height = if authored_rows == 0 && pages == 1 {
-        w.max(page_h)
-    } else {
-        authored_rows + pages * page_h
-    };
+    // Every page is W × W (`stride` rows), also where the packer filled fewer rows: the
+    // convention's `extras.lightmap` names a page, not its height, so a file read back
+    // can only find its texels again if every page has the width's height.
+    let stride = w.max(page_h);
+    let height = authored_rows + pages * stride;
     if height > super::MAX_RESOLUTION {
         return Err(format!(
-            "the generated charts need {pages} pages of {w}x{page_h}: {height} rows in all, more than {}; lower the resolution or the meshes' extras.lightmap_scale",
+            "{authored_pages} authored page(s) of {w}x{w} and {pages} generated page(s) of {w}x{stride} need {height} rows in all, more than the bake's grid may have ({}); lower the resolution, texels_per_unit or the meshes' extras.lightmap_scale",
             super::MAX_RESOLUTION
         ));
     }
@@ -343,11 +359,28 @@ pub fn generate_lightmap_uvs_with(
     }
     let (wf, hf) = (w as f32, height as f32);
 
+    let mut page_rows: Vec<PageRows> = (0..authored_pages)
+        .map(|p| PageRows {
+            first_row: p * w,
+            rows: w,
+        })
+        .collect();
+    page_rows.extend((0..pages).map(|p| PageRows {
+        first_row: authored_rows + p * stride,
+        rows: stride,
+    }));
+    if page_rows.is_empty() {
+        page_rows.push(PageRows {
+            first_row: 0,
+            rows: height,
+        });
+    }
     let mut layout = LightmapLayout {
         width: w,
         height,
         meshes: vec![None; source.meshes.len()],
         scale_offset: vec![None; source.instances.len()],
+        pages: page_rows,
     };
     // Per generated mesh: per primitive, split vertices = distinct (original vertex,
     // unwrapped vertex) pairs over its corners.
@@ -381,17 +414,18 @@ pub fn generate_lightmap_uvs_with(
         for (k, slot) in instance_slot.iter().enumerate() {
             let Some((mi, ii)) = slot else { continue };
             let (page, lo, hi) = u.meshes[*mi].instances[*ii];
-            let top = authored_rows as f32 + (page * page_h) as f32;
+            let top = authored_rows as f32 + (page * stride) as f32;
             let size = (hi - lo) * Vec2::new(1.0, page_h as f32 / hf);
             layout.scale_offset[k] = Some([size.x, size.y, lo.x, (top + lo.y * page_h as f32) / hf]);
         }
     }
-    // Authored instances keep their UVs; only the page they address grew.
+    // Authored instances keep their UVs; their page moved to its rows of the grid.
     let squeeze = wf / hf;
     for (k, inst) in source.instances.iter().enumerate() {
         if !inst.opt_out && kept[inst.mesh] {
             let [sx, sy, ox, oy] = inst.authored_scale_offset;
-            layout.scale_offset[k] = Some([sx, sy * squeeze, ox, oy * squeeze]);
+            let page = inst.authored_page as f32;
+            layout.scale_offset[k] = Some([sx, sy * squeeze, ox, (oy + page) * squeeze]);
         }
     }
 
@@ -402,9 +436,10 @@ pub fn generate_lightmap_uvs_with(
             continue;
         }
         if kept[inst.mesh] {
-            if squeeze != 1.0 {
+            let page = inst.authored_page as f32;
+            if squeeze != 1.0 || page != 0.0 {
                 for t in &mut scene.triangles[range] {
-                    t.lm.iter_mut().for_each(|uv| uv.y *= squeeze);
+                    t.lm.iter_mut().for_each(|uv| uv.y = (uv.y + page) * squeeze);
                 }
             }
             continue;

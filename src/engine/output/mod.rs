@@ -10,6 +10,8 @@
 //!
 //! The `exr` crate does the encoding; this module only arranges channels and attributes.
 
+pub mod pages;
+
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -100,7 +102,13 @@ pub struct ExrMetadata {
     pub raw_relative_error: Option<f32>,
     /// The light of each `shadowmask.*` channel, in channel order (empty: no shadowmask).
     pub shadowmask: Vec<String>,
+    /// `(P, pages)` for page P of a bake's `pages` pages (`lightmapd:page`,
+    /// `lightmapd:pages`); None for the whole grid (a snapshot).
+    pub page: Option<(u32, u32)>,
 }
+
+/// What every layer holds (`lightmapd:quantity`, the manifest's `quantity`).
+pub const QUANTITY: &str = "irradiance/pi, linear RGB (albedo * lightmap = outgoing radiance)";
 
 /// Builds the channel list for `estimate` (dilated) plus the requested layers.
 pub fn lightmap_channels(
@@ -260,10 +268,17 @@ pub fn encode_exr(
     if let Some(e) = meta.raw_relative_error {
         other.insert(Text::from("lightmapd:raw_relative_error"), AttributeValue::F32(e));
     }
-    other.insert(
-        Text::from("lightmapd:quantity"),
-        text("irradiance/pi, linear RGB (albedo * lightmap = outgoing radiance)"),
-    );
+    other.insert(Text::from("lightmapd:quantity"), text(QUANTITY));
+    if let Some((page, pages)) = meta.page {
+        other.insert(
+            Text::from("lightmapd:page"),
+            AttributeValue::I32(page.min(i32::MAX as u32) as i32),
+        );
+        other.insert(
+            Text::from("lightmapd:pages"),
+            AttributeValue::I32(pages.min(i32::MAX as u32) as i32),
+        );
+    }
     if let Some(e) = meta.relative_error {
         other.insert(Text::from("lightmapd:relative_error"), AttributeValue::F32(e));
     }

@@ -32,6 +32,8 @@ pub fn dilate(atlas: &Atlas, values: &[Vec3], rings: u32) -> Vec<Vec3> {
         img[link.pixel as usize] = values[link.texel as usize];
         filled[link.pixel as usize] = true;
     }
+    // Rings stay within a page: pages are separate images once written.
+    let row_page = atlas.row_pages();
     for _ in 0..rings {
         let mut next = Vec::new();
         for j in 0..h {
@@ -45,7 +47,13 @@ pub fn dilate(atlas: &Atlas, values: &[Vec3], rings: u32) -> Vec<Vec3> {
                 for dj in -1i64..=1 {
                     for di in -1i64..=1 {
                         let (ni, nj) = (i as i64 + di, j as i64 + dj);
-                        if (di, dj) == (0, 0) || ni < 0 || nj < 0 || ni >= w as i64 || nj >= h as i64 {
+                        if (di, dj) == (0, 0)
+                            || ni < 0
+                            || nj < 0
+                            || ni >= w as i64
+                            || nj >= h as i64
+                            || row_page[nj as usize] != row_page[j]
+                        {
                             continue;
                         }
                         let np = nj as usize * w + ni as usize;

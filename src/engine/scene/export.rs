@@ -342,23 +342,15 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     }
 
     // Per node, where its lightmap is.
-    for (k, inst) in source.instances.iter().enumerate() {
-        if inst.opt_out {
-            continue;
-        }
-        let so = match scene.layout.as_deref() {
-            Some(l) => l.scale_offset.get(k).copied().flatten(),
-            None => Some(inst.authored_scale_offset),
-        };
-        let Some(so) = so else { continue };
-        let node = &mut doc["nodes"][inst.node];
+    for place in scene.placements() {
+        let node = &mut doc["nodes"][place.node];
         if node.get("extras").is_none() {
             node["extras"] = json!({});
         }
         if let Some(extras) = node["extras"].as_object_mut() {
             extras.insert(
                 "lightmap".into(),
-                json!({"page": 0, "scale_offset": so, "file": page_file(0)}),
+                json!({"page": place.page, "scale_offset": place.scale_offset, "file": page_file(place.page)}),
             );
         }
     }

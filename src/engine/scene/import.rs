@@ -761,11 +761,16 @@ fn texture_transforms(json: &serde_json::Value, n: usize, warnings: &mut Vec<Str
     out
 }
 
+/// Pages an input's `extras.lightmap.page` may name: authored pages are stacked in one
+/// bake grid of at most `atlas::MAX_RESOLUTION` rows, so even 1-row pages stop there.
+const MAX_AUTHORED_PAGES: u64 = 256;
+
 /// What a node's `extras` say about its lightmap (module doc of `atlas::unwrap`).
 struct NodeLightmap {
     scale: f32,
     opt_out: bool,
     scale_offset: [f32; 4],
+    page: u32,
 }
 
 fn node_lightmap(node: &gltf::Node, warnings: &mut Vec<String>) -> NodeLightmap {
@@ -773,6 +778,7 @@ fn node_lightmap(node: &gltf::Node, warnings: &mut Vec<String>) -> NodeLightmap 
         scale: 1.0,
         opt_out: false,
         scale_offset: [1.0, 1.0, 0.0, 0.0],
+        page: 0,
     };
     let Some(raw) = node.extras() else { return out };
     let Ok(value) = serde_json::from_str::<serde_json::Value>(raw.get()) else {
@@ -804,6 +810,15 @@ fn node_lightmap(node: &gltf::Node, warnings: &mut Vec<String>) -> NodeLightmap 
                 Some(_) => warnings.push(format!(
                     "{name}: extras.lightmap.scale_offset is not four finite numbers with positive scales; ignored"
                 )),
+            }
+            match o.get("page") {
+                None => {}
+                Some(v) => match v.as_u64() {
+                    Some(p) if p < MAX_AUTHORED_PAGES => out.page = p as u32,
+                    _ => warnings.push(format!(
+                        "{name}: extras.lightmap.page {v} is not a page number below {MAX_AUTHORED_PAGES}; page 0 used"
+                    )),
+                },
             }
         }
         _ => {}
@@ -936,6 +951,7 @@ impl Flatten<'_> {
                 lightmap_scale: lm.scale * mesh_scale,
                 opt_out: lm.opt_out,
                 authored_scale_offset: lm.scale_offset,
+                authored_page: lm.page,
                 triangles: start..self.triangles.len(),
             });
             if lm.opt_out {

@@ -371,6 +371,9 @@ pub struct Instance {
     /// For authored UVs: the node's `extras.lightmap.scale_offset` (`[1, 1, 0, 0]` when
     /// absent), already applied to its triangles' `lm`.
     pub authored_scale_offset: [f32; 4],
+    /// For authored UVs: the node's `extras.lightmap.page` (0 when absent): the page its
+    /// `lm` address, which `atlas::unwrap` stacks in the bake's grid.
+    pub authored_page: u32,
     /// Its triangles in [`Scene::triangles`].
     pub triangles: std::ops::Range<usize>,
 }
@@ -384,17 +387,74 @@ pub struct TriSource {
     pub mirrored: bool,
 }
 
-/// Generated lightmap UVs: per mesh its new vertices, per instance its page rectangle.
+/// Generated lightmap UVs: per mesh its new vertices, per instance its rectangle in the
+/// bake's grid, and the pages that grid is cut into.
 #[derive(Debug, Clone, Default)]
 pub struct LightmapLayout {
-    /// Page size in texels (one page; DESIGN §2 addresses its texel grid).
+    /// The bake's texel grid: every page, one under another (`width` × `height`).
     pub width: u32,
     pub height: u32,
     /// Per glTF mesh (by index): the generated UVs, when the mesh got them.
     pub meshes: Vec<Option<GeneratedMesh>>,
-    /// Per entry of [`SourceDocument::instances`]: `[sx, sy, ox, oy]` such that page
-    /// UV = TEXCOORD_1 · (sx, sy) + (ox, oy); None for opted-out instances.
+    /// Per entry of [`SourceDocument::instances`]: `[sx, sy, ox, oy]` such that the UV in
+    /// the bake's grid = TEXCOORD_1 · (sx, sy) + (ox, oy); None for opted-out instances.
+    /// [`Scene::placements`] turns it into the page and the page's own scale/offset.
     pub scale_offset: Vec<Option<[f32; 4]>>,
+    /// The output pages, as row bands of the grid, top to bottom, covering it.
+    pub pages: Vec<PageRows>,
+}
+
+/// The rows of the bake's texel grid that make one output page (`lightmap-P.exr`): pages
+/// share the grid's width and lie one under another, in page order (`atlas::unwrap`).
+/// Each page is its own texel grid in DESIGN §2's sense: its first row is row 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PageRows {
+    pub first_row: u32,
+    pub rows: u32,
+}
+
+impl PageRows {
+    pub fn contains_row(&self, row: u32) -> bool {
+        row >= self.first_row && row - self.first_row < self.rows
+    }
+}
+
+/// Where a node's lightmap is: its page, and `[sx, sy, ox, oy]` such that the UV in that
+/// page's texel grid = TEXCOORD_1 · (sx, sy) + (ox, oy) (`extras.lightmap` of the
+/// written glTF, and the manifest's `nodes`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Placement {
+    /// Its index in [`SourceDocument::instances`].
+    #[serde(skip)]
+    pub instance: usize,
+    /// The glTF node.
+    pub node: usize,
+    pub mesh: usize,
+    pub page: u32,
+    pub scale_offset: [f32; 4],
+}
+
+/// The page of `pages` holding the rectangle `[sx, sy, ox, oy]` of a `height`-row grid
+/// (the page of its centre row), and the rectangle in that page's own UV.
+pub fn page_placement(pages: &[PageRows], height: u32, so: [f32; 4]) -> (u32, [f32; 4]) {
+    let h = height as f64;
+    let centre = ((so[3] as f64 + 0.5 * so[1] as f64) * h).floor().clamp(0.0, h - 1.0) as u32;
+    let Some((p, rows)) = pages.iter().enumerate().find(|(_, r)| r.contains_row(centre)) else {
+        return (0, so);
+    };
+    if rows.first_row == 0 && rows.rows == height {
+        return (p as u32, so);
+    }
+    let (first, n) = (rows.first_row as f64, rows.rows as f64);
+    (
+        p as u32,
+        [
+            so[0],
+            (so[1] as f64 * h / n) as f32,
+            so[2],
+            ((so[3] as f64 * h - first) / n) as f32,
+        ],
+    )
 }
 
 /// One mesh's generated lightmap UVs, per primitive: the split vertices (each an index
@@ -413,6 +473,46 @@ pub struct GeneratedPrimitive {
 }
 
 impl Scene {
+    /// Pages that authored lightmap UVs address (1 + the largest `extras.lightmap.page`
+    /// of a placing node that did not opt out); 0 without authored instances' pages.
+    pub fn authored_pages(&self) -> u32 {
+        self.source.as_ref().map_or(0, |s| {
+            s.instances
+                .iter()
+                .filter(|i| !i.opt_out)
+                .map(|i| i.authored_page + 1)
+                .max()
+                .unwrap_or(0)
+        })
+    }
+
+    /// Per node that places a mesh and did not opt out: its page and rectangle there
+    /// (the layout's pages; authored UVs without a layout are on the page they name).
+    pub fn placements(&self) -> Vec<Placement> {
+        let Some(source) = self.source.as_ref() else {
+            return Vec::new();
+        };
+        source
+            .instances
+            .iter()
+            .enumerate()
+            .filter(|(_, i)| !i.opt_out)
+            .filter_map(|(k, inst)| {
+                let (page, scale_offset) = match self.layout.as_deref() {
+                    Some(l) => page_placement(&l.pages, l.height, l.scale_offset.get(k).copied().flatten()?),
+                    None => (inst.authored_page, inst.authored_scale_offset),
+                };
+                Some(Placement {
+                    instance: k,
+                    node: inst.node,
+                    mesh: inst.mesh,
+                    page,
+                    scale_offset,
+                })
+            })
+            .collect()
+    }
+
     /// Diffuse albedo at barycentric `b` of triangle `t` (texture × factor, linear).
     pub fn albedo(&self, t: &Triangle, b: Vec3) -> Vec3 {
         let m = &self.materials[t.material as usize];
