@@ -372,3 +372,90 @@ fn bake_writes_probes_beside_the_lightmap() {
         assert!(p["error"].as_f64().unwrap() >= 0.0);
     }
 }
+
+/// Issue 19 point 7: a bake that needs two pages (the ground's authored page and the
+/// ball's generated one) writes `lightmap-0.exr`, `lightmap-1.exr` and `lightmaps.json`
+/// into the folder `-o` names; an `-o` ending in `.exr` is refused with exit 2 before
+/// any sampling, and leaves nothing behind.
+#[test]
+fn a_bake_of_several_pages_writes_a_folder_with_its_manifest() {
+    use lightmapd::engine::scene::build::write_glb;
+    use lightmapd::engine::scene::library::sphere_over_plane;
+    let (mut json, bin_data) = sphere_over_plane().to_gltf();
+    json["meshes"][1]["primitives"][0]["attributes"]
+        .as_object_mut()
+        .unwrap()
+        .remove("TEXCOORD_1");
+    let scene = tmp("two-pages.glb");
+    std::fs::write(&scene, write_glb(&json, &bin_data)).unwrap();
+
+    let one_file = tmp("two-pages.exr");
+    let _ = std::fs::remove_file(&one_file);
+    let output = bin()
+        .arg("bake")
+        .arg(&scene)
+        .arg("-o")
+        .arg(&one_file)
+        .args(["--resolution", "64", "--steps", "1000000", "--sky", "1,1,1"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("the bake needs 2 lightmap pages and -o") && stderr.contains("give -o a folder"),
+        "{stderr}"
+    );
+    assert!(!one_file.exists());
+
+    let dir = tmp("two-pages");
+    let _ = std::fs::remove_dir_all(&dir);
+    let output = bin()
+        .arg("bake")
+        .arg(&scene)
+        .arg("-o")
+        .arg(&dir)
+        .args(["--resolution", "64", "--steps", "2", "--sky", "1,1,1"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stderr.contains("(2 pages and lightmaps.json)"), "{stderr}");
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("lightmaps.json")).unwrap()).unwrap();
+    assert_eq!(manifest["format"], "lightmapd.lightmaps/1");
+    let pages = manifest["pages"].as_array().unwrap();
+    assert_eq!(pages.len(), 2);
+    for (p, page) in pages.iter().enumerate() {
+        assert_eq!(page["file"], format!("lightmap-{p}.exr"));
+        assert_eq!((page["width"].as_u64(), page["height"].as_u64()), (Some(64), Some(64)));
+        assert!(page["valid_texels"].as_u64().unwrap() > 100, "{page}");
+        let image = exr::prelude::read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .all_layers()
+            .all_attributes()
+            .from_file(dir.join(format!("lightmap-{p}.exr")))
+            .unwrap();
+        let layer = &image.layer_data[0];
+        assert_eq!((layer.size.0, layer.size.1), (64, 64));
+        let attr = |name: &str| layer.attributes.other.get(&exr::prelude::Text::from(name)).cloned();
+        assert_eq!(
+            attr("lightmapd:page"),
+            Some(exr::prelude::AttributeValue::I32(p as i32))
+        );
+        assert_eq!(attr("lightmapd:pages"), Some(exr::prelude::AttributeValue::I32(2)));
+    }
+    let nodes = manifest["nodes"].as_array().unwrap();
+    assert_eq!(
+        nodes
+            .iter()
+            .map(|n| (n["name"].clone(), n["page"].clone()))
+            .collect::<Vec<_>>(),
+        vec![
+            (serde_json::json!("ground"), serde_json::json!(0)),
+            (serde_json::json!("ball"), serde_json::json!(1))
+        ]
+    );
+    assert_eq!(nodes[0]["scale_offset"], serde_json::json!([1.0, 1.0, 0.0, 0.0]));
+}

@@ -1520,3 +1520,120 @@ async fn deleting_a_job_and_the_retention_sweeper_remove_its_artifacts() {
     }
     s.running.shutdown().await;
 }
+
+/// Issue 19 point 7 in the service: a job whose scene needs two pages (the ground's
+/// authored page, the ball's generated one) stores and serves both pages and the
+/// manifest, lists them in its summary, keeps `lightmap.exr` as page 0, serves the
+/// console's float lightmap as the two pages one under another, and answers exact
+/// problems for pages and files it does not have.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_of_several_pages_serves_every_page_and_the_manifest() {
+    use lightmapd::engine::scene::build::write_glb;
+    use lightmapd::engine::scene::library::sphere_over_plane;
+    let s = start(1, |_| {}).await;
+    let (mut json, bin) = sphere_over_plane().to_gltf();
+    json["meshes"][1]["primitives"][0]["attributes"]
+        .as_object_mut()
+        .unwrap()
+        .remove("TEXCOORD_1");
+    let r = s
+        .http
+        .post(format!("{}/v1/scenes", s.url))
+        .header("content-type", "model/gltf-binary")
+        .body(write_glb(&json, &bin))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let id = s
+        .submit(json!({"scene": scene, "resolution": 32, "stop": {"steps": 2}, "lighting": {"sky": {"radiance": [1, 1, 1]}}}))
+        .await;
+    let job = s.wait_job(&id, "succeeded", |j| j["status"] == "succeeded").await;
+    let pages = job["summary"]["pages"].as_array().unwrap();
+    assert_eq!(
+        pages.iter().map(|p| p["file"].clone()).collect::<Vec<_>>(),
+        vec![json!("lightmap-0.exr"), json!("lightmap-1.exr")]
+    );
+    assert_eq!(job["summary"]["atlas"]["pages"], 2);
+
+    let get = |path: String| s.http.get(format!("{}{path}", s.url)).send();
+    let mut bytes = Vec::new();
+    for file in ["lightmap-0.exr", "lightmap-1.exr"] {
+        let r = get(format!("/v1/jobs/{id}/{file}")).await.unwrap();
+        assert_eq!(r.status(), 200, "{file}");
+        assert_eq!(r.headers()["content-type"], "image/x-exr");
+        let b = r.bytes().await.unwrap();
+        assert_eq!(b[..4], [0x76, 0x2f, 0x31, 0x01], "{file} is an OpenEXR file");
+        bytes.push(b);
+    }
+    assert_ne!(bytes[0], bytes[1]);
+    let first = get(format!("/v1/jobs/{id}/lightmap.exr"))
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
+    assert_eq!(first, bytes[0], "lightmap.exr is page 0");
+
+    let r = get(format!("/v1/jobs/{id}/lightmaps.json")).await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "application/json");
+    let manifest: Value = r.json().await.unwrap();
+    assert_eq!(manifest["format"], "lightmapd.lightmaps/1");
+    let key = |pages: &Value| -> Vec<(Value, Value, Value)> {
+        pages
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| (p["file"].clone(), p["first_row"].clone(), p["valid_texels"].clone()))
+            .collect()
+    };
+    assert_eq!(key(&manifest["pages"]), key(&job["summary"]["pages"]));
+    assert_eq!(
+        manifest["nodes"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|n| n["page"].clone())
+            .collect::<Vec<_>>(),
+        vec![json!(0), json!(1)]
+    );
+
+    let r = get(format!("/v1/jobs/{id}/lightmap.rgba16f")).await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(
+        (
+            r.headers()["x-lightmap-width"].to_str().unwrap(),
+            r.headers()["x-lightmap-height"].to_str().unwrap()
+        ),
+        ("32", "64")
+    );
+    assert_eq!(r.bytes().await.unwrap().len(), 32 * 64 * 8);
+
+    let missing = [
+        (
+            "lightmap-2.exr".to_string(),
+            format!("job {id} has 2 page(s); there is no page 2"),
+        ),
+        (
+            "lightmap-01.exr".to_string(),
+            "a job has no file \"lightmap-01.exr\": its files are lightmap-P.exr (P = 0, 1, ...) and lightmaps.json"
+                .to_string(),
+        ),
+        (
+            "notes.txt".to_string(),
+            "a job has no file \"notes.txt\": its files are lightmap-P.exr (P = 0, 1, ...) and lightmaps.json"
+                .to_string(),
+        ),
+    ];
+    for (file, detail) in missing {
+        expect_problem(
+            s.http.get(format!("{}/v1/jobs/{id}/{file}", s.url)),
+            404,
+            problem(404, "Not Found", "not-found", &detail, None),
+        )
+        .await;
+    }
+    s.running.shutdown().await;
+}

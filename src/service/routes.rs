@@ -839,7 +839,9 @@ fn binary_body(body: Body, content_type: &'static str, filename: Option<String>)
     resp
 }
 
-/// The lightmap: final, or a snapshot of the running bake.
+/// The lightmap: final (page 0, the whole lightmap of a one-page job; every page is
+/// `lightmap-P.exr`, listed in the job's `summary.pages`), or a snapshot of the running
+/// bake (the bake's grid: its pages one under another, at `summary.pages[].first_row`).
 #[utoipa::path(
     get,
     path = "/v1/jobs/{id}/lightmap.exr",
