@@ -459,3 +459,40 @@ fn a_bake_of_several_pages_writes_a_folder_with_its_manifest() {
     );
     assert_eq!(nodes[0]["scale_offset"], serde_json::json!([1.0, 1.0, 0.0, 0.0]));
 }
+
+/// Issue 19 point 10 with the real CPU `path`: one step of 4096 samples per texel over
+/// the bundled Cornell box at 64² takes 14.8 s on this machine (3,093 texels); under
+/// `--seconds 0.5` the step is cut short at the limit and, with no step done, the bake
+/// exits 2 saying so, seconds after it started instead of a step's length later.
+#[test]
+fn a_step_longer_than_the_budget_stops_at_the_budget() {
+    let out = tmp("budget.exr");
+    let _ = std::fs::remove_file(&out);
+    let started = std::time::Instant::now();
+    let output = bin()
+        .arg("bake")
+        .arg(bundled())
+        .arg("-o")
+        .arg(&out)
+        .args([
+            "--resolution",
+            "64",
+            "--seconds",
+            "0.5",
+            "--params",
+            r#"{"samples_per_step": 4096, "device": "cpu"}"#,
+        ])
+        .output()
+        .unwrap();
+    let wall = started.elapsed();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("the time limit of 0.500 s ended before the first step of path was done"),
+        "{stderr}"
+    );
+    assert!(!out.exists());
+    // Import, texel validation and the BVH take well under a second here; the step alone
+    // would take about 15 s.
+    assert!(wall < std::time::Duration::from_secs(8), "{wall:?}");
+}

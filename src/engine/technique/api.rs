@@ -81,6 +81,13 @@ pub trait Technique: Send {
     fn ao(&self) -> Option<Vec<f32>> {
         None
     }
+    /// The instant the bake's time limit ends (issue 19 point 10), set once before the
+    /// first step. A technique whose step can be long checks it between parts of a step
+    /// and, once it has passed, abandons the step: adds nothing and leaves
+    /// [`steps_done`](Technique::steps_done) as it was, so the loop stops within a part of
+    /// a step of the limit. The default ignores it (the step runs whole); which
+    /// techniques honour it is in docs/performance.md.
+    fn set_deadline(&mut self, _deadline: Option<std::time::Instant>) {}
     /// Makes this bake's first step the job's step `first` (a task of a split bake,
     /// `engine::tasks`): the random streams are keyed by the global step, so the task
     /// draws exactly the samples a whole bake would at those steps. Called once, before

@@ -432,7 +432,15 @@ function showJob(j) {
   $('job-failure').textContent = j.failure || '';
   const dl = [];
   if (j.status === 'succeeded') {
-    dl.push(`<a href="/v1/jobs/${j.id}/lightmap.exr" data-fetch="${j.id}.exr">lightmap.exr</a>`);
+    // One link per page (the job's summary lists them) and the manifest; a job stored
+    // before pages existed has none listed and its lightmap.exr is its one page.
+    const pages = j.summary?.pages || [];
+    if (pages.length > 1) {
+      for (const p of pages) dl.push(`<a href="/v1/jobs/${j.id}/${p.file}" data-fetch="${j.id}-${p.file}">${p.file}</a>`);
+    } else {
+      dl.push(`<a href="/v1/jobs/${j.id}/lightmap.exr" data-fetch="${j.id}.exr">lightmap.exr</a>`);
+    }
+    if (pages.length > 0) dl.push(`<a href="/v1/jobs/${j.id}/lightmaps.json" data-fetch="${j.id}-lightmaps.json">lightmaps.json</a>`);
     dl.push(`<a href="/v1/jobs/${j.id}/preview.png" data-fetch="${j.id}.png">preview.png</a>`);
     if (j.summary?.generated_uvs) dl.push(`<a href="/v1/jobs/${j.id}/scene.glb" data-fetch="${j.id}.glb">scene.glb (generated UVs)</a>`);
     if (j.spec?.probes) dl.push(`<a href="/v1/jobs/${j.id}/probes.json" data-fetch="${j.id}-probes.json">probes.json</a>`);

@@ -89,9 +89,12 @@ const M4 = {
 const VS = `#version 300 es
 layout(location=0) in vec3 pos; layout(location=1) in vec3 nrm;
 layout(location=2) in vec2 uv0; layout(location=3) in vec2 uv1;
-uniform mat4 viewProj, model;
+uniform mat4 viewProj, model; uniform vec4 lmScaleOffset;
 out vec2 vUv0; out vec2 vUv1; out vec3 vN;
-void main() { vUv0 = uv0; vUv1 = uv1; vN = mat3(model) * nrm; gl_Position = viewProj * model * vec4(pos, 1.0); }`;
+void main() {
+  vUv0 = uv0; vUv1 = uv1 * lmScaleOffset.xy + lmScaleOffset.zw; vN = mat3(model) * nrm;
+  gl_Position = viewProj * model * vec4(pos, 1.0);
+}`;
 const FS = `#version 300 es
 precision highp float;
 in vec2 vUv0; in vec2 vUv1; in vec3 vN;
@@ -159,7 +162,7 @@ class Viewer {
     this.gl = gl;
     this.prog = this.program(VS, FS);
     this.u = {};
-    for (const n of ['viewProj', 'model', 'lightmap', 'baseTex', 'baseColor', 'emissive', 'mode', 'hasLightmap', 'exposure'])
+    for (const n of ['viewProj', 'model', 'lmScaleOffset', 'lightmap', 'baseTex', 'baseColor', 'emissive', 'mode', 'hasLightmap', 'exposure'])
       this.u[n] = gl.getUniformLocation(this.prog, n);
     this.white = this.texture(1, 1, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array([255, 255, 255, 255]));
     this.lightmap = null;
@@ -223,7 +226,12 @@ class Viewer {
           const p = M4.apply(m, [pos[i], pos[i + 1], pos[i + 2]]);
           for (let k = 0; k < 3; k++) { lo[k] = Math.min(lo[k], p[k]); hi[k] = Math.max(hi[k], p[k]); }
         }
-        this.draws.push(this.primitive(prim, pos, accessor, m, json.materials?.[prim.material], images, json.textures));
+        const d = this.primitive(prim, pos, accessor, m, json.materials?.[prim.material], images, json.textures);
+        // Where the node's lightmap is (docs/conventions.md): its page and the rectangle in it.
+        const lm = n.extras?.lightmap;
+        d.page = Number.isInteger(lm?.page) ? lm.page : 0;
+        d.scaleOffset = Array.isArray(lm?.scale_offset) && lm.scale_offset.length === 4 ? lm.scale_offset : [1, 1, 0, 0];
+        this.draws.push(d);
       }
       for (const c of n.children || []) visit(c, m);
     };
@@ -318,6 +326,7 @@ class Viewer {
     const gl = this.gl;
     if (this.lightmap) gl.deleteTexture(this.lightmap);
     this.lightmap = this.texture(w, h, gl.RGBA16F, gl.RGBA, gl.HALF_FLOAT, halves);
+    this.lightmapSize = [w, h];
     this.setFilter(this.nearest);
   }
 
@@ -413,7 +422,12 @@ class Viewer {
     gl.uniform1i(this.u.baseTex, 1);
     gl.activeTexture(gl.TEXTURE0);
     gl.bindTexture(gl.TEXTURE_2D, this.lightmap || this.white);
+    // The lightmap is the bake's grid: its W x W pages one under another, so page P's
+    // v in [0, 1] is rows [P W, (P + 1) W) of the H rows.
+    const [lw, lh] = this.lightmapSize || [1, 1], k = lw / lh;
     for (const d of this.draws) {
+      const [sx, sy, ox, oy] = d.scaleOffset;
+      gl.uniform4f(this.u.lmScaleOffset, sx, sy * k, ox, (d.page + oy) * k);
       gl.uniform1i(this.u.hasLightmap, this.lightmap && d.hasUv1 ? 1 : 0);
       gl.uniformMatrix4fv(this.u.model, false, d.model);
       gl.uniform4fv(this.u.baseColor, d.baseColor);

@@ -40,11 +40,19 @@
 //! Randomness: one PCG32 stream per (seed, step, texel, sample) (`engine::rng`), so the
 //! result is bit-identical for a seed regardless of thread count.
 //!
+//! Time limit: a CPU step runs in chunks of [`DEADLINE_CHUNK`] texels and is abandoned,
+//! adding nothing, when the bake's deadline passes mid-step (`Technique::set_deadline`),
+//! so one step over a large level's texels cannot carry a bake far past its limit. The
+//! samples of the chunks already done are dropped: the half accumulators count whole
+//! steps, and a step over part of the texels would weight those texels differently.
+//! The GPU megakernel's step is one dispatch and runs whole.
+//!
 //! Limits: no glossy transport, no textures' alpha, no participating media. The sample
 //! point of a texel inside closed geometry sees back faces and bakes black.
 
 use std::f32::consts::FRAC_1_PI;
 use std::sync::Arc;
+use std::time::Instant;
 
 use glam::Vec3;
 use rayon::prelude::*;
@@ -196,7 +204,14 @@ pub struct PathTracer {
     /// The job's index of this bake's first step (a task's, `engine::tasks`; else 0):
     /// the random streams are keyed by the global step.
     first_step: u64,
+    /// The bake's time limit, checked between chunks of a CPU step (module doc).
+    deadline: Option<Instant>,
 }
+
+/// Texels a CPU step traces between two looks at the deadline: at 4 samples of a few
+/// bounces each, tens of milliseconds on one core, so a limit is kept to about that much
+/// while the look itself (one clock read) costs nothing measurable.
+pub const DEADLINE_CHUNK: usize = 256;
 
 impl PathTracer {
     pub fn prepare(inputs: BakeInputs, params: &Value) -> Result<Self, EngineError> {
@@ -219,6 +234,7 @@ impl PathTracer {
             acc,
             gpu,
             first_step: 0,
+            deadline: None,
         })
     }
 }
@@ -248,35 +264,54 @@ impl Technique for PathTracer {
             eps: self.inputs.atlas.surface_offset,
         };
         let seed = self.inputs.seed;
-        let results: Vec<PathSample> = self
+        let deadline = self.deadline;
+        let texel_sample = |ti: usize, texel: &crate::engine::atlas::Texel| {
+            let mut sum = PathSample {
+                total: Vec3::ZERO,
+                direct: Vec3::ZERO,
+                moment: Moment::default(),
+            };
+            for s in 0..spp {
+                let mut rng = Rng::new(seed, step, ti as u64, s as u64);
+                let r = ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
+                sum.total += r.total;
+                sum.direct += r.direct;
+                for a in 0..3 {
+                    sum.moment.0[a] += r.moment.0[a];
+                }
+            }
+            let k = 1.0 / spp as f32;
+            PathSample {
+                total: sum.total * k,
+                direct: sum.direct * k,
+                moment: Moment(sum.moment.0.map(|m| m * k)),
+            }
+        };
+        let chunks: Vec<Option<Vec<PathSample>>> = self
             .inputs
             .atlas
             .texels
-            .par_iter()
+            .par_chunks(DEADLINE_CHUNK)
             .enumerate()
-            .map(|(ti, texel)| {
-                let mut sum = PathSample {
-                    total: Vec3::ZERO,
-                    direct: Vec3::ZERO,
-                    moment: Moment::default(),
-                };
-                for s in 0..spp {
-                    let mut rng = Rng::new(seed, step, ti as u64, s as u64);
-                    let r = ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
-                    sum.total += r.total;
-                    sum.direct += r.direct;
-                    for a in 0..3 {
-                        sum.moment.0[a] += r.moment.0[a];
-                    }
+            .map(|(c, chunk)| {
+                if deadline.is_some_and(|d| Instant::now() >= d) {
+                    return None;
                 }
-                let k = 1.0 / spp as f32;
-                PathSample {
-                    total: sum.total * k,
-                    direct: sum.direct * k,
-                    moment: Moment(sum.moment.0.map(|m| m * k)),
-                }
+                let first = c * DEADLINE_CHUNK;
+                Some(
+                    chunk
+                        .iter()
+                        .enumerate()
+                        .map(|(k, t)| texel_sample(first + k, t))
+                        .collect(),
+                )
             })
             .collect();
+        if chunks.iter().any(Option::is_none) {
+            tracing::debug!(step, "path: the deadline passed mid-step; the step is abandoned");
+            return Ok(());
+        }
+        let results: Vec<PathSample> = chunks.into_iter().flatten().flatten().collect();
         let total: Vec<Vec3> = results.iter().map(|r| r.total).collect();
         // Layers exist only when an output asked for them (the plan says so).
         let direct: Option<Vec<Vec3>> = self
@@ -290,6 +325,10 @@ impl Technique for PathTracer {
             .then(|| results.iter().map(|r| r.moment.0).collect());
         self.acc.add_with_moments(&total, direct.as_deref(), moments.as_deref());
         Ok(())
+    }
+
+    fn set_deadline(&mut self, deadline: Option<Instant>) {
+        self.deadline = deadline;
     }
 
     fn steps_done(&self) -> u64 {
