@@ -1015,6 +1015,9 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
     if let Some(n) = stop.steps {
         bar.set_length(n);
     }
+    // The bar's clock and spinner move on their own, so a long step (a large level's pass
+    // over every texel) never looks like a hang.
+    bar.enable_steady_tick(std::time::Duration::from_millis(250));
     // A one-file output for a bake that needs several pages stops the bake as soon as
     // the texel grid (and so its pages) is known, before any sampling.
     let pages_over = std::cell::Cell::new(None::<usize>);
