@@ -456,9 +456,13 @@ impl Browser {
         let mut params = json!({"format": "png"});
         if let Some(sel) = selector {
             let r = self.eval(&format!(
-                "(() => {{ const e = document.querySelector({sel:?}); e.scrollIntoView({{block: 'center'}}); const b = e.getBoundingClientRect(); return [b.x, b.y, b.width, b.height]; }})()"
+                "(() => {{ const e = document.querySelector({sel:?}); e.scrollIntoView({{block: 'center'}}); const b = e.getBoundingClientRect(); return [b.x + window.scrollX, b.y + window.scrollY, b.width, b.height]; }})()"
             ));
+            // The clip is in page coordinates, the bounding box in the viewport's: without
+            // the scroll offset a scrolled-to element's picture showed what lay above it.
             params["clip"] = json!({"x": r[0], "y": r[1], "width": r[2], "height": r[3], "scale": 1});
+            // An element taller than the window is drawn whole, not cut at the window.
+            params["captureBeyondViewport"] = json!(true);
         }
         let r = self.call("Page.captureScreenshot", params);
         use base64::Engine;
@@ -949,13 +953,7 @@ fn a_two_page_job_looks_like_a_one_page_bake_in_3d() {
     }
     let (shots, _keep) = shots_dir();
     std::fs::write(shots.join("8-two-pages.png"), &views[0]).unwrap();
-    // The rows under the job's sticky header, which overlays the top of the canvas (it
-    // lists each job's own downloads, so it differs between the two).
-    let img = |png: &[u8]| {
-        let full = image::load_from_memory(png).unwrap().to_luma8();
-        let top = full.height() / 4;
-        image::imageops::crop_imm(&full, 0, top, full.width(), full.height() - top).to_image()
-    };
+    let img = |png: &[u8]| image::load_from_memory(png).unwrap().to_luma8();
     let (a, one) = (img(&views[0]), img(&views[1]));
     assert_eq!(a.dimensions(), one.dimensions());
     let n = (a.width() * a.height()) as f64;
@@ -976,9 +974,113 @@ fn a_two_page_job_looks_like_a_one_page_bake_in_3d() {
         100.0 * far
     );
     let px = pixels(&views[0]);
-    assert!(px.covered > 0.3 && px.lit > 0.05, "{px:?}");
-    // Measured: 0.20 and 0.00 %; with the page ignored in viewer.js (the ball reading
-    // page 0's rows) 7.82 and 4.71 %.
+    assert!(px.covered > 0.15 && px.lit > 0.05, "{px:?}");
+    // Measured: 0.21 and 0.00 %; with the page ignored in viewer.js (the ball reading
+    // page 0's rows) 5.93 and 3.54 %.
     assert!(mean_diff < 2.0, "mean |difference| {mean_diff:.2}");
     assert!(far < 0.005, "{:.2} % of pixels differ by more than 40", 100.0 * far);
+}
+
+/// Issue 22's rendered before/after (run by hand, `--ignored`; it writes
+/// docs/denoise/rendered_*.png): the living room baked by `path` at 16 steps raw and
+/// denoised, and at 512 steps raw as the reference, each drawn by the console's 3D view
+/// from one camera inside the room, the lightmap alone. Prints each picture's mean
+/// absolute difference from the reference (8-bit, over the rendered pixels).
+#[test]
+#[ignore]
+fn render_denoise_before_after() {
+    let Some(exe) = skip_without_browser("render_denoise_before_after") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "30"]);
+    let _serve = Serve(child);
+    let glb = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party/living_room.glb")).unwrap();
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let http = reqwest::Client::new();
+    let reference = if std::env::var_os("LIGHTMAPD_RENDER_QUICK").is_some() {
+        16
+    } else {
+        512
+    };
+    let runs = [
+        ("raw_16", 16, "none"),
+        ("denoised_16", 16, "auto"),
+        ("reference_512", reference, "none"),
+    ];
+    let jobs: Vec<String> = rt.block_on(async {
+        let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
+        assert_eq!(r.status(), 201);
+        let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+        let mut ids = Vec::new();
+        for (_, steps, denoise) in runs {
+            let body = json!({"scene": scene, "resolution": 512, "stop": {"steps": steps}, "seed": 1,
+                "denoise": denoise, "lighting": {"sky": {"radiance": [1, 1, 1]}}});
+            let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+            assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+            ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
+        }
+        for id in &ids {
+            loop {
+                let j: Value = http
+                    .get(format!("{url}/v1/jobs/{id}"))
+                    .send()
+                    .await
+                    .unwrap()
+                    .json()
+                    .await
+                    .unwrap();
+                if j["status"] == "succeeded" {
+                    eprintln!(
+                        "{id}: {} steps, error {} (raw {}), denoiser {}",
+                        j["summary"]["steps"],
+                        j["summary"]["error"]["relative"],
+                        j["summary"]["error"]["raw_relative"],
+                        j["summary"]["denoiser"]
+                    );
+                    break;
+                }
+                assert!(j["status"] != "failed", "{j}");
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+        }
+        ids
+    });
+    let camera =
+        std::env::var("LIGHTMAPD_RENDER_CAMERA").unwrap_or_else(|_| "{dist: 0.9, yaw: 0.5, pitch: 0.75}".into());
+    let mut b = Browser::start(&exe);
+    let mut views = Vec::new();
+    for (k, id) in jobs.iter().enumerate() {
+        b.call("Page.navigate", json!({"url": format!("{url}/?render={k}#job={id}")}));
+        b.wait(
+            "the job's final lightmap in the viewer",
+            &format!(
+                "window.lightmapdConsole?.lightmapKey === '{id}/final' && window.lightmapdConsole.viewer?.lightmap && true"
+            ),
+            Duration::from_secs(60),
+        );
+        b.eval(&format!(
+            "(() => {{ const v = window.lightmapdConsole.viewer, h = v.cam.home, c = {camera}; \
+             Object.assign(v.cam, {{target: h.target.slice(), dist: c.dist * h.radius, yaw: c.yaw, pitch: c.pitch}}); \
+             const m = document.getElementById('v-mode'); m.value = 'lightmap'; m.dispatchEvent(new Event('change')); v.draw(); }})()"
+        ));
+        b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
+        views.push(b.screenshot(Some("#view3d")));
+    }
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/denoise");
+    std::fs::create_dir_all(&out).unwrap();
+    let gray = |png: &[u8]| image::load_from_memory(png).unwrap().to_luma8();
+    let reference = gray(&views[2]);
+    for ((name, _, _), png) in runs.iter().zip(&views) {
+        std::fs::write(out.join(format!("rendered_living_room_{name}.png")), png).unwrap();
+        let g = gray(png);
+        let n = (g.width() * g.height()) as f64;
+        let diff = g
+            .pixels()
+            .zip(reference.pixels())
+            .map(|(p, q)| (p.0[0] as f64 - q.0[0] as f64).abs())
+            .sum::<f64>()
+            / n;
+        eprintln!("{name}: mean |difference| from the reference {diff:.2} of 255");
+    }
 }
