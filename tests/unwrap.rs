@@ -404,3 +404,64 @@ fn a_singular_instance_transform_names_the_node() {
         "{text}"
     );
 }
+
+/// A server checks a job's memory against its limit from `resolution` (one page) before
+/// queueing it; a scene whose generated charts need a second page needs more, which only
+/// the layout step knows. With a limit between the two estimates the bake is refused
+/// before the texel set is built, naming the pages and the limit.
+#[test]
+fn a_memory_limit_is_checked_again_on_the_real_pages() {
+    use lightmapd::engine::footprint::{JobShape, estimate_bytes};
+    let (mut json, bin) = sphere_over_plane().to_gltf();
+    json["meshes"][1]["primitives"][0]["attributes"]
+        .as_object_mut()
+        .unwrap()
+        .remove("TEXCOORD_1");
+    let (scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    let shape = JobShape::new(scene.triangles.len() as u64, 0, 128, &[]);
+    let (one, two) = (estimate_bytes(&shape), estimate_bytes(&shape.on_grid(128, 256)));
+    assert!(two > one);
+    let limit = (one + two) / 2;
+    let options = job::BakeOptions {
+        max_memory_bytes: Some(limit),
+        ..Default::default()
+    };
+    let mut observer = |_: lightmapd::engine::bake::BakeEvent<'_>| std::ops::ControlFlow::Continue(());
+    let mut atlas_built = false;
+    let err = job::bake(
+        Arc::new(scene.clone()),
+        &sky_request(128),
+        &options,
+        &mut observer,
+        &mut |_| atlas_built = true,
+        &mut |_| {},
+    )
+    .err()
+    .expect("over the limit");
+    assert!(err.is_bad_input(), "{err}");
+    assert_eq!(
+        err.to_string(),
+        format!(
+            "the lightmap's 2 page(s), 128x256 texels in all, need an estimated {} MiB, more than this worker's \
+             limit of {} MiB (--max-job-memory-mb): lower the resolution, texels_per_unit or the meshes' \
+             extras.lightmap_scale",
+            two >> 20,
+            limit >> 20
+        )
+    );
+    assert!(!atlas_built, "the texel set was built before the check");
+    // With room for both pages it bakes.
+    let options = job::BakeOptions {
+        max_memory_bytes: Some(two),
+        ..Default::default()
+    };
+    let ok = job::bake(
+        Arc::new(scene),
+        &sky_request(128),
+        &options,
+        &mut observer,
+        &mut |_| {},
+        &mut |_| {},
+    );
+    assert_eq!(ok.unwrap().pages.len(), 2);
+}

@@ -12,6 +12,12 @@
 //! f32 per pixel plus the 8-bit image they were decoded from. A fixed 64 MiB covers the
 //! process itself.
 //!
+//! A server checks a job against its limit before it is queued, from `resolution`: one
+//! page. Generated charts can need more pages than that (authored UVs beside generated
+//! ones, or a `texels_per_unit`), which only the layout step knows, so the engine checks
+//! again with the real grid before it allocates the texel set
+//! (`job::BakeOptions::max_memory_bytes`).
+//!
 //! Limits: an estimate, not a measurement: it is meant to err high (docs/reliability.md
 //! compares it with the peak resident size of real bakes). GPU techniques' device memory
 //! is not counted; their host-side copies are the same as `path`'s.
@@ -35,6 +41,9 @@ pub struct JobShape {
     pub texture_texels: u64,
     /// Lightmap side in texels.
     pub resolution: u32,
+    /// The bake's whole texel grid (width, height) once known (several pages, one under
+    /// another: `atlas::unwrap`); None: one `resolution`² page.
+    pub grid: Option<(u32, u32)>,
     pub direct: bool,
     pub indirect: bool,
     pub sh: bool,
@@ -50,6 +59,7 @@ impl JobShape {
             triangles,
             texture_texels,
             resolution,
+            grid: None,
             direct: outputs.contains(&OutputLayer::Direct) || outputs.contains(&OutputLayer::Indirect),
             indirect: outputs.contains(&OutputLayer::Indirect),
             sh: outputs.contains(&OutputLayer::Sh),
@@ -59,10 +69,23 @@ impl JobShape {
     }
 }
 
+impl JobShape {
+    /// The same job on a grid of `width` × `height` texels (its pages, once laid out).
+    pub fn on_grid(self, width: u32, height: u32) -> JobShape {
+        JobShape {
+            grid: Some((width, height)),
+            ..self
+        }
+    }
+}
+
 /// The estimated peak memory of a bake of this shape, in bytes (an upper bound by
 /// intent; module doc).
 pub fn estimate_bytes(s: &JobShape) -> u64 {
-    let pixels = u64::from(s.resolution) * u64::from(s.resolution);
+    let pixels = match s.grid {
+        Some((w, h)) => u64::from(w) * u64::from(h),
+        None => u64::from(s.resolution) * u64::from(s.resolution),
+    };
     const RGB: u64 = 12;
     // Accumulated per texel: the total, the direct part when split, three moment vectors.
     let accumulated = RGB + if s.direct { RGB } else { 0 } + if s.sh { 3 * RGB } else { 0 };
@@ -105,6 +128,12 @@ mod tests {
         assert_eq!(
             estimate_bytes(&tex) - estimate_bytes(&base),
             4096 * 4096 * BYTES_PER_TEXTURE_TEXEL
+        );
+        // Four pages one under another cost four pages.
+        let four = JobShape::new(0, 0, 1024, &[]).on_grid(1024, 4096);
+        assert_eq!(
+            estimate_bytes(&four) - BASE_BYTES,
+            4 * (estimate_bytes(&map) - BASE_BYTES)
         );
         // No overflow for absurd shapes.
         assert_eq!(

@@ -16,6 +16,7 @@ use crate::engine::atlas::validate::{self, ValidationReport};
 use crate::engine::atlas::{Atlas, AtlasReport};
 use crate::engine::bake::{BakeEvent, BakeLoop, BakeObserver, StopCriteria, StopReason};
 use crate::engine::control::{CONTROL_TEXELS, ControlTexels};
+use crate::engine::footprint;
 use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::output::pages::{self, Manifest, PageEntry, PageFile};
 use crate::engine::output::{self, ExrMetadata, OutputLayer};
@@ -243,6 +244,10 @@ pub struct BakeOptions {
     /// Measure a biased technique's bias at control texels (`engine::control`), so the
     /// reported error covers it; default true.
     pub control_texels: bool,
+    /// Refuse, before the texel set is built, a bake whose estimated peak memory
+    /// (`engine::footprint`) on its real grid of pages is over this many bytes (a
+    /// worker's `--max-job-memory-mb`); None: no limit.
+    pub max_memory_bytes: Option<u64>,
 }
 
 impl Default for BakeOptions {
@@ -250,6 +255,7 @@ impl Default for BakeOptions {
         BakeOptions {
             snapshot_interval: Duration::from_secs(5),
             control_texels: true,
+            max_memory_bytes: None,
         }
     }
 }
@@ -390,6 +396,29 @@ pub(crate) fn prepare(
         .layout
         .as_ref()
         .map_or((request.resolution, request.resolution), |l| (l.width, l.height));
+    if let Some(limit) = options.max_memory_bytes {
+        let texture_texels = scene
+            .textures
+            .iter()
+            .map(|t| u64::from(t.width) * u64::from(t.height))
+            .sum();
+        let shape = footprint::JobShape::new(
+            scene.triangles.len() as u64,
+            texture_texels,
+            request.resolution,
+            &request.outputs,
+        )
+        .on_grid(width, height);
+        let need = footprint::estimate_bytes(&shape);
+        if need > limit {
+            return Err(EngineError::BadInput(format!(
+                "the lightmap's {} page(s), {width}x{height} texels in all, need an estimated {} MiB, more than this worker's limit of {} MiB (--max-job-memory-mb): lower the resolution, texels_per_unit or the meshes' extras.lightmap_scale",
+                scene.layout.as_ref().map_or(1, |l| l.pages.len()),
+                need >> 20,
+                limit >> 20
+            )));
+        }
+    }
     let mut atlas = Atlas::build(&scene, width, height).map_err(|e| EngineError::BadInput(e.to_string()))?;
     let rays = SceneRays::new(scene.clone());
     let validation = validate::validate_with(&scene, &rays.tracer(), &mut atlas);

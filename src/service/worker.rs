@@ -802,6 +802,7 @@ fn run_bake(
     let request = spec.to_request();
     let options = BakeOptions {
         snapshot_interval,
+        max_memory_bytes: Some(ctx.limits.max_job_memory_bytes),
         ..Default::default()
     };
     let (raw_tx, raw_rx) = std::sync::mpsc::sync_channel::<RawSnapshot>(1);
