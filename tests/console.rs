@@ -1084,3 +1084,112 @@ fn render_denoise_before_after() {
         eprintln!("{name}: mean |difference| from the reference {diff:.2} of 255");
     }
 }
+
+/// The 3D view cuts away what the bake's alpha cuts away (issue 19): a white 2 m quad
+/// facing the camera, opaque, MASK with stripes that cut away every other texel column,
+/// and BLEND at alpha 0.4. Against the opaque quad, the MASK quad covers half as many
+/// pixels and the BLEND one 0.4 as many (stochastic coverage, per pixel).
+#[test]
+fn the_3d_view_cuts_away_what_alpha_cuts_away() {
+    use lightmapd::engine::scene::AlphaMode;
+    use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, TextureDesc};
+    let Some(exe) = skip_without_browser("the_3d_view_cuts_away_what_alpha_cuts_away") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "5"]);
+    let _serve = Serve(child);
+    let quad = |m: MaterialDesc| {
+        let mut b = SceneBuilder::new();
+        let m = b.material(m);
+        // u along +x, v along −y: u × v = +z, facing the console's home camera.
+        b.quad(
+            "quad",
+            glam::Vec3::new(-1.0, 1.0, 0.0),
+            glam::Vec3::new(2.0, 0.0, 0.0),
+            glam::Vec3::new(0.0, -2.0, 0.0),
+            m,
+        );
+        b.to_glb()
+    };
+    let white = MaterialDesc::diffuse("white", [0.8; 3]);
+    let mut blend = white.clone().alpha(AlphaMode::Blend);
+    blend.base_color[3] = 0.4;
+    let scenes = [
+        quad(white.clone()),
+        quad(
+            white
+                .alpha(AlphaMode::Mask { cutoff: 0.5 })
+                .textured(TextureDesc::alpha_stripes(2, 1, 32)),
+        ),
+        quad(blend),
+    ];
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let http = reqwest::Client::new();
+    let jobs: Vec<String> = rt.block_on(async {
+        let mut ids = Vec::new();
+        for glb in scenes {
+            let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
+            assert_eq!(r.status(), 201);
+            let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+            let body = json!({"scene": scene, "resolution": 32, "stop": {"steps": 2},
+                "lighting": {"sky": {"radiance": [1, 1, 1], "hemisphere": "full"}}});
+            let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+            assert_eq!(r.status(), 202);
+            ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
+        }
+        for id in &ids {
+            let started = Instant::now();
+            loop {
+                let j: Value = http
+                    .get(format!("{url}/v1/jobs/{id}"))
+                    .send()
+                    .await
+                    .unwrap()
+                    .json()
+                    .await
+                    .unwrap();
+                if j["status"] == "succeeded" {
+                    break;
+                }
+                assert!(
+                    j["status"] != "failed" && started.elapsed() < Duration::from_secs(120),
+                    "{j}"
+                );
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        }
+        ids
+    });
+    let mut b = Browser::start(&exe);
+    let mut covered = Vec::new();
+    for (k, id) in jobs.iter().enumerate() {
+        b.call("Page.navigate", json!({"url": format!("{url}/?alpha={k}#job={id}")}));
+        b.wait(
+            "the job's final lightmap in the viewer",
+            &format!("window.lightmapdConsole?.lightmapKey === '{id}/final' && window.lightmapdConsole.viewer?.lightmap && true"),
+            Duration::from_secs(30),
+        );
+        b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
+        let png = b.screenshot(Some("#view3d"));
+        if k == 1 {
+            let (shots, _keep) = shots_dir();
+            std::fs::write(shots.join("9-alpha-mask.png"), &png).unwrap();
+        }
+        covered.push(pixels(&png).covered);
+    }
+    let (mask, blend) = (covered[1] / covered[0], covered[2] / covered[0]);
+    eprintln!(
+        "covered: opaque {:.3}, MASK {:.3} ({mask:.3} of it), BLEND 0.4 {:.3} ({blend:.3})",
+        covered[0], covered[1], covered[2]
+    );
+    assert!(covered[0] > 0.2, "the opaque quad covers {:.3} of the view", covered[0]);
+    assert!(
+        (mask - 0.5).abs() < 0.05,
+        "MASK stripes cover {mask:.3} of the opaque quad's pixels"
+    );
+    assert!(
+        (blend - 0.4).abs() < 0.03,
+        "BLEND 0.4 covers {blend:.3} of the opaque quad's pixels"
+    );
+}

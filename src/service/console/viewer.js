@@ -1,11 +1,13 @@
 'use strict';
 // viewer.js: a small WebGL2 viewer for lightmapd's console. It draws a .glb (as the service
 // exports it: meshes with POSITION, NORMAL, TEXCOORD_0, TEXCOORD_1, materials with base colour
-// factors and textures, emission) with a half-float lightmap on TEXCOORD_1.
+// factors and textures, emission) with a half-float lightmap on TEXCOORD_1, each node's
+// `extras.lightmap` page and rectangle applied (docs/conventions.md), and alpha as the bake
+// reads it (MASK cut away below the cutoff, BLEND as stochastic coverage).
 // Why not three.js: the page needs one mesh type, one material and one camera; three.js is
 // ~650 kB minified and would need npm and a bundling step in the build (docs/console.md has
 // the comparison). Limits: no skinning, morph targets, KTX2/Draco/meshopt, texture
-// transforms, or alpha blending; node matrices and TRS are applied, instancing is not.
+// transforms, or sorted alpha blending; node matrices and TRS are applied.
 
 // glTF component types to typed-array constructors.
 const GLTF_ARRAY = {5120: Int8Array, 5121: Uint8Array, 5122: Int16Array, 5123: Uint16Array, 5125: Uint32Array, 5126: Float32Array};
@@ -101,10 +103,18 @@ in vec2 vUv0; in vec2 vUv1; in vec3 vN;
 uniform sampler2D lightmap, baseTex;
 uniform vec4 baseColor; uniform vec3 emissive;
 uniform int mode; uniform int hasLightmap; uniform float exposure;
+uniform int alphaMode; uniform float alphaCutoff;
 out vec4 color;
 vec3 srgb(vec3 c) { return mix(c * 12.92, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c)); }
+// A value in [0, 1) per pixel, for BLEND's stochastic coverage.
+float hash(vec2 p) { return fract(sin(dot(p, vec2(12.9898, 78.233))) * 43758.5453); }
 void main() {
-  vec3 albedo = baseColor.rgb * texture(baseTex, vUv0).rgb;
+  vec4 base = baseColor * texture(baseTex, vUv0);
+  // Alpha as the bake reads it (docs/conventions.md): MASK keeps coverage >= cutoff, BLEND
+  // covers a pixel with probability equal to its coverage; OPAQUE ignores alpha.
+  if (alphaMode == 1 && base.a < alphaCutoff) discard;
+  if (alphaMode == 2 && base.a <= hash(gl_FragCoord.xy)) discard;
+  vec3 albedo = base.rgb;
   // Before the first snapshot: a plain headlight-free shade so the geometry reads.
   vec3 light = hasLightmap == 1 ? texture(lightmap, vUv1).rgb : vec3(0.25 + 0.2 * abs(normalize(vN).y));
   // The lightmap holds irradiance / pi: outgoing radiance is albedo times it (DESIGN §2).
@@ -162,7 +172,7 @@ class Viewer {
     this.gl = gl;
     this.prog = this.program(VS, FS);
     this.u = {};
-    for (const n of ['viewProj', 'model', 'lmScaleOffset', 'lightmap', 'baseTex', 'baseColor', 'emissive', 'mode', 'hasLightmap', 'exposure'])
+    for (const n of ['viewProj', 'model', 'lmScaleOffset', 'lightmap', 'baseTex', 'baseColor', 'emissive', 'mode', 'hasLightmap', 'exposure', 'alphaMode', 'alphaCutoff'])
       this.u[n] = gl.getUniformLocation(this.prog, n);
     this.white = this.texture(1, 1, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array([255, 255, 255, 255]));
     this.lightmap = null;
@@ -275,6 +285,7 @@ class Viewer {
     const tex = texIndex !== undefined ? images[textures?.[texIndex]?.source] : null;
     return {vao, buffers, n, indexType, model, hasUv1: a.TEXCOORD_1 !== undefined,
       baseColor: pbr.baseColorFactor || [1, 1, 1, 1], tex: tex || this.white,
+      alphaMode: {MASK: 1, BLEND: 2}[mat?.alphaMode] || 0, alphaCutoff: mat?.alphaCutoff ?? 0.5,
       emissive: (mat?.emissiveFactor || [0, 0, 0]).map(v => v * strength)};
   }
 
@@ -431,6 +442,8 @@ class Viewer {
       gl.uniform1i(this.u.hasLightmap, this.lightmap && d.hasUv1 ? 1 : 0);
       gl.uniformMatrix4fv(this.u.model, false, d.model);
       gl.uniform4fv(this.u.baseColor, d.baseColor);
+      gl.uniform1i(this.u.alphaMode, d.alphaMode);
+      gl.uniform1f(this.u.alphaCutoff, d.alphaCutoff);
       gl.uniform3fv(this.u.emissive, d.emissive);
       gl.activeTexture(gl.TEXTURE1);
       gl.bindTexture(gl.TEXTURE_2D, d.tex);
