@@ -1,0 +1,129 @@
+//! Preparation before sampling on a generated level (issue 19 point 8): seconds and peak
+//! memory of each phase, for docs/performance.md.
+//!
+//! `cargo run --release --example prep_bench -- BOXES CELLS TEXELS_PER_METRE PAGE_SIZE`
+//! (defaults 40 8 10 1024): a ground plane of 100 m square (8 × 8 cells) and BOXES boxes
+//! in a square grid over it, each with five faces of CELLS × CELLS quads (10 · CELLS²
+//! triangles a box), every mesh without `TEXCOORD_1`, so the bake generates them at
+//! TEXELS_PER_METRE on pages PAGE_SIZE wide. Phases, each timed on its own with the
+//! process's peak resident size after it (`VmHWM`, which only grows):
+//! import (the .glb in memory), UV generation (`atlas::unwrap`: unwrap, pack, pages),
+//! texel set (`Atlas::build`: rasterisation, gutter links, seam search), BVH
+//! (`SceneRays::new`, the tracer built on first use), texel validation (backface rays).
+//!
+//! Limits: one generated layout (boxes over a ground); the glb is built and held in
+//! memory before the first phase and counted in every peak.
+
+use std::time::Instant;
+
+use glam::Vec3;
+use lightmapd::engine::atlas::{Atlas, unwrap, validate};
+use lightmapd::engine::gpu::scene_rays::SceneRays;
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
+use lightmapd::engine::scene::import_slice;
+use std::sync::Arc;
+
+/// The process's peak resident size so far, in MiB (Linux `VmHWM`; 0 elsewhere).
+fn peak_mib() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1).and_then(|k| k.parse::<u64>().ok()))
+        })
+        .map_or(0, |kb| kb / 1024)
+}
+
+fn level(boxes: u32, cells: u32) -> Vec<u8> {
+    let mut b = SceneBuilder::new();
+    let ground = b.material(MaterialDesc::diffuse("ground", [0.6, 0.55, 0.5]));
+    let block = b.material(MaterialDesc::diffuse("block", [0.7, 0.7, 0.7]));
+    b.quad_grid("ground", Vec3::new(-50.0, 0.0, 50.0), Vec3::X * 100.0, Vec3::NEG_Z * 100.0, 8, ground);
+    let side = (boxes as f32).sqrt().ceil() as u32;
+    let pitch = 96.0 / side.max(1) as f32;
+    for k in 0..boxes {
+        let (i, j) = ((k % side) as f32, (k / side) as f32);
+        let centre = Vec3::new(-48.0 + (i + 0.5) * pitch, 0.0, -48.0 + (j + 0.5) * pitch);
+        let half = Vec3::new(0.3 * pitch, 0.25 * pitch + 0.1 * (k % 7) as f32, 0.3 * pitch);
+        let c = centre + Vec3::Y * half.y;
+        let faces = [
+            (Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
+            (Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
+            (Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
+            (Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
+            (Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
+        ];
+        for (f, (n, d, u, v)) in faces.into_iter().enumerate() {
+            let centre = c + n * d;
+            b.quad_grid(&format!("box {k} face {f}"), centre - u - v, 2.0 * u, 2.0 * v, cells, block);
+        }
+    }
+    let (mut json, bin) = b.to_gltf();
+    for m in json["meshes"].as_array_mut().expect("meshes") {
+        for p in m["primitives"].as_array_mut().expect("primitives") {
+            if let Some(a) = p["attributes"].as_object_mut() {
+                a.remove("TEXCOORD_1");
+            }
+        }
+    }
+    write_glb(&json, &bin)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let arg = |k: usize, d: f64| args.get(k).and_then(|a| a.parse::<f64>().ok()).unwrap_or(d);
+    let (boxes, cells, density, page) = (arg(0, 40.0) as u32, arg(1, 8.0) as u32, arg(2, 10.0) as f32, arg(3, 1024.0) as u32);
+    let glb = level(boxes, cells);
+    println!(
+        "level: {boxes} boxes of {} triangles, ground 100 m; {density} texels/m on {page}-wide pages; glb {} MiB; {} threads",
+        10 * cells * cells,
+        glb.len() >> 20,
+        rayon::current_num_threads()
+    );
+    println!("| phase | seconds | peak resident MiB after it |");
+    println!("| --- | --- | --- |");
+    let row = |phase: &str, t: Instant| println!("| {phase} | {:.2} | {} |", t.elapsed().as_secs_f64(), peak_mib());
+
+    let t = Instant::now();
+    let (mut scene, report) = import_slice(&glb, None).expect("the generated level imports");
+    row(&format!("import ({} triangles)", report.triangles), t);
+
+    let t = Instant::now();
+    let u = unwrap::generate_lightmap_uvs_with(
+        &mut scene,
+        page,
+        unwrap::LightmapUvs::GenerateMissing,
+        Some(density),
+        &unwrap::UvUnwrap,
+    )
+    .expect("UVs");
+    row(
+        &format!(
+            "UV generation ({} charts, {} pages, {:.1} texels/m)",
+            u.charts, u.generated_pages, u.texels_per_metre
+        ),
+        t,
+    );
+    for w in u.warnings.iter().take(3) {
+        println!("warning: {w}");
+    }
+
+    let t = Instant::now();
+    let (w, h) = scene.layout.as_ref().map_or((page, page), |l| (l.width, l.height));
+    let scene = Arc::new(scene);
+    let mut atlas = Atlas::build(&scene, w, h).expect("texel set");
+    row(
+        &format!("texel set ({w}x{h} grid, {} valid texels, {} seam samples)", atlas.texels.len(), atlas.seams.len()),
+        t,
+    );
+
+    let t = Instant::now();
+    let rays = SceneRays::new(scene.clone());
+    let tracer = rays.tracer();
+    row("BVH", t);
+
+    let t = Instant::now();
+    let v = validate::validate_with(&scene, &tracer, &mut atlas);
+    row(&format!("texel validation ({} inside geometry)", v.inside_geometry_texels), t);
+}
