@@ -570,7 +570,9 @@ function drawLightmap2d() {
     img.data[4 * i + 3] = 255;
   }
   g.putImageData(img, 0, 0);
-  $('lightmap-caption').textContent = `${lm.label} · ${lm.w}×${lm.h} texels`;
+  // Several pages lie one under another in the grid (W x W each, docs/conventions.md).
+  const pages = lm.h > lm.w && lm.h % lm.w === 0 ? ` · ${lm.h / lm.w} pages of ${lm.w}×${lm.w}` : '';
+  $('lightmap-caption').textContent = `${lm.label} · ${lm.w}×${lm.h} texels${pages}`;
 }
 
 $('v-exposure').addEventListener('input', e => {
