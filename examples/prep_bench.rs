@@ -39,7 +39,14 @@ fn level(boxes: u32, cells: u32) -> Vec<u8> {
     let mut b = SceneBuilder::new();
     let ground = b.material(MaterialDesc::diffuse("ground", [0.6, 0.55, 0.5]));
     let block = b.material(MaterialDesc::diffuse("block", [0.7, 0.7, 0.7]));
-    b.quad_grid("ground", Vec3::new(-50.0, 0.0, 50.0), Vec3::X * 100.0, Vec3::NEG_Z * 100.0, 8, ground);
+    b.quad_grid(
+        "ground",
+        Vec3::new(-50.0, 0.0, 50.0),
+        Vec3::X * 100.0,
+        Vec3::NEG_Z * 100.0,
+        8,
+        ground,
+    );
     let side = (boxes as f32).sqrt().ceil() as u32;
     let pitch = 96.0 / side.max(1) as f32;
     for k in 0..boxes {
@@ -56,7 +63,14 @@ fn level(boxes: u32, cells: u32) -> Vec<u8> {
         ];
         for (f, (n, d, u, v)) in faces.into_iter().enumerate() {
             let centre = c + n * d;
-            b.quad_grid(&format!("box {k} face {f}"), centre - u - v, 2.0 * u, 2.0 * v, cells, block);
+            b.quad_grid(
+                &format!("box {k} face {f}"),
+                centre - u - v,
+                2.0 * u,
+                2.0 * v,
+                cells,
+                block,
+            );
         }
     }
     let (mut json, bin) = b.to_gltf();
@@ -73,7 +87,12 @@ fn level(boxes: u32, cells: u32) -> Vec<u8> {
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let arg = |k: usize, d: f64| args.get(k).and_then(|a| a.parse::<f64>().ok()).unwrap_or(d);
-    let (boxes, cells, density, page) = (arg(0, 40.0) as u32, arg(1, 8.0) as u32, arg(2, 10.0) as f32, arg(3, 1024.0) as u32);
+    let (boxes, cells, density, page) = (
+        arg(0, 40.0) as u32,
+        arg(1, 8.0) as u32,
+        arg(2, 10.0) as f32,
+        arg(3, 1024.0) as u32,
+    );
     let glb = level(boxes, cells);
     println!(
         "level: {boxes} boxes of {} triangles, ground 100 m; {density} texels/m on {page}-wide pages; glb {} MiB; {} threads",
@@ -114,7 +133,11 @@ fn main() {
     let scene = Arc::new(scene);
     let mut atlas = Atlas::build(&scene, w, h).expect("texel set");
     row(
-        &format!("texel set ({w}x{h} grid, {} valid texels, {} seam samples)", atlas.texels.len(), atlas.seams.len()),
+        &format!(
+            "texel set ({w}x{h} grid, {} valid texels, {} seam samples)",
+            atlas.texels.len(),
+            atlas.seams.len()
+        ),
         t,
     );
 
@@ -125,5 +148,8 @@ fn main() {
 
     let t = Instant::now();
     let v = validate::validate_with(&scene, &tracer, &mut atlas);
-    row(&format!("texel validation ({} inside geometry)", v.inside_geometry_texels), t);
+    row(
+        &format!("texel validation ({} inside geometry)", v.inside_geometry_texels),
+        t,
+    );
 }
