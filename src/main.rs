@@ -1009,7 +1009,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         ProgressBar::hidden()
     };
     bar.set_style(
-        ProgressStyle::with_template("{spinner} {elapsed_precise} [{wide_bar}] step {pos} {msg}")
+        ProgressStyle::with_template("{spinner} {elapsed_precise} [{wide_bar}] step {pos}{prefix} {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     if let Some(n) = stop.steps {
@@ -1101,14 +1101,37 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         }
         result
     } else {
-        job::bake(
-            Arc::new(scene),
-            &request,
-            &job::BakeOptions::default(),
-            &mut observer,
-            &mut on_atlas,
-            &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
-        )
+        // How far the step in progress is, shown beside the step count while a long step
+        // runs (`bake::StepProgress`; CPU `path` reports it).
+        let progress = lightmapd::engine::bake::StepProgress::new();
+        let options = job::BakeOptions {
+            step_progress: Some(progress.clone()),
+            ..Default::default()
+        };
+        let done = std::sync::atomic::AtomicBool::new(false);
+        std::thread::scope(|scope| {
+            scope.spawn(|| {
+                while !done.load(std::sync::atomic::Ordering::Relaxed) {
+                    let p = progress.permille();
+                    bar.set_prefix(if p > 0 && p < 1000 {
+                        format!(" (+{} %)", p / 10)
+                    } else {
+                        String::new()
+                    });
+                    std::thread::sleep(std::time::Duration::from_millis(200));
+                }
+            });
+            let result = job::bake(
+                Arc::new(scene),
+                &request,
+                &options,
+                &mut observer,
+                &mut on_atlas,
+                &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
+            );
+            done.store(true, std::sync::atomic::Ordering::Relaxed);
+            result
+        })
         .map_err(engine_failure)?
     };
     bar.finish_and_clear();

@@ -496,3 +496,67 @@ fn a_step_longer_than_the_budget_stops_at_the_budget() {
     // would take about 15 s.
     assert!(wall < std::time::Duration::from_secs(8), "{wall:?}");
 }
+
+/// Progress inside a step (issue 19 point 10): while one long CPU `path` step runs (the
+/// bundled Cornell box at 64², 4096 samples a texel, about 15 s here), the step's
+/// progress (`bake::StepProgress`, what the CLI's bar shows beside the step count) moves
+/// up from 0 in chunks of 256 texels and never goes back.
+#[test]
+fn a_long_step_reports_how_far_it_is() {
+    use lightmapd::engine::bake::{StepProgress, StopCriteria};
+    use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
+    let (scene, _) = lightmapd::engine::scene::import_file(&bundled()).unwrap();
+    let progress = StepProgress::new();
+    let options = BakeOptions {
+        step_progress: Some(progress.clone()),
+        ..Default::default()
+    };
+    let request = BakeRequest {
+        resolution: 64,
+        params: serde_json::json!({"samples_per_step": 4096, "device": "cpu"}),
+        stop: StopCriteria {
+            seconds: Some(3.0),
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let done = std::sync::atomic::AtomicBool::new(false);
+    let mut seen = Vec::new();
+    let outcome = std::thread::scope(|scope| {
+        let bake = scope.spawn(|| {
+            let mut observer = |_: lightmapd::engine::bake::BakeEvent<'_>| std::ops::ControlFlow::Continue(());
+            let r = job::bake(
+                std::sync::Arc::new(scene),
+                &request,
+                &options,
+                &mut observer,
+                &mut |_| {},
+                &mut |_| {},
+            );
+            done.store(true, std::sync::atomic::Ordering::SeqCst);
+            r
+        });
+        while !done.load(std::sync::atomic::Ordering::SeqCst) {
+            seen.push(progress.permille());
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        bake.join().unwrap()
+    });
+    // The limit cut the one step short: no step was done.
+    let err = outcome.err().expect("the step is longer than the limit").to_string();
+    assert!(err.contains("ended before the first step of path was done"), "{err}");
+    let moving: Vec<u32> = seen.iter().copied().filter(|p| *p > 0).collect();
+    assert!(
+        moving.iter().any(|p| *p < 1000) && !moving.is_empty(),
+        "no progress inside the step: {seen:?}"
+    );
+    assert!(
+        moving.windows(2).all(|w| w[0] <= w[1]),
+        "progress went back: {moving:?}"
+    );
+    eprintln!("progress seen inside the step (thousandths): {:?}", {
+        let mut d = moving.clone();
+        d.dedup();
+        d
+    });
+}

@@ -134,8 +134,38 @@ pub struct BakeOutcome {
     pub stopped_by: StopReason,
 }
 
+/// How far the step in progress is, in thousandths (0 when a step starts, 1000 when it
+/// is done), for whoever shows progress while one long step runs (issue 19 point 10):
+/// the technique writes it from its worker threads, a watcher on another thread reads
+/// it. A technique that does not report leaves it at 0 (`Technique::set_step_progress`).
+#[derive(Clone, Debug, Default)]
+pub struct StepProgress(Arc<std::sync::atomic::AtomicU32>);
+
+impl StepProgress {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Thousandths of the current step done.
+    pub fn permille(&self) -> u32 {
+        self.0.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Records `done` of `of` parts of the current step.
+    pub fn set(&self, done: u64, of: u64) {
+        let p = if of == 0 {
+            1000
+        } else {
+            (done.min(of) * 1000 / of) as u32
+        };
+        self.0.store(p, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
 pub struct BakeLoop {
     pub stop: StopCriteria,
+    /// Where the technique reports how far each step is (None: nobody watches).
+    pub step_progress: Option<StepProgress>,
     /// Longest time between snapshots once the doubling schedule has thinned out.
     pub snapshot_interval: Duration,
     /// The bias measurement of a biased technique (`engine::control`): stepped alongside,
@@ -150,6 +180,7 @@ impl BakeLoop {
     pub fn new(stop: StopCriteria) -> Self {
         BakeLoop {
             stop,
+            step_progress: None,
             snapshot_interval: Duration::from_secs(5),
             control: None,
             shadowmask: None,
@@ -169,8 +200,14 @@ impl BakeLoop {
         let mut technique_time = Duration::ZERO;
         let deadline = self.stop.seconds.map(|s| start + Duration::from_secs_f64(s));
         technique.set_deadline(deadline);
+        if let Some(p) = &self.step_progress {
+            technique.set_step_progress(p.clone());
+        }
         loop {
             let step_start = Instant::now();
+            if let Some(p) = &self.step_progress {
+                p.set(0, 1);
+            }
             let before = technique.steps_done();
             technique.step()?;
             if technique.steps_done() == before && deadline.is_some_and(|d| Instant::now() >= d) {

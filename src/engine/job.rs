@@ -244,6 +244,9 @@ pub struct BakeOptions {
     /// Measure a biased technique's bias at control texels (`engine::control`), so the
     /// reported error covers it; default true.
     pub control_texels: bool,
+    /// Where the technique reports how far each step is (`bake::StepProgress`): a CLI's
+    /// progress bar reads it while one long step runs. None: not reported.
+    pub step_progress: Option<crate::engine::bake::StepProgress>,
     /// Refuse, before the texel set is built, a bake whose estimated peak memory
     /// (`engine::footprint`) on its real grid of pages is over this many bytes (a
     /// worker's `--max-job-memory-mb`); None: no limit.
@@ -255,6 +258,7 @@ impl Default for BakeOptions {
         BakeOptions {
             snapshot_interval: Duration::from_secs(5),
             control_texels: true,
+            step_progress: None,
             max_memory_bytes: None,
         }
     }
@@ -579,6 +583,7 @@ impl Prepared {
     ) -> Result<BakeLoop, EngineError> {
         let mut bake_loop = BakeLoop::new(stop);
         bake_loop.snapshot_interval = options.snapshot_interval;
+        bake_loop.step_progress = options.step_progress.clone();
         if self.control && !self.atlas.texels.is_empty() {
             bake_loop.control = Some(ControlTexels::new(
                 &self.rays,

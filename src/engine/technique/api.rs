@@ -88,6 +88,9 @@ pub trait Technique: Send {
     /// a step of the limit. The default ignores it (the step runs whole); which
     /// techniques honour it is in docs/performance.md.
     fn set_deadline(&mut self, _deadline: Option<std::time::Instant>) {}
+    /// Where to report how far each step is (`bake::StepProgress`), set once before the
+    /// first step; the default reports nothing (the watcher sees 0 until the step ends).
+    fn set_step_progress(&mut self, _progress: crate::engine::bake::StepProgress) {}
     /// Makes this bake's first step the job's step `first` (a task of a split bake,
     /// `engine::tasks`): the random streams are keyed by the global step, so the task
     /// draws exactly the samples a whole bake would at those steps. Called once, before

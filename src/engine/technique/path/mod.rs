@@ -40,12 +40,13 @@
 //! Randomness: one PCG32 stream per (seed, step, texel, sample) (`engine::rng`), so the
 //! result is bit-identical for a seed regardless of thread count.
 //!
-//! Time limit: a CPU step runs in chunks of [`DEADLINE_CHUNK`] texels and is abandoned,
+//! Time limit: a CPU step runs in chunks of [`DEADLINE_PATHS`] paths and is abandoned,
 //! adding nothing, when the bake's deadline passes mid-step (`Technique::set_deadline`),
 //! so one step over a large level's texels cannot carry a bake far past its limit. The
 //! samples of the chunks already done are dropped: the half accumulators count whole
 //! steps, and a step over part of the texels would weight those texels differently.
-//! The GPU megakernel's step is one dispatch and runs whole.
+//! The GPU megakernel's step is one dispatch and runs whole. The chunks done are also
+//! reported as the step's progress (`bake::StepProgress`), for a long step's watchers.
 //!
 //! Limits: no glossy transport, no textures' alpha, no participating media. The sample
 //! point of a texel inside closed geometry sees back faces and bakes black.
@@ -206,12 +207,20 @@ pub struct PathTracer {
     first_step: u64,
     /// The bake's time limit, checked between chunks of a CPU step (module doc).
     deadline: Option<Instant>,
+    /// Where a CPU step reports its chunks done.
+    progress: Option<crate::engine::bake::StepProgress>,
 }
 
-/// Texels a CPU step traces between two looks at the deadline: at 4 samples of a few
-/// bounces each, tens of milliseconds on one core, so a limit is kept to about that much
-/// while the look itself (one clock read) costs nothing measurable.
-pub const DEADLINE_CHUNK: usize = 256;
+/// Paths a CPU step traces between two looks at the deadline: a chunk is this many paths'
+/// worth of texels (256 texels at the default 4 samples, one texel at 1024 or more), a
+/// few milliseconds on one core, so a limit is kept to about that much while the look
+/// itself (one clock read) costs nothing measurable.
+pub const DEADLINE_PATHS: usize = 1024;
+
+/// Texels in one chunk of a step of `spp` samples a texel ([`DEADLINE_PATHS`]).
+pub fn deadline_chunk(spp: u32) -> usize {
+    (DEADLINE_PATHS / spp.max(1) as usize).max(1)
+}
 
 impl PathTracer {
     pub fn prepare(inputs: BakeInputs, params: &Value) -> Result<Self, EngineError> {
@@ -235,6 +244,7 @@ impl PathTracer {
             gpu,
             first_step: 0,
             deadline: None,
+            progress: None,
         })
     }
 }
@@ -287,24 +297,31 @@ impl Technique for PathTracer {
                 moment: Moment(sum.moment.0.map(|m| m * k)),
             }
         };
+        let progress = self.progress.clone();
+        let chunk_texels = deadline_chunk(spp);
+        let n_chunks = self.inputs.atlas.texels.len().div_ceil(chunk_texels) as u64;
+        let chunks_done = std::sync::atomic::AtomicU64::new(0);
         let chunks: Vec<Option<Vec<PathSample>>> = self
             .inputs
             .atlas
             .texels
-            .par_chunks(DEADLINE_CHUNK)
+            .par_chunks(chunk_texels)
             .enumerate()
             .map(|(c, chunk)| {
                 if deadline.is_some_and(|d| Instant::now() >= d) {
                     return None;
                 }
-                let first = c * DEADLINE_CHUNK;
-                Some(
-                    chunk
-                        .iter()
-                        .enumerate()
-                        .map(|(k, t)| texel_sample(first + k, t))
-                        .collect(),
-                )
+                let first = c * chunk_texels;
+                let out = chunk
+                    .iter()
+                    .enumerate()
+                    .map(|(k, t)| texel_sample(first + k, t))
+                    .collect();
+                if let Some(p) = &progress {
+                    let done = chunks_done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                    p.set(done, n_chunks);
+                }
+                Some(out)
             })
             .collect();
         if chunks.iter().any(Option::is_none) {
@@ -329,6 +346,10 @@ impl Technique for PathTracer {
 
     fn set_deadline(&mut self, deadline: Option<Instant>) {
         self.deadline = deadline;
+    }
+
+    fn set_step_progress(&mut self, progress: crate::engine::bake::StepProgress) {
+        self.progress = Some(progress);
     }
 
     fn steps_done(&self) -> u64 {
