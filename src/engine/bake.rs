@@ -34,6 +34,7 @@ use crate::engine::control::ControlTexels;
 use crate::engine::error::EngineError;
 use crate::engine::scene::Scene;
 use crate::engine::shadowmask::ShadowmaskBake;
+pub use crate::engine::technique::api::StepProgress;
 use crate::engine::technique::api::Technique;
 
 /// A target error is not trusted before this many steps: with few steps per half the
@@ -132,34 +133,6 @@ pub struct BakeOutcome {
     pub estimate: Estimate,
     pub elapsed: Duration,
     pub stopped_by: StopReason,
-}
-
-/// How far the step in progress is, in thousandths (0 when a step starts, 1000 when it
-/// is done), for whoever shows progress while one long step runs (issue 19 point 10):
-/// the technique writes it from its worker threads, a watcher on another thread reads
-/// it. A technique that does not report leaves it at 0 (`Technique::set_step_progress`).
-#[derive(Clone, Debug, Default)]
-pub struct StepProgress(Arc<std::sync::atomic::AtomicU32>);
-
-impl StepProgress {
-    pub fn new() -> Self {
-        Self::default()
-    }
-
-    /// Thousandths of the current step done.
-    pub fn permille(&self) -> u32 {
-        self.0.load(std::sync::atomic::Ordering::Relaxed)
-    }
-
-    /// Records `done` of `of` parts of the current step.
-    pub fn set(&self, done: u64, of: u64) {
-        let p = if of == 0 {
-            1000
-        } else {
-            (done.min(of) * 1000 / of) as u32
-        };
-        self.0.store(p, std::sync::atomic::Ordering::Relaxed);
-    }
 }
 
 pub struct BakeLoop {

@@ -65,6 +65,34 @@ impl BakeInputs {
     }
 }
 
+/// How far the step in progress is, in thousandths (0 when a step starts, 1000 when it
+/// is done), for whoever shows progress while one long step runs (issue 19 point 10):
+/// the technique writes it from its worker threads, a watcher on another thread reads
+/// it. A technique that does not report leaves it at 0 ([`Technique::set_step_progress`]).
+#[derive(Clone, Debug, Default)]
+pub struct StepProgress(Arc<std::sync::atomic::AtomicU32>);
+
+impl StepProgress {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Thousandths of the current step done.
+    pub fn permille(&self) -> u32 {
+        self.0.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Records `done` of `of` parts of the current step.
+    pub fn set(&self, done: u64, of: u64) {
+        let p = if of == 0 {
+            1000
+        } else {
+            (done.min(of) * 1000 / of) as u32
+        };
+        self.0.store(p, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
 pub trait Technique: Send {
     fn id(&self) -> &'static str;
     /// The parameters in effect, defaults filled in (written into the EXR header).
@@ -88,9 +116,9 @@ pub trait Technique: Send {
     /// a step of the limit. The default ignores it (the step runs whole); which
     /// techniques honour it is in docs/performance.md.
     fn set_deadline(&mut self, _deadline: Option<std::time::Instant>) {}
-    /// Where to report how far each step is (`bake::StepProgress`), set once before the
+    /// Where to report how far each step is ([`StepProgress`]), set once before the
     /// first step; the default reports nothing (the watcher sees 0 until the step ends).
-    fn set_step_progress(&mut self, _progress: crate::engine::bake::StepProgress) {}
+    fn set_step_progress(&mut self, _progress: StepProgress) {}
     /// Makes this bake's first step the job's step `first` (a task of a split bake,
     /// `engine::tasks`): the random streams are keyed by the global step, so the task
     /// draws exactly the samples a whole bake would at those steps. Called once, before

@@ -208,7 +208,7 @@ pub struct PathTracer {
     /// The bake's time limit, checked between chunks of a CPU step (module doc).
     deadline: Option<Instant>,
     /// Where a CPU step reports its chunks done.
-    progress: Option<crate::engine::bake::StepProgress>,
+    progress: Option<crate::engine::technique::api::StepProgress>,
 }
 
 /// Paths a CPU step traces between two looks at the deadline: a chunk is this many paths'
@@ -348,7 +348,7 @@ impl Technique for PathTracer {
         self.deadline = deadline;
     }
 
-    fn set_step_progress(&mut self, progress: crate::engine::bake::StepProgress) {
+    fn set_step_progress(&mut self, progress: crate::engine::technique::api::StepProgress) {
         self.progress = Some(progress);
     }
 
