@@ -855,6 +855,27 @@ fn shots_dir_auth() -> PathBuf {
     }
 }
 
+/// Polls job `id` until it has succeeded (its JSON), failing the test if it fails or
+/// takes longer than `limit`. For the browser tests that bake through the API first.
+async fn wait_succeeded(http: &reqwest::Client, url: &str, id: &str, limit: Duration) -> Value {
+    let started = Instant::now();
+    loop {
+        let j: Value = http
+            .get(format!("{url}/v1/jobs/{id}"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if j["status"] == "succeeded" {
+            return j;
+        }
+        assert!(j["status"] != "failed" && started.elapsed() < limit, "{j}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
 /// Issue 19 point 7 in the 3D view: the viewer places each node's lightmap by its
 /// `extras.lightmap` page and rectangle on the grid the service serves (pages one under
 /// another). Sphere-over-plane with only the ball's UVs removed bakes on two pages (the
@@ -893,25 +914,7 @@ fn a_two_page_job_looks_like_a_one_page_bake_in_3d() {
             ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
         }
         for id in &ids {
-            let started = Instant::now();
-            loop {
-                let j: Value = http
-                    .get(format!("{url}/v1/jobs/{id}"))
-                    .send()
-                    .await
-                    .unwrap()
-                    .json()
-                    .await
-                    .unwrap();
-                if j["status"] == "succeeded" {
-                    break;
-                }
-                assert!(
-                    j["status"] != "failed" && started.elapsed() < Duration::from_secs(240),
-                    "{j}"
-                );
-                tokio::time::sleep(Duration::from_millis(200)).await;
-            }
+            wait_succeeded(&http, &url, id, Duration::from_secs(240)).await;
         }
         let pages = |j: &Value| j["summary"]["pages"].as_array().map(Vec::len);
         let a: Value = http
@@ -1021,28 +1024,14 @@ fn render_denoise_before_after() {
             ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
         }
         for id in &ids {
-            loop {
-                let j: Value = http
-                    .get(format!("{url}/v1/jobs/{id}"))
-                    .send()
-                    .await
-                    .unwrap()
-                    .json()
-                    .await
-                    .unwrap();
-                if j["status"] == "succeeded" {
-                    eprintln!(
-                        "{id}: {} steps, error {} (raw {}), denoiser {}",
-                        j["summary"]["steps"],
-                        j["summary"]["error"]["relative"],
-                        j["summary"]["error"]["raw_relative"],
-                        j["summary"]["denoiser"]
-                    );
-                    break;
-                }
-                assert!(j["status"] != "failed", "{j}");
-                tokio::time::sleep(Duration::from_millis(500)).await;
-            }
+            let j = wait_succeeded(&http, &url, id, Duration::from_secs(600)).await;
+            eprintln!(
+                "{id}: {} steps, error {} (raw {}), denoiser {}",
+                j["summary"]["steps"],
+                j["summary"]["error"]["relative"],
+                j["summary"]["error"]["raw_relative"],
+                j["summary"]["denoiser"]
+            );
         }
         ids
     });
@@ -1139,25 +1128,7 @@ fn the_3d_view_cuts_away_what_alpha_cuts_away() {
             ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
         }
         for id in &ids {
-            let started = Instant::now();
-            loop {
-                let j: Value = http
-                    .get(format!("{url}/v1/jobs/{id}"))
-                    .send()
-                    .await
-                    .unwrap()
-                    .json()
-                    .await
-                    .unwrap();
-                if j["status"] == "succeeded" {
-                    break;
-                }
-                assert!(
-                    j["status"] != "failed" && started.elapsed() < Duration::from_secs(120),
-                    "{j}"
-                );
-                tokio::time::sleep(Duration::from_millis(200)).await;
-            }
+            wait_succeeded(&http, &url, id, Duration::from_secs(120)).await;
         }
         ids
     });
