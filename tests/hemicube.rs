@@ -9,9 +9,9 @@
 //!   tolerances below are therefore stated as measured deviations with a margin, not as
 //!   multiples of those standard errors.
 //! - Bias: the iteration's start-up transient (the weights i^ramp leave about
-//!   2 ρ / ((1 - ρ)^2 M^2) of it after M steps a half, under 1e-3 for the scenes here),
-//!   the disc term of Eq. 8 (it lowers a receiver's light by d^2 / (d^2 + A/π), under
-//!   1e-3 where d exceeds a few texels), and the depth maps' resolution at shadow edges.
+//!   2 ρ / ((1 - ρ)^2 M^2) of it after M steps a half, under 1e-3 for the scenes here) and
+//!   the depth maps' resolution at shadow edges. Point shooters on the texels' cells with
+//!   the near-field split have no corner bias left to measure (docs/hemicube.md).
 
 mod common;
 
@@ -65,34 +65,132 @@ fn open_plane_under_uniform_sky_reads_the_sky() {
     }
 }
 
+/// Per band of distance to the nearest edge of a closed-box face (under 1, 2 and 4 texel
+/// sizes, then the rest): (mean luminance, RMS deviation from 1, texels).
+fn edge_bands(atlas: &lightmapd::engine::atlas::Atlas, est: &Estimate) -> [(f64, f64, usize); 4] {
+    let mut bands = [(0.0f64, 0.0f64, 0usize); 4];
+    for (t, v) in atlas.texels.iter().zip(&est.total) {
+        let (p, n) = (t.position, t.geo_normal.abs());
+        let edge = [(p.x, n.x), (p.y, n.y), (p.z, n.z)]
+            .into_iter()
+            .filter(|(_, a)| *a < 0.5)
+            .map(|(c, _)| 1.0 - c.abs())
+            .fold(f32::INFINITY, f32::min)
+            / t.size;
+        let band = [1.0, 2.0, 4.0].iter().position(|b| edge < *b).unwrap_or(3);
+        bands[band].0 += lum(*v);
+        bands[band].1 += (lum(*v) - 1.0).powi(2);
+        bands[band].2 += 1;
+    }
+    bands.map(|(s, q, c)| {
+        let k = c.max(1) as f64;
+        (s / k, (q / k).sqrt(), c)
+    })
+}
+
 #[test]
-fn closed_furnace_box_converges_to_one() {
+fn closed_furnace_box_converges_to_one_up_to_its_edges() {
     // Closed box of albedo ρ = 0.5 whose walls emit Le = 1 - ρ: E/π = Le / (1 - ρ) = 1
     // everywhere. Every bounce goes through the shooters (emitter samples, then texel
-    // shooters of ever higher order), so this checks the pyramid's probabilities and the
-    // merged weights A / (p K): a wrong probability shows as a wrong mean. Measured at 48^2
-    // and 48 steps of 16 shooters: mean 0.973, RMS texel deviation 0.18 (docs/hemicube.md).
-    // The mean's loss is the corner bias of shooting from texel centres with Eq. 8's disc
-    // term (1.3 % of the direct light alone, more for the bounces, which shoot from
-    // texels); the start-up transient left by the weights i^ramp is under 0.7 %. Allowed:
-    // 5 % on the mean, 0.2 RMS per texel (single texels see few shooters: noise).
+    // shooters of ever higher order) and the near-field gather, so this checks the
+    // pyramid's probabilities, the cells' areas and the MIS split: a wrong one shows as a
+    // wrong mean, and a near-field loss (the old disc term: -14 % in the texels next to an
+    // edge, -4.8 % overall at 64^2) as a dark edge band. Measured at 64^2 and 256 steps
+    // (docs/hemicube.md): the light level's noise makes the mean's standard deviation
+    // about 0.069 / sqrt(256) = 0.43 %; 512 steps and 4 seeds gave -0.13 % overall and
+    // -0.69 % in the edge band. Allowed: 1.5 % on the mean (3.5 sigma), 3 % in the band
+    // of texels within one texel of an edge (its own noise adds about 0.5 %).
     if !have_adapter() {
         return;
     }
-    let (_, est) = bake(
+    let _serial = common::gpu_serial();
+    let (atlas, est) = bake(
         import(&closed_box(0.5)),
-        48,
+        64,
         Lighting::default(),
         "hemicube",
-        json!({"shooters_per_step": 16}),
-        48,
+        json!({}),
+        256,
     );
     let n = est.total.len() as f64;
     let mean = est.total.iter().map(|v| lum(*v)).sum::<f64>() / n;
-    let rms = (est.total.iter().map(|v| (lum(*v) - 1.0).powi(2)).sum::<f64>() / n).sqrt();
-    eprintln!("furnace rho 0.5: mean {mean:.4}, RMS texel deviation {rms:.3}");
-    assert!((mean - 1.0).abs() < 0.05, "mean {mean}");
-    assert!(rms < 0.2, "RMS texel deviation {rms}");
+    let bands = edge_bands(&atlas, &est);
+    eprintln!("furnace rho 0.5, 64^2, 256 steps: mean {mean:.4}; edge bands {bands:?}");
+    assert!((mean - 1.0).abs() < 0.015, "mean {mean}");
+    assert!(
+        (bands[0].0 - 1.0).abs() < 0.03,
+        "texels next to an edge: mean {}",
+        bands[0].0
+    );
+    assert!(bands[3].1 < 0.05, "interior RMS deviation {}", bands[3].1);
+}
+
+/// The closed box's per-step light level: with ramp 0 each half is the plain mean of its
+/// steps, so a snapshot after every step gives that step's estimate back. Its texel mean
+/// L_m follows L_m = (1 - ρ) + ρ L_{m-1} + ε_m (the transfer is exact in expectation);
+/// returns the residuals ε_m from step 20 on.
+fn level_residuals(res: u32, rho: f32, steps: u64, params: serde_json::Value) -> Vec<f64> {
+    use lightmapd::engine::technique::{self, BakeInputs};
+    use std::sync::Arc;
+    let mut params = params;
+    params["ramp"] = json!(0.0);
+    let scene = Arc::new(import(&closed_box(rho)));
+    let atlas = Arc::new(lightmapd::engine::atlas::Atlas::build(&scene, res, res).unwrap());
+    let request = BakeRequest {
+        technique: "hemicube".into(),
+        ..Default::default()
+    };
+    let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
+    let inputs = BakeInputs::new(scene, atlas.clone(), Lighting::default(), 1, plan);
+    let mut tech = technique::create("hemicube", inputs, &params).unwrap();
+    let mut prev_mean = [0.0f64; 2];
+    let mut levels = Vec::new();
+    for m in 0..steps {
+        tech.step().unwrap();
+        let snap = tech.snapshot().unwrap();
+        let half = if m % 2 == 0 { &snap.even } else { &snap.odd };
+        let h = (m % 2) as usize;
+        let mean = half.total.iter().map(|v| lum(*v)).sum::<f64>() / half.total.len() as f64;
+        let k = half.steps as f64;
+        levels.push(k * mean - (k - 1.0) * prev_mean[h]);
+        prev_mean[h] = mean;
+    }
+    let rho = rho as f64;
+    (20..levels.len())
+        .map(|m| levels[m] - (1.0 - rho) - rho * levels[m - 1])
+        .collect()
+}
+
+/// Mean and standard deviation of `x`.
+fn mean_sd(x: &[f64]) -> (f64, f64) {
+    let n = x.len() as f64;
+    let mean = x.iter().sum::<f64>() / n;
+    (
+        mean,
+        (x.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt(),
+    )
+}
+
+#[test]
+fn one_transfer_in_a_stiff_closed_box_keeps_the_light() {
+    // ρ = 0.9: a loss of f a transfer lowers the converged level by about 9 f, so the
+    // level is a poor probe (its noise is 0.43 / sqrt(M), measured) but one transfer is a
+    // sharp one: the mean residual of L_m = 0.1 + 0.9 L_{m-1} + ε_m is the transfer's own
+    // bias. Before the cells and the near-field split it was about -0.035 at 64^2 (4 % lost
+    // a bounce). Measured over 580 steps: -0.0007 ± 0.0018. Allowed: 0.012 (about 3.5
+    // standard errors of 140 residuals with a step noise of 0.043).
+    if !have_adapter() {
+        return;
+    }
+    let _serial = common::gpu_serial();
+    let eps = level_residuals(64, 0.9, 160, json!({}));
+    let (mean, sd) = mean_sd(&eps);
+    eprintln!(
+        "stiff box: mean residual {mean:+.4} (step noise {sd:.4}, {} steps)",
+        eps.len()
+    );
+    assert!(mean.abs() < 0.012, "a transfer gains or loses {mean:+.4} of the level");
+    assert!(sd < 0.08, "step noise {sd}");
 }
 
 /// Luminance relative RMSE of `est` against `reference`, and the mean relative deviation.
@@ -116,13 +214,13 @@ fn compare(est: &Estimate, reference: &Estimate) -> (f64, f64) {
 #[test]
 fn cornell_box_against_path() {
     // The bundled Cornell box (emitter only) against a path-traced reference of the same
-    // atlas. Measured (docs/hemicube.md): relative RMSE 0.073, mean deviation -6.2 % at 48^2
-    // and 64 steps of 8 shooters (estimated error 5.5 %). The RMSE budget is the
-    // hemicube's noise at this step count (about 6 %) plus path's and the depth maps'
-    // shadow edges; the mean is allowed 9 %: the corner loss of shooting from texel
-    // centres with Eq. 8's disc term measured -6.7 % at 32^2 and +0.2 % at 64^2, and the
-    // whole-map mean itself scatters by a few per cent at 64 steps (every texel shares the
-    // same shooters).
+    // atlas. Measured (docs/hemicube.md) at 48^2 and 64 steps of 8 shooters: relative RMSE
+    // 0.086, mean deviation +1.0 % (estimated error 8.7 %); before texel cells and the
+    // near-field split it was 0.073 and -6.2 %, the corner loss of shooting from texel
+    // centres with Eq. 8's disc term. The RMSE budget is the hemicube's noise at this
+    // step count (about 8 %) plus path's and the depth maps' shadow edges; the mean is
+    // allowed 5 %: the whole-map mean scatters by a few per cent at 64 steps (every texel
+    // shares the same shooters, and the iteration carries the light level on).
     if !have_adapter() {
         return;
     }
@@ -149,7 +247,7 @@ fn cornell_box_against_path() {
         est.error.relative
     );
     assert!(rmse < 0.15, "relative RMSE {rmse}");
-    assert!(mean.abs() < 0.09, "mean deviation {mean}");
+    assert!(mean.abs() < 0.05, "mean deviation {mean}");
 }
 
 /// E/π at wall point `w` (normal -X) from a Lambertian square source of radiance `l`
@@ -510,4 +608,82 @@ fn measure_step_times() {
         let (ms, texels) = ms_per_step(scene, res, lighting, params.clone(), 16);
         eprintln!("| {name} | {tris} | {res}^2 | {texels} | {params} | {ms:.1} |");
     }
+}
+
+#[test]
+#[ignore = "measurement for docs/hemicube.md (minutes on lavapipe): HC_RES, HC_RHO, HC_STEPS, HC_PARAMS, HC_SEEDS"]
+fn measure_closed_box_energy() {
+    // The closed box's answer is 1 at every texel. Per case: the mean over texels and
+    // seeds, the spread of that mean between seeds, and by distance to the face's edge
+    // the mean and the RMS texel deviation, averaged over the seeds.
+    if !have_adapter() {
+        return;
+    }
+    let env = |k: &str, d: &str| std::env::var(k).unwrap_or_else(|_| d.into());
+    let params: serde_json::Value = serde_json::from_str(&env("HC_PARAMS", "{}")).unwrap();
+    let seeds: Vec<u64> = env("HC_SEEDS", "1").split(',').map(|s| s.parse().unwrap()).collect();
+    for res in env("HC_RES", "64").split(',').map(|s| s.parse::<u32>().unwrap()) {
+        for rho in env("HC_RHO", "0.5").split(',').map(|s| s.parse::<f32>().unwrap()) {
+            for steps in env("HC_STEPS", "64").split(',').map(|s| s.parse::<u64>().unwrap()) {
+                let t = std::time::Instant::now();
+                let mut means = Vec::new();
+                let mut bands = [(0.0f64, 0.0f64); 4];
+                for &seed in &seeds {
+                    let scene = import(&closed_box(rho));
+                    let (atlas, est) = common::try_bake_seeded(
+                        scene,
+                        res,
+                        Lighting::default(),
+                        "hemicube",
+                        params.clone(),
+                        steps,
+                        seed,
+                    )
+                    .unwrap();
+                    means.push(est.total.iter().map(|v| lum(*v)).sum::<f64>() / est.total.len() as f64);
+                    for (b, e) in bands.iter_mut().zip(edge_bands(&atlas, &est)) {
+                        b.0 += e.0 / seeds.len() as f64;
+                        b.1 += e.1 / seeds.len() as f64;
+                    }
+                }
+                let (mean, spread) = if means.len() > 1 {
+                    mean_sd(&means)
+                } else {
+                    (means[0], 0.0)
+                };
+                let b: Vec<String> = bands
+                    .iter()
+                    .map(|(m, r)| format!("{:+.2}% (RMS {r:.3})", (m - 1.0) * 100.0))
+                    .collect();
+                eprintln!(
+                    "closed box rho {rho} {res}^2 {steps} steps {params} x{} seeds: mean {:+.3}% (seed spread {:.3}%) ; by edge distance <1,<2,<4,>=4 texels: {} ; {:.1}s a bake",
+                    seeds.len(),
+                    (mean - 1.0) * 100.0,
+                    spread * 100.0,
+                    b.join(" "),
+                    t.elapsed().as_secs_f64() / seeds.len() as f64
+                );
+            }
+        }
+    }
+}
+
+#[test]
+#[ignore = "measurement for docs/hemicube.md: per-step noise of the closed box's light level (HC_RES, HC_RHO, HC_STEPS, HC_PARAMS)"]
+fn measure_closed_box_level_noise() {
+    if !have_adapter() {
+        return;
+    }
+    let env = |k: &str, d: &str| std::env::var(k).unwrap_or_else(|_| d.into());
+    let params: serde_json::Value = serde_json::from_str(&env("HC_PARAMS", "{}")).unwrap();
+    let res: u32 = env("HC_RES", "64").parse().unwrap();
+    let rho: f32 = env("HC_RHO", "0.9").parse().unwrap();
+    let steps: u64 = env("HC_STEPS", "160").parse().unwrap();
+    let eps = level_residuals(res, rho, steps, params.clone());
+    let (mean, sd) = mean_sd(&eps);
+    eprintln!(
+        "closed box rho {rho} {res}^2 {params}: step level noise {sd:.4} (mean residual {mean:+.4} ± {:.4}); the mean of M steps then has a noise of about {:.3} / sqrt(M)",
+        sd / (eps.len() as f64).sqrt(),
+        sd / (1.0 - rho as f64)
+    );
 }

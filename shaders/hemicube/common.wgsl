@@ -15,9 +15,28 @@ const HC_LUM: vec3<f32> = vec3<f32>(0.2126, 0.7152, 0.0722);
 
 // Per valid texel: its lobe, area and surface keys (merging never crosses surfaces).
 struct TexelMat {
-    kd: vec4<f32>,   // rgb: diffuse albedo k_d; w: texel area (normalised scene units)
+    kd: vec4<f32>,   // rgb: diffuse albedo k_d; w: the area of the texel's cell (normalised scene units)
     ks: vec4<f32>,   // rgb: specular albedo k_s; w: Phong exponent
-    ids: vec4<u32>,  // x: mesh, y: material, z: lightmap pixel, w: unused
+    ids: vec4<u32>,  // x: mesh, y: material, z: lightmap pixel, w: its first cell piece
+}
+
+// A receiver's near-field gather of one step (hemicube module doc, "Unbiased transfer"): the CPU's
+// cosine ray within the receiver's near radius hit texel `hit`'s cell; the light it
+// brings is gain * that texel's irradiance of the previous step.
+struct NearSample {
+    gain: vec4<f32>,  // rgb: MIS weight times the hit texel's k_d; w: unused
+    dir: vec3<f32>,   // unit direction toward the hit
+    hit: u32,         // the hit texel (0xffffffff: none)
+}
+
+// One triangle of a texel's cell, the surface the texel stands for (engine::atlas::cells):
+// the corners a, a + e1, a + e2 (normalised scene units, off the surface like texel
+// points), wound counter-clockwise about the surface normal. A texel's pieces run from its
+// `ids.w` to the next texel's.
+struct CellPiece {
+    a: vec4<f32>,   // xyz: first corner; w: area (normalised units)
+    e1: vec4<f32>,  // xyz: second corner - first; w: unused
+    e2: vec4<f32>,  // xyz: third corner - first; w: unused
 }
 
 // Level l of the sum pyramid for `reduce`.

@@ -3,7 +3,8 @@
 //
 // Invocations k < K_e copy the emitter samples the CPU drew (a point on an emissive
 // triangle, chosen by power). Invocations K_e <= k < K_e + K_r draw a texel shooter
-// (seed section 4.1): r uniform in [0, total) from a PCG hash of (step, k), then the
+// (seed section 4.1): r uniform in the (k - K_e)-th of K_r equal strata of [0, total)
+// from a PCG hash of (step, k), then the
 // descent of the sum pyramid from its top, at each level taking the first of the four
 // children whose running sum exceeds r and subtracting what came before, so a leaf is
 // reached with probability power / total. Texel merging (seed section 5): the shooter is
@@ -26,6 +27,7 @@
 @group(0) @binding(8) var<storage, read_write> shooters: array<Shooter>;
 @group(0) @binding(9) var<storage, read_write> views: array<ShadowView>;  // 5 per shooter
 @group(0) @binding(10) var<storage, read> tiles: array<vec4<u32>>;       // 5 per shooter: x, y, side
+@group(0) @binding(11) var<storage, read> cell_pieces: array<CellPiece>;
 
 const NO_TEXEL_HC: u32 = 0xffffffffu;
 // Near plane of the hemicube faces (normalised units, as vpl's cube faces).
@@ -113,6 +115,32 @@ fn descend(r_in: f32) -> vec2<u32> {
     return cell;
 }
 
+// A uniform point of texel c's cell and the surface normal there (engine::atlas::cells):
+// a piece by area, then a uniform point of the piece (the square-root map), from three
+// more PCG draws chained on the descent's hash h.
+fn cell_point(c: u32, mc: TexelMat, h: u32) -> array<vec3<f32>, 2> {
+    let h1 = pcg(h ^ 0x68E31DA4u);
+    let h2 = pcg(h1);
+    let h3 = pcg(h2);
+    let first = mc.ids.w;
+    let end = select(mats[c + 1u].ids.w, arrayLength(&cell_pieces), c + 1u >= params.dims.x);
+    var r = unit_float(h1) * mc.kd.w;
+    var k = first;
+    // Rounding can leave r past the last piece: the last one is taken.
+    for (; k + 1u < end; k++) {
+        let a = cell_pieces[k].a.w;
+        if r < a {
+            break;
+        }
+        r -= a;
+    }
+    let piece = cell_pieces[k];
+    let su = sqrt(unit_float(h2));
+    let v = unit_float(h3);
+    let p = piece.a.xyz + piece.e1.xyz * (su * (1.0 - v)) + piece.e2.xyz * (su * v);
+    return array<vec3<f32>, 2>(p, normalize(cross(piece.e1.xyz, piece.e2.xyz)));
+}
+
 @compute @workgroup_size(64)
 fn select_shooters(@builtin(global_invocation_id) gid: vec3<u32>) {
     let k = gid.x;
@@ -134,7 +162,11 @@ fn select_shooters(@builtin(global_invocation_id) gid: vec3<u32>) {
     var s = no_shooter();
     if total > 0.0 && total < 3.0e38 {
         let h = pcg(params.step.z ^ pcg(k * 0x9E3779B9u + 0x632BE5ABu));
-        let leaf = descend(unit_float(h) * total);
+        // Stratified: texel shooter j of K_r draws r in the j-th K_r-th of [0, total), so
+        // the step's shooters spread over the pyramid's power (in its quadtree order,
+        // which keeps strata spatially coherent); each still has the weight A / (p K_r).
+        let stratum = (f32(k - ke) + unit_float(h)) / f32(kr);
+        let leaf = descend(min(stratum, 1.0) * total);
         let w = params.dims.y;
         let ht = params.dims.z;
         let c = pixel_texel[min(leaf.y, ht - 1u) * w + min(leaf.x, w - 1u)];
@@ -191,6 +223,12 @@ fn select_shooters(@builtin(global_invocation_id) gid: vec3<u32>) {
             if area > 0.0 && power > 0.0 {
                 s.pos = vec4<f32>(pos / area, area);
                 s.nrm = vec4<f32>(normalize(nrm), area * total / (power * params.f.w));
+                if lvl == 0u {
+                    // Unmerged: a uniform point of the texel's cell, with no disc term.
+                    let p = cell_point(c, mc, h);
+                    s.pos = vec4<f32>(p[0], 0.0);
+                    s.nrm = vec4<f32>(p[1], s.nrm.w);
+                }
                 s.diffuse = vec4<f32>(kd_i / (area * 3.14159265), 0.0);
                 let has_dir = dot(dir, dir) > 0.0;
                 s.in_dir = vec4<f32>(select(s.nrm.xyz, normalize(dir), has_dir), 0.0);

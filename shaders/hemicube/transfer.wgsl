@@ -1,13 +1,17 @@
 // hemicube/transfer.wgsl: every receiver texel takes the light of the step's shooters
-// (seed section 4.2.2, Eq. 4 with the disc term of Eq. 8), then feeds the step's
-// estimate into the half accumulator of its parity.
+// (seed section 4.2.2, Eq. 4), then feeds the step's estimate into the half accumulator
+// of its parity.
 //
 // Per shooter s (weight W = A / (p K)) and receiver x at distance d along unit w:
-//   I_x += L_s(w) cos_s cos_x / (d^2 + A / pi) * W * vis
-// where A is the shooter's (merged) area: the point-to-disc form factor keeps a shooter
-// next to a receiver from spiking (seed Eq. 8). I_x starts from the CPU's direct estimate
-// of the sky, the sun and punctual lights (HC_CPU_LIGHT) and is this step's irradiance,
-// the one the next step's shooters reflect. The lightmap estimate is I_x / pi.
+//   I_x += L_s(w) cos_s cos_x / d^2 * W * vis * m
+// Point shooters (texel cells, emitter points; pos.w = 0) share the near field with the
+// CPU's gather: the diffuse part of L_s takes m = min(1, d^2 / (cos_s cos_x r^2)), r the
+// receiver's near radius (geom.position.w), and the gather brings the rest (NearSample:
+// gain times the hit texel's irradiance of the previous step). Merged shooters
+// (pos.w = A > 0) use the seed's Eq. 8 instead: d^2 + A / pi in the denominator, m = 1.
+// I_x starts from the CPU's estimate of the sky, the sun, punctual lights and the
+// near field's emission (HC_CPU_LIGHT) and is this step's irradiance, the one the next
+// step's shooters reflect. The lightmap estimate is I_x / pi.
 //
 // Visibility: the hemicube tile the direction falls in holds the plane (n, c) of the
 // nearest surface (gpu/shadow_atlas.wgsl). The receiver is hidden when it and the shooter lie on
@@ -27,6 +31,7 @@
 @group(0) @binding(7) var<storage, read_write> acc: array<vec4<f32>>;         // 2N
 @group(0) @binding(8) var<storage, read_write> direct_acc: array<vec4<f32>>;  // 2N (direct layer) or a stub
 @group(0) @binding(9) var<storage, read> tiles: array<vec4<u32>>;            // 5 per shooter
+@group(0) @binding(10) var<storage, read> near: array<NearSample>;           // N
 
 // Smallest distance from a plane that counts as a side (normalised units; the atlas
 // offsets texel points 4e-5 of the scene radius off their surface).
@@ -74,6 +79,7 @@ fn transfer(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     let flags = params.step.w;
     let g = geom[t];
     let x = g.position.xyz;
+    let r_near = g.position.w;
     var total = vec3<f32>(0.0);
     var dir_sum = vec3<f32>(0.0);
     if (flags & HC_CPU_LIGHT) != 0u {
@@ -102,7 +108,15 @@ fn transfer(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
         if !visible(k, s, x, w, d) {
             continue;
         }
-        let i = hc_radiance(s, u) * (cos_s * cos_x / (d2 + s.pos.w / 3.14159265) * s.nrm.w);
+        // Point shooters (no disc, w = 0) share the near field with the CPU's gather:
+        // the diffuse part keeps min(1, c / G), c = 1 / (pi r^2), G = cos_s cos_x / (pi d^2)
+        // (the gather takes the rest); a glossy lobe is not gathered and stays whole.
+        var l = hc_radiance(s, u);
+        if s.pos.w == 0.0 && r_near > 0.0 {
+            let keep = min(1.0, d2 / (cos_s * cos_x * r_near * r_near));
+            l -= s.diffuse.rgb * (1.0 - keep);
+        }
+        let i = l * (cos_s * cos_x / (d2 + s.pos.w / 3.14159265) * s.nrm.w);
         total += i;
         dir_sum -= dot(i, HC_LUM) * u;
         if s.diffuse.w > 0.5 {
@@ -110,6 +124,13 @@ fn transfer(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
         }
     }
     let cur = params.step.x;
+    let ns = near[t];
+    let hit = ns.hit;
+    if hit < n {
+        let i = ns.gain.rgb * irr[(1u - cur) * n + hit].rgb;
+        total += i;
+        dir_sum += dot(i, HC_LUM) * ns.dir.xyz;
+    }
     irr[cur * n + t] = vec4<f32>(total, 0.0);
     if (flags & HC_GLOSSY) != 0u {
         dirs[cur * n + t] = vec4<f32>(dir_sum, 0.0);

@@ -37,6 +37,19 @@ pub fn try_bake(
     params: serde_json::Value,
     steps: u64,
 ) -> Result<(Arc<Atlas>, Estimate), lightmapd::engine::technique::EngineError> {
+    try_bake_seeded(scene, resolution, lighting, technique, params, steps, 1)
+}
+
+/// [`try_bake`] with the bake's random seed.
+pub fn try_bake_seeded(
+    scene: Scene,
+    resolution: u32,
+    lighting: Lighting,
+    technique: &str,
+    params: serde_json::Value,
+    steps: u64,
+    seed: u64,
+) -> Result<(Arc<Atlas>, Estimate), lightmapd::engine::technique::EngineError> {
     let scene = Arc::new(scene);
     let atlas = Arc::new(Atlas::build(&scene, resolution, resolution).expect("atlas"));
     let request = lightmapd::engine::job::BakeRequest {
@@ -56,7 +69,7 @@ pub fn try_bake(
     let plan = lightmapd::engine::job::plan_for(&scene, &request)?;
     let inputs = BakeInputs {
         want_direct: true,
-        ..BakeInputs::new(scene, atlas.clone(), lighting, 1, plan)
+        ..BakeInputs::new(scene, atlas.clone(), lighting, seed, plan)
     };
     let mut tech = technique::create(technique, inputs, &params)?;
     for _ in 0..steps {

@@ -28,6 +28,7 @@
 //! texel whose sample point lies inside closed geometry is still valid here (techniques
 //! see back faces from it).
 
+pub mod cells;
 pub mod seams;
 pub mod unwrap;
 pub mod validate;
