@@ -134,7 +134,8 @@ fn black_sphere_over_black_plane() {
         .unwrap();
     let p = t.position + offset;
     let s = ((p.x as f64).powi(2) + (p.z as f64).powi(2)).sqrt();
-    assert!(s < 1e-4, "a texel lies on the axis ({s} m off)");
+    // Off the axis by at most the sample point's inset (the surface offset, about 1.8e-4 m here).
+    assert!(s < 2e-4, "a texel lies on the axis ({s} m off)");
     let want = sphere_occlusion(l as f64, 1.0, 2.0, s);
     assert!((want - 0.75).abs() < 1e-3);
     let got = lum(est.total[k]);
@@ -182,7 +183,7 @@ fn parallel_squares_form_factor() {
     let t = &atlas.texels[k];
     let p = t.position + offset;
     assert!(
-        p.x.abs() < 1e-5 && p.z.abs() < 1e-5,
+        p.x.abs() < 5e-5 && p.z.abs() < 5e-5,
         "texel 15,15 is at the centre: {p}"
     );
     let got = lum(est.total[k]);

@@ -432,13 +432,14 @@ pub fn no_light_at_all(row: &Row) {
 }
 
 // Measured at 32 steps, resolution 32, lavapipe (deviation of the lit / dark room mean
-// from the 1024-sample `path` reference; docs/stability.md): path −0.3 % / −0.7 %, path on
-// the GPU +1.7 % / +0.6 %, vpl +48 % / +45 % and obscurance +46 % / +55 % (light through
-// the creases, open), sdf −52 % / −61 % (sky visibility without interreflection),
-// hemicube −1.0 % / −17.8 % (−7 % / −65 % before its near-field split; the dark room's
-// light needs more than 32 bounces) and sdb −20 % / −70 % (open: the stiff room). Each row's `rooms`
-// bound is above its measured value, so a regression fails and the open failures stay
-// visible.
+// from the 1024-sample `path` reference; docs/stability.md): path −0.3 % / −0.6 %, path on
+// the GPU +1.7 % / +0.6 %, vpl +1.3 % / −4.2 % (+48 % / +45 % while crease sample points
+// sat within its plane test's tolerance of the next wall), obscurance +46 % / +54 % (light
+// through the creases, open), sdf −52 % / −61 % (sky visibility without
+// interreflection), hemicube −2.3 % / −6.5 % (−7 % / −65 % before its near-field split and
+// the whole-offset crease inset; the rest is light beyond 32 bounces) and sdb −20 % /
+// −71 % (open: the stiff room). Each row's `rooms` bound is above its measured value, so a
+// regression fails and the open failures stay visible.
 
 /// Two rooms 2 m × 2 m × 2 m side by side, connected by a doorway in the wall they share
 /// (two single-sided faces back to back), one of albedo 0.3 open to an upper sky of
@@ -710,7 +711,7 @@ stability_suite!(
         open_failures: &[(STIFF_BOX, 0.06)],
     },
     leak <= 1e-3,
-    rooms <= 0.6
+    rooms <= 0.1
 );
 
 // Obscurance is not a radiosity solver: one scene-wide ambient term I_A (seed Eq. 5)
@@ -772,5 +773,5 @@ stability_suite!(
         open_failures: &[(STIFF_BOX, 1.0)],
     },
     leak <= 1e-2,
-    rooms <= 0.3
+    rooms <= 0.12
 );
