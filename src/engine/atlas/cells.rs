@@ -203,26 +203,9 @@ fn owner(atlas: &Atlas, t: &Triangle, pix: usize, at: Vec3) -> Option<u32> {
     if own != NO_TEXEL && fits(own) {
         return Some(own);
     }
-    let (w, h) = (atlas.width as i64, atlas.height as i64);
-    let (i, j) = ((pix as i64) % w, (pix as i64) / w);
-    let mut best: Option<(f32, u32)> = None;
-    for dj in -2..=2i64 {
-        for di in -2..=2i64 {
-            let (ni, nj) = (i + di, j + dj);
-            if ni < 0 || nj < 0 || ni >= w || nj >= h {
-                continue;
-            }
-            let k = atlas.pixel_texel[(nj * w + ni) as usize];
-            if k == NO_TEXEL || !fits(k) {
-                continue;
-            }
-            let d = atlas.texels[k as usize].position.distance_squared(at);
-            if best.is_none_or(|(bd, _)| d < bd) {
-                best = Some((d, k));
-            }
-        }
-    }
-    best.map(|(_, k)| k)
+    super::nearest_texel_around(&atlas.pixel_texel, atlas.width, atlas.height, pix, |_, _, k| {
+        fits(k).then(|| atlas.texels[k as usize].position.distance_squared(at))
+    })
 }
 
 /// The part of UV triangle `q` (pixel units) inside the square [i, i+1] x [j, j+1].

@@ -364,6 +364,35 @@ fn closest_point(p: Vec2, q: &[Vec2; 3]) -> Vec2 {
     best
 }
 
+/// The valid texel in the 5 x 5 window of pixels around `pix` with the smallest
+/// `score(i, j, texel)`; `None` scores leave a texel out. Dilation's links and the texel
+/// cells (`cells`) both look for "the texel this bit of chart belongs to" this way.
+pub(crate) fn nearest_texel_around(
+    pixel_texel: &[u32],
+    width: u32,
+    height: u32,
+    pix: usize,
+    score: impl Fn(i64, i64, u32) -> Option<f32>,
+) -> Option<u32> {
+    let (w, h) = (width as i64, height as i64);
+    let (i, j) = ((pix as i64) % w, (pix as i64) / w);
+    let mut best: Option<(f32, u32)> = None;
+    for nj in (j - 2).max(0)..=(j + 2).min(h - 1) {
+        for ni in (i - 2).max(0)..=(i + 2).min(w - 1) {
+            let t = pixel_texel[(nj * w + ni) as usize];
+            if t == NO_TEXEL {
+                continue;
+            }
+            if let Some(d) = score(ni, nj, t)
+                && best.is_none_or(|(bd, _)| d < bd)
+            {
+                best = Some((d, t));
+            }
+        }
+    }
+    best.map(|(_, t)| t)
+}
+
 fn gutter_links(scene: &Scene, pixel_texel: &[u32], texels: &[Texel], width: u32, height: u32) -> Vec<GutterLink> {
     let (w, h) = (width as i64, height as i64);
     let size = Vec2::new(width as f32, height as f32);
@@ -397,25 +426,12 @@ fn gutter_links(scene: &Scene, pixel_texel: &[u32], texels: &[Texel], width: u32
                 if c.distance(centre) > reach {
                     continue;
                 }
-                // Nearest valid texel to the touched point, searched in a 5 x 5 window.
-                let mut best: Option<(f32, u32)> = None;
-                for dj in -2..=2i64 {
-                    for di in -2..=2i64 {
-                        let (ni, nj) = (i + di, j + dj);
-                        if ni < 0 || nj < 0 || ni >= w || nj >= h {
-                            continue;
-                        }
-                        let t = pixel_texel[(nj * w + ni) as usize];
-                        if t == NO_TEXEL || scene.triangles[texels[t as usize].triangle as usize].mesh != tri.mesh {
-                            continue;
-                        }
-                        let d = Vec2::new(ni as f32 + 0.5, nj as f32 + 0.5).distance_squared(c);
-                        if best.is_none_or(|(bd, _)| d < bd) {
-                            best = Some((d, t));
-                        }
-                    }
-                }
-                if let Some((_, t)) = best {
+                // Nearest valid texel of the mesh to the touched point.
+                let best = nearest_texel_around(pixel_texel, width, height, pix, |ni, nj, t| {
+                    (scene.triangles[texels[t as usize].triangle as usize].mesh == tri.mesh)
+                        .then(|| Vec2::new(ni as f32 + 0.5, nj as f32 + 0.5).distance_squared(c))
+                });
+                if let Some(t) = best {
                     linked[pix] = true;
                     links.push(GutterLink {
                         pixel: pix as u32,
