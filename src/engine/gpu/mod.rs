@@ -88,7 +88,9 @@ pub struct Requirements {
 
 impl Default for Requirements {
     /// The WebGPU defaults: compute shaders, 8192^2 textures, 128 MiB storage bindings,
-    /// 8 storage buffers per stage. Every pass in `shaders/` fits in these.
+    /// 8 storage buffers per stage. The device itself is requested with the adapter's own
+    /// limits, which some passes need: `hemicube`'s shooter selection binds 11 storage
+    /// buffers (lavapipe and the NVIDIA drivers allow far more than 8).
     fn default() -> Self {
         Requirements {
             features: wgpu::Features::empty(),
