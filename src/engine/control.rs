@@ -14,11 +14,21 @@
 //! - their mean over the M control texels estimates the technique's mean squared error
 //!   over the page; its standard error s_d / sqrt(M) gives the stated confidence interval
 //!   (90 %, normal approximation: mean +- 1.645 standard errors);
-//! - the reported relative error is sqrt(max(mean d, noise^2)) over the RMS luminance of
-//!   the answer (estimated from path's values, less path's variance: relative to the
-//!   answer, not to the technique's own values, which a biased technique gets wrong),
-//!   never below the technique's own half-difference noise estimate; the bias part is
-//!   sqrt(max(mean d - mean sT_k^2, 0)) on the same scale.
+//! - the reported relative error is sqrt(max(mean d, c noise^2)) over the RMS luminance
+//!   of the answer (estimated from path's values, less path's variance: relative to the
+//!   answer, not to the technique's own values, which a biased technique gets wrong);
+//!   noise^2 is the technique's own half-difference estimate over the whole page, and
+//!   c = min(1, (mean d + 1.645 s_d / sqrt(M)) / mean sT_k^2) calibrates it at the control
+//!   texels: the halves of a stratified step sequence (sdb's and obscurance's directions,
+//!   vpl's lights, hemicube's shooters) each err more than their union, so |A - B| / 2
+//!   over-states the noise (vpl on the open sky plane: 1.2 % against a true 0.01 %);
+//!   where the control's 90 % upper bound of the whole error is below what the halves
+//!   say the noise is at the same texels, the page's noise floor is scaled down by that
+//!   ratio (a scale, so noise in texels the control does not see keeps its share); the
+//!   bias part is sqrt(max(mean d - c mean sT_k^2, 0)) and the noise part the calibrated
+//!   floor sqrt(c noise^2), both on the same scale, so neither part exceeds the whole.
+//!   A denoised lightmap's figure (`post::denoised`) takes the denoised halves' noise
+//!   uncalibrated: conservative for the stratified techniques.
 //!
 //! Luminance (`accumulate::LUMINANCE`) throughout, as the noise estimate.
 //!
@@ -29,7 +39,9 @@
 //! Limits: M texels resolve a bias that covers a fraction f of the page only when f M is
 //! several texels (a bias confined to 1 % of the texels is seen by about 2.6 of 256);
 //! path's noise at the control texels limits how small a bias can be told from zero (the
-//! estimate is clamped at the noise figure, never reported as less); the control's own
+//! estimate is clamped at the calibrated noise figure, never reported as less; a true
+//! error far below path's noise at the control, such as sdb's 1e-7 in the closed boxes,
+//! reads as that noise's residue); the control's own
 //! estimate carries path's limits (its `max_bounces`, the adapter's loop budget on
 //! lavapipe, for which path runs on the CPU here).
 
@@ -174,16 +186,26 @@ impl ControlTexels {
         let mean = d.iter().sum::<f64>() / m;
         let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1.0).max(1.0);
         let se = (var / m).sqrt();
-        let noise_ms = (noise as f64 * rms_t).powi(2);
+        // The noise floor, calibrated at the control texels: where the control's 90 %
+        // upper bound of the whole error (noise included) is below what the halves say
+        // the noise alone is there, the halves over-state it (a stratified sequence whose
+        // union errs less than either half), and the page's noise figure is scaled down
+        // by the same factor. The scale, not a replacement: noise the control texels do
+        // not see keeps its share of the floor.
+        let noise_control_ms = noise_at_control / m;
+        let calibration = noise_calibration(mean, se, noise_control_ms);
+        let noise_ms = (noise as f64 * rms_t).powi(2) * calibration;
         let rel = |ms: f64| (ms.max(noise_ms).sqrt() / rms) as f32;
         let report = ControlReport {
             texels: self.indices.len(),
             reference_steps: reference.steps,
             relative: (mean.max(0.0).sqrt() / rms) as f32,
-            bias: ((mean - noise_at_control / m).max(0.0).sqrt() / rms) as f32,
+            bias: ((mean - noise_control_ms * calibration).max(0.0).sqrt() / rms) as f32,
             interval: [rel(mean - Z90 * se), rel(mean + Z90 * se)],
         };
-        estimate.error.noise = Some(noise);
+        // The noise part as the floor stands: calibrated, on the answer's scale (as the
+        // total and the bias), so the parts never exceed the whole.
+        estimate.error.noise = Some((noise_ms.sqrt() / rms) as f32);
         estimate.error.relative = Some(rel(mean));
         estimate.error.bias = Some(report.bias);
         estimate.error.interval = Some(report.interval);
@@ -191,11 +213,56 @@ impl ControlTexels {
         tracing::debug!(
             control_texels = report.texels,
             reference_steps = report.reference_steps,
-            noise,
+            halves_noise = noise,
+            calibration,
             bias = report.bias,
             relative = ?estimate.error.relative,
             "control texels"
         );
         Ok(Some(report))
+    }
+}
+
+/// The factor the page's half-difference noise floor is scaled by: the control's 90 %
+/// upper bound of the whole squared error (`mean` of d_k with standard error `se`) over
+/// the squared noise the halves state at the same texels (`noise_control_ms`), at most 1.
+/// Honest halves give 1 (the whole error is at least the noise); halves that over-state
+/// the noise give the measured share.
+fn noise_calibration(mean: f64, se: f64, noise_control_ms: f64) -> f64 {
+    if noise_control_ms > 0.0 {
+        ((mean + Z90 * se).max(0.0) / noise_control_ms).min(1.0)
+    } else {
+        1.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Z90, noise_calibration};
+
+    #[test]
+    fn honest_halves_keep_the_whole_noise_floor() {
+        // The whole error is the noise the halves state, or more (a bias on top).
+        assert_eq!(noise_calibration(4.0e-4, 1.0e-5, 4.0e-4), 1.0);
+        assert_eq!(noise_calibration(9.0e-4, 0.0, 4.0e-4), 1.0);
+        // Within the interval's reach of the stated noise: still the whole floor.
+        let c = noise_calibration(3.0e-4, 1.0e-4 / Z90, 4.0e-4);
+        assert!((c - 1.0).abs() < 1e-12, "{c}");
+    }
+
+    #[test]
+    fn over_stated_noise_is_scaled_to_the_controls_upper_bound() {
+        // Halves that say 4e-4 where the control bounds the whole error by 1e-4.
+        let c = noise_calibration(0.5e-4, 0.5e-4 / Z90, 4.0e-4);
+        assert!((c - 0.25).abs() < 1e-12, "{c}");
+        // An exact technique against an exact control: no floor left.
+        assert_eq!(noise_calibration(0.0, 0.0, 4.0e-4), 0.0);
+        // Path's variance subtracted past zero reads as zero, never negative.
+        assert_eq!(noise_calibration(-1.0e-4, 0.0, 4.0e-4), 0.0);
+    }
+
+    #[test]
+    fn no_stated_noise_leaves_nothing_to_scale() {
+        assert_eq!(noise_calibration(1.0e-4, 1.0e-5, 0.0), 1.0);
     }
 }
