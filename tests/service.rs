@@ -1637,3 +1637,66 @@ async fn a_job_of_several_pages_serves_every_page_and_the_manifest() {
     }
     s.running.shutdown().await;
 }
+
+/// Progress inside a step over HTTP (issue 19 point 10): one CPU `path` step of the
+/// bundled Cornell box at 64² with 1024 samples a texel takes seconds; while it runs the
+/// job's progress moves with it (`step_fraction` from 0 up to 1, `fraction` with it
+/// since the job stops after that one step, `elapsed_s` live), never back, and the
+/// finished job's progress has no step in flight.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_long_step_shows_its_progress_in_the_job() {
+    let s = start(1, |_| {}).await;
+    let scene = s.upload().await;
+    let id = s
+        .submit(
+            json!({"scene": scene, "technique": "path", "resolution": 64, "stop": {"steps": 1},
+                       "params": {"samples_per_step": 1024, "device": "cpu"}, "denoise": "none"}),
+        )
+        .await;
+    let started = Instant::now();
+    let mut seen: Vec<(f64, f64, f64)> = Vec::new();
+    let job = loop {
+        let j = s.job(&id).await;
+        if j["status"] == "succeeded" || j["status"] == "failed" {
+            break j;
+        }
+        let p = &j["progress"];
+        if j["status"] == "running"
+            && let Some(within) = p["step_fraction"].as_f64()
+        {
+            assert_eq!(p["steps"], 0, "{p}");
+            seen.push((
+                within,
+                p["fraction"].as_f64().unwrap(),
+                p["elapsed_s"].as_f64().unwrap(),
+            ));
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(120),
+            "the job did not end: {j:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    assert_eq!(job["progress"]["steps"], 1, "{job:#}");
+    assert!(job["progress"].get("step_fraction").is_none(), "{job:#}");
+    let mut distinct = seen.clone();
+    distinct.dedup_by(|a, b| a.0 == b.0);
+    assert!(
+        distinct.len() >= 3,
+        "the job's progress did not move inside the step: {seen:?}"
+    );
+    for (within, fraction, elapsed) in &seen {
+        assert!(*within > 0.0 && *within < 1.0, "{seen:?}");
+        assert_eq!(within, fraction, "one step asked for: the step's share is the job's");
+        assert!(*elapsed > 0.0, "{seen:?}");
+    }
+    assert!(
+        seen.windows(2).all(|w| w[0].0 <= w[1].0 && w[0].2 <= w[1].2),
+        "progress went back: {seen:?}"
+    );
+    eprintln!(
+        "step_fraction seen over HTTP: {:?}",
+        distinct.iter().map(|d| d.0).collect::<Vec<_>>()
+    );
+}

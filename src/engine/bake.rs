@@ -149,6 +149,18 @@ pub struct BakeLoop {
     pub shadowmask: Option<ShadowmaskBake>,
 }
 
+/// Takes the loop's clock out of its step progress when `run` returns, whichever way,
+/// so a watcher stops counting the loop's time during delivery.
+struct SteppingGuard(Option<StepProgress>);
+
+impl Drop for SteppingGuard {
+    fn drop(&mut self) {
+        if let Some(p) = &self.0 {
+            p.set_stepping_since(None);
+        }
+    }
+}
+
 impl BakeLoop {
     pub fn new(stop: StopCriteria) -> Self {
         BakeLoop {
@@ -175,7 +187,9 @@ impl BakeLoop {
         technique.set_deadline(deadline);
         if let Some(p) = &self.step_progress {
             technique.set_step_progress(p.clone());
+            p.set_stepping_since(Some(start));
         }
+        let _stepping = SteppingGuard(self.step_progress.clone());
         loop {
             let step_start = Instant::now();
             if let Some(p) = &self.step_progress {

@@ -322,7 +322,11 @@ async fn follow(http: &reqwest::Client, server: &str, id: &str, retry_for: Durat
     let show = |p: &Progress, bar: &ProgressBar| {
         bar.set_position((p.fraction * 1000.0) as u64);
         let err = p.error.map_or(String::new(), |e| format!(", error {:.2}%", e * 100.0));
-        bar.set_message(format!("step {}{err}", p.steps));
+        // Inside a long step, how far it is (as the CLI's own bar shows it).
+        let within = p
+            .step_fraction
+            .map_or(String::new(), |f| format!(" (+{:.0} %)", f * 100.0));
+        bar.set_message(format!("step {}{within}{err}", p.steps));
     };
     let mut failures = 0u32;
     loop {

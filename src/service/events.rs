@@ -4,7 +4,8 @@
 //! - `status`: the whole job document; sent first (so a client that connects late has the
 //!   current state at once) and whenever the status changes (queued → running, or back to
 //!   queued when a worker died);
-//! - `progress`: `{steps, fraction, elapsed_s, error}`, at most ~4 a second;
+//! - `progress`: `{steps, fraction, elapsed_s, error}` (and `step_fraction` inside a long
+//!   step, `probes` once probes run), at most ~4 a second;
 //! - `snapshot`: `{n, steps, seconds, error, url}` when a snapshot EXR is stored;
 //! - `done` (the job document), `failed` (`{reason, job}`), `cancelled` (the job
 //!   document): the last event; the stream then ends.

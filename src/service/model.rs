@@ -512,6 +512,11 @@ pub struct Progress {
     /// Light probes baked after the lightmap, once they have started.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub probes: Option<ProbeProgress>,
+    /// 0 to 1: how far the step after `steps` is, while one runs, for techniques that
+    /// report it (CPU `path`, whose steps can take minutes on a large level); absent
+    /// otherwise. `fraction` and `elapsed_s` move with it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step_fraction: Option<f64>,
 }
 
 /// How far the light probes of a job are (`probes` in the job; docs/probes.md).
@@ -546,7 +551,22 @@ impl Progress {
             elapsed_s,
             error,
             probes: None,
+            step_fraction: None,
         }
+    }
+
+    /// This progress carried on to `elapsed_s` seconds into the bake loop and `within`
+    /// (0 to 1) of the way through the step after `steps`: what a watcher is told while
+    /// one long step runs.
+    pub fn within_step(self, elapsed_s: f64, within: f64, stop: &StopSpec) -> Progress {
+        let within = within.clamp(0.0, 1.0);
+        let mut p = Progress::new(self.steps, elapsed_s.max(self.elapsed_s), self.error, stop);
+        if let Some(n) = stop.steps.filter(|n| *n > 0) {
+            p.fraction = p.fraction.max(((self.steps as f64 + within) / n as f64).min(1.0));
+        }
+        p.probes = self.probes;
+        p.step_fraction = Some(within);
+        p
     }
 }
 
@@ -692,7 +712,33 @@ pub fn rfc3339(ms: i64) -> String {
 
 #[cfg(test)]
 mod tests {
+
     use super::*;
+
+    #[test]
+    fn progress_within_a_step_moves_fraction_and_time_on() {
+        let by_steps = StopSpec {
+            steps: Some(4),
+            ..Default::default()
+        };
+        let p = Progress::new(1, 2.0, Some(0.1), &by_steps);
+        assert_eq!(p.fraction, 0.25);
+        let q = p.within_step(3.0, 0.5, &by_steps);
+        assert_eq!(
+            (q.steps, q.fraction, q.elapsed_s, q.error, q.step_fraction),
+            (1, 0.375, 3.0, Some(0.1), Some(0.5))
+        );
+        // Time never goes back; the step's share is clamped to a step.
+        let r = p.within_step(1.0, 7.0, &by_steps);
+        assert_eq!((r.fraction, r.elapsed_s, r.step_fraction), (0.5, 2.0, Some(1.0)));
+        // A time limit: the fraction follows the clock, which runs during the step.
+        let by_time = StopSpec {
+            seconds: Some(10.0),
+            ..Default::default()
+        };
+        let t = Progress::new(0, 0.0, None, &by_time).within_step(4.0, 0.9, &by_time);
+        assert_eq!((t.fraction, t.step_fraction), (0.4, Some(0.9)));
+    }
 
     #[test]
     fn uri_file_names_are_percent_decoded() {

@@ -8,7 +8,9 @@
 //! encodes the snapshot EXR and PNG beside the bake and hands them over a channel. The async
 //! side ticks 4 times a second: it writes progress if it changed (so the database sees
 //! at most ~4 writes a second per job), renews the lease with the same statement, reads
-//! back the cancel flag, and uploads snapshots. The bake thread checks the job's
+//! back the cancel flag, and uploads snapshots. While a step that reports how far it is
+//! runs (CPU `path`: one step can be minutes on a large level), the ticker moves the
+//! progress on with it (`step_fraction`, and `elapsed_s` and `fraction` live). The bake thread checks the job's
 //! [`StopFlag`] after every step, so a cancel stops it within one step.
 //!
 //! Snapshots: after storing snapshot `n` (and recording the count), the worker deletes
@@ -163,6 +165,9 @@ struct Shared {
     generated_scene_stored: std::sync::atomic::AtomicBool,
     /// The latest stored snapshot's delivered (denoised) relative error.
     delivered_error: Mutex<Option<f32>>,
+    /// How far the step in progress is and since when the loop steps, written by the
+    /// engine (CPU `path` reports within its steps); the ticker folds it into `progress`.
+    step: crate::engine::bake::StepProgress,
 }
 
 struct SnapshotFiles {
@@ -351,6 +356,7 @@ async fn supervise(
                         Err(e) => tracing::warn!(error = %e, "cannot store the scene with generated UVs now; it goes with the final lightmap"),
                     }
                 }
+                within_step(&shared, &job.spec.stop);
                 let update = collect(&shared, &mut written_progress, &mut written_plan, false);
                 let changed = update.progress.is_some() || update.plan.is_some();
                 if (changed || last_renewal.elapsed() >= lease / 3) && flag.get() != StopSignal::LeaseLost {
@@ -459,6 +465,25 @@ async fn supervise(
                 history: serde_json::to_value(history).unwrap_or(Value::Null),
             })
         }
+    }
+}
+
+/// Moves the shared progress on while a step that reports its progress runs (a long CPU
+/// `path` step on a large level can take minutes; without this the job would stand at
+/// its last step count, and its elapsed time, all that while). Not at a step's very
+/// start or end: 0 is also what a technique that does not report leaves, and 1000 stands
+/// between the step's end and the next one's start.
+fn within_step(shared: &Shared, stop: &crate::service::model::StopSpec) {
+    let Some(since) = shared.step.stepping_since() else {
+        return;
+    };
+    let permille = shared.step.permille();
+    if permille == 0 || permille >= 1000 {
+        return;
+    }
+    if let Ok(mut p) = shared.progress.lock() {
+        let base = p.unwrap_or_else(|| Progress::new(0, 0.0, None, stop));
+        *p = Some(base.within_step(since.elapsed().as_secs_f64(), f64::from(permille) / 1000.0, stop));
     }
 }
 
@@ -803,6 +828,7 @@ fn run_bake(
     let options = BakeOptions {
         snapshot_interval,
         max_memory_bytes: Some(ctx.limits.max_job_memory_bytes),
+        step_progress: Some(shared.step.clone()),
         ..Default::default()
     };
     let (raw_tx, raw_rx) = std::sync::mpsc::sync_channel::<RawSnapshot>(1);

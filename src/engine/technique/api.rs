@@ -66,11 +66,20 @@ impl BakeInputs {
 }
 
 /// How far the step in progress is, in thousandths (0 when a step starts, 1000 when it
-/// is done), for whoever shows progress while one long step runs (issue 19 point 10):
-/// the technique writes it from its worker threads, a watcher on another thread reads
-/// it. A technique that does not report leaves it at 0 ([`Technique::set_step_progress`]).
+/// is done), and since when the bake loop has been stepping, for whoever shows progress
+/// while one long step runs (issue 19 point 10): the technique writes the thousandths
+/// from its worker threads, the loop its clock; a watcher on another thread reads both.
+/// A technique that does not report leaves the thousandths at 0
+/// ([`Technique::set_step_progress`]).
 #[derive(Clone, Debug, Default)]
-pub struct StepProgress(Arc<std::sync::atomic::AtomicU32>);
+pub struct StepProgress(Arc<StepProgressState>);
+
+#[derive(Debug, Default)]
+struct StepProgressState {
+    permille: std::sync::atomic::AtomicU32,
+    /// When the loop began its first step; None before, and again once it has ended.
+    stepping_since: std::sync::Mutex<Option<std::time::Instant>>,
+}
 
 impl StepProgress {
     pub fn new() -> Self {
@@ -79,7 +88,7 @@ impl StepProgress {
 
     /// Thousandths of the current step done.
     pub fn permille(&self) -> u32 {
-        self.0.load(std::sync::atomic::Ordering::Relaxed)
+        self.0.permille.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// Records `done` of `of` parts of the current step.
@@ -89,7 +98,20 @@ impl StepProgress {
         } else {
             (done.min(of) * 1000 / of) as u32
         };
-        self.0.store(p, std::sync::atomic::Ordering::Relaxed);
+        self.0.permille.store(p, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// When the bake loop began stepping, while it steps (the clock its `elapsed` and
+    /// its time limit count from); None before it starts and after it ends.
+    pub fn stepping_since(&self) -> Option<std::time::Instant> {
+        self.0.stepping_since.lock().ok().and_then(|t| *t)
+    }
+
+    /// The bake loop starts (`Some(start)`) or ends (`None`).
+    pub fn set_stepping_since(&self, start: Option<std::time::Instant>) {
+        if let Ok(mut t) = self.0.stepping_since.lock() {
+            *t = start;
+        }
     }
 }
 

@@ -410,7 +410,9 @@ function showProgress(j) {
   const parts = last && last.bias != null ? ` (bias ${(last.bias * 100).toFixed(2)} %, noise ${(last.noise * 100).toFixed(2)} %)` : '';
   // Light probes are baked after the lightmap (progress.probes, docs/service.md).
   const probes = p.probes ? ` · light probes: step ${p.probes.steps} of ${p.probes.of} (${p.probes.probes} probes)` : '';
-  $('job-progress').textContent = `${p.steps} steps · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %${parts}`) + probes;
+  // A long step (CPU path on a large level) says how far it is (progress.step_fraction).
+  const within = p.step_fraction != null ? ` (+${(p.step_fraction * 100).toFixed(0)} %)` : '';
+  $('job-progress').textContent = `${p.steps} steps${within} · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %${parts}`) + probes;
 }
 
 const TERMINAL = ['succeeded', 'failed', 'cancelled'];
