@@ -483,8 +483,15 @@ impl GpuContext {
 
     /// Submits one labelled compute pass of `pipeline` over `n` items of a 64-wide 1D
     /// kernel (`dispatch_size_64`) with `group` at slot 0, in its own command buffer; does
-    /// not wait. Errors are the caller's to take (`take_error`).
-    pub fn submit_compute(&self, label: &str, pipeline: &wgpu::ComputePipeline, group: &wgpu::BindGroup, n: u32) {
+    /// not wait, and returns the submission for [`GpuContext::wait_for`]. Errors are the
+    /// caller's to take (`take_error`).
+    pub fn submit_compute(
+        &self,
+        label: &str,
+        pipeline: &wgpu::ComputePipeline,
+        group: &wgpu::BindGroup,
+        n: u32,
+    ) -> wgpu::SubmissionIndex {
         let mut enc = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) });
@@ -498,7 +505,22 @@ impl GpuContext {
             let (x, y) = dispatch_size_64(n);
             pass.dispatch_workgroups(x, y, 1);
         }
-        self.queue.submit([enc.finish()]);
+        self.queue.submit([enc.finish()])
+    }
+
+    /// Blocks until `submission` (and all before it) has run; `label` names the work in
+    /// the error.
+    pub fn wait_for(&self, label: &str, submission: wgpu::SubmissionIndex) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(submission),
+                timeout: None,
+            })
+            .map_err(|e| GpuError::Device {
+                during: format!("{label}: waiting for a step"),
+                message: e.to_string(),
+            })?;
+        Ok(())
     }
 
     /// Block until all submitted work is done (benchmarks, tests).

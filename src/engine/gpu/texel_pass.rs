@@ -9,12 +9,18 @@
 //! How a step runs: the step's parity picks its half; the half's k-th step is blended
 //! with weight 1/k into that half's running mean (the shader reads the weight), so a
 //! half is the mean of its steps and the two halves are independent estimates whose
-//! difference is the noise. One dispatch of one invocation per texel; nothing is waited
-//! for until a read-back ([`TexelRayPass::read`]), which happens at snapshots only.
+//! difference is the noise. One dispatch of one invocation per texel. At most
+//! [`STEPS_IN_FLIGHT`] steps are queued: `step` waits for the oldest before it returns
+//! when more are. Without that bound a step returned in microseconds, the bake loop
+//! queued thousands of them between snapshots, and its clock (time limit, longest step,
+//! progress) measured the queueing, not the work: the first snapshot after a burst then
+//! waited for all of it, past any time limit. Two in flight keep the device busy while
+//! the host prepares the next.
 //!
 //! Limits: each accumulator must fit the storage-binding limit (checked here, naming the
 //! pass); the step counts go to the shader in 32 bits.
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 
 use bytemuck::Pod;
@@ -28,6 +34,9 @@ use super::{GpuContext, GpuError};
 use crate::engine::atlas::Atlas;
 use crate::engine::raytrace::EmitterTable;
 use crate::engine::scene::Lighting;
+
+/// The most steps queued on the device at once (see the module doc).
+pub const STEPS_IN_FLIGHT: usize = 2;
 
 /// A pass's uniform (binding 5), told which step it is about to run.
 pub trait StepUniform: Pod {
@@ -61,6 +70,8 @@ pub struct TexelRayPass<U: StepUniform> {
     accumulators: Vec<(String, wgpu::Buffer)>,
     texels: usize,
     half_steps: [u64; 2],
+    /// The submissions of the steps not yet known to be done, oldest first.
+    in_flight: VecDeque<wgpu::SubmissionIndex>,
     /// The job's index of this bake's first step (a task's, `engine::tasks`).
     pub first_step: u64,
     pub lights: GpuSceneLights,
@@ -107,6 +118,7 @@ impl<U: StepUniform> TexelRayPass<U> {
             accumulators,
             texels: atlas.texels.len(),
             half_steps: [0, 0],
+            in_flight: VecDeque::with_capacity(STEPS_IN_FLIGHT + 1),
             first_step: 0,
             lights,
             _texels: texels,
@@ -127,7 +139,8 @@ impl<U: StepUniform> TexelRayPass<U> {
         self.half_steps
     }
 
-    /// Submits one step (one dispatch) into the half of its parity; does not wait.
+    /// Submits one step (one dispatch) into the half of its parity; waits only while more
+    /// than [`STEPS_IN_FLIGHT`] steps are queued.
     pub fn step(&mut self) -> Result<(), GpuError> {
         let step = self.half_steps[0] + self.half_steps[1];
         let half = (step % 2) as usize;
@@ -138,8 +151,14 @@ impl<U: StepUniform> TexelRayPass<U> {
             self.ctx
                 .queue
                 .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
-            self.ctx
+            let submitted = self
+                .ctx
                 .submit_compute(&self.label, &self.pipeline, &self.group, self.texels as u32);
+            self.in_flight.push_back(submitted);
+            while self.in_flight.len() > STEPS_IN_FLIGHT {
+                let oldest = self.in_flight.pop_front().expect("more than one in flight");
+                self.ctx.wait_for(&self.label, oldest)?;
+            }
             self.ctx.take_error(&self.label)?;
         }
         self.half_steps[half] = k;
