@@ -3,8 +3,8 @@
 //! `cargo run --release --example denoise_quality -- errors [SCENE] [REF_SAMPLES]`:
 //! true error against a converged reference (a `path` bake with another seed and
 //! REF_SAMPLES samples per texel, default 65536) at 4 … 1024 steps of `path` (4 samples
-//! a step), raw and after each denoiser, unblended and blended, with the delivered
-//! error estimate and the error on chart borders (texels within 2 of another chart or
+//! a step; env `MAX_STEPS` = 4096 adds 4096), raw and after each denoiser, unblended and
+//! blended, with the delivered error estimate and the error on chart borders (texels within 2 of another chart or
 //! an empty texel). SCENE is a bench scene (default cornell-box) or a .glb path.
 //!
 //! `… -- cost SIZE`: OIDN's time and peak memory on a SIZE² lightmap (run one size per
@@ -22,7 +22,7 @@ use lightmapd::engine::post::denoise::charts;
 use lightmapd::engine::post::denoised::{self, Used};
 use lightmapd::engine::post::oidn::{Mode, Oidn};
 use lightmapd::engine::scene::library::benchmark_scenes;
-use lightmapd::engine::scene::{Lighting, Scene, import_file};
+use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, import_file};
 use lightmapd::engine::technique::{self, BakeInputs, Technique};
 
 fn peak_rss_mb() -> f64 {
@@ -92,7 +92,16 @@ fn errors(args: &[String]) {
             .unwrap();
         }
         let atlas = Atlas::build(&scene, res, res).unwrap();
-        let lighting: Lighting = serde_json::from_str(r#"{"sky":{"radiance":[1,1,1]},"sun":null}"#).unwrap_or_default();
+        // A uniform upper sky of radiance 1. (This was a JSON string parsed with
+        // `unwrap_or_default`: it lacked `hemisphere`, so the parse failed and the room
+        // was baked with no light at all, every error reading 0.)
+        let lighting = Lighting {
+            sky: Some(Sky {
+                radiance: Vec3::ONE,
+                hemisphere: Hemisphere::Upper,
+            }),
+            sun: None,
+        };
         (Arc::new(scene), Arc::new(atlas), lighting)
     } else {
         let lib = benchmark_scenes()
@@ -130,7 +139,13 @@ fn errors(args: &[String]) {
     println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     let mut tech = path_tech(&scene, &atlas, lighting, 1, 4);
     let pct = |e: f64| format!("{:.2} %", e * 100.0);
-    for target in [4u64, 16, 64, 256, 1024] {
+    // Every fourth power of two from 4 to MAX_STEPS (default 1024; 4096 on a GPU, where
+    // `path` runs there and the steps are cheap).
+    let max_steps: u64 = std::env::var("MAX_STEPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(1024);
+    for target in std::iter::successors(Some(4u64), |s| Some(s * 4)).take_while(|s| *s <= max_steps) {
         while tech.steps_done() < target {
             tech.step().unwrap();
         }
@@ -204,6 +219,7 @@ fn cost(args: &[String]) {
     let t = Instant::now();
     let _ = o.filter(size, size, &img, None, Mode::Lightmap).unwrap();
     let second = t.elapsed().as_secs_f64();
+    println!("| size | device | first run | second run | host peak before | host peak added |");
     println!(
         "| {size}² | {} | {first:.2} s | {second:.2} s | {:.0} MB | {:.0} MB |",
         o.describe(),

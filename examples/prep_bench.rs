@@ -16,11 +16,10 @@
 
 use std::time::Instant;
 
-use glam::Vec3;
 use lightmapd::engine::atlas::{Atlas, unwrap, validate};
 use lightmapd::engine::gpu::scene_rays::SceneRays;
-use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
 use lightmapd::engine::scene::import_slice;
+use lightmapd::engine::scene::library::generated_level;
 use std::sync::Arc;
 
 /// The process's peak resident size so far, in MiB (Linux `VmHWM`; 0 elsewhere).
@@ -35,55 +34,6 @@ fn peak_mib() -> u64 {
         .map_or(0, |kb| kb / 1024)
 }
 
-fn level(boxes: u32, cells: u32) -> Vec<u8> {
-    let mut b = SceneBuilder::new();
-    let ground = b.material(MaterialDesc::diffuse("ground", [0.6, 0.55, 0.5]));
-    let block = b.material(MaterialDesc::diffuse("block", [0.7, 0.7, 0.7]));
-    b.quad_grid(
-        "ground",
-        Vec3::new(-50.0, 0.0, 50.0),
-        Vec3::X * 100.0,
-        Vec3::NEG_Z * 100.0,
-        8,
-        ground,
-    );
-    let side = (boxes as f32).sqrt().ceil() as u32;
-    let pitch = 96.0 / side.max(1) as f32;
-    for k in 0..boxes {
-        let (i, j) = ((k % side) as f32, (k / side) as f32);
-        let centre = Vec3::new(-48.0 + (i + 0.5) * pitch, 0.0, -48.0 + (j + 0.5) * pitch);
-        let half = Vec3::new(0.3 * pitch, 0.25 * pitch + 0.1 * (k % 7) as f32, 0.3 * pitch);
-        let c = centre + Vec3::Y * half.y;
-        let faces = [
-            (Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
-            (Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
-            (Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
-            (Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
-            (Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
-        ];
-        for (f, (n, d, u, v)) in faces.into_iter().enumerate() {
-            let centre = c + n * d;
-            b.quad_grid(
-                &format!("box {k} face {f}"),
-                centre - u - v,
-                2.0 * u,
-                2.0 * v,
-                cells,
-                block,
-            );
-        }
-    }
-    let (mut json, bin) = b.to_gltf();
-    for m in json["meshes"].as_array_mut().expect("meshes") {
-        for p in m["primitives"].as_array_mut().expect("primitives") {
-            if let Some(a) = p["attributes"].as_object_mut() {
-                a.remove("TEXCOORD_1");
-            }
-        }
-    }
-    write_glb(&json, &bin)
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let arg = |k: usize, d: f64| args.get(k).and_then(|a| a.parse::<f64>().ok()).unwrap_or(d);
@@ -93,7 +43,7 @@ fn main() {
         arg(2, 10.0) as f32,
         arg(3, 1024.0) as u32,
     );
-    let glb = level(boxes, cells);
+    let glb = generated_level(boxes, cells);
     println!(
         "level: {boxes} boxes of {} triangles, ground 100 m; {density} texels/m on {page}-wide pages; glb {} MiB; {} threads",
         10 * cells * cells,

@@ -6,19 +6,39 @@
 # 3. `lightmapd bench` (error against time) with a short budget;
 # 4. the GPU BVH and `path` on the GPU (issue 20): `gpu_trace_bench` (traversal rays/s, `path`
 #    ms a step GPU against CPU) and the GPU tests (`gpu_bvh_test`, `path_gpu_test`: the test
-#    binaries of tests/gpu_bvh.rs and tests/path_gpu.rs), which must not skip there.
-# Usage: BIN=dir OUT=dir BENCH_BUDGET=5 bash scripts/gpu-check.sh [bakes] [timings] [bench] [rays]
+#    binaries of tests/gpu_bvh.rs and tests/path_gpu.rs), which must not skip there;
+# 5. `level_bench`: `path` on the 256k-triangle generated level, one 1024^2 page, time to
+#    2 % and 1 % true error, and the CPU on all cores at equal error (issue 20's goal).
+# 6. `denoise_quality` (issue 22): OIDN's cost at 1024^2 and 4096^2 (its CUDA device when
+#    $LIGHTMAPD_OIDN_DIR holds the libraries of scripts/setup-oidn.sh, carried there), and
+#    the error table from 4 to 4096 steps on the Cornell box and the occlusion room.
+# `bench` reads converged references from $BENCH_CACHE (default bench-results/cache) made
+# with $BENCH_REFERENCE_SECONDS (default 300; the key includes it): carry the ones made on
+# the development machine (`target/tmp/honest-error-references`) so no device time goes
+# into a reference.
+# Parts run in the order rays, level, bakes, timings, bench, denoise (correctness first).
+# Usage: BIN=dir OUT=dir BENCH_BUDGET=5 bash scripts/gpu-check.sh [bakes] [timings] [bench] [rays] [level] [denoise]
 set -uo pipefail
 : "${BIN:?}" "${OUT:?}"
 BENCH_BUDGET=${BENCH_BUDGET:-5}
-parts=${*:-bakes timings bench rays}
+BENCH_REFERENCE_SECONDS=${BENCH_REFERENCE_SECONDS:-300}
+BENCH_CACHE=${BENCH_CACHE:-bench-results/cache}
+parts=${*:-bakes timings bench rays level denoise}
 log() { echo "== $*" | tee -a "$OUT/log.txt"; }
 run() { log "$*"; "$@" 2>&1 | tee -a "$OUT/log.txt"; }
 export LIGHTMAPD_ADAPTER=${LIGHTMAPD_ADAPTER:-gpu}
 run "$BIN/lightmapd" example cornell-box -o /tmp/cornell.glb
+if [[ $parts == *rays* ]]; then
+    LIGHTMAPD_REQUIRE_GPU=1 run "$BIN/gpu_bvh_test" --nocapture
+    LIGHTMAPD_REQUIRE_GPU=1 run "$BIN/path_gpu_test" --nocapture
+    run "$BIN/gpu_trace_bench" ${TRACE_ARGS:-RAYS=4194304 STEPS=32 RES=512}
+fi
+if [[ $parts == *level* ]]; then
+    run "$BIN/level_bench" ${LEVEL_ARGS:-}
+fi
 if [[ $parts == *bakes* ]]; then
     mkdir -p /tmp/exrs
-    for t in path sdb vpl obscurance sdf; do
+    for t in path sdb vpl obscurance sdf hemicube; do
         run "$BIN/lightmapd" bake /tmp/cornell.glb -o /tmp/exrs/$t.exr --technique $t --resolution 128 \
             --steps 16 --seed 1 --no-denoise --sky 0.2,0.3,0.5
     done
@@ -37,11 +57,13 @@ if [[ $parts == *timings* ]]; then
     done
 fi
 if [[ $parts == *bench* ]]; then
-    run "$BIN/lightmapd" bench --budget-seconds "$BENCH_BUDGET" --out /tmp/bench --cache bench-results/cache
+    run "$BIN/lightmapd" bench --budget-seconds "$BENCH_BUDGET" --reference-seconds "$BENCH_REFERENCE_SECONDS" \
+        --out /tmp/bench --cache "$BENCH_CACHE"
     tar cf "$OUT/bench.tar" -C /tmp/bench .
 fi
-if [[ $parts == *rays* ]]; then
-    LIGHTMAPD_REQUIRE_GPU=1 run "$BIN/gpu_bvh_test" --nocapture
-    LIGHTMAPD_REQUIRE_GPU=1 run "$BIN/path_gpu_test" --nocapture
-    run "$BIN/gpu_trace_bench" RAYS=4194304 STEPS=32 RES=512
+if [[ $parts == *denoise* ]]; then
+    run "$BIN/denoise_quality" cost 1024
+    run "$BIN/denoise_quality" cost 4096
+    MAX_STEPS=4096 run "$BIN/denoise_quality" errors cornell-box 262144
+    MAX_STEPS=1024 run "$BIN/denoise_quality" errors scenes/occlusion_room.glb 16384 512
 fi

@@ -145,6 +145,61 @@ pub fn procedural_blocks() -> SceneBuilder {
     b
 }
 
+/// A generated level of real size (issue 19 point 8, issue 20 point 4): a ground of
+/// 100 m square (8 × 8 cells) and `boxes` boxes in a square grid over it, each with five
+/// faces of `cells` × `cells` quads (10 · cells² triangles a box; 400 boxes of 8 × 8 are
+/// 256,128 triangles), as a .glb whose meshes have no `TEXCOORD_1`, so a bake generates
+/// its lightmap UVs at the density it asks for.
+pub fn generated_level(boxes: u32, cells: u32) -> Vec<u8> {
+    let mut b = SceneBuilder::new();
+    let ground = b.material(MaterialDesc::diffuse("ground", [0.6, 0.55, 0.5]));
+    let block = b.material(MaterialDesc::diffuse("block", [0.7, 0.7, 0.7]));
+    b.quad_grid(
+        "ground",
+        Vec3::new(-50.0, 0.0, 50.0),
+        Vec3::X * 100.0,
+        Vec3::NEG_Z * 100.0,
+        8,
+        ground,
+    );
+    let side = (boxes as f32).sqrt().ceil() as u32;
+    let pitch = 96.0 / side.max(1) as f32;
+    for k in 0..boxes {
+        let (i, j) = ((k % side) as f32, (k / side) as f32);
+        let centre = Vec3::new(-48.0 + (i + 0.5) * pitch, 0.0, -48.0 + (j + 0.5) * pitch);
+        let half = Vec3::new(0.3 * pitch, 0.25 * pitch + 0.1 * (k % 7) as f32, 0.3 * pitch);
+        let c = centre + Vec3::Y * half.y;
+        let faces = [
+            (Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
+            (Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
+            (Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
+            (Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
+            (Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
+        ];
+        for (f, (n, d, u, v)) in faces.into_iter().enumerate() {
+            let centre = c + n * d;
+            b.quad_grid(
+                &format!("box {k} face {f}"),
+                centre - u - v,
+                2.0 * u,
+                2.0 * v,
+                cells,
+                block,
+            );
+        }
+    }
+    let (mut json, bin) = b.to_gltf();
+    // The builder always writes TEXCOORD_1; a level as studios hand it over has none.
+    for m in json["meshes"].as_array_mut().into_iter().flatten() {
+        for p in m["primitives"].as_array_mut().into_iter().flatten() {
+            if let Some(a) = p["attributes"].as_object_mut() {
+                a.remove("TEXCOORD_1");
+            }
+        }
+    }
+    super::build::write_glb(&json, &bin)
+}
+
 /// Every benchmark scene of issue 5, in a fixed order.
 pub fn benchmark_scenes() -> Vec<LibraryScene> {
     vec![
