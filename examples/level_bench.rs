@@ -2,8 +2,8 @@
 //! 250k-triangle level to 2 % in ≤ 10 s"): the generated level of
 //! `engine::scene::library::generated_level` (400 boxes of 640 triangles on a 100 m
 //! ground: 256,128 triangles, no `TEXCOORD_1`), its UVs generated at DENSITY texels a
-//! metre on PAGE-wide pages, lit by a sky and a sun, baked by `path` on the device asked
-//! for. Prints, for docs/performance.md:
+//! metre on PAGE-wide pages, lit by `library::outdoor_lighting` (sky and sun), baked
+//! by `path` on the device asked for. Prints, for docs/performance.md:
 //! 1. the preparation (import, UVs, texel set, BVH, validation) in seconds;
 //! 2. the bake's error against its own time at doubling checkpoints: the estimated error
 //!    (the halves' noise) and the true error against a longer reference bake of another
@@ -25,13 +25,12 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use glam::Vec3;
 use lightmapd::bench::true_error;
 use lightmapd::engine::atlas::{Atlas, unwrap, validate};
 use lightmapd::engine::gpu::scene_rays::SceneRays;
 use lightmapd::engine::job::BakeRequest;
-use lightmapd::engine::scene::library::generated_level;
-use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, Sun, import_slice};
+use lightmapd::engine::scene::library::{generated_level, outdoor_lighting};
+use lightmapd::engine::scene::{Lighting, import_slice};
 use lightmapd::engine::technique::{self, BakeInputs};
 use serde_json::json;
 
@@ -117,18 +116,7 @@ fn main() {
     let cpu_seconds: f64 = arg("CPU_SECONDS", 10.0);
     let spp: u32 = arg("SPP", 4);
     let device: String = arg("DEVICE", "gpu".to_string());
-    let lighting = Lighting {
-        sky: Some(Sky {
-            radiance: Vec3::new(0.2, 0.3, 0.5),
-            hemisphere: Hemisphere::Upper,
-        }),
-        // About 3 W/m² at normal incidence over the disc's 6.7e-5 sr.
-        sun: Some(Sun {
-            direction: Vec3::new(-0.4, -1.0, -0.3).normalize(),
-            angular_diameter: 0.53f32.to_radians(),
-            radiance: Vec3::new(1.0, 0.95, 0.85) * 45_000.0,
-        }),
-    };
+    let lighting = outdoor_lighting();
 
     println!("## Preparation ({} threads)", rayon::current_num_threads());
     let t = Instant::now();

@@ -14,6 +14,12 @@
 //! a few polylines need no plotting crate), and `summary.md` with the time each
 //! technique needs to reach 10 %, 5 %, 2 % and 1 %.
 //!
+//! Scenes: the seven small ones of `library::benchmark_scenes` by default (five with a
+//! closed form); the real-size ones of `library::real_size_scenes` (three bundled
+//! third-party levels at their default density, a 256k-triangle generated level on a 1024²
+//! page) when asked for, since their `path` references take minutes on a CPU (seconds on
+//! a GPU). `lightmapd bench --quick` is the CI-sized run: 1 s a bake, 10-s references.
+//!
 //! Limits: times are wall-clock on whatever machine runs it; a reference bake's own
 //! noise (reported in `summary.md`) is a floor under every measured error.
 
@@ -26,18 +32,19 @@ use glam::Vec3;
 use serde_json::json;
 
 use crate::engine::accumulate::{Estimate, LUMINANCE};
-use crate::engine::atlas::Atlas;
+use crate::engine::atlas::{Atlas, unwrap};
 use crate::engine::control::ControlTexels;
 use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::job::BakeRequest;
-use crate::engine::scene::library::{LibraryScene, benchmark_scenes};
+use crate::engine::scene::library::{LibraryScene, benchmark_scenes, real_size_scenes};
 use crate::engine::scene::{Scene, import_slice};
 
 use crate::engine::technique::{self, BakeInputs, EngineError};
 
 #[derive(Clone, Debug)]
 pub struct BenchConfig {
-    /// Scene names to run (all when empty).
+    /// Scene names to run ([`select_scenes`]: the small scenes when empty, `real` for every
+    /// real-size one).
     pub scenes: Vec<String>,
     pub techniques: Vec<String>,
     /// Bake time per scene and technique.
@@ -103,16 +110,29 @@ pub struct PreparedScene {
     pub glb: Vec<u8>,
 }
 
+/// Imports `lib`, generates lightmap UVs for meshes without (at its density, on pages of
+/// its resolution) and builds the texel set (not validated: texels inside geometry stay,
+/// in the reference and in every bake alike).
 pub fn prepare(lib: &LibraryScene) -> Result<PreparedScene, EngineError> {
-    let glb = lib.builder.to_glb();
-    let scene = Arc::new(
-        import_slice(&glb, None)
-            .map_err(|e| EngineError::Internal(e.to_string()))?
-            .0,
-    );
-    let atlas = Arc::new(
-        Atlas::build(&scene, lib.resolution, lib.resolution).map_err(|e| EngineError::Internal(e.to_string()))?,
-    );
+    let glb = (lib.glb)();
+    let internal = |e: String| EngineError::Internal(format!("bench scene {}: {e}", lib.name));
+    let mut scene = import_slice(&glb, None).map_err(|e| internal(e.to_string()))?.0;
+    if scene.needs_lightmap_uvs {
+        unwrap::generate_lightmap_uvs_with(
+            &mut scene,
+            lib.resolution,
+            unwrap::LightmapUvs::GenerateMissing,
+            lib.texels_per_metre,
+            &unwrap::UvUnwrap,
+        )
+        .map_err(internal)?;
+    }
+    let (w, h) = scene
+        .layout
+        .as_ref()
+        .map_or((lib.resolution, lib.resolution), |l| (l.width, l.height));
+    let scene = Arc::new(scene);
+    let atlas = Arc::new(Atlas::build(&scene, w, h).map_err(|e| internal(e.to_string()))?);
     Ok(PreparedScene {
         rays: SceneRays::new(scene.clone()),
         scene,
@@ -286,17 +306,36 @@ pub fn measure(
 }
 
 /// Runs the whole benchmark and writes its outputs; `log` receives one line per stage.
-pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, EngineError> {
-    let all = benchmark_scenes();
-    for s in &cfg.scenes {
-        if !all.iter().any(|l| l.name == s) {
-            let names: Vec<&str> = all.iter().map(|l| l.name).collect();
+/// The scenes `names` asks for, in the library's order: the small scenes when empty,
+/// `real` for every real-size one, else each by name.
+pub fn select_scenes(names: &[String]) -> Result<Vec<LibraryScene>, EngineError> {
+    let small = benchmark_scenes();
+    let real = real_size_scenes();
+    if names.is_empty() {
+        return Ok(small);
+    }
+    for s in names {
+        if s != "real" && !small.iter().chain(&real).any(|l| l.name == s) {
+            let names: Vec<&str> = small.iter().chain(&real).map(|l| l.name).collect();
             return Err(EngineError::BadInput(format!(
-                "unknown bench scene {s:?}; available: {}",
+                "unknown bench scene {s:?}; available: {}, or real (every real-size scene)",
                 names.join(", ")
             )));
         }
     }
+    let all_real = names.iter().any(|s| s == "real");
+    Ok(small
+        .into_iter()
+        .filter(|l| names.iter().any(|s| s == l.name))
+        .chain(
+            real.into_iter()
+                .filter(|l| all_real || names.iter().any(|s| s == l.name)),
+        )
+        .collect())
+}
+
+pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, EngineError> {
+    let chosen = select_scenes(&cfg.scenes)?;
     for t in &cfg.techniques {
         technique::entry(t)?;
     }
@@ -304,10 +343,7 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
     std::fs::create_dir_all(&cfg.out_dir).map_err(io)?;
     let mut all_samples = Vec::new();
     let mut refs = Vec::new();
-    for lib in all
-        .iter()
-        .filter(|l| cfg.scenes.is_empty() || cfg.scenes.iter().any(|s| s == l.name))
-    {
+    for lib in &chosen {
         let p = prepare(lib)?;
         log(&format!(
             "{}: {} triangles, {} texels; reference…",

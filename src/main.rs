@@ -298,18 +298,25 @@ struct SubmitArgs {
 
 #[derive(clap::Args)]
 struct BenchArgs {
-    /// Scenes to run (comma separated; default: all).
+    /// Scenes to run (comma separated; default: the seven small scenes; `real` adds every
+    /// real-size scene: occlusion-room, living-room, kenney-fps-level, level-256k).
     #[arg(long, value_delimiter = ',')]
     scenes: Vec<String>,
     /// Techniques to compare (comma separated; default: all).
     #[arg(long, value_delimiter = ',')]
     techniques: Vec<String>,
-    /// Bake time per scene and technique.
-    #[arg(long, default_value_t = 20.0)]
-    budget_seconds: f64,
-    /// Bake time of a path reference for scenes with no closed form (cached).
-    #[arg(long, default_value_t = 90.0)]
-    reference_seconds: f64,
+    /// A run sized for CI: 1 s a scene and technique and 10-s references unless the two
+    /// flags below say otherwise (about a minute and a half for the small scenes on two
+    /// cores; the figures are coarse).
+    #[arg(long)]
+    quick: bool,
+    /// Bake time per scene and technique [default: 20, or 1 with --quick].
+    #[arg(long)]
+    budget_seconds: Option<f64>,
+    /// Bake time of a path reference for scenes with no closed form (cached) [default: 90,
+    /// or 10 with --quick].
+    #[arg(long)]
+    reference_seconds: Option<f64>,
     /// Where results.csv, summary.md and the plots go.
     #[arg(long, default_value = "bench-results")]
     out: PathBuf,
@@ -1357,9 +1364,11 @@ fn write_probes(
 }
 
 fn bench(args: BenchArgs) -> Result<(), Failure> {
+    let budget_seconds = args.budget_seconds.unwrap_or(if args.quick { 1.0 } else { 20.0 });
+    let reference_seconds = args.reference_seconds.unwrap_or(if args.quick { 10.0 } else { 90.0 });
     for (what, v) in [
-        ("--budget-seconds", args.budget_seconds),
-        ("--reference-seconds", args.reference_seconds),
+        ("--budget-seconds", budget_seconds),
+        ("--reference-seconds", reference_seconds),
     ] {
         if !(v.is_finite() && v > 0.0) {
             return Err(bad_input(format!("{what} must be a positive number, got {v}")));
@@ -1375,8 +1384,8 @@ fn bench(args: BenchArgs) -> Result<(), Failure> {
         } else {
             args.techniques
         },
-        budget: std::time::Duration::from_secs_f64(args.budget_seconds),
-        reference_budget: std::time::Duration::from_secs_f64(args.reference_seconds),
+        budget: std::time::Duration::from_secs_f64(budget_seconds),
+        reference_budget: std::time::Duration::from_secs_f64(reference_seconds),
         out_dir: args.out.clone(),
         cache_dir: args.cache,
     };

@@ -47,7 +47,7 @@ fn measure(
         .into_iter()
         .find(|s| s.name == name)
         .expect("library scene");
-    let scene = Arc::new(import_slice(&s.builder.to_glb(), None).expect("imports").0);
+    let scene = Arc::new(import_slice(&(s.glb)(), None).expect("imports").0);
     let offset = scene.origin_offset;
     let request = BakeRequest {
         technique: technique.into(),

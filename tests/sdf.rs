@@ -274,7 +274,7 @@ fn timings_for_the_docs() {
         if !["sky-plane", "sphere-over-plane", "blocks-25k"].contains(&s.name) {
             continue;
         }
-        let scene = Arc::new(import(&s.builder));
+        let scene = Arc::new(lightmapd::engine::scene::import_slice(&(s.glb)(), None).unwrap().0);
         let atlas = Arc::new(Atlas::build(&scene, s.resolution, s.resolution).unwrap());
         let request = lightmapd::engine::job::BakeRequest {
             technique: "sdf".into(),

@@ -11,7 +11,7 @@ use std::f64::consts::PI;
 use glam::{DVec3, Vec3};
 
 use super::build::{MaterialDesc, SceneBuilder, cornell_box};
-use super::{Hemisphere, Lighting, Sky};
+use super::{Hemisphere, Lighting, Sky, Sun};
 
 /// Form factor from a differential area to a parallel rectangle [0, a] × [0, b] at
 /// height c with one corner straight above it (Howell's catalogue of configuration
@@ -46,9 +46,14 @@ pub type Analytic = fn(p: DVec3, n: Vec3) -> Option<Vec3>;
 pub struct LibraryScene {
     pub name: &'static str,
     pub description: &'static str,
-    pub builder: SceneBuilder,
+    /// The scene as a .glb (made in code, or a bundled file).
+    pub glb: fn() -> Vec<u8>,
     pub lighting: Lighting,
+    /// The page width; meshes without `TEXCOORD_1` get UVs generated for it.
     pub resolution: u32,
+    /// Lightmap UV density for meshes without `TEXCOORD_1`, texels a metre (`None`: the
+    /// highest at which every chart fits one page, a bake's default).
+    pub texels_per_metre: Option<f32>,
     pub analytic: Option<Analytic>,
 }
 
@@ -206,7 +211,8 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
         LibraryScene {
             name: "closed-box-0.5",
             description: "closed cube, albedo 0.5, Le 0.5 everywhere: lightmap 1",
-            builder: closed_box(0.5),
+            glb: || closed_box(0.5).to_glb(),
+            texels_per_metre: None,
             lighting: Lighting::default(),
             resolution: 48,
             analytic: Some(|_, _| Some(Vec3::ONE)),
@@ -214,7 +220,8 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
         LibraryScene {
             name: "closed-box-0.9",
             description: "closed cube, albedo 0.9, Le 0.1 everywhere: lightmap 1",
-            builder: closed_box(0.9),
+            glb: || closed_box(0.9).to_glb(),
+            texels_per_metre: None,
             lighting: Lighting::default(),
             resolution: 48,
             analytic: Some(|_, _| Some(Vec3::ONE)),
@@ -222,7 +229,8 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
         LibraryScene {
             name: "sky-plane",
             description: "upward plane under a uniform upper sky of 1: lightmap 1",
-            builder: sky_plane(),
+            glb: || sky_plane().to_glb(),
+            texels_per_metre: None,
             lighting: sky(1.0),
             resolution: 32,
             analytic: Some(|_, _| Some(Vec3::ONE)),
@@ -230,7 +238,8 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
         LibraryScene {
             name: "sphere-over-plane",
             description: "black sphere r = 1 centred 2 m over a black plane, sky 1: 1 - sin²α cos θ on the plane",
-            builder: sphere_over_plane(),
+            glb: || sphere_over_plane().to_glb(),
+            texels_per_metre: None,
             lighting: sky(1.0),
             resolution: 98,
             analytic: Some(|p, n| {
@@ -241,7 +250,8 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
         LibraryScene {
             name: "parallel-plates",
             description: "unit squares 1 m apart, upper emits 1, both black: the receiver reads the form factor",
-            builder: parallel_plates(),
+            glb: || parallel_plates().to_glb(),
+            texels_per_metre: None,
             lighting: Lighting::default(),
             resolution: 62,
             analytic: Some(|p, n| {
@@ -257,7 +267,8 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
         LibraryScene {
             name: "cornell-box",
             description: "the bundled Cornell box (reference: converged path bake)",
-            builder: cornell_box(),
+            glb: || cornell_box().to_glb(),
+            texels_per_metre: None,
             lighting: Lighting::default(),
             resolution: 64,
             analytic: None,
@@ -265,9 +276,73 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
         LibraryScene {
             name: "blocks-25k",
             description: "40 subdivided boxes on a ground plane under the sky, 25 728 triangles (reference: converged path bake)",
-            builder: procedural_blocks(),
+            glb: || procedural_blocks().to_glb(),
+            texels_per_metre: None,
             lighting: sky(1.0),
             resolution: 128,
+            analytic: None,
+        },
+    ]
+}
+
+/// Sky and sun for the outdoor scenes: sky (0.2, 0.3, 0.5) over the upper hemisphere and a
+/// sun of 0.53° from above and aside, about 3 W/m² at normal incidence.
+pub fn outdoor_lighting() -> Lighting {
+    Lighting {
+        sky: Some(Sky {
+            radiance: Vec3::new(0.2, 0.3, 0.5),
+            hemisphere: Hemisphere::Upper,
+        }),
+        sun: Some(Sun {
+            direction: Vec3::new(-0.4, -1.0, -0.3).normalize(),
+            angular_diameter: 0.53f32.to_radians(),
+            radiance: Vec3::new(1.0, 0.95, 0.85) * 45_000.0,
+        }),
+    }
+}
+
+/// The scenes of real size (issue 20 point 4): the bundled third-party levels at their
+/// default density (`scenes/third-party/SOURCES.md` has their licences; the files are
+/// compiled in, so `lightmapd bench` needs no checkout) and the 256k-triangle generated
+/// level on one 1024² page. No closed form: their references are long `path` bakes, minutes
+/// on a CPU, which is why `lightmapd bench` runs them only when asked (`--scenes real` or by
+/// name).
+pub fn real_size_scenes() -> Vec<LibraryScene> {
+    vec![
+        LibraryScene {
+            name: "occlusion-room",
+            description: "third-party interior, 63,720 triangles, windows to a uniform sky of 1, 512² page",
+            glb: || include_bytes!("../../../scenes/third-party/occlusion_room.glb").to_vec(),
+            lighting: sky(1.0),
+            resolution: 512,
+            texels_per_metre: None,
+            analytic: None,
+        },
+        LibraryScene {
+            name: "living-room",
+            description: "third-party living room and courtyard under sky and sun, 512² page",
+            glb: || include_bytes!("../../../scenes/third-party/living_room.glb").to_vec(),
+            lighting: outdoor_lighting(),
+            resolution: 512,
+            texels_per_metre: None,
+            analytic: None,
+        },
+        LibraryScene {
+            name: "kenney-fps-level",
+            description: "third-party game level under sky and sun, 512² page",
+            glb: || include_bytes!("../../../scenes/third-party/kenney_fps_level.glb").to_vec(),
+            lighting: outdoor_lighting(),
+            resolution: 512,
+            texels_per_metre: None,
+            analytic: None,
+        },
+        LibraryScene {
+            name: "level-256k",
+            description: "generated level, 400 boxes on a 100 m ground, 256,128 triangles, UVs generated at 4.5 texels/m: one 1024² page",
+            glb: || generated_level(400, 8),
+            lighting: outdoor_lighting(),
+            resolution: 1024,
+            texels_per_metre: Some(4.5),
             analytic: None,
         },
     ]
