@@ -885,6 +885,52 @@ async fn cancel_stops_a_running_bake_and_a_queued_job() {
     s.running.shutdown().await;
 }
 
+/// Issue 19 point 10: a cancel reaches inside a step. One CPU `path` step of 4096
+/// samples a texel over the Cornell box at 256² would take minutes on two cores; the job
+/// is cancelled while it runs and must end within seconds, with no step done.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancelling_a_long_step_stops_it_inside_the_step() {
+    let _cpu = CPU_HEAVY.lock().await;
+    let s = start(1, |_| {}).await;
+    let scene = s.upload().await;
+    let id = s
+        .submit(
+            json!({"scene": scene, "technique": "path", "resolution": 256, "stop": {"steps": 1},
+                       "params": {"samples_per_step": 4096, "device": "cpu"}, "denoise": "none"}),
+        )
+        .await;
+    s.wait_job(&id, "inside its first step", |j| {
+        j["status"] == "running" && j["progress"]["step_fraction"].as_f64().is_some_and(|f| f > 0.0)
+    })
+    .await;
+    let within = s.job(&id).await["progress"]["step_fraction"].as_f64().unwrap();
+    assert!(within < 0.5, "the step is far from done when cancelled: {within}");
+    let asked = Instant::now();
+    let c = s
+        .http
+        .post(format!("{}/v1/jobs/{id}/cancel", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(c.status(), 202);
+    let j = s
+        .wait_job(&id, "cancelled", |j| {
+            ["cancelled", "succeeded", "failed"].contains(&j["status"].as_str().unwrap_or(""))
+        })
+        .await;
+    let took = asked.elapsed();
+    assert_eq!(j["status"], "cancelled", "{j:#}");
+    assert_eq!(j["progress"]["steps"], 0, "the step was abandoned, not finished: {j:#}");
+    // The ticker passes the flag in within 250 ms and a chunk of the step is a fraction
+    // of a second; the step itself would have taken minutes.
+    assert!(took < Duration::from_secs(5), "cancel took {took:?} (step at {within})");
+    eprintln!(
+        "cancelled {took:?} after the request, the step {:.1} % done",
+        100.0 * within
+    );
+    s.running.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fifty_concurrent_jobs_two_workers_all_succeed_once() {
     let s = start(2, |_| {}).await;

@@ -197,17 +197,20 @@ impl BakeLoop {
             }
             let before = technique.steps_done();
             technique.step()?;
-            if technique.steps_done() == before && deadline.is_some_and(|d| Instant::now() >= d) {
-                // The technique abandoned the step at the limit.
+            let stop_asked = self.step_progress.as_ref().is_some_and(|p| p.stop_requested());
+            if technique.steps_done() == before && (stop_asked || deadline.is_some_and(|d| Instant::now() >= d)) {
+                // The technique abandoned the step at the limit, or because the watcher
+                // asked it to stop (a cancelled job: the observer says so below).
                 let elapsed = start.elapsed();
                 tracing::info!(
                     technique = technique.id(),
                     steps = before,
                     seconds = elapsed.as_secs_f64(),
                     step_seconds = step_start.elapsed().as_secs_f64(),
-                    "the time limit cut a step short"
+                    stop_asked,
+                    "a step was cut short"
                 );
-                if before == 0 {
+                if before == 0 && !stop_asked {
                     return Err(EngineError::BadInput(format!(
                         "the time limit of {:.3} s ended before the first step of {} was done ({:.2} s in): give the bake more time (stop.seconds / --seconds), fewer texels (resolution, texels_per_unit) or fewer samples a step (params.samples_per_step)",
                         self.stop.seconds.unwrap_or(0.0),
@@ -225,7 +228,7 @@ impl BakeLoop {
                 return Ok(BakeOutcome {
                     estimate,
                     elapsed,
-                    stopped_by: if cancelled {
+                    stopped_by: if cancelled || stop_asked {
                         StopReason::Cancelled
                     } else {
                         StopReason::Seconds

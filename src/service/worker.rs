@@ -11,7 +11,9 @@
 //! back the cancel flag, and uploads snapshots. While a step that reports how far it is
 //! runs (CPU `path`: one step can be minutes on a large level), the ticker moves the
 //! progress on with it (`step_fraction`, and `elapsed_s` and `fraction` live). The bake thread checks the job's
-//! [`StopFlag`] after every step, so a cancel stops it within one step.
+//! [`StopFlag`] after every step, and the ticker passes a raised flag into the step in
+//! progress (`StepProgress::request_stop`), so a cancel stops even a long CPU `path` step
+//! within a chunk of it (a quarter second for the ticker, plus the chunk).
 //!
 //! Snapshots: after storing snapshot `n` (and recording the count), the worker deletes
 //! the ones snapshot retention no longer keeps ([`store::snapshots_to_drop`]), so a job
@@ -342,6 +344,11 @@ async fn supervise(
                 }
             }
             _ = ticker.tick() => {
+                // A raised flag (cancel, shutdown, lost lease) also reaches inside a long
+                // step: CPU `path` abandons it within a chunk instead of running it out.
+                if flag.get() != StopSignal::None {
+                    shared.step.request_stop();
+                }
                 let generated = shared.generated_scene.lock().ok().and_then(|mut g| g.take());
                 if let Some(scene) = generated && flag.get() != StopSignal::LeaseLost {
                     match while_holding(state, &job.id, worker, &flag, store_generated_scene(state, &job.id, scene)).await {

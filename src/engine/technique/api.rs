@@ -70,13 +70,17 @@ impl BakeInputs {
 /// while one long step runs (issue 19 point 10): the technique writes the thousandths
 /// from its worker threads, the loop its clock; a watcher on another thread reads both.
 /// A technique that does not report leaves the thousandths at 0
-/// ([`Technique::set_step_progress`]).
+/// ([`Technique::set_step_progress`]). The watcher can also ask the step in progress to
+/// stop ([`StepProgress::request_stop`]: a cancelled job): a technique that checks its
+/// deadline between parts of a step checks this with it and abandons the step the same
+/// way, so a cancel need not wait for a step of minutes to end.
 #[derive(Clone, Debug, Default)]
 pub struct StepProgress(Arc<StepProgressState>);
 
 #[derive(Debug, Default)]
 struct StepProgressState {
     permille: std::sync::atomic::AtomicU32,
+    stop: std::sync::atomic::AtomicBool,
     /// When the loop began its first step; None before, and again once it has ended.
     stepping_since: std::sync::Mutex<Option<std::time::Instant>>,
 }
@@ -112,6 +116,16 @@ impl StepProgress {
         if let Ok(mut t) = self.0.stepping_since.lock() {
             *t = start;
         }
+    }
+
+    /// Asks the bake to stop inside the step in progress (it stays asked).
+    pub fn request_stop(&self) {
+        self.0.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether [`request_stop`](StepProgress::request_stop) was called.
+    pub fn stop_requested(&self) -> bool {
+        self.0.stop.load(std::sync::atomic::Ordering::Relaxed)
     }
 }
 

@@ -41,8 +41,9 @@
 //! result is bit-identical for a seed regardless of thread count.
 //!
 //! Time limit: a CPU step runs in chunks of [`DEADLINE_PATHS`] paths and is abandoned,
-//! adding nothing, when the bake's deadline passes mid-step (`Technique::set_deadline`),
-//! so one step over a large level's texels cannot carry a bake far past its limit. The
+//! adding nothing, when the bake's deadline passes mid-step (`Technique::set_deadline`)
+//! or its watcher asks it to stop (`StepProgress::request_stop`: a cancelled job), so one
+//! step over a large level's texels cannot carry a bake far past its limit or its cancel. The
 //! samples of the chunks already done are dropped: the half accumulators count whole
 //! steps, and a step over part of the texels would weight those texels differently.
 //! The GPU megakernel's step is one dispatch and runs whole. The chunks done are also
@@ -308,7 +309,8 @@ impl Technique for PathTracer {
             .par_chunks(chunk_texels)
             .enumerate()
             .map(|(c, chunk)| {
-                if deadline.is_some_and(|d| Instant::now() >= d) {
+                let stop_asked = progress.as_ref().is_some_and(|p| p.stop_requested());
+                if stop_asked || deadline.is_some_and(|d| Instant::now() >= d) {
                     return None;
                 }
                 let first = c * chunk_texels;
@@ -325,7 +327,10 @@ impl Technique for PathTracer {
             })
             .collect();
         if chunks.iter().any(Option::is_none) {
-            tracing::debug!(step, "path: the deadline passed mid-step; the step is abandoned");
+            tracing::debug!(
+                step,
+                "path: the deadline passed or a stop was asked mid-step; the step is abandoned"
+            );
             return Ok(());
         }
         let results: Vec<PathSample> = chunks.into_iter().flatten().flatten().collect();
