@@ -1,0 +1,32 @@
+//! Writes a library scene that the CLI has no `example` for as .glb, for
+//! scripts/peer-bench.sh (issue 20 point 5: a peer baker on the same scene).
+//!
+//! Usage: `cargo run --release --example peer_scene -- blocks-25k OUT.glb`
+//!
+//! The scene is `engine::scene::library::procedural_blocks` (25,728 triangles, its own
+//! TEXCOORD_1 from the scene builder); its lighting (a sky) is not in the file: the
+//! bench passes it to both bakers.
+
+use std::process::ExitCode;
+
+use lightmapd::engine::scene::library;
+
+fn main() -> ExitCode {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let [name, out] = args.as_slice() else {
+        eprintln!("usage: peer_scene blocks-25k OUT.glb");
+        return ExitCode::from(2);
+    };
+    let glb = match name.as_str() {
+        "blocks-25k" => library::procedural_blocks().to_glb(),
+        other => {
+            eprintln!("unknown scene {other} (known: blocks-25k)");
+            return ExitCode::from(2);
+        }
+    };
+    if let Err(e) = std::fs::write(out, glb) {
+        eprintln!("{out}: {e}");
+        return ExitCode::FAILURE;
+    }
+    ExitCode::SUCCESS
+}
