@@ -104,6 +104,31 @@ pub fn parallel_plates() -> SceneBuilder {
     b
 }
 
+/// A box standing on the ground at `base` (the centre of its bottom), of half extents
+/// `half`, open below: five faces of `cells` × `cells` quads facing out, named
+/// "`name` face 0" (top) to "`name` face 4".
+fn open_box(b: &mut SceneBuilder, name: &str, base: Vec3, half: Vec3, cells: u32, material: usize) {
+    let c = base + Vec3::Y * half.y;
+    let faces = [
+        (Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
+        (Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
+        (Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
+        (Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
+        (Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
+    ];
+    for (f, (n, d, u, v)) in faces.into_iter().enumerate() {
+        let centre = c + n * d;
+        b.quad_grid(
+            &format!("{name} face {f}"),
+            centre - u - v,
+            2.0 * u,
+            2.0 * v,
+            cells,
+            material,
+        );
+    }
+}
+
 /// About 25 000 triangles: 40 boxes of subdivided faces (8 × 8 cells a face, 640
 /// triangles a box) on a ground plane, under the sky.
 pub fn procedural_blocks() -> SceneBuilder {
@@ -134,18 +159,7 @@ pub fn procedural_blocks() -> SceneBuilder {
         let centre = Vec3::new(-8.0 + i * 2.3 + rnd() * 0.4, 0.0, -6.0 + j * 3.0 + rnd() * 0.4);
         let half = Vec3::new(0.4 + rnd() * 0.4, 0.3 + rnd() * 1.2, 0.4 + rnd() * 0.4);
         let m = mats[k % mats.len()];
-        let c = centre + Vec3::Y * half.y;
-        let faces = [
-            (Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
-            (Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
-            (Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
-            (Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
-            (Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
-        ];
-        for (f, (n, d, u, v)) in faces.into_iter().enumerate() {
-            let centre = c + n * d;
-            b.quad_grid(&format!("block {k} face {f}"), centre - u - v, 2.0 * u, 2.0 * v, 8, m);
-        }
+        open_box(&mut b, &format!("block {k}"), centre, half, 8, m);
     }
     b
 }
@@ -173,25 +187,7 @@ pub fn generated_level(boxes: u32, cells: u32) -> Vec<u8> {
         let (i, j) = ((k % side) as f32, (k / side) as f32);
         let centre = Vec3::new(-48.0 + (i + 0.5) * pitch, 0.0, -48.0 + (j + 0.5) * pitch);
         let half = Vec3::new(0.3 * pitch, 0.25 * pitch + 0.1 * (k % 7) as f32, 0.3 * pitch);
-        let c = centre + Vec3::Y * half.y;
-        let faces = [
-            (Vec3::Y, half.y, Vec3::X * half.x, Vec3::NEG_Z * half.z),
-            (Vec3::Z, half.z, Vec3::X * half.x, Vec3::Y * half.y),
-            (Vec3::NEG_Z, half.z, Vec3::NEG_X * half.x, Vec3::Y * half.y),
-            (Vec3::NEG_X, half.x, Vec3::Z * half.z, Vec3::Y * half.y),
-            (Vec3::X, half.x, Vec3::NEG_Z * half.z, Vec3::Y * half.y),
-        ];
-        for (f, (n, d, u, v)) in faces.into_iter().enumerate() {
-            let centre = c + n * d;
-            b.quad_grid(
-                &format!("box {k} face {f}"),
-                centre - u - v,
-                2.0 * u,
-                2.0 * v,
-                cells,
-                block,
-            );
-        }
+        open_box(&mut b, &format!("box {k}"), centre, half, cells, block);
     }
     let (mut json, bin) = b.to_gltf();
     // The builder always writes TEXCOORD_1; a level as studios hand it over has none.
