@@ -85,7 +85,12 @@ fn main() {
                     neighbourhood: k,
                     ..SdbParams::default()
                 };
-                let mut engine = SdbEngine::new(ctx.clone(), sdb_input(&inputs, &params).0, params).expect("engine");
+                let mut engine = SdbEngine::new(
+                    ctx.clone(),
+                    sdb_input(&ctx, &inputs, &params).expect("sdb input").0,
+                    params,
+                )
+                .expect("engine");
                 for _ in 0..4 {
                     engine.step().expect("step");
                 }

@@ -65,9 +65,10 @@ fn direct(
 }
 
 // `emitter_add`: direct light from emitters smaller than a map pixel, which the map cannot
-// resolve (one pixel, dilated k x k, would stand for them). The CPU samples them per texel
-// once a step (next-event estimation with a shadow ray, `sdb.rs`, `SmallEmitters`); this
-// pass folds the samples into the same accumulators as the sun, as one more blend of the
+// resolve (one pixel, dilated k x k, would stand for them), and point and spot lights. The
+// shared direct-light pass (gpu/direct_light.wgsl, shadow rays through the BVH) estimates
+// them per texel, keeping each half's latest step (`sdb/lights.rs`, `SmallLights`); this
+// pass folds that estimate into the same accumulators as the sun, as one more blend of the
 // step: acc = acc * decay + sample * weight, where decay is what the step's directions
 // have left of the old blend (already applied when directional lights blended this step)
 // and weight = 1 - prod(1 - b) over the step's directions, the step's share of the mean.
@@ -76,7 +77,8 @@ struct EmitterAddParams {
     misc: vec4<u32>,  // x: parity, y: texel count N; z, w: unused
 }
 
-@group(0) @binding(5) var<storage, read> emitter_samples: array<vec4<f32>>;  // N: rgb E/pi
+// 2 N: the even half's texels, then the odd half's; rgb E/pi (w: the pass's hit fraction).
+@group(0) @binding(5) var<storage, read> emitter_samples: array<vec4<f32>>;
 @group(0) @binding(6) var<uniform> emitter_params: EmitterAddParams;
 
 @compute @workgroup_size(64)
@@ -92,5 +94,5 @@ fn emitter_add(
     }
     let slot = emitter_params.misc.x * n_texels + i;
     let m = emitter_params.mix;
-    sun_acc[slot] = vec4<f32>(sun_acc[slot].rgb * m.x + emitter_samples[i].rgb * m.y, 0.0);
+    sun_acc[slot] = vec4<f32>(sun_acc[slot].rgb * m.x + emitter_samples[slot].rgb * m.y, 0.0);
 }

@@ -149,6 +149,19 @@ impl DirectLight {
         self.pass.step()
     }
 
+    /// From now on each step replaces its half instead of joining its mean, so the
+    /// buffer of [`DirectLight::accumulators`] holds, per half, the latest step's
+    /// estimate: for a technique that blends steps with weights of its own (`sdb`).
+    pub fn keep_latest(&mut self) {
+        self.pass.keep_latest = true;
+    }
+
+    /// The accumulators on the device: 2 N vec4, the even half's texels then the odd
+    /// half's, rgb E/pi and the hit fraction.
+    pub fn accumulators(&self) -> &wgpu::Buffer {
+        self.pass.accumulator(0)
+    }
+
     /// Both halves' running means per valid texel (blocks on the device). A half no
     /// step has reached yet reads 0.
     pub fn halves(&self) -> Result<[DirectHalf; 2], GpuError> {

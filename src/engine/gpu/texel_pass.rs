@@ -9,7 +9,11 @@
 //! How a step runs: the step's parity picks its half; the half's k-th step is blended
 //! with weight 1/k into that half's running mean (the shader reads the weight), so a
 //! half is the mean of its steps and the two halves are independent estimates whose
-//! difference is the noise. One dispatch of one invocation per texel. At most
+//! difference is the noise. One dispatch of one invocation per texel. A pass with
+//! [`TexelRayPass::keep_latest`] set blends with weight 1 instead, so each half holds its
+//! latest step's estimate: for a technique that weights steps its own way (`sdb` folds
+//! them into blends of its own) and reads that buffer on the device
+//! ([`TexelRayPass::accumulator`]). At most
 //! [`STEPS_IN_FLIGHT`] steps are queued: `step` waits for the oldest before it returns
 //! when more are. Without that bound a step returned in microseconds, the bake loop
 //! queued thousands of them between snapshots, and its clock (time limit, longest step,
@@ -74,6 +78,8 @@ pub struct TexelRayPass<U: StepUniform> {
     in_flight: VecDeque<wgpu::SubmissionIndex>,
     /// The job's index of this bake's first step (a task's, `engine::tasks`).
     pub first_step: u64,
+    /// Replace each half with its latest step instead of averaging (see the module doc).
+    pub keep_latest: bool,
     pub lights: GpuSceneLights,
     _texels: Arc<wgpu::Buffer>,
 }
@@ -120,6 +126,7 @@ impl<U: StepUniform> TexelRayPass<U> {
             half_steps: [0, 0],
             in_flight: VecDeque::with_capacity(STEPS_IN_FLIGHT + 1),
             first_step: 0,
+            keep_latest: false,
             lights,
             _texels: texels,
         })
@@ -146,8 +153,8 @@ impl<U: StepUniform> TexelRayPass<U> {
         let half = (step % 2) as usize;
         let k = self.half_steps[half] + 1;
         if self.texels > 0 {
-            self.uniform
-                .set_step(self.first_step + step, half as u32, 1.0 / k as f32);
+            let weight = if self.keep_latest { 1.0 } else { 1.0 / k as f32 };
+            self.uniform.set_step(self.first_step + step, half as u32, weight);
             self.ctx
                 .queue
                 .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
@@ -163,6 +170,11 @@ impl<U: StepUniform> TexelRayPass<U> {
         }
         self.half_steps[half] = k;
         Ok(())
+    }
+
+    /// Accumulator `index` itself, for a pass of the same device that reads it.
+    pub fn accumulator(&self, index: usize) -> &wgpu::Buffer {
+        &self.accumulators[index].1
     }
 
     /// The first `count` vec4 of accumulator `index` (blocks on the device).

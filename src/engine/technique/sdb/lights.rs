@@ -1,22 +1,36 @@
-//! `sdb`'s light preparation on the CPU, before the first step: the scene in `sdb`'s terms
-//! ([`sdb_input`]), the emitters too small for the illumination map and the point and spot
-//! lights (sampled by CPU shadow rays, fed through the light accumulators so they bounce),
-//! and the ambient-mode gain of `average` mode ([`ambient_mode`], stochastic-depth-buffering
-//! seed, section 5's coarse mode).
+//! `sdb`'s light preparation, before the first step: the scene in `sdb`'s terms
+//! ([`sdb_input`]); the light the illumination map cannot carry, emitters too small for it
+//! and point and spot lights, estimated on the GPU by the shared direct-light pass
+//! (`gpu::direct_light`: shadow rays through the scene's BVH, `path`'s rules) and fed
+//! through the light accumulators so it bounces; and the ambient-mode gain of `average`
+//! mode ([`ambient_mode`], stochastic-depth-buffering seed, section 5's coarse mode).
+//!
+//! Until issue 20 the small emitters were sampled on the CPU (one shadow ray a texel a
+//! step, uploaded every step) and the point and spot lights computed once on the CPU;
+//! the GPU pass makes neither cross the bus and keeps the step on the device.
+
+use std::sync::Arc;
 
 use glam::Vec3;
 use rayon::prelude::*;
 
-use super::{AmbientMode, EmitterSampler, SdbInput, SdbParams};
+use super::{AmbientMode, SdbInput, SdbParams};
 use crate::engine::atlas::Atlas;
+use crate::engine::gpu::direct_light::DirectLight;
 use crate::engine::gpu::map_scene::MapScene;
+use crate::engine::gpu::scene_lights::LightSources;
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::raytrace::{Tracer, cosine_sample};
 use crate::engine::rng::Rng;
-use crate::engine::scene::{LightKind, PunctualLight, Scene};
+use crate::engine::scene::{LightKind, Scene};
 use crate::engine::technique::api::BakeInputs;
 
 /// The scene in `sdb`'s terms, and notes on what it leaves out.
-pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<String>) {
+pub fn sdb_input(
+    ctx: &Arc<GpuContext>,
+    inputs: &BakeInputs,
+    params: &SdbParams,
+) -> Result<(SdbInput, Vec<String>), GpuError> {
     let map = MapScene::new(
         &inputs.scene,
         &inputs.atlas,
@@ -26,17 +40,18 @@ pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<Stri
     );
     let (mut input, mut notes) = (SdbInput::from_map(map), Vec::new());
     let small = small_emitter_triangles(&inputs.scene, params.map_size);
+    let mut sources = LightSources::NONE;
     if !small.is_empty() {
         notes.push(format!(
-            "sdb samples {} emitter triangle(s) smaller than two map pixels on the CPU (one shadow ray per texel a step)",
+            "sdb samples {} emitter triangle(s) smaller than two map pixels by shadow rays on the GPU (one a texel a step)",
             small.len()
         ));
-        // They shine through the CPU sampler instead; in the map they still reflect and
-        // block.
+        // They shine through the direct-light pass instead; in the map they still reflect
+        // and block.
         for &i in &small {
             input.triangles[i].emission = Vec3::ZERO;
         }
-        input.small_emitters = Some(small_emitter_sampler(inputs, small));
+        sources = sources.with(LightSources::EMITTERS);
     }
     let punctual = inputs
         .scene
@@ -46,16 +61,34 @@ pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<Stri
         .count();
     if punctual > 0 {
         notes.push(format!(
-            "sdb bakes {punctual} point/spot light(s) by one CPU shadow ray per texel and light, once"
+            "sdb bakes {punctual} point/spot light(s) by shadow rays on the GPU (one a texel and light)"
         ));
-        let direct = punctual_direct(inputs);
-        input.small_emitters = Some(match input.small_emitters.take() {
-            Some(mut sampler) => Box::new(move |step| {
-                let mut v = sampler(step);
-                v.iter_mut().zip(&direct).for_each(|(a, b)| *a += *b);
-                v
-            }),
-            None => Box::new(move |_| direct.clone()),
+        sources = sources.with(LightSources::PUNCTUAL);
+    }
+    if sources != LightSources::NONE {
+        let mut keep = vec![false; inputs.scene.triangles.len()];
+        for &i in &small {
+            keep[i] = true;
+        }
+        input.small_lights = DirectLight::new(
+            ctx.clone(),
+            "sdb",
+            &inputs.rays,
+            &inputs.atlas,
+            &inputs.lighting,
+            inputs.seed,
+            sources,
+            Some(&keep),
+            1,
+            false,
+        )?
+        .map(|mut light| {
+            // sdb blends each step's estimate with its directions' weights itself.
+            light.keep_latest();
+            SmallLights {
+                light,
+                every_step: !small.is_empty(),
+            }
         });
     }
     input.ambient = Some(ambient_mode(
@@ -64,7 +97,17 @@ pub fn sdb_input(inputs: &BakeInputs, params: &SdbParams) -> (SdbInput, Vec<Stri
         &inputs.atlas,
         inputs.seed,
     ));
-    (input, notes)
+    Ok((input, notes))
+}
+
+/// The direct light the illumination map cannot carry (see the module doc).
+pub struct SmallLights {
+    /// Per half, its latest step's E/pi per texel (`DirectLight::keep_latest`).
+    pub light: DirectLight,
+    /// Whether it changes from step to step: small emitters are sampled (one point a
+    /// step); point and spot lights alone are exact and the same every step, so two steps
+    /// (one a half) compute them once.
+    pub every_step: bool,
 }
 
 /// Emitters whose triangles' longest edge is under two illumination-map pixels: the map
@@ -94,106 +137,6 @@ fn small_emitter_triangles(scene: &Scene, map_size: u32) -> Vec<usize> {
             m.emissive.max_element() > 0.0 && m.emissive_texture.is_none() && edge < 2.0 * pixel
         })
         .map(|(i, _)| i)
-        .collect()
-}
-
-/// Next-event estimation toward the small emitters, one sample per texel per step: a
-/// triangle picked by power, a uniform point on it, a CPU shadow ray (the `path`
-/// reference's rules: a single-sided emitter shines from its front only).
-fn small_emitter_sampler(inputs: &BakeInputs, small: Vec<usize>) -> EmitterSampler {
-    let scene = inputs.scene.clone();
-    let atlas = inputs.atlas.clone();
-    let seed = inputs.seed;
-    let power: Vec<f64> = small
-        .iter()
-        .map(|&i| {
-            let t = &scene.triangles[i];
-            scene.material(t).emissive.dot(Vec3::splat(1.0 / 3.0)) as f64 * t.area() as f64
-        })
-        .collect();
-    let total: f64 = power.iter().sum();
-    let cdf: Vec<f64> = power
-        .iter()
-        .scan(0.0, |acc, p| {
-            *acc += p / total;
-            Some(*acc)
-        })
-        .collect();
-    let tracer = inputs.rays.tracer();
-    Box::new(move |step: u64| {
-        atlas
-            .texels
-            .par_iter()
-            .enumerate()
-            .map(|(k, texel)| {
-                let mut rng = Rng::new(seed, 0x5A11_E417, step, k as u64);
-                let u = rng.next_f32() as f64;
-                let j = cdf.partition_point(|&c| c <= u).min(small.len() - 1);
-                let tri = &scene.triangles[small[j]];
-                let (a, b) = (rng.next_f32().sqrt(), rng.next_f32());
-                let q = tri.point(Vec3::new(1.0 - a, a * (1.0 - b), a * b));
-                let to = q - texel.position;
-                let d2 = to.length_squared();
-                if d2 <= 0.0 {
-                    return Vec3::ZERO;
-                }
-                let dist = d2.sqrt();
-                let w = to / dist;
-                let cos_r = texel.normal.dot(w);
-                let material = scene.material(tri);
-                let cos_e = -tri.geometric_normal().dot(w);
-                let cos_e = if material.double_sided { cos_e.abs() } else { cos_e };
-                if cos_r <= 0.0 || texel.geo_normal.dot(w) <= 0.0 || cos_e <= 0.0 {
-                    return Vec3::ZERO;
-                }
-                if !tracer.unoccluded(&scene, texel.position, w, dist * (1.0 - 1e-4)) {
-                    return Vec3::ZERO;
-                }
-                // pdf over area: (power share) / (triangle area).
-                let pdf = (power[j] / total) as f32 / tri.area();
-                material.emissive * (cos_r * cos_e / (d2 * pdf * std::f32::consts::PI))
-            })
-            .collect()
-    })
-}
-
-/// E/pi per valid texel from the scene's point and spot lights: one shadow ray per texel
-/// and light, with `path`'s rules (the light must be in front of both the shading and the
-/// geometric normal; [`PunctualLight::attenuation`] for range and cone). Exact for a
-/// point source, so it is computed once, not per step.
-fn punctual_direct(inputs: &BakeInputs) -> Vec<Vec3> {
-    let scene = &inputs.scene;
-    let tracer = inputs.rays.tracer();
-    let lights: Vec<&PunctualLight> = scene
-        .lights
-        .iter()
-        .filter(|l| l.kind != LightKind::Directional)
-        .collect();
-    inputs
-        .atlas
-        .texels
-        .par_iter()
-        .map(|texel| {
-            let mut sum = Vec3::ZERO;
-            for l in &lights {
-                let to = l.position - texel.position;
-                let d2 = to.length_squared();
-                if d2 <= 0.0 {
-                    continue;
-                }
-                let dist = d2.sqrt();
-                let w = to / dist;
-                let cos = texel.normal.dot(w);
-                if cos <= 0.0 || texel.geo_normal.dot(w) <= 0.0 {
-                    continue;
-                }
-                let falloff = l.attenuation(dist, -w) / d2;
-                if falloff > 0.0 && tracer.unoccluded(scene, texel.position, w, dist * (1.0 - 1e-4)) {
-                    sum += l.intensity * (falloff * cos / std::f32::consts::PI);
-                }
-            }
-            sum
-        })
         .collect()
 }
 

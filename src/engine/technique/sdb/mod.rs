@@ -81,10 +81,11 @@
 //! - Self-normalised gather and the ambient-mode correction (steps 3 and 5), neither in
 //!   the seed; the first step only bootstraps the correction and is dropped.
 //! - Point and spot lights (no map direction sees a point): their direct light is
-//!   computed once at preparation with one CPU shadow ray per texel and light
-//!   ([`punctual_direct`], `path`'s rules: hard shadows, KHR_lights_punctual range and cone
-//!   falloff) and fed every step through the same light accumulators as the small
-//!   emitters, so it bounces like every other light.
+//!   computed on the GPU with one shadow ray per texel and light through the scene's BVH
+//!   (the shared direct-light pass, `gpu::direct_light`, `path`'s rules: hard shadows,
+//!   KHR_lights_punctual range and cone falloff) in the first two steps, and fed every
+//!   step through the same light accumulators as the small emitters, so it bounces like
+//!   every other light.
 //!
 //! # Known bias (what the tests' tolerances follow from)
 //! - Overdraw: with K surfaces along a ray, a k x k neighbourhood misses the nearest one
@@ -97,9 +98,9 @@
 //!   n^-(1 + ramp)(1 - albedo) in the number of directions n. The correction removes the
 //!   estimate-shaped part of it; the rest (light distributions unlike the current
 //!   estimate) decays at that rate still.
-//! - Emitters smaller than two map pixels are taken out of the map and sampled on the
-//!   CPU (next-event estimation, one shadow ray per texel per step): the map could not
-//!   show them, and the k x k lookup would widen them k-fold.
+//! - Emitters smaller than two map pixels are taken out of the map and sampled by the
+//!   same GPU pass (next-event estimation, one shadow ray per texel per step): the map
+//!   could not show them, and the k x k lookup would widen them k-fold.
 
 use std::sync::Arc;
 
@@ -109,7 +110,7 @@ use serde::{Deserialize, Serialize};
 
 mod lights;
 
-pub use lights::{ambient_mode, sdb_input};
+pub use lights::{SmallLights, ambient_mode, sdb_input};
 
 use super::api::{
     AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params,
@@ -276,10 +277,10 @@ pub struct SdbInput {
     pub want_direct: bool,
     /// The coarse-mode (ambient) correction of `average` mode; None runs without it.
     pub ambient: Option<AmbientMode>,
-    /// Direct light the map cannot carry, computed on the CPU once a step: emitters too
-    /// small for the map (their triangles must then carry no emission in `triangles`) and
-    /// point and spot lights; None: there are none.
-    pub small_emitters: Option<EmitterSampler>,
+    /// Direct light the map cannot carry, estimated on the GPU (`gpu::direct_light`):
+    /// emitters too small for the map (their triangles must then carry no emission in
+    /// `triangles`) and point and spot lights; None: there are none.
+    pub small_lights: Option<SmallLights>,
     /// The scene's materials and textures on the GPU (`gpu::scene_rays`), which the maps'
     /// alpha test reads; None: every triangle's material is opaque (scenes made in code).
     pub tables: Option<Arc<GpuTables>>,
@@ -287,7 +288,7 @@ pub struct SdbInput {
 
 impl SdbInput {
     /// The shared map scene with none of `sdb`'s own additions (no ambient-mode
-    /// correction, no CPU-sampled small emitters).
+    /// correction, no small emitters or point lights).
     pub fn from_map(map: MapScene) -> Self {
         SdbInput {
             triangles: map.triangles,
@@ -299,16 +300,11 @@ impl SdbInput {
             seed: map.seed,
             want_direct: map.want_direct,
             ambient: None,
-            small_emitters: None,
+            small_lights: None,
             tables: None,
         }
     }
 }
-
-/// Per step (the argument: the step's index), one estimate of E/pi per valid texel of the
-/// light that reaches it directly from emitters too small for the illumination map and
-/// from point and spot lights.
-pub type EmitterSampler = Box<dyn FnMut(u64) -> Vec<Vec3> + Send>;
 
 /// What the ambient-mode correction needs (`shaders/sdb/resolve.wgsl`, `ambient_mode`).
 #[derive(Debug, Clone)]
@@ -436,10 +432,9 @@ pub struct SdbEngine {
     pixel_dispatch: (u32, u32),
 }
 
-/// The CPU-sampled light of small emitters and the pass that folds it in.
+/// The light of small emitters and point and spot lights, and the pass that folds it in.
 struct SmallEmitterPass {
-    sampler: EmitterSampler,
-    samples: wgpu::Buffer,
+    lights: SmallLights,
     params: wgpu::Buffer,
     pipeline: wgpu::ComputePipeline,
     bg: wgpu::BindGroup,
@@ -548,7 +543,7 @@ impl SdbEngine {
                 U::STORAGE | U::COPY_SRC | U::COPY_DST,
             )
         });
-        let has_light_acc = !input.lights.is_empty() || input.small_emitters.is_some();
+        let has_light_acc = !input.lights.is_empty() || input.small_lights.is_some();
         let sun_acc_buf = has_light_acc.then(|| {
             ctx.buffer_zeroed(
                 "sdb sun and directional light accumulators (even, odd)",
@@ -836,24 +831,23 @@ impl SdbEngine {
             }
             _ => (None, None),
         };
-        // Emitters too small for the map: CPU samples folded into the light accumulators.
-        let small_emitters = match (input.small_emitters, &sun_acc_buf) {
-            (Some(sampler), Some(sun_acc)) => {
+        // Emitters too small for the map, point and spot lights: the direct-light pass's
+        // latest estimate per half, folded into the light accumulators.
+        let small_emitters = match (input.small_lights, &sun_acc_buf) {
+            (Some(lights), Some(sun_acc)) => {
                 let module = ctx.shader(&shaders::SDB_DIRECT)?;
-                let samples = ctx.buffer_zeroed(
-                    "sdb small-emitter samples",
-                    n_texels as u64 * 16,
-                    U::STORAGE | U::COPY_DST,
-                );
                 let params_buf = ctx.uniform("sdb small emitters params", &GpuEmitterAddParams::zeroed());
                 // Bindings 4..6 of sdb/direct.wgsl (0..3 belong to its `direct` entry point).
-                let binds = [Bind::Write(sun_acc), Bind::Read(&samples), Bind::Uniform(&params_buf)];
+                let binds = [
+                    Bind::Write(sun_acc),
+                    Bind::Read(lights.light.accumulators()),
+                    Bind::Uniform(&params_buf),
+                ];
                 let layout = layout_at(&ctx, "sdb small emitters layout", 4, S::COMPUTE, &binds);
                 let pipeline = compute_pipeline(&ctx, "sdb small emitters", &module, "emitter_add", &layout);
                 let bg = group_at(&ctx, "sdb small emitters bindings", &layout, 4, &binds);
                 Some(SmallEmitterPass {
-                    sampler,
-                    samples,
+                    lights,
                     params: params_buf,
                     pipeline,
                     bg,
@@ -1221,13 +1215,10 @@ impl SdbEngine {
             }
         }
         if let Some(pass) = &mut self.small_emitters {
-            let samples: Vec<[f32; 4]> = (pass.sampler)(self.steps_done)
-                .into_iter()
-                .map(|v| v.extend(0.0).to_array())
-                .collect();
-            self.ctx
-                .queue
-                .write_buffer(&pass.samples, 0, bytemuck::cast_slice(&samples));
+            // Point and spot lights alone are the same every step: one step a half.
+            if pass.lights.every_step || self.steps_done < 2 {
+                pass.lights.light.step()?;
+            }
             // With directional lights their blends already decayed the mean this step.
             let old = if self.lights.is_empty() { decay } else { 1.0 };
             let params = GpuEmitterAddParams {
@@ -1323,12 +1314,12 @@ impl Sdb {
     pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
         let params: SdbParams = parse_params("sdb", params)?;
         params.validate().map_err(|e| EngineError::BadInput(e.to_string()))?;
-        let (mut input, notes) = sdb_input(&inputs, &params);
+        // One device per process, shared by every sdb bake (`gpu::shared`).
+        let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
+        let (mut input, notes) = sdb_input(&ctx, &inputs, &params).map_err(gpu_error)?;
         for n in &notes {
             tracing::warn!("{n}");
         }
-        // One device per process, shared by every sdb bake (`gpu::shared`).
-        let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
         input.tables = Some(
             inputs
                 .rays
@@ -1418,7 +1409,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     },
     unbiased: false,
     alpha: AlphaSupport::Partly {
-        tested: "its illumination and shadow maps, point and spot lights and small emitters (CPU shadow rays)",
+        tested: "its illumination and shadow maps, point and spot lights and small emitters (GPU shadow rays)",
         opaque: "the k x k map lookup (neighbourhood, default 5 pixels), which takes the nearest sample among k x k map pixels, closes cut-outs and BLEND coverage finer than k pixels: measured on a canopy, 8 % of the light through its cut-outs arrives at k = 5, about half at k = 1; it",
     },
     tasks: TaskSplit::Whole(
@@ -1443,16 +1434,18 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "coarse correction of the bounce feedback in `average` mode (the default), after 64k CPU rays measure the mean albedo seen",
     );
     p.decide(
-        "small-emitter sampling (CPU)",
+        "small-emitter sampling (GPU rays)",
         f.emissive_triangles > 0,
-        "emitter triangles under two map pixels, if any, shine through CPU shadow rays, one per texel a step",
+        "emitter triangles under two map pixels, if any, shine through shadow rays on the GPU, one per texel a step",
         "no emitters",
     );
     let punctual = f.punctual_lights.saturating_sub(f.directional_lights);
     p.decide(
-        "point and spot lights (CPU)",
+        "point and spot lights (GPU rays)",
         punctual > 0,
-        &format!("{punctual} point/spot light(s): one CPU shadow ray per texel and light, once; they feed the bounces"),
+        &format!(
+            "{punctual} point/spot light(s): one shadow ray per texel and light on the GPU, once a half; they feed the bounces"
+        ),
         "no point or spot light",
     );
     let directional = f.sun || f.directional_lights > 0;
