@@ -74,3 +74,65 @@ fn overlap_and_inside_texels_are_reported_and_shown() {
     // Inside texels are not valid.
     assert_eq!(count("validity.Y"), v.valid_texels);
 }
+
+/// Issue 20 point 3: texel validation's rays traced by the GPU's BVH query pass
+/// (`gpu::validate`, used on hardware GPUs) decide every texel as the CPU's do. Both
+/// routes cast the same rays from the same streams, and on lavapipe the GPU's closest hit
+/// is the CPU's (`tests/gpu_bvh.rs`), so the fractions must agree exactly. The atlas has
+/// more texels than one chunk of the GPU route, so the chunking is checked too.
+#[test]
+fn the_gpu_route_decides_every_texel_as_the_cpu_does() {
+    use lightmapd::engine::atlas::{Atlas, validate};
+    use lightmapd::engine::gpu::scene_rays::SceneRays;
+    use lightmapd::engine::gpu::{self, Requirements};
+
+    let ctx = match gpu::shared(&Requirements::default()) {
+        Ok(c) => c,
+        Err(e) if std::env::var("LIGHTMAPD_REQUIRE_GPU").as_deref() != Ok("1") => {
+            eprintln!("SKIPPED: no GPU adapter ({e})");
+            return;
+        }
+        Err(e) => panic!("no GPU adapter: {e}"),
+    };
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("floor", Vec3::ZERO, 6.0, Vec3::Y, m);
+    for (i, x) in [-2.0f32, -0.5, 1.0, 2.2].into_iter().enumerate() {
+        b.block(
+            &format!("crate {i}"),
+            Vec3::new(x, 0.0, 0.3 * x),
+            Vec3::splat(0.4),
+            0.3 * i as f32,
+            m,
+        );
+    }
+    let scene = Arc::new(import_slice(&b.to_glb(), None).unwrap().0);
+    let atlas = Atlas::build(&scene, 384, 384).unwrap();
+    assert!(
+        atlas.texels.len() > gpu::validate::CHUNK_TEXELS,
+        "{} texels: more than a chunk",
+        atlas.texels.len()
+    );
+    let rays = SceneRays::new(scene.clone());
+    let started = std::time::Instant::now();
+    let cpu = validate::backface_fractions(&scene, &rays.tracer(), &atlas.texels);
+    let cpu_s = started.elapsed().as_secs_f64();
+    let started = std::time::Instant::now();
+    let on_gpu = gpu::validate::backface_fractions(&ctx, &rays, &atlas.texels).expect("the GPU route");
+    let gpu_s = started.elapsed().as_secs_f64();
+    let inside = |f: &[f32]| f.iter().filter(|x| **x > validate::BACKFACE_TOLERANCE).count();
+    let differ = cpu.iter().zip(&on_gpu).filter(|(a, b)| a != b).count();
+    eprintln!(
+        "{} texels on {}: CPU {cpu_s:.2} s, GPU route {gpu_s:.2} s; inside {} (CPU) {} (GPU); fractions differ at {differ}",
+        atlas.texels.len(),
+        ctx.info.name,
+        inside(&cpu),
+        inside(&on_gpu)
+    );
+    assert_eq!(on_gpu.len(), cpu.len());
+    assert!(
+        inside(&cpu) > 100,
+        "the crates stand on the floor: texels under them are inside"
+    );
+    assert_eq!(differ, 0, "texels whose back-face fraction differs between the routes");
+}

@@ -24,6 +24,10 @@
 //! edge of a box standing on a floor, which dilation then lights like their
 //! neighbours).
 //!
+//! Routes: this module traces on the CPU; on a hardware GPU `engine::job` traces the same
+//! rays (the stream and decision helpers below) through the GPU's BVH query pass instead
+//! (`gpu::validate`), and hands the fractions to [`validate_from`].
+//!
 //! Limits: double-sided surfaces have no inside, so a texel inside a closed double-sided
 //! mesh is not detected; 64 rays miss openings narrower than about 1/8 of the
 //! hemisphere's projected area.
@@ -71,28 +75,51 @@ pub struct ValidationReport {
     pub warnings: Vec<String>,
 }
 
+/// The stream of texel `k`'s test rays: ray `i` takes the `i`-th pair of its numbers
+/// ([`test_direction`]), so the GPU route (`gpu::validate`) casts the very rays the CPU
+/// does and decides the same.
+pub fn texel_rng(k: usize) -> Rng {
+    Rng::new(0x7a11d, k as u64, 0, 0)
+}
+
+/// The next test ray's direction from `t`'s sample point, or `None` when it points below
+/// the geometric plane (skipped: neither a hit nor a miss).
+pub fn test_direction(t: &Texel, rng: &mut Rng) -> Option<glam::Vec3> {
+    let d = cosine_sample(t.normal, rng.next_f32(), rng.next_f32());
+    (d.dot(t.geo_normal) > 0.0).then_some(d)
+}
+
+/// Whether the hit triangle `tri` is met from behind by direction `d` and is
+/// single-sided: a back face that says the texel is inside.
+pub fn is_back_face(scene: &Scene, tri: u32, d: glam::Vec3) -> bool {
+    let tri = &scene.triangles[tri as usize];
+    d.dot(tri.cross()) > 0.0 && !scene.material(tri).double_sided
+}
+
+/// Whether a texel is decided after the first batch (the sequential stop of the module
+/// doc): it met no back face, or nothing but back faces.
+pub fn decided_after_first_batch(hits: u32, back: u32) -> bool {
+    back == 0 || (back == hits && hits >= FIRST_BATCH / 2)
+}
+
 /// Fraction of hits that are back faces of single-sided surfaces, per texel.
 pub fn backface_fractions(scene: &Scene, tracer: &Tracer, texels: &[Texel]) -> Vec<f32> {
     texels
         .par_iter()
         .enumerate()
         .map(|(k, t)| {
-            let mut rng = Rng::new(0x7a11d, k as u64, 0, 0);
+            let mut rng = texel_rng(k);
             let (mut hits, mut back) = (0u32, 0u32);
             for ray in 0..RAYS {
-                // The sequential stop of the module doc: after the first batch, a texel
-                // that met no back face, or nothing but back faces, is decided.
-                if ray == FIRST_BATCH && (back == 0 || (back == hits && hits >= FIRST_BATCH / 2)) {
+                if ray == FIRST_BATCH && decided_after_first_batch(hits, back) {
                     break;
                 }
-                let d = cosine_sample(t.normal, rng.next_f32(), rng.next_f32());
-                if d.dot(t.geo_normal) <= 0.0 {
+                let Some(d) = test_direction(t, &mut rng) else {
                     continue;
-                }
+                };
                 if let Some(h) = tracer.trace(scene, t.position, d, f32::INFINITY) {
                     hits += 1;
-                    let tri = &scene.triangles[h.triangle as usize];
-                    if d.dot(tri.cross()) > 0.0 && !scene.material(tri).double_sided {
+                    if is_back_face(scene, h.triangle, d) {
                         back += 1;
                     }
                 }
@@ -110,6 +137,12 @@ pub fn validate(scene: &Scene, atlas: &mut Atlas) -> ValidationReport {
 /// [`validate`] with the scene's BVH already built (a bake's, shared with its passes).
 pub fn validate_with(scene: &Scene, tracer: &Tracer, atlas: &mut Atlas) -> ValidationReport {
     let fractions = backface_fractions(scene, tracer, &atlas.texels);
+    validate_from(scene, atlas, &fractions)
+}
+
+/// [`validate`] from the texels' back-face fractions, however they were measured (the CPU
+/// route above or the GPU's, `gpu::validate`).
+pub fn validate_from(scene: &Scene, atlas: &mut Atlas, fractions: &[f32]) -> ValidationReport {
     let inside: Vec<bool> = fractions.iter().map(|f| *f > BACKFACE_TOLERANCE).collect();
     let inside_count = inside.iter().filter(|i| **i).count();
     if inside_count > 0 && inside_count < atlas.texels.len() {

@@ -40,6 +40,7 @@ pub mod shadow;
 pub mod shadowmask;
 pub mod texel_pass;
 pub mod texels;
+pub mod validate;
 pub mod view;
 
 use std::sync::{Arc, Mutex};
@@ -217,6 +218,39 @@ pub fn shared(req: &Requirements) -> Result<Arc<GpuContext>, GpuError> {
     let ctx = Arc::new(GpuContext::new(req)?);
     *slot = Some(ctx.clone());
     Ok(ctx)
+}
+
+/// True when some adapter is a hardware GPU (enumerated once per process).
+pub fn hardware_adapter_present() -> bool {
+    static PRESENT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *PRESENT.get_or_init(|| {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        adapters.iter().any(|a| {
+            matches!(
+                a.get_info().device_type,
+                wgpu::DeviceType::DiscreteGpu | wgpu::DeviceType::IntegratedGpu | wgpu::DeviceType::VirtualGpu
+            )
+        })
+    })
+}
+
+/// The shared context when it is a hardware GPU and `LIGHTMAPD_ADAPTER` does not ask for
+/// a software one; `None` otherwise, so the caller keeps its CPU route: on a machine
+/// with only lavapipe the CPU's own rays are faster than the same rays through a JIT on
+/// the same cores. `who` names the caller in the log line of an unusable GPU.
+pub fn hardware_context(who: &str) -> Option<Arc<GpuContext>> {
+    if AdapterPreference::from_env() == AdapterPreference::Cpu || !hardware_adapter_present() {
+        return None;
+    }
+    match shared(&Requirements::default()) {
+        Ok(ctx) if !ctx.is_software() => Some(ctx),
+        Ok(_) => None,
+        Err(e) => {
+            tracing::warn!(error = %e, who, "no usable GPU, running on the CPU");
+            None
+        }
+    }
 }
 
 /// A headless device and queue.

@@ -25,7 +25,7 @@
 //! texture texels, 2M texels with moments), checked up front with an error naming the
 //! buffer; the steps are counted in 32 bits in the shader.
 
-use std::sync::{Arc, OnceLock};
+use std::sync::Arc;
 
 use glam::Vec3;
 
@@ -34,7 +34,7 @@ use super::shaders::PATH_TRACE;
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::texel_pass::{PassSpec, StepUniform, TexelRayPass};
-use crate::engine::gpu::{self, AdapterPreference, GpuContext, GpuError, Requirements};
+use crate::engine::gpu::{self, GpuContext, GpuError, Requirements};
 use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
 
 /// Where `path` runs (`params.device`).
@@ -49,39 +49,12 @@ pub enum Device {
     Gpu,
 }
 
-/// True when some adapter is a hardware GPU (enumerated once per process).
-pub fn hardware_adapter_present() -> bool {
-    static PRESENT: OnceLock<bool> = OnceLock::new();
-    *PRESENT.get_or_init(|| {
-        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-        let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
-        adapters.iter().any(|a| {
-            matches!(
-                a.get_info().device_type,
-                wgpu::DeviceType::DiscreteGpu | wgpu::DeviceType::IntegratedGpu | wgpu::DeviceType::VirtualGpu
-            )
-        })
-    })
-}
-
 /// The GPU context `device` asks for, or `None` for the CPU.
 pub fn resolve(device: Device) -> Result<Option<Arc<GpuContext>>, EngineError> {
     match device {
         Device::Cpu => Ok(None),
         Device::Gpu => gpu::shared(&Requirements::default()).map(Some).map_err(gpu_error),
-        Device::Auto => {
-            if AdapterPreference::from_env() == AdapterPreference::Cpu || !hardware_adapter_present() {
-                return Ok(None);
-            }
-            match gpu::shared(&Requirements::default()) {
-                Ok(ctx) if !ctx.is_software() => Ok(Some(ctx)),
-                Ok(_) => Ok(None),
-                Err(e) => {
-                    tracing::warn!(error = %e, "path: no usable GPU, tracing on the CPU");
-                    Ok(None)
-                }
-            }
-        }
+        Device::Auto => Ok(gpu::hardware_context("path")),
     }
 }
 

@@ -68,13 +68,14 @@ use super::api::{
     AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params,
 };
 use crate::engine::accumulate::{HalfAccumulator, Snapshot};
+pub use crate::engine::gpu::hardware_adapter_present;
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{EmitterTable, Tracer, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Scene};
+pub use gpu::Device;
 use gpu::PathGpu;
-pub use gpu::{Device, hardware_adapter_present};
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
