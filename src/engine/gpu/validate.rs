@@ -115,11 +115,12 @@ fn trace_batch(
         return Ok(());
     }
     // The rays in texel order; a ray below the geometric plane is skipped as on the CPU.
-    let mut per: Vec<(usize, Vec<QueryRay>)> = who
+    let mut per: Vec<(usize, Vec<QueryRay>, Rng)> = who
         .par_iter()
         .map(|&i| {
             let t = &chunk[i];
-            // Each texel's stream is its own: cloned out, advanced, written back below.
+            // Each texel's stream is its own: cloned out, advanced (two numbers a ray,
+            // skipped or not, as on the CPU), written back below.
             let mut rng = streams[i].clone();
             let rays = (0..per_texel)
                 .filter_map(|_| validate::test_direction(t, &mut rng))
@@ -130,19 +131,14 @@ fn trace_batch(
                     mode: 0,
                 })
                 .collect();
-            (i, rays)
+            (i, rays, rng)
         })
         .collect();
-    // Advance the streams as the CPU would have (two numbers a ray, skipped or not).
-    for &i in who {
-        for _ in 0..2 * per_texel {
-            streams[i].next_f32();
-        }
-    }
-    let flat: Vec<QueryRay> = per.iter().flat_map(|(_, r)| r.iter().copied()).collect();
+    let flat: Vec<QueryRay> = per.iter().flat_map(|(_, r, _)| r.iter().copied()).collect();
     let hits: Vec<QueryHit> = runner.run(ctx, &flat)?;
     let mut at = 0;
-    for (i, rays) in per.drain(..) {
+    for (i, rays, rng) in per.drain(..) {
+        streams[i] = rng;
         for r in &rays {
             let h = hits[at];
             at += 1;
