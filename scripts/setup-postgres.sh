@@ -36,7 +36,7 @@ if [ "$port" != 5432 ]; then
     $SUDO pg_ctlcluster "$ver" main restart
 fi
 
-# TLS (issue 24: the queue connects with rustls and honours sslmode; tests/hardening.rs
+# TLS (issue 24: the queue connects with rustls and honours sslmode; tests/service/hardening.rs
 # checks it): Debian turns ssl on with the ssl-cert package's self-signed "snakeoil"
 # certificate. Where ssl is off, make a self-signed certificate for the cluster and turn
 # it on. The certificate is world-readable (the test verifies against it); the key is the

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# An S3-protocol server on loopback for the S3 artifact-store tests (tests/s3_store.rs):
+# An S3-protocol server on loopback for the S3 artifact-store tests (tests/service/s3_store.rs):
 # moto's server mode (PyPI `moto` with flask) in a virtual environment under
 # $LIGHTMAPD_MOTO_DIR (default /opt/lightmapd-moto), started detached on
 # 127.0.0.1:$LIGHTMAPD_MOTO_PORT (default 9000) unless something already listens there.

@@ -38,10 +38,10 @@ fi
 # --- PostgreSQL for the shared-queue tests (issue 11): its own script, see there. ---
 bash "$(dirname "$0")/setup-postgres.sh"
 
-# --- S3-compatible object store for tests/s3_store.rs (moto on 127.0.0.1:9000) ---
+# --- S3-compatible object store for tests/service/s3_store.rs (moto on 127.0.0.1:9000) ---
 bash "$(dirname "$0")/setup-s3.sh"
 
-# --- A real browser for tests/console.rs (issue 23): Debian's chromium, driven headless over
+# --- A real browser for tests/service/console.rs (issue 23): Debian's chromium, driven headless over
 # the DevTools protocol (no chromium-driver needed); fonts so screenshots have glyphs. ---
 browser=()
 for pkg in chromium fonts-dejavu-core; do

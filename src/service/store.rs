@@ -86,7 +86,7 @@ pub const PART_CONCURRENCY: usize = 4;
 /// connection, a 5xx): for up to two minutes, with decorrelated jittered backoff from
 /// 200 ms growing up to 10 s between tries. object_store's default (10 tries from 100 ms)
 /// gave up after 2.2 to 3 s against a store that refused connections, failing jobs that
-/// stored their lightmap in a 6 s outage (tests/real_faults.rs); a store that is down for
+/// stored their lightmap in a 6 s outage (tests/service/real_faults.rs); a store that is down for
 /// longer than two minutes fails the operation with its last error.
 fn s3_retry() -> object_store::RetryConfig {
     object_store::RetryConfig {

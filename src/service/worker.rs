@@ -267,7 +267,7 @@ async fn supervise(
     engine: Arc<EngineShared>,
 ) -> End {
     // A database or store outage when the job is claimed delays it (the lease held
-    // meanwhile) rather than failing it: measured in tests/real_faults.rs, where jobs
+    // meanwhile) rather than failing it: measured in tests/service/real_faults.rs, where jobs
     // claimed while the store was unreachable failed after object_store's own 10
     // retries (2.7 s).
     let started = Instant::now();

@@ -3,7 +3,7 @@
 //! started by `scripts/setup.sh test`), baking jobs while the database is restarted, its
 //! connections are cut and the store is unreachable for a while. The SQLite and
 //! local-folder versions of these faults, with wrappers instead of real outages, are in
-//! `tests/faults.rs`.
+//! `tests/service/faults.rs`.
 //!
 //! A file of its own: restarting PostgreSQL ends every session of the cluster, so no
 //! other test may use the database meanwhile (cargo runs test binaries one at a time).
@@ -11,7 +11,7 @@
 //! PostgreSQL or the S3 server it skips loudly, and fails under
 //! `LIGHTMAPD_REQUIRE_SERVICES=1` (CI).
 
-mod service_common;
+use crate::service_common;
 
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -82,6 +82,7 @@ async fn a_running_job(http: &reqwest::Client, url: &str, ids: &[String]) -> Str
 /// whole; the times each fault cost are printed (docs/reliability.md).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_restarted_database_cut_connections_and_an_unreachable_store_lose_no_job() {
+    let _cpu = crate::CPU_HEAVY.lock().await;
     let test = "real_faults::a_restarted_database_cut_connections_and_an_unreachable_store_lose_no_job";
     let Some(db) = Db::new(test).await else {
         return;

@@ -21,7 +21,7 @@
 //! Bakes are the `path` technique on the bundled Cornell box at 16² texels for a few
 //! tenths of a second, so the whole file runs in well under a minute.
 
-mod service_common;
+use crate::service_common;
 
 use std::process::Child;
 use std::sync::Arc;

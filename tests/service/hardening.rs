@@ -11,7 +11,7 @@
 //! stream; and PostgreSQL over TLS as `sslmode` says (against the local server's
 //! self-signed certificate).
 
-mod service_common;
+use crate::service_common;
 
 use std::process::Command;
 use std::time::Duration;

@@ -14,7 +14,7 @@
 //! Without a `chromium` on the PATH (`scripts/setup.sh test` installs it) the browser
 //! tests print a SKIPPED line, or fail under `LIGHTMAPD_REQUIRE_SERVICES=1`.
 
-mod service_common;
+use crate::service_common;
 
 use std::io::{BufRead, BufReader};
 use std::net::TcpStream;
@@ -573,6 +573,7 @@ fn pixels(png: &[u8]) -> Pixels {
 
 #[test]
 fn the_console_bakes_in_a_real_browser() {
+    let _cpu = crate::CPU_HEAVY.blocking_lock();
     let Some(exe) = skip_without_browser("the_console_bakes_in_a_real_browser") else {
         return;
     };
@@ -773,6 +774,7 @@ fn the_console_bakes_in_a_real_browser() {
 
 #[test]
 fn the_console_works_behind_auth() {
+    let _cpu = crate::CPU_HEAVY.blocking_lock();
     let Some(exe) = skip_without_browser("the_console_works_behind_auth") else {
         return;
     };
@@ -885,6 +887,7 @@ async fn wait_succeeded(http: &reqwest::Client, url: &str, id: &str, limit: Dura
 /// would not.
 #[test]
 fn a_two_page_job_looks_like_a_one_page_bake_in_3d() {
+    let _cpu = crate::CPU_HEAVY.blocking_lock();
     use lightmapd::engine::scene::build::write_glb;
     use lightmapd::engine::scene::library::sphere_over_plane;
     let Some(exe) = skip_without_browser("a_two_page_job_looks_like_a_one_page_bake_in_3d") else {
@@ -1080,6 +1083,7 @@ fn render_denoise_before_after() {
 /// pixels and the BLEND one 0.4 as many (stochastic coverage, per pixel).
 #[test]
 fn the_3d_view_cuts_away_what_alpha_cuts_away() {
+    let _cpu = crate::CPU_HEAVY.blocking_lock();
     use lightmapd::engine::scene::AlphaMode;
     use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, TextureDesc};
     let Some(exe) = skip_without_browser("the_3d_view_cuts_away_what_alpha_cuts_away") else {

@@ -21,10 +21,6 @@ use serde_json::{Value, json};
 
 const DEADLINE: Duration = Duration::from_secs(60);
 
-/// Held by tests whose measure is what a few seconds of CPU buys (snapshots stored) and
-/// by the one that takes both cores for seconds, so the two never overlap.
-static CPU_HEAVY: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
 fn bundled() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb")
 }
@@ -890,7 +886,7 @@ async fn cancel_stops_a_running_bake_and_a_queued_job() {
 /// is cancelled while it runs and must end within seconds, with no step done.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cancelling_a_long_step_stops_it_inside_the_step() {
-    let _cpu = CPU_HEAVY.lock().await;
+    let _cpu = crate::CPU_HEAVY.lock().await;
     let s = start(1, |_| {}).await;
     let scene = s.upload().await;
     let id = s
@@ -1435,7 +1431,7 @@ async fn a_long_bake_keeps_at_most_the_configured_snapshots() {
     let scene = s.upload().await;
     // Not beside the long CPU path step of `a_long_step_shows_its_progress_in_the_job`:
     // sharing the 2 cores with it, 3 s stored 11 snapshots, not the 13 asked for.
-    let _cpu = CPU_HEAVY.lock().await;
+    let _cpu = crate::CPU_HEAVY.lock().await;
     let id = s
         .submit(json!({"scene": scene, "resolution": 16, "stop": {"seconds": 4.0, "steps": 1000000}}))
         .await;
@@ -1698,7 +1694,7 @@ async fn a_job_of_several_pages_serves_every_page_and_the_manifest() {
 /// finished job's progress has no step in flight.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_long_step_shows_its_progress_in_the_job() {
-    let _cpu = CPU_HEAVY.lock().await;
+    let _cpu = crate::CPU_HEAVY.lock().await;
     let s = start(1, |_| {}).await;
     let scene = s.upload().await;
     let id = s

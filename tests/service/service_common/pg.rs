@@ -1,5 +1,5 @@
 //! PostgreSQL fixtures of the tests that run `lightmapd` processes on a shared database
-//! (`tests/scale_out.rs`, `tests/real_faults.rs`): a schema per test, child processes
+//! (`tests/service/scale_out.rs`, `tests/service/real_faults.rs`): a schema per test, child processes
 //! killed when a test fails half-way, signals, and an audit trigger on job status.
 
 use std::process::{Child, Command};

@@ -13,7 +13,7 @@
 //! With no server listening, the tests print a loud SKIPPED line and pass, unless
 //! `LIGHTMAPD_REQUIRE_SERVICES=1` (CI) makes them fail.
 
-mod service_common;
+use crate::service_common;
 
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};

@@ -28,7 +28,7 @@
 //! Time on the development machine (2 cores, no GPU, Debian, lavapipe; shared with two
 //! other builds): see docs/scaling.md.
 
-mod service_common;
+use crate::service_common;
 
 use std::collections::HashMap;
 use std::process::{Child, Command, Stdio};
@@ -70,6 +70,7 @@ async fn get_json(http: &reqwest::Client, url: &str) -> Value {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_api_three_workers_survive_two_sigkills() {
+    let _cpu = crate::CPU_HEAVY.lock().await;
     let test = "scale_out::one_api_three_workers_survive_two_sigkills";
     let Some(db) = Db::new(test).await else {
         return;
@@ -262,6 +263,7 @@ async fn one_api_three_workers_survive_two_sigkills() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn worker_sigterm_hands_the_job_back() {
+    let _cpu = crate::CPU_HEAVY.lock().await;
     let Some(db) = Db::new("scale_out::worker_sigterm_hands_the_job_back").await else {
         return;
     };
