@@ -616,3 +616,89 @@ fn measure_clamp_bias_and_step_times() {
         }
     }
 }
+
+/// Issue 20 point 3: the reflective shadow maps' rays traced through the GPU BVH
+/// (`"rays": "gpu"`, the query pass, here on lavapipe) give the bake the CPU route gives.
+/// Both routes make the same rays from the same streams and shade the same hits, so the
+/// bakes differ only where the two traversals' barycentrics round differently (a VPL
+/// moves by about 1e-7 of the scene) or a ray within 1e-5 of an edge picks the other
+/// triangle (`tests/gpu_bvh.rs`), which the bound below would catch if it moved a VPL
+/// onto another surface. Every kind of map is in the scene: the sun and four sky
+/// directions (orthographic), a point light and a spot light (cubes), back faces (the
+/// box's outside) and misses (the open front).
+#[test]
+fn rsm_rays_on_the_gpu_give_the_cpu_bake() {
+    if !have_adapter() {
+        return;
+    }
+    let mut b = cornell_box();
+    b.light(LightDesc::Point {
+        position: Vec3::new(0.3, 1.2, 0.2),
+        color: [1.0, 0.9, 0.8],
+        intensity: 0.5,
+    });
+    b.light(LightDesc::Spot {
+        position: Vec3::new(-0.4, 1.5, 0.4),
+        direction: Vec3::new(0.2, -1.0, -0.1),
+        color: [0.6, 0.8, 1.0],
+        intensity: 1.0,
+        inner: 0.3,
+        outer: 0.7,
+    });
+    let sun = Sun {
+        direction: Vec3::new(0.3, -1.0, -0.6),
+        angular_diameter: 0.5f32.to_radians(),
+        radiance: Vec3::splat(2000.0),
+    };
+    let lighting = Lighting {
+        sky: Some(lightmapd::engine::scene::Sky {
+            radiance: Vec3::new(0.2, 0.3, 0.5),
+            hemisphere: lightmapd::engine::scene::Hemisphere::Upper,
+        }),
+        sun: Some(sun),
+    };
+    let params = |rays: &str| {
+        json!({"rays": rays, "rsm_size": 32, "vpls_per_step": 16, "vpl_map_size": 16,
+               "shadow_map_size": 128})
+    };
+    let (_, cpu) = bake(import(&b), 24, lighting, "vpl", params("cpu"), 6);
+    let (_, gpu) = bake(import(&b), 24, lighting, "vpl", params("gpu"), 6);
+    let (mut diff2, mut ref2, mut largest) = (0.0f64, 0.0f64, 0.0f64);
+    for (c, g) in cpu.total.iter().zip(&gpu.total) {
+        let d = (lum(*c) - lum(*g)).abs();
+        diff2 += d * d;
+        ref2 += lum(*c).powi(2);
+        largest = largest.max(d / lum(*c).max(1e-3));
+    }
+    let rel = (diff2 / ref2).sqrt();
+    let mean_ratio = gpu.total.iter().map(|v| lum(*v)).sum::<f64>() / cpu.total.iter().map(|v| lum(*v)).sum::<f64>();
+    eprintln!(
+        "rsm rays GPU vs CPU: relative RMS difference {rel:.3e}, mean ratio {mean_ratio:.7}, largest texel difference {largest:.3e} over {} texels",
+        cpu.total.len()
+    );
+    assert!(ref2 > 0.0, "the scene is lit");
+    assert!(rel < 1e-4, "relative RMS difference {rel}");
+    assert!((mean_ratio - 1.0).abs() < 1e-5, "mean ratio {mean_ratio}");
+
+    // The route taken is in the echoed parameters: `auto` on lavapipe is the CPU.
+    use lightmapd::engine::technique::{self, BakeInputs};
+    let scene = std::sync::Arc::new(import(&b));
+    let atlas = std::sync::Arc::new(Atlas::build(&scene, 8, 8).expect("atlas"));
+    for (asked, taken) in [("cpu", "cpu"), ("gpu", "gpu"), ("auto", "cpu")] {
+        let request = lightmapd::engine::job::BakeRequest {
+            technique: "vpl".into(),
+            lighting,
+            ..Default::default()
+        };
+        let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
+        let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 1, plan);
+        let tech = technique::create("vpl", inputs, &json!({"rays": asked})).expect("vpl prepares");
+        let on_lavapipe = lightmapd::engine::gpu::shared(&Requirements::default())
+            .expect("an adapter")
+            .is_software();
+        if asked == "auto" && !on_lavapipe {
+            continue; // a hardware GPU takes the GPU route
+        }
+        assert_eq!(tech.params()["rays"], taken, "rays: {asked}");
+    }
+}

@@ -40,6 +40,7 @@ pub mod shadow;
 pub mod shadowmask;
 pub mod texel_pass;
 pub mod texels;
+pub mod tracer;
 pub mod validate;
 pub mod view;
 
@@ -249,6 +250,31 @@ pub fn hardware_context(who: &str) -> Option<Arc<GpuContext>> {
         Err(e) => {
             tracing::warn!(error = %e, who, "no usable GPU, running on the CPU");
             None
+        }
+    }
+}
+
+/// Where a technique traces the rays it makes on the CPU or could make on the GPU
+/// (`path`'s `device`, `vpl`'s `rays` parameter).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RayDevice {
+    /// The GPU when a hardware adapter exists (and `LIGHTMAPD_ADAPTER` does not ask for a
+    /// software one), else the CPU: a machine with only lavapipe keeps the CPU route.
+    #[default]
+    Auto,
+    Cpu,
+    Gpu,
+}
+
+impl RayDevice {
+    /// The GPU context this asks for, or `None` for the CPU; `who` names the caller in
+    /// the log line of an unusable GPU.
+    pub fn context(self, who: &str) -> Result<Option<Arc<GpuContext>>, GpuError> {
+        match self {
+            RayDevice::Cpu => Ok(None),
+            RayDevice::Gpu => shared(&Requirements::default()).map(Some),
+            RayDevice::Auto => Ok(hardware_context(who)),
         }
     }
 }

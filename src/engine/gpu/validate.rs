@@ -1,15 +1,15 @@
 //! Texel validation's rays on the GPU (issue 20 point 3): the back-face test of
-//! `atlas::validate` with its rays traced by the BVH query pass (`gpu::bvh`,
-//! [`QueryRunner`]) instead of the CPU tracer.
+//! `atlas::validate` with its rays traced by the BVH query pass ([`GpuTracer`], the
+//! shared tracer of CPU-made rays) instead of the CPU tracer.
 //!
 //! How: the CPU makes the rays, the GPU traces them, the CPU counts. Every texel's rays
 //! come from its own stream ([`validate::texel_rng`], [`validate::test_direction`]) exactly
 //! as on the CPU, the first [`FIRST_BATCH`] of them for every texel, then the rest of the
 //! [`RAYS`] only for the texels the first batch left undecided
-//! ([`validate::decided_after_first_batch`]); a hit's triangle is the scene's (the slot's
-//! `id`), tested by the same [`validate::is_back_face`]. So the route only changes who
-//! traces: where the GPU's closest hit is the CPU's (`tests/gpu_bvh.rs`), both routes
-//! give every texel the same fraction, which `tests/validation.rs` checks on lavapipe.
+//! ([`validate::decided_after_first_batch`]); a hit's triangle is tested by the same
+//! [`validate::is_back_face`]. So the route only changes who traces: where the GPU's
+//! closest hit is the CPU's (`tests/gpu_bvh.rs`), both routes give every texel the same
+//! fraction, which `tests/validation.rs` checks on lavapipe.
 //!
 //! Why a query pass and not a shader of its own: validation runs once a bake, its rays
 //! are few beside a bake's (16 a texel for most), and its cost on a real level was the
@@ -20,7 +20,7 @@
 //! Bounds: texels go in chunks of [`CHUNK_TEXELS`] (up to 16 rays each in the first
 //! batch, 32 bytes a ray: 32 MiB of rays a dispatch), so memory does not grow with the
 //! level. A traversal that overflowed its stack (which `BvhData::new`'s depth check
-//! rules out) is an error naming the texel, never a silent miss.
+//! rules out) is an error ([`GpuTracer::trace`]), never a silent miss.
 //!
 //! Who uses it: `engine::job` on a hardware GPU ([`super::hardware_context`]); on lavapipe
 //! the CPU route is faster, since the query pass runs on the same cores through a JIT.
@@ -29,14 +29,12 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use super::bvh::{BVH_MISS, QUERY_OVERFLOW, QueryHit, QueryRay, QueryRunner};
-use super::scene_lights::{GpuSceneLights, LightSources};
 use super::scene_rays::SceneRays;
+use super::tracer::{GpuTracer, Ray};
 use super::{GpuContext, GpuError};
 use crate::engine::atlas::Texel;
 use crate::engine::atlas::validate::{self, FIRST_BATCH, RAYS};
 use crate::engine::rng::Rng;
-use crate::engine::scene::Lighting;
 
 /// Texels whose rays go to the device together.
 pub const CHUNK_TEXELS: usize = 65_536;
@@ -45,16 +43,7 @@ pub const CHUNK_TEXELS: usize = 65_536;
 /// [`validate::backface_fractions`], traced on `ctx`.
 pub fn backface_fractions(ctx: &Arc<GpuContext>, rays: &SceneRays, texels: &[Texel]) -> Result<Vec<f32>, GpuError> {
     let scene = rays.scene();
-    let lights = GpuSceneLights::new(
-        ctx,
-        "texel validation",
-        rays,
-        &Lighting::default(),
-        &rays.emitters(),
-        LightSources::NONE,
-    )?;
-    let runner = QueryRunner::new(ctx, &lights, CHUNK_TEXELS * FIRST_BATCH as usize)?;
-    let tris = &lights.bvh.data.tris;
+    let tracer = GpuTracer::new(ctx, "texel validation", rays, CHUNK_TEXELS * FIRST_BATCH as usize)?;
     let mut fractions = Vec::with_capacity(texels.len());
     for (c, chunk) in texels.chunks(CHUNK_TEXELS).enumerate() {
         let first = c * CHUNK_TEXELS;
@@ -62,31 +51,28 @@ pub fn backface_fractions(ctx: &Arc<GpuContext>, rays: &SceneRays, texels: &[Tex
         let mut streams: Vec<Rng> = (0..chunk.len()).map(|i| validate::texel_rng(first + i)).collect();
         let mut counts = vec![(0u32, 0u32); chunk.len()];
         let everyone: Vec<usize> = (0..chunk.len()).collect();
+        let back_face = |tri: u32, d| validate::is_back_face(scene, tri, d);
         trace_batch(
-            ctx,
-            &runner,
+            &tracer,
             chunk,
             &everyone,
             FIRST_BATCH,
             &mut streams,
             &mut counts,
-            first,
-            |tri, d| validate::is_back_face(scene, tris[tri as usize].id, d),
+            back_face,
         )?;
         let undecided: Vec<usize> = everyone
             .into_iter()
             .filter(|&i| !validate::decided_after_first_batch(counts[i].0, counts[i].1))
             .collect();
         trace_batch(
-            ctx,
-            &runner,
+            &tracer,
             chunk,
             &undecided,
             RAYS - FIRST_BATCH,
             &mut streams,
             &mut counts,
-            first,
-            |tri, d| validate::is_back_face(scene, tris[tri as usize].id, d),
+            back_face,
         )?;
         fractions.extend(
             counts
@@ -98,24 +84,21 @@ pub fn backface_fractions(ctx: &Arc<GpuContext>, rays: &SceneRays, texels: &[Tex
 }
 
 /// Casts the next `per_texel` rays of each texel `who` (indices into `chunk`) and adds
-/// their hits and back faces to `counts`; `back_face(slot, d)` classifies a hit.
-#[allow(clippy::too_many_arguments)]
+/// their hits and back faces to `counts`; `back_face(triangle, d)` classifies a hit.
 fn trace_batch(
-    ctx: &GpuContext,
-    runner: &QueryRunner,
+    tracer: &GpuTracer,
     chunk: &[Texel],
     who: &[usize],
     per_texel: u32,
     streams: &mut [Rng],
     counts: &mut [(u32, u32)],
-    first: usize,
     back_face: impl Fn(u32, glam::Vec3) -> bool + Sync,
 ) -> Result<(), GpuError> {
     if who.is_empty() {
         return Ok(());
     }
     // The rays in texel order; a ray below the geometric plane is skipped as on the CPU.
-    let mut per: Vec<(usize, Vec<QueryRay>, Rng)> = who
+    let mut per: Vec<(usize, Vec<Ray>, Rng)> = who
         .par_iter()
         .map(|&i| {
             let t = &chunk[i];
@@ -124,36 +107,28 @@ fn trace_batch(
             let mut rng = streams[i].clone();
             let rays = (0..per_texel)
                 .filter_map(|_| validate::test_direction(t, &mut rng))
-                .map(|d| QueryRay {
-                    origin: t.position.to_array(),
-                    tmax: f32::MAX,
-                    dir: d.to_array(),
-                    mode: 0,
+                .map(|dir| Ray {
+                    origin: t.position,
+                    dir,
+                    tmax: f32::INFINITY,
                 })
                 .collect();
             (i, rays, rng)
         })
         .collect();
-    let flat: Vec<QueryRay> = per.iter().flat_map(|(_, r, _)| r.iter().copied()).collect();
-    let hits: Vec<QueryHit> = runner.run(ctx, &flat)?;
+    let flat: Vec<Ray> = per.iter().flat_map(|(_, r, _)| r.iter().copied()).collect();
+    let hits = tracer.trace(&flat)?;
     let mut at = 0;
     for (i, rays, rng) in per.drain(..) {
         streams[i] = rng;
         for r in &rays {
-            let h = hits[at];
-            at += 1;
-            if h.slot == QUERY_OVERFLOW {
-                return Err(GpuError::Device {
-                    during: "texel validation".into(),
-                    message: format!("a ray of texel {} overflowed the BVH traversal stack", first + i),
-                });
-            }
-            if h.slot != BVH_MISS {
+            if let Some(h) = &hits[at] {
                 counts[i].0 += 1;
-                if back_face(h.slot, glam::Vec3::from_array(r.dir)) {
+                if back_face(h.triangle, r.dir) {
                     counts[i].1 += 1;
                 }
             }
+            at += 1;
         }
     }
     Ok(())

@@ -34,28 +34,15 @@ use super::shaders::PATH_TRACE;
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::texel_pass::{PassSpec, StepUniform, TexelRayPass};
-use crate::engine::gpu::{self, GpuContext, GpuError, Requirements};
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
 
-/// Where `path` runs (`params.device`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Device {
-    /// The GPU when a hardware adapter exists (and `LIGHTMAPD_ADAPTER` does not ask for a
-    /// software one), else the CPU: a machine with only lavapipe keeps the CPU path.
-    #[default]
-    Auto,
-    Cpu,
-    Gpu,
-}
+/// Where `path` runs (`params.device`): the shared layer's [`RayDevice`](crate::engine::gpu::RayDevice).
+pub use crate::engine::gpu::RayDevice as Device;
 
 /// The GPU context `device` asks for, or `None` for the CPU.
 pub fn resolve(device: Device) -> Result<Option<Arc<GpuContext>>, EngineError> {
-    match device {
-        Device::Cpu => Ok(None),
-        Device::Gpu => gpu::shared(&Requirements::default()).map(Some).map_err(gpu_error),
-        Device::Auto => Ok(gpu::hardware_context("path")),
-    }
+    device.context("path").map_err(gpu_error)
 }
 
 const PATH_DIRECT: u32 = 1;

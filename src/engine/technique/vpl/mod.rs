@@ -14,8 +14,9 @@
 //!    sequence over the sphere, randomly rotated per bake, the upper half mirrored up for
 //!    an `upper` sky; each is a distant light of irradiance L(w) Omega / K), and every point
 //!    and spot light.
-//! 2. *Reflective shadow maps* (CPU ray casting, seed: "cast rays from a (primary) light
-//!    into the scene and mark the positions where they hit"): per distant light an
+//! 2. *Reflective shadow maps* (ray casting, seed: "cast rays from a (primary) light
+//!    into the scene and mark the positions where they hit"; `vpl/rsm.rs`, the rays traced
+//!    on the CPU or in one batch through the GPU BVH, `params.rays`): per distant light an
 //!    orthographic `rsm_size`^2 grid over the scene's bounding disc, per point or spot
 //!    light a cube of six perspective faces of (`rsm_size`/2)^2 (spot texels outside the
 //!    cone are skipped). One jittered ray per texel; a texel stores the hit's position,
@@ -44,12 +45,14 @@
 //!    exactly; and blends the sum into the even or odd half accumulator (a running mean).
 //!    Light from primary lights and depth-0 VPLs also goes into a direct accumulator.
 //!
-//! Readback only at snapshots. No GPU randomness: every random number is drawn on the
+//! Readback only at snapshots (and the RSM rays' hits on the GPU route). No GPU
+//! randomness: every random number is drawn on the
 //! CPU (SplitMix64 per step and PCG32 streams per RSM row and path, keyed by bake seed,
 //! step and index), so a bake is reproducible from its seed. Precision: f32; geometry on
 //! the GPU in normalised scene space (p - centre) / radius, fluxes and intensities divided
 //! by radius^2 to match, so the clamp, the shadow biases and the near planes are relative
-//! and scaled or translated scenes bake the same. CPU rays run in world space with the
+//! and scaled or translated scenes bake the same. The RSMs' and bounces' rays run in
+//! world space (the GPU route's BVH is the world-space one the CPU's mirrors) with the
 //! atlas's relative surface offset. Bounds: the shadow atlas is laid out once per bake
 //! and checked against the device's largest texture (a bad-input error names the
 //! parameters to lower); the step's light list (primaries + `vpls_per_step`) and views
@@ -57,10 +60,11 @@
 //! each) are checked against the storage-binding limit.
 //!
 //! # Departures from the seed
-//! - RSM texels are found by CPU ray casting (the seed's first option) instead of
+//! - RSM texels are found by ray casting (the seed's first option) instead of
 //!   rasterising from the light: one code path for orthographic, perspective and cube
-//!   maps, jitter per step for free, and no GPU readback to pick VPLs by flux. The maps
-//!   have the seed's content (position, normal, flux) and resolution, as parameters.
+//!   maps, jitter per step for free, and the texels on the host to pick VPLs by flux
+//!   (the GPU route reads back the hits, 16 bytes a ray). The maps have the seed's
+//!   content (position, normal, flux) and resolution, as parameters.
 //! - Reflected flux (albedo x light colour), not albedo: coloured lights work; normals are
 //!   stored, so VPLs are hemispherical emitters (the seed's own wish).
 //! - VPL visibility (the seed left it out): a five-face cube shadow map per VPL. The leak
@@ -88,6 +92,8 @@
 //!   25k triangles (docs/performance.md).
 //! - Diffuse only; no directional (`sh`) layer.
 
+mod rsm;
+
 use std::f32::consts::PI;
 use std::sync::Arc;
 
@@ -110,12 +116,14 @@ use crate::engine::gpu::shadow::{
     shadow_vertices,
 };
 use crate::engine::gpu::texels::GpuTexelGeom;
-use crate::engine::gpu::{self, GpuContext};
+use crate::engine::gpu::tracer::GpuTracer;
+use crate::engine::gpu::{self, GpuContext, RayDevice};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::raytrace::{Tracer, basis, cone_sample, cosine_sample, inset};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{Hemisphere, LightKind, Lighting, Scene};
+use rsm::RsmTracer;
 
 // ---------------------------------------------------------------------------------------
 // Parameters
@@ -147,6 +155,11 @@ pub struct VplParams {
     /// Sky directions per step (each a distant light with its own RSM and shadow map).
     /// Range 1..=64; default 4.
     pub sky_directions: u32,
+    /// Where the reflective shadow maps' rays are traced: `auto` (default: the GPU on a
+    /// hardware adapter, else the CPU), `cpu` or `gpu` (the BVH query pass, also on
+    /// lavapipe). The bake's echoed parameters name the route taken. The VPL paths'
+    /// bounces stay on the CPU (`vpl/rsm.rs` says why).
+    pub rays: RayDevice,
 }
 
 impl Default for VplParams {
@@ -160,6 +173,7 @@ impl Default for VplParams {
             shadow_map_size: 512,
             vpl_map_size: 64,
             sky_directions: 4,
+            rays: RayDevice::Auto,
         }
     }
 }
@@ -283,15 +297,7 @@ struct Emitter {
 /// The hit of a light ray: the point and the side it faces; None when nothing reflects
 /// (a miss, or the black back face of single-sided geometry).
 fn surface_hit(scene: &Scene, tracer: &Tracer, origin: Vec3, dir: Vec3, tmax: f32) -> Option<(Vec3, Vec3, Vec3)> {
-    let hit = tracer.trace(scene, origin, dir, tmax)?;
-    let tri = &scene.triangles[hit.triangle as usize];
-    let ng = tri.geometric_normal();
-    let front = ng.dot(dir) < 0.0;
-    if !front && !scene.material(tri).double_sided {
-        return None;
-    }
-    let b = inset(hit.bary);
-    Some((tri.point(b), if front { ng } else { -ng }, scene.albedo(tri, b)))
+    rsm::surface_of(scene, &tracer.trace(scene, origin, dir, tmax)?, dir)
 }
 
 // ---------------------------------------------------------------------------------------
@@ -302,7 +308,10 @@ pub struct Vpl {
     ctx: Arc<GpuContext>,
     params: VplParams,
     scene: Arc<Scene>,
+    /// The VPL paths' bounces (CPU).
     tracer: Arc<Tracer>,
+    /// The reflective shadow maps' rays (`params.rays`).
+    rsm: RsmTracer,
     lighting: Lighting,
     seed: u64,
     want_direct: bool,
@@ -349,7 +358,7 @@ struct StepLights {
 
 impl Vpl {
     pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
-        let params: VplParams = parse_params("vpl", params)?;
+        let mut params: VplParams = parse_params("vpl", params)?;
         params.validate()?;
         let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
         let scene = inputs.scene.clone();
@@ -480,6 +489,26 @@ impl Vpl {
         ctx.take_error("vpl setup").map_err(gpu_error)?;
 
         let tracer = inputs.rays.tracer();
+        let rsm = match params.rays.context("vpl").map_err(gpu_error)? {
+            Some(rays_ctx) => {
+                // One step's rays: n^2 a distant light, 6 (n/2)^2 a point or spot light.
+                let n = params.rsm_size as usize;
+                let most: usize = primaries
+                    .iter()
+                    .map(|p| match p {
+                        Primary::Punctual(_) => 6 * (n / 2).max(1).pow(2),
+                        _ => n * n,
+                    })
+                    .sum();
+                let capacity = most.clamp(1, rsm::GPU_CHUNK);
+                RsmTracer::Gpu(GpuTracer::new(&rays_ctx, "vpl rsm", &inputs.rays, capacity).map_err(gpu_error)?)
+            }
+            None => RsmTracer::Cpu(tracer.clone()),
+        };
+        params.rays = match rsm {
+            RsmTracer::Gpu(_) => RayDevice::Gpu,
+            RsmTracer::Cpu(_) => RayDevice::Cpu,
+        };
         let ray_offset = SURFACE_OFFSET * scene.scale();
         Ok(Vpl {
             texel_dispatch: gpu::dispatch_size_64(n_texels),
@@ -489,6 +518,7 @@ impl Vpl {
             params,
             scene,
             tracer,
+            rsm,
             lighting,
             seed: inputs.seed,
             want_direct: inputs.want_direct,
@@ -556,88 +586,6 @@ impl Vpl {
             .collect()
     }
 
-    /// The orthographic RSM of a distant light: one jittered ray per texel over the
-    /// bounding disc; texel flux = irradiance x texel area x albedo.
-    fn rsm_distant(&self, dir: Vec3, irradiance: Vec3, key: u64, out: &mut Vec<SurfacePoint>) {
-        let n = self.params.rsm_size;
-        let r = self.radius * MARGIN;
-        let (t, b) = basis(dir);
-        let pixel = 2.0 * r / n as f32;
-        let texel_flux = irradiance * (pixel * pixel);
-        let (scene, tracer, centre, seed) = (&*self.scene, &self.tracer, self.centre, self.seed);
-        let rows: Vec<Vec<SurfacePoint>> = (0..n)
-            .into_par_iter()
-            .map(|j| {
-                let mut rng = Rng::new(seed, key, j as u64, 1);
-                let mut row = Vec::new();
-                for i in 0..n {
-                    let x = -r + (i as f32 + rng.next_f32()) * pixel;
-                    let y = -r + (j as f32 + rng.next_f32()) * pixel;
-                    let origin = centre + t * x + b * y - dir * (2.0 * r);
-                    if let Some((p, nn, albedo)) = surface_hit(scene, tracer, origin, dir, 4.0 * r) {
-                        let flux = texel_flux * albedo;
-                        if lum(flux) > 0.0 {
-                            row.push(SurfacePoint {
-                                p,
-                                n: nn,
-                                flux,
-                                depth: 1,
-                            });
-                        }
-                    }
-                }
-                row
-            })
-            .collect();
-        out.extend(rows.into_iter().flatten());
-    }
-
-    /// The cube RSM of a point or spot light: per face (rsm_size/2)^2 jittered rays;
-    /// texel flux = intensity x solid angle x window x cone x albedo.
-    fn rsm_punctual(&self, light: usize, frame: (Vec3, Vec3, Vec3), key: u64, out: &mut Vec<SurfacePoint>) {
-        let l = &self.scene.lights[light];
-        let n = (self.params.rsm_size / 2).max(1);
-        let pixel = 2.0 / n as f32;
-        let (scene, tracer, seed) = (&*self.scene, &self.tracer, self.seed);
-        let faces = cube_faces(frame.0, frame.1, frame.2);
-        let rows: Vec<Vec<SurfacePoint>> = (0..6 * n)
-            .into_par_iter()
-            .map(|row_index| {
-                let (face, j) = (row_index / n, row_index % n);
-                let (fwd, right, up) = faces[face as usize];
-                let mut rng = Rng::new(seed, key, row_index as u64, 2);
-                let mut row = Vec::new();
-                for i in 0..n {
-                    let u = -1.0 + (i as f32 + rng.next_f32()) * pixel;
-                    let v = -1.0 + (j as f32 + rng.next_f32()) * pixel;
-                    let w = fwd + right * u + up * v;
-                    let len2 = w.length_squared();
-                    let dir = w / len2.sqrt();
-                    // The cone alone first: most of a spot's cube misses it.
-                    if l.attenuation(0.0, dir) <= 0.0 {
-                        continue;
-                    }
-                    // Solid angle of a pixel of a unit-distance face at (u, v).
-                    let d_omega = pixel * pixel / (len2 * len2.sqrt());
-                    if let Some((p, nn, albedo)) = surface_hit(scene, tracer, l.position, dir, f32::INFINITY) {
-                        let falloff = l.attenuation(p.distance(l.position), dir);
-                        let flux = l.intensity * (d_omega * falloff) * albedo;
-                        if lum(flux) > 0.0 {
-                            row.push(SurfacePoint {
-                                p,
-                                n: nn,
-                                flux,
-                                depth: 1,
-                            });
-                        }
-                    }
-                }
-                row
-            })
-            .collect();
-        out.extend(rows.into_iter().flatten());
-    }
-
     /// Keller's recursion from one VPL: cosine-distributed rays, Russian roulette by
     /// albedo, up to `max_depth`.
     fn continue_path(&self, start: SurfacePoint, rng: &mut Rng, out: &mut Vec<SurfacePoint>) {
@@ -689,13 +637,13 @@ impl Vpl {
     }
 
     /// Everything one step lights with: primary lights, RSMs, VPL paths, shadow views.
-    fn build_step(&mut self) -> StepLights {
+    fn build_step(&mut self) -> Result<StepLights, EngineError> {
         let step_key = self.rng.next_u64();
         let n_views = self.layout.rects.len();
         let mut views = vec![ShadowView::zeroed(); n_views];
         let mut lights = Vec::with_capacity(self.max_lights as usize);
         let mut draws = Vec::new();
-        let mut rsm: Vec<SurfacePoint> = Vec::new();
+        let mut rsm_rays = Vec::new();
         let r2 = self.radius * self.radius;
         let sky_solid_angle = match self.lighting.sky.map(|s| s.hemisphere) {
             Some(Hemisphere::Full) => 4.0 * PI,
@@ -738,7 +686,8 @@ impl Vpl {
                     spot: [0.0; 4],
                     info: [LIGHT_DIRECTIONAL, view, 1, 0],
                 });
-                self.rsm_distant(dir, irradiance, key, &mut rsm);
+                let disc = (self.centre, self.radius * MARGIN, self.params.rsm_size);
+                rsm_rays.extend(rsm::distant_rays(dir, irradiance, disc, (self.seed, key)));
             } else if let Primary::Punctual(i) = primary {
                 let l = self.scene.lights[i].clone();
                 let spot = matches!(l.kind, LightKind::Spot { .. });
@@ -769,9 +718,13 @@ impl Vpl {
                     spot: [cos_outer, inv, l.range.map_or(0.0, |r| r / self.radius), 0.0],
                     info: [if spot { LIGHT_SPOT } else { LIGHT_POINT }, view, 1, 0],
                 });
-                self.rsm_punctual(i, frame, key, &mut rsm);
+                let n = (self.params.rsm_size / 2).max(1);
+                let faces = cube_faces(frame.0, frame.1, frame.2);
+                rsm_rays.extend(rsm::punctual_rays(&self.scene, i, &faces, n, (self.seed, key)));
             }
         }
+
+        let rsm = self.rsm.texels(&self.scene, &rsm_rays)?;
 
         // Path starts by luminance flux over RSM texels and emitters.
         let m = self.params.vpls_per_step as usize;
@@ -846,7 +799,7 @@ impl Vpl {
                 info: [LIGHT_VPL, first, u32::from(v.depth == 0), 0],
             });
         }
-        StepLights { lights, views, draws }
+        Ok(StepLights { lights, views, draws })
     }
 
     /// `m` VPLs drawn from `vpls` with probability proportional to luminance flux, each
@@ -880,7 +833,7 @@ impl Vpl {
 
     fn run_step(&mut self) -> Result<(), EngineError> {
         let parity = (self.steps_done % 2) as usize;
-        let step = self.build_step();
+        let step = self.build_step()?;
         self.half_steps[parity] += 1;
         let q = &self.ctx.queue;
         if !step.lights.is_empty() {
