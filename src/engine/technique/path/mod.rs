@@ -37,8 +37,12 @@
 //! `auto` (the default) takes the GPU only when a hardware adapter exists, so a machine
 //! with only a software rasteriser (lavapipe) keeps the CPU path.
 //!
-//! Randomness: one PCG32 stream per (seed, step, texel, sample) (`engine::rng`), so the
-//! result is bit-identical for a seed regardless of thread count.
+//! Randomness (`params.sampling`, `path/sampler.rs`): by default each texel's samples in
+//! each half of the bake are points of one Owen-scrambled Sobol sequence, scrambled
+//! independently per texel and half so the halves' difference still measures the error;
+//! `independent` draws one PCG32 stream per (seed, step, texel, sample) (`engine::rng`).
+//! Either way the result is bit-identical for a seed regardless of thread count. The GPU
+//! megakernel draws independent PCG streams.
 //!
 //! Time limit: a CPU step runs in chunks of [`DEADLINE_PATHS`] paths and is abandoned,
 //! adding nothing, when the bake's deadline passes mid-step (`Technique::set_deadline`)
@@ -63,6 +67,7 @@ use serde_json::Value;
 
 mod gpu;
 pub mod probes;
+mod sampler;
 
 use super::api::{
     AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params,
@@ -76,6 +81,7 @@ use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Scene};
 pub use gpu::Device;
 use gpu::PathGpu;
+use sampler::{PathSampler, Sobol};
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -88,6 +94,19 @@ pub struct PathParams {
     pub rr_threshold: f32,
     /// Where to trace: `auto`, `cpu` or `gpu` (module doc).
     pub device: Device,
+    /// The CPU's sample placement: `sobol` (default) or `independent` (`path/sampler.rs`).
+    pub sampling: Sampling,
+}
+
+/// How the CPU places a texel's samples (`params.sampling`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Sampling {
+    /// Owen-scrambled Sobol points, one sequence per texel and half.
+    #[default]
+    Sobol,
+    /// Independent PCG32 numbers per sample.
+    Independent,
 }
 
 impl Default for PathParams {
@@ -97,6 +116,7 @@ impl Default for PathParams {
             max_bounces: 65536,
             rr_threshold: 0.05,
             device: Device::Auto,
+            sampling: Sampling::Sobol,
         }
     }
 }
@@ -276,6 +296,7 @@ impl Technique for PathTracer {
             eps: self.inputs.atlas.surface_offset,
         };
         let seed = self.inputs.seed;
+        let sampling = self.params.sampling;
         let deadline = self.deadline;
         let texel_sample = |ti: usize, texel: &crate::engine::atlas::Texel| {
             let mut sum = PathSample {
@@ -284,8 +305,11 @@ impl Technique for PathTracer {
                 moment: Moment::default(),
             };
             for s in 0..spp {
-                let mut rng = Rng::new(seed, step, ti as u64, s as u64);
-                let r = ctx.radiance(texel.position, texel.normal, texel.geo_normal, &mut rng);
+                let (x, n, ng) = (texel.position, texel.normal, texel.geo_normal);
+                let r = match sampling {
+                    Sampling::Sobol => ctx.radiance(x, n, ng, &mut Sobol::new(seed, step, ti as u64, s, spp)),
+                    Sampling::Independent => ctx.radiance(x, n, ng, &mut Rng::new(seed, step, ti as u64, s as u64)),
+                };
                 sum.total += r.total;
                 sum.direct += r.direct;
                 for a in 0..3 {
@@ -432,7 +456,7 @@ struct PathContext<'a> {
 impl PathContext<'_> {
     /// Irradiance / π at `x0` (normal `n0`, geometric normal `ng0`), its direct part, and
     /// the first moment of where it came from.
-    fn radiance(&self, x0: Vec3, n0: Vec3, ng0: Vec3, rng: &mut Rng) -> PathSample {
+    fn radiance(&self, x0: Vec3, n0: Vec3, ng0: Vec3, rng: &mut impl PathSampler) -> PathSample {
         let (mut x, mut n, mut ng) = (x0, n0, ng0);
         let mut throughput = Vec3::ONE;
         let mut total = Vec3::ZERO;
@@ -442,7 +466,7 @@ impl PathContext<'_> {
         let mut first_dir = None;
         let mut first_nee = Vec3::ZERO;
         loop {
-            let (nee, nee_moment) = self.next_event(x, n, ng, rng);
+            let (nee, nee_moment) = self.next_event(x, n, ng, bounce, rng);
             total += throughput * nee;
             if bounce == 0 {
                 direct += nee;
@@ -450,7 +474,8 @@ impl PathContext<'_> {
                 moment = nee_moment;
             }
 
-            let dir = cosine_sample(n, rng.next_f32(), rng.next_f32());
+            let (u1, u2) = rng.direction(bounce);
+            let dir = cosine_sample(n, u1, u2);
             let cos = dir.dot(n);
             if dir.dot(ng) <= 0.0 || cos <= 0.0 {
                 break; // below the geometric surface: the surface itself blocks it
@@ -505,7 +530,8 @@ impl PathContext<'_> {
             let peak = throughput.max_element();
             if peak < self.rr_threshold {
                 // Below τ: survive with probability peak/τ, then carry on at τ (module doc).
-                if peak <= 0.0 || rng.next_f32() * self.rr_threshold >= peak {
+                // The vertex's roulette number: `bounce` was counted up for the hit above.
+                if peak <= 0.0 || rng.roulette(bounce - 1) * self.rr_threshold >= peak {
                     break;
                 }
                 throughput *= self.rr_threshold / peak;
@@ -527,7 +553,7 @@ impl PathContext<'_> {
     /// Direct light at `x` from punctual lights, the sun and emissive triangles, as
     /// irradiance / π (visibility tested, MIS-weighted where the continuation can also
     /// find the light).
-    fn next_event(&self, x: Vec3, n: Vec3, ng: Vec3, rng: &mut Rng) -> (Vec3, Moment) {
+    fn next_event(&self, x: Vec3, n: Vec3, ng: Vec3, bounce: u32, rng: &mut impl PathSampler) -> (Vec3, Moment) {
         let mut sum = Vec3::ZERO;
         let mut moment = Moment::default();
         let front = |d: Vec3| d.dot(n) > 0.0 && d.dot(ng) > 0.0;
@@ -563,7 +589,8 @@ impl PathContext<'_> {
         }
         if let Some(sun) = &self.lighting.sun {
             let axis = -sun.direction.normalize();
-            let d = cone_sample(axis, sun.cos_half_angle(), rng.next_f32(), rng.next_f32());
+            let (u1, u2) = rng.sun(bounce);
+            let d = cone_sample(axis, sun.cos_half_angle(), u1, u2);
             if front(d) && self.tracer.unoccluded(self.scene, x, d, f32::INFINITY) {
                 let pdf_light = 1.0 / sun.solid_angle();
                 let cos = d.dot(n);
@@ -574,7 +601,7 @@ impl PathContext<'_> {
             }
         }
         if !self.emitters.emitters.is_empty() {
-            let u = rng.next_f32();
+            let (u, b1, b2) = rng.emitter(bounce);
             let k = self
                 .emitters
                 .emitter_cdf
@@ -582,7 +609,7 @@ impl PathContext<'_> {
                 .min(self.emitters.emitters.len() - 1);
             let ti = self.emitters.emitters[k];
             let tri = &self.scene.triangles[ti as usize];
-            let (mut b1, mut b2) = (rng.next_f32(), rng.next_f32());
+            let (mut b1, mut b2) = (b1, b2);
             if b1 + b2 > 1.0 {
                 b1 = 1.0 - b1;
                 b2 = 1.0 - b2;
