@@ -93,13 +93,19 @@ fn plane_under_uniform_sky_reads_the_sky_radiance() {
     assert_eq!(est.error.relative, Some(0.0));
 }
 
-#[test]
-fn black_sphere_over_black_plane() {
+/// A black unit sphere 2 m above the centre of a black 6 m plane: under a uniform upper
+/// sky a plane texel reads the sky minus the sphere's disc (`sphere_occlusion`).
+fn sphere_over_plane() -> SceneBuilder {
     let mut b = SceneBuilder::new();
     let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
     b.square("ground", Vec3::ZERO, 6.0, Vec3::Y, black);
     b.sphere("ball", Vec3::new(0.0, 2.0, 0.0), 1.0, 96, 48, black);
-    let scene = import(&b);
+    b
+}
+
+#[test]
+fn black_sphere_over_black_plane() {
+    let scene = import(&sphere_over_plane());
     let offset = scene.origin_offset.as_vec3();
     let l = 1.0f32;
     // The plane's chart is centred at u = v = 0.25: a texel centre for W = 98 (texel 24).
@@ -336,10 +342,7 @@ fn back_to_back_sheets_are_each_lit_as_if_alone() {
 /// n^-3/4 against n^-1/2, about 2.5x at 64 points a half; asked for: at least 1.5x.
 #[test]
 fn sobol_sampling_cuts_the_error_and_its_halves_still_measure_it() {
-    let mut b = SceneBuilder::new();
-    let black = b.material(MaterialDesc::diffuse("black", [0.0; 3]));
-    b.square("ground", Vec3::ZERO, 6.0, Vec3::Y, black);
-    b.sphere("ball", Vec3::new(0.0, 2.0, 0.0), 1.0, 96, 48, black);
+    let b = sphere_over_plane();
     let l = 1.0f32;
     let mut rms = Vec::new();
     for sampling in ["independent", "sobol"] {
