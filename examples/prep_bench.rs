@@ -9,7 +9,9 @@
 //! process's peak resident size after it (`VmHWM`, which only grows):
 //! import (the .glb in memory), UV generation (`atlas::unwrap`: unwrap, pack, pages),
 //! texel set (`Atlas::build`: rasterisation, gutter links, seam search), BVH
-//! (`SceneRays::new`, the tracer built on first use), texel validation (backface rays).
+//! (`SceneRays::new`, the tracer built on first use), texel validation (backface rays:
+//! the GPU route of `gpu::validate` first when a hardware GPU is present, or with
+//! `PREP_GPU=1` on any adapter, then the CPU's, and how many texels the two disagree on).
 //!
 //! Limits: one generated layout (boxes over a ground); the glb is built and held in
 //! memory before the first phase and counted in every peak.
@@ -96,10 +98,36 @@ fn main() {
     let tracer = rays.tracer();
     row("BVH", t);
 
+    // The GPU route of the engine's preparation (`gpu::validate`, what `engine::job` takes
+    // on a hardware GPU), timed first on the same texels, then the CPU's; the two must
+    // agree texel for texel. On lavapipe only with PREP_GPU=1 (it is slower there).
+    let gpu = lightmapd::engine::gpu::hardware_context("prep_bench").or_else(|| {
+        (std::env::var("PREP_GPU").as_deref() == Ok("1"))
+            .then(|| lightmapd::engine::gpu::shared(&Default::default()).ok())
+            .flatten()
+    });
+    let gpu_fractions = gpu.map(|ctx| {
+        let t = Instant::now();
+        let f = lightmapd::engine::gpu::validate::backface_fractions(&ctx, &rays, &atlas.texels)
+            .expect("the GPU route traces");
+        row(&format!("texel validation, GPU route ({})", ctx.info.name), t);
+        f
+    });
     let t = Instant::now();
-    let v = validate::validate_with(&scene, &tracer, &mut atlas);
+    let cpu_fractions = validate::backface_fractions(&scene, &tracer, &atlas.texels);
+    let v = validate::validate_from(&scene, &mut atlas, &cpu_fractions);
     row(
-        &format!("texel validation ({} inside geometry)", v.inside_geometry_texels),
+        &format!(
+            "texel validation, CPU route ({} inside geometry)",
+            v.inside_geometry_texels
+        ),
         t,
     );
+    if let Some(g) = gpu_fractions {
+        let differ = g.iter().zip(&cpu_fractions).filter(|(a, b)| a != b).count();
+        println!(
+            "GPU and CPU routes: {differ} of {} texels' back-face fractions differ",
+            g.len()
+        );
+    }
 }

@@ -12,18 +12,23 @@
 # 6. `denoise_quality` (issue 22): OIDN's cost at 1024^2 and 4096^2 (its CUDA device when
 #    $LIGHTMAPD_OIDN_DIR holds the libraries of scripts/setup-oidn.sh, carried there), and
 #    the error table from 4 to 4096 steps on the Cornell box and the occlusion room.
+# 7. `routes`: the GPU routes of rays the CPU makes (issue 20 point 3) against their CPU
+#    routes on the same machine: texel validation (`prep_bench`: both routes on one
+#    generated level, and how many texels they disagree on) and vpl's reflective shadow
+#    maps (`params.rays` cpu / gpu on the occlusion room under sun and sky, ms a step at
+#    the default `rsm_size` 64 and at 256).
 # `bench` reads converged references from $BENCH_CACHE (default bench-results/cache) made
 # with $BENCH_REFERENCE_SECONDS (default 300; the key includes it): carry the ones made on
 # the development machine (`target/tmp/honest-error-references`) so no device time goes
 # into a reference.
-# Parts run in the order rays, level, bakes, timings, bench, denoise (correctness first).
-# Usage: BIN=dir OUT=dir BENCH_BUDGET=5 bash scripts/gpu-check.sh [bakes] [timings] [bench] [rays] [level] [denoise]
+# Parts run in the order rays, level, routes, bakes, timings, bench, denoise (correctness first).
+# Usage: BIN=dir OUT=dir BENCH_BUDGET=5 bash scripts/gpu-check.sh [bakes] [timings] [bench] [rays] [level] [routes] [denoise]
 set -uo pipefail
 : "${BIN:?}" "${OUT:?}"
 BENCH_BUDGET=${BENCH_BUDGET:-5}
 BENCH_REFERENCE_SECONDS=${BENCH_REFERENCE_SECONDS:-300}
 BENCH_CACHE=${BENCH_CACHE:-bench-results/cache}
-parts=${*:-bakes timings bench rays level denoise}
+parts=${*:-bakes timings bench rays level routes denoise}
 log() { echo "== $*" | tee -a "$OUT/log.txt"; }
 run() { log "$*"; "$@" 2>&1 | tee -a "$OUT/log.txt"; }
 export LIGHTMAPD_ADAPTER=${LIGHTMAPD_ADAPTER:-gpu}
@@ -35,6 +40,17 @@ if [[ $parts == *rays* ]]; then
 fi
 if [[ $parts == *level* ]]; then
     run "$BIN/level_bench" ${LEVEL_ARGS:-}
+fi
+if [[ $parts == *routes* ]]; then
+    run "$BIN/prep_bench" ${PREP_ARGS:-40 8 10 1024}
+    for rsm in 64 256; do
+        for rays in cpu gpu; do
+            run "$BIN/lightmapd" bake scenes/third-party/occlusion_room.glb -o /tmp/vpl-$rays.exr --technique vpl \
+                --resolution 256 --steps 32 --seed 1 --no-denoise --sky 0.2,0.3,0.5 --sun 0.3,-1,-0.4,0.5,2000,1900,1800 \
+                --params "{\"rays\": \"$rays\", \"rsm_size\": $rsm}"
+        done
+        run "$BIN/exr_diff" /tmp/vpl-cpu.exr /tmp/vpl-gpu.exr  # within noise: docs/vpl.md
+    done
 fi
 if [[ $parts == *bakes* ]]; then
     mkdir -p /tmp/exrs

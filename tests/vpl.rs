@@ -619,13 +619,17 @@ fn measure_clamp_bias_and_step_times() {
 
 /// Issue 20 point 3: the reflective shadow maps' rays traced through the GPU BVH
 /// (`"rays": "gpu"`, the query pass, here on lavapipe) give the bake the CPU route gives.
-/// Both routes make the same rays from the same streams and shade the same hits, so the
-/// bakes differ only where the two traversals' barycentrics round differently (a VPL
-/// moves by about 1e-7 of the scene) or a ray within 1e-5 of an edge picks the other
-/// triangle (`tests/gpu_bvh.rs`), which the bound below would catch if it moved a VPL
-/// onto another surface. Every kind of map is in the scene: the sun and four sky
-/// directions (orthographic), a point light and a spot light (cubes), back faces (the
-/// box's outside) and misses (the open front).
+/// Both routes make the same rays from the same streams and shade the same hits, so where
+/// every hit agrees the bakes agree to float rounding (on lavapipe they are identical).
+/// A ray within float rounding of an edge may hit on one route and not on the other
+/// (`tests/gpu_bvh.rs`; on the occlusion room 1 of 20,480 RSM rays, docs/vpl.md): that
+/// moves every later entry of the table VPLs are drawn from, and the bakes become two
+/// draws of the same estimate. So: identical to 1e-4, or else within their noise (the
+/// mean within 4 standard errors of the mean and the RMS texel difference within twice
+/// the texels' combined standard error), which a route that lost or gained light fails.
+/// Every kind of map is in the scene: the sun and four sky directions (orthographic), a
+/// point light and a spot light (cubes), back faces (the box's outside) and misses (the
+/// open front).
 #[test]
 fn rsm_rays_on_the_gpu_give_the_cpu_bake() {
     if !have_adapter() {
@@ -677,8 +681,30 @@ fn rsm_rays_on_the_gpu_give_the_cpu_bake() {
         cpu.total.len()
     );
     assert!(ref2 > 0.0, "the scene is lit");
-    assert!(rel < 1e-4, "relative RMS difference {rel}");
-    assert!((mean_ratio - 1.0).abs() < 1e-5, "mean ratio {mean_ratio}");
+    if rel >= 1e-4 || (mean_ratio - 1.0).abs() >= 1e-5 {
+        // Two draws: compare within their noise (see the doc above).
+        let se2 = |e: &lightmapd::engine::accumulate::Estimate| {
+            e.texel_error
+                .as_ref()
+                .expect("both halves have steps")
+                .iter()
+                .map(|x| (*x as f64).powi(2))
+                .collect::<Vec<_>>()
+        };
+        let (sc, sg) = (se2(&cpu), se2(&gpu));
+        let combined = (sc.iter().zip(&sg).map(|(a, b)| a + b).sum::<f64>() / sc.len() as f64).sqrt();
+        let rms = (ref2 / sc.len() as f64).sqrt();
+        let rms_diff = (diff2 / sc.len() as f64).sqrt();
+        eprintln!("not identical: RMS difference {rms_diff:.4e} against a combined standard error {combined:.4e}");
+        assert!(
+            rms_diff < 2.0 * combined,
+            "RMS difference {rms_diff} beyond noise {combined}"
+        );
+        assert!(
+            (mean_ratio - 1.0).abs() < 4.0 * combined / rms,
+            "mean ratio {mean_ratio} beyond noise ({combined} of {rms})"
+        );
+    }
 
     // The route taken is in the echoed parameters: `auto` on lavapipe is the CPU.
     use lightmapd::engine::technique::{self, BakeInputs};
