@@ -31,7 +31,7 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use serde_json::json;
 
-use crate::engine::accumulate::{Estimate, LUMINANCE};
+use crate::engine::accumulate::Estimate;
 use crate::engine::atlas::{Atlas, unwrap};
 use crate::engine::control::ControlTexels;
 use crate::engine::gpu::scene_rays::SceneRays;
@@ -82,17 +82,9 @@ pub struct Reference {
     pub error: f64,
 }
 
-/// True relative error of `estimate` against `reference` (`docs/accuracy.md`).
-pub fn true_error(estimate: &[Vec3], reference: &[Option<Vec3>]) -> f64 {
-    let (mut diff, mut norm) = (0.0f64, 0.0f64);
-    for (e, r) in estimate.iter().zip(reference) {
-        if let Some(r) = r {
-            diff += ((*e - *r).dot(LUMINANCE) as f64).powi(2);
-            norm += (r.dot(LUMINANCE) as f64).powi(2);
-        }
-    }
-    if norm > 0.0 { (diff / norm).sqrt() } else { diff.sqrt() }
-}
+/// True relative error of `estimate` against `reference` (`docs/accuracy.md`): the
+/// engine's metric, which a job with a reference reports too.
+pub use crate::engine::reference::relative_error as true_error;
 
 fn fnv1a(bytes: &[u8], mut h: u64) -> u64 {
     for b in bytes {

@@ -283,6 +283,10 @@ struct SubmitArgs {
     /// Texel density of generated lightmap UVs (texels per metre).
     #[arg(long)]
     texels_per_unit: Option<f32>,
+    /// A succeeded job of the same scene, grid and light to measure this job's error
+    /// against (each history point's `true_error`).
+    #[arg(long)]
+    reference: Option<String>,
     /// Higher runs first.
     #[arg(long)]
     priority: Option<i32>,
@@ -840,6 +844,9 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
     }
     if let Some(t) = args.texels_per_unit {
         job.insert("texels_per_unit".into(), t.into());
+    }
+    if let Some(r) = &args.reference {
+        job.insert("reference".into(), r.clone().into());
     }
     if let Some(v) = args.seed {
         job.insert("seed".into(), v.into());

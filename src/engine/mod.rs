@@ -15,6 +15,7 @@ pub mod output;
 pub mod plan;
 pub mod post;
 pub mod raytrace;
+pub mod reference;
 pub mod rng;
 pub mod scene;
 pub mod shadowmask;

@@ -90,6 +90,12 @@ pub struct JobSpec {
     /// one page make more pages). Absent: the highest density at which they fit one page.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub texels_per_unit: Option<f32>,
+    /// A succeeded job of the same scene, texel layout (resolution, `lightmap_uvs`,
+    /// `texels_per_unit`) and light whose lightmap is this job's reference: every history
+    /// point then carries `true_error`, the measured error against it, and the plan's
+    /// `reference` says which job and how accurate that reference is (docs/accuracy.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reference: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
@@ -398,6 +404,64 @@ fn leading_field(msg: &str) -> String {
         .to_string()
 }
 
+/// The job against the job it names as its `reference` (`id`, with that job's record if
+/// the caller may see it): a succeeded bake of the same scene, texel layout and light,
+/// so both lightmaps are estimates of one answer on one texel grid. Each refusal names
+/// `reference` and the first thing that differs.
+pub fn check_reference(spec: &JobSpec, id: &str, reference: Option<(&JobSpec, JobStatus)>) -> Result<(), Problem> {
+    let refuse = |why: String| Err(Problem::invalid_field("reference", why));
+    let Some((r, status)) = reference else {
+        return refuse(format!(
+            "no job with id {id:?}: a reference is one of your succeeded jobs"
+        ));
+    };
+    if status != JobStatus::Succeeded {
+        return refuse(format!(
+            "job {id} is {}: a reference must be a succeeded job",
+            status.as_str()
+        ));
+    }
+    if r.scene != spec.scene {
+        return refuse(format!(
+            "job {id} baked scene {}, this job bakes scene {}: a reference must bake the same scene",
+            r.scene, spec.scene
+        ));
+    }
+    let uvs = |s: &JobSpec| s.lightmap_uvs.clone().unwrap_or_else(|| "generate-missing".into());
+    let differs: Option<(&str, String, String)> = if r.resolution != spec.resolution {
+        Some(("resolution", r.resolution.to_string(), spec.resolution.to_string()))
+    } else if uvs(r) != uvs(spec) {
+        Some(("lightmap_uvs", uvs(r), uvs(spec)))
+    } else if r.texels_per_unit != spec.texels_per_unit {
+        let d = |v: Option<f32>| v.map_or("the default".to_string(), |v| v.to_string());
+        Some(("texels_per_unit", d(r.texels_per_unit), d(spec.texels_per_unit)))
+    } else if r.lighting != spec.lighting {
+        let j = |s: &JobSpec| serde_json::to_string(&s.lighting).unwrap_or_default();
+        Some(("lighting", j(r), j(spec)))
+    } else {
+        let mask = |s: &JobSpec| {
+            s.outputs
+                .iter()
+                .any(|o| o == "shadowmask")
+                .then(|| s.shadowmask_lights.clone())
+        };
+        (mask(r) != mask(spec)).then(|| {
+            let d = |m: Option<Vec<String>>| match m {
+                None => "no shadowmask".to_string(),
+                Some(l) if l.is_empty() => "a shadowmask of the default lights".to_string(),
+                Some(l) => format!("a shadowmask of {}", l.join(", ")),
+            };
+            ("outputs", d(mask(r)), d(mask(spec)))
+        })
+    };
+    match differs {
+        Some((field, theirs, ours)) => refuse(format!(
+            "job {id} has {field} {theirs}, this job {ours}: a reference must bake the same texel grid and light"
+        )),
+        None => Ok(()),
+    }
+}
+
 /// The job against its stored scene (read off the scene's import report), at submit: the
 /// scene's and the job's light against the technique's table row (light the technique
 /// does not transport is refused, naming `lighting.sun`, or `technique` for the scene's
@@ -589,6 +653,11 @@ pub struct HistoryPoint {
     /// Its bias part, measured at control texels against `path`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bias: Option<f32>,
+    /// With a `reference` job: the delivered lightmap's relative error measured against
+    /// the reference's (`docs/accuracy.md`'s metric; it cannot read much below the
+    /// reference's own error, `plan.reference.error`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub true_error: Option<f32>,
 }
 
 /// `GET /v1/jobs/{id}`.
@@ -714,6 +783,51 @@ pub fn rfc3339(ms: i64) -> String {
 mod tests {
 
     use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn a_reference_must_be_a_succeeded_bake_of_the_same_grid_and_light() {
+        let spec = |v: Value| JobSpec::parse_with(v.to_string().as_bytes(), &Limits::default()).unwrap();
+        let ours = spec(json!({"scene": "s1", "resolution": 64, "outputs": ["shadowmask"]}));
+        let detail = |r: Result<(), Problem>| r.unwrap_err().detail;
+        assert!(check_reference(&ours, "r", Some((&ours, JobStatus::Succeeded))).is_ok());
+        assert_eq!(
+            detail(check_reference(&ours, "r", None)),
+            "no job with id \"r\": a reference is one of your succeeded jobs"
+        );
+        assert_eq!(
+            detail(check_reference(&ours, "r", Some((&ours, JobStatus::Running)))),
+            "job r is running: a reference must be a succeeded job"
+        );
+        let theirs = spec(json!({"scene": "s2", "resolution": 64, "outputs": ["shadowmask"]}));
+        assert_eq!(
+            detail(check_reference(&ours, "r", Some((&theirs, JobStatus::Succeeded)))),
+            "job r baked scene s2, this job bakes scene s1: a reference must bake the same scene"
+        );
+        let theirs =
+            spec(json!({"scene": "s1", "resolution": 64, "lightmap_uvs": "regenerate-all", "outputs": ["shadowmask"]}));
+        assert_eq!(
+            detail(check_reference(&ours, "r", Some((&theirs, JobStatus::Succeeded)))),
+            "job r has lightmap_uvs regenerate-all, this job generate-missing: a reference must bake the same texel grid and light"
+        );
+        let theirs = spec(json!({"scene": "s1", "resolution": 64, "texels_per_unit": 8.0, "outputs": ["shadowmask"]}));
+        assert_eq!(
+            detail(check_reference(&ours, "r", Some((&theirs, JobStatus::Succeeded)))),
+            "job r has texels_per_unit 8, this job the default: a reference must bake the same texel grid and light"
+        );
+        // A shadowmask takes its lights out of the lightmap: with and without differ.
+        let theirs = spec(json!({"scene": "s1", "resolution": 64}));
+        assert_eq!(
+            detail(check_reference(&ours, "r", Some((&theirs, JobStatus::Succeeded)))),
+            "job r has outputs no shadowmask, this job a shadowmask of the default lights: a reference must bake the same texel grid and light"
+        );
+        // What does not change the answer may differ: technique, steps, seed, denoiser.
+        let theirs = spec(
+            json!({"scene": "s1", "resolution": 64, "outputs": ["shadowmask", "direct"], "technique": "sdb",
+            "seed": 7, "stop": {"steps": 9}, "denoise": "none"}),
+        );
+        assert!(check_reference(&ours, "r", Some((&theirs, JobStatus::Succeeded))).is_ok());
+    }
 
     #[test]
     fn progress_within_a_step_moves_fraction_and_time_on() {

@@ -539,6 +539,10 @@ async fn create_job(
         _ => return Err(no_scene()),
     };
     crate::service::model::check_against_scene(&scene.report, &spec)?;
+    if let Some(id) = &spec.reference {
+        let record = state.queue.job(id).await?.filter(|j| caller.owns(j.client.as_deref()));
+        crate::service::model::check_reference(&spec, id, record.as_ref().map(|j| (&j.spec, j.status)))?;
+    }
     let need = job_memory(&scene.report, &spec);
     if need > limits.max_job_memory_bytes {
         return Err(Problem::invalid_field(
@@ -929,21 +933,6 @@ async fn final_page(state: &AppState, id: &str, page: u32, filename: String) -> 
 }
 
 /// The pages a succeeded job's summary lists (`[0]` for a job stored before pages).
-fn job_pages(job: &JobRecord) -> Vec<u32> {
-    let listed: Vec<u32> = job
-        .summary
-        .as_ref()
-        .and_then(|s| s.get("pages"))
-        .and_then(|p| p.as_array())
-        .map(|a| {
-            a.iter()
-                .filter_map(|e| e.get("page").and_then(|p| p.as_u64()).map(|p| p as u32))
-                .collect()
-        })
-        .unwrap_or_default();
-    if listed.is_empty() { vec![0] } else { listed }
-}
-
 /// One of a succeeded job's final files by name: a page (`lightmap-P.exr`) or the
 /// manifest (`lightmaps.json`), as `extras.lightmap.file` and the manifest name them.
 #[utoipa::path(
@@ -982,11 +971,14 @@ async fn get_job_file(
     }
     match page {
         Some(p) => {
-            if !job_pages(&job).contains(&p) {
+            if !store::job_pages(&job).contains(&p) {
                 return Err(Problem::new(
                     StatusCode::NOT_FOUND,
                     "not-found",
-                    format!("job {id} has {} page(s); there is no page {p}", job_pages(&job).len()),
+                    format!(
+                        "job {id} has {} page(s); there is no page {p}",
+                        store::job_pages(&job).len()
+                    ),
                 ));
             }
             final_page(&state, &id, p, format!("{id}-{file}")).await
@@ -1360,7 +1352,7 @@ fn rgba16f_response(w: usize, h: usize, data: Vec<u8>) -> Response {
 /// width, in page order), as a snapshot holds it, so the console's view reads both alike.
 async fn final_rgba16f(state: &AppState, job: &JobRecord) -> Result<Response, Problem> {
     let mut pages = Vec::new();
-    for p in job_pages(job) {
+    for p in store::job_pages(job) {
         let key = store::page_exr(&job.id, p);
         let bytes = match state.artifacts.get(&key).await? {
             Some(b) => b,

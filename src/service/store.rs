@@ -497,6 +497,23 @@ pub fn snapshots_to_drop(n: u32, keep: u32) -> Vec<u32> {
         .collect()
 }
 
+/// The pages a succeeded job's summary lists (`summary.pages[].page`); page 0 alone for
+/// a job finished before pages existed.
+pub fn job_pages(job: &crate::service::queue::JobRecord) -> Vec<u32> {
+    let listed: Vec<u32> = job
+        .summary
+        .as_ref()
+        .and_then(|s| s.get("pages"))
+        .and_then(|p| p.as_array())
+        .map(|a| {
+            a.iter()
+                .filter_map(|e| e.get("page").and_then(|p| p.as_u64()).map(|p| p as u32))
+                .collect()
+        })
+        .unwrap_or_default();
+    if listed.is_empty() { vec![0] } else { listed }
+}
+
 /// Page `page` of the final lightmap (`lightmap-P.exr`, `engine::output::pages`).
 pub fn page_exr(job: &str, page: u32) -> Path {
     Path::from(format!("jobs/{job}/lightmap-{page}.exr"))

@@ -40,6 +40,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
+use glam::Vec3;
 use serde_json::{Value, json};
 use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
@@ -49,6 +50,7 @@ use crate::engine::atlas::Atlas;
 use crate::engine::bake::{BakeEvent, StopReason};
 use crate::engine::job::{self, BakeOptions, BakeResult};
 use crate::engine::plan::Plan;
+use crate::engine::reference::{ReferenceLightmap, relative_error};
 use crate::engine::scene::{self, Scene};
 use crate::engine::technique::EngineError;
 use crate::service::model::{HistoryPoint, JobStatus, ProbeProgress, Progress};
@@ -167,6 +169,10 @@ struct Shared {
     generated_scene_stored: std::sync::atomic::AtomicBool,
     /// The latest stored snapshot's delivered (denoised) relative error.
     delivered_error: Mutex<Option<f32>>,
+    /// With a reference job: its value at every valid texel, once the texel set exists.
+    reference: OnceLock<Arc<Vec<Option<Vec3>>>>,
+    /// The final lightmap's error against the reference.
+    final_true_error: Mutex<Option<f32>>,
     /// How far the step in progress is and since when the loop steps, written by the
     /// engine (CPU `path` reports within its steps); the ticker folds it into `progress`.
     step: crate::engine::bake::StepProgress,
@@ -272,8 +278,9 @@ async fn supervise(
     // retries (2.7 s).
     let started = Instant::now();
     let mut wait = Duration::from_millis(200);
-    let scene = loop {
-        match while_holding(state, &job.id, worker, &flag, load_scene(state, job)).await {
+    let (scene, reference) = loop {
+        let load = async { Ok::<_, LoadError>((load_scene(state, job).await?, load_reference(state, job).await?)) };
+        match while_holding(state, &job.id, worker, &flag, load).await {
             Ok(s) => break s,
             _ if flag.get() == StopSignal::LeaseLost => return End::Lost,
             Err(LoadError::Transient(reason)) if started.elapsed() + wait < SCENE_LOAD_PATIENCE => {
@@ -309,7 +316,7 @@ async fn supervise(
         let span = tracing::Span::current();
         tokio::task::spawn_blocking(move || {
             let _e = span.enter();
-            run_bake(scene, &spec, &ctx)
+            run_bake(scene, reference, &spec, &ctx)
         })
     };
     tokio::pin!(bake);
@@ -465,6 +472,7 @@ async fn supervise(
                 raw_error: e.raw_relative.or(e.relative),
                 noise: e.noise,
                 bias: e.bias,
+                true_error: shared.final_true_error.lock().ok().and_then(|e| *e),
             });
             End::Finish(Outcome::Succeeded {
                 summary: serde_json::to_value(&r.summary).unwrap_or(Value::Null),
@@ -714,6 +722,49 @@ async fn load_scene(state: &AppState, job: &JobRecord) -> Result<SceneFiles, Loa
     }
 }
 
+/// A job's reference lightmap as stored, or why there is none to compare with.
+pub enum ReferenceFiles {
+    None,
+    /// The reference job and its final pages, in page order.
+    Pages(String, Vec<Bytes>),
+    /// The job named a reference that has gone since it was accepted (deleted, or swept
+    /// by retention): the bake runs without a true-error curve, and its plan says why.
+    Gone(String, String),
+}
+
+async fn load_reference(state: &AppState, job: &JobRecord) -> Result<ReferenceFiles, LoadError> {
+    let Some(id) = job.spec.reference.clone() else {
+        return Ok(ReferenceFiles::None);
+    };
+    let record = match state.queue.job(&id).await {
+        Ok(Some(r)) if r.status == JobStatus::Succeeded => r,
+        Ok(_) => return Ok(ReferenceFiles::Gone(id.clone(), format!("job {id} no longer exists"))),
+        Err(e) => return Err(LoadError::Transient(format!("cannot read reference job {id}: {e}"))),
+    };
+    let mut pages = Vec::new();
+    for p in store::job_pages(&record) {
+        let mut got = state.artifacts.get(&store::page_exr(&id, p)).await;
+        if p == 0 && matches!(got, Ok(None)) {
+            got = state.artifacts.get(&store::legacy_final_exr(&id)).await;
+        }
+        match got {
+            Ok(Some(b)) => pages.push(b),
+            Ok(None) => {
+                return Ok(ReferenceFiles::Gone(
+                    id.clone(),
+                    format!("page {p} of job {id} is no longer stored"),
+                ));
+            }
+            Err(e) => {
+                return Err(LoadError::Transient(format!(
+                    "reference job {id}: cannot read page {p}: {e}"
+                )));
+            }
+        }
+    }
+    Ok(ReferenceFiles::Pages(id, pages))
+}
+
 /// Why scene files did not import.
 #[derive(Debug)]
 pub enum ImportFailure {
@@ -824,6 +875,7 @@ struct RawSnapshot {
 /// bake never waits for it. Once the stop flag is up the encoder drops what is pending.
 fn run_bake(
     files: SceneFiles,
+    reference: ReferenceFiles,
     spec: &crate::service::model::JobSpec,
     ctx: &BakeThread,
 ) -> Result<BakeResult, EngineError> {
@@ -831,6 +883,16 @@ fn run_bake(
     let snapshot_interval = ctx.snapshot_interval;
     let (scene, _report) = import_files(&files, &ctx.limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
     drop(files);
+    // The reference is decoded before the bake; it is matched to the texel set once that
+    // exists (`bake_observed`). One that cannot be used leaves the bake as it is.
+    let reference = match reference {
+        ReferenceFiles::None => None,
+        ReferenceFiles::Gone(id, why) => Some((id, Err(why))),
+        ReferenceFiles::Pages(id, pages) => {
+            let decoded = ReferenceLightmap::from_pages(&pages).map_err(|e| format!("job {id}'s lightmap: {e}"));
+            Some((id, decoded))
+        }
+    };
     let request = spec.to_request();
     let options = BakeOptions {
         snapshot_interval,
@@ -847,8 +909,9 @@ fn run_bake(
             return Err(EngineError::Internal(format!("cannot start the snapshot encoder: {e}")));
         }
         // `raw_tx` moves into the bake; dropping it at the end stops the encoder.
-        bake_observed(
+        let result = bake_observed(
             scene,
+            reference,
             spec,
             &request,
             &options,
@@ -857,7 +920,14 @@ fn run_bake(
             metrics,
             raw_tx,
             snapshot_interval,
-        )
+        );
+        if let Ok(r) = &result
+            && let Some(values) = shared.reference.get()
+            && let Ok(mut e) = shared.final_true_error.lock()
+        {
+            *e = Some(relative_error(&r.estimate.total, values) as f32);
+        }
+        result
     })
 }
 
@@ -883,6 +953,10 @@ fn encode_snapshots(
             raw_error: snap.estimate.error.relative,
             noise: delivered.error.noise,
             bias: delivered.error.bias,
+            true_error: shared
+                .reference
+                .get()
+                .map(|values| relative_error(&delivered.total, values) as f32),
         };
         if let Ok(mut h) = shared.history.lock()
             && h.len() < MAX_HISTORY
@@ -915,6 +989,7 @@ fn encode_snapshots(
 #[allow(clippy::too_many_arguments)]
 fn bake_observed(
     scene: Scene,
+    reference: Option<(String, Result<ReferenceLightmap, String>)>,
     spec: &crate::service::model::JobSpec,
     request: &crate::engine::job::BakeRequest,
     options: &BakeOptions,
@@ -940,6 +1015,24 @@ fn bake_observed(
             let plan = p.get_or_insert_with(|| json!({}));
             plan["texel_set"] = json!(a.report());
             plan["validation"] = json!(a.validation);
+            // What the history's `true_error` is measured against, or why it is absent.
+            if let Some((job, decoded)) = &reference {
+                let matched = decoded
+                    .as_ref()
+                    .map_err(Clone::clone)
+                    .and_then(|r| Ok((r, r.per_texel(a)?)));
+                plan["reference"] = match matched {
+                    Ok((r, values)) => {
+                        let texels = values.iter().filter(|v| v.is_some()).count();
+                        let _ = shared.reference.set(Arc::new(values));
+                        json!({"job": job, "error": r.reported_error, "texels": texels})
+                    }
+                    Err(why) => {
+                        tracing::warn!(reference = %job, why, "the job's reference cannot be compared with");
+                        json!({"job": job, "unavailable": why})
+                    }
+                };
+            }
         }
         tracing::info!(texels = a.report().valid_texels, "texel set built");
     };

@@ -399,6 +399,119 @@ async fn a_biased_bake_reports_bias_and_noise() {
     }
 }
 
+/// A job that names a finished job as its `reference` (issue 23 point 3): every history
+/// point carries the error measured against that job's lightmap, with the metric of
+/// docs/accuracy.md. The same seed and steps bake the same lightmap, so its final point
+/// reads exactly 0; another seed differs by the two bakes' independent noise, about
+/// √(a² + b²) of their own estimates. A reference that cannot be compared is refused at
+/// submit, naming `reference` and what differs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reference_job_gives_the_measured_error_curve() {
+    let s = start(1, |_| {}).await;
+    let scene = s.upload().await;
+    let body = |seed: u64, reference: Option<&str>| {
+        let mut b = json!({"scene": scene, "resolution": 24, "stop": {"steps": 48}, "seed": seed,
+            "denoise": "none", "lighting": {"sky": {"radiance": [1.0, 1.0, 1.0]}}});
+        if let Some(r) = reference {
+            b["reference"] = json!(r);
+        }
+        b
+    };
+    let done = |j: &Value| j["status"] != "queued" && j["status"] != "running";
+    let a = s.submit(body(1, None)).await;
+    let ja = s.wait_job(&a, "finished", done).await;
+    assert_eq!(ja["status"], "succeeded", "{ja:#}");
+    assert!(
+        ja["history"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|p| p.get("true_error").is_none())
+    );
+
+    // The same bake against itself: 0 at the end, and a curve falling to it.
+    let b = s.submit(body(1, Some(&a))).await;
+    let jb = s.wait_job(&b, "finished", done).await;
+    assert_eq!(jb["status"], "succeeded", "{jb:#}");
+    let history = jb["history"].as_array().unwrap();
+    let last = history.last().unwrap();
+    assert_eq!(last["true_error"], json!(0.0), "{last}");
+    let measured_b: Vec<f64> = history.iter().filter_map(|p| p["true_error"].as_f64()).collect();
+    assert_eq!(measured_b.len(), history.len(), "every point is measured: {history:#?}");
+    assert!(
+        measured_b[0] > 0.0,
+        "an early snapshot differs from the final lightmap: {measured_b:?}"
+    );
+    let ea = ja["summary"]["error"]["relative"].as_f64().unwrap();
+    let reference = &jb["plan"]["reference"];
+    assert_eq!(reference["job"], json!(a), "{reference}");
+    assert!(
+        (reference["error"].as_f64().unwrap() - ea).abs() < 1e-6,
+        "{reference} vs {ea}"
+    );
+    assert_eq!(
+        reference["texels"], jb["summary"]["atlas"]["valid_texels"],
+        "{reference}"
+    );
+
+    // Another seed: two independent estimates of the same answer.
+    let c = s.submit(body(2, Some(&a))).await;
+    let jc = s.wait_job(&c, "finished", done).await;
+    assert_eq!(jc["status"], "succeeded", "{jc:#}");
+    let ec = jc["summary"]["error"]["relative"].as_f64().unwrap();
+    let measured = jc["history"].as_array().unwrap().last().unwrap()["true_error"]
+        .as_f64()
+        .unwrap();
+    let expected = (ea * ea + ec * ec).sqrt();
+    eprintln!(
+        "seed 2 against seed 1: measured {measured:.5}, expected {expected:.5} (a {ea:.5}, c {ec:.5}); same seed: {measured_b:?}"
+    );
+    assert!(
+        (0.6..1.6).contains(&(measured / expected)),
+        "measured {measured} against the two estimates' {expected} (a {ea}, c {ec})"
+    );
+
+    // Refused at submit, by field.
+    let refused = |detail: String| problem(422, "Unprocessable Entity", "invalid-field", &detail, Some("reference"));
+    let mut other = body(1, Some(&a));
+    other["resolution"] = json!(16);
+    expect_problem(
+        s.http.post(format!("{}/v1/jobs", s.url)).json(&other),
+        422,
+        refused(format!(
+            "job {a} has resolution 24, this job 16: a reference must bake the same texel grid and light"
+        )),
+    )
+    .await;
+    let mut other = body(1, Some(&a));
+    other["lighting"] = json!({"sky": {"radiance": [2.0, 2.0, 2.0]}});
+    let r = s
+        .http
+        .post(format!("{}/v1/jobs", s.url))
+        .json(&other)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 422);
+    let p: Value = r.json().await.unwrap();
+    assert_eq!(p["field"], "reference", "{p}");
+    assert!(
+        p["detail"]
+            .as_str()
+            .unwrap()
+            .starts_with(&format!("job {a} has lighting ")),
+        "{p}"
+    );
+    expect_problem(
+        s.http
+            .post(format!("{}/v1/jobs", s.url))
+            .json(&body(1, Some("no-such-job"))),
+        422,
+        refused("no job with id \"no-such-job\": a reference is one of your succeeded jobs".into()),
+    )
+    .await;
+}
+
 /// A job's light probes (issue 26 point 2): baked after the lightmap, stored as the job's
 /// `probes.json` artifact; a job without `probes` has none (404), and a job whose probes
 /// have nowhere to go is refused at submit.
@@ -757,7 +870,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "samples": 4}).to_string(),
             "samples",
-            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`".into(),
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `reference`".into(),
         ),
         (
             json!({"scene": scene, "denoise": "bm3d"}).to_string(),

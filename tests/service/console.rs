@@ -713,7 +713,52 @@ fn the_console_bakes_in_a_real_browser() {
         "the lightmap alone should be less red than albedo × lightmap: {pa:?} vs {px:?}"
     );
 
+    // 3b. The same bake again with the first as its reference (the form lists the
+    // scene's succeeded jobs): the plot adds the measured error, which ends at 0 since
+    // the same seed and steps bake the same lightmap.
+    let first = b.eval("window.lightmapdConsole.job.id");
+    let first = first.as_str().unwrap().to_string();
+    b.wait(
+        "the first job as a reference choice",
+        &format!("[...document.getElementById('f-reference').options].some(o => o.value === '{first}')"),
+        Duration::from_secs(10),
+    );
+    b.eval(&format!(
+        "(() => {{ const r = document.getElementById('f-reference'); r.value = '{first}'; r.dispatchEvent(new Event('change')); }})()"
+    ));
+    b.click("#submit");
+    b.wait(
+        "the reference job's page",
+        &format!("window.lightmapdConsole.job && window.lightmapdConsole.job.id !== '{first}' && window.lightmapdConsole.job.spec.reference === '{first}'"),
+        Duration::from_secs(10),
+    );
+    let end = b.wait(
+        "the reference job to succeed",
+        "['succeeded','failed','cancelled'].includes(window.lightmapdConsole.job?.status) && window.lightmapdConsole.job.status",
+        Duration::from_secs(240),
+    );
+    assert_eq!(end, "succeeded");
+    b.wait(
+        "the measured curve",
+        // A log scale has no place for the final 0: every point above it is drawn.
+        "(() => { const n = window.lightmapdConsole.job.history.filter(p => p.true_error > 0).length; return n >= 1 && document.querySelectorAll('#plot rect.true-error').length === n; })()",
+        Duration::from_secs(10),
+    );
+    let line = b.eval("document.getElementById('job-progress').textContent");
+    assert!(
+        line.as_str()
+            .unwrap()
+            .ends_with(&format!("measured against job {}: 0.00 %", &first[..8])),
+        "{line}"
+    );
+    assert_eq!(
+        b.eval("document.querySelectorAll('#plot line.reference-floor').length"),
+        1
+    );
+    std::fs::write(shots.join("4b-reference.png"), b.screenshot(Some("#job"))).unwrap();
+
     // 4. A second job, cancelled from its page.
+    b.eval("document.getElementById('f-reference').value = ''");
     b.fill("#f-steps", "5000");
     b.fill("#f-seconds", "600");
     b.click("#submit");
@@ -985,6 +1030,69 @@ fn a_two_page_job_looks_like_a_one_page_bake_in_3d() {
     // page 0's rows) 5.93 and 3.54 %.
     assert!(mean_diff < 2.0, "mean |difference| {mean_diff:.2}");
     assert!(far < 0.005, "{:.2} % of pixels differ by more than 40", 100.0 * far);
+}
+
+/// A scene without lightmap UVs shows in the 3D view while it bakes (issue 23 point 4):
+/// the engine makes the UVs before the first step, the worker stores the scene with them
+/// and names it in the plan, and the console draws the running job's snapshots on it.
+#[test]
+fn a_scene_without_uvs_shows_in_3d_while_it_bakes() {
+    let _cpu = crate::CPU_HEAVY.blocking_lock();
+    use lightmapd::engine::scene::build::write_glb;
+    use lightmapd::engine::scene::library::sphere_over_plane;
+    let Some(exe) = skip_without_browser("a_scene_without_uvs_shows_in_3d_while_it_bakes") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "0.3"]);
+    let _serve = Serve(child);
+    let (mut doc, bin_data) = sphere_over_plane().to_gltf();
+    doc["meshes"][1]["primitives"][0]["attributes"]
+        .as_object_mut()
+        .unwrap()
+        .remove("TEXCOORD_1");
+    let glb = write_glb(&doc, &bin_data);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let http = reqwest::Client::new();
+    let id = rt.block_on(async {
+        let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
+        assert_eq!(r.status(), 201);
+        let scene: Value = r.json().await.unwrap();
+        assert_eq!(scene["report"]["has_lightmap_uvs"], false, "{scene}");
+        let body = json!({"scene": scene["id"], "resolution": 64, "stop": {"seconds": 120},
+            "lighting": {"sky": {"radiance": [1, 1, 1]}}});
+        let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+        assert_eq!(r.status(), 202);
+        r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+    });
+    let mut b = Browser::start(&exe);
+    b.call("Page.navigate", json!({"url": format!("{url}/#job={id}")}));
+    b.wait(
+        "a snapshot on the generated UVs",
+        &format!(
+            "window.lightmapdConsole?.geometryFor === '/v1/jobs/{id}/scene.glb' && /^{id}\\/[0-9]+$/.test(window.lightmapdConsole.lightmapKey || '') && window.lightmapdConsole.viewer.lightmap && true"
+        ),
+        Duration::from_secs(60),
+    );
+    b.eval("(() => { const m = document.getElementById('v-mode'); m.value = 'lightmap'; m.dispatchEvent(new Event('change')); })()");
+    b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
+    let view = b.screenshot(Some("#view3d"));
+    let status = b.eval("window.lightmapdConsole.job.status");
+    assert_eq!(status, "running", "the picture must be of a bake in progress");
+    let (shots, _keep) = shots_dir();
+    std::fs::write(shots.join("9-generated-uvs-while-baking.png"), &view).unwrap();
+    let px = pixels(&view);
+    eprintln!("3D view of a running bake on generated UVs: {px:?}");
+    assert!(px.covered > 0.15 && px.lit > 0.05, "{px:?}");
+    assert!(px.distinct > 20, "the 3D view is flat: {px:?}");
+    b.click("#cancel");
+    b.wait(
+        "the cancellation",
+        "window.lightmapdConsole.job.status === 'cancelled'",
+        Duration::from_secs(30),
+    );
+    let errors = b.unexpected_errors(&[]);
+    assert!(errors.is_empty(), "browser errors: {errors:#?}");
 }
 
 /// Issue 22's rendered before/after (run by hand, `--ignored`; it writes

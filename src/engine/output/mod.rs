@@ -299,6 +299,52 @@ pub fn encode_exr(
     Ok(out.into_inner())
 }
 
+/// A lightmap EXR read back: its default `R`, `G`, `B` channels and its error estimate.
+pub struct DecodedLightmap {
+    pub width: u32,
+    pub height: u32,
+    /// Rows top first, as written.
+    pub rgb: Vec<Vec3>,
+    /// `lightmapd:relative_error`, when the header has it.
+    pub relative_error: Option<f32>,
+}
+
+/// Reads the default channels and the error estimate of a lightmap EXR this module (or
+/// any tool keeping DESIGN §2's layout) wrote.
+pub fn decode_lightmap(bytes: &[u8]) -> Result<DecodedLightmap, String> {
+    use exr::prelude::{ReadChannels, ReadLayers, read};
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .map_err(|e| format!("cannot read the lightmap EXR: {e}"))?;
+    let layer = &image.layer_data;
+    let (w, h) = (layer.size.width(), layer.size.height());
+    let channel = |name: &str| -> Result<Vec<f32>, String> {
+        layer
+            .channel_data
+            .list
+            .iter()
+            .find(|c| c.name == Text::from(name))
+            .map(|c| c.sample_data.values_as_f32().collect())
+            .ok_or_else(|| format!("the lightmap EXR has no {name} channel"))
+    };
+    let (r, g, b) = (channel("R")?, channel("G")?, channel("B")?);
+    let relative_error = match layer.attributes.other.get(&Text::from("lightmapd:relative_error")) {
+        Some(AttributeValue::F32(e)) => Some(*e),
+        _ => None,
+    };
+    Ok(DecodedLightmap {
+        width: w as u32,
+        height: h as u32,
+        rgb: (0..w * h).map(|i| Vec3::new(r[i], g[i], b[i])).collect(),
+        relative_error,
+    })
+}
+
 /// EXR text attributes are Latin-1; keep JSON printable ASCII so every reader copes.
 fn sanitize(s: &str) -> String {
     s.chars()

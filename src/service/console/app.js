@@ -142,7 +142,7 @@ async function loadScenes(select) {
     li.querySelector('.name').textContent = s.files.find(f => /\.(glb|gltf)$/i.test(f)) || s.id;
     li.querySelector('.name').title = s.id;
     li.querySelector('.hint').textContent = `${s.report?.triangles ?? '?'} tris · ${fmtBytes(s.size_bytes)}`;
-    li.querySelector('.show').onclick = () => { showReport(s); $('f-scene').value = s.id; };
+    li.querySelector('.show').onclick = () => { showReport(s); $('f-scene').value = s.id; refreshReferences().catch(() => {}); };
     li.querySelector('.del').onclick = async () => {
       try { await api('/v1/scenes/' + s.id, {method: 'DELETE'}); $('upload-status').textContent = 'Scene deleted.'; }
       catch (err) { $('upload-status').innerHTML = `<span class="error">${esc(err.message)}</span>`; }
@@ -153,6 +153,7 @@ async function loadScenes(select) {
   const sel = $('f-scene'), keep = select || sel.value;
   sel.innerHTML = scenes.map(s => `<option value="${esc(s.id)}">${esc((s.files.find(f => /\.(glb|gltf)$/i.test(f)) || '') + ' · ' + s.id.slice(0, 8))}</option>`).join('');
   if (scenes.some(s => s.id === keep)) sel.value = keep;
+  refreshReferences().catch(() => {});
 }
 
 // --- bake form (built from GET /v1/techniques) ------------------------------------------------
@@ -275,6 +276,7 @@ function buildBody() {
   checked.forEach((i, k) => { i.closest('label').dataset.field = `outputs[${k}]`; });
   body.outputs = checked.map(i => i.value);
   body.denoise = $('f-denoise').value;
+  if ($('f-reference').value) body.reference = $('f-reference').value;
   const params = {};
   for (const input of $('f-params').querySelectorAll('input')) {
     const now = input.type === 'checkbox' ? String(input.checked) : input.value;
@@ -346,7 +348,20 @@ async function refreshJobs() {
       `<td><div class="bar"><div style="width:${(p.fraction * 100).toFixed(0)}%"></div></div></td>` +
       `<td>${p.error == null ? '' : (p.error * 100).toFixed(2) + ' %'}</td><td class="hint">${esc(j.created_at.slice(11, 19))}</td></tr>`;
   }).join('') || '<tr><td colspan="6" class="hint">No jobs yet.</td></tr>';
+  refreshReferences().catch(() => {});
 }
+// The reference choices: the caller's succeeded jobs of the scene picked in the form (the
+// server checks the rest of what must match and names `reference` in its 422).
+async function refreshReferences() {
+  const {jobs} = await json('/v1/jobs?status=succeeded&limit=100');
+  const sel = $('f-reference'), keep = sel.value, scene = $('f-scene').value;
+  const pct = e => e == null ? '' : ` · ${(e * 100).toFixed(2)} %`;
+  sel.innerHTML = '<option value="">none</option>' + jobs.filter(j => j.scene === scene).map(j =>
+    `<option value="${esc(j.id)}">${esc(j.id.slice(0, 8))} · ${esc(j.spec.technique)} · ${j.spec.resolution}² · ${j.summary?.steps ?? '?'} steps${pct(j.summary?.error?.relative)}</option>`).join('');
+  if ([...sel.options].some(o => o.value === keep)) sel.value = keep;
+}
+$('f-scene').addEventListener('change', () => refreshReferences().catch(() => {}));
+
 $('job-rows').addEventListener('click', e => { const tr = e.target.closest('tr[data-job]'); if (tr) openJob(tr.dataset.job); });
 $('job-rows').addEventListener('keydown', e => { const tr = e.target.closest('tr[data-job]'); if (tr && e.key === 'Enter') openJob(tr.dataset.job); });
 
@@ -409,10 +424,13 @@ function showProgress(j) {
   const last = (j.history || []).at(-1);
   const parts = last && last.bias != null ? ` (bias ${(last.bias * 100).toFixed(2)} %, noise ${(last.noise * 100).toFixed(2)} %)` : '';
   // Light probes are baked after the lightmap (progress.probes, docs/service.md).
+  // Against the job's reference (history[].true_error), when it has one.
+  const ref = j.plan?.reference;
+  const truth = last?.true_error != null ? ` · measured against job ${ref?.job?.slice(0, 8)}: ${(last.true_error * 100).toFixed(2)} %` : '';
   const probes = p.probes ? ` · light probes: step ${p.probes.steps} of ${p.probes.of} (${p.probes.probes} probes)` : '';
   // A long step (CPU path on a large level) says how far it is (progress.step_fraction).
   const within = p.step_fraction != null ? ` (+${(p.step_fraction * 100).toFixed(0)} %)` : '';
-  $('job-progress').textContent = `${p.steps} steps${within} · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %${parts}`) + probes;
+  $('job-progress').textContent = `${p.steps} steps${within} · ${p.elapsed_s.toFixed(1)} s` + (p.error == null ? '' : ` · error ${(p.error * 100).toFixed(2)} %${parts}`) + truth + probes;
 }
 
 const TERMINAL = ['succeeded', 'failed', 'cancelled'];
@@ -488,10 +506,15 @@ $('cancel').addEventListener('click', async () => {
 // --- error plot: log-log, estimate per snapshot, dashed target ---------------------------------
 function drawPlot(j) {
   const pts = (j.history || []).filter(p => p.error > 0 && p.seconds > 0);
+  // Measured against the job's reference (orange), and that reference's own error (dotted).
+  const truth = (j.history || []).filter(p => p.true_error > 0 && p.seconds > 0);
+  const floor = j.plan?.reference?.error;
   const target = j.spec.stop?.target_error;
   const W = 256, H = 180, L = 34, B = 22, T = 8, R = 8;
-  if (!pts.length) { $('plot').innerHTML = `<svg viewBox="0 0 ${W} ${H}"><text x="${W / 2}" y="${H / 2}" text-anchor="middle">no error estimate yet</text></svg>`; return; }
-  const xs = pts.map(p => Math.log10(p.seconds)), ys = pts.map(p => Math.log10(p.error));
+  if (!pts.length && !truth.length) { $('plot').innerHTML = `<svg viewBox="0 0 ${W} ${H}"><text x="${W / 2}" y="${H / 2}" text-anchor="middle">no error estimate yet</text></svg>`; return; }
+  const xs = [...pts, ...truth].map(p => Math.log10(p.seconds)), ys = pts.map(p => Math.log10(p.error));
+  for (const p of truth) ys.push(Math.log10(p.true_error));
+  if (truth.length && floor > 0) ys.push(Math.log10(floor));
   if (target > 0) ys.push(Math.log10(target));
   for (const p of pts) if (p.noise > 0) ys.push(Math.log10(p.noise));
   let x0 = Math.floor(Math.min(...xs)), x1 = Math.ceil(Math.max(...xs)), y0 = Math.floor(Math.min(...ys)), y1 = Math.ceil(Math.max(...ys));
@@ -505,6 +528,11 @@ function drawPlot(j) {
   // The noise part alone (grey, dashed) under a biased technique's total.
   const noisy = pts.filter(p => p.noise > 0);
   if (noisy.length) s += `<polyline fill="none" stroke="#999" stroke-dasharray="3 2" stroke-width="1" points="${noisy.map(p => `${X(Math.log10(p.seconds)).toFixed(1)},${Y(Math.log10(p.noise)).toFixed(1)}`).join(' ')}"/>`;
+  if (truth.length) {
+    if (floor > 0) s += `<line class="reference-floor" x1="${L}" x2="${W - R}" y1="${Y(Math.log10(floor))}" y2="${Y(Math.log10(floor))}" stroke="#ff9f6b" stroke-dasharray="1 3"/>`;
+    s += `<polyline class="true-error" fill="none" stroke="#ff9f6b" stroke-width="1.5" points="${truth.map(p => `${X(Math.log10(p.seconds)).toFixed(1)},${Y(Math.log10(p.true_error)).toFixed(1)}`).join(' ')}"/>`;
+    s += truth.map(p => `<rect class="true-error" x="${(X(Math.log10(p.seconds)) - 2.5).toFixed(1)}" y="${(Y(Math.log10(p.true_error)) - 2.5).toFixed(1)}" width="5" height="5" fill="#ff9f6b"/>`).join('');
+  }
   s += `<polyline fill="none" stroke="#7cc4ff" stroke-width="1.5" points="${pts.map(p => `${X(Math.log10(p.seconds)).toFixed(1)},${Y(Math.log10(p.error)).toFixed(1)}`).join(' ')}"/>`;
   s += pts.map(p => `<circle cx="${X(Math.log10(p.seconds)).toFixed(1)}" cy="${Y(Math.log10(p.error)).toFixed(1)}" r="2.5" fill="#7cc4ff"/>`).join('');
   $('plot').innerHTML = s + '</svg>';

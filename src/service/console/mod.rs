@@ -24,7 +24,6 @@
 //! its type, and enumerations are shown as text without their choices, until the
 //! technique table carries that.
 
-use std::io::Cursor;
 use std::sync::OnceLock;
 
 use serde::Serialize;
@@ -200,31 +199,13 @@ pub fn techniques(limits: &Limits) -> TechniqueList {
 /// four per texel (alpha 1), rows top first (the EXR's order, which is glTF's UV order:
 /// v = 0 is the first row). Returns width, height and the bytes.
 pub fn rgba16f(exr_bytes: &[u8]) -> std::result::Result<(usize, usize, Vec<u8>), String> {
-    use exr::prelude::*;
-    let image: Image<Layers<AnyChannels<FlatSamples>>> = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_buffered(Cursor::new(exr_bytes))
-        .map_err(|e| format!("cannot read the lightmap EXR: {e}"))?;
-    let layer = image.layer_data.first().ok_or("the lightmap EXR has no layer")?;
-    let (w, h) = (layer.size.width(), layer.size.height());
-    let channel = |name: &str| -> std::result::Result<Vec<f32>, String> {
-        layer
-            .channel_data
-            .list
-            .iter()
-            .find(|c| c.name == Text::from(name))
-            .map(|c| c.sample_data.values_as_f32().collect())
-            .ok_or_else(|| format!("the lightmap EXR has no {name} channel"))
-    };
-    let (r, g, b) = (channel("R")?, channel("G")?, channel("B")?);
+    use exr::prelude::f16;
+    let lightmap = crate::engine::output::decode_lightmap(exr_bytes)?;
+    let (w, h) = (lightmap.width as usize, lightmap.height as usize);
     let one = f16::from_f32(1.0).to_le_bytes();
     let mut out = Vec::with_capacity(w * h * 8);
-    for i in 0..w * h {
-        for v in [r[i], g[i], b[i]] {
+    for texel in &lightmap.rgb {
+        for v in texel.to_array() {
             // Non-finite or negative texels never reach a stored lightmap; clamp anyway so
             // a texture never holds NaN.
             let v = if v.is_finite() { v.max(0.0) } else { 0.0 };
@@ -304,7 +285,7 @@ mod tests {
             chans,
         ));
         let mut bytes = Vec::new();
-        img.write().to_buffered(Cursor::new(&mut bytes)).unwrap();
+        img.write().to_buffered(std::io::Cursor::new(&mut bytes)).unwrap();
         let (gw, gh, data) = rgba16f(&bytes).unwrap();
         assert_eq!((gw, gh, data.len()), (3, 2, 3 * 2 * 8));
         let half = |i: usize| f16::from_le_bytes([data[2 * i], data[2 * i + 1]]).to_f32();
