@@ -607,9 +607,21 @@ fn the_console_bakes_in_a_real_browser() {
         b.key("Tab", "Tab", 9);
         reached.push(b.eval("document.activeElement.id || document.activeElement.tagName"));
     }
-    for id in ["drop", "f-technique", "f-resolution", "f-steps", "f-denoise", "submit"] {
+    for id in [
+        "drop",
+        "f-technique",
+        "f-resolution",
+        "f-uvs",
+        "f-density",
+        "f-steps",
+        "f-denoise",
+        "f-reference",
+        "submit",
+    ] {
         assert!(reached.contains(&json!(id)), "Tab never reaches #{id}: {reached:?}");
     }
+    // Back to the top for the screenshots.
+    b.eval("document.activeElement.blur(); window.scrollTo(0, 0)");
 
     // 1. Upload through the file input.
     let input = b.call(
@@ -648,6 +660,18 @@ fn the_console_bakes_in_a_real_browser() {
     assert_eq!(b.eval("document.activeElement.id"), "f-steps");
     assert_eq!(b.eval("document.querySelectorAll('#bake-form .invalid').length"), 1);
     std::fs::write(shots.join("2-field-error.png"), b.screenshot(None)).unwrap();
+    // The density of generated UVs is a field of the form too, checked by the server.
+    b.fill("#f-steps", "48");
+    b.fill("#f-density", "-2");
+    b.click("#submit");
+    let shown = b.wait(
+        "the density's 422 by its field",
+        "document.querySelector('[data-field=\"texels_per_unit\"].invalid .field-error')?.textContent",
+        Duration::from_secs(10),
+    );
+    assert_eq!(shown, "texels_per_unit must be a positive number, got -2");
+    assert_eq!(b.eval("document.activeElement.id"), "f-density");
+    b.fill("#f-density", "");
 
     // 3. A short bake, followed live, with the denoiser chosen in the form.
     b.fill("#f-steps", "48");

@@ -261,6 +261,9 @@ function num(id) { const v = $(id).value.trim(); return v === '' ? undefined : N
 
 function buildBody() {
   const body = {scene: $('f-scene').value, technique: $('f-technique').value, resolution: num('f-resolution'), priority: num('f-priority') ?? 0};
+  // Generated UVs: how they are made, and at what density (blank: the highest that fits a page).
+  if ($('f-uvs').value !== 'generate-missing') body.lightmap_uvs = $('f-uvs').value;
+  if (num('f-density') !== undefined) body.texels_per_unit = num('f-density');
   const stop = {};
   if (num('f-steps') !== undefined) stop.steps = num('f-steps');
   if (num('f-seconds') !== undefined) stop.seconds = num('f-seconds');
