@@ -695,6 +695,12 @@ fn the_console_bakes_in_a_real_browser() {
         "{:?}",
         b.eval("JSON.stringify(window.lightmapdConsole.job)")
     );
+    // Downloads: the lightmap, its preview, the glTF it fits (here the scene's own UVs).
+    let links = b.eval("[...document.querySelectorAll('#job-downloads a')].map(a => a.textContent)");
+    assert_eq!(
+        links,
+        json!(["lightmap.exr", "lightmaps.json", "preview.png", "scene.glb (its own UVs)", "job.json"])
+    );
     let denoiser = b.eval("window.lightmapdConsole.job.summary?.denoiser");
     assert!(
         denoiser.as_str().unwrap_or("").starts_with("own"),

@@ -465,7 +465,9 @@ function showJob(j) {
     }
     if (pages.length > 0) dl.push(`<a href="/v1/jobs/${j.id}/lightmaps.json" data-fetch="${j.id}-lightmaps.json">lightmaps.json</a>`);
     dl.push(`<a href="/v1/jobs/${j.id}/preview.png" data-fetch="${j.id}.png">preview.png</a>`);
+    // The glTF the lightmap fits: with the UVs the engine made, or the scene's own.
     if (j.summary?.generated_uvs) dl.push(`<a href="/v1/jobs/${j.id}/scene.glb" data-fetch="${j.id}.glb">scene.glb (generated UVs)</a>`);
+    else dl.push(`<a href="/v1/scenes/${j.scene}/scene.glb" data-fetch="${j.scene}.glb">scene.glb (its own UVs)</a>`);
     if (j.spec?.probes) dl.push(`<a href="/v1/jobs/${j.id}/probes.json" data-fetch="${j.id}-probes.json">probes.json</a>`);
   } else if (j.snapshots > 0) dl.push(`<a href="/v1/jobs/${j.id}/lightmap.exr?snapshot=latest" data-fetch="${j.id}-snapshot.exr">latest snapshot.exr</a>`);
   dl.push(`<a href="/v1/jobs/${j.id}" data-fetch="${j.id}.json">job.json</a>`);
