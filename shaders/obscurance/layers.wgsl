@@ -14,13 +14,13 @@
 // of fixed capacity; a fragment past it is dropped (the counter still counts it, so the
 // CPU can report the overflow) and its surface is missing from that direction only.
 //
-// `fs_shadow`: an ordinary nearest-depth map along a sun or directional light, t in the
-// colour target (obscurance/direct.wgsl reads it).
+// Sun and directional lights are shadowed with the shared atlas (gpu/shadow_atlas.wgsl),
+// not here.
 //
-// Alpha (gpu/materials.wgsl): both entry points drop a fragment that glTF alpha cuts away
+// Alpha (gpu/materials.wgsl): the fragment shader drops a fragment that glTF alpha cuts away
 // (MASK below its cutoff; BLEND when a hash of the pixel, the triangle and the view's
 // direction, which changes every step, falls at or above the coverage), so that surface
-// is missing from that direction's layers and shadow map.
+// is missing from that direction's layers.
 
 struct Vertex {
     @location(0) position: vec3<f32>,
@@ -108,12 +108,4 @@ fn fs_layers(in: VsOut, @builtin(front_facing) front: bool) -> @location(0) vec4
     }
     // The colour target is a write-masked dummy (a render pass needs an attachment).
     return vec4<f32>(0.0);
-}
-
-@fragment
-fn fs_shadow(in: VsOut) -> @location(0) vec4<f32> {
-    if alpha_cut(in) {
-        discard;
-    }
-    return vec4<f32>(dot(in.world, view.dir.xyz), 0.0, 0.0, 0.0);
 }

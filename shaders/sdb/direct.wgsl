@@ -1,36 +1,28 @@
 // sdb/direct.wgsl: direct light from the sun and directional lights through a shadow map.
 // Gathering along random directions cannot find a light source of near-zero solid angle
 // (the seed's section 7 suggests shadow mapping for exactly this), so each such light
-// gets an ordinary nearest-depth orthographic map along its direction of travel
-// (sdb/illumination.wgsl with DEPTH_NEAREST) and this pass adds
-// E/pi = irradiance/pi * max(<n, -d>, 0) * visibility to its own accumulators (the
+// gets an orthographic map along its direction of travel in the shared shadow-map atlas
+// (gpu/shadow_atlas.wgsl: every pixel keeps the plane of the nearest surface) and this pass
+// adds E/pi = irradiance/pi * max(<n, -d>, 0) * visibility to its own accumulators (the
 // gather's are self-normalised by their cosine weights, which a light of one direction
 // has no part in); the resolve pass adds both, so the illumination pass picks this light
-// up for the next bounces. The sun's direction is jittered
-// over its disc per step (on the CPU), so penumbrae converge like everything else.
-// Visibility: 2x2 percentage-closer filtering with a receiver offset along the normal
-// (one shadow-map pixel) and a depth bias (two pixels), both relative to the map's pixel
-// size, against shadow acne on surfaces at grazing angles.
+// up for the next bounces. The sun's direction is jittered over its disc per step (on the
+// CPU), so penumbrae converge like everything else. Visibility is the atlas's own test
+// (gpu/shadow_view.wgsl's shadow_ortho: 2x2 percentage-closer filtering of "is the receiver
+// behind the nearest surface's plane"), the receiver moved along its geometric normal by
+// `bias.x` map pixels against self-shadowing on tessellated curved surfaces.
 
 struct DirectParams {
     irradiance: vec4<f32>,  // rgb: E/pi on a surface facing the light, unshadowed; w: the direction's blend b (see sdb/gather.wgsl)
-    bias: vec4<f32>,        // x: receiver offset along the normal, y: depth bias (normalised scene units); z: decay: 1 - b for the direction's first light, 1 for the others (they add to the same blend); w: unused
+    bias: vec4<f32>,        // x: receiver offset along the geometric normal (map pixels); y: unused; z: decay: 1 - b for the direction's first light, 1 for the others (they add to the same blend); w: unused
     misc: vec4<u32>,        // x: parity, y: texel count N; z, w: unused
 }
 
-@group(0) @binding(0) var<uniform> view: View;
+@group(0) @binding(0) var<storage, read> views: array<ShadowView>;  // one: the light's map
 @group(0) @binding(1) var<uniform> params: DirectParams;
-@group(0) @binding(2) var shadow: texture_2d_array<f32>;  // layer 0 holds the shadow map
+@group(0) @binding(2) var atlas: texture_2d<f32>;
 @group(0) @binding(3) var<storage, read> texels: array<TexelGeom>;
 @group(0) @binding(4) var<storage, read_write> sun_acc: array<vec4<f32>>;  // 2N: rgb E/pi from these lights
-
-fn lit(px: vec2<i32>, t: f32) -> f32 {
-    let size = i32(view.extent.z);
-    let q = clamp(px, vec2<i32>(0), vec2<i32>(size - 1));
-    let s = textureLoad(shadow, q, 0, 0);
-    // Empty pixel (s.a = EMPTY_T) or first occluder not in front of the receiver.
-    return select(0.0, 1.0, t <= s.a + params.bias.y);
-}
 
 @compute @workgroup_size(64)
 fn direct(
@@ -44,19 +36,13 @@ fn direct(
         return;
     }
     let n = texels[i].normal.xyz;
-    let d = view.dir.xyz;
+    let v = views[0];
+    let d = v.fwd.xyz;
     let ng = texels[i].geo_normal.xyz;
     let cos_theta = -dot(n, d);
     var e = vec3<f32>(0.0);
     if cos_theta > 0.0 && -dot(ng, d) > 0.0 {
-        let x = texels[i].position.xyz + ng * params.bias.x;
-        let t = dot(x, d);
-        let f = project_to_map(view, x) - 0.5;
-        let base = floor(f);
-        let w = f - base;
-        let p = vec2<i32>(base);
-        let vis = mix(mix(lit(p, t), lit(p + vec2<i32>(1, 0), t), w.x),
-                      mix(lit(p + vec2<i32>(0, 1), t), lit(p + vec2<i32>(1, 1), t), w.x), w.y);
+        let vis = shadow_ortho(atlas, v, texels[i].position.xyz, ng, params.bias.x);
         e = params.irradiance.rgb * cos_theta * vis;
     }
     let slot = params.misc.x * n_texels + i;

@@ -11,11 +11,11 @@
 // back faces of open single-sided geometry are kept with zero radiance (they must block
 // light), double-sided materials reflect and emit on both faces.
 //
-// DEPTH_NEAREST: ordinary nearest-to-camera depth with every face kept; used as a shadow
-// map for the sun and directional lights (sdb/direct.wgsl).
+// The sun and directional lights are shadowed with the shared atlas (gpu/shadow_atlas.wgsl,
+// read by sdb/direct.wgsl), not with this pass.
 //
-// Alpha (gpu/materials.wgsl): a fragment that glTF alpha cuts away is culled in both
-// modes (MASK below its cutoff; BLEND when a hash of the step seed, the layer, the
+// Alpha (gpu/materials.wgsl): a fragment that glTF alpha cuts away is culled
+// (MASK below its cutoff; BLEND when a hash of the step seed, the layer, the
 // triangle and the pixel, salted apart from the depth's hash, falls at or above the
 // coverage), so the surface behind it is what the pixel sees.
 //
@@ -148,11 +148,6 @@ fn shade(in: VsOut, front: bool) -> Shaded {
     out.culled = alpha_cut(in);
     out.emission = vec3<f32>(0.0);
     if out.culled {
-        return out;
-    }
-    if view.params.y == DEPTH_NEAREST {
-        out.sample = vec4<f32>(0.0, 0.0, 0.0, t);
-        out.depth = clamp((t - view.dir.w) / view.extent.y, 0.0, 1.0);
         return out;
     }
     let info = tris[in.triangle];

@@ -13,9 +13,10 @@
 // light lost by receivers nearer than `clamp` to a VPL (docs/vpl.md measures it).
 // Punctual lights are exact point sources and are not clamped.
 //
-// Visibility: 2x2 percentage-closer filtering of the light's map. Each map pixel holds the
-// plane (n, c) of the nearest surface along its ray (gpu/shadow_atlas.wgsl); a tap blocks the
-// light when the light and the receiver lie strictly on opposite sides of that plane.
+// Visibility: 2x2 percentage-closer filtering of the light's map (gpu/shadow_view.wgsl's
+// shadow_pcf). Each map pixel holds the plane (n, c) of the nearest surface along its ray
+// (gpu/shadow_atlas.wgsl); a tap blocks the light when the light and the receiver lie
+// strictly on opposite sides of that plane.
 // That is exact for a receiver behind the surface, whatever the wall's thickness (down
 // to SIDE_EPS) and the map's resolution; errors remain only within a pixel of
 // silhouettes, where a neighbour's plane is extrapolated. A plane through the light (the
@@ -52,43 +53,8 @@ struct GatherParams {
 @group(0) @binding(5) var<storage, read_write> acc: array<vec4<f32>>;         // 2N, everything
 @group(0) @binding(6) var<storage, read_write> direct_acc: array<vec4<f32>>;  // 2N, direct light only
 
-// Smallest distance from a plane (normalised scene units, 1e-5 of the scene radius) at
-// which a point counts as on one side of it: f32 resolves about 1e-7 here, and the
-// atlas offsets texel points by 4e-5 of the radius off their own surface.
-const SIDE_EPS: f32 = 1.0e-5;
-
-// 1 when tap `px` of view `v` lets the light through to `x`. The light sits at the view's
-// origin (perspective) or at infinity against its axis (orthographic).
-fn tap(v: ShadowView, px: vec2<i32>, x: vec3<f32>) -> f32 {
-    // Taps stay inside the view's own tile (clamped at its border).
-    let lo = vec2<i32>(i32(v.rect.x), i32(v.rect.y));
-    let hi = lo + vec2<i32>(i32(v.rect.z) - 1);
-    let plane = textureLoad(atlas, clamp(px, lo, hi), 0);
-    var side_light = dot(plane.xyz, v.origin.xyz) - plane.w;
-    if v.rect.w == VIEW_ORTHO {
-        // The light is at infinity against the view axis.
-        side_light = -dot(plane.xyz, v.fwd.xyz);
-    }
-    let side_x = dot(plane.xyz, x) - plane.w;
-    let blocked = side_light * side_x < 0.0 && abs(side_light) > SIDE_EPS && abs(side_x) > SIDE_EPS;
-    return select(1.0, 0.0, blocked);
-}
-
-fn pcf(v: ShadowView, ab: vec2<f32>, x: vec3<f32>) -> f32 {
-    let f = shadow_view_pixel(v, ab) - 0.5;
-    let base = floor(f);
-    let w = f - base;
-    let p = vec2<i32>(base);
-    return mix(mix(tap(v, p, x), tap(v, p + vec2<i32>(1, 0), x), w.x),
-               mix(tap(v, p + vec2<i32>(0, 1), x), tap(v, p + vec2<i32>(1, 1), x), w.x), w.y);
-}
-
 fn visibility_ortho(v: ShadowView, x: vec3<f32>, ng: vec3<f32>) -> f32 {
-    let pixel = 2.0 * v.right.w / f32(v.rect.z);
-    let xo = x + ng * (params.bias.y * pixel);
-    let q = xo - v.origin.xyz;
-    let ab = vec2<f32>(dot(q, v.right.xyz), dot(q, v.up.xyz)) / v.right.w;
-    return pcf(v, ab, xo);
+    return shadow_ortho(atlas, v, x, ng, params.bias.y);
 }
 
 fn visibility_cube(l: Light, x: vec3<f32>, ng: vec3<f32>) -> f32 {
@@ -112,7 +78,7 @@ fn visibility_cube(l: Light, x: vec3<f32>, ng: vec3<f32>) -> f32 {
     }
     let v = views[first + face];
     let ab = vec2<f32>(dot(w, v.right.xyz), dot(w, v.up.xyz)) / dot(w, v.fwd.xyz);
-    return pcf(v, ab, xo);
+    return shadow_pcf(atlas, v, ab, xo);
 }
 
 @compute @workgroup_size(64)

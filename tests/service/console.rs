@@ -699,7 +699,13 @@ fn the_console_bakes_in_a_real_browser() {
     let links = b.eval("[...document.querySelectorAll('#job-downloads a')].map(a => a.textContent)");
     assert_eq!(
         links,
-        json!(["lightmap.exr", "lightmaps.json", "preview.png", "scene.glb (its own UVs)", "job.json"])
+        json!([
+            "lightmap.exr",
+            "lightmaps.json",
+            "preview.png",
+            "scene.glb (its own UVs)",
+            "job.json"
+        ])
     );
     let denoiser = b.eval("window.lightmapdConsole.job.summary?.denoiser");
     assert!(

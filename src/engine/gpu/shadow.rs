@@ -22,10 +22,12 @@
 //! would have been when it does not, and the technique names its own parameters to lower.
 
 use bytemuck::{Pod, Zeroable};
-use glam::Vec3;
+use glam::{Vec2, Vec3};
 
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, group_of, layout_of};
+use crate::engine::gpu::map_scene::MapTriangle;
+use crate::engine::gpu::view::GpuView;
 use crate::engine::gpu::{GpuContext, GpuError, shaders};
 use crate::engine::scene::Scene;
 
@@ -48,18 +50,32 @@ pub fn shadow_vertices(scene: &Scene, frame: &SceneFrame) -> Vec<ShadowVertex> {
     scene
         .triangles
         .iter()
+        .flat_map(|t| corners(t.p, t.geometric_normal(), scene.base_color_uvs(t), t.material, frame))
+        .collect()
+}
+
+/// Every triangle of a map scene (`gpu::map_scene`, what `sdb` and `obscurance` draw
+/// their maps from) as three [`ShadowVertex`]es, in `frame`.
+pub fn map_shadow_vertices(triangles: &[MapTriangle], frame: &SceneFrame) -> Vec<ShadowVertex> {
+    triangles
+        .iter()
         .flat_map(|t| {
-            let n = t.geometric_normal();
-            let c = n.dot(frame.norm(t.p[0]));
-            let uv = scene.base_color_uvs(t);
-            [0, 1, 2].map(|k| ShadowVertex {
-                position: frame.norm(t.p[k]).to_array(),
-                plane: [n.x, n.y, n.z, c],
-                alpha_uv: uv[k].to_array(),
-                material: t.material,
-            })
+            let n = (t.p[1] - t.p[0]).cross(t.p[2] - t.p[0]).normalize_or_zero();
+            corners(t.p, n, t.alpha_uv, t.material, frame)
         })
         .collect()
+}
+
+/// One triangle's corners: its plane (unit normal `n`, a zero normal blocking nothing)
+/// is the same at all three.
+fn corners(p: [Vec3; 3], n: Vec3, uv: [Vec2; 3], material: u32, frame: &SceneFrame) -> [ShadowVertex; 3] {
+    let c = n.dot(frame.norm(p[0]));
+    [0, 1, 2].map(|k| ShadowVertex {
+        position: frame.norm(p[k]).to_array(),
+        plane: [n.x, n.y, n.z, c],
+        alpha_uv: uv[k].to_array(),
+        material,
+    })
 }
 
 /// A perspective cube face (90 degrees) around a point.
@@ -77,6 +93,27 @@ pub struct ShadowView {
     pub up: [f32; 4],
     pub fwd: [f32; 4],
     pub rect: [u32; 4],
+}
+
+impl ShadowView {
+    /// The orthographic map `view` (a [`make_view`](crate::engine::gpu::view::make_view) map along a distant light: its
+    /// lateral square, pixel count and depth range) as one map of the atlas, at tile
+    /// corner `at`: the same pixels, so a technique that jitters and fits its maps with
+    /// `make_view` keeps its sampling when it draws them here.
+    pub fn ortho_of(view: &GpuView, at: [u32; 2]) -> ShadowView {
+        let [right, up, dir] = [view.right, view.up, view.dir].map(|v| Vec3::new(v[0], v[1], v[2]));
+        let (a0, b0, t0) = (view.right[3], view.up[3], view.dir[3]);
+        let [span, range, pixels, _] = view.extent;
+        let half = 0.5 * span;
+        let origin = right * (a0 + half) + up * (b0 + half) + dir * t0;
+        ShadowView {
+            origin: [origin.x, origin.y, origin.z, 0.0],
+            right: [right.x, right.y, right.z, half],
+            up: [up.x, up.y, up.z, 0.0],
+            fwd: [dir.x, dir.y, dir.z, range],
+            rect: [at[0], at[1], pixels as u32, VIEW_ORTHO],
+        }
+    }
 }
 
 /// The six faces of a cube in the frame (t, b, n): +t, -t, +b, -b, +n, -n (the order
@@ -333,6 +370,39 @@ impl ShadowAtlas {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A point lands on the same pixel of the atlas map as on the `make_view` map it
+    /// was made from (`project_to_map` there, `shadow_view_pixel` here), at the same depth.
+    #[test]
+    fn an_ortho_map_keeps_its_pixels_in_the_atlas() {
+        let corners =
+            crate::engine::gpu::frame::SceneFrame::of_points([Vec3::splat(-1.0), Vec3::new(2.0, 1.0, 0.5)]).corners();
+        let d = Vec3::new(0.3, -0.9, 0.2).normalize();
+        let m = crate::engine::gpu::view::make_view(
+            d,
+            &corners,
+            64,
+            (0.37, 0.81),
+            0,
+            crate::engine::gpu::view::DEPTH_NEAREST,
+        );
+        let v = ShadowView::ortho_of(&m, [128, 64]);
+        let [right, up, dir] = [m.right, m.up, m.dir].map(|r| Vec3::new(r[0], r[1], r[2]));
+        for p in [Vec3::ZERO, Vec3::new(0.5, -0.2, 0.1), Vec3::new(-0.7, 0.4, -0.3)] {
+            // gpu/common.wgsl's project_to_map.
+            let (a, b) = (p.dot(right) - m.right[3], p.dot(up) - m.up[3]);
+            let map = glam::Vec2::new(a / m.extent[0] * m.extent[2], (1.0 - b / m.extent[0]) * m.extent[2]);
+            // gpu/shadow_view.wgsl's shadow_view_pixel, minus the tile's corner.
+            let o = Vec3::new(v.origin[0], v.origin[1], v.origin[2]);
+            let q = p - o;
+            let ab = glam::Vec2::new(q.dot(right), q.dot(up)) / v.right[3];
+            let atlas = glam::Vec2::new(ab.x + 1.0, 1.0 - ab.y) * 0.5 * v.rect[2] as f32;
+            assert!((map - atlas).length() < 1e-3, "{p}: {map} against {atlas}");
+            // Depth: 0 at the near plane, the map's range at the far one.
+            assert!((q.dot(dir) - (p.dot(dir) - m.dir[3])).abs() < 1e-5);
+        }
+        assert_eq!(v.rect, [128, 64, 64, VIEW_ORTHO]);
+    }
 
     #[test]
     fn the_vertex_is_what_the_pipeline_reads() {

@@ -35,9 +35,12 @@
 //!    consecutive layers in both directions in one pass. The seed's facing tests: the
 //!    texel must face the layer (its normal's sign against d picks the direction) and the
 //!    layer must face the texel (its front-facing bit) or be double-sided.
-//! 3. *Direct* (`shaders/obscurance/direct.wgsl`): a nearest-depth shadow map per sun or
-//!    directional light per direction step, with E/pi cos visibility added to the direct
-//!    accumulator.
+//! 3. *Direct* (`shaders/obscurance/direct.wgsl`): a shadow map per sun or directional
+//!    light per direction step, drawn in the shared atlas (`gpu::shadow`: each pixel keeps
+//!    the plane of the nearest surface, so a receiver behind it is shadowed without a
+//!    depth bias), with E/pi cos visibility added to the direct accumulator. Until issue
+//!    18 finished, this was obscurance's own nearest-depth map with a two-pixel depth
+//!    bias.
 //! 4. *Ambient* (on the CPU, at a snapshot): R_ave and I_A (below), and the lightmap
 //!    direct + I_A W for each half.
 //!
@@ -133,6 +136,7 @@ use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene};
 use crate::engine::gpu::scene_lights::LightSources;
+use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw, ShadowView, map_shadow_vertices};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::view::{
     DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view,
@@ -349,6 +353,10 @@ const EPS_NORMAL_PLANE: f32 = 1e-5;
 const EPS_ALONG_D: f32 = 1e-5;
 /// Guard on 1 - c R_ave: an albedo-1 closed scene has no finite ambient.
 const MIN_ABSORPTION: f32 = 1e-6;
+/// How far a receiver moves along its geometric normal before the sun map's test, in map
+/// pixels: against a neighbouring triangle's plane passing just above it on tessellated
+/// curved surfaces (the plane test needs no depth bias; gpu/shadow_view.wgsl).
+const SHADOW_OFFSET_PIXELS: f32 = 1.0;
 
 /// Per-pixel list statistics since the bake started (read at a snapshot).
 #[derive(Debug, Clone, Copy, Default, Serialize, PartialEq, Eq)]
@@ -422,7 +430,6 @@ pub struct Obscurance {
     vertex_count: u32,
     vertex_buf: wgpu::Buffer,
     view_buf: wgpu::Buffer,
-    shadow_view_buf: wgpu::Buffer,
     gather_buf: wgpu::Buffer,
     direct_buf: wgpu::Buffer,
     heads_buf: wgpu::Buffer,
@@ -440,24 +447,26 @@ pub struct Obscurance {
 
 /// The sun / directional-light passes, created only when the job has such a light.
 struct ShadowPass {
-    color_view: wgpu::TextureView,
-    depth_view: wgpu::TextureView,
-    pipeline: wgpu::RenderPipeline,
-    bg: wgpu::BindGroup,
+    /// The map being drawn: one [`ShadowView`].
+    views_buf: wgpu::Buffer,
+    atlas: ShadowAtlas,
+    /// The scene's corners with their triangles' planes ([`map_shadow_vertices`]).
+    vertices: wgpu::Buffer,
+    vertex_count: u32,
     direct_pipeline: wgpu::ComputePipeline,
     direct_bg: wgpu::BindGroup,
 }
 
 /// `obscurance`'s passes, WGSL in `shaders/obscurance/`.
 pub mod shaders {
-    use crate::engine::gpu::shaders::{MATERIALS, PassShader, pass};
+    use crate::engine::gpu::shaders::{MATERIALS, PassShader, SHADOW_VIEW, pass};
 
-    /// Every depth layer per pixel as fragment lists, and shadow maps.
+    /// Every depth layer per pixel as fragment lists.
     pub const OBSCURANCE_LAYERS: PassShader = pass!("obscurance/layers.wgsl", [MATERIALS]);
     /// Obscurance, colour bleeding and direct light along one direction.
     pub const OBSCURANCE_GATHER: PassShader = pass!("obscurance/gather.wgsl");
-    /// Direct light from the sun and directional lights through a shadow map.
-    pub const OBSCURANCE_DIRECT: PassShader = pass!("obscurance/direct.wgsl");
+    /// Direct light from the sun and directional lights through the shared shadow atlas.
+    pub const OBSCURANCE_DIRECT: PassShader = pass!("obscurance/direct.wgsl", [SHADOW_VIEW]);
     /// Every pass of `obscurance`.
     pub const ALL: &[PassShader] = &[OBSCURANCE_LAYERS, OBSCURANCE_GATHER, OBSCURANCE_DIRECT];
 }
@@ -774,7 +783,6 @@ impl Obscurance {
             U::STORAGE | U::COPY_DST,
         );
         let view_buf = ctx.uniform("obscurance view", &GpuView::zeroed());
-        let shadow_view_buf = ctx.uniform("obscurance shadow view", &GpuView::zeroed());
         let layer_params = ctx.uniform(
             "obscurance layer params",
             &GpuDims {
@@ -822,15 +830,11 @@ impl Obscurance {
             step_mode: wgpu::VertexStepMode::Vertex,
             attributes: &GpuVertex::ATTRIBUTES,
         };
-        let raster_pipeline = |label: &str,
-                               layout: &wgpu::BindGroupLayout,
-                               entry: &str,
-                               format: wgpu::TextureFormat,
-                               writes: wgpu::ColorWrites,
-                               depth: bool| {
+        let layers_pipeline = {
+            let label = "obscurance depth layers";
             let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some(label),
-                bind_group_layouts: &[Some(layout)],
+                bind_group_layouts: &[Some(&layers_layout)],
                 immediate_size: 0,
             });
             ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
@@ -840,7 +844,7 @@ impl Obscurance {
                     module: &layers_module,
                     entry_point: Some("vs_main"),
                     compilation_options: Default::default(),
-                    buffers: &[Some(vertex_layout.clone())],
+                    buffers: &[Some(vertex_layout)],
                 },
                 primitive: wgpu::PrimitiveState {
                     topology: wgpu::PrimitiveTopology::TriangleList,
@@ -849,36 +853,24 @@ impl Obscurance {
                     cull_mode: None,
                     ..Default::default()
                 },
-                depth_stencil: depth.then(|| wgpu::DepthStencilState {
-                    format: wgpu::TextureFormat::Depth32Float,
-                    depth_write_enabled: Some(true),
-                    depth_compare: Some(wgpu::CompareFunction::Less),
-                    stencil: Default::default(),
-                    bias: Default::default(),
-                }),
+                // Every fragment is kept (in the lists), so no depth test.
+                depth_stencil: None,
                 multisample: Default::default(),
                 fragment: Some(wgpu::FragmentState {
                     module: &layers_module,
-                    entry_point: Some(entry),
+                    entry_point: Some("fs_layers"),
                     compilation_options: Default::default(),
+                    // A write-masked dummy: a render pass needs an attachment.
                     targets: &[Some(wgpu::ColorTargetState {
-                        format,
+                        format: wgpu::TextureFormat::R8Unorm,
                         blend: None,
-                        write_mask: writes,
+                        write_mask: wgpu::ColorWrites::empty(),
                     })],
                 }),
                 multiview_mask: None,
                 cache: None,
             })
         };
-        let layers_pipeline = raster_pipeline(
-            "obscurance depth layers",
-            &layers_layout,
-            "fs_layers",
-            wgpu::TextureFormat::R8Unorm,
-            wgpu::ColorWrites::empty(),
-            false,
-        );
         let layers_bg = group_of(&ctx, "obscurance layers bindings", &layers_layout, &layers_binds);
 
         let gather_module = ctx.shader(&shaders::OBSCURANCE_GATHER).map_err(gpu_error)?;
@@ -898,43 +890,26 @@ impl Obscurance {
         let gather_pipeline = compute_pipeline(&ctx, "obscurance gather", &gather_module, "gather", &gather_layout);
         let gather_bg = group_of(&ctx, "obscurance gather bindings", &gather_layout, &gather_binds);
 
-        // Sun and directional lights: only when there are some (DESIGN section 6).
+        // Sun and directional lights: only when there are some (DESIGN section 6). One
+        // orthographic map at a time in the shared atlas (gpu::shadow), redrawn per light
+        // and direction.
         let shadow = if input.lights.is_empty() {
             None
         } else {
-            let color = ctx.texture_2d(
-                "obscurance shadow map (t)",
-                extent,
-                wgpu::TextureFormat::R32Float,
-                wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING,
+            let views_buf = ctx.buffer_zeroed(
+                "obscurance sun map view",
+                std::mem::size_of::<ShadowView>() as u64,
+                U::STORAGE | U::COPY_DST,
             );
-            let depth = ctx.texture_2d(
-                "obscurance shadow map depth",
-                extent,
-                wgpu::TextureFormat::Depth32Float,
-                wgpu::TextureUsages::RENDER_ATTACHMENT,
-            );
-            let shadow_binds = [Bind::Uniform(&shadow_view_buf), Bind::Read(&tables.tables)];
-            let shadow_layout = layout_of(&ctx, "obscurance shadow layout", S::VERTEX_FRAGMENT, &shadow_binds);
-            let pipeline = raster_pipeline(
-                "obscurance shadow map",
-                &shadow_layout,
-                "fs_shadow",
-                wgpu::TextureFormat::R32Float,
-                wgpu::ColorWrites::ALL,
-                true,
-            );
-            let bg = group_of(&ctx, "obscurance shadow bindings", &shadow_layout, &shadow_binds);
-            let array_view = color.create_view(&wgpu::TextureViewDescriptor {
-                label: Some("obscurance shadow map array view"),
-                dimension: Some(wgpu::TextureViewDimension::D2Array),
-                ..Default::default()
-            });
+            let atlas =
+                ShadowAtlas::new(&ctx, "obscurance sun", n, n, &views_buf, &tables.tables).map_err(gpu_error)?;
+            let shadow_verts = map_shadow_vertices(&input.triangles, &frame);
+            let vertices = ctx.buffer_init("obscurance sun map vertices (with planes)", &shadow_verts, U::VERTEX);
             let direct_module = ctx.shader(&shaders::OBSCURANCE_DIRECT).map_err(gpu_error)?;
             let direct_binds = [
-                Bind::Uniform(&shadow_view_buf),
+                Bind::Read(&views_buf),
                 Bind::Uniform(&direct_buf),
-                Bind::Texture(&array_view),
+                Bind::Texture2d(&atlas.plane_view),
                 Bind::Read(&geom_buf),
                 Bind::Write(&direct_acc_buf),
                 Bind::Read(&subset_buf),
@@ -943,16 +918,10 @@ impl Obscurance {
             let direct_pipeline = compute_pipeline(&ctx, "obscurance direct", &direct_module, "direct", &direct_layout);
             let direct_bg = group_of(&ctx, "obscurance direct bindings", &direct_layout, &direct_binds);
             Some(ShadowPass {
-                color_view: color.create_view(&wgpu::TextureViewDescriptor {
-                    label: Some("obscurance shadow map view"),
-                    ..Default::default()
-                }),
-                depth_view: depth.create_view(&wgpu::TextureViewDescriptor {
-                    label: Some("obscurance shadow depth view"),
-                    ..Default::default()
-                }),
-                pipeline,
-                bg,
+                views_buf,
+                atlas,
+                vertex_count: shadow_verts.len() as u32,
+                vertices,
                 direct_pipeline,
                 direct_bg,
             })
@@ -1009,7 +978,6 @@ impl Obscurance {
             vertex_count: vertices.len() as u32,
             vertex_buf,
             view_buf,
-            shadow_view_buf,
             gather_buf,
             direct_buf,
             heads_buf,
@@ -1135,11 +1103,11 @@ impl Obscurance {
                     let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
                     let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
                     let view = make_view(ld, &self.corners, n, jitter, 0, DEPTH_NEAREST);
-                    let pixel = view.extent[0] / view.extent[2];
+                    let map = ShadowView::ortho_of(&view, [0, 0]);
                     let e = light.irradiance_over_pi;
                     let direct = GpuDirectParams {
                         irradiance: [e.x, e.y, e.z, b],
-                        bias: [pixel, 2.0 * pixel, 0.0, 0.0],
+                        bias: [SHADOW_OFFSET_PIXELS, 0.0, 0.0, 0.0],
                         misc: [
                             parity as u32,
                             count,
@@ -1149,47 +1117,21 @@ impl Obscurance {
                     };
                     self.ctx
                         .queue
-                        .write_buffer(&self.shadow_view_buf, 0, bytemuck::bytes_of(&view));
+                        .write_buffer(&shadow.views_buf, 0, bytemuck::bytes_of(&map));
                     self.ctx
                         .queue
                         .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
                     let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
                         label: Some("obscurance direct light"),
                     });
-                    {
-                        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                            label: Some("obscurance shadow map"),
-                            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                                view: &shadow.color_view,
-                                depth_slice: None,
-                                resolve_target: None,
-                                ops: wgpu::Operations {
-                                    load: wgpu::LoadOp::Clear(wgpu::Color {
-                                        r: 1.0e30,
-                                        g: 0.0,
-                                        b: 0.0,
-                                        a: 0.0,
-                                    }),
-                                    store: wgpu::StoreOp::Store,
-                                },
-                            })],
-                            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                                view: &shadow.depth_view,
-                                depth_ops: Some(wgpu::Operations {
-                                    load: wgpu::LoadOp::Clear(1.0),
-                                    store: wgpu::StoreOp::Discard,
-                                }),
-                                stencil_ops: None,
-                            }),
-                            timestamp_writes: None,
-                            occlusion_query_set: None,
-                            multiview_mask: None,
-                        });
-                        pass.set_pipeline(&shadow.pipeline);
-                        pass.set_bind_group(0, &shadow.bg, &[]);
-                        pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
-                        pass.draw(0..self.vertex_count, 0..1);
-                    }
+                    let draw = ShadowDraw {
+                        view: 0,
+                        tile: [0, 0, n],
+                        rows: n,
+                    };
+                    shadow
+                        .atlas
+                        .render(&mut encoder, &shadow.vertices, shadow.vertex_count, [draw]);
                     {
                         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                             label: Some("obscurance direct"),

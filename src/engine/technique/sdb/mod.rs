@@ -25,7 +25,9 @@
 //!    estimate is their ratio (self-normalised, so uniform light is exact and the bounce
 //!    series keeps energy).
 //! 4. *Direct light* (`shaders/sdb/direct.wgsl`), only when the job has a sun or the
-//!    scene has directional lights: a nearest-depth shadow map along each such light and
+//!    scene has directional lights: a shadow map along each such light in the shared
+//!    atlas (`gpu::shadow`, each pixel the plane of the nearest surface; until issue 18
+//!    finished, a nearest-depth layer of sdb's own map with a two-pixel depth bias) and
 //!    E/pi = E_perp/pi cos(theta) visibility into accumulators of their own, which the
 //!    resolve pass adds, so these lights also feed the bounces (the seed's section 7
 //!    suggests exactly this).
@@ -124,6 +126,7 @@ use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, layout_at, layout_of};
 pub use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene, MapTexel, MapTriangle};
 use crate::engine::gpu::scene_rays::{GpuTables, opaque_material_tables};
+use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw, ShadowView, map_shadow_vertices};
 use crate::engine::gpu::texels::GpuTexelGeom;
 pub use crate::engine::gpu::view::cullable_triangles;
 use crate::engine::gpu::view::{
@@ -423,13 +426,25 @@ pub struct SdbEngine {
     resolve_pipeline: wgpu::ComputePipeline,
     illum_pipeline: wgpu::RenderPipeline,
     gather_pipeline: wgpu::ComputePipeline,
-    direct_pipeline: Option<wgpu::ComputePipeline>,
     resolve_bg: wgpu::BindGroup,
     illum_bg: wgpu::BindGroup,
     gather_bg: wgpu::BindGroup,
-    direct_bg: Option<wgpu::BindGroup>,
+    sun_maps: Option<SunMaps>,
     texel_dispatch: (u32, u32),
     pixel_dispatch: (u32, u32),
+}
+
+/// The sun's and directional lights' maps in the shared shadow atlas and the direct pass
+/// that reads them (`shaders/sdb/direct.wgsl`, `direct`); only with such lights.
+struct SunMaps {
+    /// The map being drawn: one [`ShadowView`].
+    views_buf: wgpu::Buffer,
+    atlas: ShadowAtlas,
+    /// The map scene's corners with their triangles' planes ([`map_shadow_vertices`]).
+    vertices: wgpu::Buffer,
+    vertex_count: u32,
+    pipeline: wgpu::ComputePipeline,
+    bg: wgpu::BindGroup,
 }
 
 /// The light of small emitters and point and spot lights, and the pass that folds it in.
@@ -450,6 +465,10 @@ struct GpuEmitterAddParams {
 /// Relative epsilons (normalised scene space, radius 1).
 const EPS_NORMAL_PLANE: f32 = 1e-5;
 const EPS_ALONG_D: f32 = 1e-5;
+/// How far a receiver moves along its geometric normal before the sun map's test, in map
+/// pixels: against a neighbouring triangle's plane passing just above it on tessellated
+/// curved surfaces (the plane test needs no depth bias; gpu/shadow_view.wgsl).
+const SHADOW_OFFSET_PIXELS: f32 = 1.0;
 
 impl SdbEngine {
     /// Upload the scene and build the passes. Only the passes the input needs are
@@ -813,23 +832,40 @@ impl SdbEngine {
         };
         let gather_bg = group_of(&ctx, "sdb gather bindings", &gather_layout, &gather_binds);
 
-        // Direct light: only with directional lights (DESIGN.md section 6).
-        let (direct_pipeline, direct_bg) = match &sun_acc_buf {
-            Some(sun_acc) => {
+        // Direct light: only with directional lights (DESIGN.md section 6), each drawn in
+        // turn as one orthographic map of the shared shadow atlas (gpu::shadow).
+        let sun_maps = match &sun_acc_buf {
+            Some(sun_acc) if !input.lights.is_empty() => {
                 let module = ctx.shader(&shaders::SDB_DIRECT)?;
+                let n = params.map_size;
+                let views_buf = ctx.buffer_zeroed(
+                    "sdb sun map view",
+                    std::mem::size_of::<ShadowView>() as u64,
+                    U::STORAGE | U::COPY_DST,
+                );
+                let atlas = ShadowAtlas::new(&ctx, "sdb sun", n, n, &views_buf, tables_buf)?;
+                let corners = map_shadow_vertices(&input.triangles, &frame);
+                let vertices = ctx.buffer_init("sdb sun map vertices (with planes)", &corners, U::VERTEX);
                 let binds = [
-                    Bind::Uniform(&view_buf),
+                    Bind::Read(&views_buf),
                     Bind::Uniform(&direct_buf),
-                    Bind::Texture(&illum_view),
+                    Bind::Texture2d(&atlas.plane_view),
                     Bind::Read(&geom_buf),
                     Bind::Write(sun_acc),
                 ];
                 let layout = layout_of(&ctx, "sdb direct layout", S::COMPUTE, &binds);
                 let pipeline = compute_pipeline(&ctx, "sdb direct", &module, "direct", &layout);
                 let bg = group_of(&ctx, "sdb direct bindings", &layout, &binds);
-                (Some(pipeline), Some(bg))
+                Some(SunMaps {
+                    views_buf,
+                    atlas,
+                    vertices,
+                    vertex_count: corners.len() as u32,
+                    pipeline,
+                    bg,
+                })
             }
-            _ => (None, None),
+            _ => None,
         };
         // Emitters too small for the map, point and spot lights: the direct-light pass's
         // latest estimate per half, folded into the light accumulators.
@@ -902,11 +938,10 @@ impl SdbEngine {
             resolve_pipeline,
             illum_pipeline,
             gather_pipeline,
-            direct_pipeline,
             resolve_bg,
             illum_bg,
             gather_bg,
-            direct_bg,
+            sun_maps,
         })
     }
 
@@ -1180,38 +1215,37 @@ impl SdbEngine {
             // view buffer goes in its own submission.
             self.ctx.queue.submit([encoder.finish()]);
 
-            for li in 0..self.lights.len() {
-                let light = self.lights[li];
-                let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
-                let jitter = self.jitter();
-                let view = make_view(ld, &self.corners, self.params.map_size, jitter, 0, DEPTH_NEAREST);
-                let pixel = view.extent[0] / view.extent[2];
-                let e = light.irradiance_over_pi;
-                let direct = GpuDirectParams {
-                    irradiance: [e.x, e.y, e.z, blend],
-                    bias: [pixel, 2.0 * pixel, if li == 0 { 1.0 - blend } else { 1.0 }, 0.0],
-                    misc: [parity, self.n_texels, 0, 0],
-                };
-                self.ctx
-                    .queue
-                    .write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
-                self.ctx
-                    .queue
-                    .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
-                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("sdb direct light"),
-                });
-                self.render_map(&mut encoder, "sdb shadow map", 0);
-                Self::dispatch(
-                    &mut encoder,
-                    "sdb direct",
-                    self.direct_pipeline
-                        .as_ref()
-                        .expect("direct pipeline exists with lights"),
-                    self.direct_bg.as_ref().expect("direct bind group exists with lights"),
-                    self.texel_dispatch,
-                );
-                self.ctx.queue.submit([encoder.finish()]);
+            if let Some(sun) = &self.sun_maps {
+                for li in 0..self.lights.len() {
+                    let light = self.lights[li];
+                    let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
+                    // `jitter()`'s draws, with the maps borrowed.
+                    let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
+                    let view = make_view(ld, &self.corners, self.params.map_size, jitter, 0, DEPTH_NEAREST);
+                    let map = ShadowView::ortho_of(&view, [0, 0]);
+                    let e = light.irradiance_over_pi;
+                    let direct = GpuDirectParams {
+                        irradiance: [e.x, e.y, e.z, blend],
+                        bias: [SHADOW_OFFSET_PIXELS, 0.0, if li == 0 { 1.0 - blend } else { 1.0 }, 0.0],
+                        misc: [parity, self.n_texels, 0, 0],
+                    };
+                    self.ctx.queue.write_buffer(&sun.views_buf, 0, bytemuck::bytes_of(&map));
+                    self.ctx
+                        .queue
+                        .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
+                    let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("sdb direct light"),
+                    });
+                    let n = self.params.map_size;
+                    let draw = ShadowDraw {
+                        view: 0,
+                        tile: [0, 0, n],
+                        rows: n,
+                    };
+                    sun.atlas.render(&mut encoder, &sun.vertices, sun.vertex_count, [draw]);
+                    Self::dispatch(&mut encoder, "sdb direct", &sun.pipeline, &sun.bg, self.texel_dispatch);
+                    self.ctx.queue.submit([encoder.finish()]);
+                }
             }
         }
         if let Some(pass) = &mut self.small_emitters {
@@ -1378,7 +1412,7 @@ const SH_ASKED: &str = "asked for";
 
 /// `sdb`'s passes, WGSL in `shaders/sdb/`.
 pub mod shaders {
-    use crate::engine::gpu::shaders::{MATERIALS, PassShader, pass};
+    use crate::engine::gpu::shaders::{MATERIALS, PassShader, SHADOW_VIEW, pass};
 
     /// Outgoing radiance of every lightmap pixel from the running estimate.
     pub const SDB_RESOLVE: PassShader = pass!("sdb/resolve.wgsl");
@@ -1387,7 +1421,7 @@ pub mod shaders {
     /// Gather one direction into the lightmap accumulators.
     pub const SDB_GATHER: PassShader = pass!("sdb/gather.wgsl");
     /// Direct light from the sun and directional lights through a shadow map.
-    pub const SDB_DIRECT: PassShader = pass!("sdb/direct.wgsl");
+    pub const SDB_DIRECT: PassShader = pass!("sdb/direct.wgsl", [SHADOW_VIEW]);
     /// Every pass of `sdb`.
     pub const ALL: &[PassShader] = &[SDB_RESOLVE, SDB_ILLUMINATION, SDB_GATHER, SDB_DIRECT];
 }
