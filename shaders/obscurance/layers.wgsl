@@ -39,7 +39,8 @@ struct VsOut {
     @location(4) @interpolate(flat) material: u32,
 }
 
-// Must match obscurance/gather.wgsl and `GpuNode` in obscurance.rs.
+// The same as obscurance/gather.wgsl's; `GpuNode` in obscurance/mod.rs mirrors both (sizes
+// checked in its tests).
 struct Node {
     t: f32,         // distance along d (normalised scene units)
     tri: u32,       // triangle index << 1 | 1 when front-facing (normal toward -d)

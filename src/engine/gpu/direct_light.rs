@@ -177,3 +177,20 @@ impl DirectLight {
         Ok([half(0), half(1)])
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The Rust mirror of the pass's uniform has the shader's size (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let wrong = check_mirrors(&[Mirror::of::<DirectUniform>(
+            "DirectUniform",
+            DIRECT_LIGHT,
+            "DirectUniform",
+        )]);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+}

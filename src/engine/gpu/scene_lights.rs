@@ -139,3 +139,20 @@ impl GpuSceneLights {
         ]
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The Rust mirror of the pass's uniform has the shader's size (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let wrong = check_mirrors(&[Mirror::of::<SceneUniform>(
+            "SceneUniform",
+            crate::engine::gpu::shaders::DIRECT_LIGHT,
+            "SceneUniform",
+        )]);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+}

@@ -127,6 +127,63 @@ impl PassShader {
     }
 }
 
+/// A Rust struct that mirrors a WGSL struct of a pass (a uniform, a storage buffer's
+/// element): [`check_mirrors`] compares its size with naga's layout of the struct in the
+/// composed pass, so "must match the shader" is a tested fact, not a comment. Each
+/// module that declares mirrors lists them and checks them in a unit test (no device).
+#[derive(Debug, Clone, Copy)]
+pub struct Mirror {
+    /// The Rust type's name, for messages.
+    pub rust: &'static str,
+    pub size: usize,
+    /// A pass whose composed source declares the struct.
+    pub pass: PassShader,
+    pub wgsl: &'static str,
+}
+
+impl Mirror {
+    pub const fn of<T>(rust: &'static str, pass: PassShader, wgsl: &'static str) -> Mirror {
+        Mirror {
+            rust,
+            size: std::mem::size_of::<T>(),
+            pass,
+            wgsl,
+        }
+    }
+
+    /// The WGSL struct's size in bytes as naga lays it out (WGSL's alignment rules:
+    /// vec3 aligned to 16 bytes, struct sizes rounded to their alignment).
+    pub fn wgsl_size(&self) -> Result<u32, String> {
+        let module = validate_wgsl(self.pass.name, &self.pass.composed())?;
+        let mut layouter = naga::proc::Layouter::default();
+        layouter
+            .update(module.to_ctx())
+            .map_err(|e| format!("{}: {e}", self.pass.name))?;
+        module
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some(self.wgsl) && matches!(t.inner, naga::TypeInner::Struct { .. }))
+            .map(|(h, _)| layouter[h].size)
+            .ok_or_else(|| format!("{} declares no struct {}", self.pass.name, self.wgsl))
+    }
+}
+
+/// Every mirror whose size differs from its WGSL struct's (or whose struct is missing),
+/// as messages; empty when all match.
+pub fn check_mirrors(mirrors: &[Mirror]) -> Vec<String> {
+    mirrors
+        .iter()
+        .filter_map(|m| match m.wgsl_size() {
+            Ok(size) if size as usize == m.size => None,
+            Ok(size) => Some(format!(
+                "{} is {} bytes, {}'s {} is {size}",
+                m.rust, m.size, m.pass.name, m.wgsl
+            )),
+            Err(e) => Some(format!("{}: {e}", m.rust)),
+        })
+        .collect()
+}
+
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the
 /// diagnostic text on failure. The same checks run again inside wgpu at
 /// `create_shader_module`; doing them here lets a unit test catch a broken shader on a
@@ -145,6 +202,23 @@ pub fn validate_wgsl(name: &str, source: &str) -> Result<naga::Module, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_mirror_of_the_wrong_size_or_name_is_reported() {
+        // ShadowView is five vec4: 80 bytes.
+        assert!(check_mirrors(&[Mirror::of::<[[f32; 4]; 5]>("Five", SHADOW_ATLAS, "ShadowView")]).is_empty());
+        let wrong = check_mirrors(&[
+            Mirror::of::<[[f32; 4]; 4]>("Four", SHADOW_ATLAS, "ShadowView"),
+            Mirror::of::<[[f32; 4]; 5]>("Five", SHADOW_ATLAS, "NoSuchStruct"),
+        ]);
+        assert_eq!(
+            wrong,
+            [
+                "Four is 64 bytes, gpu/shadow_atlas.wgsl's ShadowView is 80",
+                "Five: gpu/shadow_atlas.wgsl declares no struct NoSuchStruct"
+            ]
+        );
+    }
 
     #[test]
     fn validation_rejects_a_broken_shader() {

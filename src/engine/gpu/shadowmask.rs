@@ -154,3 +154,20 @@ impl ShadowmaskPass {
         Ok([half(0), half(1)])
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The Rust mirror of the pass's uniform has the shader's size (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let wrong = check_mirrors(&[Mirror::of::<MaskUniform>(
+            "MaskUniform",
+            crate::engine::gpu::shaders::SHADOWMASK,
+            "MaskUniform",
+        )]);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+}

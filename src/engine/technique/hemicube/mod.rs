@@ -161,7 +161,7 @@ use crate::engine::atlas::Atlas;
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, layout_at, layout_of};
-use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw, shadow_vertices};
+use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw, ShadowView, shadow_vertices};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
 use crate::engine::output::OutputLayer;
@@ -261,7 +261,8 @@ pub fn lobe(material: &Material, base: Vec3) -> (Vec3, Vec3, f32) {
 }
 
 // ---------------------------------------------------------------------------------------
-// GPU layouts (must match shaders/gpu/common.wgsl, hemicube_*.wgsl)
+// GPU layouts: the structs of shaders/hemicube/common.wgsl, sizes checked against naga's
+// layout (`gpu_layouts_match_the_shaders`)
 // ---------------------------------------------------------------------------------------
 
 const HC_GLOSSY: u32 = 1;
@@ -325,17 +326,6 @@ struct GpuShooter {
     in_dir: [f32; 4],
     frame_t: [f32; 4],
     frame_b: [f32; 4],
-}
-
-/// `ShadowView` of gpu/common.wgsl (written by the select pass, read by gpu/shadow_atlas.wgsl).
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuShadowView {
-    origin: [f32; 4],
-    right: [f32; 4],
-    up: [f32; 4],
-    fwd: [f32; 4],
-    rect: [u32; 4],
 }
 
 fn v4(v: Vec3, w: f32) -> [f32; 4] {
@@ -598,7 +588,7 @@ impl Hemicube {
         let shooters_buf = ctx.buffer_zeroed("hemicube shooters", shooters as u64 * shooter_size, U::STORAGE);
         let views_buf = ctx.buffer_zeroed(
             "hemicube views",
-            5 * shooters as u64 * std::mem::size_of::<GpuShadowView>() as u64,
+            5 * shooters as u64 * std::mem::size_of::<ShadowView>() as u64,
             U::STORAGE,
         );
         let tiles_buf = ctx.buffer_init("hemicube depth tiles", &tiles, U::STORAGE);
@@ -1201,6 +1191,21 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 #[cfg(test)]
 mod tests {
+    /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let mirrors = [
+            Mirror::of::<GpuParams>("GpuParams", shaders::HEMICUBE_SELECT, "HcParams"),
+            Mirror::of::<GpuTexelMat>("GpuTexelMat", shaders::HEMICUBE_SELECT, "TexelMat"),
+            Mirror::of::<GpuNear>("GpuNear", shaders::HEMICUBE_SELECT, "NearSample"),
+            Mirror::of::<GpuCellPiece>("GpuCellPiece", shaders::HEMICUBE_SELECT, "CellPiece"),
+            Mirror::of::<GpuShooter>("GpuShooter", shaders::HEMICUBE_SELECT, "Shooter"),
+        ];
+        let wrong = check_mirrors(&mirrors);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+
     use super::*;
 
     #[test]

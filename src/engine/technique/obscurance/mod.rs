@@ -312,7 +312,8 @@ impl ObscuranceParams {
 }
 
 // ---------------------------------------------------------------------------------------
-// GPU-side layouts (must match the shaders)
+// GPU-side layouts: the structs of shaders/obscurance/*.wgsl, sizes checked against naga's
+// layout (`gpu_layouts_match_the_shaders`)
 // ---------------------------------------------------------------------------------------
 
 #[repr(C)]
@@ -1316,6 +1317,20 @@ impl Technique for Obscurance {
 
 #[cfg(test)]
 mod tests {
+    /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let mirrors = [
+            Mirror::of::<GpuNode>("GpuNode", shaders::OBSCURANCE_GATHER, "Node"),
+            Mirror::of::<GpuGatherParams>("GpuGatherParams", shaders::OBSCURANCE_GATHER, "GatherParams"),
+            Mirror::of::<GpuDirectParams>("GpuDirectParams", shaders::OBSCURANCE_DIRECT, "DirectParams"),
+            Mirror::of::<GpuNode>("GpuNode", shaders::OBSCURANCE_LAYERS, "Node"),
+        ];
+        let wrong = check_mirrors(&mirrors);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+
     use super::*;
 
     #[test]

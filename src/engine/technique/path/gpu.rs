@@ -176,3 +176,16 @@ impl PathGpu {
         Ok(snap)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The Rust mirror of the pass's uniform has the shader's size (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let wrong = check_mirrors(&[Mirror::of::<PathUniform>("PathUniform", PATH_TRACE, "PathUniform")]);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+}

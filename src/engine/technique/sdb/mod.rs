@@ -325,7 +325,8 @@ pub struct AmbientMode {
 const MAX_AMBIENT_GAIN: f32 = 0.9999;
 
 // ---------------------------------------------------------------------------------------
-// GPU-side layouts (must match shaders/sdb/*.wgsl; the shared ones are in engine::gpu)
+// GPU-side layouts: the structs of shaders/sdb/*.wgsl and gpu/common.wgsl's per-texel and
+// per-triangle ones, sizes checked against naga's layout (`gpu_layouts_match_the_shaders`)
 // ---------------------------------------------------------------------------------------
 
 #[repr(C)]
@@ -1526,6 +1527,22 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 #[cfg(test)]
 mod tests {
+    /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let mirrors = [
+            Mirror::of::<GpuResolveParams>("GpuResolveParams", shaders::SDB_RESOLVE, "ResolveParams"),
+            Mirror::of::<GpuGatherParams>("GpuGatherParams", shaders::SDB_GATHER, "GatherParams"),
+            Mirror::of::<GpuDirectParams>("GpuDirectParams", shaders::SDB_DIRECT, "DirectParams"),
+            Mirror::of::<GpuEmitterAddParams>("GpuEmitterAddParams", shaders::SDB_DIRECT, "EmitterAddParams"),
+            Mirror::of::<GpuTriInfo>("GpuTriInfo", shaders::SDB_GATHER, "TriInfo"),
+            Mirror::of::<GpuTexelShade>("GpuTexelShade", shaders::SDB_GATHER, "TexelShade"),
+        ];
+        let wrong = check_mirrors(&mirrors);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+
     use super::*;
     use glam::Vec2;
 

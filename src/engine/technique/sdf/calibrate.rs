@@ -86,12 +86,12 @@ impl Sdf {
             Some(a) => vec![a],
             None => CAL_ALPHAS.to_vec(),
         };
-        let texels: Vec<GpuTexel> = picked
+        let texels: Vec<GpuTexelGeom> = picked
             .iter()
             .map(|&i| {
                 let t = &atlas.texels[i as usize];
                 let p = (t.position - g.centre) / g.scale;
-                GpuTexel {
+                GpuTexelGeom {
                     position: [p.x, p.y, p.z, 0.0],
                     normal: [t.normal.x, t.normal.y, t.normal.z, 0.0],
                     geo_normal: [t.geo_normal.x, t.geo_normal.y, t.geo_normal.z, 0.0],

@@ -116,6 +116,7 @@ use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::scene_lights::LightSources;
+use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext, GpuError};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
@@ -338,7 +339,8 @@ impl SdfParams {
 }
 
 // ---------------------------------------------------------------------------------------
-// GPU-side layouts (shaders/gpu/common.wgsl and shaders/sdf_*.wgsl)
+// GPU-side layouts: the structs of shaders/sdf/*.wgsl, sizes checked against naga's layout
+// (`gpu_layouts_match_the_shaders`); texels are gpu::texels' `GpuTexelGeom`
 // ---------------------------------------------------------------------------------------
 
 #[repr(C)]
@@ -370,14 +372,6 @@ struct GpuShape {
     centre: [f32; 4],
     size: [f32; 4],
     albedo: [f32; 4],
-}
-
-#[repr(C)]
-#[derive(Debug, Clone, Copy, Pod, Zeroable)]
-struct GpuTexel {
-    position: [f32; 4],
-    normal: [f32; 4],
-    geo_normal: [f32; 4],
 }
 
 #[repr(C)]
@@ -704,17 +698,10 @@ impl Sdf {
             })
             .collect();
         let n_tris = tris.len() as u32;
-        let texels: Vec<GpuTexel> = atlas
+        let texels: Vec<GpuTexelGeom> = atlas
             .texels
             .iter()
-            .map(|t| {
-                let p = norm(t.position);
-                GpuTexel {
-                    position: [p.x, p.y, p.z, 0.0],
-                    normal: [t.normal.x, t.normal.y, t.normal.z, 0.0],
-                    geo_normal: [t.geo_normal.x, t.geo_normal.y, t.geo_normal.z, 0.0],
-                }
-            })
+            .map(|t| GpuTexelGeom::new(&frame, t.position, t.normal, t.geo_normal))
             .collect();
 
         let voxels = layout.voxels();
@@ -1255,6 +1242,24 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 #[cfg(test)]
 mod tests {
+    /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let mirrors = [
+            Mirror::of::<GpuVolume>("GpuVolume", shaders::SDF_VOXELIZE, "SdfVolume"),
+            Mirror::of::<GpuTri>("GpuTri", shaders::SDF_VOXELIZE, "SdfTri"),
+            Mirror::of::<GpuMisc>("GpuMisc", shaders::SDF_VOXELIZE, "VoxelizeParams"),
+            Mirror::of::<GpuMisc>("GpuMisc", shaders::SDF_FLOOD, "FloodParams"),
+            Mirror::of::<GpuMisc>("GpuMisc", shaders::SDF_MIPS, "MipParams"),
+            Mirror::of::<GpuShape>("GpuShape", shaders::SDF_DYNAMIC, "Shape"),
+            Mirror::of::<GpuMisc>("GpuMisc", shaders::SDF_DYNAMIC, "DynamicParams"),
+            Mirror::of::<GpuSkyParams>("GpuSkyParams", shaders::SDF_SKY, "SkyParams"),
+        ];
+        let wrong = check_mirrors(&mirrors);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+
     use super::*;
 
     #[test]

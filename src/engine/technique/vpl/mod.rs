@@ -202,7 +202,8 @@ impl VplParams {
 }
 
 // ---------------------------------------------------------------------------------------
-// GPU layouts (must match vpl/gather.wgsl, gpu/shadow_atlas.wgsl and gpu/common.wgsl's ShadowView)
+// GPU layouts: the structs of vpl/gather.wgsl, sizes checked against naga's layout
+// (`gpu_layouts_match_the_shaders`); the atlas's views are gpu::shadow's
 // ---------------------------------------------------------------------------------------
 
 const LIGHT_VPL: u32 = 0;
@@ -1021,6 +1022,18 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 #[cfg(test)]
 mod tests {
+    /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
+    #[test]
+    fn gpu_layouts_match_the_shaders() {
+        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
+        let mirrors = [
+            Mirror::of::<GpuLight>("GpuLight", shaders::VPL_GATHER, "Light"),
+            Mirror::of::<GpuGatherParams>("GpuGatherParams", shaders::VPL_GATHER, "GatherParams"),
+        ];
+        let wrong = check_mirrors(&mirrors);
+        assert!(wrong.is_empty(), "{wrong:#?}");
+    }
+
     use super::*;
 
     #[test]
