@@ -836,12 +836,16 @@ pub fn import_dir(
 pub fn job_memory(report: &Value, spec: &crate::service::model::JobSpec) -> u64 {
     let count = |k: &str| report.get(k).and_then(Value::as_u64).unwrap_or(0);
     let request = spec.to_request();
-    crate::engine::footprint::estimate_bytes(&crate::engine::footprint::JobShape::new(
+    let bake = crate::engine::footprint::estimate_bytes(&crate::engine::footprint::JobShape::new(
         count("triangles"),
         count("texture_texels"),
         spec.resolution,
         &request.outputs,
-    ))
+    ));
+    // A reference's page is decoded into the grid (12 bytes a pixel) and picked per
+    // texel (16 bytes) before the grid is freed: at most both at once.
+    let page = spec.resolution as u64 * spec.resolution as u64;
+    bake + if spec.reference.is_some() { 28 * page } else { 0 }
 }
 
 /// What the bake thread is given besides the job.
@@ -989,7 +993,7 @@ fn encode_snapshots(
 #[allow(clippy::too_many_arguments)]
 fn bake_observed(
     scene: Scene,
-    reference: Option<(String, Result<ReferenceLightmap, String>)>,
+    mut reference: Option<(String, Result<ReferenceLightmap, String>)>,
     spec: &crate::service::model::JobSpec,
     request: &crate::engine::job::BakeRequest,
     options: &BakeOptions,
@@ -1016,16 +1020,14 @@ fn bake_observed(
             plan["texel_set"] = json!(a.report());
             plan["validation"] = json!(a.validation);
             // What the history's `true_error` is measured against, or why it is absent.
-            if let Some((job, decoded)) = &reference {
-                let matched = decoded
-                    .as_ref()
-                    .map_err(Clone::clone)
-                    .and_then(|r| Ok((r, r.per_texel(a)?)));
+            // Taken: the decoded grid is freed once its valid texels are picked.
+            if let Some((job, decoded)) = reference.take() {
+                let matched = decoded.and_then(|r| Ok((r.reported_error, r.per_texel(a)?)));
                 plan["reference"] = match matched {
-                    Ok((r, values)) => {
+                    Ok((error, values)) => {
                         let texels = values.iter().filter(|v| v.is_some()).count();
                         let _ = shared.reference.set(Arc::new(values));
-                        json!({"job": job, "error": r.reported_error, "texels": texels})
+                        json!({"job": job, "error": error, "texels": texels})
                     }
                     Err(why) => {
                         tracing::warn!(reference = %job, why, "the job's reference cannot be compared with");
