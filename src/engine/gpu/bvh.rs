@@ -358,21 +358,19 @@ impl QueryRunner {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
     #[test]
     fn gpu_layouts_match_the_shaders() {
-        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
-        let mirrors = [
+        use crate::engine::gpu::shaders::{Mirror, assert_mirrors};
+        assert_mirrors(&[
             Mirror::of::<GpuNode>("GpuNode", crate::engine::gpu::shaders::BVH_QUERY, "BvhNode"),
             Mirror::of::<GpuTri>("GpuTri", crate::engine::gpu::shaders::BVH_QUERY, "BvhTri"),
             Mirror::of::<QueryRay>("QueryRay", crate::engine::gpu::shaders::BVH_QUERY, "QueryRay"),
             Mirror::of::<QueryHit>("QueryHit", crate::engine::gpu::shaders::BVH_QUERY, "QueryResult"),
-        ];
-        let wrong = check_mirrors(&mirrors);
-        assert!(wrong.is_empty(), "{wrong:#?}");
+        ]);
     }
-
-    use super::*;
 
     #[test]
     fn ulp_rounding_is_outward() {

@@ -184,6 +184,17 @@ pub fn check_mirrors(mirrors: &[Mirror]) -> Vec<String> {
         .collect()
 }
 
+/// Panics with every mismatch [`check_mirrors`] finds: the body of each module's layout
+/// test.
+pub fn assert_mirrors(mirrors: &[Mirror]) {
+    let wrong = check_mirrors(mirrors);
+    assert!(
+        wrong.is_empty(),
+        "Rust mirrors that differ from their WGSL structs:\n{}",
+        wrong.join("\n")
+    );
+}
+
 /// Parse and validate a composed WGSL source with naga alone, no device. Returns the
 /// diagnostic text on failure. The same checks run again inside wgpu at
 /// `create_shader_module`; doing them here lets a unit test catch a broken shader on a

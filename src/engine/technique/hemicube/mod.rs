@@ -1191,22 +1191,20 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
     #[test]
     fn gpu_layouts_match_the_shaders() {
-        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
-        let mirrors = [
+        use crate::engine::gpu::shaders::{Mirror, assert_mirrors};
+        assert_mirrors(&[
             Mirror::of::<GpuParams>("GpuParams", shaders::HEMICUBE_SELECT, "HcParams"),
             Mirror::of::<GpuTexelMat>("GpuTexelMat", shaders::HEMICUBE_SELECT, "TexelMat"),
             Mirror::of::<GpuNear>("GpuNear", shaders::HEMICUBE_SELECT, "NearSample"),
             Mirror::of::<GpuCellPiece>("GpuCellPiece", shaders::HEMICUBE_SELECT, "CellPiece"),
             Mirror::of::<GpuShooter>("GpuShooter", shaders::HEMICUBE_SELECT, "Shooter"),
-        ];
-        let wrong = check_mirrors(&mirrors);
-        assert!(wrong.is_empty(), "{wrong:#?}");
+        ]);
     }
-
-    use super::*;
 
     #[test]
     fn params_defaults_and_ranges() {

@@ -1317,21 +1317,19 @@ impl Technique for Obscurance {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
     #[test]
     fn gpu_layouts_match_the_shaders() {
-        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
-        let mirrors = [
+        use crate::engine::gpu::shaders::{Mirror, assert_mirrors};
+        assert_mirrors(&[
             Mirror::of::<GpuNode>("GpuNode", shaders::OBSCURANCE_GATHER, "Node"),
             Mirror::of::<GpuGatherParams>("GpuGatherParams", shaders::OBSCURANCE_GATHER, "GatherParams"),
             Mirror::of::<GpuDirectParams>("GpuDirectParams", shaders::OBSCURANCE_DIRECT, "DirectParams"),
             Mirror::of::<GpuNode>("GpuNode", shaders::OBSCURANCE_LAYERS, "Node"),
-        ];
-        let wrong = check_mirrors(&mirrors);
-        assert!(wrong.is_empty(), "{wrong:#?}");
+        ]);
     }
-
-    use super::*;
 
     #[test]
     fn params_defaults_and_ranges() {

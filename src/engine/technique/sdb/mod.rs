@@ -1527,24 +1527,22 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+    use glam::Vec2;
+
     /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
     #[test]
     fn gpu_layouts_match_the_shaders() {
-        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
-        let mirrors = [
+        use crate::engine::gpu::shaders::{Mirror, assert_mirrors};
+        assert_mirrors(&[
             Mirror::of::<GpuResolveParams>("GpuResolveParams", shaders::SDB_RESOLVE, "ResolveParams"),
             Mirror::of::<GpuGatherParams>("GpuGatherParams", shaders::SDB_GATHER, "GatherParams"),
             Mirror::of::<GpuDirectParams>("GpuDirectParams", shaders::SDB_DIRECT, "DirectParams"),
             Mirror::of::<GpuEmitterAddParams>("GpuEmitterAddParams", shaders::SDB_DIRECT, "EmitterAddParams"),
             Mirror::of::<GpuTriInfo>("GpuTriInfo", shaders::SDB_GATHER, "TriInfo"),
             Mirror::of::<GpuTexelShade>("GpuTexelShade", shaders::SDB_GATHER, "TexelShade"),
-        ];
-        let wrong = check_mirrors(&mirrors);
-        assert!(wrong.is_empty(), "{wrong:#?}");
+        ]);
     }
-
-    use super::*;
-    use glam::Vec2;
 
     fn quad_tris(corners: [Vec3; 4], mesh: u32) -> [SdbTriangle; 2] {
         let t = |a: usize, b: usize, c: usize| SdbTriangle {

@@ -1242,11 +1242,13 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
     #[test]
     fn gpu_layouts_match_the_shaders() {
-        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
-        let mirrors = [
+        use crate::engine::gpu::shaders::{Mirror, assert_mirrors};
+        assert_mirrors(&[
             Mirror::of::<GpuVolume>("GpuVolume", shaders::SDF_VOXELIZE, "SdfVolume"),
             Mirror::of::<GpuTri>("GpuTri", shaders::SDF_VOXELIZE, "SdfTri"),
             Mirror::of::<GpuMisc>("GpuMisc", shaders::SDF_VOXELIZE, "VoxelizeParams"),
@@ -1255,12 +1257,8 @@ mod tests {
             Mirror::of::<GpuShape>("GpuShape", shaders::SDF_DYNAMIC, "Shape"),
             Mirror::of::<GpuMisc>("GpuMisc", shaders::SDF_DYNAMIC, "DynamicParams"),
             Mirror::of::<GpuSkyParams>("GpuSkyParams", shaders::SDF_SKY, "SkyParams"),
-        ];
-        let wrong = check_mirrors(&mirrors);
-        assert!(wrong.is_empty(), "{wrong:#?}");
+        ]);
     }
-
-    use super::*;
 
     #[test]
     fn params_defaults_and_ranges() {

@@ -1022,19 +1022,17 @@ pub fn plan(f: &SceneFeatures) -> Plan {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     /// The Rust mirrors of WGSL structs have the shaders' sizes (naga's layout).
     #[test]
     fn gpu_layouts_match_the_shaders() {
-        use crate::engine::gpu::shaders::{Mirror, check_mirrors};
-        let mirrors = [
+        use crate::engine::gpu::shaders::{Mirror, assert_mirrors};
+        assert_mirrors(&[
             Mirror::of::<GpuLight>("GpuLight", shaders::VPL_GATHER, "Light"),
             Mirror::of::<GpuGatherParams>("GpuGatherParams", shaders::VPL_GATHER, "GatherParams"),
-        ];
-        let wrong = check_mirrors(&mirrors);
-        assert!(wrong.is_empty(), "{wrong:#?}");
+        ]);
     }
-
-    use super::*;
 
     #[test]
     fn params_defaults_and_ranges() {
