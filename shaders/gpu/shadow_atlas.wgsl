@@ -23,6 +23,10 @@
 
 @group(0) @binding(0) var<storage, read> views: array<ShadowView>;
 @group(0) @binding(1) var<storage, read> tables: array<vec4<f32>>;
+// `vs_shadow_map` only: the plane of each triangle of a map scene (gpu::map_scene), whose
+// technique draws the atlas from the vertex buffer it already holds for its own maps
+// (gpu::view::GpuVertex: position, lightmap UV, triangle, alpha UV, material).
+@group(0) @binding(2) var<storage, read> planes: array<vec4<f32>>;
 
 struct ShadowVsOut {
     @builtin(position) clip: vec4<f32>,
@@ -40,6 +44,21 @@ fn vs_shadow(
     @location(3) material: u32,
     @builtin(instance_index) view_index: u32,
 ) -> ShadowVsOut {
+    return shadow_vertex(position, plane, alpha_uv, material, view_index);
+}
+
+@vertex
+fn vs_shadow_map(
+    @location(0) position: vec3<f32>,
+    @location(2) triangle: u32,
+    @location(3) alpha_uv: vec2<f32>,
+    @location(4) material: u32,
+    @builtin(instance_index) view_index: u32,
+) -> ShadowVsOut {
+    return shadow_vertex(position, planes[triangle], alpha_uv, material, view_index);
+}
+
+fn shadow_vertex(position: vec3<f32>, plane: vec4<f32>, alpha_uv: vec2<f32>, material: u32, view_index: u32) -> ShadowVsOut {
     let v = views[view_index];
     let q = position - v.origin.xyz;
     let x = dot(q, v.right.xyz);

@@ -7,7 +7,13 @@
 //! needs a bias (the module doc of `vpl` measures it).
 //!
 //! `vpl` renders its lights' and VPLs' maps with it; `hemicube` its shooters' hemicube
-//! faces (their views written on the GPU). The layout is fixed for a bake: shelves of
+//! faces (their views written on the GPU); `sdb` and `obscurance` their sun and
+//! directional-light maps, one orthographic view at a time ([`ShadowView::ortho_of`] keeps
+//! the pixels of their own map views). The first two draw [`ShadowVertex`]es, which carry
+//! each triangle's plane; the last two draw from the vertex buffer they already hold for
+//! their own maps and a plane a triangle ([`AtlasVertices`]), so no technique uploads the
+//! scene's geometry twice. Readers test visibility with `shaders/gpu/shadow_view.wgsl`'s
+//! `shadow_pcf` / `shadow_ortho`. The layout is fixed for a bake: shelves of
 //! equal-height tiles, largest first.
 //!
 //! Alpha (issue 19 point 5): each corner carries its material and the UV its base colour
@@ -30,6 +36,10 @@ use crate::engine::gpu::map_scene::MapTriangle;
 use crate::engine::gpu::view::GpuView;
 use crate::engine::gpu::{GpuContext, GpuError, shaders};
 use crate::engine::scene::Scene;
+
+/// [`ShadowVertex`]'s attributes, locations 0-3 in field order.
+const SHADOW_VERTEX_ATTRIBUTES: [wgpu::VertexAttribute; 4] =
+    wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x4, 2 => Float32x2, 3 => Uint32];
 
 /// One triangle corner as the atlas draws it (`vs_shadow`'s vertex inputs).
 #[repr(C)]
@@ -54,20 +64,21 @@ pub fn shadow_vertices(scene: &Scene, frame: &SceneFrame) -> Vec<ShadowVertex> {
         .collect()
 }
 
-/// Every triangle of a map scene (`gpu::map_scene`, what `sdb` and `obscurance` draw
-/// their maps from) as three [`ShadowVertex`]es, in `frame`.
-pub fn map_shadow_vertices(triangles: &[MapTriangle], frame: &SceneFrame) -> Vec<ShadowVertex> {
+/// The plane (unit geometric normal, offset in `frame`) of every triangle of a map scene
+/// (`gpu::map_scene`, what `sdb` and `obscurance` draw their maps from), in triangle order:
+/// what [`AtlasVertices::MapScene`] reads per triangle. A degenerate triangle's normal is
+/// zero, which blocks nothing.
+pub fn map_triangle_planes(triangles: &[MapTriangle], frame: &SceneFrame) -> Vec<[f32; 4]> {
     triangles
         .iter()
-        .flat_map(|t| {
+        .map(|t| {
             let n = (t.p[1] - t.p[0]).cross(t.p[2] - t.p[0]).normalize_or_zero();
-            corners(t.p, n, t.alpha_uv, t.material, frame)
+            [n.x, n.y, n.z, n.dot(frame.norm(t.p[0]))]
         })
         .collect()
 }
 
-/// One triangle's corners: its plane (unit normal `n`, a zero normal blocking nothing)
-/// is the same at all three.
+/// One triangle's corners: its plane (unit normal `n`) is the same at all three.
 fn corners(p: [Vec3; 3], n: Vec3, uv: [Vec2; 3], material: u32, frame: &SceneFrame) -> [ShadowVertex; 3] {
     let c = n.dot(frame.norm(p[0]));
     [0, 1, 2].map(|k| ShadowVertex {
@@ -186,6 +197,18 @@ pub fn pack(sizes: &[u32], max_dim: u32) -> Result<ShadowAtlasLayout, AtlasTooLa
     Ok(ShadowAtlasLayout { width, height, rects })
 }
 
+/// What the atlas draws the scene from.
+#[derive(Debug, Clone, Copy)]
+pub enum AtlasVertices<'a> {
+    /// [`ShadowVertex`]es ([`shadow_vertices`]): every corner carries its triangle's plane
+    /// (`vpl`, `hemicube`, which draw nothing else).
+    Planes,
+    /// The technique's own map-scene vertex buffer ([`GpuVertex`](crate::engine::gpu::view::GpuVertex),
+    /// `sdb`, `obscurance`) and one plane a triangle ([`map_triangle_planes`], 16 bytes
+    /// where a second vertex buffer would cost 120), so the scene is not uploaded twice.
+    MapScene { planes: &'a wgpu::Buffer },
+}
+
 /// The plane-storing shadow-map pass (`shaders/gpu/shadow_atlas.wgsl`): a render pipeline that
 /// draws the scene into one tile of an Rgba32Float + Depth32Float atlas per view (each
 /// pixel keeps the plane of the nearest surface, both faces of every triangle drawn),
@@ -197,9 +220,31 @@ pub fn shadow_pass(
     label: &str,
     views: &wgpu::Buffer,
     tables: &wgpu::Buffer,
+    source: AtlasVertices<'_>,
 ) -> Result<(wgpu::RenderPipeline, wgpu::BindGroup), GpuError> {
     let module = ctx.shader(&shaders::SHADOW_ATLAS)?;
-    let binds = [Bind::Read(views), Bind::Read(tables)];
+    let mut binds = vec![Bind::Read(views), Bind::Read(tables)];
+    let (entry, vertex_layout) = match source {
+        AtlasVertices::Planes => (
+            "vs_shadow",
+            wgpu::VertexBufferLayout {
+                array_stride: std::mem::size_of::<ShadowVertex>() as u64,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &SHADOW_VERTEX_ATTRIBUTES,
+            },
+        ),
+        AtlasVertices::MapScene { planes } => {
+            binds.push(Bind::Read(planes));
+            (
+                "vs_shadow_map",
+                wgpu::VertexBufferLayout {
+                    array_stride: std::mem::size_of::<crate::engine::gpu::view::GpuVertex>() as u64,
+                    step_mode: wgpu::VertexStepMode::Vertex,
+                    attributes: &crate::engine::gpu::view::GpuVertex::ATTRIBUTES,
+                },
+            )
+        }
+    };
     let layout = layout_of(
         ctx,
         &format!("{label} layout"),
@@ -216,13 +261,9 @@ pub fn shadow_pass(
         layout: Some(&pl),
         vertex: wgpu::VertexState {
             module: &module,
-            entry_point: Some("vs_shadow"),
+            entry_point: Some(entry),
             compilation_options: Default::default(),
-            buffers: &[Some(wgpu::VertexBufferLayout {
-                array_stride: std::mem::size_of::<ShadowVertex>() as u64,
-                step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &wgpu::vertex_attr_array![0 => Float32x3, 1 => Float32x4, 2 => Float32x2, 3 => Uint32],
-            })],
+            buffers: &[Some(vertex_layout)],
         },
         primitive: wgpu::PrimitiveState {
             topology: wgpu::PrimitiveTopology::TriangleList,
@@ -287,6 +328,7 @@ impl ShadowAtlas {
         height: u32,
         views: &wgpu::Buffer,
         tables: &wgpu::Buffer,
+        source: AtlasVertices<'_>,
     ) -> Result<Self, GpuError> {
         let size = wgpu::Extent3d {
             width,
@@ -312,7 +354,7 @@ impl ShadowAtlas {
             label: Some(&format!("{label} atlas depth view")),
             ..Default::default()
         });
-        let (pipeline, bind_group) = shadow_pass(ctx, &format!("{label} maps"), views, tables)?;
+        let (pipeline, bind_group) = shadow_pass(ctx, &format!("{label} maps"), views, tables, source)?;
         Ok(ShadowAtlas {
             plane_view,
             depth_view,
@@ -323,7 +365,8 @@ impl ShadowAtlas {
     }
 
     /// Records one render pass that clears the atlas and draws every map of `draws` with
-    /// the scene's vertices (`vertices`: [`shadow_vertices`]).
+    /// the scene's vertices (`vertices`: [`shadow_vertices`], or the map scene's own for
+    /// [`AtlasVertices::MapScene`]).
     pub fn render(
         &self,
         encoder: &mut wgpu::CommandEncoder,

@@ -161,7 +161,7 @@ use crate::engine::atlas::Atlas;
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, layout_at, layout_of};
-use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw, ShadowView, shadow_vertices};
+use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowDraw, ShadowView, shadow_vertices};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
 use crate::engine::output::OutputLayer;
@@ -665,8 +665,16 @@ impl Hemicube {
             .rays
             .gpu_tables(&ctx, "hemicube", &inputs.rays.emitters())
             .map_err(gpu_error)?;
-        let shadow = ShadowAtlas::new(&ctx, "hemicube depth", atlas_w, atlas_h, &views_buf, &tables.tables)
-            .map_err(gpu_error)?;
+        let shadow = ShadowAtlas::new(
+            &ctx,
+            "hemicube depth",
+            atlas_w,
+            atlas_h,
+            &views_buf,
+            &tables.tables,
+            AtlasVertices::Planes,
+        )
+        .map_err(gpu_error)?;
         // Transfer and accumulation.
         let transfer_module = ctx.shader(&shaders::HEMICUBE_TRANSFER).map_err(gpu_error)?;
         let transfer_binds = [

@@ -136,7 +136,7 @@ use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene};
 use crate::engine::gpu::scene_lights::LightSources;
-use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw, ShadowView, map_shadow_vertices};
+use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowDraw, ShadowView, map_triangle_planes};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::view::{
     DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view,
@@ -450,10 +450,9 @@ pub struct Obscurance {
 struct ShadowPass {
     /// The map being drawn: one [`ShadowView`].
     views_buf: wgpu::Buffer,
+    /// Drawn from obscurance's own vertex buffer with a plane a triangle
+    /// ([`AtlasVertices::MapScene`]).
     atlas: ShadowAtlas,
-    /// The scene's corners with their triangles' planes ([`map_shadow_vertices`]).
-    vertices: wgpu::Buffer,
-    vertex_count: u32,
     direct_pipeline: wgpu::ComputePipeline,
     direct_bg: wgpu::BindGroup,
 }
@@ -902,10 +901,14 @@ impl Obscurance {
                 std::mem::size_of::<ShadowView>() as u64,
                 U::STORAGE | U::COPY_DST,
             );
-            let atlas =
-                ShadowAtlas::new(&ctx, "obscurance sun", n, n, &views_buf, &tables.tables).map_err(gpu_error)?;
-            let shadow_verts = map_shadow_vertices(&input.triangles, &frame);
-            let vertices = ctx.buffer_init("obscurance sun map vertices (with planes)", &shadow_verts, U::VERTEX);
+            let planes = ctx.buffer_init(
+                "obscurance triangle planes (sun maps)",
+                &map_triangle_planes(&input.triangles, &frame),
+                U::STORAGE,
+            );
+            let source = AtlasVertices::MapScene { planes: &planes };
+            let atlas = ShadowAtlas::new(&ctx, "obscurance sun", n, n, &views_buf, &tables.tables, source)
+                .map_err(gpu_error)?;
             let direct_module = ctx.shader(&shaders::OBSCURANCE_DIRECT).map_err(gpu_error)?;
             let direct_binds = [
                 Bind::Read(&views_buf),
@@ -921,8 +924,6 @@ impl Obscurance {
             Some(ShadowPass {
                 views_buf,
                 atlas,
-                vertex_count: shadow_verts.len() as u32,
-                vertices,
                 direct_pipeline,
                 direct_bg,
             })
@@ -1132,7 +1133,7 @@ impl Obscurance {
                     };
                     shadow
                         .atlas
-                        .render(&mut encoder, &shadow.vertices, shadow.vertex_count, [draw]);
+                        .render(&mut encoder, &self.vertex_buf, self.vertex_count, [draw]);
                     {
                         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                             label: Some("obscurance direct"),

@@ -126,7 +126,7 @@ use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, layout_at, layout_of};
 pub use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene, MapTexel, MapTriangle};
 use crate::engine::gpu::scene_rays::{GpuTables, opaque_material_tables};
-use crate::engine::gpu::shadow::{ShadowAtlas, ShadowDraw, ShadowView, map_shadow_vertices};
+use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowDraw, ShadowView, map_triangle_planes};
 use crate::engine::gpu::texels::GpuTexelGeom;
 pub use crate::engine::gpu::view::cullable_triangles;
 use crate::engine::gpu::view::{
@@ -440,10 +440,9 @@ pub struct SdbEngine {
 struct SunMaps {
     /// The map being drawn: one [`ShadowView`].
     views_buf: wgpu::Buffer,
+    /// Drawn from sdb's own vertex buffer with a plane a triangle
+    /// ([`AtlasVertices::MapScene`]).
     atlas: ShadowAtlas,
-    /// The map scene's corners with their triangles' planes ([`map_shadow_vertices`]).
-    vertices: wgpu::Buffer,
-    vertex_count: u32,
     pipeline: wgpu::ComputePipeline,
     bg: wgpu::BindGroup,
 }
@@ -844,9 +843,13 @@ impl SdbEngine {
                     std::mem::size_of::<ShadowView>() as u64,
                     U::STORAGE | U::COPY_DST,
                 );
-                let atlas = ShadowAtlas::new(&ctx, "sdb sun", n, n, &views_buf, tables_buf)?;
-                let corners = map_shadow_vertices(&input.triangles, &frame);
-                let vertices = ctx.buffer_init("sdb sun map vertices (with planes)", &corners, U::VERTEX);
+                let planes = ctx.buffer_init(
+                    "sdb triangle planes (sun maps)",
+                    &map_triangle_planes(&input.triangles, &frame),
+                    U::STORAGE,
+                );
+                let source = AtlasVertices::MapScene { planes: &planes };
+                let atlas = ShadowAtlas::new(&ctx, "sdb sun", n, n, &views_buf, tables_buf, source)?;
                 let binds = [
                     Bind::Read(&views_buf),
                     Bind::Uniform(&direct_buf),
@@ -860,8 +863,6 @@ impl SdbEngine {
                 Some(SunMaps {
                     views_buf,
                     atlas,
-                    vertices,
-                    vertex_count: corners.len() as u32,
                     pipeline,
                     bg,
                 })
@@ -1243,7 +1244,8 @@ impl SdbEngine {
                         tile: [0, 0, n],
                         rows: n,
                     };
-                    sun.atlas.render(&mut encoder, &sun.vertices, sun.vertex_count, [draw]);
+                    sun.atlas
+                        .render(&mut encoder, &self.vertex_buf, self.vertex_count, [draw]);
                     Self::dispatch(&mut encoder, "sdb direct", &sun.pipeline, &sun.bg, self.texel_dispatch);
                     self.ctx.queue.submit([encoder.finish()]);
                 }

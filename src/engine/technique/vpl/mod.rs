@@ -112,8 +112,8 @@ use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::shadow::{
-    self, ShadowAtlas, ShadowAtlasLayout, ShadowDraw, ShadowView, VIEW_ORTHO, VIEW_PERSPECTIVE, cube_faces,
-    shadow_vertices,
+    self, AtlasVertices, ShadowAtlas, ShadowAtlasLayout, ShadowDraw, ShadowView, VIEW_ORTHO, VIEW_PERSPECTIVE,
+    cube_faces, shadow_vertices,
 };
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::tracer::GpuTracer;
@@ -471,6 +471,7 @@ impl Vpl {
             layout.height,
             &views_buf,
             &tables.tables,
+            AtlasVertices::Planes,
         )
         .map_err(gpu_error)?;
         let gather_module = ctx.shader(&shaders::VPL_GATHER).map_err(gpu_error)?;
