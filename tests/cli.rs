@@ -295,14 +295,9 @@ fn target_error_stops_a_bake_of_the_bundled_scene() {
 
 #[test]
 fn scene_without_lightmap_uvs_bakes_and_writes_them() {
-    use lightmapd::engine::scene::build::{cornell_box, write_glb};
+    use lightmapd::engine::scene::build::{cornell_box, remove_lightmap_uvs, write_glb};
     let (mut json, buffer) = cornell_box().to_gltf();
-    for m in json["meshes"].as_array_mut().unwrap() {
-        m["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
+    remove_lightmap_uvs(&mut json, None);
     let scene = tmp("no-uv.glb");
     std::fs::write(&scene, write_glb(&json, &buffer)).unwrap();
     let (out, gltf) = (tmp("no-uv.exr"), tmp("with-uv.glb"));
@@ -379,13 +374,10 @@ fn bake_writes_probes_beside_the_lightmap() {
 /// any sampling, and leaves nothing behind.
 #[test]
 fn a_bake_of_several_pages_writes_a_folder_with_its_manifest() {
-    use lightmapd::engine::scene::build::write_glb;
+    use lightmapd::engine::scene::build::{remove_lightmap_uvs, write_glb};
     use lightmapd::engine::scene::library::sphere_over_plane;
     let (mut json, bin_data) = sphere_over_plane().to_gltf();
-    json["meshes"][1]["primitives"][0]["attributes"]
-        .as_object_mut()
-        .unwrap()
-        .remove("TEXCOORD_1");
+    remove_lightmap_uvs(&mut json, Some(&[1]));
     let scene = tmp("two-pages.glb");
     std::fs::write(&scene, write_glb(&json, &bin_data)).unwrap();
 

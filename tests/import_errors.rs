@@ -2,7 +2,7 @@
 //! that names the place (mesh, primitive, accessor, buffer), never a panic.
 
 use glam::Vec3;
-use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, remove_lightmap_uvs, write_glb};
 use lightmapd::engine::scene::{ImportError, import_file, import_slice};
 use serde_json::{Value, json};
 
@@ -176,10 +176,7 @@ fn lightmap_uv_outside_unit_square() {
 #[test]
 fn no_lightmap_uvs_is_reported_not_refused() {
     let (mut json, bin) = quad_scene().to_gltf();
-    json["meshes"][0]["primitives"][0]["attributes"]
-        .as_object_mut()
-        .unwrap()
-        .remove("TEXCOORD_1");
+    remove_lightmap_uvs(&mut json, Some(&[0]));
     let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
     assert!(!report.has_lightmap_uvs);
     assert!(scene.needs_lightmap_uvs);

@@ -16,7 +16,7 @@ use std::sync::Arc;
 use lightmapd::engine::atlas::{Atlas, unwrap, validate};
 use lightmapd::engine::job::BakeRequest;
 use lightmapd::engine::rng::Rng;
-use lightmapd::engine::scene::build::{cornell_box, write_glb};
+use lightmapd::engine::scene::build::{cornell_box, remove_lightmap_uvs, write_glb};
 use lightmapd::engine::scene::{ImportLimits, import_slice, import_slice_limited};
 use lightmapd::engine::technique::{self, BakeInputs};
 
@@ -134,12 +134,7 @@ fn never_panics(bytes: &[u8], what: &str) -> bool {
 #[test]
 fn mutated_scenes_without_lightmap_uvs_never_panic_through_uv_generation_and_texel_set() {
     let (mut gltf, bin) = cornell_box().to_gltf();
-    for m in gltf["meshes"].as_array_mut().unwrap() {
-        m["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
+    remove_lightmap_uvs(&mut gltf, None);
     let glb = write_glb(&gltf, &bin);
     assert!(
         never_panics(&glb, "the unmutated scene"),

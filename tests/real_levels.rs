@@ -9,7 +9,7 @@ use std::path::Path;
 use glam::{Vec2, Vec3};
 use lightmapd::engine::atlas::Atlas;
 use lightmapd::engine::atlas::unwrap::{LightmapUvs, UvUnwrap, generate_lightmap_uvs, generate_lightmap_uvs_with};
-use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, write_glb};
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, remove_lightmap_uvs, write_glb};
 use lightmapd::engine::scene::{ALBEDO_BOUND, DEFAULT_MATERIAL_ALBEDO, Scene, export, import_slice};
 use serde_json::json;
 
@@ -78,12 +78,7 @@ fn two_squares_without_uvs(names: [&str; 2], a: f32, b: f32) -> Vec<u8> {
     builder.square(names[0], Vec3::ZERO, a, Vec3::Y, m);
     builder.square(names[1], Vec3::new(10.0, 0.0, 0.0), b, Vec3::Y, m);
     let (mut json, bin) = builder.to_gltf();
-    for mesh in json["meshes"].as_array_mut().unwrap() {
-        mesh["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
+    remove_lightmap_uvs(&mut json, None);
     write_glb(&json, &bin)
 }
 
@@ -172,12 +167,7 @@ fn only_the_scene_is_baked_and_nodes_opt_out() {
     b.square("dense", Vec3::new(4.0, 0.0, 0.0), 2.0, Vec3::Y, m);
     b.square("collider", Vec3::new(0.0, 5.0, 0.0), 2.0, Vec3::Y, m);
     let (mut json, bin) = b.to_gltf();
-    for mesh in json["meshes"].as_array_mut().unwrap() {
-        mesh["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
+    remove_lightmap_uvs(&mut json, None);
     // Node 3 (collider) is in a second scene only; node 1 (wall) opts out; node 2 is dense.
     json["scenes"] = json!([{"nodes": [0, 1, 2]}, {"nodes": [3]}]);
     json["nodes"][1]["extras"] = json!({"lightmap": false, "editor": "keep me"});

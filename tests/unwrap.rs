@@ -11,7 +11,7 @@ use lightmapd::engine::bake::StopCriteria;
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::post::{dilate, seams};
 use lightmapd::engine::rng::Rng;
-use lightmapd::engine::scene::build::write_glb;
+use lightmapd::engine::scene::build::{remove_lightmap_uvs, write_glb};
 use lightmapd::engine::scene::library::{sphere_occlusion, sphere_over_plane};
 use lightmapd::engine::scene::{Hemisphere, Lighting, PageRows, Sky, export, import_slice};
 use serde_json::json;
@@ -19,12 +19,7 @@ use serde_json::json;
 /// Sphere-over-plane's document with every mesh's TEXCOORD_1 removed, and its buffer.
 fn without_lightmap_uvs_gltf() -> (serde_json::Value, Vec<u8>) {
     let (mut json, bin) = sphere_over_plane().to_gltf();
-    for m in json["meshes"].as_array_mut().unwrap() {
-        m["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
+    remove_lightmap_uvs(&mut json, None);
     (json, bin)
 }
 
@@ -108,12 +103,7 @@ fn lightmap_scale_from_extras() {
     b.square("detailed", Vec3::new(3.0, 0.0, 0.0), 1.0, Vec3::Y, m);
     let (mut json, bin) = b.to_gltf();
     json["meshes"][1]["extras"] = json!({"lightmap_scale": 2.0});
-    for mesh in json["meshes"].as_array_mut().unwrap() {
-        mesh["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
+    remove_lightmap_uvs(&mut json, None);
     let (mut scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
     assert_eq!(scene.meshes[1].lightmap_scale, 2.0);
     generate_lightmap_uvs(&mut scene, 64, &UvUnwrap).unwrap();
@@ -221,10 +211,7 @@ fn sky_request(resolution: u32) -> BakeRequest {
 #[test]
 fn authored_uvs_are_kept_beside_generated_ones() {
     let (mut json, bin) = sphere_over_plane().to_gltf();
-    json["meshes"][1]["primitives"][0]["attributes"]
-        .as_object_mut()
-        .unwrap()
-        .remove("TEXCOORD_1");
+    remove_lightmap_uvs(&mut json, Some(&[1]));
     let input = write_glb(&json, &bin);
     let (scene, report) = import_slice(&input, None).unwrap();
     assert!(!report.has_lightmap_uvs);
@@ -413,10 +400,7 @@ fn a_singular_instance_transform_names_the_node() {
 fn a_memory_limit_is_checked_again_on_the_real_pages() {
     use lightmapd::engine::footprint::{JobShape, estimate_bytes};
     let (mut json, bin) = sphere_over_plane().to_gltf();
-    json["meshes"][1]["primitives"][0]["attributes"]
-        .as_object_mut()
-        .unwrap()
-        .remove("TEXCOORD_1");
+    remove_lightmap_uvs(&mut json, Some(&[1]));
     let (scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
     let shape = JobShape::new(scene.triangles.len() as u64, 0, 128, &[]);
     let (one, two) = (estimate_bytes(&shape), estimate_bytes(&shape.on_grid(128, 256)));

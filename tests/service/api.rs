@@ -1406,15 +1406,10 @@ async fn gltf_with_external_buffer_uploads_as_multipart_and_bakes() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
-    use lightmapd::engine::scene::build::{cornell_box, write_glb};
+    use lightmapd::engine::scene::build::{cornell_box, remove_lightmap_uvs, write_glb};
     let s = start(1, |_| {}).await;
     let (mut gltf, buffer) = cornell_box().to_gltf();
-    for m in gltf["meshes"].as_array_mut().unwrap() {
-        m["primitives"][0]["attributes"]
-            .as_object_mut()
-            .unwrap()
-            .remove("TEXCOORD_1");
-    }
+    remove_lightmap_uvs(&mut gltf, None);
     let r = s
         .http
         .post(format!("{}/v1/scenes", s.url))
@@ -1690,14 +1685,11 @@ async fn deleting_a_job_and_the_retention_sweeper_remove_its_artifacts() {
 /// problems for pages and files it does not have.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_of_several_pages_serves_every_page_and_the_manifest() {
-    use lightmapd::engine::scene::build::write_glb;
+    use lightmapd::engine::scene::build::{remove_lightmap_uvs, write_glb};
     use lightmapd::engine::scene::library::sphere_over_plane;
     let s = start(1, |_| {}).await;
     let (mut json, bin) = sphere_over_plane().to_gltf();
-    json["meshes"][1]["primitives"][0]["attributes"]
-        .as_object_mut()
-        .unwrap()
-        .remove("TEXCOORD_1");
+    remove_lightmap_uvs(&mut json, Some(&[1]));
     let r = s
         .http
         .post(format!("{}/v1/scenes", s.url))

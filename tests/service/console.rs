@@ -959,6 +959,30 @@ async fn wait_succeeded(http: &reqwest::Client, url: &str, id: &str, limit: Dura
     }
 }
 
+/// A server with one worker (snapshots every `snapshot_interval_s` seconds) holding the
+/// sphere over the plane with the ball's lightmap UVs removed, so the engine generates
+/// them (on a page of their own beside the ground's authored one): the server, its URL
+/// and the uploaded scene as the API answered.
+fn serve_the_ball_without_uvs(dir: &Path, snapshot_interval_s: &str) -> (Serve, String, Value) {
+    use lightmapd::engine::scene::build::{remove_lightmap_uvs, write_glb};
+    use lightmapd::engine::scene::library::sphere_over_plane;
+    let (child, url) = spawn_serve(dir, 1, &["--snapshot-interval-s", snapshot_interval_s]);
+    let serve = Serve(child);
+    let (mut doc, bin) = sphere_over_plane().to_gltf();
+    remove_lightmap_uvs(&mut doc, Some(&[1]));
+    let scene = tokio::runtime::Runtime::new().unwrap().block_on(async {
+        let r = reqwest::Client::new()
+            .post(format!("{url}/v1/scenes"))
+            .body(write_glb(&doc, &bin))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 201);
+        r.json::<Value>().await.unwrap()
+    });
+    (serve, url, scene)
+}
+
 /// Issue 19 point 7 in the 3D view: the viewer places each node's lightmap by its
 /// `extras.lightmap` page and rectangle on the grid the service serves (pages one under
 /// another). Sphere-over-plane with only the ball's UVs removed bakes on two pages (the
@@ -969,26 +993,15 @@ async fn wait_succeeded(http: &reqwest::Client, url: &str, id: &str, limit: Dura
 #[test]
 fn a_two_page_job_looks_like_a_one_page_bake_in_3d() {
     let _cpu = crate::CPU_HEAVY.blocking_lock();
-    use lightmapd::engine::scene::build::write_glb;
-    use lightmapd::engine::scene::library::sphere_over_plane;
     let Some(exe) = skip_without_browser("a_two_page_job_looks_like_a_one_page_bake_in_3d") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "5"]);
-    let _serve = Serve(child);
-    let (mut doc, bin_data) = sphere_over_plane().to_gltf();
-    doc["meshes"][1]["primitives"][0]["attributes"]
-        .as_object_mut()
-        .unwrap()
-        .remove("TEXCOORD_1");
-    let glb = write_glb(&doc, &bin_data);
+    let (_serve, url, scene) = serve_the_ball_without_uvs(dir.path(), "5");
+    let scene = scene["id"].as_str().unwrap().to_string();
     let rt = tokio::runtime::Runtime::new().unwrap();
     let http = reqwest::Client::new();
     let jobs: Vec<String> = rt.block_on(async {
-        let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
-        assert_eq!(r.status(), 201);
-        let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
         let mut ids = Vec::new();
         for uvs in ["generate-missing", "regenerate-all"] {
             let body = json!({"scene": scene, "resolution": 64, "stop": {"steps": 64}, "seed": 3,
@@ -1074,26 +1087,14 @@ fn a_two_page_job_looks_like_a_one_page_bake_in_3d() {
 #[test]
 fn a_scene_without_uvs_shows_in_3d_while_it_bakes() {
     let _cpu = crate::CPU_HEAVY.blocking_lock();
-    use lightmapd::engine::scene::build::write_glb;
-    use lightmapd::engine::scene::library::sphere_over_plane;
     let Some(exe) = skip_without_browser("a_scene_without_uvs_shows_in_3d_while_it_bakes") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "0.3"]);
-    let _serve = Serve(child);
-    let (mut doc, bin_data) = sphere_over_plane().to_gltf();
-    doc["meshes"][1]["primitives"][0]["attributes"]
-        .as_object_mut()
-        .unwrap()
-        .remove("TEXCOORD_1");
-    let glb = write_glb(&doc, &bin_data);
+    let (_serve, url, scene) = serve_the_ball_without_uvs(dir.path(), "0.3");
     let rt = tokio::runtime::Runtime::new().unwrap();
     let http = reqwest::Client::new();
     let id = rt.block_on(async {
-        let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
-        assert_eq!(r.status(), 201);
-        let scene: Value = r.json().await.unwrap();
         assert_eq!(scene["report"]["has_lightmap_uvs"], false, "{scene}");
         let body = json!({"scene": scene["id"], "resolution": 64, "stop": {"seconds": 120},
             "lighting": {"sky": {"radiance": [1, 1, 1]}}});

@@ -511,6 +511,26 @@ fn tangent_frame(normal: Vec3) -> (Vec3, Vec3) {
     (u, n.cross(u))
 }
 
+/// Removes `TEXCOORD_1` from every primitive of meshes `meshes` (every mesh for `None`)
+/// of a glTF document, such as [`SceneBuilder::to_gltf`] writes: a scene whose lightmap
+/// UVs must be generated, for tests and examples.
+pub fn remove_lightmap_uvs(doc: &mut Value, meshes: Option<&[usize]>) {
+    let Some(all) = doc.get_mut("meshes").and_then(Value::as_array_mut) else {
+        return;
+    };
+    for (k, mesh) in all.iter_mut().enumerate() {
+        if meshes.is_some_and(|m| !m.contains(&k)) {
+            continue;
+        }
+        let primitives = mesh.get_mut("primitives").and_then(Value::as_array_mut);
+        for p in primitives.into_iter().flatten() {
+            if let Some(attributes) = p.get_mut("attributes").and_then(Value::as_object_mut) {
+                attributes.remove("TEXCOORD_1");
+            }
+        }
+    }
+}
+
 /// Writes a GLB container: 12-byte header, a JSON chunk padded with spaces, and a BIN
 /// chunk padded with zeros (glTF 2.0 §4.4).
 pub fn write_glb(json: &Value, bin: &[u8]) -> Vec<u8> {
