@@ -1,6 +1,8 @@
 // shadow_atlas.wgsl: the shared shadow-map atlas (src/engine/gpu/shadow.rs): the maps of one
 // step, all in one atlas (one render pass, one draw per map, its viewport and scissor set to the
-// map's tile on the CPU). Used by vpl (lights and VPLs) and hemicube (its shooters' depth maps).
+// map's tile on the CPU). Used by vpl (lights and VPLs), hemicube (its shooters' depth maps),
+// and sdb and obscurance (their sun and directional-light maps, drawn from their own map-scene
+// vertices with `vs_shadow_map`).
 //
 // A map ("shadow view") is either a perspective face of a cube around a point (a VPL:
 // five faces, the one behind its surface is never needed; a point or spot light: six) or
@@ -9,7 +11,7 @@
 // draw's first instance is the view's index), so one vertex buffer serves every map.
 // The target is Rgba32Float and holds the *plane* of the nearest surface: its unit
 // geometric normal n and offset c = <n, p> (flat per triangle), not its distance.
-// vpl/gather.wgsl then asks whether the light and the receiver lie on opposite sides of
+// gpu/shadow_view.wgsl's shadow_tap then asks whether the light and the receiver lie on opposite sides of
 // that plane, which is exact for a receiver behind the surface however thin the surface
 // is and however far it is from the light (a distance compare needs a bias of a fraction
 // of a pixel's footprint, centimetres for a distant wall, and leaked through 1 mm walls
