@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use lightmapd::service::model::JobSpec;
 use lightmapd::service::queue::postgres::PostgresQueue;
-use lightmapd::service::queue::{Enqueued, JobUpdate, Outcome, Queue, SceneRecord, now_ms};
+use lightmapd::service::queue::{Capabilities, Enqueued, JobUpdate, Outcome, Queue, SceneRecord, now_ms};
 use serde_json::{Value, json};
 
 fn percentile(sorted: &[Duration], p: f64) -> f64 {
@@ -67,7 +67,7 @@ async fn run(url: &str, claimers: usize, jobs: usize) {
             let mut lat = Vec::new();
             loop {
                 let t = Instant::now();
-                let Some(job) = q.claim(&me, lease, now_ms()).await.unwrap() else {
+                let Some(job) = q.claim(&me, &Capabilities::default(), lease, now_ms()).await.unwrap() else {
                     break;
                 };
                 lat.push(t.elapsed());
@@ -98,7 +98,11 @@ async fn run(url: &str, claimers: usize, jobs: usize) {
         let id = format!("hb{w}");
         admin.enqueue(&id, &spec, &id, 10, 0).await.unwrap();
         let me = format!("bench-{w}");
-        let job = q.claim(&me, lease, now_ms()).await.unwrap().unwrap();
+        let job = q
+            .claim(&me, &Capabilities::default(), lease, now_ms())
+            .await
+            .unwrap()
+            .unwrap();
         running.push((q.clone(), me, job.id));
     }
     let span = Duration::from_secs(3);

@@ -37,7 +37,8 @@ use crate::service::AppState;
 use crate::service::auth::Caller;
 use crate::service::model::{JobStatus, JobView};
 use crate::service::problem::Problem;
-use crate::service::routes::{find_job, job_view, retry_later};
+use crate::service::routes::describe_job;
+use crate::service::routes::{find_job, retry_later};
 
 const POLL: Duration = Duration::from_millis(500);
 
@@ -73,7 +74,8 @@ pub async fn job_events(
     };
     let (tx, rx) = mpsc::channel::<Event>(16);
     tokio::spawn(async move {
-        follow(state, id, job_view(&first), changes, tx).await;
+        let first = describe_job(&state, &first).await;
+        follow(state, id, first, changes, tx).await;
         drop(permit);
     });
     let stream = futures_util::stream::unfold(rx, |mut rx| async move {
@@ -128,7 +130,7 @@ async fn follow(
             }
         }
         let job = match state.queue.job(&id).await {
-            Ok(Some(j)) => job_view(&j),
+            Ok(Some(j)) => describe_job(&state, &j).await,
             Ok(None) => return,
             Err(e) => {
                 tracing::warn!(job = %id, error = %e, "event stream cannot read the job");

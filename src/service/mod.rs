@@ -36,6 +36,7 @@ pub mod auth;
 pub mod client;
 pub mod console;
 pub mod events;
+pub mod farm;
 pub mod metrics;
 pub mod model;
 pub mod problem;

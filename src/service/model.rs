@@ -96,6 +96,28 @@ pub struct JobSpec {
     /// `reference` says which job and how accurate that reference is (docs/accuracy.md).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reference: Option<String>,
+    /// Bake tasks to split the job into, baked by several workers at once and merged
+    /// exactly (issue 25, docs/scaling.md): 1 to 1024, for techniques whose table row
+    /// allows it (`path`), with `stop.steps` and without `stop.target_error`. Absent or 1:
+    /// one worker bakes the job whole.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tasks: Option<u32>,
+    /// What a worker must have to take the job or its tasks; the job's `waiting_for` says
+    /// when no live worker has it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub requires: Option<Requires>,
+}
+
+/// A job's requirements on the worker that runs it (issue 25 point 4).
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq, Eq)]
+#[serde(deny_unknown_fields)]
+pub struct Requires {
+    /// A hardware GPU adapter (a software one, lavapipe, does not count).
+    #[serde(default)]
+    pub gpu: bool,
+    /// Intel Open Image Denoise installed.
+    #[serde(default)]
+    pub oidn: bool,
 }
 
 #[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq)]
@@ -309,6 +331,17 @@ impl JobSpec {
                     limits.max_job_steps
                 ),
             ));
+        }
+        if let Some(n) = self.tasks {
+            // The engine's own split: it names why a technique or a stop rule cannot be
+            // split ("sdb bakes are not split into tasks (…)", "needs stop.steps").
+            crate::engine::tasks::split(&request, n).map_err(|e| Problem::invalid_field("tasks", e.to_string()))?;
+            if n > 1 && self.reference.is_some() {
+                return Err(Problem::invalid_field(
+                    "reference",
+                    "a job split into tasks has no reference curve (its history is the merge's one point); submit it with tasks absent or 1",
+                ));
+            }
         }
         if let Some(t) = self.stop.seconds
             && t > limits.max_job_seconds
@@ -689,6 +722,46 @@ pub struct JobView {
     /// Why the job failed.
     pub failure: Option<String>,
     pub cancel_requested: bool,
+    /// A job split into tasks: each task's state (issue 25).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tasks: Option<TasksView>,
+    /// Why nobody takes the queued job (or its queued tasks): no live worker meets its
+    /// `requires`, or every one that does is blocklisted for it. Absent when it just
+    /// waits its turn.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub waiting_for: Option<String>,
+}
+
+/// A split job's tasks.
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
+pub struct TasksView {
+    /// Bake tasks (the merge is one more, last in `list`).
+    pub count: u32,
+    pub list: Vec<TaskView>,
+    /// Workers that take no more of this job's tasks, with their failed attempts.
+    pub blocklisted: Vec<BlocklistEntry>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
+pub struct BlocklistEntry {
+    pub worker: String,
+    pub failures: u32,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
+pub struct TaskView {
+    pub index: u32,
+    /// `bake` (a range of the job's steps) or `merge`.
+    pub kind: String,
+    pub status: crate::service::queue::TaskStatus,
+    pub attempts: u32,
+    pub worker: Option<String>,
+    /// Steps its current (or last) attempt baked.
+    pub steps: u64,
+    pub seconds: f64,
+    /// Its own relative error estimate.
+    pub error: Option<f32>,
+    pub failure: Option<String>,
 }
 
 /// `GET /v1/jobs`.

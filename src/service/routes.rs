@@ -49,10 +49,14 @@ use utoipa::OpenApi;
 use crate::service::auth::{self, Caller};
 use crate::service::console::{DenoiserInfo, TechniqueInfo, TechniqueList};
 use crate::service::model::{
-    Health, JobCreated, JobList, JobSpec, JobStatus, JobView, ProbeProgress, Progress, SceneView, rfc3339,
+    BlocklistEntry, Health, JobCreated, JobList, JobSpec, JobStatus, JobView, ProbeProgress, Progress, SceneView,
+    TaskView, TasksView, rfc3339,
 };
 use crate::service::problem::{PROBLEM_JSON, Problem};
-use crate::service::queue::{Cancellation, Enqueued, JobDeletion, JobRecord, SceneDeletion, SceneRecord, now_ms};
+use crate::service::queue::{
+    BLOCKLIST_AFTER, Cancellation, Enqueued, JobDeletion, JobRecord, SceneDeletion, SceneRecord, TaskStatus,
+    WORKER_ALIVE_MS, WorkerRecord, now_ms,
+};
 use crate::service::worker::{ImportFailure, SceneFiles, import_dir, import_files, job_memory};
 use crate::service::{AppState, StopSignal, events, store, upload};
 
@@ -609,7 +613,106 @@ pub fn job_view(j: &JobRecord) -> JobView {
         summary: j.summary.clone(),
         failure: j.failure.clone(),
         cancel_requested: j.cancel_requested,
+        tasks: None,
+        waiting_for: None,
     }
+}
+
+/// [`job_view`] with what only one job's page shows: a split job's tasks and
+/// blocklist, and what a job nobody takes is waiting for (issue 25). A database error
+/// here leaves those parts out rather than failing the request.
+pub async fn describe_job(state: &AppState, j: &JobRecord) -> JobView {
+    let mut view = job_view(j);
+    let (tasks, failures) = if j.tasks > 0 {
+        let tasks = state.queue.tasks(&j.id).await.unwrap_or_default();
+        let failures = state.queue.task_failures(&j.id).await.unwrap_or_default();
+        (tasks, failures)
+    } else {
+        (Vec::new(), Vec::new())
+    };
+    let blocklisted: Vec<BlocklistEntry> = failures
+        .iter()
+        .filter(|(_, n)| *n >= BLOCKLIST_AFTER)
+        .map(|(w, n)| BlocklistEntry {
+            worker: w.clone(),
+            failures: *n,
+        })
+        .collect();
+    let waiting = j.status == JobStatus::Queued
+        || (j.status == JobStatus::Running
+            && tasks.iter().any(|t| t.status == TaskStatus::Queued)
+            && !tasks.iter().any(|t| t.status == TaskStatus::Running));
+    if waiting && let Ok(live) = state.queue.workers(state.db_now() - WORKER_ALIVE_MS).await {
+        view.waiting_for = waiting_for(j, &live, &blocklisted);
+    }
+    if j.tasks > 0 {
+        view.tasks = Some(TasksView {
+            count: j.tasks,
+            list: tasks
+                .into_iter()
+                .map(|t| TaskView {
+                    index: t.index,
+                    kind: if t.is_merge() { "merge" } else { "bake" }.into(),
+                    status: t.status,
+                    attempts: t.attempts,
+                    worker: t.worker,
+                    steps: t.steps,
+                    seconds: t.seconds,
+                    error: t.error,
+                    failure: t.failure,
+                })
+                .collect(),
+            blocklisted,
+        });
+    }
+    view
+}
+
+/// Why no live worker takes `j`, or `None` when one can and the job just waits its turn.
+fn waiting_for(j: &JobRecord, live: &[WorkerRecord], blocklisted: &[BlocklistEntry]) -> Option<String> {
+    if live.is_empty() {
+        return Some("a worker: none is running (start `lightmapd worker`, or `serve` with --workers above 0)".into());
+    }
+    let req = j.spec.requires.unwrap_or_default();
+    let able: Vec<&WorkerRecord> = live
+        .iter()
+        .filter(|w| (!req.gpu || w.capabilities.gpu) && (!req.oidn || w.capabilities.oidn))
+        .collect();
+    if able.is_empty() {
+        let need: Vec<&str> = [
+            req.gpu.then_some("a hardware GPU (requires.gpu)"),
+            req.oidn.then_some("OIDN (requires.oidn)"),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        let have: Vec<String> = live
+            .iter()
+            .take(4)
+            .map(|w| {
+                let c = &w.capabilities;
+                let adapter = match (&c.adapter, &c.adapter_kind) {
+                    (Some(a), Some(k)) => format!("{a}, {k}"),
+                    _ => "no GPU adapter".into(),
+                };
+                format!("{} ({adapter}; OIDN {})", w.id, if c.oidn { "yes" } else { "no" })
+            })
+            .collect();
+        let more = if live.len() > 4 { ", …" } else { "" };
+        return Some(format!(
+            "a worker with {}: none of the {} live workers has it ({}{more})",
+            need.join(" and "),
+            live.len(),
+            have.join("; ")
+        ));
+    }
+    if j.tasks > 0 && able.iter().all(|w| blocklisted.iter().any(|b| b.worker == w.id)) {
+        return Some(format!(
+            "a worker that has not failed this job's tasks: each of the {} live workers that meet its requires failed them {BLOCKLIST_AFTER} times and is blocklisted for it",
+            able.len()
+        ));
+    }
+    None
 }
 
 /// List jobs, newest first.
@@ -696,7 +799,8 @@ async fn get_job(
     Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<axum::Json<JobView>, Problem> {
-    Ok(axum::Json(job_view(&find_job(&state, &caller, &id).await?)))
+    let job = find_job(&state, &caller, &id).await?;
+    Ok(axum::Json(describe_job(&state, &job).await))
 }
 
 /// Cancel a job: a queued one at once, a running one within one bake step.
@@ -733,7 +837,7 @@ async fn cancel_job(
     }
     state.hub.job_changed(&id);
     let job = find_job(&state, &caller, &id).await?;
-    Ok((StatusCode::ACCEPTED, axum::Json(job_view(&job))).into_response())
+    Ok((StatusCode::ACCEPTED, axum::Json(describe_job(&state, &job).await)).into_response())
 }
 
 /// Delete a finished job and every artifact it made (lightmap, preview, snapshots).

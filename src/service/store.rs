@@ -642,3 +642,9 @@ mod tests {
         assert!(e.to_string().contains("AWS_ALLOW_HTTP"), "{e}");
     }
 }
+
+/// Bake task `k`'s result (`engine::tasks::Partial`, docs/scaling.md's `.lmtask`) of a
+/// split job, kept until the merge has stored the lightmap.
+pub fn task_partial(job: &str, k: u32) -> Path {
+    Path::from(format!("jobs/{job}/tasks/{k}.lmtask"))
+}

@@ -54,11 +54,11 @@ use crate::engine::reference::{ReferenceLightmap, relative_error};
 use crate::engine::scene::{self, Scene};
 use crate::engine::technique::EngineError;
 use crate::service::model::{HistoryPoint, JobStatus, ProbeProgress, Progress};
-use crate::service::queue::{JobRecord, JobUpdate, Lease, Outcome};
+use crate::service::queue::{Capabilities, JobRecord, JobUpdate, Lease, Outcome, QueueResult, WORKER_REFRESH};
 use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
 
 /// How often a running job's progress is written and its lease checked.
-const TICK: Duration = Duration::from_millis(250);
+pub(crate) const TICK: Duration = Duration::from_millis(250);
 /// How long an idle worker waits for a wake-up (`Hub::work`: a job queued in this
 /// process, or a PostgreSQL `lightmapd_work` NOTIFY from any) before asking again.
 const IDLE_POLL: Duration = Duration::from_millis(500);
@@ -73,26 +73,105 @@ const MAX_HISTORY: usize = 2000;
 #[derive(Default)]
 pub struct EngineShared {}
 
-/// Starts `n` workers named after this process.
+/// What this process's workers can run: the default adapter (and whether it is
+/// hardware), OIDN, and the per-job memory limit. Probed once, off the runtime's threads
+/// (adapter enumeration loads the Vulkan drivers).
+pub async fn capabilities(state: &AppState) -> Capabilities {
+    let memory_bytes = state.config.limits.max_job_memory_bytes;
+    let probe = tokio::task::spawn_blocking(|| {
+        let adapter = crate::engine::gpu::default_adapter();
+        let oidn = crate::engine::post::oidn::Oidn::available();
+        (adapter, oidn)
+    });
+    let (adapter, oidn) = probe.await.unwrap_or((None, false));
+    let software = crate::engine::gpu::AdapterPreference::from_env() == crate::engine::gpu::AdapterPreference::Cpu;
+    Capabilities {
+        gpu: !software && matches!(adapter, Some((_, "discrete" | "integrated" | "virtual"))),
+        adapter_kind: adapter.as_ref().map(|a| a.1.to_string()),
+        adapter: adapter.map(|a| a.0),
+        oidn,
+        memory_bytes,
+    }
+}
+
+/// Starts `n` workers named after this process, and the loop that keeps them
+/// registered (`workers.last_seen`) while the process runs.
 pub fn spawn_pool(state: &AppState, n: usize, engine: Arc<EngineShared>) -> Vec<JoinHandle<()>> {
     let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "local".into());
     let instance = &uuid::Uuid::new_v4().simple().to_string()[..8];
     state.metrics.workers.fetch_add(n, Ordering::Relaxed);
-    (0..n)
-        .map(|i| {
-            let id = format!("{host}-{}-{instance}-{i}", std::process::id());
-            tokio::spawn(worker_loop(state.clone(), id, engine.clone()))
-        })
-        .collect()
+    let ids: Vec<String> = (0..n)
+        .map(|i| format!("{host}-{}-{instance}-{i}", std::process::id()))
+        .collect();
+    let caps = Arc::new(tokio::sync::OnceCell::new());
+    let mut handles: Vec<JoinHandle<()>> = ids
+        .iter()
+        .map(|id| tokio::spawn(worker_loop(state.clone(), id.clone(), engine.clone(), caps.clone())))
+        .collect();
+    if n > 0 {
+        handles.push(tokio::spawn(presence_loop(state.clone(), ids, caps)));
+    }
+    handles
 }
 
-async fn worker_loop(state: AppState, worker: String, engine: Arc<EngineShared>) {
+/// Re-registers this process's workers every [`WORKER_REFRESH`] (a busy worker does not
+/// pass through its claim loop for as long as a bake runs), so the API counts them alive.
+async fn presence_loop(state: AppState, ids: Vec<String>, caps: Arc<tokio::sync::OnceCell<Capabilities>>) {
     let mut shutdown = state.shutdown.clone();
+    let caps = caps.get_or_init(|| capabilities(&state)).await.clone();
+    loop {
+        for id in &ids {
+            if let Err(e) = state.queue.register_worker(id, &caps, state.db_now()).await {
+                tracing::warn!(worker = %id, error = %e, "cannot register the worker");
+            }
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(WORKER_REFRESH) => {}
+            _ = shutting_down(&mut shutdown) => break,
+        }
+    }
+}
+
+async fn worker_loop(
+    state: AppState,
+    worker: String,
+    engine: Arc<EngineShared>,
+    caps: Arc<tokio::sync::OnceCell<Capabilities>>,
+) {
+    let mut shutdown = state.shutdown.clone();
+    let caps = caps.get_or_init(|| capabilities(&state)).await.clone();
+    tracing::info!(worker = %worker, gpu = caps.gpu, adapter = ?caps.adapter, oidn = caps.oidn, "worker started");
     loop {
         if *shutdown.borrow() {
             break;
         }
-        match state.queue.claim(&worker, state.config.lease, state.db_now()).await {
+        // A split job's tasks first (spreading them is what a farm's workers are for),
+        // then whole jobs; priorities order each kind.
+        match state
+            .queue
+            .claim_task(&worker, &caps, state.config.lease, state.db_now())
+            .await
+        {
+            Ok(Some((task, job))) => {
+                let span =
+                    tracing::info_span!("task", job = %job.id, task = task.index, tasks = task.count, worker = %worker);
+                crate::service::farm::run_task(&state, &worker, task, job)
+                    .instrument(span)
+                    .await;
+                continue;
+            }
+            Ok(None) => {}
+            Err(e) => {
+                tracing::error!(worker = %worker, error = %e, "cannot claim a task; retrying");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+                continue;
+            }
+        }
+        match state
+            .queue
+            .claim(&worker, &caps, state.config.lease, state.db_now())
+            .await
+        {
             Ok(Some(job)) => {
                 let span = tracing::info_span!("job", job = %job.id, technique = %job.spec.technique, worker = %worker);
                 run_job(&state, &worker, job, &engine).instrument(span).await;
@@ -224,7 +303,7 @@ async fn run_job(state: &AppState, worker: &str, job: JobRecord, engine: &Arc<En
             let r = loop {
                 let r = while_holding(
                     state,
-                    &id,
+                    Lessee::Job(&id),
                     worker,
                     &flag,
                     state.queue.finish(&id, worker, &outcome, state.db_now()),
@@ -276,26 +355,11 @@ async fn supervise(
     // meanwhile) rather than failing it: measured in tests/service/real_faults.rs, where jobs
     // claimed while the store was unreachable failed after object_store's own 10
     // retries (2.7 s).
-    let started = Instant::now();
-    let mut wait = Duration::from_millis(200);
-    let (scene, reference) = loop {
-        let load = async { Ok::<_, LoadError>((load_scene(state, job).await?, load_reference(state, job).await?)) };
-        match while_holding(state, &job.id, worker, &flag, load).await {
-            Ok(s) => break s,
-            _ if flag.get() == StopSignal::LeaseLost => return End::Lost,
-            Err(LoadError::Transient(reason)) if started.elapsed() + wait < SCENE_LOAD_PATIENCE => {
-                tracing::warn!(
-                    reason,
-                    retry_in_ms = wait.as_millis() as u64,
-                    "cannot load the scene yet; trying again"
-                );
-                while_holding(state, &job.id, worker, &flag, tokio::time::sleep(wait)).await;
-                wait = (wait * 2).min(Duration::from_secs(5));
-            }
-            Err(LoadError::Transient(reason) | LoadError::Permanent(reason)) => {
-                return End::Finish(Outcome::Failed { reason });
-            }
-        }
+    let load = || async { Ok::<_, LoadError>((load_scene(state, job).await?, load_reference(state, job).await?)) };
+    let (scene, reference) = match load_patiently(state, Lessee::Job(&job.id), worker, &flag, load).await {
+        Ok(s) => s,
+        Err(None) => return End::Lost,
+        Err(Some(reason)) => return End::Finish(Outcome::Failed { reason }),
     };
     let shared = Arc::new(Shared::default());
     // One encoded snapshot waits at most: while one is being stored (a slow or
@@ -337,14 +401,14 @@ async fn supervise(
                     let (step, error) = (files.steps, files.error);
                     // The lease is renewed while the store is slow or unreachable (its
                     // client retries for minutes): this loop's own ticker waits meanwhile.
-                    let stored = while_holding(state, &job.id, worker, &flag, store_snapshot(state, &job.id, snapshots + 1, files)).await;
+                    let stored = while_holding(state, Lessee::Job(&job.id), worker, &flag, store_snapshot(state, &job.id, snapshots + 1, files)).await;
                     match stored {
                         Ok(()) => {
                             snapshots += 1;
                             let update = JobUpdate { snapshots: Some(snapshots), ..collect(&shared, &mut written_progress, &mut written_plan, true) };
                             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
                             tracing::info!(snapshot = snapshots, step, error, "snapshot stored");
-                            while_holding(state, &job.id, worker, &flag, thin_snapshots(state, &job.id, snapshots)).await;
+                            while_holding(state, Lessee::Job(&job.id), worker, &flag, thin_snapshots(state, &job.id, snapshots)).await;
                         }
                         Err(e) => tracing::error!(error = %e, "cannot store a snapshot"),
                     }
@@ -358,7 +422,7 @@ async fn supervise(
                 }
                 let generated = shared.generated_scene.lock().ok().and_then(|mut g| g.take());
                 if let Some(scene) = generated && flag.get() != StopSignal::LeaseLost {
-                    match while_holding(state, &job.id, worker, &flag, store_generated_scene(state, &job.id, scene)).await {
+                    match while_holding(state, Lessee::Job(&job.id), worker, &flag, store_generated_scene(state, &job.id, scene)).await {
                         Ok(()) => {
                             shared.generated_scene_stored.store(true, Ordering::Relaxed);
                             // The job's plan says where it is; the next beat writes it.
@@ -390,7 +454,7 @@ async fn supervise(
         }
         if while_holding(
             state,
-            &job.id,
+            Lessee::Job(&job.id),
             worker,
             &flag,
             store_snapshot(state, &job.id, snapshots + 1, files),
@@ -404,7 +468,14 @@ async fn supervise(
                 ..collect(&shared, &mut written_progress, &mut written_plan, true)
             };
             beat(state, job, worker, &update, &flag, &mut last_renewal).await;
-            while_holding(state, &job.id, worker, &flag, thin_snapshots(state, &job.id, snapshots)).await;
+            while_holding(
+                state,
+                Lessee::Job(&job.id),
+                worker,
+                &flag,
+                thin_snapshots(state, &job.id, snapshots),
+            )
+            .await;
         }
     }
     let result = match result {
@@ -443,7 +514,7 @@ async fn supervise(
             let scene_stored = shared.generated_scene_stored.load(Ordering::Relaxed);
             if let Err(e) = while_holding(
                 state,
-                &job.id,
+                Lessee::Job(&job.id),
                 worker,
                 &flag,
                 store_final(state, &job.id, &r, scene_stored),
@@ -553,12 +624,70 @@ async fn beat(
     }
 }
 
-/// Runs `work` while renewing the job's lease every third of a lease (the bake's own
-/// ticker has stopped by then): a lost lease raises the flag, and `work` still finishes
-/// (its result is then not recorded: `finish` is guarded by the lease).
-async fn while_holding<T>(
+/// Runs `load` (a claimed job's scene and other inputs) until it succeeds, holding the
+/// lease meanwhile: a transient failure (the database or the store did not answer) is
+/// tried again with a growing wait for up to [`SCENE_LOAD_PATIENCE`]. `Err(None)`: the
+/// lease was lost; `Err(Some(reason))`: it failed for good.
+pub(crate) async fn load_patiently<T, F, Fut>(
     state: &AppState,
-    id: &str,
+    lessee: Lessee<'_>,
+    worker: &str,
+    flag: &StopFlag,
+    load: F,
+) -> Result<T, Option<String>>
+where
+    F: Fn() -> Fut,
+    Fut: std::future::Future<Output = Result<T, LoadError>>,
+{
+    let started = Instant::now();
+    let mut wait = Duration::from_millis(200);
+    loop {
+        match while_holding(state, lessee, worker, flag, load()).await {
+            Ok(s) => return Ok(s),
+            _ if flag.get() == StopSignal::LeaseLost => return Err(None),
+            Err(LoadError::Transient(reason)) if started.elapsed() + wait < SCENE_LOAD_PATIENCE => {
+                tracing::warn!(
+                    reason,
+                    retry_in_ms = wait.as_millis() as u64,
+                    "cannot load the scene yet; trying again"
+                );
+                while_holding(state, lessee, worker, flag, tokio::time::sleep(wait)).await;
+                wait = (wait * 2).min(Duration::from_secs(5));
+            }
+            Err(LoadError::Transient(reason) | LoadError::Permanent(reason)) => return Err(Some(reason)),
+        }
+    }
+}
+
+/// Whose lease a worker holds: a whole job's, or one task's of a split job.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Lessee<'a> {
+    Job(&'a str),
+    Task(&'a str, u32),
+}
+
+impl Lessee<'_> {
+    /// Renews the lease without writing anything else.
+    pub(crate) async fn renew(self, state: &AppState, worker: &str) -> QueueResult<Lease> {
+        let (lease, now) = (state.config.lease, state.db_now());
+        match self {
+            Lessee::Job(id) => {
+                state
+                    .queue
+                    .heartbeat(id, worker, lease, &JobUpdate::default(), now)
+                    .await
+            }
+            Lessee::Task(id, k) => state.queue.task_heartbeat(id, k, worker, lease, None, now).await,
+        }
+    }
+}
+
+/// Runs `work` while renewing the lease every third of a lease (the bake's own ticker
+/// has stopped by then): a lost lease raises the flag, and `work` still finishes (its
+/// result is then not recorded: `finish` is guarded by the lease).
+pub(crate) async fn while_holding<T>(
+    state: &AppState,
+    lessee: Lessee<'_>,
     worker: &str,
     flag: &StopFlag,
     work: impl std::future::Future<Output = T>,
@@ -571,7 +700,7 @@ async fn while_holding<T>(
         tokio::select! {
             r = &mut work => return r,
             _ = ticker.tick() => {
-                match state.queue.heartbeat(id, worker, state.config.lease, &JobUpdate::default(), state.db_now()).await {
+                match lessee.renew(state, worker).await {
                     Ok(Lease::Held { .. }) => tracing::debug!("lease renewed while storing the result"),
                     Ok(Lease::Lost) => flag.set(StopSignal::LeaseLost),
                     Err(e) => tracing::warn!(error = %e, "heartbeat failed"),
@@ -626,7 +755,7 @@ async fn store_generated_scene(state: &AppState, job: &str, scene: Arc<Scene>) -
 
 /// The final artifacts; `scene_stored`: the scene with generated UVs was stored while
 /// the bake ran (it does not change after the UVs are made).
-async fn store_final(
+pub(crate) async fn store_final(
     state: &AppState,
     job: &str,
     r: &BakeResult,
@@ -673,7 +802,7 @@ pub enum SceneFiles {
 }
 
 /// Why a job's scene could not be loaded.
-enum LoadError {
+pub(crate) enum LoadError {
     /// It never will be (the scene is gone, the job is too big for this worker).
     Permanent(String),
     /// The database or the store did not answer: worth trying again.
@@ -684,7 +813,7 @@ enum LoadError {
 /// store outage (holding the lease) before it fails the job with the last error.
 const SCENE_LOAD_PATIENCE: Duration = Duration::from_secs(60);
 
-async fn load_scene(state: &AppState, job: &JobRecord) -> Result<SceneFiles, LoadError> {
+pub(crate) async fn load_scene(state: &AppState, job: &JobRecord) -> Result<SceneFiles, LoadError> {
     use LoadError::{Permanent, Transient};
     let scene_id = job.scene_id.as_str();
     let rec = match state.queue.scene(scene_id).await {

@@ -34,8 +34,8 @@ use lightmapd::engine::rng::Rng;
 use lightmapd::service::model::{JobSpec, JobStatus};
 use lightmapd::service::queue::sqlite::SqliteQueue;
 use lightmapd::service::queue::{
-    Cancellation, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, Outcome, Queue, QueueResult, Recovered,
-    SceneDeletion, SceneRecord, TokenRecord,
+    Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, Outcome, Queue, QueueResult,
+    Recovered, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord, TokenRecord, WorkerRecord,
 };
 use lightmapd::service::store::Artifacts;
 use object_store::local::LocalFileSystem;
@@ -369,9 +369,61 @@ impl Queue for DroppedDb {
         self.check()?;
         self.inner.cancel(id, now).await
     }
-    async fn claim(&self, worker: &str, lease: Duration, now: i64) -> QueueResult<Option<JobRecord>> {
+    async fn claim(
+        &self,
+        worker: &str,
+        caps: &Capabilities,
+        lease: Duration,
+        now: i64,
+    ) -> QueueResult<Option<JobRecord>> {
         self.check()?;
-        self.inner.claim(worker, lease, now).await
+        self.inner.claim(worker, caps, lease, now).await
+    }
+    async fn claim_task(
+        &self,
+        worker: &str,
+        caps: &Capabilities,
+        lease: Duration,
+        now: i64,
+    ) -> QueueResult<Option<(TaskRecord, JobRecord)>> {
+        self.check()?;
+        self.inner.claim_task(worker, caps, lease, now).await
+    }
+    async fn task_heartbeat(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        lease: Duration,
+        beat: Option<&TaskBeat>,
+        now: i64,
+    ) -> QueueResult<Lease> {
+        self.check()?;
+        self.inner.task_heartbeat(job, index, worker, lease, beat, now).await
+    }
+    async fn finish_task(&self, job: &str, index: u32, worker: &str, o: &TaskOutcome, now: i64) -> QueueResult<bool> {
+        self.check()?;
+        self.inner.finish_task(job, index, worker, o, now).await
+    }
+    async fn release_task(&self, job: &str, index: u32, worker: &str, now: i64) -> QueueResult<bool> {
+        self.check()?;
+        self.inner.release_task(job, index, worker, now).await
+    }
+    async fn tasks(&self, job: &str) -> QueueResult<Vec<TaskRecord>> {
+        self.check()?;
+        self.inner.tasks(job).await
+    }
+    async fn task_failures(&self, job: &str) -> QueueResult<Vec<(String, u32)>> {
+        self.check()?;
+        self.inner.task_failures(job).await
+    }
+    async fn register_worker(&self, worker: &str, caps: &Capabilities, now: i64) -> QueueResult<()> {
+        self.check()?;
+        self.inner.register_worker(worker, caps, now).await
+    }
+    async fn workers(&self, since: i64) -> QueueResult<Vec<WorkerRecord>> {
+        self.check()?;
+        self.inner.workers(since).await
     }
     async fn heartbeat(&self, id: &str, w: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
         self.check()?;

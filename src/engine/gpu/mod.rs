@@ -236,6 +236,30 @@ pub fn hardware_adapter_present() -> bool {
     })
 }
 
+/// The adapter this process would pick by default, as (name, kind): `discrete`,
+/// `integrated`, `virtual`, `cpu` (a software rasterizer such as lavapipe) or `other`;
+/// `None` without any adapter. Enumerated once per process (a worker advertises it,
+/// issue 25).
+pub fn default_adapter() -> Option<(String, &'static str)> {
+    static CHOSEN: std::sync::OnceLock<Option<(String, &'static str)>> = std::sync::OnceLock::new();
+    CHOSEN
+        .get_or_init(|| {
+            let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+            let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+            let infos: Vec<wgpu::AdapterInfo> = adapters.iter().map(|a| a.get_info()).collect();
+            let i = choose_adapter(&infos, &AdapterPreference::from_env())?;
+            let kind = match infos[i].device_type {
+                wgpu::DeviceType::DiscreteGpu => "discrete",
+                wgpu::DeviceType::IntegratedGpu => "integrated",
+                wgpu::DeviceType::VirtualGpu => "virtual",
+                wgpu::DeviceType::Cpu => "cpu",
+                wgpu::DeviceType::Other => "other",
+            };
+            Some((infos[i].name.clone(), kind))
+        })
+        .clone()
+}
+
 /// The shared context when it is a hardware GPU and `LIGHTMAPD_ADAPTER` does not ask for
 /// a software one; `None` otherwise, so the caller keeps its CPU route: on a machine
 /// with only lavapipe the CPU's own rays are faster than the same rays through a JIT on

@@ -18,8 +18,27 @@
 //! client already has `max_queued` jobs waiting, in the same statement that inserts it,
 //! so concurrent submissions cannot overshoot. Tokens live in the same database, hashed.
 //!
+//! Tasks (issue 25, docs/scaling.md): a job submitted with `tasks: N` is never claimed
+//! whole. [`Queue::enqueue`] stores N bake task rows (a range of the job's steps each,
+//! `engine::tasks`) and one merge task, `waiting` until every bake task has succeeded.
+//! Each task has its own lease and attempts: [`Queue::claim_task`] takes one (the job
+//! becomes `running` with its first), [`Queue::task_heartbeat`] renews it and writes the
+//! task's steps and error, from which the same statement's transaction writes the job's
+//! merged progress ([`merged_progress`]); [`Queue::finish_task`] records a baked task
+//! (queueing the merge after the last) or the merge (the job `succeeded`, with its
+//! summary). A task whose worker died is queued again by [`Queue::recover_expired`], or
+//! fails the job after [`MAX_ATTEMPTS`] attempts; every failed or abandoned attempt counts
+//! against its worker in `task_failures`, and a worker with [`BLOCKLIST_AFTER`] of them
+//! takes no more of that job's tasks.
+//!
+//! Capabilities: every worker registers what it has ([`Capabilities`]) and refreshes its
+//! `last_seen`; claims pass the claimer's capabilities and skip jobs whose `requires` it
+//! does not meet; the API reads the live workers to say what a job nobody takes is
+//! waiting for.
+//!
 //! Limits: a re-run starts the bake again from step 0 (the engine cannot resume from a
-//! snapshot); snapshots of earlier attempts stay, numbered on.
+//! snapshot); snapshots of earlier attempts stay, numbered on. A split job stores no
+//! snapshots while its tasks run (its tasks' halves meet only in the merge).
 
 pub mod postgres;
 pub mod sqlite;
@@ -64,8 +83,161 @@ pub(crate) fn migrator(files: &'static [(i64, &'static str, &'static str)]) -> s
     )
 }
 
-/// A job that has lost its lease this many times fails instead of being re-queued.
+/// A job (or a task) that has lost its lease this many times fails instead of being
+/// re-queued.
 pub const MAX_ATTEMPTS: u32 = 3;
+
+/// A worker whose attempts at one job's tasks failed (an error, or its lease lapsed)
+/// this many times takes no more of that job's tasks (as Flamenco's blocklist does: a
+/// worker with a broken driver or too little memory keeps failing the same job).
+pub const BLOCKLIST_AFTER: u32 = 2;
+
+/// A worker not seen for this long is not counted as alive when the API says what a
+/// job is waiting for (workers refresh every [`WORKER_REFRESH`]).
+pub const WORKER_ALIVE_MS: i64 = 30_000;
+/// How often a worker process refreshes its workers' `last_seen`.
+pub const WORKER_REFRESH: Duration = Duration::from_secs(10);
+
+/// What a worker can run (issue 25 point 4), as it registers it.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize, utoipa::ToSchema)]
+pub struct Capabilities {
+    /// A hardware GPU adapter (discrete, integrated or virtual) is present; a software
+    /// rasterizer (lavapipe) is not one.
+    pub gpu: bool,
+    /// The best adapter's name, when there is any adapter.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adapter: Option<String>,
+    /// Its kind: `discrete`, `integrated`, `virtual`, `cpu` (software) or `other`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adapter_kind: Option<String>,
+    /// Intel Open Image Denoise can be loaded.
+    pub oidn: bool,
+    /// The most memory one job may take on this worker (`--max-job-memory-mb`).
+    pub memory_bytes: u64,
+}
+
+/// A registered worker.
+#[derive(Clone, Debug)]
+pub struct WorkerRecord {
+    pub id: String,
+    pub capabilities: Capabilities,
+    pub started_at: i64,
+    pub last_seen: i64,
+}
+
+/// A task's state. `Waiting`: the merge, until every bake task has succeeded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum TaskStatus {
+    Waiting,
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl TaskStatus {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            TaskStatus::Waiting => "waiting",
+            TaskStatus::Queued => "queued",
+            TaskStatus::Running => "running",
+            TaskStatus::Succeeded => "succeeded",
+            TaskStatus::Failed => "failed",
+            TaskStatus::Cancelled => "cancelled",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<TaskStatus> {
+        [
+            TaskStatus::Waiting,
+            TaskStatus::Queued,
+            TaskStatus::Running,
+            TaskStatus::Succeeded,
+            TaskStatus::Failed,
+            TaskStatus::Cancelled,
+        ]
+        .into_iter()
+        .find(|t| t.as_str() == s)
+    }
+}
+
+/// One task of a split job: `index` of `count` bake tasks, or the merge (`index ==
+/// count`).
+#[derive(Clone, Debug)]
+pub struct TaskRecord {
+    pub job_id: String,
+    pub index: u32,
+    pub count: u32,
+    pub status: TaskStatus,
+    pub attempts: u32,
+    pub worker: Option<String>,
+    pub lease_expires_at: Option<i64>,
+    /// Steps this attempt has baked.
+    pub steps: u64,
+    pub seconds: f64,
+    /// The task's own relative error estimate (its halves' difference).
+    pub error: Option<f32>,
+    pub failure: Option<String>,
+    pub started_at: Option<i64>,
+    pub finished_at: Option<i64>,
+}
+
+impl TaskRecord {
+    pub fn is_merge(&self) -> bool {
+        self.index == self.count
+    }
+}
+
+/// What a running task's heartbeat reports.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TaskBeat {
+    pub steps: u64,
+    pub seconds: f64,
+    pub error: Option<f32>,
+}
+
+/// The end of a task.
+#[derive(Clone, Debug)]
+pub enum TaskOutcome {
+    /// A bake task's result is stored.
+    Baked(TaskBeat),
+    /// The merge's artifacts are stored: the job succeeded with these.
+    Merged {
+        summary: Value,
+        progress: Value,
+        history: Value,
+        plan: Value,
+    },
+    /// The attempt failed. `retry`: another worker may succeed (a device or store
+    /// error); otherwise (bad input, which every worker would meet) the job fails now.
+    Failed {
+        reason: String,
+        retry: bool,
+    },
+    Cancelled,
+}
+
+/// The progress of a split job from its bake tasks' (steps, error): steps added up; the
+/// error of the step-weighted mean of independent estimates,
+/// `sqrt(Σ (s_k/S)² e_k²)` (each task's error is its own halves' difference, DESIGN §4,
+/// and the tasks draw disjoint samples, so their errors add in quadrature); `fraction`
+/// as for a whole bake of `spec.stop`. The merge's own error estimate, from the merged
+/// halves, replaces it when the job ends.
+pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks: &[(u64, Option<f32>)]) -> Value {
+    let steps: u64 = tasks.iter().map(|t| t.0).sum();
+    let error = (steps > 0 && tasks.iter().all(|t| t.0 == 0 || t.1.is_some())).then(|| {
+        let s = steps as f64;
+        let sum: f64 = tasks
+            .iter()
+            .filter_map(|&(k, e)| e.map(|e| (k as f64 / s * e as f64).powi(2)))
+            .sum();
+        sum.sqrt() as f32
+    });
+    let elapsed = started_at.map_or(0.0, |t| (now - t).max(0) as f64 / 1000.0);
+    serde_json::to_value(crate::service::model::Progress::new(steps, elapsed, error, &spec.stop)).unwrap_or(Value::Null)
+}
 
 pub type QueueResult<T> = Result<T, sqlx::Error>;
 
@@ -106,6 +278,8 @@ pub struct JobRecord {
     pub updated_at: i64,
     /// Who submitted it: a token id, or `ip:ADDR` when tokens are not required.
     pub client: Option<String>,
+    /// Bake tasks it is split into; 0 when it is not split.
+    pub tasks: u32,
 }
 
 /// The answer to [`Queue::enqueue`].
@@ -225,6 +399,8 @@ pub struct Recovered {
     pub requeued: Vec<String>,
     pub failed: Vec<String>,
     pub cancelled: Vec<String>,
+    /// Tasks (job, index) queued again after their worker's lease lapsed.
+    pub tasks_requeued: Vec<(String, u32)>,
 }
 
 #[async_trait]
@@ -261,8 +437,55 @@ pub trait Queue: Send + Sync + 'static {
     async fn counts(&self) -> QueueResult<Vec<(JobStatus, u64)>>;
     async fn cancel(&self, id: &str, now: i64) -> QueueResult<Cancellation>;
 
-    /// Takes the next queued job (highest priority, then oldest) for `worker`.
-    async fn claim(&self, worker: &str, lease: Duration, now: i64) -> QueueResult<Option<JobRecord>>;
+    /// Takes the next queued job that is not split (highest priority, then oldest) and
+    /// whose `requires` `caps` meets, for `worker`.
+    async fn claim(
+        &self,
+        worker: &str,
+        caps: &Capabilities,
+        lease: Duration,
+        now: i64,
+    ) -> QueueResult<Option<JobRecord>>;
+    /// Takes the next queued task (its job's priority, then age, then task order) of a
+    /// job whose `requires` `caps` meets and that has not blocklisted `worker`; its job
+    /// becomes `running` with its first task.
+    async fn claim_task(
+        &self,
+        worker: &str,
+        caps: &Capabilities,
+        lease: Duration,
+        now: i64,
+    ) -> QueueResult<Option<(TaskRecord, JobRecord)>>;
+    /// Renews a task's lease, writes `beat` (and the job's merged progress from it).
+    /// `Held { cancel }` says whether the job is being cancelled.
+    async fn task_heartbeat(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        lease: Duration,
+        beat: Option<&TaskBeat>,
+        now: i64,
+    ) -> QueueResult<Lease>;
+    /// Records the end of a task (see [`TaskOutcome`]); `false` when its lease was lost.
+    async fn finish_task(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        outcome: &TaskOutcome,
+        now: i64,
+    ) -> QueueResult<bool>;
+    /// Hands a running task back (graceful shutdown): queued again, attempt not counted.
+    async fn release_task(&self, job: &str, index: u32, worker: &str, now: i64) -> QueueResult<bool>;
+    /// A job's tasks, in order (the merge last); empty when it is not split.
+    async fn tasks(&self, job: &str) -> QueueResult<Vec<TaskRecord>>;
+    /// The workers with failed attempts at `job`'s tasks, and how many.
+    async fn task_failures(&self, job: &str) -> QueueResult<Vec<(String, u32)>>;
+    /// Registers `worker` with `caps`, or refreshes its `last_seen`.
+    async fn register_worker(&self, worker: &str, caps: &Capabilities, now: i64) -> QueueResult<()>;
+    /// Workers seen at or after `since`.
+    async fn workers(&self, since: i64) -> QueueResult<Vec<WorkerRecord>>;
     /// Renews the lease and writes `update`.
     async fn heartbeat(
         &self,

@@ -39,6 +39,16 @@
 //! processes using different schemas of one database (the tests do) see each other's
 //! notifications, which only causes a spurious re-read or claim attempt.
 //!
+//! Tasks (issue 25): the task claim is the job claim's pattern on `tasks` (`FOR UPDATE
+//! OF t SKIP LOCKED`), then the job row is set `running`. Every other task transaction
+//! (heartbeat, finish, release, cancel) locks the job's row first (`FOR UPDATE`), so the
+//! writes that touch a job and several of its tasks (the merged progress, a failure that
+//! ends the job, a cancel) run one at a time per job and in one lock order. The claim and
+//! the lease recovery take task rows before the job's; a deadlock between them is
+//! possible only when a heartbeat races the recovery of its own lapsed lease, and
+//! PostgreSQL then aborts one of the two, which is retried (a claim or a heartbeat at
+//! the next tick, the recovery at its next period).
+//!
 //! Schemas: `open` uses the URL's `search_path` (`?options=-csearch_path%3Dname`), and
 //! [`PostgresQueue::open_in_schema`] creates a schema and uses it; the tests give each
 //! test its own schema so they run in parallel on one database.
@@ -56,14 +66,15 @@ use std::time::Duration;
 
 use async_trait::async_trait;
 use serde_json::Value;
-use sqlx::postgres::{PgConnectOptions, PgListener, PgPool, PgPoolOptions, PgRow};
+use sqlx::postgres::{PgConnectOptions, PgConnection, PgListener, PgPool, PgPoolOptions, PgRow};
 use sqlx::{AssertSqlSafe, Row};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
 use super::{
-    Cancellation, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult,
-    Recovered, Role, SceneDeletion, SceneRecord, TokenRecord,
+    BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
+    Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
+    TaskStatus, TokenRecord, WorkerRecord, merged_progress,
 };
 use crate::service::model::{JobSpec, JobStatus};
 use crate::service::{Hub, shutting_down};
@@ -77,6 +88,7 @@ pub(crate) const MIGRATIONS: &[(i64, &str, &str)] = &[
         "roles and retention",
         include_str!("../../../migrations/postgres/0002_roles_and_retention.sql"),
     ),
+    (3, "tasks", include_str!("../../../migrations/postgres/0003_tasks.sql")),
 ];
 
 static MIGRATOR: std::sync::LazyLock<sqlx::migrate::Migrator> =
@@ -214,7 +226,214 @@ fn job_from_row(row: &PgRow) -> QueueResult<JobRecord> {
         failure: row.try_get("failure")?,
         updated_at: row.try_get("updated_at")?,
         client: row.try_get("client")?,
+        tasks: row.try_get::<i32, _>("tasks")?.max(0) as u32,
     })
+}
+
+fn task_from_row(row: &PgRow) -> QueueResult<TaskRecord> {
+    let status: String = row.try_get("status")?;
+    Ok(TaskRecord {
+        job_id: row.try_get("job_id")?,
+        index: row.try_get::<i32, _>("idx")?.max(0) as u32,
+        count: row.try_get::<i32, _>("count")?.max(0) as u32,
+        status: TaskStatus::parse(&status)
+            .ok_or_else(|| sqlx::Error::Decode(format!("unknown task status {status:?}").into()))?,
+        attempts: row.try_get::<i32, _>("attempts")?.max(0) as u32,
+        worker: row.try_get("worker")?,
+        lease_expires_at: row.try_get("lease_expires_at")?,
+        steps: row.try_get::<i64, _>("steps")?.max(0) as u64,
+        seconds: row.try_get("seconds")?,
+        error: row.try_get("error")?,
+        failure: row.try_get("failure")?,
+        started_at: row.try_get("started_at")?,
+        finished_at: row.try_get("finished_at")?,
+    })
+}
+
+fn worker_from_row(row: &PgRow) -> QueueResult<WorkerRecord> {
+    let caps: Value = row.try_get("capabilities")?;
+    Ok(WorkerRecord {
+        id: row.try_get("id")?,
+        capabilities: serde_json::from_value(caps).unwrap_or_default(),
+        started_at: row.try_get("started_at")?,
+        last_seen: row.try_get("last_seen")?,
+    })
+}
+
+/// Locks a job's row for the rest of the transaction (see the module doc: one lock
+/// order per job).
+async fn lock_job(c: &mut PgConnection, job: &str) -> QueueResult<()> {
+    sqlx::query("SELECT 1 FROM jobs WHERE id = $1 FOR UPDATE")
+        .bind(job)
+        .fetch_optional(&mut *c)
+        .await?;
+    Ok(())
+}
+
+/// Writes a split job's merged progress from its bake tasks' rows.
+async fn refresh_progress(c: &mut PgConnection, job: &str, now: i64) -> QueueResult<()> {
+    let Some(row) = sqlx::query("SELECT spec, started_at FROM jobs WHERE id = $1")
+        .bind(job)
+        .fetch_optional(&mut *c)
+        .await?
+    else {
+        return Ok(());
+    };
+    let spec: Value = row.try_get("spec")?;
+    let spec: JobSpec = serde_json::from_value(spec).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
+    let tasks: Vec<(i64, Option<f32>)> =
+        sqlx::query_as("SELECT steps, error FROM tasks WHERE job_id = $1 AND idx < count ORDER BY idx")
+            .bind(job)
+            .fetch_all(&mut *c)
+            .await?;
+    let tasks: Vec<(u64, Option<f32>)> = tasks.into_iter().map(|(s, e)| (s.max(0) as u64, e)).collect();
+    let progress = merged_progress(&spec, row.try_get("started_at")?, now, &tasks);
+    sqlx::query("UPDATE jobs SET progress = $2, updated_at = $3 WHERE id = $1 AND status = 'running'")
+        .bind(job)
+        .bind(progress)
+        .bind(now)
+        .execute(&mut *c)
+        .await?;
+    Ok(())
+}
+
+/// Counts a failed or abandoned attempt against `worker` (the blocklist's count).
+async fn count_failure(c: &mut PgConnection, job: &str, worker: &str, reason: &str, now: i64) -> QueueResult<()> {
+    sqlx::query(
+        "INSERT INTO task_failures (job_id, worker, failures, last_reason, updated_at) VALUES ($1, $2, 1, $3, $4)
+         ON CONFLICT (job_id, worker) DO UPDATE SET failures = task_failures.failures + 1, last_reason = $3,
+             updated_at = $4",
+    )
+    .bind(job)
+    .bind(worker)
+    .bind(reason)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    Ok(())
+}
+
+/// Fails a split job for good: the job `failed` with `reason`, its unfinished tasks
+/// `cancelled` (a running one's next heartbeat finds its lease lost).
+async fn fail_split_job(c: &mut PgConnection, job: &str, reason: &str, now: i64) -> QueueResult<bool> {
+    let r = sqlx::query(
+        "UPDATE jobs SET status = 'failed', finished_at = $2, updated_at = $2, failure = $3
+         WHERE id = $1 AND status IN ('queued', 'running')",
+    )
+    .bind(job)
+    .bind(now)
+    .bind(reason)
+    .execute(&mut *c)
+    .await?;
+    sqlx::query(
+        "UPDATE tasks SET status = 'cancelled', updated_at = $2, lease_expires_at = NULL
+         WHERE job_id = $1 AND status IN ('waiting', 'queued', 'running')",
+    )
+    .bind(job)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    Ok(r.rows_affected() == 1)
+}
+
+/// A split job being cancelled: its tasks not running are cancelled, and once none
+/// runs the job is `cancelled`. True when the job ended here.
+async fn settle_cancel(c: &mut PgConnection, job: &str, now: i64) -> QueueResult<bool> {
+    sqlx::query(
+        "UPDATE tasks SET status = 'cancelled', updated_at = $2
+         WHERE job_id = $1 AND status IN ('waiting', 'queued')
+           AND (SELECT cancel_requested FROM jobs WHERE id = $1)",
+    )
+    .bind(job)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    let r = sqlx::query(
+        "UPDATE jobs SET status = 'cancelled', finished_at = $2, updated_at = $2
+         WHERE id = $1 AND tasks > 0 AND cancel_requested AND status IN ('queued', 'running')
+           AND NOT EXISTS (SELECT 1 FROM tasks WHERE job_id = $1 AND status = 'running')",
+    )
+    .bind(job)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    Ok(r.rows_affected() == 1)
+}
+
+/// The task half of [`Queue::recover_expired`] (as in the SQLite store), taking
+/// expired task rows with `SKIP LOCKED`.
+#[allow(clippy::type_complexity)]
+async fn recover_tasks(c: &mut PgConnection, now: i64) -> QueueResult<(Vec<(String, u32)>, Vec<String>, Vec<String>)> {
+    let stopped: Vec<String> = sqlx::query_scalar(
+        "UPDATE tasks SET status = 'cancelled', updated_at = $1, lease_expires_at = NULL
+         WHERE (job_id, idx) IN (SELECT t.job_id, t.idx FROM tasks t JOIN jobs j ON j.id = t.job_id
+                                 WHERE t.status = 'running' AND t.lease_expires_at < $1
+                                   AND (j.cancel_requested OR j.status <> 'running')
+                                 FOR UPDATE OF t SKIP LOCKED)
+         RETURNING job_id",
+    )
+    .bind(now)
+    .fetch_all(&mut *c)
+    .await?;
+    let mut cancelled = Vec::new();
+    let mut seen = std::collections::HashSet::new();
+    for job in stopped {
+        if seen.insert(job.clone()) && settle_cancel(c, &job, now).await? {
+            cancelled.push(job);
+        }
+    }
+    // The expired rows, locked for the rest of the transaction.
+    let expired: Vec<(String, i32, i32, i32, Option<String>)> = sqlx::query_as(
+        "SELECT job_id, idx, count, attempts, worker FROM tasks
+         WHERE status = 'running' AND lease_expires_at < $1
+         ORDER BY job_id, idx FOR UPDATE SKIP LOCKED",
+    )
+    .bind(now)
+    .fetch_all(&mut *c)
+    .await?;
+    let mut requeued = Vec::new();
+    let mut failed = Vec::new();
+    for (job, idx, count, attempts, worker) in expired {
+        if let Some(w) = &worker {
+            count_failure(c, &job, w, "its lease expired (the worker stopped renewing it)", now).await?;
+        }
+        if attempts >= MAX_ATTEMPTS as i32 {
+            sqlx::query(
+                "UPDATE tasks SET status = 'failed', finished_at = $3, updated_at = $3, lease_expires_at = NULL,
+                     failure = 'its lease expired ' || attempts || ' times'
+                 WHERE job_id = $1 AND idx = $2",
+            )
+            .bind(&job)
+            .bind(idx)
+            .bind(now)
+            .execute(&mut *c)
+            .await?;
+            let what = if idx == count {
+                "the merge".to_string()
+            } else {
+                format!("task {idx} of {count}")
+            };
+            let why = format!(
+                "{what} was given up after {MAX_ATTEMPTS} attempts: the lease of worker {} expired (the worker stopped renewing it: crashed, killed or cut off)",
+                worker.as_deref().unwrap_or("?")
+            );
+            if fail_split_job(c, &job, &why, now).await? {
+                failed.push(job);
+            }
+        } else {
+            sqlx::query(
+                "UPDATE tasks SET status = 'queued', updated_at = $3, worker = NULL, lease_expires_at = NULL
+                 WHERE job_id = $1 AND idx = $2 AND status = 'running'",
+            )
+            .bind(&job)
+            .bind(idx)
+            .bind(now)
+            .execute(&mut *c)
+            .await?;
+            requeued.push((job, idx.max(0) as u32));
+        }
+    }
+    Ok((requeued, failed, cancelled))
 }
 
 fn scene_from_row(row: &PgRow) -> QueueResult<SceneRecord> {
@@ -394,9 +613,12 @@ impl Queue for PostgresQueue {
         if queued >= clamp_i64(max_queued) {
             return Ok(Enqueued::QueueFull(queued as u64));
         }
+        let tasks = spec.tasks.filter(|n| *n > 1).unwrap_or(0);
+        let requires = spec.requires.unwrap_or_default();
         let row = sqlx::query(
-            "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client)
-             VALUES ($1, $2, $3, 'queued', $4, $5, $5, $6)
+            "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client, tasks,
+                               requires_gpu, requires_oidn)
+             VALUES ($1, $2, $3, 'queued', $4, $5, $5, $6, $7, $8, $9)
              RETURNING *",
         )
         .bind(id)
@@ -405,8 +627,24 @@ impl Queue for PostgresQueue {
         .bind(spec.priority)
         .bind(now)
         .bind(client)
+        .bind(tasks as i32)
+        .bind(requires.gpu)
+        .bind(requires.oidn)
         .fetch_one(&mut *tx)
         .await?;
+        if tasks > 0 {
+            // Bake tasks 0..n queued, the merge (index n) waiting for them.
+            sqlx::query(
+                "INSERT INTO tasks (job_id, idx, count, status, updated_at)
+                 SELECT $1, i, $2, CASE WHEN i < $2 THEN 'queued' ELSE 'waiting' END, $3
+                 FROM generate_series(0, $2) AS i",
+            )
+            .bind(id)
+            .bind(tasks as i32)
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
+        }
         let job = job_from_row(&row)?;
         tx.commit().await?;
         Ok(Enqueued::Queued(Box::new(job)))
@@ -474,18 +712,37 @@ impl Queue for PostgresQueue {
         .execute(&self.pool)
         .await?;
         if r.rows_affected() == 1 {
+            // A split job's tasks end with it.
+            sqlx::query(
+                "UPDATE tasks SET status = 'cancelled', updated_at = $2 WHERE job_id = $1 AND status IN ('waiting', 'queued')",
+            )
+            .bind(id)
+            .bind(now)
+            .execute(&self.pool)
+            .await?;
             return Ok(Cancellation::Cancelled);
         }
+        let mut tx = self.pool.begin().await?;
+        lock_job(&mut tx, id).await?;
         let r = sqlx::query(
             "UPDATE jobs SET cancel_requested = TRUE, updated_at = $2 WHERE id = $1 AND status = 'running'",
         )
         .bind(id)
         .bind(now)
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await?;
         if r.rows_affected() == 1 {
-            return Ok(Cancellation::Requested);
+            // A split job with no task running ends now; otherwise its running tasks
+            // stop at their next heartbeat and the last one to stop ends it.
+            let ended = settle_cancel(&mut tx, id, now).await?;
+            tx.commit().await?;
+            return Ok(if ended {
+                Cancellation::Cancelled
+            } else {
+                Cancellation::Requested
+            });
         }
+        drop(tx);
         let status: Option<String> = sqlx::query_scalar("SELECT status FROM jobs WHERE id = $1")
             .bind(id)
             .fetch_optional(&self.pool)
@@ -496,11 +753,18 @@ impl Queue for PostgresQueue {
         })
     }
 
-    async fn claim(&self, worker: &str, lease: Duration, now: i64) -> QueueResult<Option<JobRecord>> {
+    async fn claim(
+        &self,
+        worker: &str,
+        caps: &Capabilities,
+        lease: Duration,
+        now: i64,
+    ) -> QueueResult<Option<JobRecord>> {
         let row = sqlx::query(
             "UPDATE jobs SET status = 'running', worker = $1, attempts = attempts + 1, lease_expires_at = $2,
                  started_at = $3, updated_at = $3, progress = NULL, history = '[]', plan = NULL
-             WHERE id = (SELECT id FROM jobs WHERE status = 'queued'
+             WHERE id = (SELECT id FROM jobs WHERE status = 'queued' AND tasks = 0
+                           AND (NOT requires_gpu OR $4) AND (NOT requires_oidn OR $5)
                          ORDER BY priority DESC, created_at, seq LIMIT 1
                          FOR UPDATE SKIP LOCKED)
              RETURNING *",
@@ -508,9 +772,264 @@ impl Queue for PostgresQueue {
         .bind(worker)
         .bind(lease_until(now, lease))
         .bind(now)
+        .bind(caps.gpu)
+        .bind(caps.oidn)
         .fetch_optional(&self.pool)
         .await?;
         row.as_ref().map(job_from_row).transpose()
+    }
+
+    async fn claim_task(
+        &self,
+        worker: &str,
+        caps: &Capabilities,
+        lease: Duration,
+        now: i64,
+    ) -> QueueResult<Option<(TaskRecord, JobRecord)>> {
+        let mut tx = self.pool.begin().await?;
+        let row = sqlx::query(
+            "UPDATE tasks SET status = 'running', worker = $1, attempts = attempts + 1, lease_expires_at = $2,
+                 started_at = $3, updated_at = $3, steps = 0, seconds = 0, error = NULL, failure = NULL,
+                 finished_at = NULL
+             WHERE (job_id, idx) = (SELECT t.job_id, t.idx FROM tasks t JOIN jobs j ON j.id = t.job_id
+                                    WHERE t.status = 'queued' AND j.status IN ('queued', 'running')
+                                      AND NOT j.cancel_requested
+                                      AND (NOT j.requires_gpu OR $4) AND (NOT j.requires_oidn OR $5)
+                                      AND NOT EXISTS (SELECT 1 FROM task_failures f
+                                                      WHERE f.job_id = t.job_id AND f.worker = $1
+                                                        AND f.failures >= $6)
+                                    ORDER BY j.priority DESC, j.created_at, j.seq, t.idx LIMIT 1
+                                    FOR UPDATE OF t SKIP LOCKED)
+             RETURNING *",
+        )
+        .bind(worker)
+        .bind(lease_until(now, lease))
+        .bind(now)
+        .bind(caps.gpu)
+        .bind(caps.oidn)
+        .bind(BLOCKLIST_AFTER as i32)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(row) = row else {
+            return Ok(None);
+        };
+        let task = task_from_row(&row)?;
+        let job = sqlx::query(
+            "UPDATE jobs SET status = 'running', started_at = COALESCE(started_at, $2), updated_at = $2
+             WHERE id = $1 RETURNING *",
+        )
+        .bind(&task.job_id)
+        .bind(now)
+        .fetch_one(&mut *tx)
+        .await?;
+        let job = job_from_row(&job)?;
+        tx.commit().await?;
+        Ok(Some((task, job)))
+    }
+
+    async fn task_heartbeat(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        lease: Duration,
+        beat: Option<&TaskBeat>,
+        now: i64,
+    ) -> QueueResult<Lease> {
+        let mut tx = self.pool.begin().await?;
+        lock_job(&mut tx, job).await?;
+        let cancel: Option<bool> = sqlx::query_scalar(
+            "UPDATE tasks SET lease_expires_at = $4, updated_at = $5,
+                 steps = COALESCE($6, steps), seconds = COALESCE($7, seconds),
+                 error = CASE WHEN $6::bigint IS NULL THEN error ELSE $8 END
+             WHERE job_id = $1 AND idx = $2 AND worker = $3 AND status = 'running'
+             RETURNING (SELECT cancel_requested FROM jobs WHERE id = $1)",
+        )
+        .bind(job)
+        .bind(index as i32)
+        .bind(worker)
+        .bind(lease_until(now, lease))
+        .bind(now)
+        .bind(beat.map(|b| clamp_i64(b.steps)))
+        .bind(beat.map(|b| b.seconds))
+        .bind(beat.and_then(|b| b.error))
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(cancel) = cancel else {
+            return Ok(Lease::Lost);
+        };
+        if beat.is_some() {
+            refresh_progress(&mut tx, job, now).await?;
+        }
+        tx.commit().await?;
+        Ok(Lease::Held { cancel })
+    }
+
+    async fn finish_task(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        outcome: &TaskOutcome,
+        now: i64,
+    ) -> QueueResult<bool> {
+        let mut tx = self.pool.begin().await?;
+        lock_job(&mut tx, job).await?;
+        let row: Option<(i32, i32)> = sqlx::query_as(
+            "UPDATE tasks SET updated_at = $4, lease_expires_at = NULL
+             WHERE job_id = $1 AND idx = $2 AND worker = $3 AND status = 'running'
+             RETURNING attempts, count",
+        )
+        .bind(job)
+        .bind(index as i32)
+        .bind(worker)
+        .bind(now)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some((attempts, count)) = row else {
+            return Ok(false);
+        };
+        let set = |status: &'static str| {
+            sqlx::query(
+                "UPDATE tasks SET status = $3, finished_at = CASE WHEN $3 = 'queued' THEN NULL ELSE $4 END,
+                     worker = CASE WHEN $3 = 'queued' THEN NULL ELSE worker END, failure = $5
+                 WHERE job_id = $1 AND idx = $2",
+            )
+            .bind(job)
+            .bind(index as i32)
+            .bind(status)
+            .bind(now)
+        };
+        match outcome {
+            TaskOutcome::Baked(b) => {
+                set("succeeded").bind(None::<String>).execute(&mut *tx).await?;
+                sqlx::query("UPDATE tasks SET steps = $3, seconds = $4, error = $5 WHERE job_id = $1 AND idx = $2")
+                    .bind(job)
+                    .bind(index as i32)
+                    .bind(clamp_i64(b.steps))
+                    .bind(b.seconds)
+                    .bind(b.error)
+                    .execute(&mut *tx)
+                    .await?;
+                // The last bake task in queues the merge.
+                sqlx::query(
+                    "UPDATE tasks SET status = 'queued', updated_at = $2
+                     WHERE job_id = $1 AND idx = count AND status = 'waiting'
+                       AND NOT EXISTS (SELECT 1 FROM tasks WHERE job_id = $1 AND idx < count AND status <> 'succeeded')",
+                )
+                .bind(job)
+                .bind(now)
+                .execute(&mut *tx)
+                .await?;
+                refresh_progress(&mut tx, job, now).await?;
+                settle_cancel(&mut tx, job, now).await?;
+            }
+            TaskOutcome::Merged {
+                summary,
+                progress,
+                history,
+                plan,
+            } => {
+                set("succeeded").bind(None::<String>).execute(&mut *tx).await?;
+                sqlx::query(
+                    "UPDATE jobs SET status = 'succeeded', finished_at = $2, updated_at = $2, summary = $3,
+                         progress = $4, history = $5, plan = $6
+                     WHERE id = $1 AND status = 'running'",
+                )
+                .bind(job)
+                .bind(now)
+                .bind(summary)
+                .bind(progress)
+                .bind(history)
+                .bind(plan)
+                .execute(&mut *tx)
+                .await?;
+            }
+            TaskOutcome::Failed { reason, retry } => {
+                count_failure(&mut tx, job, worker, reason, now).await?;
+                let what = if index as i32 == count {
+                    "the merge".to_string()
+                } else {
+                    format!("task {index} of {count}")
+                };
+                if *retry && attempts < MAX_ATTEMPTS as i32 {
+                    set("queued").bind(Some(reason.clone())).execute(&mut *tx).await?;
+                    settle_cancel(&mut tx, job, now).await?;
+                } else {
+                    set("failed").bind(Some(reason.clone())).execute(&mut *tx).await?;
+                    let why = if *retry {
+                        format!("{what} failed {attempts} times; the last time on worker {worker}: {reason}")
+                    } else {
+                        format!("{what} failed: {reason}")
+                    };
+                    fail_split_job(&mut tx, job, &why, now).await?;
+                }
+            }
+            TaskOutcome::Cancelled => {
+                set("cancelled").bind(None::<String>).execute(&mut *tx).await?;
+                settle_cancel(&mut tx, job, now).await?;
+            }
+        }
+        tx.commit().await?;
+        Ok(true)
+    }
+
+    async fn release_task(&self, job: &str, index: u32, worker: &str, now: i64) -> QueueResult<bool> {
+        let mut tx = self.pool.begin().await?;
+        lock_job(&mut tx, job).await?;
+        let r = sqlx::query(
+            "UPDATE tasks SET status = 'queued', attempts = GREATEST(attempts - 1, 0), worker = NULL,
+                 lease_expires_at = NULL, updated_at = $4
+             WHERE job_id = $1 AND idx = $2 AND worker = $3 AND status = 'running'",
+        )
+        .bind(job)
+        .bind(index as i32)
+        .bind(worker)
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        // A cancel that arrived during shutdown wins over the hand-back.
+        settle_cancel(&mut tx, job, now).await?;
+        tx.commit().await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    async fn tasks(&self, job: &str) -> QueueResult<Vec<TaskRecord>> {
+        let rows = sqlx::query("SELECT * FROM tasks WHERE job_id = $1 ORDER BY idx")
+            .bind(job)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(task_from_row).collect()
+    }
+
+    async fn task_failures(&self, job: &str) -> QueueResult<Vec<(String, u32)>> {
+        let rows: Vec<(String, i32)> =
+            sqlx::query_as("SELECT worker, failures FROM task_failures WHERE job_id = $1 ORDER BY worker")
+                .bind(job)
+                .fetch_all(&self.pool)
+                .await?;
+        Ok(rows.into_iter().map(|(w, n)| (w, n.max(0) as u32)).collect())
+    }
+
+    async fn register_worker(&self, worker: &str, caps: &Capabilities, now: i64) -> QueueResult<()> {
+        sqlx::query(
+            "INSERT INTO workers (id, capabilities, started_at, last_seen) VALUES ($1, $2, $3, $3)
+             ON CONFLICT (id) DO UPDATE SET capabilities = $2, last_seen = $3",
+        )
+        .bind(worker)
+        .bind(serde_json::to_value(caps).map_err(|e| sqlx::Error::Encode(Box::new(e)))?)
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    async fn workers(&self, since: i64) -> QueueResult<Vec<WorkerRecord>> {
+        let rows = sqlx::query("SELECT * FROM workers WHERE last_seen >= $1 ORDER BY id")
+            .bind(since)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(worker_from_row).collect()
     }
 
     async fn heartbeat(&self, id: &str, worker: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
@@ -622,11 +1141,13 @@ impl Queue for PostgresQueue {
         .bind(now)
         .fetch_all(&mut *tx)
         .await?;
+        let (tasks_requeued, tasks_failed, tasks_cancelled) = recover_tasks(&mut tx, now).await?;
         tx.commit().await?;
         Ok(Recovered {
             requeued,
-            failed,
-            cancelled,
+            failed: failed.into_iter().chain(tasks_failed).collect(),
+            cancelled: cancelled.into_iter().chain(tasks_cancelled).collect(),
+            tasks_requeued,
         })
     }
 

@@ -19,12 +19,14 @@ use async_trait::async_trait;
 use serde_json::Value;
 use sqlx::Row;
 use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow, SqliteSynchronous,
+    SqliteConnectOptions, SqliteConnection, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow,
+    SqliteSynchronous,
 };
 
 use super::{
-    Cancellation, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS, Outcome, Queue, QueueResult,
-    Recovered, Role, SceneDeletion, SceneRecord, TokenRecord,
+    BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
+    Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
+    TaskStatus, TokenRecord, WorkerRecord, merged_progress,
 };
 use crate::service::model::{JobSpec, JobStatus};
 
@@ -42,6 +44,7 @@ pub(crate) const MIGRATIONS: &[(i64, &str, &str)] = &[
         "roles and retention",
         include_str!("../../../migrations/sqlite/0003_roles_and_retention.sql"),
     ),
+    (4, "tasks", include_str!("../../../migrations/sqlite/0004_tasks.sql")),
 ];
 
 static MIGRATOR: std::sync::LazyLock<sqlx::migrate::Migrator> =
@@ -110,6 +113,215 @@ fn job_from_row(row: &SqliteRow) -> QueueResult<JobRecord> {
         failure: row.try_get("failure")?,
         updated_at: row.try_get("updated_at")?,
         client: row.try_get("client")?,
+        tasks: row.try_get::<i64, _>("tasks")? as u32,
+    })
+}
+
+fn task_from_row(row: &SqliteRow) -> QueueResult<TaskRecord> {
+    let status: String = row.try_get("status")?;
+    Ok(TaskRecord {
+        job_id: row.try_get("job_id")?,
+        index: row.try_get::<i64, _>("idx")? as u32,
+        count: row.try_get::<i64, _>("count")? as u32,
+        status: TaskStatus::parse(&status)
+            .ok_or_else(|| sqlx::Error::Decode(format!("unknown task status {status:?}").into()))?,
+        attempts: row.try_get::<i64, _>("attempts")? as u32,
+        worker: row.try_get("worker")?,
+        lease_expires_at: row.try_get("lease_expires_at")?,
+        steps: row.try_get::<i64, _>("steps")? as u64,
+        seconds: row.try_get("seconds")?,
+        error: row.try_get::<Option<f64>, _>("error")?.map(|e| e as f32),
+        failure: row.try_get("failure")?,
+        started_at: row.try_get("started_at")?,
+        finished_at: row.try_get("finished_at")?,
+    })
+}
+
+/// The write transaction every task operation runs in: `BEGIN IMMEDIATE` takes the
+/// writer lock first, so a read followed by a write can never fail to upgrade.
+async fn write_tx(pool: &SqlitePool) -> QueueResult<sqlx::Transaction<'static, sqlx::Sqlite>> {
+    pool.begin_with("BEGIN IMMEDIATE").await
+}
+
+/// Writes a split job's merged progress from its bake tasks' rows.
+async fn refresh_progress(c: &mut SqliteConnection, job: &str, now: i64) -> QueueResult<()> {
+    let Some(row) = sqlx::query("SELECT spec, started_at FROM jobs WHERE id = ?")
+        .bind(job)
+        .fetch_optional(&mut *c)
+        .await?
+    else {
+        return Ok(());
+    };
+    let spec: String = row.try_get("spec")?;
+    let spec: JobSpec = serde_json::from_str(&spec).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
+    let tasks: Vec<(i64, Option<f64>)> =
+        sqlx::query_as("SELECT steps, error FROM tasks WHERE job_id = ? AND idx < count ORDER BY idx")
+            .bind(job)
+            .fetch_all(&mut *c)
+            .await?;
+    let tasks: Vec<(u64, Option<f32>)> = tasks
+        .into_iter()
+        .map(|(s, e)| (s as u64, e.map(|e| e as f32)))
+        .collect();
+    let progress = merged_progress(&spec, row.try_get("started_at")?, now, &tasks);
+    sqlx::query("UPDATE jobs SET progress = ?2, updated_at = ?3 WHERE id = ?1 AND status = 'running'")
+        .bind(job)
+        .bind(progress.to_string())
+        .bind(now)
+        .execute(&mut *c)
+        .await?;
+    Ok(())
+}
+
+/// Counts a failed or abandoned attempt against `worker` (the blocklist's count).
+async fn count_failure(c: &mut SqliteConnection, job: &str, worker: &str, reason: &str, now: i64) -> QueueResult<()> {
+    sqlx::query(
+        "INSERT INTO task_failures (job_id, worker, failures, last_reason, updated_at) VALUES (?1, ?2, 1, ?3, ?4)
+         ON CONFLICT (job_id, worker) DO UPDATE SET failures = failures + 1, last_reason = ?3, updated_at = ?4",
+    )
+    .bind(job)
+    .bind(worker)
+    .bind(reason)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    Ok(())
+}
+
+/// Fails a split job for good: the job `failed` with `reason`, its unfinished tasks
+/// `cancelled` (a running one's next heartbeat finds its lease lost).
+async fn fail_split_job(c: &mut SqliteConnection, job: &str, reason: &str, now: i64) -> QueueResult<bool> {
+    let r = sqlx::query(
+        "UPDATE jobs SET status = 'failed', finished_at = ?2, updated_at = ?2, failure = ?3
+         WHERE id = ?1 AND status IN ('queued', 'running')",
+    )
+    .bind(job)
+    .bind(now)
+    .bind(reason)
+    .execute(&mut *c)
+    .await?;
+    sqlx::query(
+        "UPDATE tasks SET status = 'cancelled', updated_at = ?2, lease_expires_at = NULL
+         WHERE job_id = ?1 AND status IN ('waiting', 'queued', 'running')",
+    )
+    .bind(job)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    Ok(r.rows_affected() == 1)
+}
+
+/// A split job being cancelled: its tasks not running are cancelled, and once none
+/// runs the job is `cancelled`. True when the job ended here.
+async fn settle_cancel(c: &mut SqliteConnection, job: &str, now: i64) -> QueueResult<bool> {
+    sqlx::query(
+        "UPDATE tasks SET status = 'cancelled', updated_at = ?2
+         WHERE job_id = ?1 AND status IN ('waiting', 'queued')
+           AND (SELECT cancel_requested FROM jobs WHERE id = ?1) = 1",
+    )
+    .bind(job)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    let r = sqlx::query(
+        "UPDATE jobs SET status = 'cancelled', finished_at = ?2, updated_at = ?2
+         WHERE id = ?1 AND tasks > 0 AND cancel_requested = 1 AND status IN ('queued', 'running')
+           AND NOT EXISTS (SELECT 1 FROM tasks WHERE job_id = ?1 AND status = 'running')",
+    )
+    .bind(job)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    Ok(r.rows_affected() == 1)
+}
+
+/// The task half of [`Queue::recover_expired`]: tasks whose lease lapsed are cancelled
+/// (their job is being cancelled or has ended), or count against their worker and are
+/// queued again, or, at their last attempt, fail their job. Returns the re-queued tasks,
+/// and the jobs failed and cancelled.
+#[allow(clippy::type_complexity)]
+async fn recover_tasks(
+    c: &mut SqliteConnection,
+    now: i64,
+) -> QueueResult<(Vec<(String, u32)>, Vec<String>, Vec<String>)> {
+    let stopped: Vec<String> = sqlx::query_scalar(
+        "UPDATE tasks SET status = 'cancelled', updated_at = ?1, lease_expires_at = NULL
+         WHERE status = 'running' AND lease_expires_at < ?1
+           AND (SELECT cancel_requested = 1 OR status <> 'running' FROM jobs WHERE id = job_id)
+         RETURNING job_id",
+    )
+    .bind(now)
+    .fetch_all(&mut *c)
+    .await?;
+    let mut cancelled = Vec::new();
+    for job in dedup(stopped) {
+        if settle_cancel(c, &job, now).await? {
+            cancelled.push(job);
+        }
+    }
+    sqlx::query(
+        "INSERT INTO task_failures (job_id, worker, failures, last_reason, updated_at)
+         SELECT job_id, worker, 1, 'its lease expired (the worker stopped renewing it)', ?1 FROM tasks
+         WHERE status = 'running' AND lease_expires_at < ?1 AND worker IS NOT NULL
+         ON CONFLICT (job_id, worker) DO UPDATE SET failures = failures + 1, last_reason = excluded.last_reason,
+             updated_at = excluded.updated_at",
+    )
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    let given_up: Vec<(String, i64, i64, Option<String>)> = sqlx::query_as(
+        "UPDATE tasks SET status = 'failed', finished_at = ?1, updated_at = ?1, lease_expires_at = NULL,
+             failure = 'its lease expired ' || attempts || ' times'
+         WHERE status = 'running' AND lease_expires_at < ?1 AND attempts >= ?2
+         RETURNING job_id, idx, count, worker",
+    )
+    .bind(now)
+    .bind(i64::from(MAX_ATTEMPTS))
+    .fetch_all(&mut *c)
+    .await?;
+    let mut failed = Vec::new();
+    for (job, idx, count, worker) in given_up {
+        let what = if idx == count {
+            "the merge".to_string()
+        } else {
+            format!("task {idx} of {count}")
+        };
+        let why = format!(
+            "{what} was given up after {MAX_ATTEMPTS} attempts: the lease of worker {} expired (the worker stopped renewing it: crashed, killed or cut off)",
+            worker.as_deref().unwrap_or("?")
+        );
+        if fail_split_job(c, &job, &why, now).await? {
+            failed.push(job);
+        }
+    }
+    let requeued: Vec<(String, i64)> = sqlx::query_as(
+        "UPDATE tasks SET status = 'queued', updated_at = ?1, worker = NULL, lease_expires_at = NULL
+         WHERE status = 'running' AND lease_expires_at < ?1
+         RETURNING job_id, idx",
+    )
+    .bind(now)
+    .fetch_all(&mut *c)
+    .await?;
+    Ok((
+        requeued.into_iter().map(|(j, i)| (j, i as u32)).collect(),
+        failed,
+        cancelled,
+    ))
+}
+
+/// The distinct values of `v`, in first-seen order.
+fn dedup(v: Vec<String>) -> Vec<String> {
+    let mut seen = std::collections::HashSet::new();
+    v.into_iter().filter(|x| seen.insert(x.clone())).collect()
+}
+
+fn worker_from_row(row: &SqliteRow) -> QueueResult<WorkerRecord> {
+    let caps: String = row.try_get("capabilities")?;
+    Ok(WorkerRecord {
+        id: row.try_get("id")?,
+        capabilities: serde_json::from_str(&caps).unwrap_or_default(),
+        started_at: row.try_get("started_at")?,
+        last_seen: row.try_get("last_seen")?,
     })
 }
 
@@ -218,10 +430,15 @@ impl Queue for SqliteQueue {
         now: i64,
     ) -> QueueResult<Enqueued> {
         // One statement: the scene check, the client's queue length and the insert
-        // cannot be split by a DELETE or by the same client's other submissions.
+        // cannot be split by a DELETE or by the same client's other submissions. The
+        // tasks of a split job go in the same transaction.
+        let tasks = spec.tasks.filter(|n| *n > 1).unwrap_or(0);
+        let requires = spec.requires.unwrap_or_default();
+        let mut tx = write_tx(&self.pool).await?;
         let row = sqlx::query(
-            "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client)
-             SELECT ?1, ?2, ?3, 'queued', ?4, ?5, ?5, ?6
+            "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client, tasks,
+                               requires_gpu, requires_oidn)
+             SELECT ?1, ?2, ?3, 'queued', ?4, ?5, ?5, ?6, ?8, ?9, ?10
              WHERE EXISTS (SELECT 1 FROM scenes WHERE id = ?2)
                AND (SELECT COUNT(*) FROM jobs WHERE client = ?6 AND status = 'queued') < ?7
              RETURNING *",
@@ -233,8 +450,25 @@ impl Queue for SqliteQueue {
         .bind(now)
         .bind(client)
         .bind(i64::try_from(max_queued).unwrap_or(i64::MAX))
-        .fetch_optional(&self.pool)
+        .bind(i64::from(tasks))
+        .bind(requires.gpu)
+        .bind(requires.oidn)
+        .fetch_optional(&mut *tx)
         .await?;
+        if row.is_some() && tasks > 0 {
+            // Bake tasks 0..n queued, the merge (index n) waiting for them.
+            sqlx::query(
+                "WITH RECURSIVE k(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM k WHERE i < ?2)
+                 INSERT INTO tasks (job_id, idx, count, status, updated_at)
+                 SELECT ?1, i, ?2, CASE WHEN i < ?2 THEN 'queued' ELSE 'waiting' END, ?3 FROM k",
+            )
+            .bind(id)
+            .bind(i64::from(tasks))
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
         if let Some(row) = row {
             return Ok(Enqueued::Queued(Box::new(job_from_row(&row)?)));
         }
@@ -314,17 +548,33 @@ impl Queue for SqliteQueue {
         .execute(&self.pool)
         .await?;
         if r.rows_affected() == 1 {
-            return Ok(Cancellation::Cancelled);
-        }
-        let r =
-            sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = ?2 WHERE id = ?1 AND status = 'running'")
+            // A split job's tasks end with it.
+            sqlx::query("UPDATE tasks SET status = 'cancelled', updated_at = ?2 WHERE job_id = ?1 AND status IN ('waiting', 'queued')")
                 .bind(id)
                 .bind(now)
                 .execute(&self.pool)
                 .await?;
-        if r.rows_affected() == 1 {
-            return Ok(Cancellation::Requested);
+            return Ok(Cancellation::Cancelled);
         }
+        let mut tx = write_tx(&self.pool).await?;
+        let r =
+            sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = ?2 WHERE id = ?1 AND status = 'running'")
+                .bind(id)
+                .bind(now)
+                .execute(&mut *tx)
+                .await?;
+        if r.rows_affected() == 1 {
+            // A split job with no task running ends now; otherwise its running tasks
+            // stop at their next heartbeat and the last one to stop ends it.
+            let ended = settle_cancel(&mut tx, id, now).await?;
+            tx.commit().await?;
+            return Ok(if ended {
+                Cancellation::Cancelled
+            } else {
+                Cancellation::Requested
+            });
+        }
+        drop(tx);
         let status: Option<String> = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
             .bind(id)
             .fetch_optional(&self.pool)
@@ -335,20 +585,279 @@ impl Queue for SqliteQueue {
         })
     }
 
-    async fn claim(&self, worker: &str, lease: Duration, now: i64) -> QueueResult<Option<JobRecord>> {
+    async fn claim(
+        &self,
+        worker: &str,
+        caps: &Capabilities,
+        lease: Duration,
+        now: i64,
+    ) -> QueueResult<Option<JobRecord>> {
         let row = sqlx::query(
             "UPDATE jobs SET status = 'running', worker = ?1, attempts = attempts + 1, lease_expires_at = ?2,
                  started_at = ?3, updated_at = ?3, progress = NULL, history = '[]', plan = NULL
-             WHERE id = (SELECT id FROM jobs WHERE status = 'queued'
+             WHERE id = (SELECT id FROM jobs WHERE status = 'queued' AND tasks = 0
+                           AND (requires_gpu = 0 OR ?4) AND (requires_oidn = 0 OR ?5)
                          ORDER BY priority DESC, created_at, rowid LIMIT 1)
              RETURNING *",
         )
         .bind(worker)
         .bind(lease_until(now, lease))
         .bind(now)
+        .bind(caps.gpu)
+        .bind(caps.oidn)
         .fetch_optional(&self.pool)
         .await?;
         row.as_ref().map(job_from_row).transpose()
+    }
+
+    async fn claim_task(
+        &self,
+        worker: &str,
+        caps: &Capabilities,
+        lease: Duration,
+        now: i64,
+    ) -> QueueResult<Option<(TaskRecord, JobRecord)>> {
+        let mut tx = write_tx(&self.pool).await?;
+        let row = sqlx::query(
+            "UPDATE tasks SET status = 'running', worker = ?1, attempts = attempts + 1, lease_expires_at = ?2,
+                 started_at = ?3, updated_at = ?3, steps = 0, seconds = 0, error = NULL, failure = NULL,
+                 finished_at = NULL
+             WHERE rowid = (SELECT t.rowid FROM tasks t JOIN jobs j ON j.id = t.job_id
+                            WHERE t.status = 'queued' AND j.status IN ('queued', 'running')
+                              AND j.cancel_requested = 0
+                              AND (j.requires_gpu = 0 OR ?4) AND (j.requires_oidn = 0 OR ?5)
+                              AND NOT EXISTS (SELECT 1 FROM task_failures f
+                                              WHERE f.job_id = t.job_id AND f.worker = ?1 AND f.failures >= ?6)
+                            ORDER BY j.priority DESC, j.created_at, j.rowid, t.idx LIMIT 1)
+             RETURNING *",
+        )
+        .bind(worker)
+        .bind(lease_until(now, lease))
+        .bind(now)
+        .bind(caps.gpu)
+        .bind(caps.oidn)
+        .bind(i64::from(BLOCKLIST_AFTER))
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(row) = row else {
+            return Ok(None);
+        };
+        let task = task_from_row(&row)?;
+        let job = sqlx::query(
+            "UPDATE jobs SET status = 'running', started_at = COALESCE(started_at, ?2), updated_at = ?2
+             WHERE id = ?1 RETURNING *",
+        )
+        .bind(&task.job_id)
+        .bind(now)
+        .fetch_one(&mut *tx)
+        .await?;
+        let job = job_from_row(&job)?;
+        tx.commit().await?;
+        Ok(Some((task, job)))
+    }
+
+    async fn task_heartbeat(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        lease: Duration,
+        beat: Option<&TaskBeat>,
+        now: i64,
+    ) -> QueueResult<Lease> {
+        let mut tx = write_tx(&self.pool).await?;
+        let cancel: Option<i64> = sqlx::query_scalar(
+            "UPDATE tasks SET lease_expires_at = ?4, updated_at = ?5,
+                 steps = COALESCE(?6, steps), seconds = COALESCE(?7, seconds),
+                 error = CASE WHEN ?6 IS NULL THEN error ELSE ?8 END
+             WHERE job_id = ?1 AND idx = ?2 AND worker = ?3 AND status = 'running'
+             RETURNING (SELECT cancel_requested FROM jobs WHERE id = ?1)",
+        )
+        .bind(job)
+        .bind(i64::from(index))
+        .bind(worker)
+        .bind(lease_until(now, lease))
+        .bind(now)
+        .bind(beat.map(|b| b.steps as i64))
+        .bind(beat.map(|b| b.seconds))
+        .bind(beat.and_then(|b| b.error.map(f64::from)))
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(cancel) = cancel else {
+            return Ok(Lease::Lost);
+        };
+        if beat.is_some() {
+            refresh_progress(&mut tx, job, now).await?;
+        }
+        tx.commit().await?;
+        Ok(Lease::Held { cancel: cancel != 0 })
+    }
+
+    async fn finish_task(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        outcome: &TaskOutcome,
+        now: i64,
+    ) -> QueueResult<bool> {
+        let mut tx = write_tx(&self.pool).await?;
+        // The guard: the task is ours and running; its attempts say whether a failure
+        // is retried.
+        let row: Option<(i64, i64)> = sqlx::query_as(
+            "UPDATE tasks SET updated_at = ?4, lease_expires_at = NULL
+             WHERE job_id = ?1 AND idx = ?2 AND worker = ?3 AND status = 'running'
+             RETURNING attempts, count",
+        )
+        .bind(job)
+        .bind(i64::from(index))
+        .bind(worker)
+        .bind(now)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some((attempts, count)) = row else {
+            return Ok(false);
+        };
+        let set = |status: &'static str| {
+            sqlx::query(
+                "UPDATE tasks SET status = ?3, finished_at = CASE WHEN ?3 = 'queued' THEN NULL ELSE ?4 END,
+                     worker = CASE WHEN ?3 = 'queued' THEN NULL ELSE worker END, failure = ?5
+                 WHERE job_id = ?1 AND idx = ?2",
+            )
+            .bind(job)
+            .bind(i64::from(index))
+            .bind(status)
+            .bind(now)
+        };
+        match outcome {
+            TaskOutcome::Baked(b) => {
+                set("succeeded").bind(None::<String>).execute(&mut *tx).await?;
+                sqlx::query("UPDATE tasks SET steps = ?3, seconds = ?4, error = ?5 WHERE job_id = ?1 AND idx = ?2")
+                    .bind(job)
+                    .bind(i64::from(index))
+                    .bind(b.steps as i64)
+                    .bind(b.seconds)
+                    .bind(b.error.map(f64::from))
+                    .execute(&mut *tx)
+                    .await?;
+                // The last bake task in queues the merge.
+                sqlx::query(
+                    "UPDATE tasks SET status = 'queued', updated_at = ?2
+                     WHERE job_id = ?1 AND idx = count AND status = 'waiting'
+                       AND NOT EXISTS (SELECT 1 FROM tasks WHERE job_id = ?1 AND idx < count AND status <> 'succeeded')",
+                )
+                .bind(job)
+                .bind(now)
+                .execute(&mut *tx)
+                .await?;
+                refresh_progress(&mut tx, job, now).await?;
+                settle_cancel(&mut tx, job, now).await?;
+            }
+            TaskOutcome::Merged {
+                summary,
+                progress,
+                history,
+                plan,
+            } => {
+                set("succeeded").bind(None::<String>).execute(&mut *tx).await?;
+                sqlx::query(
+                    "UPDATE jobs SET status = 'succeeded', finished_at = ?2, updated_at = ?2, summary = ?3,
+                         progress = ?4, history = ?5, plan = ?6
+                     WHERE id = ?1 AND status = 'running'",
+                )
+                .bind(job)
+                .bind(now)
+                .bind(summary.to_string())
+                .bind(progress.to_string())
+                .bind(history.to_string())
+                .bind(plan.to_string())
+                .execute(&mut *tx)
+                .await?;
+            }
+            TaskOutcome::Failed { reason, retry } => {
+                count_failure(&mut tx, job, worker, reason, now).await?;
+                let what = if index as i64 == count {
+                    "the merge".to_string()
+                } else {
+                    format!("task {index} of {count}")
+                };
+                if *retry && attempts < i64::from(MAX_ATTEMPTS) {
+                    set("queued").bind(Some(reason.clone())).execute(&mut *tx).await?;
+                    settle_cancel(&mut tx, job, now).await?;
+                } else {
+                    set("failed").bind(Some(reason.clone())).execute(&mut *tx).await?;
+                    let why = if *retry {
+                        format!("{what} failed {attempts} times; the last time on worker {worker}: {reason}")
+                    } else {
+                        format!("{what} failed: {reason}")
+                    };
+                    fail_split_job(&mut tx, job, &why, now).await?;
+                }
+            }
+            TaskOutcome::Cancelled => {
+                set("cancelled").bind(None::<String>).execute(&mut *tx).await?;
+                settle_cancel(&mut tx, job, now).await?;
+            }
+        }
+        tx.commit().await?;
+        Ok(true)
+    }
+
+    async fn release_task(&self, job: &str, index: u32, worker: &str, now: i64) -> QueueResult<bool> {
+        let mut tx = write_tx(&self.pool).await?;
+        let r = sqlx::query(
+            "UPDATE tasks SET status = 'queued', attempts = MAX(attempts - 1, 0), worker = NULL,
+                 lease_expires_at = NULL, updated_at = ?4
+             WHERE job_id = ?1 AND idx = ?2 AND worker = ?3 AND status = 'running'",
+        )
+        .bind(job)
+        .bind(i64::from(index))
+        .bind(worker)
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        // A cancel that arrived during shutdown wins over the hand-back.
+        settle_cancel(&mut tx, job, now).await?;
+        tx.commit().await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    async fn tasks(&self, job: &str) -> QueueResult<Vec<TaskRecord>> {
+        let rows = sqlx::query("SELECT * FROM tasks WHERE job_id = ? ORDER BY idx")
+            .bind(job)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(task_from_row).collect()
+    }
+
+    async fn task_failures(&self, job: &str) -> QueueResult<Vec<(String, u32)>> {
+        let rows: Vec<(String, i64)> =
+            sqlx::query_as("SELECT worker, failures FROM task_failures WHERE job_id = ? ORDER BY worker")
+                .bind(job)
+                .fetch_all(&self.pool)
+                .await?;
+        Ok(rows.into_iter().map(|(w, n)| (w, n as u32)).collect())
+    }
+
+    async fn register_worker(&self, worker: &str, caps: &Capabilities, now: i64) -> QueueResult<()> {
+        sqlx::query(
+            "INSERT INTO workers (id, capabilities, started_at, last_seen) VALUES (?1, ?2, ?3, ?3)
+             ON CONFLICT (id) DO UPDATE SET capabilities = ?2, last_seen = ?3",
+        )
+        .bind(worker)
+        .bind(serde_json::to_string(caps).unwrap_or_default())
+        .bind(now)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    async fn workers(&self, since: i64) -> QueueResult<Vec<WorkerRecord>> {
+        let rows = sqlx::query("SELECT * FROM workers WHERE last_seen >= ? ORDER BY id")
+            .bind(since)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(worker_from_row).collect()
     }
 
     async fn heartbeat(&self, id: &str, worker: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
@@ -459,11 +968,13 @@ impl Queue for SqliteQueue {
         .bind(now)
         .fetch_all(&mut *tx)
         .await?;
+        let (tasks_requeued, tasks_failed, tasks_cancelled) = recover_tasks(&mut tx, now).await?;
         tx.commit().await?;
         Ok(Recovered {
             requeued,
-            failed,
-            cancelled,
+            failed: failed.into_iter().chain(tasks_failed).collect(),
+            cancelled: cancelled.into_iter().chain(tasks_cancelled).collect(),
+            tasks_requeued,
         })
     }
 

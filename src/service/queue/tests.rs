@@ -109,7 +109,300 @@ on_both_stores!(
     other_processes_hear_of_new_work_and_job_changes,
     finished_jobs_are_deleted_and_found_by_age,
     the_database_clock_is_the_wall_clock,
+    split_jobs_run_as_tasks_and_merge_once,
+    a_dead_workers_task_is_retried_and_a_failing_worker_is_blocklisted,
+    cancelling_a_split_job_stops_its_tasks,
+    claims_meet_the_jobs_requirements,
 );
+
+fn split_spec(tasks: u32, steps: u64, extra: &str) -> JobSpec {
+    JobSpec::parse(format!(r#"{{"scene": "s", "tasks": {tasks}, "stop": {{"steps": {steps}}}{extra}}}"#).as_bytes())
+        .unwrap()
+}
+
+async fn enqueue_ok(q: &dyn Queue, id: &str, spec: &JobSpec, at: i64) {
+    assert!(matches!(
+        q.enqueue(id, spec, "c", 100, at).await.unwrap(),
+        Enqueued::Queued(_)
+    ));
+}
+
+fn gpu() -> Capabilities {
+    Capabilities {
+        gpu: true,
+        ..Capabilities::default()
+    }
+}
+
+async fn split_jobs_run_as_tasks_and_merge_once(f: &Fixture) {
+    let q = &*f.queue;
+    let lease = Duration::from_secs(30);
+    let none = Capabilities::default();
+    with_scene(q).await;
+    enqueue_ok(q, "j", &split_spec(3, 12, ""), 10).await;
+    let tasks = q.tasks("j").await.unwrap();
+    assert_eq!(
+        tasks.iter().map(|t| (t.index, t.count, t.status)).collect::<Vec<_>>(),
+        vec![
+            (0, 3, TaskStatus::Queued),
+            (1, 3, TaskStatus::Queued),
+            (2, 3, TaskStatus::Queued),
+            (3, 3, TaskStatus::Waiting)
+        ]
+    );
+    // A split job is never claimed whole.
+    assert!(q.claim("w0", &none, lease, 20).await.unwrap().is_none());
+    let mut taken = Vec::new();
+    for w in ["w1", "w2", "w3"] {
+        let (t, j) = q.claim_task(w, &none, lease, 20).await.unwrap().unwrap();
+        assert_eq!(
+            (j.id.as_str(), j.status, j.started_at, j.tasks),
+            ("j", JobStatus::Running, Some(20), 3)
+        );
+        assert!(!t.is_merge());
+        assert_eq!((t.attempts, t.worker.as_deref()), (1, Some(w)));
+        taken.push(t.index);
+    }
+    assert_eq!(taken, vec![0, 1, 2]);
+    // The merge waits for every bake task.
+    assert!(q.claim_task("w4", &none, lease, 21).await.unwrap().is_none());
+    // Progress: steps added, errors of the step-weighted mean in quadrature.
+    let beat = |steps, error| TaskBeat {
+        steps,
+        seconds: 1.0,
+        error: Some(error),
+    };
+    assert_eq!(
+        q.task_heartbeat("j", 0, "w1", lease, Some(&beat(4, 0.1)), 1020)
+            .await
+            .unwrap(),
+        Lease::Held { cancel: false }
+    );
+    q.task_heartbeat("j", 1, "w2", lease, Some(&beat(2, 0.2)), 1020)
+        .await
+        .unwrap();
+    // Not its task: lost.
+    assert_eq!(
+        q.task_heartbeat("j", 0, "w2", lease, None, 1020).await.unwrap(),
+        Lease::Lost
+    );
+    let p = q.job("j").await.unwrap().unwrap().progress.unwrap();
+    let want = ((4.0f64 / 6.0 * 0.1).powi(2) + (2.0f64 / 6.0 * 0.2).powi(2)).sqrt();
+    assert_eq!(p["steps"], 6);
+    assert!((p["error"].as_f64().unwrap() - want).abs() < 1e-6, "{p}");
+    assert!((p["fraction"].as_f64().unwrap() - 0.5).abs() < 1e-9, "{p}");
+    assert!((p["elapsed_s"].as_f64().unwrap() - 1.0).abs() < 1e-9, "{p}");
+    for (k, w) in [(0u32, "w1"), (1, "w2")] {
+        assert!(
+            q.finish_task("j", k, w, &TaskOutcome::Baked(beat(4, 0.1)), 1100)
+                .await
+                .unwrap()
+        );
+    }
+    assert!(q.claim_task("w4", &none, lease, 1100).await.unwrap().is_none());
+    // A second end of the same task is refused (no longer running).
+    assert!(
+        !q.finish_task("j", 0, "w1", &TaskOutcome::Baked(beat(4, 0.1)), 1101)
+            .await
+            .unwrap()
+    );
+    assert!(
+        q.finish_task("j", 2, "w3", &TaskOutcome::Baked(beat(4, 0.1)), 1200)
+            .await
+            .unwrap()
+    );
+    let (m, _) = q.claim_task("w4", &none, lease, 1300).await.unwrap().unwrap();
+    assert!(m.is_merge() && m.index == 3);
+    assert!(q.claim_task("w5", &none, lease, 1300).await.unwrap().is_none());
+    let merged = TaskOutcome::Merged {
+        summary: json!({"steps": 12}),
+        progress: json!({"steps": 12, "fraction": 1.0}),
+        history: json!([{"seconds": 3.0, "steps": 12, "error": 0.05}]),
+        plan: json!({"tasks": {"count": 3}}),
+    };
+    assert!(q.finish_task("j", 3, "w4", &merged, 1400).await.unwrap());
+    let j = q.job("j").await.unwrap().unwrap();
+    assert_eq!((j.status, j.finished_at), (JobStatus::Succeeded, Some(1400)));
+    assert_eq!(j.summary.unwrap()["steps"], 12);
+    assert_eq!(j.plan.unwrap()["tasks"]["count"], 3);
+    assert!(
+        q.tasks("j")
+            .await
+            .unwrap()
+            .iter()
+            .all(|t| t.status == TaskStatus::Succeeded)
+    );
+    // Deleting the job deletes its tasks.
+    assert_eq!(q.delete_job("j").await.unwrap(), JobDeletion::Deleted);
+    assert!(q.tasks("j").await.unwrap().is_empty());
+}
+
+async fn a_dead_workers_task_is_retried_and_a_failing_worker_is_blocklisted(f: &Fixture) {
+    let q = &*f.queue;
+    let lease = Duration::from_secs(1);
+    let none = Capabilities::default();
+    with_scene(q).await;
+    enqueue_ok(q, "j", &split_spec(2, 8, ""), 0).await;
+    let (t0, _) = q.claim_task("w1", &none, lease, 0).await.unwrap().unwrap();
+    let (t1, _) = q
+        .claim_task("w2", &none, Duration::from_secs(60), 0)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!((t0.index, t1.index), (0, 1));
+    // w1 dies: its task (not the job) is queued again, and the attempt counts against w1.
+    let r = q.recover_expired(5000).await.unwrap();
+    assert_eq!(r.tasks_requeued, vec![("j".to_string(), 0)]);
+    assert!(r.requeued.is_empty() && r.failed.is_empty());
+    assert_eq!(q.job("j").await.unwrap().unwrap().status, JobStatus::Running);
+    assert_eq!(q.task_failures("j").await.unwrap(), vec![("w1".to_string(), 1)]);
+    // One failure does not blocklist: w1 takes it again, and fails it (a device error).
+    let (again, _) = q.claim_task("w1", &none, lease, 5000).await.unwrap().unwrap();
+    assert_eq!((again.index, again.attempts), (0, 2));
+    let gpu_lost = TaskOutcome::Failed {
+        reason: "device lost".into(),
+        retry: true,
+    };
+    assert!(q.finish_task("j", 0, "w1", &gpu_lost, 5100).await.unwrap());
+    let t = &q.tasks("j").await.unwrap()[0];
+    assert_eq!(
+        (t.status, t.worker.as_deref(), t.failure.as_deref()),
+        (TaskStatus::Queued, None, Some("device lost"))
+    );
+    // Two: w1 takes none of this job's tasks any more; w3 does.
+    assert!(q.claim_task("w1", &none, lease, 5200).await.unwrap().is_none());
+    let (third, _) = q.claim_task("w3", &none, lease, 5200).await.unwrap().unwrap();
+    assert_eq!((third.index, third.attempts), (0, 3));
+    // Its third attempt fails too: the job fails, naming the task and the last worker, and
+    // the other task's worker finds its lease gone.
+    assert!(q.finish_task("j", 0, "w3", &gpu_lost, 5300).await.unwrap());
+    let j = q.job("j").await.unwrap().unwrap();
+    assert_eq!(j.status, JobStatus::Failed);
+    assert_eq!(
+        j.failure.as_deref(),
+        Some("task 0 of 2 failed 3 times; the last time on worker w3: device lost")
+    );
+    assert_eq!(
+        q.task_heartbeat("j", 1, "w2", lease, None, 5400).await.unwrap(),
+        Lease::Lost
+    );
+    assert_eq!(q.tasks("j").await.unwrap()[1].status, TaskStatus::Cancelled);
+    // Bad input fails the job at its first attempt.
+    enqueue_ok(q, "k", &split_spec(2, 8, ""), 6000).await;
+    q.claim_task("w9", &none, lease, 6000).await.unwrap().unwrap();
+    let bad = TaskOutcome::Failed {
+        reason: "bad input: mesh 3 has no normals".into(),
+        retry: false,
+    };
+    assert!(q.finish_task("k", 0, "w9", &bad, 6100).await.unwrap());
+    let k = q.job("k").await.unwrap().unwrap();
+    assert_eq!(
+        (k.status, k.failure.as_deref()),
+        (
+            JobStatus::Failed,
+            Some("task 0 of 2 failed: bad input: mesh 3 has no normals")
+        )
+    );
+    // A task whose lease lapses a third time fails its job too.
+    enqueue_ok(q, "m", &split_spec(2, 8, ""), 7000).await;
+    for (i, w) in ["a", "b", "c"].into_iter().enumerate() {
+        let at = 7000 + 10_000 * i as i64;
+        let (t, _) = q.claim_task(w, &none, lease, at).await.unwrap().unwrap();
+        assert_eq!((t.index, t.attempts), (0, i as u32 + 1));
+        // Task 1 stays queued: only task 0 is taken each round.
+        q.recover_expired(at + 5000).await.unwrap();
+    }
+    let m = q.job("m").await.unwrap().unwrap();
+    assert_eq!(m.status, JobStatus::Failed);
+    assert!(
+        m.failure
+            .unwrap()
+            .starts_with("task 0 of 2 was given up after 3 attempts: the lease of worker c expired")
+    );
+}
+
+async fn cancelling_a_split_job_stops_its_tasks(f: &Fixture) {
+    let q = &*f.queue;
+    let lease = Duration::from_secs(30);
+    let none = Capabilities::default();
+    with_scene(q).await;
+    // Queued: cancelled at once, with its tasks.
+    enqueue_ok(q, "a", &split_spec(2, 8, ""), 0).await;
+    assert_eq!(q.cancel("a", 10).await.unwrap(), Cancellation::Cancelled);
+    assert!(
+        q.tasks("a")
+            .await
+            .unwrap()
+            .iter()
+            .all(|t| t.status == TaskStatus::Cancelled)
+    );
+    // Running: the tasks not running are cancelled now, the running one is told at its
+    // next heartbeat, and the job ends when it stops.
+    enqueue_ok(q, "b", &split_spec(3, 12, ""), 20).await;
+    q.claim_task("w1", &none, lease, 30).await.unwrap().unwrap();
+    assert_eq!(q.cancel("b", 40).await.unwrap(), Cancellation::Requested);
+    assert!(q.claim_task("w2", &none, lease, 50).await.unwrap().is_none());
+    assert_eq!(
+        q.task_heartbeat("b", 0, "w1", lease, None, 60).await.unwrap(),
+        Lease::Held { cancel: true }
+    );
+    assert_eq!(q.job("b").await.unwrap().unwrap().status, JobStatus::Running);
+    assert!(q.finish_task("b", 0, "w1", &TaskOutcome::Cancelled, 70).await.unwrap());
+    let b = q.job("b").await.unwrap().unwrap();
+    assert_eq!((b.status, b.finished_at), (JobStatus::Cancelled, Some(70)));
+    assert!(
+        q.tasks("b")
+            .await
+            .unwrap()
+            .iter()
+            .all(|t| t.status == TaskStatus::Cancelled)
+    );
+    // A running split job whose worker died is cancelled by the recovery.
+    enqueue_ok(q, "c", &split_spec(2, 8, ""), 100).await;
+    q.claim_task("w1", &none, Duration::from_secs(1), 100)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(q.cancel("c", 110).await.unwrap(), Cancellation::Requested);
+    let r = q.recover_expired(5000).await.unwrap();
+    assert_eq!(r.cancelled, vec!["c".to_string()]);
+    assert_eq!(q.job("c").await.unwrap().unwrap().status, JobStatus::Cancelled);
+}
+
+async fn claims_meet_the_jobs_requirements(f: &Fixture) {
+    let q = &*f.queue;
+    let lease = Duration::from_secs(30);
+    with_scene(q).await;
+    let needs_gpu = JobSpec::parse(br#"{"scene": "s", "requires": {"gpu": true}}"#).unwrap();
+    enqueue_ok(q, "g", &needs_gpu, 0).await;
+    enqueue_ok(q, "o", &split_spec(2, 8, r#", "requires": {"oidn": true}"#), 1).await;
+    let cpu_only = Capabilities::default();
+    assert!(q.claim("cpu", &cpu_only, lease, 10).await.unwrap().is_none());
+    assert!(q.claim_task("cpu", &cpu_only, lease, 10).await.unwrap().is_none());
+    assert!(q.claim_task("gpu", &gpu(), lease, 10).await.unwrap().is_none());
+    assert_eq!(q.claim("gpu", &gpu(), lease, 10).await.unwrap().unwrap().id, "g");
+    let with_oidn = Capabilities {
+        oidn: true,
+        ..Capabilities::default()
+    };
+    let (t, j) = q.claim_task("oidn", &with_oidn, lease, 20).await.unwrap().unwrap();
+    assert_eq!((j.id.as_str(), t.index), ("o", 0));
+    // Workers register what they have; `workers` lists those seen since a time.
+    let caps = Capabilities {
+        gpu: true,
+        adapter: Some("NVIDIA H200".into()),
+        adapter_kind: Some("discrete".into()),
+        oidn: true,
+        memory_bytes: 1 << 34,
+    };
+    q.register_worker("w-old", &cpu_only, 100).await.unwrap();
+    q.register_worker("w-new", &caps, 100).await.unwrap();
+    q.register_worker("w-new", &caps, 5000).await.unwrap();
+    let live = q.workers(1000).await.unwrap();
+    assert_eq!(live.len(), 1);
+    assert_eq!((live[0].id.as_str(), &live[0].capabilities), ("w-new", &caps));
+    assert_eq!((live[0].started_at, live[0].last_seen), (100, 5000));
+}
 
 async fn finished_jobs_are_deleted_and_found_by_age(f: &Fixture) {
     let q = &*f.queue;
@@ -121,7 +414,11 @@ async fn finished_jobs_are_deleted_and_found_by_age(f: &Fixture) {
         ));
     }
     for (id, at) in [("old", 100), ("new", 200)] {
-        let j = q.claim("w", Duration::from_secs(30), at).await.unwrap().unwrap();
+        let j = q
+            .claim("w", &Capabilities::default(), Duration::from_secs(30), at)
+            .await
+            .unwrap()
+            .unwrap();
         assert_eq!(j.id, id);
         assert!(
             q.finish(id, "w", &Outcome::Failed { reason: "x".into() }, at)
@@ -129,7 +426,10 @@ async fn finished_jobs_are_deleted_and_found_by_age(f: &Fixture) {
                 .unwrap()
         );
     }
-    q.claim("w", Duration::from_secs(30), 300).await.unwrap().unwrap();
+    q.claim("w", &Capabilities::default(), Duration::from_secs(30), 300)
+        .await
+        .unwrap()
+        .unwrap();
     assert_eq!(q.finished_before(150, 10).await.unwrap(), vec!["old".to_string()]);
     assert_eq!(
         q.finished_before(1000, 10).await.unwrap(),
@@ -201,7 +501,10 @@ async fn per_client_queue_limit_and_tokens(f: &Fixture) {
         Enqueued::Queued(_)
     ));
     // A running job no longer counts as queued.
-    q.claim("w", Duration::from_secs(30), 1).await.unwrap().unwrap();
+    q.claim("w", &Capabilities::default(), Duration::from_secs(30), 1)
+        .await
+        .unwrap()
+        .unwrap();
     let (alice, total) = q.list(None, Some("alice"), 10, 0).await.unwrap();
     assert_eq!((alice.len(), total), (2, 2));
     assert!(alice.iter().all(|j| j.client.as_deref() == Some("alice")));
@@ -236,10 +539,17 @@ async fn lease_expiry_requeues_then_fails_after_three_attempts(f: &Fixture) {
     let lease = Duration::from_millis(100);
     let mut now = 1000;
     for attempt in 1..=MAX_ATTEMPTS {
-        let job = q.claim("w", lease, now).await.unwrap().expect("queued job is claimed");
+        let job = q
+            .claim("w", &Capabilities::default(), lease, now)
+            .await
+            .unwrap()
+            .expect("queued job is claimed");
         assert_eq!(job.attempts, attempt);
         assert!(
-            q.claim("w2", lease, now).await.unwrap().is_none(),
+            q.claim("w2", &Capabilities::default(), lease, now)
+                .await
+                .unwrap()
+                .is_none(),
             "one job, one holder"
         );
         // Renewed in time: nothing is recovered.
@@ -274,7 +584,10 @@ async fn release_does_not_count_the_attempt_and_scene_in_use_is_kept(f: &Fixture
     ));
     enqueue(q, "j", &spec("s"), 0).await;
     assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::InUse(1));
-    q.claim("w", Duration::from_secs(30), 1).await.unwrap().unwrap();
+    q.claim("w", &Capabilities::default(), Duration::from_secs(30), 1)
+        .await
+        .unwrap()
+        .unwrap();
     assert!(
         !q.release("j", "someone-else", 2).await.unwrap(),
         "only the holder hands back"
@@ -302,7 +615,11 @@ async fn claims_follow_priority_then_age(f: &Fixture) {
     enqueue(q, "c", &spec_with_priority("s", -3), 5).await;
     enqueue(q, "d", &spec_with_priority("s", 0), 30).await;
     let mut order = Vec::new();
-    while let Some(j) = q.claim("w", Duration::from_secs(30), 100).await.unwrap() {
+    while let Some(j) = q
+        .claim("w", &Capabilities::default(), Duration::from_secs(30), 100)
+        .await
+        .unwrap()
+    {
         order.push(j.id);
     }
     assert_eq!(order, ["b1", "b2", "a", "d", "c"]);
@@ -331,7 +648,11 @@ async fn concurrent_claimers_never_share_a_job(f: &Fixture) {
         tasks.push(tokio::spawn(async move {
             let me = format!("w{w}");
             let mut got = Vec::new();
-            while let Some(j) = q.claim(&me, Duration::from_secs(30), 1000).await.unwrap() {
+            while let Some(j) = q
+                .claim(&me, &Capabilities::default(), Duration::from_secs(30), 1000)
+                .await
+                .unwrap()
+            {
                 assert_eq!(j.worker.as_deref(), Some(me.as_str()));
                 got.push(j.id);
             }
@@ -394,7 +715,7 @@ async fn heartbeat_progress_cancel_and_finish(f: &Fixture) {
     with_scene(q).await;
     enqueue(q, "j", &spec("s"), 0).await;
     let lease = Duration::from_secs(10);
-    q.claim("w", lease, 1).await.unwrap().unwrap();
+    q.claim("w", &Capabilities::default(), lease, 1).await.unwrap().unwrap();
     let update = JobUpdate {
         progress: Some(json!({"steps": 3, "fraction": 0.25})),
         history: Some(json!([{"seconds": 0.5, "steps": 3, "error": 0.1}])),
@@ -429,7 +750,10 @@ async fn heartbeat_progress_cancel_and_finish(f: &Fixture) {
     assert_eq!(q.cancel("nope", 95).await.unwrap(), Cancellation::NotFound);
 
     enqueue(q, "k", &spec("s"), 100).await;
-    q.claim("w", lease, 101).await.unwrap().unwrap();
+    q.claim("w", &Capabilities::default(), lease, 101)
+        .await
+        .unwrap()
+        .unwrap();
     let summary = json!({"steps": 8, "seconds": 1.5});
     let done = Outcome::Succeeded {
         summary: summary.clone(),
@@ -475,7 +799,11 @@ async fn other_processes_hear_of_new_work_and_job_changes(f: &Fixture) {
     .await;
     assert!(woke.is_ok(), "no lightmapd_work notification within {wait:?}");
     // A progress write by the holder reaches the other process's event streams.
-    let job = q.claim("w", Duration::from_secs(30), 1000).await.unwrap().unwrap();
+    let job = q
+        .claim("w", &Capabilities::default(), Duration::from_secs(30), 1000)
+        .await
+        .unwrap()
+        .unwrap();
     let update = JobUpdate {
         progress: Some(json!({"steps": 1})),
         ..JobUpdate::default()

@@ -1,0 +1,388 @@
+//! Workers' side of a job split into tasks (issue 25; docs/scaling.md): bake one task,
+//! or merge them all.
+//!
+//! How: a worker that claims a bake task ([`Queue::claim_task`]) loads the job's scene,
+//! bakes the task's range of the job's steps on a blocking thread
+//! (`engine::tasks::bake_task`: every random stream keyed by the job's step numbers, so
+//! the task draws exactly the samples a single bake draws at those steps), and renews
+//! the task's lease 4 times a second with its steps, bake time and own error estimate
+//! (the queue folds them into the job's progress, `queue::merged_progress`). The result,
+//! both halves' means and step counts (`engine::tasks::Partial`, 24 bytes a texel), goes
+//! to the artifact store under `jobs/<id>/tasks/<k>.lmtask` *before* the task is marked
+//! succeeded, so a succeeded task's result is always stored. The last bake task to
+//! succeed queues the merge; the worker that claims it reads every result, merges the
+//! halves (`engine::tasks::merge`: the sums of the halves over the sums of their
+//! steps, then the single bake's own finish: error estimate from the merged halves,
+//! denoiser, EXR pages, preview, probes), stores the final artifacts like a whole job's,
+//! and only then marks the job `succeeded`; the task results are deleted after that.
+//!
+//! Endings of an attempt: cancelled (the job's cancel flag, read back by every
+//! heartbeat) → the task `cancelled`, and the last task to stop ends the job; shutdown
+//! → handed back, the attempt not counted; a lost lease → nothing written; an engine
+//! error → bad input fails the job at once (every worker would meet it), anything else
+//! counts against this worker and the task is tried again, elsewhere once this worker is
+//! blocklisted (`queue::BLOCKLIST_AFTER`), up to `queue::MAX_ATTEMPTS` attempts.
+//!
+//! Limits: no snapshots while the tasks run (the halves of different tasks meet only in
+//! the merge), so the job's history is the merge's one point; the merge re-imports the
+//! scene and reads all results into memory (24 bytes a texel a task: 403 MB a task for a
+//! full 4096² page), so it needs that memory once.
+
+use std::ops::ControlFlow;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use serde_json::{Value, json};
+
+use crate::engine::bake::{BakeEvent, StepProgress, StopReason};
+use crate::engine::job::BakeOptions;
+use crate::engine::plan::Plan;
+use crate::engine::tasks::{self, Partial};
+use crate::engine::technique::EngineError;
+use crate::service::model::{HistoryPoint, Progress};
+use crate::service::queue::{JobRecord, Lease, TaskBeat, TaskOutcome, TaskRecord};
+use crate::service::worker::{
+    Lessee, LoadError, TICK, import_files, load_patiently, load_scene, store_final, while_holding,
+};
+use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
+
+enum End {
+    Finish(TaskOutcome),
+    Release,
+    Lost,
+}
+
+/// Runs a claimed task to its end and records the end (retried through a database
+/// hiccup while the lease is ours, as a whole job's end is).
+pub async fn run_task(state: &AppState, worker: &str, task: TaskRecord, job: JobRecord) {
+    tracing::info!(attempt = task.attempts, merge = task.is_merge(), "task claimed");
+    state.hub.job_changed(&job.id);
+    state.metrics.busy.fetch_add(1, Ordering::Relaxed);
+    let flag = Arc::new(StopFlag::default());
+    let end = if task.is_merge() {
+        merge(state, worker, &task, &job, &flag).await
+    } else {
+        bake(state, worker, &task, &job, &flag).await
+    };
+    state.metrics.busy.fetch_sub(1, Ordering::Relaxed);
+    let lessee = Lessee::Task(&job.id, task.index);
+    let written = match end {
+        End::Lost => {
+            tracing::warn!("lease lost: another worker owns the task now; nothing written");
+            Ok(true)
+        }
+        End::Release => {
+            tracing::info!("shutting down: task handed back to the queue");
+            state
+                .queue
+                .release_task(&job.id, task.index, worker, state.db_now())
+                .await
+        }
+        End::Finish(outcome) => {
+            if let TaskOutcome::Failed { reason, retry } = &outcome {
+                tracing::warn!(reason = %reason, retry, "task failed");
+            }
+            let first_try = Instant::now();
+            let mut wait = Duration::from_millis(100);
+            loop {
+                let finish = state
+                    .queue
+                    .finish_task(&job.id, task.index, worker, &outcome, state.db_now());
+                match while_holding(state, lessee, worker, &flag, finish).await {
+                    Err(e)
+                        if flag.get() != StopSignal::LeaseLost
+                            && first_try.elapsed() + wait < state.config.database_timeout =>
+                    {
+                        tracing::warn!(error = %e, retry_in_ms = wait.as_millis() as u64, "cannot record the end of the task; trying again");
+                        tokio::time::sleep(wait).await;
+                        wait = (wait * 2).min(Duration::from_secs(2));
+                    }
+                    r => break r,
+                }
+            }
+        }
+    };
+    match &written {
+        Ok(true) => tracing::info!("task ended"),
+        Ok(false) => tracing::warn!("the task was no longer ours when it ended (lease expired); result dropped"),
+        Err(e) => {
+            tracing::error!(error = %e, "cannot record the end of the task; its lease will expire and it runs again")
+        }
+    }
+    state.hub.job_changed(&job.id);
+    // The merge's job is over; so is every partial it read.
+    if task.is_merge() && matches!(written, Ok(true)) {
+        for k in 0..task.count {
+            if let Err(e) = state.artifacts.delete(&store::task_partial(&job.id, k)).await {
+                tracing::warn!(task = k, error = %e, "cannot delete a merged task's result");
+            }
+        }
+    }
+}
+
+/// The failure of an engine call: bad input fails the job, anything else is retried.
+fn failed(e: EngineError) -> End {
+    let retry = !e.is_bad_input();
+    End::Finish(TaskOutcome::Failed {
+        reason: if retry {
+            e.to_string()
+        } else {
+            format!("bad input: {e}")
+        },
+        retry,
+    })
+}
+
+/// Bakes one task and stores its result.
+async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord, flag: &Arc<StopFlag>) -> End {
+    let lessee = Lessee::Task(&job.id, task.index);
+    let request = job.spec.to_request();
+    let range = match tasks::split(&request, task.count) {
+        Ok(r) => r[task.index as usize],
+        Err(e) => return failed(e),
+    };
+    let files = match load_patiently(state, lessee, worker, flag, || load_scene(state, job)).await {
+        Ok(f) => f,
+        Err(None) => return End::Lost,
+        Err(Some(reason)) => return End::Finish(TaskOutcome::Failed { reason, retry: true }),
+    };
+    let beat = Arc::new(Mutex::new(TaskBeat::default()));
+    let step = StepProgress::default();
+    let thread = {
+        let (beat, flag, step, limits) = (beat.clone(), flag.clone(), step.clone(), state.config.limits.clone());
+        let span = tracing::Span::current();
+        tokio::task::spawn_blocking(move || {
+            let _e = span.enter();
+            let (scene, _) = import_files(&files, &limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
+            drop(files);
+            let options = BakeOptions {
+                // Snapshots are not stored; they only refresh the task's error estimate.
+                snapshot_interval: Duration::from_secs(1),
+                max_memory_bytes: Some(limits.max_job_memory_bytes),
+                step_progress: Some(step),
+                ..Default::default()
+            };
+            let mut observer = |e: BakeEvent<'_>| {
+                if let Ok(mut b) = beat.lock() {
+                    match e {
+                        BakeEvent::Progress { steps, elapsed, .. } => {
+                            b.steps = steps;
+                            b.seconds = elapsed.as_secs_f64();
+                        }
+                        BakeEvent::Snapshot { estimate, elapsed } => {
+                            b.steps = estimate.steps;
+                            b.seconds = elapsed.as_secs_f64();
+                            b.error = estimate.error.relative;
+                        }
+                        _ => {}
+                    }
+                }
+                if flag.get() == StopSignal::None {
+                    ControlFlow::Continue(())
+                } else {
+                    ControlFlow::Break(())
+                }
+            };
+            let partial = tasks::bake_task(
+                Arc::new(scene),
+                &request,
+                range,
+                &options,
+                &mut observer,
+                &mut |_| {},
+                &mut |_| {},
+            )?;
+            // Encoded here, off the runtime: a full page's result is hundreds of MB.
+            let error = partial.snapshot.estimate().error.relative;
+            let bytes = partial.encode()?;
+            Ok::<_, EngineError>((partial.header, error, bytes))
+        })
+    };
+    tokio::pin!(thread);
+    let mut ticker = tokio::time::interval(TICK);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut shutdown = state.shutdown.clone();
+    let mut stopping = false;
+    let mut written = TaskBeat::default();
+    let mut last_renewal = Instant::now();
+    let result = loop {
+        tokio::select! {
+            r = &mut thread => break r,
+            _ = ticker.tick() => {
+                if flag.get() != StopSignal::None {
+                    step.request_stop();
+                }
+                let now_beat = beat.lock().map(|b| *b).unwrap_or_default();
+                let changed = now_beat != written;
+                if (changed || last_renewal.elapsed() >= state.config.lease / 3) && flag.get() != StopSignal::LeaseLost {
+                    let update = changed.then_some(&now_beat);
+                    match state.queue.task_heartbeat(&job.id, task.index, worker, state.config.lease, update, state.db_now()).await {
+                        Ok(Lease::Held { cancel }) => {
+                            last_renewal = Instant::now();
+                            written = now_beat;
+                            if cancel {
+                                flag.set(StopSignal::Cancel);
+                            }
+                            if changed {
+                                state.hub.job_changed(&job.id);
+                            }
+                        }
+                        Ok(Lease::Lost) => flag.set(StopSignal::LeaseLost),
+                        Err(e) => tracing::warn!(error = %e, "task heartbeat failed"),
+                    }
+                }
+            }
+            _ = shutting_down(&mut shutdown), if !stopping => {
+                stopping = true;
+                flag.set(StopSignal::Shutdown);
+            }
+        }
+    };
+    let (header, error, bytes) = match (flag.get(), result) {
+        (StopSignal::LeaseLost, _) => return End::Lost,
+        (_, Err(e)) => {
+            return End::Finish(TaskOutcome::Failed {
+                reason: format!("the bake thread panicked: {e}"),
+                retry: true,
+            });
+        }
+        (_, Ok(Err(e))) => return failed(e),
+        (why, Ok(Ok((h, _, _)))) if h.stopped_by == StopReason::Cancelled => {
+            return if why == StopSignal::Shutdown {
+                End::Release
+            } else {
+                End::Finish(TaskOutcome::Cancelled)
+            };
+        }
+        (_, Ok(Ok(r))) => r,
+    };
+    let steps = header.half_steps[0] + header.half_steps[1];
+    tracing::info!(
+        steps,
+        seconds = header.seconds,
+        error,
+        bytes = bytes.len(),
+        "task baked"
+    );
+    state.metrics.observe_bake(&job.spec.technique, header.seconds);
+    let path = store::task_partial(&job.id, task.index);
+    let put = state.artifacts.put(&path, Bytes::from(bytes));
+    if let Err(e) = while_holding(state, lessee, worker, flag, put).await {
+        return End::Finish(TaskOutcome::Failed {
+            reason: format!("cannot store the task's result: {e}"),
+            retry: true,
+        });
+    }
+    End::Finish(TaskOutcome::Baked(TaskBeat {
+        steps,
+        seconds: header.seconds,
+        error,
+    }))
+}
+
+/// Why the task results could not be read.
+async fn load_partials(state: &AppState, job: &JobRecord, count: u32) -> Result<Vec<Bytes>, LoadError> {
+    let mut out = Vec::with_capacity(count as usize);
+    for k in 0..count {
+        match state.artifacts.get(&store::task_partial(&job.id, k)).await {
+            Ok(Some(b)) => out.push(b),
+            // Marked succeeded only after it was stored: a missing one was deleted.
+            Ok(None) => {
+                return Err(LoadError::Permanent(format!(
+                    "task {k}'s result is no longer stored (jobs/{}/tasks/{k}.lmtask)",
+                    job.id
+                )));
+            }
+            Err(e) => return Err(LoadError::Transient(format!("cannot read task {k}'s result: {e}"))),
+        }
+    }
+    Ok(out)
+}
+
+/// Merges every task's result into the job's lightmap and stores it.
+async fn merge(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord, flag: &Arc<StopFlag>) -> End {
+    let lessee = Lessee::Task(&job.id, task.index);
+    let load = || async {
+        Ok::<_, LoadError>((
+            load_scene(state, job).await?,
+            load_partials(state, job, task.count).await?,
+        ))
+    };
+    let (files, parts) = match load_patiently(state, lessee, worker, flag, load).await {
+        Ok(f) => f,
+        Err(None) => return End::Lost,
+        Err(Some(reason)) => return End::Finish(TaskOutcome::Failed { reason, retry: true }),
+    };
+    let limits = state.config.limits.clone();
+    let span = tracing::Span::current();
+    let plan: Arc<Mutex<Option<Value>>> = Arc::default();
+    let plan_out = plan.clone();
+    let thread = tokio::task::spawn_blocking(move || {
+        let _e = span.enter();
+        let partials = parts
+            .iter()
+            .enumerate()
+            .map(|(k, b)| Partial::decode(b, &format!("task {k}'s result")))
+            .collect::<Result<Vec<_>, _>>()?;
+        drop(parts);
+        let (scene, _) = import_files(&files, &limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
+        drop(files);
+        let options = BakeOptions {
+            max_memory_bytes: Some(limits.max_job_memory_bytes),
+            ..Default::default()
+        };
+        let mut on_plan = |p: &Plan| {
+            if let Ok(mut slot) = plan_out.lock() {
+                *slot = serde_json::to_value(p).ok();
+            }
+        };
+        tasks::merge(Arc::new(scene), &partials, &options, &mut on_plan)
+    });
+    let r = match while_holding(state, lessee, worker, flag, thread).await {
+        _ if flag.get() == StopSignal::LeaseLost => return End::Lost,
+        Err(e) => {
+            return End::Finish(TaskOutcome::Failed {
+                reason: format!("the merge thread panicked: {e}"),
+                retry: true,
+            });
+        }
+        Ok(Err(e)) => return failed(e),
+        Ok(Ok(r)) => r,
+    };
+    let stored = store_final(state, &job.id, &r, false);
+    if let Err(e) = while_holding(state, lessee, worker, flag, stored).await {
+        return End::Finish(TaskOutcome::Failed {
+            reason: format!("cannot store the lightmap: {e}"),
+            retry: true,
+        });
+    }
+    let s = &r.summary;
+    tracing::info!(
+        steps = s.steps,
+        seconds = s.seconds,
+        error = s.error.relative,
+        "tasks merged"
+    );
+    let progress = Progress::new(s.steps, s.seconds, s.error.relative, &job.spec.stop);
+    let history = [HistoryPoint {
+        seconds: s.seconds,
+        steps: s.steps,
+        error: s.error.relative,
+        raw_error: s.error.raw_relative.or(s.error.relative),
+        noise: s.error.noise,
+        bias: s.error.bias,
+        true_error: None,
+    }];
+    let mut plan = plan.lock().ok().and_then(|p| p.clone()).unwrap_or_else(|| json!({}));
+    plan["resolution"] = json!(job.spec.resolution);
+    plan["texel_set"] = json!(r.atlas.report());
+    plan["tasks"] = json!({"count": task.count});
+    End::Finish(TaskOutcome::Merged {
+        summary: serde_json::to_value(s).unwrap_or(Value::Null),
+        progress: serde_json::to_value(progress).unwrap_or(Value::Null),
+        history: serde_json::to_value(history).unwrap_or(Value::Null),
+        plan,
+    })
+}
