@@ -1,7 +1,8 @@
 //! The service's tests, one binary: the HTTP API (`api`), its limits and guards
 //! (`hardening`), the web console in a real browser (`console`), injected faults
 //! (`faults`), PostgreSQL and S3 outages (`real_faults`), the S3 artifact store
-//! (`s3_store`) and the scale-out across processes (`scale_out`).
+//! (`s3_store`), the scale-out across processes (`scale_out`) and one job baked as tasks
+//! by several worker processes (`farm`).
 //!
 //! Why one binary instead of seven: each test crate compiles the client side of the
 //! same stack again (tokio, reqwest, sqlx, object_store, tungstenite), and seven copies
@@ -13,6 +14,7 @@
 
 mod api;
 mod console;
+mod farm;
 mod faults;
 mod hardening;
 mod real_faults;

@@ -27,7 +27,7 @@ use service_common::*;
 
 /// The settings of `s3` (`service_common::S3`) as `AmazonS3Builder` options, for an
 /// in-process store.
-fn overrides(s3: &S3) -> Vec<(AmazonS3ConfigKey, String)> {
+pub(crate) fn overrides(s3: &S3) -> Vec<(AmazonS3ConfigKey, String)> {
     s3.env
         .iter()
         .map(|(k, v)| {
@@ -43,7 +43,7 @@ fn overrides(s3: &S3) -> Vec<(AmazonS3ConfigKey, String)> {
         .collect()
 }
 
-async fn open(s3: &S3, url: &str) -> Artifacts {
+pub(crate) async fn open(s3: &S3, url: &str) -> Artifacts {
     Artifacts::open(&StoreUrl::parse(url).unwrap(), &overrides(s3))
         .await
         .unwrap_or_else(|e| panic!("opening {url}: {e}"))

@@ -1,0 +1,324 @@
+//! One job baked as tasks by several worker processes (issue 25, point 5), with the real
+//! parts: one API process (`serve --workers 0`) and three `worker` processes on one
+//! PostgreSQL schema and one S3-protocol store (moto, as `scale_out` uses).
+//!
+//! `three_workers_bake_one_job_and_survive_a_sigkill`: a `path` job of 240 steps on the
+//! Cornell box at 64² split into 6 tasks (40 steps each, sample batches keyed by the
+//! job's step numbers). Once a task has baked a few steps, its worker is killed with
+//! SIGKILL. Checks:
+//! - the job succeeds; the killed task was taken up again by another worker after its
+//!   lease lapsed (2 attempts), every other task at its first, and the dead worker's
+//!   abandoned attempt is counted against it (`task_failures`);
+//! - the merged lightmap, downloaded through the API, equals a single-process bake of
+//!   the same job (same request, same seed) to the EXR's precision: the merge is exact,
+//!   not "another bake within noise";
+//! - the merged error estimate (from the merged halves) matches its true error, measured
+//!   against a 1200-step bake of another seed, within [0.6, 1.5];
+//! - the task results are deleted from the store once the lightmap is stored;
+//! - the surviving processes exit 0 on SIGTERM.
+//!
+//! `a_job_no_worker_can_run_says_what_it_waits_for`: a job that requires a hardware GPU,
+//! with only workers that have none (this machine has lavapipe at most), stays queued and
+//! its status names what it waits for and what the live workers have; it cancels at once.
+//!
+//! Skips (fails under `LIGHTMAPD_REQUIRE_SERVICES=1`) without PostgreSQL or the S3 server.
+
+use crate::service_common;
+
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use lightmapd::engine::bake::BakeEvent;
+use lightmapd::engine::job::{self, BakeOptions};
+use lightmapd::engine::reference::{ReferenceLightmap, relative_error};
+use lightmapd::engine::scene;
+use lightmapd::service::model::JobSpec;
+use lightmapd::service::store;
+use serde_json::{Value, json};
+use service_common::pg::{Children, Db, signal, wait_exit};
+use service_common::{S3, bin, cornell_glb, spawn_serve_env, submit};
+use sqlx::Row;
+
+fn spawn_worker(db: &str, store: &str, env: &[(&str, String)], lease_s: &str) -> Child {
+    Command::new(bin())
+        .args([
+            "worker",
+            "--database-url",
+            db,
+            "--lease-seconds",
+            lease_s,
+            "--store",
+            store,
+        ])
+        .envs(env.iter().map(|(k, v)| (k, v)))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+/// The process id inside a worker name (`HOST-PID-INSTANCE-N`, `service::worker`).
+fn worker_pid(worker: &str) -> u32 {
+    let parts: Vec<&str> = worker.rsplitn(4, '-').collect();
+    parts[2]
+        .parse()
+        .unwrap_or_else(|_| panic!("no pid in worker name {worker:?}"))
+}
+
+async fn get_json(http: &reqwest::Client, url: &str) -> Value {
+    let r = http.get(url).send().await.unwrap();
+    assert!(r.status().is_success(), "GET {url}: {}", r.status());
+    r.json().await.unwrap()
+}
+
+/// One API process and `workers` worker processes on a fresh schema and store prefix.
+struct Farm {
+    db: Db,
+    s3: S3,
+    store: String,
+    url: String,
+    procs: Children,
+    _dir: tempfile::TempDir,
+}
+
+const LEASE: &str = "3";
+
+impl Farm {
+    async fn start(test: &str, workers: usize) -> Option<Farm> {
+        let db = Db::new(test).await?;
+        let s3 = S3::find(test).await?;
+        let store = s3.fresh_url("farm");
+        let dir = tempfile::tempdir().unwrap();
+        let (api, url) = spawn_serve_env(
+            dir.path(),
+            0,
+            &["--database-url", &db.url, "--store", &store, "--lease-seconds", LEASE],
+            &s3.env,
+        );
+        let mut procs = Children(vec![api]);
+        for _ in 0..workers {
+            procs.0.push(spawn_worker(&db.url, &store, &s3.env, LEASE));
+        }
+        Some(Farm {
+            db,
+            s3,
+            store,
+            url,
+            procs,
+            _dir: dir,
+        })
+    }
+
+    async fn upload(&self, http: &reqwest::Client) -> String {
+        let r = http
+            .post(format!("{}/v1/scenes", self.url))
+            .body(cornell_glb())
+            .send()
+            .await
+            .unwrap();
+        assert!(r.status().is_success());
+        r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+    }
+
+    async fn stop(mut self) {
+        for c in &self.procs.0 {
+            signal(c, "-TERM");
+        }
+        for c in &mut self.procs.0 {
+            assert!(wait_exit(c, Duration::from_secs(20)).success());
+        }
+        self.procs.0.clear();
+        self.db.drop().await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn three_workers_bake_one_job_and_survive_a_sigkill() {
+    let _cpu = crate::CPU_HEAVY.lock().await;
+    let test = "farm::three_workers_bake_one_job_and_survive_a_sigkill";
+    let Some(mut farm) = Farm::start(test, 3).await else {
+        return;
+    };
+    let started = Instant::now();
+    let http = reqwest::Client::new();
+    let scene = farm.upload(&http).await;
+    let body = json!({
+        "scene": scene, "technique": "path", "resolution": 64, "seed": 7,
+        "stop": {"steps": 240}, "tasks": 6, "denoise": "none",
+    });
+    let id = submit(&http, &farm.url, body.clone()).await;
+    let job_url = format!("{}/v1/jobs/{id}", farm.url);
+
+    // Kill the worker of the first task seen mid-bake.
+    let t = Instant::now();
+    let (victim_task, victim) = loop {
+        let j = get_json(&http, &job_url).await;
+        let running = j["tasks"]["list"].as_array().and_then(|l| {
+            l.iter()
+                .find(|t| t["status"] == "running" && t["kind"] == "bake" && t["steps"].as_u64().unwrap_or(0) >= 4)
+                .cloned()
+        });
+        if let Some(task) = running {
+            break (
+                task["index"].as_u64().unwrap(),
+                task["worker"].as_str().unwrap().to_string(),
+            );
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "no task ever ran: {j:#}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let mut child = farm
+        .procs
+        .by_pid(worker_pid(&victim))
+        .unwrap_or_else(|| panic!("{victim} is not one of this test's workers"));
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+    let killed_at = started.elapsed();
+
+    let t = Instant::now();
+    let job = loop {
+        let j = get_json(&http, &job_url).await;
+        if j["status"] != "queued" && j["status"] != "running" {
+            break j;
+        }
+        assert!(t.elapsed() < Duration::from_secs(180), "the job never ended: {j:#}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let drained = started.elapsed();
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let list = job["tasks"]["list"].as_array().unwrap();
+    assert_eq!(list.len(), 7, "6 bake tasks and the merge: {job:#}");
+    for t in list {
+        let k = t["index"].as_u64().unwrap();
+        assert_eq!(t["status"], "succeeded", "{t}");
+        if k == victim_task {
+            assert_eq!(t["attempts"], 2, "the killed task ran again: {t}");
+            assert_ne!(
+                t["worker"].as_str(),
+                Some(victim.as_str()),
+                "finished by another worker: {t}"
+            );
+        } else {
+            assert_eq!(t["attempts"], 1, "{t}");
+        }
+        if k < 6 {
+            assert_eq!(t["steps"], 40, "{t}");
+        }
+    }
+    assert_eq!(list[6]["kind"], "merge");
+    assert_eq!(job["summary"]["steps"], 240);
+    assert_eq!(job["progress"]["steps"], 240);
+    assert_eq!(job["history"].as_array().unwrap().len(), 1);
+    // One abandoned attempt counts against the dead worker (not yet blocklisted).
+    let failures: Vec<(String, i32)> = sqlx::query("SELECT worker, failures FROM task_failures WHERE job_id = $1")
+        .bind(&id)
+        .fetch_all(&farm.db.pool)
+        .await
+        .unwrap()
+        .iter()
+        .map(|r| (r.get("worker"), r.get("failures")))
+        .collect();
+    assert_eq!(failures, vec![(victim.clone(), 1)]);
+    assert_eq!(job["tasks"]["blocklisted"], json!([]));
+    // The task results went once the lightmap was stored.
+    let artifacts = crate::s3_store::open(&farm.s3, &farm.store).await;
+    for k in 0..6 {
+        let key = store::task_partial(&id, k);
+        assert!(artifacts.get(&key).await.unwrap().is_none(), "{key} is still stored");
+    }
+
+    // The merged lightmap is the single-process bake of the same job.
+    let r = http.get(format!("{job_url}/lightmap.exr")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let merged = ReferenceLightmap::from_pages(&[r.bytes().await.unwrap()]).unwrap();
+    let spec = JobSpec::parse(body.to_string().as_bytes()).unwrap();
+    let request = spec.to_request();
+    let cornell_path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb");
+    let cornell = Arc::new(scene::import_file(&cornell_path).unwrap().0);
+    let bake = |request: &job::BakeRequest| {
+        job::bake(
+            cornell.clone(),
+            request,
+            &BakeOptions::default(),
+            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+            &mut |_| {},
+            &mut |_| {},
+        )
+        .unwrap()
+    };
+    let single = bake(&request);
+    let merged_values = merged.per_texel(&single.atlas).unwrap();
+    let single_vs_merged = relative_error(&single.estimate.total, &merged_values);
+    assert!(
+        single_vs_merged < 1e-3,
+        "merged and single bake differ by {single_vs_merged:.2e} (relative RMS)"
+    );
+    let single_error = single.summary.error.relative.unwrap();
+    let merged_error = job["summary"]["error"]["relative"].as_f64().unwrap() as f32;
+    assert!(
+        (merged_error / single_error - 1.0).abs() < 1e-3,
+        "merged error estimate {merged_error}, single bake's {single_error}"
+    );
+
+    // The merged error estimate against the true error (a 1200-step bake of another seed).
+    let mut long = request.clone();
+    long.seed = 99;
+    long.stop.steps = Some(1200);
+    let truth = bake(&long);
+    let truth_values: Vec<Option<glam::Vec3>> = truth.estimate.total.iter().map(|v| Some(*v)).collect();
+    let flat: Vec<glam::Vec3> = merged_values.iter().map(|v| v.unwrap_or_default()).collect();
+    let true_error = relative_error(&flat, &truth_values) as f32;
+    let ratio = merged_error / true_error;
+    assert!(
+        (0.6..=1.5).contains(&ratio),
+        "merged estimate {merged_error:.4} against true {true_error:.4}: ratio {ratio:.2}"
+    );
+    eprintln!(
+        "farm: 240 steps as 6 tasks on 3 workers, one SIGKILL at {:.1} s: done in {:.1} s; merged vs single {single_vs_merged:.1e}; estimate {merged_error:.4}, true {true_error:.4} (ratio {ratio:.2})",
+        killed_at.as_secs_f64(),
+        drained.as_secs_f64()
+    );
+    farm.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_no_worker_can_run_says_what_it_waits_for() {
+    let test = "farm::a_job_no_worker_can_run_says_what_it_waits_for";
+    let Some(farm) = Farm::start(test, 1).await else {
+        return;
+    };
+    let http = reqwest::Client::new();
+    let scene = farm.upload(&http).await;
+    let id = submit(
+        &http,
+        &farm.url,
+        json!({"scene": scene, "resolution": 16, "stop": {"steps": 4}, "requires": {"gpu": true}}),
+    )
+    .await;
+    let job_url = format!("{}/v1/jobs/{id}", farm.url);
+    // Once the worker has registered (at its start), the job says why it waits.
+    let t = Instant::now();
+    let job = loop {
+        let j = get_json(&http, &job_url).await;
+        assert_eq!(j["status"], "queued", "{j:#}");
+        let w = j["waiting_for"].as_str().unwrap_or_default();
+        if w.starts_with("a worker with a hardware GPU") {
+            break j;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "{j:#}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let w = job["waiting_for"].as_str().unwrap();
+    assert!(
+        w.starts_with("a worker with a hardware GPU (requires.gpu): none of the 1 live workers has it ("),
+        "{w}"
+    );
+    // Still queued a while later: no worker took it.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    assert_eq!(get_json(&http, &job_url).await["status"], "queued");
+    let r = http.post(format!("{job_url}/cancel")).send().await.unwrap();
+    assert_eq!(r.status(), 202);
+    assert_eq!(r.json::<Value>().await.unwrap()["status"], "cancelled");
+    farm.stop().await;
+}
