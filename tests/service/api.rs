@@ -870,7 +870,23 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "samples": 4}).to_string(),
             "samples",
-            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `reference`".into(),
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `reference`, `tasks`, `requires`".into(),
+        ),
+        // A split job (issue 25): the engine's own split names why it cannot be.
+        (
+            json!({"scene": scene, "tasks": 4}).to_string(),
+            "tasks",
+            "tasks: stop.target_error is a rule about the whole bake's error, which no task sees alone; give stop.steps (the job's total) instead".into(),
+        ),
+        (
+            json!({"scene": scene, "tasks": 4, "stop": {"steps": 6}}).to_string(),
+            "tasks",
+            "tasks: stop.steps (6) must be at least twice the tasks (4): each task bakes a step of each half".into(),
+        ),
+        (
+            json!({"scene": scene, "tasks": 0, "stop": {"steps": 6}}).to_string(),
+            "tasks",
+            "tasks must be in 1..=1024, got 0".into(),
         ),
         (
             json!({"scene": scene, "denoise": "bm3d"}).to_string(),

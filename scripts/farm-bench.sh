@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# Wall time of one split `path` job against the number of local worker processes
+# (issue 25 point 6; figures in docs/scaling.md).
+#
+#   bash scripts/farm-bench.sh [BIN] [WORKERS...]
+#
+# For each count N (default 1 2 3): one API process (`serve --workers 0`) and N `worker`
+# processes on a fresh SQLite file and artifact directory, the bundled Cornell box at
+# 128² (12 355 texels), one job of 600 steps split into 12 tasks, no denoiser. Prints
+# the time from submission to `succeeded`, the per-task bake times and attempts, and the
+# merge's share, as the API reports them. BIN defaults to target/release/lightmapd.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+BIN=${1:-target/release/lightmapd}
+shift || true
+COUNTS=("${@:-1 2 3}")
+[ -x "$BIN" ] || { echo "no $BIN: cargo build --release first" >&2; exit 2; }
+PORT=18731
+for n in ${COUNTS[@]}; do
+    dir=$(mktemp -d)
+    db="sqlite://$dir/q.db"
+    "$BIN" serve --workers 0 --listen 127.0.0.1:$PORT --database-url "$db" --store "$dir/store" \
+        > "$dir/api.log" 2>&1 &
+    pids=($!)
+    for _ in $(seq 60); do curl -sf "http://127.0.0.1:$PORT/healthz" > /dev/null && break; sleep 0.25; done
+    for _ in $(seq "$n"); do
+        "$BIN" worker --database-url "$db" --store "$dir/store" > "$dir/worker-$_.log" 2>&1 &
+        pids+=($!)
+    done
+    scene=$(curl -sf --data-binary @scenes/cornell-box.glb "http://127.0.0.1:$PORT/v1/scenes" | jq -r .id)
+    sleep 1 # the workers start (adapter probe) before the clock does
+    start=$(date +%s.%N)
+    job=$(curl -sf -H 'content-type: application/json' -d "{\"scene\":\"$scene\",\"technique\":\"path\",\"resolution\":128,\"stop\":{\"steps\":600},\"tasks\":12,\"denoise\":\"none\",\"seed\":1}" \
+        "http://127.0.0.1:$PORT/v1/jobs" | jq -r .id)
+    while :; do
+        s=$(curl -sf "http://127.0.0.1:$PORT/v1/jobs/$job" | jq -r .status)
+        [ "$s" = queued ] || [ "$s" = running ] || break
+        sleep 0.1
+    done
+    end=$(date +%s.%N)
+    view=$(curl -sf "http://127.0.0.1:$PORT/v1/jobs/$job")
+    echo "workers $n: $s in $(echo "$end - $start" | bc) s; summary: $(echo "$view" | jq -c '{steps: .summary.steps, machine_seconds: .summary.seconds, error: .summary.error.relative}')"
+    echo "$view" | jq -r '.tasks.list[] | "  task \(.index) \(.kind) \(.status) attempts \(.attempts) steps \(.steps) seconds \(.seconds) worker \(.worker)"'
+    ls -l "$dir"/store/jobs/"$job"/ 2>/dev/null | awk 'NR>1 {print "  stored: " $NF " " $5 " B"}'
+    kill "${pids[@]}" 2> /dev/null || true
+    wait 2> /dev/null || true
+    rm -rf "$dir"
+done
