@@ -16,6 +16,9 @@ shift || true
 COUNTS=("${@:-1 2 3}")
 [ -x "$BIN" ] || { echo "no $BIN: cargo build --release first" >&2; exit 2; }
 PORT=18731
+pids=()
+# Whatever happens, no server or worker outlives the script (a later run would talk to it).
+trap 'kill "${pids[@]}" 2> /dev/null || true' EXIT
 for n in ${COUNTS[@]}; do
     dir=$(mktemp -d)
     db="sqlite://$dir/q.db"
@@ -27,7 +30,7 @@ for n in ${COUNTS[@]}; do
         "$BIN" worker --database-url "$db" --store "$dir/store" > "$dir/worker-$_.log" 2>&1 &
         pids+=($!)
     done
-    scene=$(curl -sf --data-binary @scenes/cornell-box.glb "http://127.0.0.1:$PORT/v1/scenes" | jq -r .id)
+    scene=$(curl -sf -H 'content-type: model/gltf-binary' --data-binary @scenes/cornell-box.glb "http://127.0.0.1:$PORT/v1/scenes" | jq -r .id)
     sleep 1 # the workers start (adapter probe) before the clock does
     start=$(date +%s.%N)
     job=$(curl -sf -H 'content-type: application/json' -d "{\"scene\":\"$scene\",\"technique\":\"path\",\"resolution\":128,\"stop\":{\"steps\":600},\"tasks\":12,\"denoise\":\"none\",\"seed\":1}" \
@@ -40,8 +43,8 @@ for n in ${COUNTS[@]}; do
     end=$(date +%s.%N)
     view=$(curl -sf "http://127.0.0.1:$PORT/v1/jobs/$job")
     echo "workers $n: $s in $(echo "$end - $start" | bc) s; summary: $(echo "$view" | jq -c '{steps: .summary.steps, machine_seconds: .summary.seconds, error: .summary.error.relative}')"
-    echo "$view" | jq -r '.tasks.list[] | "  task \(.index) \(.kind) \(.status) attempts \(.attempts) steps \(.steps) seconds \(.seconds) worker \(.worker)"'
-    ls -l "$dir"/store/jobs/"$job"/ 2>/dev/null | awk 'NR>1 {print "  stored: " $NF " " $5 " B"}'
+    echo "$view" | jq -r '.tasks.list[] | "  task \(.index) \(.kind) \(.status) attempts \(.attempts) steps \(.steps) seconds \(.seconds) wall_s \(.wall_s) worker \(.worker)"'
+    (cd "$dir/store/jobs/$job" && find . -type f -printf "  stored: %P %s B\n") || true
     kill "${pids[@]}" 2> /dev/null || true
     wait 2> /dev/null || true
     rm -rf "$dir"

@@ -5,7 +5,7 @@
 //! bakes the task's range of the job's steps on a blocking thread
 //! (`engine::tasks::bake_task`: every random stream keyed by the job's step numbers, so
 //! the task draws exactly the samples a single bake draws at those steps), and renews
-//! the task's lease 4 times a second with its steps, bake time and own error estimate
+//! the task's lease, at most once a second with its steps, bake time and own error estimate
 //! (the queue folds them into the job's progress, `queue::merged_progress`). The result,
 //! both halves' means and step counts (`engine::tasks::Partial`, 24 bytes a texel), goes
 //! to the artifact store under `jobs/<id>/tasks/<k>.lmtask` *before* the task is marked
@@ -47,6 +47,9 @@ use crate::service::worker::{
     Lessee, LoadError, TICK, import_files, load_patiently, load_scene, store_final, while_holding,
 };
 use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
+
+/// The shortest time between two progress heartbeats of one task.
+const PROGRESS_PERIOD: Duration = Duration::from_secs(1);
 
 enum End {
     Finish(TaskOutcome),
@@ -215,7 +218,10 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
                     step.request_stop();
                 }
                 let now_beat = beat.lock().map(|b| *b).unwrap_or_default();
-                let changed = now_beat != written;
+                // Progress at most once a second: every progress beat rewrites the job's
+                // merged progress under the job's lock, so its rate is what limits how
+                // many workers one job can have (docs/scaling.md, "A farm model").
+                let changed = now_beat != written && last_renewal.elapsed() >= PROGRESS_PERIOD;
                 if (changed || last_renewal.elapsed() >= state.config.lease / 3) && flag.get() != StopSignal::LeaseLost {
                     let update = changed.then_some(&now_beat);
                     match state.queue.task_heartbeat(&job.id, task.index, worker, state.config.lease, update, state.db_now()).await {

@@ -762,6 +762,9 @@ pub struct TaskView {
     /// Its own relative error estimate.
     pub error: Option<f32>,
     pub failure: Option<String>,
+    /// Wall time of its current (or last) attempt, from its claim to its end (so far,
+    /// while it runs): the merge's includes reading the results and storing the lightmap.
+    pub wall_s: Option<f64>,
 }
 
 /// `GET /v1/jobs`.

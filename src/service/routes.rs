@@ -646,6 +646,7 @@ pub async fn describe_job(state: &AppState, j: &JobRecord) -> JobView {
         view.waiting_for = waiting_for(j, &live, &blocklisted);
     }
     if j.tasks > 0 {
+        let now = state.db_now();
         view.tasks = Some(TasksView {
             count: j.tasks,
             list: tasks
@@ -660,6 +661,9 @@ pub async fn describe_job(state: &AppState, j: &JobRecord) -> JobView {
                     seconds: t.seconds,
                     error: t.error,
                     failure: t.failure,
+                    wall_s: t
+                        .started_at
+                        .map(|a| (t.finished_at.unwrap_or(now).max(a) - a) as f64 / 1000.0),
                 })
                 .collect(),
             blocklisted,

@@ -39,15 +39,17 @@
 //! processes using different schemas of one database (the tests do) see each other's
 //! notifications, which only causes a spurious re-read or claim attempt.
 //!
-//! Tasks (issue 25): the task claim is the job claim's pattern on `tasks` (`FOR UPDATE
-//! OF t SKIP LOCKED`), then the job row is set `running`. Every other task transaction
-//! (heartbeat, finish, release, cancel) locks the job's row first (`FOR UPDATE`), so the
-//! writes that touch a job and several of its tasks (the merged progress, a failure that
-//! ends the job, a cancel) run one at a time per job and in one lock order. The claim and
-//! the lease recovery take task rows before the job's; a deadlock between them is
-//! possible only when a heartbeat races the recovery of its own lapsed lease, and
-//! PostgreSQL then aborts one of the two, which is retried (a claim or a heartbeat at
-//! the next tick, the recovery at its next period).
+//! Tasks (issue 25): every transaction that writes a split job's tasks (heartbeat,
+//! finish, release, cancel, lease recovery) first takes a transaction-level advisory
+//! lock on the job (`pg_advisory_xact_lock(KEY_TASKS, hashtext(job))`), so they run one
+//! at a time per job and always in the same lock order (job lock, then rows): the
+//! merged progress, a failure that ends the job and a cancel each see and write a
+//! consistent set of task rows. The claim picks a task row with `FOR UPDATE OF t SKIP
+//! LOCKED` (claimers never wait for each other's rows) and then only *tries* the job's
+//! lock; when another transaction holds it, the claim lets the row go and tries again
+//! (a claim that waited for the job lock while holding a row another holder wants would
+//! be a deadlock: `examples/claim_bench.rs` found exactly that with 3 claimers before
+//! this). The recovery takes the locks of the jobs it recovers in sorted order.
 //!
 //! Schemas: `open` uses the URL's `search_path` (`?options=-csearch_path%3Dname`), and
 //! [`PostgresQueue::open_in_schema`] creates a schema and uses it; the tests give each
@@ -103,6 +105,9 @@ pub const JOB_CHANNEL: &str = "lightmapd_job";
 /// The first half of the two-part advisory-lock key of the per-client enqueue lock
 /// ("lmdq"); two-part keys never collide with sqlx's one-part migration lock.
 const KEY_CLASS: i32 = 0x6c6d_6471;
+/// The first half of the advisory-lock key every write to one split job's tasks takes
+/// first ("lmdt"; the module doc's "Tasks").
+const KEY_TASKS: i32 = 0x6c6d_6474;
 
 /// The environment variable the tests read a PostgreSQL URL from.
 pub const TEST_URL_VAR: &str = "LIGHTMAPD_TEST_POSTGRES";
@@ -260,14 +265,25 @@ fn worker_from_row(row: &PgRow) -> QueueResult<WorkerRecord> {
     })
 }
 
-/// Locks a job's row for the rest of the transaction (see the module doc: one lock
-/// order per job).
+/// Takes the job's task lock for the rest of the transaction (see the module doc: every
+/// write to a split job's tasks holds it, so they run one at a time per job).
 async fn lock_job(c: &mut PgConnection, job: &str) -> QueueResult<()> {
-    sqlx::query("SELECT 1 FROM jobs WHERE id = $1 FOR UPDATE")
+    sqlx::query("SELECT pg_advisory_xact_lock($1, hashtext($2))")
+        .bind(KEY_TASKS)
         .bind(job)
-        .fetch_optional(&mut *c)
+        .execute(&mut *c)
         .await?;
     Ok(())
+}
+
+/// [`lock_job`] if it is free now; `false` otherwise (the claim's way in, which already
+/// holds a task row and so must not wait).
+async fn try_lock_job(c: &mut PgConnection, job: &str) -> QueueResult<bool> {
+    sqlx::query_scalar("SELECT pg_try_advisory_xact_lock($1, hashtext($2))")
+        .bind(KEY_TASKS)
+        .bind(job)
+        .fetch_one(&mut *c)
+        .await
 }
 
 /// Writes a split job's merged progress from its bake tasks' rows.
@@ -360,47 +376,78 @@ async fn settle_cancel(c: &mut PgConnection, job: &str, now: i64) -> QueueResult
     Ok(r.rows_affected() == 1)
 }
 
-/// The task half of [`Queue::recover_expired`] (as in the SQLite store), taking
-/// expired task rows with `SKIP LOCKED`.
+/// The task half of [`Queue::recover_expired`] (as in the SQLite store): job by job,
+/// in id order, under each job's task lock.
 #[allow(clippy::type_complexity)]
 async fn recover_tasks(c: &mut PgConnection, now: i64) -> QueueResult<(Vec<(String, u32)>, Vec<String>, Vec<String>)> {
-    let stopped: Vec<String> = sqlx::query_scalar(
-        "UPDATE tasks SET status = 'cancelled', updated_at = $1, lease_expires_at = NULL
-         WHERE (job_id, idx) IN (SELECT t.job_id, t.idx FROM tasks t JOIN jobs j ON j.id = t.job_id
-                                 WHERE t.status = 'running' AND t.lease_expires_at < $1
-                                   AND (j.cancel_requested OR j.status <> 'running')
-                                 FOR UPDATE OF t SKIP LOCKED)
-         RETURNING job_id",
+    let jobs: Vec<String> = sqlx::query_scalar(
+        "SELECT DISTINCT job_id FROM tasks WHERE status = 'running' AND lease_expires_at < $1 ORDER BY job_id",
     )
     .bind(now)
     .fetch_all(&mut *c)
     .await?;
-    let mut cancelled = Vec::new();
-    let mut seen = std::collections::HashSet::new();
-    for job in stopped {
-        if seen.insert(job.clone()) && settle_cancel(c, &job, now).await? {
-            cancelled.push(job);
-        }
-    }
-    // The expired rows, locked for the rest of the transaction.
-    let expired: Vec<(String, i32, i32, i32, Option<String>)> = sqlx::query_as(
-        "SELECT job_id, idx, count, attempts, worker FROM tasks
-         WHERE status = 'running' AND lease_expires_at < $1
-         ORDER BY job_id, idx FOR UPDATE SKIP LOCKED",
-    )
-    .bind(now)
-    .fetch_all(&mut *c)
-    .await?;
-    let mut requeued = Vec::new();
-    let mut failed = Vec::new();
-    for (job, idx, count, attempts, worker) in expired {
-        if let Some(w) = &worker {
-            count_failure(c, &job, w, "its lease expired (the worker stopped renewing it)", now).await?;
-        }
-        if attempts >= MAX_ATTEMPTS as i32 {
+    let (mut requeued, mut failed, mut cancelled) = (Vec::new(), Vec::new(), Vec::new());
+    for job in jobs {
+        lock_job(c, &job).await?;
+        let (stopping, status): (bool, String) =
+            sqlx::query_as("SELECT cancel_requested, status FROM jobs WHERE id = $1")
+                .bind(&job)
+                .fetch_one(&mut *c)
+                .await?;
+        // Read again under the lock: a late heartbeat may have renewed a lease meanwhile.
+        let expired: Vec<(i32, i32, i32, Option<String>)> = sqlx::query_as(
+            "SELECT idx, count, attempts, worker FROM tasks
+             WHERE job_id = $1 AND status = 'running' AND lease_expires_at < $2 ORDER BY idx",
+        )
+        .bind(&job)
+        .bind(now)
+        .fetch_all(&mut *c)
+        .await?;
+        if stopping || status != "running" {
             sqlx::query(
-                "UPDATE tasks SET status = 'failed', finished_at = $3, updated_at = $3, lease_expires_at = NULL,
-                     failure = 'its lease expired ' || attempts || ' times'
+                "UPDATE tasks SET status = 'cancelled', updated_at = $2, lease_expires_at = NULL
+                 WHERE job_id = $1 AND status = 'running' AND lease_expires_at < $2",
+            )
+            .bind(&job)
+            .bind(now)
+            .execute(&mut *c)
+            .await?;
+            if settle_cancel(c, &job, now).await? {
+                cancelled.push(job);
+            }
+            continue;
+        }
+        for (idx, count, attempts, worker) in expired {
+            if let Some(w) = &worker {
+                count_failure(c, &job, w, "its lease expired (the worker stopped renewing it)", now).await?;
+            }
+            if attempts >= MAX_ATTEMPTS as i32 {
+                sqlx::query(
+                    "UPDATE tasks SET status = 'failed', finished_at = $3, updated_at = $3, lease_expires_at = NULL,
+                         failure = 'its lease expired ' || attempts || ' times'
+                     WHERE job_id = $1 AND idx = $2",
+                )
+                .bind(&job)
+                .bind(idx)
+                .bind(now)
+                .execute(&mut *c)
+                .await?;
+                let what = if idx == count {
+                    "the merge".to_string()
+                } else {
+                    format!("task {idx} of {count}")
+                };
+                let why = format!(
+                    "{what} was given up after {MAX_ATTEMPTS} attempts: the lease of worker {} expired (the worker stopped renewing it: crashed, killed or cut off)",
+                    worker.as_deref().unwrap_or("?")
+                );
+                if fail_split_job(c, &job, &why, now).await? {
+                    failed.push(job.clone());
+                }
+                break;
+            }
+            sqlx::query(
+                "UPDATE tasks SET status = 'queued', updated_at = $3, worker = NULL, lease_expires_at = NULL
                  WHERE job_id = $1 AND idx = $2",
             )
             .bind(&job)
@@ -408,29 +455,7 @@ async fn recover_tasks(c: &mut PgConnection, now: i64) -> QueueResult<(Vec<(Stri
             .bind(now)
             .execute(&mut *c)
             .await?;
-            let what = if idx == count {
-                "the merge".to_string()
-            } else {
-                format!("task {idx} of {count}")
-            };
-            let why = format!(
-                "{what} was given up after {MAX_ATTEMPTS} attempts: the lease of worker {} expired (the worker stopped renewing it: crashed, killed or cut off)",
-                worker.as_deref().unwrap_or("?")
-            );
-            if fail_split_job(c, &job, &why, now).await? {
-                failed.push(job);
-            }
-        } else {
-            sqlx::query(
-                "UPDATE tasks SET status = 'queued', updated_at = $3, worker = NULL, lease_expires_at = NULL
-                 WHERE job_id = $1 AND idx = $2 AND status = 'running'",
-            )
-            .bind(&job)
-            .bind(idx)
-            .bind(now)
-            .execute(&mut *c)
-            .await?;
-            requeued.push((job, idx.max(0) as u32));
+            requeued.push((job.clone(), idx.max(0) as u32));
         }
     }
     Ok((requeued, failed, cancelled))
@@ -786,45 +811,76 @@ impl Queue for PostgresQueue {
         lease: Duration,
         now: i64,
     ) -> QueueResult<Option<(TaskRecord, JobRecord)>> {
-        let mut tx = self.pool.begin().await?;
-        let row = sqlx::query(
-            "UPDATE tasks SET status = 'running', worker = $1, attempts = attempts + 1, lease_expires_at = $2,
-                 started_at = $3, updated_at = $3, steps = 0, seconds = 0, error = NULL, failure = NULL,
-                 finished_at = NULL
-             WHERE (job_id, idx) = (SELECT t.job_id, t.idx FROM tasks t JOIN jobs j ON j.id = t.job_id
-                                    WHERE t.status = 'queued' AND j.status IN ('queued', 'running')
-                                      AND NOT j.cancel_requested
-                                      AND (NOT j.requires_gpu OR $4) AND (NOT j.requires_oidn OR $5)
-                                      AND NOT EXISTS (SELECT 1 FROM task_failures f
-                                                      WHERE f.job_id = t.job_id AND f.worker = $1
-                                                        AND f.failures >= $6)
-                                    ORDER BY j.priority DESC, j.created_at, j.seq, t.idx LIMIT 1
-                                    FOR UPDATE OF t SKIP LOCKED)
-             RETURNING *",
-        )
-        .bind(worker)
-        .bind(lease_until(now, lease))
-        .bind(now)
-        .bind(caps.gpu)
-        .bind(caps.oidn)
-        .bind(BLOCKLIST_AFTER as i32)
-        .fetch_optional(&mut *tx)
-        .await?;
-        let Some(row) = row else {
-            return Ok(None);
-        };
-        let task = task_from_row(&row)?;
-        let job = sqlx::query(
-            "UPDATE jobs SET status = 'running', started_at = COALESCE(started_at, $2), updated_at = $2
-             WHERE id = $1 RETURNING *",
-        )
-        .bind(&task.job_id)
-        .bind(now)
-        .fetch_one(&mut *tx)
-        .await?;
-        let job = job_from_row(&job)?;
-        tx.commit().await?;
-        Ok(Some((task, job)))
+        for attempt in 0..8u64 {
+            let mut tx = self.pool.begin().await?;
+            let pick: Option<(String, i32)> = sqlx::query_as(
+                "SELECT t.job_id, t.idx FROM tasks t JOIN jobs j ON j.id = t.job_id
+                 WHERE t.status = 'queued' AND j.status IN ('queued', 'running') AND NOT j.cancel_requested
+                   AND (NOT j.requires_gpu OR $2) AND (NOT j.requires_oidn OR $3)
+                   AND NOT EXISTS (SELECT 1 FROM task_failures f
+                                   WHERE f.job_id = t.job_id AND f.worker = $1 AND f.failures >= $4)
+                 ORDER BY j.priority DESC, j.created_at, j.seq, t.idx LIMIT 1
+                 FOR UPDATE OF t SKIP LOCKED",
+            )
+            .bind(worker)
+            .bind(caps.gpu)
+            .bind(caps.oidn)
+            .bind(BLOCKLIST_AFTER as i32)
+            .fetch_optional(&mut *tx)
+            .await?;
+            let Some((job_id, idx)) = pick else {
+                return Ok(None);
+            };
+            if !try_lock_job(&mut tx, &job_id).await? {
+                // Someone is writing this job's tasks: let the row go, look again.
+                drop(tx);
+                tokio::time::sleep(Duration::from_millis(1 + 2 * attempt)).await;
+                continue;
+            }
+            let row = sqlx::query(
+                "UPDATE tasks SET status = 'running', worker = $3, attempts = attempts + 1, lease_expires_at = $4,
+                     started_at = $5, updated_at = $5, steps = 0, seconds = 0, error = NULL, failure = NULL,
+                     finished_at = NULL
+                 WHERE job_id = $1 AND idx = $2
+                 RETURNING *",
+            )
+            .bind(&job_id)
+            .bind(idx)
+            .bind(worker)
+            .bind(lease_until(now, lease))
+            .bind(now)
+            .fetch_one(&mut *tx)
+            .await?;
+            let task = task_from_row(&row)?;
+            sqlx::query(
+                "UPDATE jobs SET status = 'running', started_at = COALESCE(started_at, $2), updated_at = $2
+                 WHERE id = $1 AND status = 'queued'",
+            )
+            .bind(&job_id)
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
+            let job = job_from_row(
+                &sqlx::query("SELECT * FROM jobs WHERE id = $1")
+                    .bind(&job_id)
+                    .fetch_one(&mut *tx)
+                    .await?,
+            )?;
+            if job.status != JobStatus::Running || job.cancel_requested {
+                // Cancelled (or ended) between the pick and the lock: the task ends with it.
+                sqlx::query("UPDATE tasks SET status = 'cancelled', worker = NULL, lease_expires_at = NULL WHERE job_id = $1 AND idx = $2")
+                    .bind(&job_id)
+                    .bind(idx)
+                    .execute(&mut *tx)
+                    .await?;
+                tx.commit().await?;
+                continue;
+            }
+            tx.commit().await?;
+            return Ok(Some((task, job)));
+        }
+        // Every try met a busy job: the worker's next poll looks again.
+        Ok(None)
     }
 
     async fn task_heartbeat(
