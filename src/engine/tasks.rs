@@ -14,7 +14,8 @@
 //! - every other technique (`Whole`): one task. Their steps are chains over the whole
 //!   scene (`sdb`, `hemicube`), running ratios (`obscurance`), or their error includes a
 //!   bias measured at control texels stepped by time (`vpl`, `sdf`); the row says which.
-//!   Splitting them by lightmap pages waits for pages (issue 19).
+//!   No technique is split by lightmap page yet: a task bakes every page of the grid
+//!   (docs/scaling.md, "A farm model", prices what page tasks would buy).
 //!
 //! A split bake's stop rule is `stop.steps`, the job's total; `stop.seconds` bounds
 //! each task on its own (a task that runs out of time delivers fewer steps, and the

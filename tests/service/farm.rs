@@ -17,6 +17,12 @@
 //! - the task results are deleted from the store once the lightmap is stored;
 //! - the surviving processes exit 0 on SIGTERM.
 //!
+//! `cancelling_a_split_job_stops_its_tasks_within_seconds`: one worker process bakes a
+//! split job long enough that only a cancel ends it; `POST /cancel` while a task runs
+//! ends the job `cancelled` within 5 s (the running task reads the flag at its next
+//! heartbeat, at most a third of the 3 s lease, and stops within a step), the task
+//! `cancelled` and the queued ones with it.
+//!
 //! `a_job_no_worker_can_run_says_what_it_waits_for`: a job that requires a hardware GPU,
 //! with only workers that have none (this machine has lavapipe at most), stays queued and
 //! its status names what it waits for and what the live workers have; it cancels at once.
@@ -278,6 +284,61 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         "farm: 240 steps as 6 tasks on 3 workers, one SIGKILL at {:.1} s: done in {:.1} s; merged vs single {single_vs_merged:.1e}; estimate {merged_error:.4}, true {true_error:.4} (ratio {ratio:.2})",
         killed_at.as_secs_f64(),
         drained.as_secs_f64()
+    );
+    farm.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancelling_a_split_job_stops_its_tasks_within_seconds() {
+    let test = "farm::cancelling_a_split_job_stops_its_tasks_within_seconds";
+    let Some(farm) = Farm::start(test, 1).await else {
+        return;
+    };
+    let http = reqwest::Client::new();
+    let scene = farm.upload(&http).await;
+    // 3 tasks of 20 000 steps at 64²: minutes each, so only the cancel ends them.
+    let id = submit(
+        &http,
+        &farm.url,
+        json!({"scene": scene, "resolution": 64, "stop": {"steps": 60000}, "tasks": 3, "denoise": "none"}),
+    )
+    .await;
+    let job_url = format!("{}/v1/jobs/{id}", farm.url);
+    let t = Instant::now();
+    loop {
+        let j = get_json(&http, &job_url).await;
+        if j["tasks"]["list"][0]["status"] == "running" && j["tasks"]["list"][0]["steps"].as_u64().unwrap_or(0) >= 1 {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(60), "no task ever ran: {j:#}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let asked = Instant::now();
+    let r = http.post(format!("{job_url}/cancel")).send().await.unwrap();
+    assert_eq!(r.status(), 202);
+    let job = loop {
+        let j = get_json(&http, &job_url).await;
+        if j["status"] != "running" {
+            break j;
+        }
+        assert!(
+            asked.elapsed() < Duration::from_secs(5),
+            "still running 5 s after the cancel: {j:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let took = asked.elapsed();
+    assert_eq!(job["status"], "cancelled", "{job:#}");
+    let statuses: Vec<&str> = job["tasks"]["list"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t["status"].as_str().unwrap())
+        .collect();
+    assert_eq!(statuses, ["cancelled"; 4], "{job:#}");
+    eprintln!(
+        "farm: a split job cancelled {:.2} s after the request",
+        took.as_secs_f64()
     );
     farm.stop().await;
 }
