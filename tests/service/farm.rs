@@ -2,18 +2,19 @@
 //! parts: one API process (`serve --workers 0`) and three `worker` processes on one
 //! PostgreSQL schema and one S3-protocol store (moto, as `scale_out` uses).
 //!
-//! `three_workers_bake_one_job_and_survive_a_sigkill`: a `path` job of 240 steps on the
-//! Cornell box at 64² split into 6 tasks (40 steps each, sample batches keyed by the
-//! job's step numbers). Once a task has baked a few steps, its worker is killed with
-//! SIGKILL. Checks:
+//! `three_workers_bake_one_job_and_survive_a_sigkill`: a `path` job of 1200 steps on a
+//! scene of two lightmap pages (the sphere over a plane, the ground's authored page and
+//! the ball's generated one, 64² each) split into 6 tasks (200 steps each of both pages:
+//! sample batches keyed by the job's step numbers). Once a task has run for half a
+//! second, its worker is killed with SIGKILL. Checks:
 //! - the job succeeds; the killed task was taken up again by another worker after its
 //!   lease lapsed (2 attempts), every other task at its first, and the dead worker's
 //!   abandoned attempt is counted against it (`task_failures`);
-//! - the merged lightmap, downloaded through the API, equals a single-process bake of
-//!   the same job (same request, same seed) to the EXR's precision: the merge is exact,
-//!   not "another bake within noise";
+//! - both merged pages, downloaded through the API, equal the pages of a single-process
+//!   bake of the same job (same request, same seed) to 1e-6: the merge is exact, not
+//!   "another bake within noise";
 //! - the merged error estimate (from the merged halves) matches its true error, measured
-//!   against a 1200-step bake of another seed, within [0.6, 1.5];
+//!   against a 6000-step bake of another seed, within [0.6, 1.5];
 //! - the task results are deleted from the store once the lightmap is stored;
 //! - the surviving processes exit 0 on SIGTERM.
 //!
@@ -39,6 +40,8 @@ use lightmapd::engine::bake::BakeEvent;
 use lightmapd::engine::job::{self, BakeOptions};
 use lightmapd::engine::reference::{ReferenceLightmap, relative_error};
 use lightmapd::engine::scene;
+use lightmapd::engine::scene::build::{remove_lightmap_uvs, write_glb};
+use lightmapd::engine::scene::library::sphere_over_plane;
 use lightmapd::service::model::JobSpec;
 use lightmapd::service::store;
 use serde_json::{Value, json};
@@ -117,9 +120,14 @@ impl Farm {
     }
 
     async fn upload(&self, http: &reqwest::Client) -> String {
+        self.upload_glb(http, cornell_glb()).await
+    }
+
+    async fn upload_glb(&self, http: &reqwest::Client, glb: Vec<u8>) -> String {
         let r = http
             .post(format!("{}/v1/scenes", self.url))
-            .body(cornell_glb())
+            .header("content-type", "model/gltf-binary")
+            .body(glb)
             .send()
             .await
             .unwrap();
@@ -148,10 +156,15 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     };
     let started = Instant::now();
     let http = reqwest::Client::new();
-    let scene = farm.upload(&http).await;
+    // Two pages: the ground keeps its authored UVs, the ball's are generated.
+    let (mut doc, bin) = sphere_over_plane().to_gltf();
+    remove_lightmap_uvs(&mut doc, Some(&[1]));
+    let glb = write_glb(&doc, &bin);
+    let scene = farm.upload_glb(&http, glb.clone()).await;
     let body = json!({
         "scene": scene, "technique": "path", "resolution": 64, "seed": 7,
-        "stop": {"steps": 240}, "tasks": 6, "denoise": "none",
+        "lighting": {"sky": {"radiance": [1, 1, 1]}},
+        "stop": {"steps": 1200}, "tasks": 6, "denoise": "none",
     });
     let id = submit(&http, &farm.url, body.clone()).await;
     let job_url = format!("{}/v1/jobs/{id}", farm.url);
@@ -162,7 +175,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         let j = get_json(&http, &job_url).await;
         let running = j["tasks"]["list"].as_array().and_then(|l| {
             l.iter()
-                .find(|t| t["status"] == "running" && t["kind"] == "bake" && t["steps"].as_u64().unwrap_or(0) >= 4)
+                .find(|t| t["status"] == "running" && t["kind"] == "bake" && t["wall_s"].as_f64().unwrap_or(0.0) >= 0.5)
                 .cloned()
         });
         if let Some(task) = running {
@@ -209,12 +222,13 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
             assert_eq!(t["attempts"], 1, "{t}");
         }
         if k < 6 {
-            assert_eq!(t["steps"], 40, "{t}");
+            assert_eq!(t["steps"], 200, "{t}");
         }
     }
     assert_eq!(list[6]["kind"], "merge");
-    assert_eq!(job["summary"]["steps"], 240);
-    assert_eq!(job["progress"]["steps"], 240);
+    assert_eq!(job["summary"]["steps"], 1200);
+    assert_eq!(job["progress"]["steps"], 1200);
+    assert_eq!(job["summary"]["atlas"]["pages"], 2, "{job:#}");
     assert_eq!(job["history"].as_array().unwrap().len(), 1);
     // One abandoned attempt counts against the dead worker (not yet blocklisted).
     let failures: Vec<(String, i32)> = sqlx::query("SELECT worker, failures FROM task_failures WHERE job_id = $1")
@@ -234,17 +248,20 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         assert!(artifacts.get(&key).await.unwrap().is_none(), "{key} is still stored");
     }
 
-    // The merged lightmap is the single-process bake of the same job.
-    let r = http.get(format!("{job_url}/lightmap.exr")).send().await.unwrap();
-    assert_eq!(r.status(), 200);
-    let merged = ReferenceLightmap::from_pages(&[r.bytes().await.unwrap()]).unwrap();
+    // Both merged pages are the single-process bake of the same job.
+    let mut pages = Vec::new();
+    for p in 0..2 {
+        let r = http.get(format!("{job_url}/lightmap-{p}.exr")).send().await.unwrap();
+        assert_eq!(r.status(), 200, "page {p}");
+        pages.push(r.bytes().await.unwrap());
+    }
+    let merged = ReferenceLightmap::from_pages(&pages).unwrap();
     let spec = JobSpec::parse(body.to_string().as_bytes()).unwrap();
     let request = spec.to_request();
-    let cornell_path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb");
-    let cornell = Arc::new(scene::import_file(&cornell_path).unwrap().0);
+    let two_pages = Arc::new(scene::import_slice(&glb, None).unwrap().0);
     let bake = |request: &job::BakeRequest| {
         job::bake(
-            cornell.clone(),
+            two_pages.clone(),
             request,
             &BakeOptions::default(),
             &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
@@ -254,10 +271,19 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         .unwrap()
     };
     let single = bake(&request);
+    // Delivered against delivered: both pages as stored (seams stitched, gutters dilated).
+    let single_pages =
+        ReferenceLightmap::from_pages(&single.pages.iter().map(|p| &p.exr[..]).collect::<Vec<_>>()).unwrap();
     let merged_values = merged.per_texel(&single.atlas).unwrap();
-    let single_vs_merged = relative_error(&single.estimate.total, &merged_values);
+    let single_values: Vec<glam::Vec3> = single_pages
+        .per_texel(&single.atlas)
+        .unwrap()
+        .into_iter()
+        .map(|v| v.unwrap_or_default())
+        .collect();
+    let single_vs_merged = relative_error(&single_values, &merged_values);
     assert!(
-        single_vs_merged < 1e-3,
+        single_vs_merged < 1e-6,
         "merged and single bake differ by {single_vs_merged:.2e} (relative RMS)"
     );
     let single_error = single.summary.error.relative.unwrap();
@@ -267,21 +293,24 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         "merged error estimate {merged_error}, single bake's {single_error}"
     );
 
-    // The merged error estimate against the true error (a 1200-step bake of another seed).
+    // The merged error estimate against the true error (a 6000-step bake of another seed).
     let mut long = request.clone();
     long.seed = 99;
-    long.stop.steps = Some(1200);
+    long.stop.steps = Some(6000);
     let truth = bake(&long);
-    let truth_values: Vec<Option<glam::Vec3>> = truth.estimate.total.iter().map(|v| Some(*v)).collect();
-    let flat: Vec<glam::Vec3> = merged_values.iter().map(|v| v.unwrap_or_default()).collect();
-    let true_error = relative_error(&flat, &truth_values) as f32;
+    // As delivered too (the seams stitched the same way in both).
+    let truth_values = ReferenceLightmap::from_pages(&truth.pages.iter().map(|p| &p.exr[..]).collect::<Vec<_>>())
+        .unwrap()
+        .per_texel(&truth.atlas)
+        .unwrap();
+    let true_error = relative_error(&single_values, &truth_values) as f32;
     let ratio = merged_error / true_error;
     assert!(
         (0.6..=1.5).contains(&ratio),
         "merged estimate {merged_error:.4} against true {true_error:.4}: ratio {ratio:.2}"
     );
     eprintln!(
-        "farm: 240 steps as 6 tasks on 3 workers, one SIGKILL at {:.1} s: done in {:.1} s; merged vs single {single_vs_merged:.1e}; estimate {merged_error:.4}, true {true_error:.4} (ratio {ratio:.2})",
+        "farm: 1200 steps of 2 pages as 6 tasks on 3 workers, one SIGKILL at {:.1} s: done in {:.1} s; merged vs single {single_vs_merged:.1e}; estimate {merged_error:.4}, true {true_error:.4} (ratio {ratio:.2})",
         killed_at.as_secs_f64(),
         drained.as_secs_f64()
     );
