@@ -48,7 +48,7 @@ async fn fill(q: &PostgresQueue, jobs: usize) {
     let spec = JobSpec::parse(br#"{"scene": "s", "resolution": 64, "stop": {"steps": 16}}"#).unwrap();
     for i in 0..jobs {
         let r = q
-            .enqueue(&format!("j{i}"), &spec, "bench", u64::MAX, i as i64)
+            .enqueue(&format!("j{i}"), &spec, "bench", u64::MAX, 0, i as i64)
             .await
             .unwrap();
         assert!(matches!(r, Enqueued::Queued(_)));
@@ -104,7 +104,7 @@ async fn run(url: &str, claimers: usize, jobs: usize) {
     let mut running = Vec::new();
     for (w, q) in handles.iter().enumerate() {
         let id = format!("hb{w}");
-        admin.enqueue(&id, &spec, &id, 10, 0).await.unwrap();
+        admin.enqueue(&id, &spec, &id, 10, 0, 0).await.unwrap();
         let me = format!("bench-{w}");
         let job = q
             .claim(&me, &Capabilities::default(), lease, now_ms())
@@ -164,7 +164,7 @@ async fn run_tasks(url: &str, claimers: usize, jobs: usize) {
     .unwrap();
     for j in 0..10 {
         let r = admin
-            .enqueue(&format!("split{j}"), &spec, "bench", u64::MAX, j)
+            .enqueue(&format!("split{j}"), &spec, "bench", u64::MAX, 0, j)
             .await
             .unwrap();
         assert!(matches!(r, Enqueued::Queued(_)));

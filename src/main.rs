@@ -197,7 +197,7 @@ struct Tuning {
     #[arg(long, default_value_t = 256)]
     max_event_streams: usize,
     /// A job's estimated peak memory in MiB; a bigger job is refused at submission, and
-    /// by a worker whose own limit is lower.
+    /// not taken by a worker whose own limit is lower (it waits for one that covers it).
     #[arg(long, default_value_t = 8192)]
     max_job_memory_mb: u64,
     /// Time to answer a request, in seconds (an event stream's body is not limited; a

@@ -8,6 +8,10 @@
 ALTER TABLE jobs ADD COLUMN tasks INTEGER NOT NULL DEFAULT 0;
 ALTER TABLE jobs ADD COLUMN requires_gpu INTEGER NOT NULL DEFAULT 0;
 ALTER TABLE jobs ADD COLUMN requires_oidn INTEGER NOT NULL DEFAULT 0;
+-- jobs.memory_bytes: the job's estimated peak memory (`worker::job_memory`, computed at
+-- submission); a worker whose per-job limit is below it does not claim it. 0 for jobs
+-- queued before this column.
+ALTER TABLE jobs ADD COLUMN memory_bytes INTEGER NOT NULL DEFAULT 0;
 
 -- One row per task: idx 0 .. count-1 bake a range of the job's steps; idx = count is
 -- the merge, 'waiting' until every bake task has succeeded. Each task has its own

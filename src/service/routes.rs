@@ -563,7 +563,7 @@ async fn create_job(
     let id = uuid::Uuid::new_v4().to_string();
     let job = match state
         .queue
-        .enqueue(&id, &spec, &caller.client, limits.max_queued_per_client, now_ms())
+        .enqueue(&id, &spec, &caller.client, limits.max_queued_per_client, need, now_ms())
         .await?
     {
         Enqueued::Queued(job) => job,
@@ -680,12 +680,22 @@ fn waiting_for(j: &JobRecord, live: &[WorkerRecord], blocklisted: &[BlocklistEnt
     let req = j.spec.requires.unwrap_or_default();
     let able: Vec<&WorkerRecord> = live
         .iter()
-        .filter(|w| (!req.gpu || w.capabilities.gpu) && (!req.oidn || w.capabilities.oidn))
+        .filter(|w| {
+            let c = &w.capabilities;
+            (!req.gpu || c.gpu) && (!req.oidn || c.oidn) && c.memory_bytes >= j.memory_bytes
+        })
         .collect();
     if able.is_empty() {
-        let need: Vec<&str> = [
-            req.gpu.then_some("a hardware GPU (requires.gpu)"),
-            req.oidn.then_some("OIDN (requires.oidn)"),
+        let memory = format!(
+            "a per-job memory limit of at least {} MiB (the job's estimate; --max-job-memory-mb)",
+            j.memory_bytes >> 20
+        );
+        let need: Vec<String> = [
+            req.gpu.then(|| "a hardware GPU (requires.gpu)".to_string()),
+            req.oidn.then(|| "OIDN (requires.oidn)".to_string()),
+            live.iter()
+                .any(|w| w.capabilities.memory_bytes < j.memory_bytes)
+                .then_some(memory),
         ]
         .into_iter()
         .flatten()
@@ -699,12 +709,17 @@ fn waiting_for(j: &JobRecord, live: &[WorkerRecord], blocklisted: &[BlocklistEnt
                     (Some(a), Some(k)) => format!("{a}, {k}"),
                     _ => "no GPU adapter".into(),
                 };
-                format!("{} ({adapter}; OIDN {})", w.id, if c.oidn { "yes" } else { "no" })
+                format!(
+                    "{} ({adapter}; OIDN {}; {} MiB a job)",
+                    w.id,
+                    if c.oidn { "yes" } else { "no" },
+                    c.memory_bytes >> 20
+                )
             })
             .collect();
         let more = if live.len() > 4 { ", …" } else { "" };
         return Some(format!(
-            "a worker with {}: none of the {} live workers has it ({}{more})",
+            "a worker with {}: none of the {} live workers has all of it ({}{more})",
             need.join(" and "),
             live.len(),
             have.join("; ")

@@ -24,9 +24,10 @@
 //! heartbeat, at most a third of the 3 s lease, and stops within a step), the task
 //! `cancelled` and the queued ones with it.
 //!
-//! `a_job_no_worker_can_run_says_what_it_waits_for`: a job that requires a hardware GPU,
-//! with only workers that have none (this machine has lavapipe at most), stays queued and
-//! its status names what it waits for and what the live workers have; it cancels at once.
+//! `a_job_no_worker_can_run_says_what_it_waits_for`: with one worker whose per-job memory
+//! limit is 1 MiB, a job that requires a hardware GPU (this machine has lavapipe at most)
+//! and a job bigger than 1 MiB both stay queued, and each one's status names what it
+//! waits for and what the live worker has; both cancel at once.
 //!
 //! Skips (fails under `LIGHTMAPD_REQUIRE_SERVICES=1`) without PostgreSQL or the S3 server.
 
@@ -375,40 +376,82 @@ async fn cancelling_a_split_job_stops_its_tasks_within_seconds() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_job_no_worker_can_run_says_what_it_waits_for() {
     let test = "farm::a_job_no_worker_can_run_says_what_it_waits_for";
-    let Some(farm) = Farm::start(test, 1).await else {
+    let Some(mut farm) = Farm::start(test, 0).await else {
         return;
     };
+    // One worker, with a per-job memory limit of 1 MiB (the API process keeps 8 GiB).
+    let small = Command::new(bin())
+        .args([
+            "worker",
+            "--database-url",
+            &farm.db.url,
+            "--lease-seconds",
+            LEASE,
+            "--store",
+            &farm.store,
+        ])
+        .args(["--max-job-memory-mb", "1"])
+        .envs(farm.s3.env.iter().map(|(k, v)| (k, v)))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    farm.procs.0.push(small);
     let http = reqwest::Client::new();
     let scene = farm.upload(&http).await;
-    let id = submit(
+    let gpu = submit(
         &http,
         &farm.url,
         json!({"scene": scene, "resolution": 16, "stop": {"steps": 4}, "requires": {"gpu": true}}),
     )
     .await;
-    let job_url = format!("{}/v1/jobs/{id}", farm.url);
-    // Once the worker has registered (at its start), the job says why it waits.
-    let t = Instant::now();
-    let job = loop {
-        let j = get_json(&http, &job_url).await;
-        assert_eq!(j["status"], "queued", "{j:#}");
-        let w = j["waiting_for"].as_str().unwrap_or_default();
-        if w.starts_with("a worker with a hardware GPU") {
-            break j;
+    let big = submit(
+        &http,
+        &farm.url,
+        json!({"scene": scene, "resolution": 256, "stop": {"steps": 4}}),
+    )
+    .await;
+    // Once the worker has registered (at its start), each job says why it waits.
+    let waiting = |id: String| {
+        let (http, url) = (http.clone(), format!("{}/v1/jobs/{id}", farm.url));
+        async move {
+            let t = Instant::now();
+            loop {
+                let j = get_json(&http, &url).await;
+                assert_eq!(j["status"], "queued", "{j:#}");
+                let w = j["waiting_for"].as_str().unwrap_or_default().to_string();
+                if w.starts_with("a worker with ") {
+                    return w;
+                }
+                assert!(t.elapsed() < Duration::from_secs(30), "{j:#}");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
         }
-        assert!(t.elapsed() < Duration::from_secs(30), "{j:#}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
     };
-    let w = job["waiting_for"].as_str().unwrap();
+    let w = waiting(gpu.clone()).await;
     assert!(
-        w.starts_with("a worker with a hardware GPU (requires.gpu): none of the 1 live workers has it ("),
+        // Both are missing: the GPU, and the memory (even a 16² job's estimate, about 65 MiB,
+        // is over 1 MiB).
+        w.starts_with("a worker with a hardware GPU (requires.gpu) and a per-job memory limit of at least ")
+            && w.contains(": none of the 1 live workers has all of it ("),
         "{w}"
     );
-    // Still queued a while later: no worker took it.
+    assert!(w.ends_with("; 1 MiB a job))"), "{w}");
+    let w = waiting(big.clone()).await;
+    assert!(
+        w.starts_with("a worker with a per-job memory limit of at least ")
+            && w.contains(" MiB (the job's estimate; --max-job-memory-mb): none of the 1 live workers has all of it ("),
+        "{w}"
+    );
+    // Still queued a while later: the worker took neither (it would have failed the big
+    // one for its memory before requirements were claims' filters).
     tokio::time::sleep(Duration::from_secs(2)).await;
-    assert_eq!(get_json(&http, &job_url).await["status"], "queued");
-    let r = http.post(format!("{job_url}/cancel")).send().await.unwrap();
-    assert_eq!(r.status(), 202);
-    assert_eq!(r.json::<Value>().await.unwrap()["status"], "cancelled");
+    for id in [&gpu, &big] {
+        let url = format!("{}/v1/jobs/{id}", farm.url);
+        assert_eq!(get_json(&http, &url).await["status"], "queued");
+        let r = http.post(format!("{url}/cancel")).send().await.unwrap();
+        assert_eq!(r.status(), 202);
+        assert_eq!(r.json::<Value>().await.unwrap()["status"], "cancelled");
+    }
     farm.stop().await;
 }

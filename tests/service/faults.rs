@@ -343,9 +343,17 @@ impl Queue for DroppedDb {
         self.check()?;
         self.inner.delete_scene(id).await
     }
-    async fn enqueue(&self, id: &str, spec: &JobSpec, client: &str, max: u64, now: i64) -> QueueResult<Enqueued> {
+    async fn enqueue(
+        &self,
+        id: &str,
+        spec: &JobSpec,
+        client: &str,
+        max: u64,
+        memory: u64,
+        now: i64,
+    ) -> QueueResult<Enqueued> {
         self.check()?;
-        self.inner.enqueue(id, spec, client, max, now).await
+        self.inner.enqueue(id, spec, client, max, memory, now).await
     }
     async fn job(&self, id: &str) -> QueueResult<Option<JobRecord>> {
         self.check()?;

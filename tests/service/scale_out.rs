@@ -290,7 +290,7 @@ async fn worker_sigterm_hands_the_job_back() {
     assert!(db.queue.insert_scene(&scene).await.unwrap());
     let mut procs = Children(vec![spawn_worker(&db.url, store.to_str().unwrap(), &[], "30")]);
     let spec = JobSpec::parse(br#"{"scene": "s", "resolution": 16, "stop": {"seconds": 30}}"#).unwrap();
-    let queued = db.queue.enqueue("j", &spec, "test", 10, 1).await.unwrap();
+    let queued = db.queue.enqueue("j", &spec, "test", 10, 0, 1).await.unwrap();
     assert!(matches!(queued, Enqueued::Queued(_)));
 
     let t = Instant::now();

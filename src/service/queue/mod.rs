@@ -280,6 +280,9 @@ pub struct JobRecord {
     pub client: Option<String>,
     /// Bake tasks it is split into; 0 when it is not split.
     pub tasks: u32,
+    /// Its estimated peak memory (0: not known); only workers whose per-job limit is at
+    /// least this claim it.
+    pub memory_bytes: u64,
 }
 
 /// The answer to [`Queue::enqueue`].
@@ -423,8 +426,16 @@ pub trait Queue: Send + Sync + 'static {
 
     /// Stores a queued job for `client`, unless its scene does not exist or the client
     /// already has `max_queued` queued jobs (checked in the same statement).
-    async fn enqueue(&self, id: &str, spec: &JobSpec, client: &str, max_queued: u64, now: i64)
-    -> QueueResult<Enqueued>;
+    /// `memory_bytes`: its estimated peak memory (`worker::job_memory`; 0 if unknown).
+    async fn enqueue(
+        &self,
+        id: &str,
+        spec: &JobSpec,
+        client: &str,
+        max_queued: u64,
+        memory_bytes: u64,
+        now: i64,
+    ) -> QueueResult<Enqueued>;
     async fn job(&self, id: &str) -> QueueResult<Option<JobRecord>>;
     /// Newest first; only `client`'s jobs when it is given.
     async fn list(
@@ -438,7 +449,7 @@ pub trait Queue: Send + Sync + 'static {
     async fn cancel(&self, id: &str, now: i64) -> QueueResult<Cancellation>;
 
     /// Takes the next queued job that is not split (highest priority, then oldest) and
-    /// whose `requires` `caps` meets, for `worker`.
+    /// whose `requires` and estimated memory `caps` meets, for `worker`.
     async fn claim(
         &self,
         worker: &str,

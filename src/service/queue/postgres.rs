@@ -232,6 +232,7 @@ fn job_from_row(row: &PgRow) -> QueueResult<JobRecord> {
         updated_at: row.try_get("updated_at")?,
         client: row.try_get("client")?,
         tasks: row.try_get::<i32, _>("tasks")?.max(0) as u32,
+        memory_bytes: row.try_get::<i64, _>("memory_bytes")?.max(0) as u64,
     })
 }
 
@@ -615,6 +616,7 @@ impl Queue for PostgresQueue {
         spec: &JobSpec,
         client: &str,
         max_queued: u64,
+        memory_bytes: u64,
         now: i64,
     ) -> QueueResult<Enqueued> {
         let mut tx = self.pool.begin().await?;
@@ -642,8 +644,8 @@ impl Queue for PostgresQueue {
         let requires = spec.requires.unwrap_or_default();
         let row = sqlx::query(
             "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client, tasks,
-                               requires_gpu, requires_oidn)
-             VALUES ($1, $2, $3, 'queued', $4, $5, $5, $6, $7, $8, $9)
+                               requires_gpu, requires_oidn, memory_bytes)
+             VALUES ($1, $2, $3, 'queued', $4, $5, $5, $6, $7, $8, $9, $10)
              RETURNING *",
         )
         .bind(id)
@@ -655,6 +657,7 @@ impl Queue for PostgresQueue {
         .bind(tasks as i32)
         .bind(requires.gpu)
         .bind(requires.oidn)
+        .bind(clamp_i64(memory_bytes))
         .fetch_one(&mut *tx)
         .await?;
         if tasks > 0 {
@@ -789,7 +792,7 @@ impl Queue for PostgresQueue {
             "UPDATE jobs SET status = 'running', worker = $1, attempts = attempts + 1, lease_expires_at = $2,
                  started_at = $3, updated_at = $3, progress = NULL, history = '[]', plan = NULL
              WHERE id = (SELECT id FROM jobs WHERE status = 'queued' AND tasks = 0
-                           AND (NOT requires_gpu OR $4) AND (NOT requires_oidn OR $5)
+                           AND (NOT requires_gpu OR $4) AND (NOT requires_oidn OR $5) AND memory_bytes <= $6
                          ORDER BY priority DESC, created_at, seq LIMIT 1
                          FOR UPDATE SKIP LOCKED)
              RETURNING *",
@@ -799,6 +802,7 @@ impl Queue for PostgresQueue {
         .bind(now)
         .bind(caps.gpu)
         .bind(caps.oidn)
+        .bind(clamp_i64(caps.memory_bytes))
         .fetch_optional(&self.pool)
         .await?;
         row.as_ref().map(job_from_row).transpose()
@@ -816,7 +820,7 @@ impl Queue for PostgresQueue {
             let pick: Option<(String, i32)> = sqlx::query_as(
                 "SELECT t.job_id, t.idx FROM tasks t JOIN jobs j ON j.id = t.job_id
                  WHERE t.status = 'queued' AND j.status IN ('queued', 'running') AND NOT j.cancel_requested
-                   AND (NOT j.requires_gpu OR $2) AND (NOT j.requires_oidn OR $3)
+                   AND (NOT j.requires_gpu OR $2) AND (NOT j.requires_oidn OR $3) AND j.memory_bytes <= $5
                    AND NOT EXISTS (SELECT 1 FROM task_failures f
                                    WHERE f.job_id = t.job_id AND f.worker = $1 AND f.failures >= $4)
                  ORDER BY j.priority DESC, j.created_at, j.seq, t.idx LIMIT 1
@@ -826,6 +830,7 @@ impl Queue for PostgresQueue {
             .bind(caps.gpu)
             .bind(caps.oidn)
             .bind(BLOCKLIST_AFTER as i32)
+            .bind(clamp_i64(caps.memory_bytes))
             .fetch_optional(&mut *tx)
             .await?;
             let Some((job_id, idx)) = pick else {

@@ -114,6 +114,7 @@ fn job_from_row(row: &SqliteRow) -> QueueResult<JobRecord> {
         updated_at: row.try_get("updated_at")?,
         client: row.try_get("client")?,
         tasks: row.try_get::<i64, _>("tasks")? as u32,
+        memory_bytes: row.try_get::<i64, _>("memory_bytes")?.max(0) as u64,
     })
 }
 
@@ -427,6 +428,7 @@ impl Queue for SqliteQueue {
         spec: &JobSpec,
         client: &str,
         max_queued: u64,
+        memory_bytes: u64,
         now: i64,
     ) -> QueueResult<Enqueued> {
         // One statement: the scene check, the client's queue length and the insert
@@ -437,8 +439,8 @@ impl Queue for SqliteQueue {
         let mut tx = write_tx(&self.pool).await?;
         let row = sqlx::query(
             "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client, tasks,
-                               requires_gpu, requires_oidn)
-             SELECT ?1, ?2, ?3, 'queued', ?4, ?5, ?5, ?6, ?8, ?9, ?10
+                               requires_gpu, requires_oidn, memory_bytes)
+             SELECT ?1, ?2, ?3, 'queued', ?4, ?5, ?5, ?6, ?8, ?9, ?10, ?11
              WHERE EXISTS (SELECT 1 FROM scenes WHERE id = ?2)
                AND (SELECT COUNT(*) FROM jobs WHERE client = ?6 AND status = 'queued') < ?7
              RETURNING *",
@@ -453,6 +455,7 @@ impl Queue for SqliteQueue {
         .bind(i64::from(tasks))
         .bind(requires.gpu)
         .bind(requires.oidn)
+        .bind(i64::try_from(memory_bytes).unwrap_or(i64::MAX))
         .fetch_optional(&mut *tx)
         .await?;
         if row.is_some() && tasks > 0 {
@@ -596,7 +599,7 @@ impl Queue for SqliteQueue {
             "UPDATE jobs SET status = 'running', worker = ?1, attempts = attempts + 1, lease_expires_at = ?2,
                  started_at = ?3, updated_at = ?3, progress = NULL, history = '[]', plan = NULL
              WHERE id = (SELECT id FROM jobs WHERE status = 'queued' AND tasks = 0
-                           AND (requires_gpu = 0 OR ?4) AND (requires_oidn = 0 OR ?5)
+                           AND (requires_gpu = 0 OR ?4) AND (requires_oidn = 0 OR ?5) AND memory_bytes <= ?6
                          ORDER BY priority DESC, created_at, rowid LIMIT 1)
              RETURNING *",
         )
@@ -605,6 +608,7 @@ impl Queue for SqliteQueue {
         .bind(now)
         .bind(caps.gpu)
         .bind(caps.oidn)
+        .bind(i64::try_from(caps.memory_bytes).unwrap_or(i64::MAX))
         .fetch_optional(&self.pool)
         .await?;
         row.as_ref().map(job_from_row).transpose()
@@ -626,6 +630,7 @@ impl Queue for SqliteQueue {
                             WHERE t.status = 'queued' AND j.status IN ('queued', 'running')
                               AND j.cancel_requested = 0
                               AND (j.requires_gpu = 0 OR ?4) AND (j.requires_oidn = 0 OR ?5)
+                              AND j.memory_bytes <= ?7
                               AND NOT EXISTS (SELECT 1 FROM task_failures f
                                               WHERE f.job_id = t.job_id AND f.worker = ?1 AND f.failures >= ?6)
                             ORDER BY j.priority DESC, j.created_at, j.rowid, t.idx LIMIT 1)
@@ -637,6 +642,7 @@ impl Queue for SqliteQueue {
         .bind(caps.gpu)
         .bind(caps.oidn)
         .bind(i64::from(BLOCKLIST_AFTER))
+        .bind(i64::try_from(caps.memory_bytes).unwrap_or(i64::MAX))
         .fetch_optional(&mut *tx)
         .await?;
         let Some(row) = row else {

@@ -122,7 +122,7 @@ fn split_spec(tasks: u32, steps: u64, extra: &str) -> JobSpec {
 
 async fn enqueue_ok(q: &dyn Queue, id: &str, spec: &JobSpec, at: i64) {
     assert!(matches!(
-        q.enqueue(id, spec, "c", 100, at).await.unwrap(),
+        q.enqueue(id, spec, "c", 100, 0, at).await.unwrap(),
         Enqueued::Queued(_)
     ));
 }
@@ -387,6 +387,32 @@ async fn claims_meet_the_jobs_requirements(f: &Fixture) {
     };
     let (t, j) = q.claim_task("oidn", &with_oidn, lease, 20).await.unwrap().unwrap();
     assert_eq!((j.id.as_str(), t.index), ("o", 0));
+    // A job's estimated memory: only workers whose per-job limit covers it claim it (or
+    // its tasks).
+    let gib = 1u64 << 30;
+    assert!(matches!(
+        q.enqueue("m", &spec("s"), "c", 100, 2 * gib, 30).await.unwrap(),
+        Enqueued::Queued(_)
+    ));
+    assert!(matches!(
+        q.enqueue("mt", &split_spec(2, 8, ""), "c", 100, 2 * gib, 31)
+            .await
+            .unwrap(),
+        Enqueued::Queued(_)
+    ));
+    let small = Capabilities {
+        memory_bytes: gib,
+        ..Capabilities::default()
+    };
+    let big = Capabilities {
+        memory_bytes: 4 * gib,
+        ..Capabilities::default()
+    };
+    assert!(q.claim("small", &small, lease, 40).await.unwrap().is_none());
+    assert!(q.claim_task("small", &small, lease, 40).await.unwrap().is_none());
+    let m = q.claim("big", &big, lease, 40).await.unwrap().unwrap();
+    assert_eq!((m.id.as_str(), m.memory_bytes), ("m", 2 * gib));
+    assert_eq!(q.claim_task("big", &big, lease, 40).await.unwrap().unwrap().1.id, "mt");
     // Workers register what they have; `workers` lists those seen since a time.
     let caps = Capabilities {
         gpu: true,
@@ -409,7 +435,7 @@ async fn finished_jobs_are_deleted_and_found_by_age(f: &Fixture) {
     with_scene(q).await;
     for (id, at) in [("old", 10), ("new", 20), ("running", 30)] {
         assert!(matches!(
-            q.enqueue(id, &spec("s"), "c", 100, at).await.unwrap(),
+            q.enqueue(id, &spec("s"), "c", 100, 0, at).await.unwrap(),
             Enqueued::Queued(_)
         ));
     }
@@ -480,7 +506,7 @@ async fn with_scene(q: &dyn Queue) {
 }
 
 async fn enqueue(q: &dyn Queue, id: &str, spec: &JobSpec, now: i64) {
-    let r = q.enqueue(id, spec, "c", 1000, now).await.unwrap();
+    let r = q.enqueue(id, spec, "c", 1000, 0, now).await.unwrap();
     assert!(matches!(r, Enqueued::Queued(_)), "{r:?}");
 }
 
@@ -488,16 +514,16 @@ async fn per_client_queue_limit_and_tokens(f: &Fixture) {
     let q = &*f.queue;
     with_scene(q).await;
     for i in 0..2 {
-        let r = q.enqueue(&format!("a{i}"), &spec("s"), "alice", 2, 0).await.unwrap();
+        let r = q.enqueue(&format!("a{i}"), &spec("s"), "alice", 2, 0, 0).await.unwrap();
         assert!(matches!(r, Enqueued::Queued(_)));
     }
     assert!(matches!(
-        q.enqueue("a2", &spec("s"), "alice", 2, 0).await.unwrap(),
+        q.enqueue("a2", &spec("s"), "alice", 2, 0, 0).await.unwrap(),
         Enqueued::QueueFull(2)
     ));
     // Another client is not held back by alice's queue.
     assert!(matches!(
-        q.enqueue("b0", &spec("s"), "bob", 2, 0).await.unwrap(),
+        q.enqueue("b0", &spec("s"), "bob", 2, 0, 0).await.unwrap(),
         Enqueued::Queued(_)
     ));
     // A running job no longer counts as queued.
@@ -509,7 +535,7 @@ async fn per_client_queue_limit_and_tokens(f: &Fixture) {
     assert_eq!((alice.len(), total), (2, 2));
     assert!(alice.iter().all(|j| j.client.as_deref() == Some("alice")));
     assert!(matches!(
-        q.enqueue("a2", &spec("s"), "alice", 2, 0).await.unwrap(),
+        q.enqueue("a2", &spec("s"), "alice", 2, 0, 0).await.unwrap(),
         Enqueued::Queued(_)
     ));
 
@@ -579,7 +605,7 @@ async fn release_does_not_count_the_attempt_and_scene_in_use_is_kept(f: &Fixture
     let q = &*f.queue;
     with_scene(q).await;
     assert!(matches!(
-        q.enqueue("j", &spec("missing"), "c", 10, 0).await.unwrap(),
+        q.enqueue("j", &spec("missing"), "c", 10, 0, 0).await.unwrap(),
         Enqueued::NoScene
     ));
     enqueue(q, "j", &spec("s"), 0).await;
@@ -599,7 +625,7 @@ async fn release_does_not_count_the_attempt_and_scene_in_use_is_kept(f: &Fixture
     assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::Deleted);
     assert_eq!(q.delete_scene("s").await.unwrap(), SceneDeletion::NotFound);
     assert!(matches!(
-        q.enqueue("k", &spec("s"), "c", 10, 4).await.unwrap(),
+        q.enqueue("k", &spec("s"), "c", 10, 0, 4).await.unwrap(),
         Enqueued::NoScene
     ));
 }
@@ -687,7 +713,7 @@ async fn concurrent_submissions_never_overshoot_the_client_limit(f: &Fixture) {
     for i in 0..16 {
         let q = handles[i % 2].clone();
         tasks.push(tokio::spawn(async move {
-            q.enqueue(&format!("e{i}"), &spec("s"), "eve", LIMIT, i as i64)
+            q.enqueue(&format!("e{i}"), &spec("s"), "eve", LIMIT, 0, i as i64)
                 .await
                 .unwrap()
         }));
