@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use crate::service_common::get_json;
 use futures_util::StreamExt;
 use lightmapd::engine::technique::TECHNIQUES;
 use lightmapd::service::{self, Config, Running};
@@ -101,12 +102,6 @@ impl Server {
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
     }
-}
-
-async fn get_json(http: &reqwest::Client, url: &str) -> Value {
-    let r = http.get(url).send().await.unwrap();
-    assert!(r.status().is_success(), "GET {url}: {}", r.status());
-    r.json().await.unwrap()
 }
 
 /// Reads server-sent events until a terminal one; returns (name, data) in order.

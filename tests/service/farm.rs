@@ -33,7 +33,6 @@
 
 use crate::service_common;
 
-use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -46,41 +45,9 @@ use lightmapd::engine::scene::library::sphere_over_plane;
 use lightmapd::service::model::JobSpec;
 use lightmapd::service::store;
 use serde_json::{Value, json};
-use service_common::pg::{Children, Db, signal, wait_exit};
-use service_common::{S3, bin, cornell_glb, spawn_serve_env, submit};
+use service_common::pg::{Children, Db, signal, spawn_pg_worker, wait_exit, worker_pid};
+use service_common::{S3, cornell_glb, get_json, spawn_serve_env, submit};
 use sqlx::Row;
-
-fn spawn_worker(db: &str, store: &str, env: &[(&str, String)], lease_s: &str) -> Child {
-    Command::new(bin())
-        .args([
-            "worker",
-            "--database-url",
-            db,
-            "--lease-seconds",
-            lease_s,
-            "--store",
-            store,
-        ])
-        .envs(env.iter().map(|(k, v)| (k, v)))
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap()
-}
-
-/// The process id inside a worker name (`HOST-PID-INSTANCE-N`, `service::worker`).
-fn worker_pid(worker: &str) -> u32 {
-    let parts: Vec<&str> = worker.rsplitn(4, '-').collect();
-    parts[2]
-        .parse()
-        .unwrap_or_else(|_| panic!("no pid in worker name {worker:?}"))
-}
-
-async fn get_json(http: &reqwest::Client, url: &str) -> Value {
-    let r = http.get(url).send().await.unwrap();
-    assert!(r.status().is_success(), "GET {url}: {}", r.status());
-    r.json().await.unwrap()
-}
 
 /// One API process and `workers` worker processes on a fresh schema and store prefix.
 struct Farm {
@@ -108,7 +75,7 @@ impl Farm {
         );
         let mut procs = Children(vec![api]);
         for _ in 0..workers {
-            procs.0.push(spawn_worker(&db.url, &store, &s3.env, LEASE));
+            procs.0.push(spawn_pg_worker(&db.url, &store, &s3.env, LEASE, &[]));
         }
         Some(Farm {
             db,
@@ -380,22 +347,13 @@ async fn a_job_no_worker_can_run_says_what_it_waits_for() {
         return;
     };
     // One worker, with a per-job memory limit of 1 MiB (the API process keeps 8 GiB).
-    let small = Command::new(bin())
-        .args([
-            "worker",
-            "--database-url",
-            &farm.db.url,
-            "--lease-seconds",
-            LEASE,
-            "--store",
-            &farm.store,
-        ])
-        .args(["--max-job-memory-mb", "1"])
-        .envs(farm.s3.env.iter().map(|(k, v)| (k, v)))
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let small = spawn_pg_worker(
+        &farm.db.url,
+        &farm.store,
+        &farm.s3.env,
+        LEASE,
+        &["--max-job-memory-mb", "1"],
+    );
     farm.procs.0.push(small);
     let http = reqwest::Client::new();
     let scene = farm.upload(&http).await;

@@ -31,7 +31,6 @@
 use crate::service_common;
 
 use std::collections::HashMap;
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use lightmapd::service::model::JobSpec;
@@ -39,34 +38,9 @@ use lightmapd::service::model::JobSpec;
 use lightmapd::service::queue::{Enqueued, Queue, SceneRecord};
 use lightmapd::service::store::{self, Artifacts};
 use serde_json::{Value, json};
-use service_common::pg::{AUDIT, Children, Db, signal, wait_exit};
-use service_common::{S3, bin, cornell_glb, exr_is_whole, spawn_serve_env, submit};
+use service_common::pg::{AUDIT, Children, Db, signal, spawn_pg_worker, wait_exit, worker_pid};
+use service_common::{S3, cornell_glb, exr_is_whole, get_json, spawn_serve_env, submit};
 use sqlx::Row;
-
-fn spawn_worker(db: &str, store: &str, env: &[(&str, String)], lease_s: &str) -> Child {
-    Command::new(bin())
-        .args(["worker", "--database-url", db, "--lease-seconds", lease_s])
-        .args(["--snapshot-interval-s", "60", "--store", store])
-        .envs(env.iter().map(|(k, v)| (k, v)))
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap()
-}
-
-/// The process id inside a worker name (`HOST-PID-INSTANCE-N`, `service::worker`).
-fn worker_pid(worker: &str) -> u32 {
-    let parts: Vec<&str> = worker.rsplitn(4, '-').collect();
-    parts[2]
-        .parse()
-        .unwrap_or_else(|_| panic!("no pid in worker name {worker:?}"))
-}
-
-async fn get_json(http: &reqwest::Client, url: &str) -> Value {
-    let r = http.get(url).send().await.unwrap();
-    assert!(r.status().is_success(), "GET {url}: {}", r.status());
-    r.json().await.unwrap()
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_api_three_workers_survive_two_sigkills() {
@@ -103,7 +77,13 @@ async fn one_api_three_workers_survive_two_sigkills() {
     );
     let mut procs = Children(vec![api]);
     for _ in 0..3 {
-        procs.0.push(spawn_worker(&db.url, &store, &s3.env, lease));
+        procs.0.push(spawn_pg_worker(
+            &db.url,
+            &store,
+            &s3.env,
+            lease,
+            &["--snapshot-interval-s", "60"],
+        ));
     }
     let http = reqwest::Client::new();
     let r = http
@@ -161,7 +141,13 @@ async fn one_api_three_workers_survive_two_sigkills() {
         victim.kill().unwrap(); // SIGKILL
         victim.wait().unwrap();
         killed.insert(job, worker);
-        procs.0.push(spawn_worker(&db.url, &store, &s3.env, lease));
+        procs.0.push(spawn_pg_worker(
+            &db.url,
+            &store,
+            &s3.env,
+            lease,
+            &["--snapshot-interval-s", "60"],
+        ));
     }
 
     // Every job ends; none fails.
@@ -288,7 +274,13 @@ async fn worker_sigterm_hands_the_job_back() {
         client: None,
     };
     assert!(db.queue.insert_scene(&scene).await.unwrap());
-    let mut procs = Children(vec![spawn_worker(&db.url, store.to_str().unwrap(), &[], "30")]);
+    let mut procs = Children(vec![spawn_pg_worker(
+        &db.url,
+        store.to_str().unwrap(),
+        &[],
+        "30",
+        &["--snapshot-interval-s", "60"],
+    )]);
     let spec = JobSpec::parse(br#"{"scene": "s", "resolution": 16, "stop": {"seconds": 30}}"#).unwrap();
     let queued = db.queue.enqueue("j", &spec, "test", 10, 0, 1).await.unwrap();
     assert!(matches!(queued, Enqueued::Queued(_)));

@@ -106,3 +106,32 @@ pub const AUDIT: &[&str] = &[
     "CREATE TRIGGER audit AFTER UPDATE OF status ON jobs FOR EACH ROW
          WHEN (OLD.status IS DISTINCT FROM NEW.status) EXECUTE FUNCTION audit_jobs()",
 ];
+
+/// A `worker` process on PostgreSQL `db` and artifact store `store` with a lease of
+/// `lease_s` seconds, `env` (the S3 server's credentials) and `extra` arguments.
+pub fn spawn_pg_worker(db: &str, store: &str, env: &[(&str, String)], lease_s: &str, extra: &[&str]) -> Child {
+    std::process::Command::new(super::bin())
+        .args([
+            "worker",
+            "--database-url",
+            db,
+            "--lease-seconds",
+            lease_s,
+            "--store",
+            store,
+        ])
+        .args(extra)
+        .envs(env.iter().map(|(k, v)| (k, v)))
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+/// The process id inside a worker name (`HOST-PID-INSTANCE-N`, `service::worker`).
+pub fn worker_pid(worker: &str) -> u32 {
+    let parts: Vec<&str> = worker.rsplitn(4, '-').collect();
+    parts[2]
+        .parse()
+        .unwrap_or_else(|_| panic!("no pid in worker name {worker:?}"))
+}
