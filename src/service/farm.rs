@@ -288,7 +288,7 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
     }))
 }
 
-/// Why the task results could not be read.
+/// Every bake task's stored result, in task order.
 async fn load_partials(state: &AppState, job: &JobRecord, count: u32) -> Result<Vec<Bytes>, LoadError> {
     let mut out = Vec::with_capacity(count as usize);
     for k in 0..count {

@@ -219,6 +219,36 @@ pub enum TaskOutcome {
     Cancelled,
 }
 
+/// How a job's failure names one of its tasks: `task K of N`, or `the merge`.
+fn task_label(index: i64, count: i64) -> String {
+    if index == count {
+        "the merge".to_string()
+    } else {
+        format!("task {index} of {count}")
+    }
+}
+
+/// The failure of a split job whose task's lease lapsed [`MAX_ATTEMPTS`] times (both
+/// stores' recoveries write it).
+pub(crate) fn lease_given_up(index: i64, count: i64, worker: Option<&str>) -> String {
+    format!(
+        "{} was given up after {MAX_ATTEMPTS} attempts: the lease of worker {} expired (the worker stopped renewing it: crashed, killed or cut off)",
+        task_label(index, count),
+        worker.unwrap_or("?")
+    )
+}
+
+/// The failure of a split job whose task failed for good: bad input (`retry` false) at
+/// once, anything else at its last attempt (both stores' `finish_task` write it).
+pub(crate) fn task_failed(index: i64, count: i64, attempts: i64, worker: &str, reason: &str, retry: bool) -> String {
+    let what = task_label(index, count);
+    if retry {
+        format!("{what} failed {attempts} times; the last time on worker {worker}: {reason}")
+    } else {
+        format!("{what} failed: {reason}")
+    }
+}
+
 /// The progress of a split job from its bake tasks' (steps, error): steps added up; the
 /// error of the step-weighted mean of independent estimates,
 /// `sqrt(Σ (s_k/S)² e_k²)` (each task's error is its own halves' difference, DESIGN §4,

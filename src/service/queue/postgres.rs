@@ -76,7 +76,7 @@ use tokio::task::JoinHandle;
 use super::{
     BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
     Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
-    TaskStatus, TokenRecord, WorkerRecord, merged_progress,
+    TaskStatus, TokenRecord, WorkerRecord, lease_given_up, merged_progress, task_failed,
 };
 use crate::service::model::{JobSpec, JobStatus};
 use crate::service::{Hub, shutting_down};
@@ -433,15 +433,7 @@ async fn recover_tasks(c: &mut PgConnection, now: i64) -> QueueResult<(Vec<(Stri
                 .bind(now)
                 .execute(&mut *c)
                 .await?;
-                let what = if idx == count {
-                    "the merge".to_string()
-                } else {
-                    format!("task {idx} of {count}")
-                };
-                let why = format!(
-                    "{what} was given up after {MAX_ATTEMPTS} attempts: the lease of worker {} expired (the worker stopped renewing it: crashed, killed or cut off)",
-                    worker.as_deref().unwrap_or("?")
-                );
+                let why = lease_given_up(i64::from(idx), i64::from(count), worker.as_deref());
                 if fail_split_job(c, &job, &why, now).await? {
                     failed.push(job.clone());
                 }
@@ -1008,21 +1000,19 @@ impl Queue for PostgresQueue {
             }
             TaskOutcome::Failed { reason, retry } => {
                 count_failure(&mut tx, job, worker, reason, now).await?;
-                let what = if index as i32 == count {
-                    "the merge".to_string()
-                } else {
-                    format!("task {index} of {count}")
-                };
                 if *retry && attempts < MAX_ATTEMPTS as i32 {
                     set("queued").bind(Some(reason.clone())).execute(&mut *tx).await?;
                     settle_cancel(&mut tx, job, now).await?;
                 } else {
                     set("failed").bind(Some(reason.clone())).execute(&mut *tx).await?;
-                    let why = if *retry {
-                        format!("{what} failed {attempts} times; the last time on worker {worker}: {reason}")
-                    } else {
-                        format!("{what} failed: {reason}")
-                    };
+                    let why = task_failed(
+                        i64::from(index),
+                        i64::from(count),
+                        i64::from(attempts),
+                        worker,
+                        reason,
+                        *retry,
+                    );
                     fail_split_job(&mut tx, job, &why, now).await?;
                 }
             }
