@@ -438,6 +438,11 @@ struct BakeArgs {
     /// (docs/scaling.md). Every task takes the same options.
     #[arg(long, value_parser = parse_task)]
     task: Option<(u32, u32)>,
+    /// With --task: the N tasks are R regions of the grid (its pages when R is at most the
+    /// page count, else bands of rows with equal texel counts), each baked as N / R step
+    /// ranges; task K bakes region K / (N / R). Only `path` splits by regions.
+    #[arg(long, requires = "task", value_parser = clap::value_parser!(u32).range(1..))]
+    regions: Option<u32>,
 }
 
 fn parse_task(s: &str) -> Result<(u32, u32), String> {
@@ -1274,7 +1279,11 @@ fn bake_task(
     if let Some((_, flag)) = elsewhere.iter().find(|(given, _)| *given) {
         return Err(bad_input(format!("--task: {flag} is not for a task of a split bake")));
     }
-    let tasks = tasks::split(request, n).map_err(engine_failure)?;
+    let shape = tasks::TaskShape {
+        tasks: n,
+        regions: args.regions.unwrap_or(1),
+    };
+    let tasks = tasks::split(request, shape).map_err(engine_failure)?;
     let task = tasks[k as usize];
     bar.set_length(task.steps);
     let partial = tasks::bake_task(
@@ -1294,8 +1303,13 @@ fn bake_task(
         message: format!("cannot write {}: {e}", args.output.display()),
     })?;
     let h = &partial.header;
+    let region = if task.regions > 1 {
+        format!(", region {}/{} ({} texels)", task.region, task.regions, h.texels)
+    } else {
+        String::new()
+    };
     eprintln!(
-        "baked task {k}/{n} of {}: steps {}..{} ({} steps in {:.2} s, stopped by {:?}) -> {}",
+        "baked task {k}/{n} of {}{region}: steps {}..{} ({} steps in {:.2} s, stopped by {:?}) -> {}",
         args.scene.display(),
         task.first_step,
         task.first_step + h.half_steps[0] + h.half_steps[1],

@@ -1,8 +1,10 @@
 //! A bake split into tasks (issue 25, `engine::tasks`): the merged tasks are the single
 //! bake, not another bake within noise. `path` on the CPU and on the GPU (lavapipe in
-//! CI): every half, layer and the error estimate of three merged tasks equal the whole
-//! bake's to float rounding; the command line does the same with three processes at
-//! once; and the merge refuses what is not every task of one request on this scene.
+//! CI): every half, layer and the error estimate of three merged step ranges equal the
+//! whole bake's to float rounding; split by regions (the pages of a two-page scene, or
+//! tiles of one page) they equal it bit for bit on the CPU, and to rounding combined
+//! with step ranges and on the GPU; the command line does the same with three processes
+//! at once; and the merge refuses what is not every task of one request on this scene.
 
 mod common;
 
@@ -17,8 +19,10 @@ use lightmapd::engine::bake::{BakeEvent, StopCriteria};
 use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
 use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::post::denoised::Denoiser;
-use lightmapd::engine::scene::{self, Scene};
-use lightmapd::engine::tasks::{self, Partial};
+use lightmapd::engine::scene::build::{remove_lightmap_uvs, write_glb};
+use lightmapd::engine::scene::library::sphere_over_plane;
+use lightmapd::engine::scene::{self, Hemisphere, Scene, Sky};
+use lightmapd::engine::tasks::{self, Partial, TaskShape};
 
 fn cornell() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb")
@@ -45,8 +49,8 @@ fn request(device: &str, steps: u64) -> BakeRequest {
     }
 }
 
-fn bake_tasks(scene: &Arc<Scene>, request: &BakeRequest, count: u32) -> Vec<Partial> {
-    tasks::split(request, count)
+fn bake_tasks(scene: &Arc<Scene>, request: &BakeRequest, shape: TaskShape) -> Vec<Partial> {
+    tasks::split(request, shape)
         .unwrap()
         .into_iter()
         .map(|t| {
@@ -121,7 +125,7 @@ fn whole(scene: &Arc<Scene>, request: &BakeRequest) -> Estimate {
 fn three_cpu_tasks_merge_to_the_single_bake() {
     let scene = scene();
     let request = request("cpu", 9);
-    let parts = bake_tasks(&scene, &request, 3);
+    let parts = bake_tasks(&scene, &request, TaskShape::steps(3));
     assert_eq!(parts.iter().map(|p| p.header.task.steps).collect::<Vec<_>>(), [4, 2, 3]);
     let merged = tasks::merge(scene.clone(), &parts, &BakeOptions::default(), &mut |_| {}).unwrap();
     assert_eq!(merged.summary.steps, 9);
@@ -133,6 +137,72 @@ fn three_cpu_tasks_merge_to_the_single_bake() {
     assert_eq!(again.estimate.total, merged.estimate.total);
 }
 
+fn sky() -> Sky {
+    Sky {
+        radiance: Vec3::ONE,
+        hemisphere: Hemisphere::Upper,
+    }
+}
+
+/// The sphere over a plane with the ball's lightmap UVs removed: the ground keeps its
+/// authored page, the ball gets a generated one (two pages, 40² each here).
+fn two_pages() -> Arc<Scene> {
+    let (mut doc, bin) = sphere_over_plane().to_gltf();
+    remove_lightmap_uvs(&mut doc, Some(&[1]));
+    Arc::new(scene::import_slice(&write_glb(&doc, &bin), None).unwrap().0)
+}
+
+/// Regions alone: the pages of a two-page scene, or four tiles of the Cornell box's one
+/// page, each baked over every step: the merge is the single bake bit for bit (the same
+/// samples per texel, added in the same order).
+#[test]
+fn page_and_tile_tasks_merge_to_the_single_bake_exactly() {
+    for (scene, regions, what) in [(two_pages(), 2, "pages"), (scene(), 4, "tiles")] {
+        let mut request = request("cpu", 4);
+        request.resolution = if what == "pages" { 40 } else { 20 };
+        request.lighting.sky = Some(sky());
+        let parts = bake_tasks(
+            &scene,
+            &request,
+            TaskShape {
+                tasks: regions,
+                regions,
+            },
+        );
+        let texels: Vec<u64> = parts.iter().map(|p| p.header.texels).collect();
+        let merged = tasks::merge(scene.clone(), &parts, &BakeOptions::default(), &mut |_| {}).unwrap();
+        let whole = whole(&scene, &request);
+        assert_eq!(texels.iter().sum::<u64>() as usize, whole.total.len(), "{what}");
+        assert!(texels.iter().all(|&n| n > 0), "{what}: {texels:?}");
+        if what == "pages" {
+            assert_eq!(merged.summary.atlas.pages, 2);
+            // Each region is one page: the ground's and the ball's texel counts differ.
+            assert_ne!(texels[0], texels[1], "{texels:?}");
+        }
+        assert_eq!(merged.estimate.halves, whole.halves, "{what}: halves");
+        assert_eq!(merged.estimate.total, whole.total, "{what}");
+        assert_eq!(merged.estimate.moments, whole.moments, "{what}");
+        assert_eq!(merged.estimate.error.relative, whole.error.relative, "{what}");
+    }
+}
+
+/// Regions times step ranges: the two pages, each as three step ranges (6 tasks).
+#[test]
+fn pages_times_step_ranges_merge_to_the_single_bake() {
+    let scene = two_pages();
+    let mut request = request("cpu", 9);
+    request.resolution = 40;
+    request.lighting.sky = Some(sky());
+    let parts = bake_tasks(&scene, &request, TaskShape { tasks: 6, regions: 2 });
+    let regions: Vec<u32> = parts.iter().map(|p| p.header.task.region).collect();
+    assert_eq!(regions, [0, 0, 0, 1, 1, 1]);
+    // Task results arrive in any order.
+    let mut shuffled = parts.clone();
+    shuffled.rotate_left(2);
+    let merged = tasks::merge(scene.clone(), &shuffled, &BakeOptions::default(), &mut |_| {}).unwrap();
+    assert_same_bake(&whole(&scene, &request), &merged.estimate);
+}
+
 #[test]
 fn three_gpu_tasks_merge_to_the_single_bake() {
     if !common::have_adapter() {
@@ -140,17 +210,22 @@ fn three_gpu_tasks_merge_to_the_single_bake() {
     }
     let scene = scene();
     let request = request("gpu", 8);
-    let parts = bake_tasks(&scene, &request, 3);
+    let parts = bake_tasks(&scene, &request, TaskShape::steps(3));
     assert_eq!(parts[0].header.params["device"], "gpu");
     let merged = tasks::merge(scene.clone(), &parts, &BakeOptions::default(), &mut |_| {}).unwrap();
-    assert_same_bake(&whole(&scene, &request), &merged.estimate);
+    let single = whole(&scene, &request);
+    assert_same_bake(&single, &merged.estimate);
+    // Tiles on the GPU: its streams are keyed by pixel too (position.w's bits).
+    let tiles = bake_tasks(&scene, &request, TaskShape { tasks: 4, regions: 2 });
+    let merged = tasks::merge(scene.clone(), &tiles, &BakeOptions::default(), &mut |_| {}).unwrap();
+    assert_same_bake(&single, &merged.estimate);
 }
 
 #[test]
 fn the_merge_refuses_what_is_not_every_task_of_one_request() {
     let scene = scene();
     let request = request("cpu", 4);
-    let parts = bake_tasks(&scene, &request, 2);
+    let parts = bake_tasks(&scene, &request, TaskShape::steps(2));
     let merge = |p: &[Partial]| {
         tasks::merge(scene.clone(), p, &BakeOptions::default(), &mut |_| {})
             .err()
@@ -163,7 +238,7 @@ fn the_merge_refuses_what_is_not_every_task_of_one_request() {
     assert!(e.contains("task 0 is given twice"), "{e}");
     let mut other = request.clone();
     other.seed = 12;
-    let foreign = bake_tasks(&scene, &other, 2);
+    let foreign = bake_tasks(&scene, &other, TaskShape::steps(2));
     let e = merge(&[parts[0].clone(), foreign[1].clone()]);
     assert!(e.contains("task result 1 (task 1/2) is of another request"), "{e}");
     let mut moved = parts.clone();
@@ -237,17 +312,20 @@ fn three_processes_and_a_merge_write_the_single_bakes_lightmap() {
                 .arg("-o")
                 .arg(p)
                 .args(BAKE)
-                .args(["--task", &format!("{k}/3")])
+                .args(["--task", &format!("{k}/3"), "--regions", "3"])
                 .stderr(std::process::Stdio::piped())
                 .spawn()
                 .unwrap()
         })
         .collect();
-    for c in children {
+    for (k, c) in children.into_iter().enumerate() {
         let out = c.wait_with_output().unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(out.status.success(), "{stderr}");
-        assert!(stderr.contains("baked task") && stderr.contains("2 steps"), "{stderr}");
+        assert!(
+            stderr.contains(&format!("region {k}/3")) && stderr.contains("(6 steps"),
+            "{stderr}"
+        );
     }
     let merged = tmp("merged.exr");
     let out = bin()
@@ -313,4 +391,15 @@ fn a_technique_that_does_not_split_is_refused_before_baking() {
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--task takes K/N with 0 <= K < N"));
+    let out = bin()
+        .arg("bake")
+        .arg(cornell())
+        .arg("-o")
+        .arg(tmp("never.lmtask"))
+        .args(["--steps", "8", "--task", "0/3", "--regions", "2"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("regions must divide tasks"), "{stderr}");
 }

@@ -57,7 +57,7 @@ struct TriInfo {
 
 // One lightmap texel's geometry, compact over valid texels.
 struct TexelGeom {
-    position: vec4<f32>,    // xyz: sample point (normalised scene space); w: unused
+    position: vec4<f32>,    // xyz: sample point (normalised scene space); w: unused, or (gpu/texels.rs world_texels) the pixel index as u32 bits
     normal: vec4<f32>,      // xyz: unit shading normal (cosine weight); w: unused
     geo_normal: vec4<f32>,  // xyz: unit geometric normal (the plane samples must be above); w: unused
 }

@@ -10,7 +10,7 @@
 //
 // Randomness: PCG-RXS-M-XS 32/32 (O'Neill 2014; the `pcg` hash of common.wgsl is its
 // output step) with a per-stream increment. A texel's streams differ by increment (a hash
-// of the seed and the texel), a (step, sample)'s by starting state (a hash chain of the
+// of the seed and the texel's pixel, carried in position.w's bits: gpu/texels.rs), a (step, sample)'s by starting state (a hash chain of the
 // seed, step and sample), so no two (seed, step, texel, sample) share a sequence except
 // by a 32-bit hash collision of two (step, sample) keys of one texel. Period 2^32; a path
 // of 65536 bounces draws at most 8 numbers a vertex, 5e5 in all. The streams are not the
@@ -188,7 +188,7 @@ fn trace(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     var ran = 0u;
     var cut = false;
     for (var s = 0u; s < spp; s++) {
-        var rng = rng_for(i, s);
+        var rng = rng_for(bitcast<u32>(t.position.w), s);
         let r = radiance(t.position.xyz, t.normal.xyz, t.geo_normal.xyz, &rng);
         ran += 1u;
         cut = cut || r.cut;

@@ -1,40 +1,54 @@
 //! One bake split into tasks that several workers (or processes, or machines) bake at
 //! once, and the exact merge of what they baked (issue 25; docs/scaling.md).
 //!
-//! What a task is depends on the technique (its table row's [`TaskSplit`]):
-//! - `path` (`StepRanges`): a task bakes a range of the job's steps. Every random stream
-//!   is keyed by (seed, *global* step, texel, sample) (`Technique::start_at_step`), so
-//!   task k draws exactly the samples a single bake draws at those steps. Each range but
-//!   the last has an even length, so every task starts on an even step and its local
-//!   even/odd halves are the job's even/odd halves. The merge adds the halves' sums
-//!   (mean × steps) and step counts: the merged halves are the single bake's halves up
-//!   to float rounding (the order of the additions), so the merged estimate, its error
-//!   estimate from the halves' difference (DESIGN §4) and the delivered lightmap are a
-//!   single bake's, not a different bake "within noise".
+//! A split has a shape ([`TaskShape`]): `tasks` in all, as `regions` regions of the
+//! texel grid times `tasks / regions` ranges of the job's steps; task k bakes region
+//! `k / ranges` over step range `k % ranges`. What may be split depends on the technique
+//! (its table row's [`TaskSplit`]):
+//! - `path` (`StepsAndRegions`): both.
+//!   - *Step ranges.* Every random stream is keyed by (seed, *global* step, texel's
+//!     pixel, sample) (`Technique::start_at_step`), so a task draws exactly the samples a
+//!     single bake draws at those steps. Each range but the last has an even length, so
+//!     every task starts on an even step and its local even/odd halves are the job's
+//!     even/odd halves. The merge adds the halves' sums (mean × steps) and step counts.
+//!   - *Regions* (`atlas::regions`): whole pages when there are at most as many regions
+//!     as pages (one page per task when as many), else bands of rows cut to equal texel
+//!     counts (tiles as wide as the grid). A path's texels share nothing but the scene, and
+//!     the streams are keyed by pixel, not by the texel's place in the list, so a region's
+//!     task bakes exactly the region's texels of a single bake. The merge places each
+//!     region's halves at its texels.
+//!
+//!   Either way the merged halves are the single bake's halves up to float rounding (the
+//!   order of the step additions; regions alone are bit-identical on the CPU), so the
+//!   merged estimate, its error estimate from the halves' difference (DESIGN §4) and the
+//!   delivered lightmap are a single bake's, not a different bake "within noise".
 //! - every other technique (`Whole`): one task. Their steps are chains over the whole
-//!   scene (`sdb`, `hemicube`), running ratios (`obscurance`), or their error includes a
-//!   bias measured at control texels stepped by time (`vpl`, `sdf`); the row says which.
-//!   No technique is split by lightmap page yet: a task bakes every page of the grid
-//!   (docs/scaling.md, "A farm model", prices what page tasks would buy).
+//!   scene (`sdb`, `hemicube`), running ratios over whole-scene means (`obscurance`'s
+//!   ambient term), or their error includes a bias measured at control texels spread over
+//!   the whole grid (`vpl`, `sdf`): no region of them is a region of a single bake, and
+//!   no step range a range of it. The row says which.
 //!
 //! A split bake's stop rule is `stop.steps`, the job's total; `stop.seconds` bounds
 //! each task on its own (a task that runs out of time delivers fewer steps, and the
-//! merge counts what each delivered); `stop.target_error` is refused, since it is a rule
-//! about the whole bake's error that no task sees.
+//! merge counts what each delivered: within a region, the step-weighted mean; across
+//! regions, the fewest steps any region got is the step count reported);
+//! `stop.target_error` is refused, since it is a rule about the whole bake's error that
+//! no task sees.
 //!
-//! A task's result is a [`Partial`]: the request, the task's range, a fingerprint of
-//! the texel set it baked and both halves' means with their step counts. Its file
+//! A task's result is a [`Partial`]: the request, the task, a fingerprint of the texel
+//! set it baked (its region's) and both halves' means with their step counts. Its file
 //! format is this module's own (an 8-byte magic, the JSON header's length and the
 //! header, then little-endian f32 arrays; docs/scaling.md has the layout): the data is
 //! per valid texel, not per pixel, so an image format would only add a layout to undo,
 //! and the header is plain JSON any tool reads.
 //!
-//! The merge rebuilds the texel set from the scene and request (deterministic,
-//! `job::prepare`) and refuses partials of another request, another texel set, a
-//! missing or repeated task, or a cancelled one, naming which.
+//! The merge rebuilds the texel set and its regions from the scene and request
+//! (deterministic, `job::prepare`) and refuses partials of another request, another
+//! texel set, a missing or repeated task, or a cancelled one, naming which.
 //!
 //! Limits: no shadowmask layer in a split bake yet (its pass would need the same step
-//! offset); a task's probes are not baked (the merge bakes them, once).
+//! offset and region); a task's probes are not baked (the merge bakes them, once); every
+//! task prepares (imports, validates) the whole grid, which a region task then narrows.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -57,27 +71,66 @@ use crate::engine::technique::{self, EngineError};
 /// At most this many tasks per bake.
 pub const MAX_TASKS: u32 = 1024;
 
-/// The format version a [`Partial`] file carries; a merge refuses others.
-pub const PARTIAL_FORMAT: u32 = 1;
+/// The format version a [`Partial`] file carries; a merge refuses others. 2: tasks carry
+/// their region (format 1 had step ranges only, and path streams keyed by texel index).
+pub const PARTIAL_FORMAT: u32 = 2;
 
 const MAGIC: &[u8; 8] = b"LMDTASK1";
 
-/// One task of a split bake: the `index`-th of `count`, baking the job's steps
-/// `first_step .. first_step + steps`.
+/// How a bake is split: `tasks` in all, `regions` regions of the grid (whole pages, or
+/// tiles) each baked as `tasks / regions` step ranges.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+pub struct TaskShape {
+    pub tasks: u32,
+    pub regions: u32,
+}
+
+impl TaskShape {
+    /// `tasks` step ranges of the whole grid.
+    pub fn steps(tasks: u32) -> TaskShape {
+        TaskShape { tasks, regions: 1 }
+    }
+
+    /// Step ranges per region.
+    pub fn ranges(&self) -> u32 {
+        self.tasks / self.regions.max(1)
+    }
+}
+
+/// One task of a split bake: the `index`-th of `count`, baking region `region` of
+/// `regions` over the job's steps `first_step .. first_step + steps`.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
 pub struct TaskRange {
     pub index: u32,
     pub count: u32,
+    pub region: u32,
+    pub regions: u32,
     pub first_step: u64,
     pub steps: u64,
 }
 
-/// The tasks `request` splits into with `count` tasks, or why it cannot be. One task is
-/// always possible: it is the whole bake.
-pub fn split(request: &BakeRequest, count: u32) -> Result<Vec<TaskRange>, EngineError> {
+impl TaskRange {
+    pub fn shape(&self) -> TaskShape {
+        TaskShape {
+            tasks: self.count,
+            regions: self.regions,
+        }
+    }
+}
+
+/// The tasks `request` splits into with `shape`, or why it cannot be. One task is
+/// always possible: it is the whole bake. Whether the grid has as many texels as regions
+/// is known only once the scene is prepared ([`bake_task`] says so).
+pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, EngineError> {
     let bad = |m: String| Err(EngineError::BadInput(m));
+    let TaskShape { tasks: count, regions } = shape;
     if !(1..=MAX_TASKS).contains(&count) {
         return bad(format!("tasks must be in 1..={MAX_TASKS}, got {count}"));
+    }
+    if regions == 0 || regions > count || count % regions != 0 {
+        return bad(format!(
+            "regions must divide tasks (each region is baked as tasks / regions step ranges): {regions} regions of {count} tasks"
+        ));
     }
     let entry = technique::entry(&request.technique)?;
     if count == 1 {
@@ -85,6 +138,8 @@ pub fn split(request: &BakeRequest, count: u32) -> Result<Vec<TaskRange>, Engine
         return Ok(vec![TaskRange {
             index: 0,
             count: 1,
+            region: 0,
+            regions: 1,
             first_step: 0,
             steps,
         }]);
@@ -105,31 +160,37 @@ pub fn split(request: &BakeRequest, count: u32) -> Result<Vec<TaskRange>, Engine
     let Some(total) = request.stop.steps else {
         return bad("tasks: a split bake needs stop.steps, the job's total steps that its tasks share".into());
     };
-    if total < 2 * count as u64 {
+    let ranges = shape.ranges();
+    if total < 2 * ranges as u64 {
         return bad(format!(
-            "tasks: stop.steps ({total}) must be at least twice the tasks ({count}): each task bakes a step of each half"
+            "tasks: stop.steps ({total}) must be at least twice the step ranges per region ({ranges}): each task bakes a step of each half"
         ));
     }
     if request.outputs.contains(&OutputLayer::Shadowmask) {
         return bad("tasks: the shadowmask layer is not baked in split bakes yet; bake it as one task".into());
     }
     // Pairs of steps dealt out evenly, so every range starts on an even step; an odd
-    // total leaves one step for the last task.
+    // total leaves one step for the last range.
     let (pairs, odd) = (total / 2, total % 2);
-    let n = count as u64;
+    let n = ranges as u64;
+    let mut spans = Vec::with_capacity(ranges as usize);
     let mut first = 0;
+    for i in 0..n {
+        let steps = 2 * (pairs / n + u64::from(i < pairs % n)) + if i == n - 1 { odd } else { 0 };
+        spans.push((first, steps));
+        first += steps;
+    }
     Ok((0..count)
-        .map(|i| {
-            let i64_ = i as u64;
-            let steps = 2 * (pairs / n + u64::from(i64_ < pairs % n)) + if i == count - 1 { odd } else { 0 };
-            let t = TaskRange {
-                index: i,
+        .map(|index| {
+            let (first_step, steps) = spans[(index % ranges) as usize];
+            TaskRange {
+                index,
                 count,
-                first_step: first,
+                region: index / ranges,
+                regions,
+                first_step,
                 steps,
-            };
-            first += steps;
-            t
+            }
         })
         .collect())
 }
@@ -163,14 +224,19 @@ pub struct PartialHeader {
     pub stopped_by: StopReason,
 }
 
-/// The texel set's fingerprint: SHA-256 over the page size and every valid texel's
+/// The texel set's fingerprint: SHA-256 over the grid's size and every valid texel's
 /// pixel, sample point and normal, so a merge notices partials of another texel set even
 /// when it has as many texels.
 pub fn fingerprint(atlas: &Atlas) -> String {
+    texels_fingerprint(atlas, 0..atlas.texels.len())
+}
+
+/// The fingerprint of the texels `range` of `atlas` (a region's).
+fn texels_fingerprint(atlas: &Atlas, range: std::ops::Range<usize>) -> String {
     let mut h = Sha256::new();
     h.update(atlas.width.to_le_bytes());
     h.update(atlas.height.to_le_bytes());
-    for t in &atlas.texels {
+    for t in &atlas.texels[range] {
         h.update(t.pixel.to_le_bytes());
         for v in [t.position, t.normal] {
             for c in v.to_array() {
@@ -194,7 +260,7 @@ pub fn bake_task(
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
     on_plan: &mut dyn FnMut(&Plan),
 ) -> Result<Partial, EngineError> {
-    let tasks = split(request, task.count)?;
+    let tasks = split(request, task.shape())?;
     if tasks.get(task.index as usize) != Some(&task) {
         return Err(EngineError::BadInput(format!(
             "task {}/{} is not one of this request's tasks",
@@ -204,7 +270,22 @@ pub fn bake_task(
     // The task's probes are the merge's to bake, once.
     let mut own = request.clone();
     own.probes = None;
-    let prepared = job::prepare(scene, &own, options, on_atlas, on_plan)?;
+    let mut prepared = job::prepare(scene, &own, options, on_atlas, on_plan)?;
+    if task.regions > 1 {
+        let regions = prepared
+            .atlas
+            .regions(task.regions)
+            .map_err(|m| EngineError::BadInput(format!("tasks: {m}; ask for fewer regions or a higher resolution")))?;
+        let texels = regions[task.region as usize].clone();
+        tracing::info!(
+            region = task.region,
+            regions = task.regions,
+            texels = texels.len(),
+            of = prepared.atlas.texels.len(),
+            "task narrowed to its region"
+        );
+        prepared.atlas = Arc::new(prepared.atlas.region(texels));
+    }
     let mut tech = technique::create(&request.technique, prepared.inputs(request), &request.params)?;
     tech.start_at_step(task.first_step)?;
     let stop = StopCriteria {
@@ -374,6 +455,49 @@ pub fn merge_halves(parts: &[&Snapshot]) -> Snapshot {
     }
 }
 
+/// The bake's halves from every task's, in task order (region-major): each region's
+/// step ranges merged ([`merge_halves`]), then the regions' texels one after another,
+/// which is the whole grid's texel order (regions are consecutive runs of it). A half's
+/// step count is the fewest any region got (they differ only when `stop.seconds` cut
+/// some task short).
+pub fn merge_regions(ordered: &[&Partial]) -> Result<Snapshot, EngineError> {
+    let first = ordered
+        .first()
+        .ok_or_else(|| EngineError::BadInput("merge: no task results given".into()))?;
+    let ranges = first.header.task.shape().ranges().max(1) as usize;
+    let regions: Vec<Snapshot> = ordered
+        .chunks(ranges)
+        .map(|group| merge_halves(&group.iter().map(|p| &p.snapshot).collect::<Vec<_>>()))
+        .collect();
+    if regions.len() == 1 {
+        return Ok(regions.into_iter().next().expect("one region"));
+    }
+    let join = |pick: fn(&Snapshot) -> &HalfEstimate| -> HalfEstimate {
+        let halves: Vec<&HalfEstimate> = regions.iter().map(pick).collect();
+        let cat = |layer: fn(&HalfEstimate) -> Option<&[Vec3]>| -> Option<Vec<Vec3>> {
+            halves
+                .iter()
+                .map(|h| layer(h))
+                .collect::<Option<Vec<_>>>()
+                .map(|parts| parts.concat())
+        };
+        HalfEstimate {
+            steps: halves.iter().map(|h| h.steps).min().unwrap_or(0),
+            total: halves.iter().flat_map(|h| h.total.iter().copied()).collect(),
+            direct: cat(|h| h.direct.as_deref()),
+            moments: halves
+                .iter()
+                .map(|h| h.moments.as_deref())
+                .collect::<Option<Vec<_>>>()
+                .map(|parts| parts.concat()),
+        }
+    };
+    Ok(Snapshot {
+        even: join(|s| &s.even),
+        odd: join(|s| &s.odd),
+    })
+}
+
 /// Checks that `partials` are every task of one request, baked on the texel set of
 /// `atlas` (when given), and returns them in task order.
 pub fn check_partials<'a>(partials: &'a [Partial], atlas: Option<&Atlas>) -> Result<Vec<&'a Partial>, EngineError> {
@@ -382,17 +506,30 @@ pub fn check_partials<'a>(partials: &'a [Partial], atlas: Option<&Atlas>) -> Res
         return bad("merge: no task results given".into());
     };
     let h0 = &first.header;
-    let tasks = split(&h0.request, h0.task.count)?;
+    let tasks = split(&h0.request, h0.task.shape())?;
     let mut by_index: Vec<Option<&Partial>> = vec![None; tasks.len()];
-    let print = atlas.map(fingerprint);
+    // Each region's fingerprint, when the atlas is given.
+    let prints: Option<Vec<(String, u64)>> = match atlas {
+        Some(a) => Some(
+            a.regions(h0.task.regions)
+                .map_err(|m| EngineError::BadInput(format!("merge: {m}")))?
+                .into_iter()
+                .map(|r| (r.len() as u64, r))
+                .map(|(n, r)| (texels_fingerprint(a, r), n))
+                .collect(),
+        ),
+        None => None,
+    };
     for (k, p) in partials.iter().enumerate() {
         let h = &p.header;
         let name = format!("task result {k} (task {}/{})", h.task.index, h.task.count);
-        if h.request != h0.request || h.task.count != h0.task.count {
+        if h.request != h0.request || h.task.shape() != h0.task.shape() {
             return bad(format!("{name} is of another request than task result 0"));
         }
         if tasks.get(h.task.index as usize) != Some(&h.task) {
-            return bad(format!("{name}: its step range is not one the request splits into"));
+            return bad(format!(
+                "{name}: its region and step range are not ones the request splits into"
+            ));
         }
         if h.stopped_by == StopReason::Cancelled {
             return bad(format!("{name} was cancelled; bake it again"));
@@ -400,8 +537,8 @@ pub fn check_partials<'a>(partials: &'a [Partial], atlas: Option<&Atlas>) -> Res
         if (h.direct, h.moments, &h.params) != (h0.direct, h0.moments, &h0.params) {
             return bad(format!("{name} kept other layers or parameters than task result 0"));
         }
-        if let Some(f) = &print
-            && (h.fingerprint != *f || atlas.is_some_and(|a| a.texels.len() as u64 != h.texels))
+        if let Some((f, texels)) = prints.as_ref().map(|p| &p[h.task.region as usize])
+            && (h.fingerprint != *f || h.texels != *texels)
         {
             return bad(format!(
                 "{name} was baked on another texel set (fingerprint {}…, this scene's {}…): another scene or version",
@@ -446,7 +583,7 @@ pub fn merge(
     let request = first.header.request.clone();
     let prepared = job::prepare(scene, &request, options, &mut |_| {}, on_plan)?;
     let ordered = check_partials(partials, Some(&prepared.atlas))?;
-    let snapshot = merge_halves(&ordered.iter().map(|p| &p.snapshot).collect::<Vec<_>>());
+    let snapshot = merge_regions(&ordered)?;
     let estimate = snapshot.estimate();
     if let Some((layer, k, v)) = estimate.first_non_finite() {
         return Err(EngineError::Internal(format!(
@@ -490,7 +627,7 @@ mod tests {
     #[test]
     fn ranges_cover_the_steps_once_and_start_even() {
         for (total, count) in [(64u64, 3u32), (7, 3), (6, 3), (101, 10), (2048, 1024)] {
-            let t = split(&request("path", Some(total)), count).unwrap();
+            let t = split(&request("path", Some(total)), TaskShape::steps(count)).unwrap();
             assert_eq!(t.len(), count as usize);
             let mut next = 0;
             for (i, r) in t.iter().enumerate() {
@@ -510,10 +647,10 @@ mod tests {
 
     #[test]
     fn what_cannot_be_split_is_refused_naming_why() {
-        let err = |r: &BakeRequest, n| split(r, n).unwrap_err().to_string();
+        let err = |r: &BakeRequest, n| split(r, TaskShape::steps(n)).unwrap_err().to_string();
         assert!(err(&request("sdb", Some(64)), 2).contains("sdb bakes are not split into tasks"));
         assert!(err(&request("path", None), 2).contains("needs stop.steps"));
-        assert!(err(&request("path", Some(3)), 2).contains("at least twice the tasks"));
+        assert!(err(&request("path", Some(3)), 2).contains("at least twice the step ranges per region (2)"));
         assert!(err(&request("path", Some(64)), 0).contains("tasks must be in 1..=1024"));
         let mut r = request("path", Some(64));
         r.stop.target_error = Some(0.01);
@@ -522,7 +659,46 @@ mod tests {
         r.outputs = vec![OutputLayer::Shadowmask];
         assert!(err(&r, 2).contains("shadowmask"));
         // One task is the whole bake, for every technique.
-        assert_eq!(split(&request("sdb", Some(64)), 1).unwrap()[0].steps, 64);
+        assert_eq!(
+            split(&request("sdb", Some(64)), TaskShape::steps(1)).unwrap()[0].steps,
+            64
+        );
+        let shaped = |tasks, regions| {
+            split(&request("path", Some(64)), TaskShape { tasks, regions })
+                .unwrap_err()
+                .to_string()
+        };
+        assert!(shaped(6, 4).contains("regions must divide tasks"), "{}", shaped(6, 4));
+        assert!(shaped(2, 0).contains("regions must divide tasks"));
+        assert!(shaped(2, 3).contains("regions must divide tasks"));
+        // Regions do not ease the two-steps-a-range rule, nor lift the technique's.
+        let few = split(&request("path", Some(5)), TaskShape { tasks: 6, regions: 2 })
+            .unwrap_err()
+            .to_string();
+        assert!(few.contains("step ranges per region (3)"), "{few}");
+        let sdb = split(&request("sdb", Some(64)), TaskShape { tasks: 2, regions: 2 })
+            .unwrap_err()
+            .to_string();
+        assert!(sdb.contains("sdb bakes are not split into tasks"), "{sdb}");
+    }
+
+    /// Task k is region k / ranges over range k % ranges; every region gets every range.
+    #[test]
+    fn regions_times_ranges_number_region_major() {
+        let t = split(&request("path", Some(9)), TaskShape { tasks: 6, regions: 3 }).unwrap();
+        let got: Vec<(u32, u64, u64)> = t.iter().map(|r| (r.region, r.first_step, r.steps)).collect();
+        assert_eq!(
+            got,
+            vec![(0, 0, 4), (0, 4, 5), (1, 0, 4), (1, 4, 5), (2, 0, 4), (2, 4, 5)]
+        );
+        assert!(
+            t.iter()
+                .enumerate()
+                .all(|(k, r)| r.index == k as u32 && r.regions == 3 && r.count == 6)
+        );
+        // Regions alone: every task bakes every step of its region.
+        let r = split(&request("path", Some(7)), TaskShape { tasks: 4, regions: 4 }).unwrap();
+        assert!(r.iter().all(|x| (x.first_step, x.steps) == (0, 7)), "{r:?}");
     }
 
     fn half(steps: u64, v: f32, n: usize) -> HalfEstimate {
@@ -558,7 +734,7 @@ mod tests {
         let header = PartialHeader {
             format: PARTIAL_FORMAT,
             request: request("path", Some(8)),
-            task: split(&request("path", Some(8)), 2).unwrap()[1],
+            task: split(&request("path", Some(8)), TaskShape { tasks: 4, regions: 2 }).unwrap()[3],
             params: serde_json::json!({"samples_per_step": 4}),
             width: 4,
             height: 4,

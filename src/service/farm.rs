@@ -142,7 +142,11 @@ fn failed(e: EngineError) -> End {
 async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord, flag: &Arc<StopFlag>) -> End {
     let lessee = Lessee::Task(&job.id, task.index);
     let request = job.spec.to_request();
-    let range = match tasks::split(&request, task.count) {
+    let shape = tasks::TaskShape {
+        tasks: task.count,
+        regions: job.spec.regions.unwrap_or(1),
+    };
+    let range = match tasks::split(&request, shape) {
         Ok(r) => r[task.index as usize],
         Err(e) => return failed(e),
     };

@@ -102,6 +102,14 @@ pub struct JobSpec {
     /// one worker bakes the job whole.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tasks: Option<u32>,
+    /// With `tasks`: the tasks are this many regions of the lightmap grid, each baked as
+    /// `tasks / regions` ranges of the steps. Regions are whole pages when there are at
+    /// most as many as pages (one page each when as many), else bands of rows with equal
+    /// texel counts (tiles). Must divide `tasks`; absent or 1: every task bakes the
+    /// whole grid. A bake task of region r over step range s is task r × (tasks /
+    /// regions) + s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub regions: Option<u32>,
     /// What a worker must have to take the job or its tasks; the job's `waiting_for` says
     /// when no live worker has it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -332,10 +340,24 @@ impl JobSpec {
                 ),
             ));
         }
+        if self.regions.is_some_and(|r| r > 1) && self.tasks.is_none_or(|n| n < 2) {
+            return Err(Problem::invalid_field(
+                "regions",
+                "regions splits a job's tasks: give tasks too (a multiple of regions)",
+            ));
+        }
         if let Some(n) = self.tasks {
+            let shape = crate::engine::tasks::TaskShape {
+                tasks: n,
+                regions: self.regions.unwrap_or(1),
+            };
             // The engine's own split: it names why a technique or a stop rule cannot be
             // split ("sdb bakes are not split into tasks (…)", "needs stop.steps").
-            crate::engine::tasks::split(&request, n).map_err(|e| Problem::invalid_field("tasks", e.to_string()))?;
+            crate::engine::tasks::split(&request, shape).map_err(|e| {
+                let m = e.to_string();
+                let field = if m.starts_with("regions") { "regions" } else { "tasks" };
+                Problem::invalid_field(field, m)
+            })?;
             if n > 1 && self.reference.is_some() {
                 return Err(Problem::invalid_field(
                     "reference",
@@ -355,6 +377,16 @@ impl JobSpec {
             ));
         }
         Ok(())
+    }
+
+    /// How the job is split into tasks, when it is (`tasks` of 2 or more).
+    pub fn task_shape(&self) -> Option<crate::engine::tasks::TaskShape> {
+        self.tasks
+            .filter(|n| *n > 1)
+            .map(|tasks| crate::engine::tasks::TaskShape {
+                tasks,
+                regions: self.regions.unwrap_or(1),
+            })
     }
 
     /// The engine's request for this job.
@@ -737,6 +769,8 @@ pub struct JobView {
 pub struct TasksView {
     /// Bake tasks (the merge is one more, last in `list`).
     pub count: u32,
+    /// Regions of the grid the bake tasks are cut into (1: each bakes the whole grid).
+    pub regions: u32,
     pub list: Vec<TaskView>,
     /// Workers that take no more of this job's tasks, with their failed attempts.
     pub blocklisted: Vec<BlocklistEntry>,
@@ -751,8 +785,12 @@ pub struct BlocklistEntry {
 #[derive(Clone, Debug, Serialize, Deserialize, ToSchema, PartialEq)]
 pub struct TaskView {
     pub index: u32,
-    /// `bake` (a range of the job's steps) or `merge`.
+    /// `bake` (a range of the job's steps of one region) or `merge`.
     pub kind: String,
+    /// A bake task's region of the grid (`TasksView.regions`).
+    pub region: Option<u32>,
+    /// A bake task's steps of the job, `[first, end)`.
+    pub step_range: Option<[u64; 2]>,
     pub status: crate::service::queue::TaskStatus,
     pub attempts: u32,
     pub worker: Option<String>,

@@ -865,7 +865,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "samples": 4}).to_string(),
             "samples",
-            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `reference`, `tasks`, `requires`".into(),
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `reference`, `tasks`, `regions`, `requires`".into(),
         ),
         // A split job (issue 25): the engine's own split names why it cannot be.
         (
@@ -876,7 +876,17 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "tasks": 4, "stop": {"steps": 6}}).to_string(),
             "tasks",
-            "tasks: stop.steps (6) must be at least twice the tasks (4): each task bakes a step of each half".into(),
+            "tasks: stop.steps (6) must be at least twice the step ranges per region (4): each task bakes a step of each half".into(),
+        ),
+        (
+            json!({"scene": scene, "tasks": 6, "regions": 4, "stop": {"steps": 60}}).to_string(),
+            "regions",
+            "regions must divide tasks (each region is baked as tasks / regions step ranges): 4 regions of 6 tasks".into(),
+        ),
+        (
+            json!({"scene": scene, "regions": 2, "stop": {"steps": 60}}).to_string(),
+            "regions",
+            "regions splits a job's tasks: give tasks too (a multiple of regions)".into(),
         ),
         (
             json!({"scene": scene, "tasks": 0, "stop": {"steps": 6}}).to_string(),

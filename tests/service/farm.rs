@@ -4,9 +4,10 @@
 //!
 //! `three_workers_bake_one_job_and_survive_a_sigkill`: a `path` job of 1200 steps on a
 //! scene of two lightmap pages (the sphere over a plane, the ground's authored page and
-//! the ball's generated one, 64² each) split into 6 tasks (200 steps each of both pages:
-//! sample batches keyed by the job's step numbers). Once a task has run for half a
-//! second, its worker is killed with SIGKILL. Checks:
+//! the ball's generated one, 64² each) split into 6 tasks: 2 regions (one page each) of
+//! 3 step ranges (400 steps each: sample batches keyed by the job's step numbers and the
+//! texels' pixels). Once a task has run for half a second, its worker is killed with
+//! SIGKILL. Checks:
 //! - the job succeeds; the killed task was taken up again by another worker after its
 //!   lease lapsed (2 attempts), every other task at its first, and the dead worker's
 //!   abandoned attempt is counted against it (`task_failures`);
@@ -16,6 +17,9 @@
 //! - the merged error estimate (from the merged halves) matches its true error, measured
 //!   against a 6000-step bake of another seed, within [0.6, 1.5];
 //! - the task results are deleted from the store once the lightmap is stored;
+//! - then a `path` job on the Cornell box's one page split into 3 tiles (bands of rows,
+//!   `tasks: 3, regions: 3`) on the two surviving workers: its lightmap equals the
+//!   single-process bake's to 1e-6;
 //! - the surviving processes exit 0 on SIGTERM.
 //!
 //! `cancelling_a_split_job_stops_its_tasks_within_seconds`: one worker process bakes a
@@ -132,7 +136,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     let body = json!({
         "scene": scene, "technique": "path", "resolution": 64, "seed": 7,
         "lighting": {"sky": {"radiance": [1, 1, 1]}},
-        "stop": {"steps": 1200}, "tasks": 6, "denoise": "none",
+        "stop": {"steps": 1200}, "tasks": 6, "regions": 2, "denoise": "none",
     });
     let id = submit(&http, &farm.url, body.clone()).await;
     let job_url = format!("{}/v1/jobs/{id}", farm.url);
@@ -190,9 +194,13 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
             assert_eq!(t["attempts"], 1, "{t}");
         }
         if k < 6 {
-            assert_eq!(t["steps"], 200, "{t}");
+            // Region k / 3 (a page), steps 400 (k % 3) onwards.
+            assert_eq!(t["steps"], 400, "{t}");
+            assert_eq!(t["region"], k / 3, "{t}");
+            assert_eq!(t["step_range"], json!([400 * (k % 3), 400 * (k % 3 + 1)]), "{t}");
         }
     }
+    assert_eq!(job["tasks"]["regions"], 2);
     assert_eq!(list[6]["kind"], "merge");
     assert_eq!(job["summary"]["steps"], 1200);
     assert_eq!(job["progress"]["steps"], 1200);
@@ -278,10 +286,64 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         "merged estimate {merged_error:.4} against true {true_error:.4}: ratio {ratio:.2}"
     );
     eprintln!(
-        "farm: 1200 steps of 2 pages as 6 tasks on 3 workers, one SIGKILL at {:.1} s: done in {:.1} s; merged vs single {single_vs_merged:.1e}; estimate {merged_error:.4}, true {true_error:.4} (ratio {ratio:.2})",
+        "farm: 1200 steps of 2 pages as 2 pages x 3 step ranges on 3 workers, one SIGKILL at {:.1} s: done in {:.1} s; merged vs single {single_vs_merged:.1e}; estimate {merged_error:.4}, true {true_error:.4} (ratio {ratio:.2})",
         killed_at.as_secs_f64(),
         drained.as_secs_f64()
     );
+
+    // Tiles: one page cut into three bands of rows, on the two surviving workers.
+    let cornell = farm.upload(&http).await;
+    let tiles = json!({
+        "scene": cornell, "technique": "path", "resolution": 32, "seed": 5,
+        "stop": {"steps": 40}, "tasks": 3, "regions": 3, "denoise": "none",
+    });
+    let tiled = submit(&http, &farm.url, tiles.clone()).await;
+    let tiled_url = format!("{}/v1/jobs/{tiled}", farm.url);
+    let t = Instant::now();
+    let job = loop {
+        let j = get_json(&http, &tiled_url).await;
+        if j["status"] != "queued" && j["status"] != "running" {
+            break j;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "the tiled job never ended: {j:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let regions: Vec<u64> = job["tasks"]["list"].as_array().unwrap()[..3]
+        .iter()
+        .map(|t| t["region"].as_u64().unwrap())
+        .collect();
+    assert_eq!(regions, [0, 1, 2]);
+    let r = http.get(format!("{tiled_url}/lightmap.exr")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let merged = ReferenceLightmap::from_pages(&[r.bytes().await.unwrap()]).unwrap();
+    let request = JobSpec::parse(tiles.to_string().as_bytes()).unwrap().to_request();
+    let box_scene = Arc::new(scene::import_slice(&cornell_glb(), None).unwrap().0);
+    let single = job::bake(
+        box_scene,
+        &request,
+        &BakeOptions::default(),
+        &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+        &mut |_| {},
+        &mut |_| {},
+    )
+    .unwrap();
+    let single_values: Vec<glam::Vec3> = ReferenceLightmap::from_pages(&[&single.pages[0].exr[..]])
+        .unwrap()
+        .per_texel(&single.atlas)
+        .unwrap()
+        .into_iter()
+        .map(|v| v.unwrap_or_default())
+        .collect();
+    let tiles_vs_single = relative_error(&single_values, &merged.per_texel(&single.atlas).unwrap());
+    assert!(
+        tiles_vs_single < 1e-6,
+        "tiled and single bake differ by {tiles_vs_single:.2e} (relative RMS)"
+    );
+    eprintln!("farm: 40 steps of one page as 3 tiles on 2 workers: merged vs single {tiles_vs_single:.1e}");
     farm.stop().await;
 }
 

@@ -33,6 +33,7 @@
 //! see back faces from it).
 
 pub mod cells;
+pub mod regions;
 pub mod seams;
 pub mod unwrap;
 pub mod validate;

@@ -40,14 +40,17 @@ pub fn texel_geometry<'a>(
 }
 
 /// Every valid texel of `atlas` in world space (the BVH's space, not a normalised frame):
-/// what the ray-traced shared passes (`gpu::direct_light`, `gpu::shadowmask`) upload. At
-/// least one element, so an empty atlas still binds a buffer.
+/// what the ray-traced passes (`gpu::direct_light`, `gpu::shadowmask`, `path`) upload. At
+/// least one element, so an empty atlas still binds a buffer. `position.w` carries the
+/// texel's pixel index as the bits of a u32 (`bitcast<u32>` in WGSL; no float operation
+/// touches it, so the bits arrive as written): `path` keys its random streams by it, so a
+/// task baking one region of the grid draws the samples a whole bake draws there.
 pub fn world_texels(atlas: &crate::engine::atlas::Atlas) -> Vec<GpuTexelGeom> {
     let mut geom: Vec<GpuTexelGeom> = atlas
         .texels
         .iter()
         .map(|t| GpuTexelGeom {
-            position: t.position.extend(0.0).to_array(),
+            position: t.position.extend(f32::from_bits(t.pixel)).to_array(),
             normal: t.normal.normalize_or_zero().extend(0.0).to_array(),
             geo_normal: t.geo_normal.normalize_or_zero().extend(0.0).to_array(),
         })

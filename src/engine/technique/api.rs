@@ -158,7 +158,7 @@ pub trait Technique: Send {
     /// Makes this bake's first step the job's step `first` (a task of a split bake,
     /// `engine::tasks`): the random streams are keyed by the global step, so the task
     /// draws exactly the samples a whole bake would at those steps. Called once, before
-    /// the first step, only for techniques whose row says [`TaskSplit::StepRanges`].
+    /// the first step, only for techniques whose row says [`TaskSplit::StepsAndRegions`].
     fn start_at_step(&mut self, first: u64) -> Result<(), EngineError> {
         if first == 0 {
             return Ok(());
@@ -175,9 +175,11 @@ pub trait Technique: Send {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TaskSplit {
     /// Every step is an independent batch of samples drawn from streams keyed by
-    /// (seed, global step, texel, sample): a task bakes a range of steps, and the sums
-    /// of its two half-accumulators add to the whole bake's exactly.
-    StepRanges,
+    /// (seed, global step, texel's pixel, sample), and no texel's value depends on
+    /// another's: a task bakes a range of steps of one region of the grid (pages or
+    /// tiles, `atlas::regions`), the sums of its two half-accumulators add to the whole
+    /// bake's exactly, and its region's texels are the whole bake's.
+    StepsAndRegions,
     /// Not split; the reason, for the error a split request gets.
     Whole(&'static str),
 }

@@ -249,22 +249,43 @@ pub(crate) fn task_failed(index: i64, count: i64, attempts: i64, worker: &str, r
     }
 }
 
-/// The progress of a split job from its bake tasks' (steps, error): steps added up; the
-/// error of the step-weighted mean of independent estimates,
+/// The progress of a split job from its bake tasks' (steps, error), in task order.
+/// Within a region (all its step ranges: `tasks / regions` consecutive tasks), steps
+/// add up and the error is that of the step-weighted mean of independent estimates,
 /// `sqrt(Σ (s_k/S)² e_k²)` (each task's error is its own halves' difference, DESIGN §4,
-/// and the tasks draw disjoint samples, so their errors add in quadrature); `fraction`
+/// and the tasks draw disjoint samples, so their errors add in quadrature). Across
+/// regions (disjoint texels), the job's steps are the regions' mean and its error the
+/// root mean square of theirs: each region's relative error counts alike, which is the
+/// whole grid's when the regions have about as many texels and as much light (the queue
+/// knows neither; page regions of very different sizes make it approximate). `fraction`
 /// as for a whole bake of `spec.stop`. The merge's own error estimate, from the merged
 /// halves, replaces it when the job ends.
 pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks: &[(u64, Option<f32>)]) -> Value {
-    let steps: u64 = tasks.iter().map(|t| t.0).sum();
-    let error = (steps > 0 && tasks.iter().all(|t| t.0 == 0 || t.1.is_some())).then(|| {
-        let s = steps as f64;
-        let sum: f64 = tasks
-            .iter()
-            .filter_map(|&(k, e)| e.map(|e| (k as f64 / s * e as f64).powi(2)))
-            .sum();
-        sum.sqrt() as f32
-    });
+    let regions = spec.regions.unwrap_or(1).max(1) as usize;
+    let per_region = tasks.len().div_ceil(regions).max(1);
+    let parts: Vec<(u64, Option<f64>)> = tasks
+        .chunks(per_region)
+        .map(|group| {
+            let steps: u64 = group.iter().map(|t| t.0).sum();
+            let error = (steps > 0 && group.iter().all(|t| t.0 == 0 || t.1.is_some())).then(|| {
+                let s = steps as f64;
+                group
+                    .iter()
+                    .filter_map(|&(k, e)| e.map(|e| (k as f64 / s * e as f64).powi(2)))
+                    .sum::<f64>()
+                    .sqrt()
+            });
+            (steps, error)
+        })
+        .collect();
+    let n = parts.len().max(1) as u64;
+    let steps = parts.iter().map(|p| p.0).sum::<u64>() / n;
+    let error = parts
+        .iter()
+        .map(|p| p.1)
+        .collect::<Option<Vec<f64>>>()
+        .filter(|e| !e.is_empty())
+        .map(|e| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt() as f32);
     let elapsed = started_at.map_or(0.0, |t| (now - t).max(0) as f64 / 1000.0);
     serde_json::to_value(crate::service::model::Progress::new(steps, elapsed, error, &spec.stop)).unwrap_or(Value::Null)
 }

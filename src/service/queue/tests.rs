@@ -890,3 +890,40 @@ fn embedded_migrations_are_the_migration_folders() {
         assert_eq!(embedded, files, "migrations/{store}/ and {store}::MIGRATIONS differ");
     }
 }
+
+/// A split job's progress from its tasks (no store involved): step ranges of one region
+/// add their steps and their errors in quadrature by step weight; regions average.
+#[test]
+fn split_progress_adds_ranges_and_averages_regions() {
+    let spec = split_spec(4, 400, "");
+    // One region, four ranges of 100 steps, each with error 0.2: 400 steps, 0.2 / 2.
+    let p = merged_progress(&spec, Some(0), 1000, &[(100, Some(0.2)); 4]);
+    assert_eq!(p["steps"], 400);
+    assert!((p["error"].as_f64().unwrap() - 0.1).abs() < 1e-6, "{p}");
+    // Two regions of two ranges: region 0 has baked 200 steps (error 0.1), region 1 100
+    // (its second range not started, error 0.3): steps (200 + 100) / 2, error
+    // sqrt((0.1² + 0.3²) / 2).
+    let spec = split_spec(4, 400, r#", "regions": 2"#);
+    let p = merged_progress(
+        &spec,
+        Some(0),
+        1000,
+        &[
+            (100, Some(0.1 * 2f32.sqrt())),
+            (100, Some(0.1 * 2f32.sqrt())),
+            (100, Some(0.3)),
+            (0, None),
+        ],
+    );
+    assert_eq!(p["steps"], 150);
+    let want = ((0.01f64 + 0.09) / 2.0).sqrt();
+    assert!((p["error"].as_f64().unwrap() - want).abs() < 1e-6, "{p}");
+    // A region that has baked nothing has no error yet, so neither has the job.
+    let p = merged_progress(
+        &spec,
+        Some(0),
+        1000,
+        &[(100, Some(0.1)), (0, None), (0, None), (0, None)],
+    );
+    assert!(p["error"].is_null(), "{p}");
+}

@@ -42,7 +42,10 @@
 //! independently per texel and half so the halves' difference still measures the error;
 //! `independent` draws one PCG32 stream per (seed, step, texel, sample) (`engine::rng`).
 //! Either way the result is bit-identical for a seed regardless of thread count. The GPU
-//! megakernel draws independent PCG streams.
+//! megakernel draws independent PCG streams. "Texel" in these keys is the texel's pixel
+//! in the grid (`Texel::pixel`), not its place in the valid-texel list, and "step" is the
+//! job's step: a task that bakes some steps of one region of the grid (`engine::tasks`)
+//! draws exactly the samples the whole bake draws there.
 //!
 //! Time limit: a CPU step runs in chunks of [`DEADLINE_PATHS`] paths and is abandoned,
 //! adding nothing, when the bake's deadline passes mid-step (`Technique::set_deadline`)
@@ -168,7 +171,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| parse_params::<PathParams>("path", p)?.validate(),
     unbiased: true,
     alpha: AlphaSupport::Everywhere,
-    tasks: TaskSplit::StepRanges,
+    tasks: TaskSplit::StepsAndRegions,
 };
 
 /// The path tracer's plan: one CPU pass, and light sampling only for the kinds of light
@@ -298,7 +301,11 @@ impl Technique for PathTracer {
         let seed = self.inputs.seed;
         let sampling = self.params.sampling;
         let deadline = self.deadline;
-        let texel_sample = |ti: usize, texel: &crate::engine::atlas::Texel| {
+        // Streams are keyed by the texel's pixel, not its place in the texel list, so a
+        // task that bakes one region of the grid (`engine::tasks`) draws exactly the
+        // samples the whole bake draws for those texels.
+        let texel_sample = |texel: &crate::engine::atlas::Texel| {
+            let key = u64::from(texel.pixel);
             let mut sum = PathSample {
                 total: Vec3::ZERO,
                 direct: Vec3::ZERO,
@@ -307,8 +314,8 @@ impl Technique for PathTracer {
             for s in 0..spp {
                 let (x, n, ng) = (texel.position, texel.normal, texel.geo_normal);
                 let r = match sampling {
-                    Sampling::Sobol => ctx.radiance(x, n, ng, &mut Sobol::new(seed, step, ti as u64, s, spp)),
-                    Sampling::Independent => ctx.radiance(x, n, ng, &mut Rng::new(seed, step, ti as u64, s as u64)),
+                    Sampling::Sobol => ctx.radiance(x, n, ng, &mut Sobol::new(seed, step, key, s, spp)),
+                    Sampling::Independent => ctx.radiance(x, n, ng, &mut Rng::new(seed, step, key, s as u64)),
                 };
                 sum.total += r.total;
                 sum.direct += r.direct;
@@ -332,18 +339,12 @@ impl Technique for PathTracer {
             .atlas
             .texels
             .par_chunks(chunk_texels)
-            .enumerate()
-            .map(|(c, chunk)| {
+            .map(|chunk| {
                 let stop_asked = progress.as_ref().is_some_and(|p| p.stop_requested());
                 if stop_asked || deadline.is_some_and(|d| Instant::now() >= d) {
                     return None;
                 }
-                let first = c * chunk_texels;
-                let out = chunk
-                    .iter()
-                    .enumerate()
-                    .map(|(k, t)| texel_sample(first + k, t))
-                    .collect();
+                let out = chunk.iter().map(texel_sample).collect();
                 if let Some(p) = &progress {
                     let done = chunks_done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                     p.set(done, n_chunks);

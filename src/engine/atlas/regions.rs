@@ -1,0 +1,212 @@
+//! Regions of the texel grid: what one task of a bake split by texels bakes
+//! (`engine::tasks`, issue 25).
+//!
+//! A region is a contiguous run of the valid texels in pixel order. Since texels are
+//! kept in pixel order (row-major) and pages are bands of rows, a run of texels is a band
+//! of whole rows of the grid (its first and last rows possibly partial), and a run that
+//! starts and ends on page boundaries is a set of whole pages.
+//!
+//! How the grid is cut into `count` regions:
+//! - `count` at most the page count: whole pages, grouped into `count` consecutive runs
+//!   with about as many texels each (a cut goes at the page boundary nearest the ideal
+//!   cumulative share, and every region keeps at least one page). With `count` equal to
+//!   the page count, region k is page k: a 64-page level is 64 page tasks.
+//! - more regions than pages: the texels are cut into `count` runs of equal length
+//!   (within one), ignoring page boundaries: tiles as wide as the grid, for a level of one
+//!   large page. So are pages whose grouping would leave a region without a texel (a run
+//!   of empty pages): no region is ever empty.
+//!
+//! The cut depends only on the atlas, which a bake's tasks and its merge each rebuild
+//! identically from the scene and request (`job::prepare`), so all of them agree on it.
+//!
+//! A region's own atlas ([`Atlas::region`]) keeps the grid (width, height, pages) and
+//! each texel's pixel, and drops what only the delivery of the whole grid uses (the
+//! gutter links and the seams: the merge delivers from the whole atlas). A technique
+//! whose texels are independent of one another (its table row's `TaskSplit`) bakes
+//! exactly the region's share of a whole bake on it, provided its random streams are
+//! keyed by pixel (`path`: `Texel::pixel`).
+
+use std::ops::Range;
+
+use super::{Atlas, NO_TEXEL};
+
+impl Atlas {
+    /// The texel ranges of this grid's `count` regions, in order, covering every texel
+    /// once. Refused (with the reason) when there are fewer texels than regions.
+    pub fn regions(&self, count: u32) -> Result<Vec<Range<usize>>, String> {
+        let n = self.texels.len();
+        let count = count.max(1) as usize;
+        if n < count {
+            return Err(format!(
+                "{count} regions asked of a lightmap with {n} valid texels: at most one region per texel"
+            ));
+        }
+        if count == 1 {
+            return Ok(std::iter::once(0..n).collect());
+        }
+        if count <= self.pages.len() {
+            // The first texel of every page, then n: page p is starts[p]..starts[p + 1].
+            let width = self.width as u64;
+            let mut starts: Vec<usize> = self
+                .pages
+                .iter()
+                .map(|band| {
+                    let first_pixel = u64::from(band.first_row) * width;
+                    self.texels.partition_point(|t| u64::from(t.pixel) < first_pixel)
+                })
+                .collect();
+            starts.push(n);
+            let pages = self.pages.len();
+            // Boundary k (1..count) at the page boundary b nearest k/count of the texels,
+            // kept strictly increasing and leaving at least one page per later region.
+            let mut cuts = vec![0usize];
+            for k in 1..count {
+                let ideal = n as f64 * k as f64 / count as f64;
+                let lo = cuts[k - 1] + 1;
+                let hi = pages - (count - k);
+                let b = (lo..=hi)
+                    .min_by(|&a, &b| {
+                        let da = (starts[a] as f64 - ideal).abs();
+                        let db = (starts[b] as f64 - ideal).abs();
+                        da.total_cmp(&db)
+                    })
+                    .unwrap_or(lo);
+                cuts.push(b);
+            }
+            cuts.push(pages);
+            let grouped: Vec<Range<usize>> = cuts.windows(2).map(|w| starts[w[0]]..starts[w[1]]).collect();
+            if grouped.iter().all(|r| !r.is_empty()) {
+                return Ok(grouped);
+            }
+        }
+        Ok((0..count).map(|k| k * n / count..(k + 1) * n / count).collect())
+    }
+
+    /// The atlas of the texels in `texels` (a range [`Atlas::regions`] gave): the same
+    /// grid and pixels, only those texels valid.
+    pub fn region(&self, texels: Range<usize>) -> Atlas {
+        let kept = &self.texels[texels.clone()];
+        let mut pixel_texel = vec![NO_TEXEL; self.pixel_texel.len()];
+        for (k, t) in kept.iter().enumerate() {
+            pixel_texel[t.pixel as usize] = k as u32;
+        }
+        Atlas {
+            width: self.width,
+            height: self.height,
+            texels: kept.to_vec(),
+            pixel_texel,
+            links: Vec::new(),
+            overlapping_texels: self.overlapping_texels,
+            surface_offset: self.surface_offset,
+            overlap_pixels: Vec::new(),
+            inside_pixels: Vec::new(),
+            validation: self.validation.clone(),
+            seams: Vec::new(),
+            pages: self.pages.clone(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::atlas::Texel;
+    use crate::engine::scene::PageRows;
+    use glam::Vec3;
+
+    /// A `width` x (rows per page x pages) grid whose valid texels are `pixels`.
+    fn atlas(width: u32, page_rows: &[u32], pixels: &[u32]) -> Atlas {
+        let mut first = 0;
+        let pages: Vec<PageRows> = page_rows
+            .iter()
+            .map(|&rows| {
+                let p = PageRows { first_row: first, rows };
+                first += rows;
+                p
+            })
+            .collect();
+        let height = first;
+        let texels: Vec<Texel> = pixels
+            .iter()
+            .map(|&pixel| Texel {
+                pixel,
+                position: Vec3::new(pixel as f32, 0.0, 0.0),
+                normal: Vec3::Y,
+                geo_normal: Vec3::Y,
+                albedo: Vec3::splat(0.5),
+                emission: Vec3::ZERO,
+                triangle: 0,
+                mesh: 0,
+                size: 1.0,
+            })
+            .collect();
+        let mut pixel_texel = vec![NO_TEXEL; (width * height) as usize];
+        for (k, t) in texels.iter().enumerate() {
+            pixel_texel[t.pixel as usize] = k as u32;
+        }
+        Atlas {
+            width,
+            height,
+            texels,
+            pixel_texel,
+            links: Vec::new(),
+            overlapping_texels: 0,
+            surface_offset: 1e-4,
+            overlap_pixels: Vec::new(),
+            inside_pixels: Vec::new(),
+            validation: None,
+            seams: Vec::new(),
+            pages,
+        }
+    }
+
+    #[test]
+    fn as_many_regions_as_pages_are_the_pages() {
+        // 4 wide, pages of 2, 1 and 3 rows (pixels 0..8, 8..12, 12..24).
+        let a = atlas(4, &[2, 1, 3], &[0, 3, 7, 9, 10, 11, 12, 20, 23]);
+        assert_eq!(a.regions(3).unwrap(), vec![0..3, 3..6, 6..9]);
+        assert_eq!(a.regions(1).unwrap(), vec![0..9]);
+        // Two regions: pages grouped at the page boundary nearest half the texels (4.5).
+        // After page 0 (3 texels) and after page 1 (6) are as near; the first is kept.
+        assert_eq!(a.regions(2).unwrap(), vec![0..3, 3..9]);
+    }
+
+    #[test]
+    fn more_regions_than_pages_are_equal_runs_of_texels() {
+        let a = atlas(4, &[2, 1, 3], &[0, 3, 7, 9, 10, 11, 12, 20, 23]);
+        let r = a.regions(4).unwrap();
+        assert_eq!(r, vec![0..2, 2..4, 4..6, 6..9]);
+        let err = a.regions(10).unwrap_err();
+        assert!(err.contains("9 valid texels"), "{err}");
+    }
+
+    #[test]
+    fn no_region_is_empty_and_regions_cover_every_texel_once() {
+        // Page 1 (pixels 8..12) has no texel: three page regions would leave one empty,
+        // so the texels are cut into equal runs instead.
+        let a = atlas(4, &[2, 1, 3], &[0, 1, 2, 3, 13, 14]);
+        assert_eq!(a.regions(3).unwrap(), vec![0..2, 2..4, 4..6]);
+        // Two regions still fall on a page boundary (after page 0 or 1: both 4 texels).
+        assert_eq!(a.regions(2).unwrap(), vec![0..4, 4..6]);
+        for count in 1..=6 {
+            let r = a.regions(count).unwrap();
+            assert_eq!(r.len(), count as usize);
+            assert_eq!(r.first().unwrap().start, 0);
+            assert_eq!(r.last().unwrap().end, 6);
+            assert!(r.windows(2).all(|w| w[0].end == w[1].start), "{count}: {r:?}");
+            assert!(r.iter().all(|x| !x.is_empty()), "{count}: {r:?}");
+        }
+    }
+
+    #[test]
+    fn a_region_keeps_its_texels_pixels_and_the_grid() {
+        let a = atlas(4, &[2, 1, 3], &[0, 3, 7, 9, 10, 11, 12, 20, 23]);
+        let r = a.region(3..6);
+        assert_eq!((r.width, r.height, r.pages.len()), (4, 6, 3));
+        let pixels: Vec<u32> = r.texels.iter().map(|t| t.pixel).collect();
+        assert_eq!(pixels, vec![9, 10, 11]);
+        assert_eq!(r.pixel_texel[10], 1);
+        assert_eq!(r.pixel_texel[0], NO_TEXEL);
+        assert_eq!(r.texels[2].position, a.texels[5].position);
+    }
+}
