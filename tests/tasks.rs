@@ -19,7 +19,7 @@ use lightmapd::engine::bake::{BakeEvent, StopCriteria};
 use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
 use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::post::denoised::Denoiser;
-use lightmapd::engine::scene::build::{remove_lightmap_uvs, write_glb};
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, remove_lightmap_uvs, write_glb};
 use lightmapd::engine::scene::library::sphere_over_plane;
 use lightmapd::engine::scene::{self, Hemisphere, Scene, Sky};
 use lightmapd::engine::tasks::{self, Partial, TaskShape};
@@ -152,14 +152,29 @@ fn two_pages() -> Arc<Scene> {
     Arc::new(scene::import_slice(&write_glb(&doc, &bin), None).unwrap().0)
 }
 
-/// Regions alone: the pages of a two-page scene, or four tiles of the Cornell box's one
-/// page, each baked over every step: the merge is the single bake bit for bit (the same
-/// samples per texel, added in the same order).
+/// A 4 m floor with a 1 m box standing on it: the floor's texels under the box lie
+/// inside geometry, and texel validation drops them.
+fn box_on_floor() -> Arc<Scene> {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("floor", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.block("box", Vec3::ZERO, Vec3::splat(0.5), 0.0, m);
+    Arc::new(scene::import_slice(&b.to_glb(), None).unwrap().0)
+}
+
+/// Regions alone: the pages of a two-page scene, four tiles of the Cornell box's one
+/// page, three tiles of a floor whose texels under a box validation drops (each task
+/// validates only its region's texels), each baked over every step: the merge is the
+/// single bake bit for bit (the same samples per texel, added in the same order).
 #[test]
 fn page_and_tile_tasks_merge_to_the_single_bake_exactly() {
-    for (scene, regions, what) in [(two_pages(), 2, "pages"), (scene(), 4, "tiles")] {
+    for (scene, regions, what) in [
+        (two_pages(), 2, "pages"),
+        (scene(), 4, "tiles"),
+        (box_on_floor(), 3, "tiles over dropped texels"),
+    ] {
         let mut request = request("cpu", 4);
-        request.resolution = if what == "pages" { 40 } else { 20 };
+        request.resolution = if what == "tiles" { 20 } else { 40 };
         request.lighting.sky = Some(sky());
         let parts = bake_tasks(
             &scene,
@@ -174,6 +189,10 @@ fn page_and_tile_tasks_merge_to_the_single_bake_exactly() {
         let whole = whole(&scene, &request);
         assert_eq!(texels.iter().sum::<u64>() as usize, whole.total.len(), "{what}");
         assert!(texels.iter().all(|&n| n > 0), "{what}: {texels:?}");
+        if what == "tiles over dropped texels" {
+            let dropped = merged.summary.validation.inside_geometry_texels;
+            assert!(dropped > 0, "{what}: {dropped} texels dropped");
+        }
         if what == "pages" {
             assert_eq!(merged.summary.atlas.pages, 2);
             // Each region is one page: the ground's and the ball's texel counts differ.

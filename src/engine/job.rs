@@ -328,12 +328,43 @@ pub(crate) struct Prepared {
     pub denoiser: Used,
     /// Control texels measure the technique's bias (`engine::control`).
     pub control: bool,
+    /// With [`prepare_regions`]: the regions' pixel ranges of the grid, in order.
+    pub region_pixels: Vec<std::ops::Range<u32>>,
+}
+
+/// Which regions of the grid to prepare (`engine::tasks`): cut it into `count` regions
+/// (`atlas::regions`, on the texel set before validation) and keep only region `keep`'s
+/// texels (validating only those), or all of them when `keep` is `None` (a merge).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct RegionsOf {
+    pub count: u32,
+    pub keep: Option<u32>,
 }
 
 pub(crate) fn prepare(
     scene: Arc<Scene>,
     request: &BakeRequest,
     options: &BakeOptions,
+    on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+    on_plan: &mut dyn FnMut(&Plan),
+) -> Result<Prepared, EngineError> {
+    prepare_regions(scene, request, options, None, on_atlas, on_plan)
+}
+
+/// [`prepare`] for a task of a bake split by regions, or for its merge. The regions are
+/// cut before texel validation, so a region task validates (traces) only its own
+/// texels: validation is per texel (its rays are keyed by the texel's pixel), so each
+/// region's validated texels are the whole grid's validated texels in its pixel range,
+/// and the merge, which validates the whole grid, finds each region's texels there. A
+/// region whose every texel lies inside geometry keeps them (validation never empties a
+/// texel set) where the whole grid's validation would drop them: its task's texel set
+/// then differs from the merge's, which refuses it by fingerprint rather than
+/// mis-place it.
+pub(crate) fn prepare_regions(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    options: &BakeOptions,
+    regions: Option<RegionsOf>,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
     on_plan: &mut dyn FnMut(&Plan),
 ) -> Result<Prepared, EngineError> {
@@ -424,6 +455,27 @@ pub(crate) fn prepare(
         }
     }
     let mut atlas = Atlas::build(&scene, width, height).map_err(|e| EngineError::BadInput(e.to_string()))?;
+    let mut region_pixels = Vec::new();
+    if let Some(RegionsOf { count, keep }) = regions {
+        region_pixels = atlas
+            .region_pixels(count)
+            .map_err(|m| EngineError::BadInput(format!("tasks: {m}; ask for fewer regions or a higher resolution")))?;
+        if let Some(k) = keep {
+            let pixels = region_pixels
+                .get(k as usize)
+                .cloned()
+                .ok_or_else(|| EngineError::Internal(format!("region {k} of {count} asked for")))?;
+            let texels = atlas.texels_in(pixels);
+            tracing::info!(
+                region = k,
+                regions = count,
+                texels = texels.len(),
+                of = atlas.texels.len(),
+                "the task's region of the grid"
+            );
+            atlas = atlas.region(texels);
+        }
+    }
     let rays = SceneRays::new(scene.clone());
     // On a hardware GPU its rays go through the BVH query pass (issue 20 point 3: 56.6 s of a
     // 15.6 M-texel level's 60.5 s preparation was the CPU's tracing); elsewhere the CPU's.
@@ -447,6 +499,7 @@ pub(crate) fn prepare(
         unwrap,
         denoiser,
         control,
+        region_pixels,
     })
 }
 

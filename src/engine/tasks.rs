@@ -270,22 +270,11 @@ pub fn bake_task(
     // The task's probes are the merge's to bake, once.
     let mut own = request.clone();
     own.probes = None;
-    let mut prepared = job::prepare(scene, &own, options, on_atlas, on_plan)?;
-    if task.regions > 1 {
-        let regions = prepared
-            .atlas
-            .regions(task.regions)
-            .map_err(|m| EngineError::BadInput(format!("tasks: {m}; ask for fewer regions or a higher resolution")))?;
-        let texels = regions[task.region as usize].clone();
-        tracing::info!(
-            region = task.region,
-            regions = task.regions,
-            texels = texels.len(),
-            of = prepared.atlas.texels.len(),
-            "task narrowed to its region"
-        );
-        prepared.atlas = Arc::new(prepared.atlas.region(texels));
-    }
+    let regions = (task.regions > 1).then_some(job::RegionsOf {
+        count: task.regions,
+        keep: Some(task.region),
+    });
+    let prepared = job::prepare_regions(scene, &own, options, regions, on_atlas, on_plan)?;
     let mut tech = technique::create(&request.technique, prepared.inputs(request), &request.params)?;
     tech.start_at_step(task.first_step)?;
     let stop = StopCriteria {
@@ -498,9 +487,13 @@ pub fn merge_regions(ordered: &[&Partial]) -> Result<Snapshot, EngineError> {
     })
 }
 
-/// Checks that `partials` are every task of one request, baked on the texel set of
-/// `atlas` (when given), and returns them in task order.
-pub fn check_partials<'a>(partials: &'a [Partial], atlas: Option<&Atlas>) -> Result<Vec<&'a Partial>, EngineError> {
+/// Checks that `partials` are every task of one request, each baked on its region's
+/// texels of `atlas` (when given: the whole texel set and each region's range of it),
+/// and returns them in task order.
+pub fn check_partials<'a>(
+    partials: &'a [Partial],
+    atlas: Option<(&Atlas, &[std::ops::Range<usize>])>,
+) -> Result<Vec<&'a Partial>, EngineError> {
     let bad = |m: String| Err(EngineError::BadInput(m));
     let Some(first) = partials.first() else {
         return bad("merge: no task results given".into());
@@ -509,17 +502,21 @@ pub fn check_partials<'a>(partials: &'a [Partial], atlas: Option<&Atlas>) -> Res
     let tasks = split(&h0.request, h0.task.shape())?;
     let mut by_index: Vec<Option<&Partial>> = vec![None; tasks.len()];
     // Each region's fingerprint, when the atlas is given.
-    let prints: Option<Vec<(String, u64)>> = match atlas {
-        Some(a) => Some(
-            a.regions(h0.task.regions)
-                .map_err(|m| EngineError::BadInput(format!("merge: {m}")))?
-                .into_iter()
-                .map(|r| (r.len() as u64, r))
-                .map(|(n, r)| (texels_fingerprint(a, r), n))
-                .collect(),
-        ),
-        None => None,
-    };
+    let prints: Option<Vec<(String, u64)>> = atlas.map(|(a, ranges)| {
+        ranges
+            .iter()
+            .map(|r| (texels_fingerprint(a, r.clone()), r.len() as u64))
+            .collect()
+    });
+    if let Some(p) = &prints
+        && p.len() != h0.task.regions.max(1) as usize
+    {
+        return bad(format!(
+            "merge: the tasks are {} regions, the merge cut the grid into {}",
+            h0.task.regions,
+            p.len()
+        ));
+    }
     for (k, p) in partials.iter().enumerate() {
         let h = &p.header;
         let name = format!("task result {k} (task {}/{})", h.task.index, h.task.count);
@@ -581,8 +578,21 @@ pub fn merge(
         .first()
         .ok_or_else(|| EngineError::BadInput("merge: no task results given".into()))?;
     let request = first.header.request.clone();
-    let prepared = job::prepare(scene, &request, options, &mut |_| {}, on_plan)?;
-    let ordered = check_partials(partials, Some(&prepared.atlas))?;
+    let regions = (first.header.task.regions > 1).then_some(job::RegionsOf {
+        count: first.header.task.regions,
+        keep: None,
+    });
+    let prepared = job::prepare_regions(scene, &request, options, regions, &mut |_| {}, on_plan)?;
+    let texel_ranges: Vec<std::ops::Range<usize>> = if prepared.region_pixels.is_empty() {
+        vec![0..prepared.atlas.texels.len()]
+    } else {
+        prepared
+            .region_pixels
+            .iter()
+            .map(|p| prepared.atlas.texels_in(p.clone()))
+            .collect()
+    };
+    let ordered = check_partials(partials, Some((&prepared.atlas, &texel_ranges)))?;
     let snapshot = merge_regions(&ordered)?;
     let estimate = snapshot.estimate();
     if let Some((layer, k, v)) = estimate.first_non_finite() {

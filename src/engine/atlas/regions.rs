@@ -16,8 +16,12 @@
 //!   large page. So are pages whose grouping would leave a region without a texel (a run
 //!   of empty pages): no region is ever empty.
 //!
-//! The cut depends only on the atlas, which a bake's tasks and its merge each rebuild
-//! identically from the scene and request (`job::prepare`), so all of them agree on it.
+//! The cut is made on the texel set as rasterised, before texel validation drops the
+//! texels inside geometry, and kept as pixel ranges ([`Atlas::region_pixels`]): a task
+//! validates only its region's texels (`job::prepare_regions`), and the merge, which
+//! validates the whole grid, finds each region's texels by the same pixel ranges. The
+//! cut depends only on the scene and request, which a bake's tasks and its merge each
+//! rebuild identically, so all of them agree on it.
 //!
 //! A region's own atlas ([`Atlas::region`]) keeps the grid (width, height, pages) and
 //! each texel's pixel, and drops what only the delivery of the whole grid uses (the
@@ -80,6 +84,31 @@ impl Atlas {
             }
         }
         Ok((0..count).map(|k| k * n / count..(k + 1) * n / count).collect())
+    }
+
+    /// The pixel ranges of [`Atlas::regions`]: region k is every pixel from its first
+    /// texel's up to the next region's first texel's (region 0 from pixel 0, the last to
+    /// the end of the grid), so the ranges tile the grid and a texel set derived from
+    /// this one by dropping texels (validation) is cut at the same places by
+    /// [`Atlas::texels_in`].
+    pub fn region_pixels(&self, count: u32) -> Result<Vec<Range<u32>>, String> {
+        let ranges = self.regions(count)?;
+        let end = self.width * self.height;
+        let starts: Vec<u32> = ranges
+            .iter()
+            .enumerate()
+            .map(|(k, r)| if k == 0 { 0 } else { self.texels[r.start].pixel })
+            .collect();
+        Ok((0..starts.len())
+            .map(|k| starts[k]..starts.get(k + 1).copied().unwrap_or(end))
+            .collect())
+    }
+
+    /// The texels whose pixels lie in `pixels` (texels are in pixel order, so a range).
+    pub fn texels_in(&self, pixels: Range<u32>) -> Range<usize> {
+        let first = self.texels.partition_point(|t| t.pixel < pixels.start);
+        let end = self.texels.partition_point(|t| t.pixel < pixels.end);
+        first..end
     }
 
     /// The atlas of the texels in `texels` (a range [`Atlas::regions`] gave): the same
@@ -196,6 +225,32 @@ mod tests {
             assert!(r.windows(2).all(|w| w[0].end == w[1].start), "{count}: {r:?}");
             assert!(r.iter().all(|x| !x.is_empty()), "{count}: {r:?}");
         }
+    }
+
+    #[test]
+    fn pixel_ranges_tile_the_grid_and_find_the_same_texels() {
+        let a = atlas(4, &[2, 1, 3], &[0, 3, 7, 9, 10, 11, 12, 20, 23]);
+        for count in 1..=9 {
+            let pixels = a.region_pixels(count).unwrap();
+            let texels = a.regions(count).unwrap();
+            assert_eq!(pixels.first().unwrap().start, 0);
+            assert_eq!(pixels.last().unwrap().end, 24);
+            assert!(pixels.windows(2).all(|w| w[0].end == w[1].start));
+            let found: Vec<Range<usize>> = pixels.iter().map(|p| a.texels_in(p.clone())).collect();
+            assert_eq!(found, texels, "{count}");
+        }
+        // A region starts at its first texel's pixel (page 1's first texel is pixel 9).
+        assert_eq!(a.region_pixels(3).unwrap(), vec![0..9, 9..12, 12..24]);
+        // A texel dropped later (validation) leaves the others in their regions.
+        let mut b = a.clone();
+        b.remove_texels(&[false, false, false, true, false, false, false, false, false]);
+        let found: Vec<Range<usize>> = a
+            .region_pixels(3)
+            .unwrap()
+            .into_iter()
+            .map(|p| b.texels_in(p))
+            .collect();
+        assert_eq!(found, vec![0..3, 3..5, 5..8]);
     }
 
     #[test]

@@ -75,11 +75,13 @@ pub struct ValidationReport {
     pub warnings: Vec<String>,
 }
 
-/// The stream of texel `k`'s test rays: ray `i` takes the `i`-th pair of its numbers
-/// ([`test_direction`]), so the GPU route (`gpu::validate`) casts the very rays the CPU
-/// does and decides the same.
-pub fn texel_rng(k: usize) -> Rng {
-    Rng::new(0x7a11d, k as u64, 0, 0)
+/// The stream of the test rays of the texel at `pixel`: ray `i` takes the `i`-th pair of
+/// its numbers ([`test_direction`]), so the GPU route (`gpu::validate`) casts the very
+/// rays the CPU does and decides the same. Keyed by pixel, not by the texel's place in
+/// the list, so a task validating one region of the grid (`job::prepare_regions`)
+/// decides each texel as the whole grid's validation does.
+pub fn texel_rng(pixel: u32) -> Rng {
+    Rng::new(0x7a11d, u64::from(pixel), 0, 0)
 }
 
 /// The next test ray's direction from `t`'s sample point, or `None` when it points below
@@ -106,9 +108,8 @@ pub fn decided_after_first_batch(hits: u32, back: u32) -> bool {
 pub fn backface_fractions(scene: &Scene, tracer: &Tracer, texels: &[Texel]) -> Vec<f32> {
     texels
         .par_iter()
-        .enumerate()
-        .map(|(k, t)| {
-            let mut rng = texel_rng(k);
+        .map(|t| {
+            let mut rng = texel_rng(t.pixel);
             let (mut hits, mut back) = (0u32, 0u32);
             for ray in 0..RAYS {
                 if ray == FIRST_BATCH && decided_after_first_batch(hits, back) {

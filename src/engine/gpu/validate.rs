@@ -45,10 +45,9 @@ pub fn backface_fractions(ctx: &Arc<GpuContext>, rays: &SceneRays, texels: &[Tex
     let scene = rays.scene();
     let tracer = GpuTracer::new(ctx, "texel validation", rays, CHUNK_TEXELS * FIRST_BATCH as usize)?;
     let mut fractions = Vec::with_capacity(texels.len());
-    for (c, chunk) in texels.chunks(CHUNK_TEXELS).enumerate() {
-        let first = c * CHUNK_TEXELS;
+    for chunk in texels.chunks(CHUNK_TEXELS) {
         // Each texel's stream, and its (hits, back faces) so far.
-        let mut streams: Vec<Rng> = (0..chunk.len()).map(|i| validate::texel_rng(first + i)).collect();
+        let mut streams: Vec<Rng> = chunk.iter().map(|t| validate::texel_rng(t.pixel)).collect();
         let mut counts = vec![(0u32, 0u32); chunk.len()];
         let everyone: Vec<usize> = (0..chunk.len()).collect();
         let back_face = |tri: u32, d| validate::is_back_face(scene, tri, d);
