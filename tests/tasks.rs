@@ -264,6 +264,16 @@ fn the_merge_refuses_what_is_not_every_task_of_one_request() {
     moved[1].header.fingerprint = "0".repeat(64);
     let e = merge(&moved);
     assert!(e.contains("was baked on another texel set"), "{e}");
+    // The merge takes the tasks' validation from their texels' pixels, checked first.
+    let mut shuffled = parts.clone();
+    shuffled[0].pixels.reverse();
+    let e = merge(&shuffled);
+    assert!(e.contains("not in pixel order"), "{e}");
+    // Pixels in order but not the ones the task baked: its fingerprint names it.
+    let mut shifted = parts.clone();
+    shifted[0].pixels.pop();
+    let e = merge(&shifted);
+    assert!(e.contains("was baked on another texel set"), "{e}");
 }
 
 fn bin() -> Command {

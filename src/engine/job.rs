@@ -335,10 +335,14 @@ pub(crate) struct Prepared {
 /// Which regions of the grid to prepare (`engine::tasks`): cut it into `count` regions
 /// (`atlas::regions`, on the texel set before validation) and keep only region `keep`'s
 /// texels (validating only those), or all of them when `keep` is `None` (a merge).
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct RegionsOf {
+#[derive(Clone, Debug)]
+pub(crate) struct RegionsOf<'a> {
     pub count: u32,
     pub keep: Option<u32>,
+    /// A merge's: the pixels of every texel the tasks kept after their own validation,
+    /// in pixel order. Given, the merge takes the tasks' decisions instead of tracing
+    /// validation's rays again (for a large level most of its preparation).
+    pub validated: Option<&'a [u32]>,
 }
 
 pub(crate) fn prepare(
@@ -357,14 +361,14 @@ pub(crate) fn prepare(
 /// region's validated texels are the whole grid's validated texels in its pixel range,
 /// and the merge, which validates the whole grid, finds each region's texels there. A
 /// region whose every texel lies inside geometry keeps them (validation never empties a
-/// texel set) where the whole grid's validation would drop them: its task's texel set
-/// then differs from the merge's, which refuses it by fingerprint rather than
-/// mis-place it.
+/// texel set) where the whole grid's validation would drop them. A merge given the
+/// tasks' kept pixels (`RegionsOf::validated`) takes their decisions instead of tracing
+/// again, so it agrees with its tasks in that case too.
 pub(crate) fn prepare_regions(
     scene: Arc<Scene>,
     request: &BakeRequest,
     options: &BakeOptions,
-    regions: Option<RegionsOf>,
+    regions: Option<RegionsOf<'_>>,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
     on_plan: &mut dyn FnMut(&Plan),
 ) -> Result<Prepared, EngineError> {
@@ -456,7 +460,14 @@ pub(crate) fn prepare_regions(
     }
     let mut atlas = Atlas::build(&scene, width, height).map_err(|e| EngineError::BadInput(e.to_string()))?;
     let mut region_pixels = Vec::new();
-    if let Some(RegionsOf { count, keep }) = regions {
+    let mut validated = None;
+    if let Some(RegionsOf {
+        count,
+        keep,
+        validated: kept,
+    }) = regions
+    {
+        validated = kept;
         region_pixels = atlas
             .region_pixels(count)
             .map_err(|m| EngineError::BadInput(format!("tasks: {m}; ask for fewer regions or a higher resolution")))?;
@@ -479,11 +490,21 @@ pub(crate) fn prepare_regions(
     let rays = SceneRays::new(scene.clone());
     // On a hardware GPU its rays go through the BVH query pass (issue 20 point 3: 56.6 s of a
     // 15.6 M-texel level's 60.5 s preparation was the CPU's tracing); elsewhere the CPU's.
-    let fractions = crate::engine::gpu::hardware_context("texel validation").and_then(|ctx| {
-        crate::engine::gpu::validate::backface_fractions(&ctx, &rays, &atlas.texels)
-            .inspect_err(|e| tracing::warn!(error = %e, "texel validation on the GPU failed; tracing on the CPU"))
-            .ok()
-    });
+    let fractions = match validated {
+        // A texel the tasks kept has no back-face hit to speak of, any other was inside.
+        Some(kept) => Some(
+            atlas
+                .texels
+                .iter()
+                .map(|t| if kept.binary_search(&t.pixel).is_ok() { 0.0 } else { 1.0 })
+                .collect(),
+        ),
+        None => crate::engine::gpu::hardware_context("texel validation").and_then(|ctx| {
+            crate::engine::gpu::validate::backface_fractions(&ctx, &rays, &atlas.texels)
+                .inspect_err(|e| tracing::warn!(error = %e, "texel validation on the GPU failed; tracing on the CPU"))
+                .ok()
+        }),
+    };
     let validation = match fractions {
         Some(f) => validate::validate_from(&scene, &mut atlas, &f),
         None => validate::validate_with(&scene, &rays.tracer(), &mut atlas),

@@ -36,19 +36,22 @@
 //! no task sees.
 //!
 //! A task's result is a [`Partial`]: the request, the task, a fingerprint of the texel
-//! set it baked (its region's) and both halves' means with their step counts. Its file
+//! set it baked (its region's), both halves' means with their step counts, and the
+//! pixel of each texel (what its validation kept). Its file
 //! format is this module's own (an 8-byte magic, the JSON header's length and the
 //! header, then little-endian f32 arrays; docs/scaling.md has the layout): the data is
 //! per valid texel, not per pixel, so an image format would only add a layout to undo,
 //! and the header is plain JSON any tool reads.
 //!
 //! The merge rebuilds the texel set and its regions from the scene and request
-//! (deterministic, `job::prepare`) and refuses partials of another request, another
-//! texel set, a missing or repeated task, or a cancelled one, naming which.
+//! (deterministic, `job::prepare_regions`), taking the tasks' validation (the texels
+//! they kept) instead of tracing it again, and refuses partials of another request,
+//! another texel set, a missing or repeated task, or a cancelled one, naming which.
 //!
 //! Limits: no shadowmask layer in a split bake yet (its pass would need the same step
 //! offset and region); a task's probes are not baked (the merge bakes them, once); every
-//! task prepares (imports, validates) the whole grid, which a region task then narrows.
+//! task imports the scene and rasterises the whole grid's texel set (a region task then
+//! validates and bakes only its region), so a task's memory is the whole grid's.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -200,6 +203,9 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
 pub struct Partial {
     pub header: PartialHeader,
     pub snapshot: Snapshot,
+    /// The pixel of each texel it baked, in order: the texels its validation kept, which
+    /// the merge takes instead of validating the whole grid again.
+    pub pixels: Vec<u32>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -273,8 +279,10 @@ pub fn bake_task(
     let regions = (task.regions > 1).then_some(job::RegionsOf {
         count: task.regions,
         keep: Some(task.region),
+        validated: None,
     });
     let prepared = job::prepare_regions(scene, &own, options, regions, on_atlas, on_plan)?;
+    let pixels: Vec<u32> = prepared.atlas.texels.iter().map(|t| t.pixel).collect();
     let mut tech = technique::create(&request.technique, prepared.inputs(request), &request.params)?;
     tech.start_at_step(task.first_step)?;
     let stop = StopCriteria {
@@ -309,7 +317,11 @@ pub fn bake_task(
         seconds = header.seconds,
         "task baked"
     );
-    Ok(Partial { header, snapshot })
+    Ok(Partial {
+        header,
+        snapshot,
+        pixels,
+    })
 }
 
 impl Partial {
@@ -338,6 +350,9 @@ impl Partial {
                 put(&flat);
             }
         }
+        for p in &self.pixels {
+            out.extend_from_slice(&p.to_le_bytes());
+        }
         Ok(out)
     }
 
@@ -362,7 +377,7 @@ impl Partial {
         let n = usize::try_from(header.texels).map_err(|_| bad("texel count too large".into()))?;
         let per_texel = 1 + usize::from(header.direct) + 3 * usize::from(header.moments);
         let want = n
-            .checked_mul(per_texel * 2 * 12)
+            .checked_mul(per_texel * 2 * 12 + 4)
             .ok_or_else(|| bad("texel count too large".into()))?;
         let data = &bytes[16 + len..];
         if data.len() != want {
@@ -397,9 +412,14 @@ impl Partial {
             }
         });
         let [even, odd] = std::mem::take(&mut halves);
+        let pixels = data[at..]
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes")))
+            .collect();
         Ok(Partial {
             header,
             snapshot: Snapshot { even, odd },
+            pixels,
         })
     }
 }
@@ -578,11 +598,25 @@ pub fn merge(
         .first()
         .ok_or_else(|| EngineError::BadInput("merge: no task results given".into()))?;
     let request = first.header.request.clone();
-    let regions = (first.header.task.regions > 1).then_some(job::RegionsOf {
-        count: first.header.task.regions,
+    // The tasks' texels, region by region: what their validation kept, which the merge
+    // takes instead of tracing the whole grid's validation again.
+    let unchecked = check_partials(partials, None)?;
+    let ranges = first.header.task.shape().ranges().max(1) as usize;
+    let kept: Vec<u32> = unchecked
+        .chunks(ranges)
+        .flat_map(|group| group[0].pixels.iter().copied())
+        .collect();
+    if kept.windows(2).any(|w| w[0] >= w[1]) {
+        return Err(EngineError::BadInput(
+            "merge: the task results' texels are not in pixel order: a damaged or foreign result".into(),
+        ));
+    }
+    let regions = job::RegionsOf {
+        count: first.header.task.regions.max(1),
         keep: None,
-    });
-    let prepared = job::prepare_regions(scene, &request, options, regions, &mut |_| {}, on_plan)?;
+        validated: Some(&kept),
+    };
+    let prepared = job::prepare_regions(scene, &request, options, Some(regions), &mut |_| {}, on_plan)?;
     let texel_ranges: Vec<std::ops::Range<usize>> = if prepared.region_pixels.is_empty() {
         vec![0..prepared.atlas.texels.len()]
     } else {
@@ -762,9 +796,11 @@ mod tests {
                 even: half(2, 1.5, 3),
                 odd: half(2, 0.25, 3),
             },
+            pixels: vec![1, 5, 9],
         };
         let bytes = p.encode().unwrap();
         let back = Partial::decode(&bytes, "t").unwrap();
+        assert_eq!(back.pixels, p.pixels);
         assert_eq!(back.header, p.header);
         assert_eq!(back.snapshot.odd.moments, p.snapshot.odd.moments);
         assert_eq!(back.snapshot.even.direct, p.snapshot.even.direct);

@@ -2,17 +2,19 @@
 //! or merge them all.
 //!
 //! How: a worker that claims a bake task ([`Queue::claim_task`]) loads the job's scene,
-//! bakes the task's range of the job's steps on a blocking thread
-//! (`engine::tasks::bake_task`: every random stream keyed by the job's step numbers, so
-//! the task draws exactly the samples a single bake draws at those steps), and renews
+//! bakes the task's range of the job's steps of its region of the grid (the job's
+//! `regions`) on a blocking thread (`engine::tasks::bake_task`: every random stream keyed
+//! by the job's step numbers and the texels' pixels, so the task draws exactly the
+//! samples a single bake draws at those steps and texels), and renews
 //! the task's lease, at most once a second with its steps, bake time and own error estimate
 //! (the queue folds them into the job's progress, `queue::merged_progress`). The result,
-//! both halves' means and step counts (`engine::tasks::Partial`, 24 bytes a texel), goes
+//! both halves' means and step counts and its texels' pixels (`engine::tasks::Partial`, 28
+//! bytes a texel), goes
 //! to the artifact store under `jobs/<id>/tasks/<k>.lmtask` *before* the task is marked
 //! succeeded, so a succeeded task's result is always stored. The last bake task to
 //! succeed queues the merge; the worker that claims it reads every result, merges the
-//! halves (`engine::tasks::merge`: the sums of the halves over the sums of their
-//! steps, then the single bake's own finish: error estimate from the merged halves,
+//! halves (`engine::tasks::merge`: per region the sums of the halves over the sums of
+//! their steps, the regions' texels side by side, then the single bake's own finish: error estimate from the merged halves,
 //! denoiser, EXR pages, preview, probes), stores the final artifacts like a whole job's,
 //! and only then marks the job `succeeded`; the task results are deleted after that.
 //!
@@ -25,8 +27,9 @@
 //!
 //! Limits: no snapshots while the tasks run (the halves of different tasks meet only in
 //! the merge), so the job's history is the merge's one point; the merge re-imports the
-//! scene and reads all results into memory (24 bytes a texel a task: 403 MB a task for a
-//! full 4096² page), so it needs that memory once.
+//! scene and reads all results into memory (28 bytes a texel a task: 470 MB a task for a
+//! full 4096² page, a region's task only its region's texels), so it needs that memory
+//! once.
 
 use std::ops::ControlFlow;
 use std::sync::atomic::Ordering;

@@ -416,6 +416,15 @@ pub async fn retention_loop(state: AppState) {
                 }
             }
         }
+        match state
+            .queue
+            .forget_workers(state.db_now() - queue::WORKER_FORGET_MS)
+            .await
+        {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(workers = n, "retention: workers not seen for a day removed"),
+            Err(e) => tracing::warn!(error = %e, "retention sweep: cannot remove old workers"),
+        }
         match state.artifacts.usage().await {
             Ok(u) => state.metrics.set_store_usage(u),
             Err(e) => tracing::warn!(error = %e, "cannot measure the artifact store's usage"),

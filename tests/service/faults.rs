@@ -433,6 +433,10 @@ impl Queue for DroppedDb {
         self.check()?;
         self.inner.workers(since).await
     }
+    async fn forget_workers(&self, before: i64) -> QueueResult<u64> {
+        self.check()?;
+        self.inner.forget_workers(before).await
+    }
     async fn heartbeat(&self, id: &str, w: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
         self.check()?;
         self.inner.heartbeat(id, w, lease, u, now).await

@@ -97,6 +97,12 @@ pub const BLOCKLIST_AFTER: u32 = 2;
 pub const WORKER_ALIVE_MS: i64 = 30_000;
 /// How often a worker process refreshes its workers' `last_seen`.
 pub const WORKER_REFRESH: Duration = Duration::from_secs(10);
+/// A worker not seen for this long is removed from `workers` by the retention sweep
+/// (`service::retention_loop`): a farm whose worker names change with every start (the
+/// default name carries the host and process id) would otherwise grow the table
+/// forever. A day, so a worker's row outlives any job it took part in long enough for
+/// its blocklist entries (`task_failures`, kept by name) to be read beside it.
+pub const WORKER_FORGET_MS: i64 = 24 * 3600 * 1000;
 
 /// What a worker can run (issue 25 point 4), as it registers it.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize, utoipa::ToSchema)]
@@ -548,6 +554,8 @@ pub trait Queue: Send + Sync + 'static {
     async fn register_worker(&self, worker: &str, caps: &Capabilities, now: i64) -> QueueResult<()>;
     /// Workers seen at or after `since`.
     async fn workers(&self, since: i64) -> QueueResult<Vec<WorkerRecord>>;
+    /// Removes the workers last seen before `before`; how many.
+    async fn forget_workers(&self, before: i64) -> QueueResult<u64>;
     /// Renews the lease and writes `update`.
     async fn heartbeat(
         &self,

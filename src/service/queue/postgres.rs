@@ -1083,6 +1083,14 @@ impl Queue for PostgresQueue {
         rows.iter().map(worker_from_row).collect()
     }
 
+    async fn forget_workers(&self, before: i64) -> QueueResult<u64> {
+        let done = sqlx::query("DELETE FROM workers WHERE last_seen < $1")
+            .bind(before)
+            .execute(&self.pool)
+            .await?;
+        Ok(done.rows_affected())
+    }
+
     async fn heartbeat(&self, id: &str, worker: &str, lease: Duration, u: &JobUpdate, now: i64) -> QueueResult<Lease> {
         let cancel: Option<bool> = sqlx::query_scalar(
             "UPDATE jobs SET lease_expires_at = $3, updated_at = $4,

@@ -428,6 +428,11 @@ async fn claims_meet_the_jobs_requirements(f: &Fixture) {
     assert_eq!(live.len(), 1);
     assert_eq!((live[0].id.as_str(), &live[0].capabilities), ("w-new", &caps));
     assert_eq!((live[0].started_at, live[0].last_seen), (100, 5000));
+    // The retention sweep forgets workers not seen since a time; the others stay.
+    assert_eq!(q.forget_workers(1000).await.unwrap(), 1);
+    let all = q.workers(0).await.unwrap();
+    assert_eq!(all.iter().map(|w| w.id.as_str()).collect::<Vec<_>>(), ["w-new"]);
+    assert_eq!(q.forget_workers(1000).await.unwrap(), 0);
 }
 
 async fn finished_jobs_are_deleted_and_found_by_age(f: &Fixture) {
