@@ -145,8 +145,9 @@ async fn worker_loop(
         if *shutdown.borrow() {
             break;
         }
-        // A split job's tasks first (spreading them is what a farm's workers are for),
-        // then whole jobs; priorities order each kind.
+        // A task of a split job, unless a whole job this worker can run is ahead of it
+        // in the queue order (priority, then age: `claim_task` declines then), then a
+        // whole job: one order over both kinds.
         match state
             .queue
             .claim_task(&worker, &caps, state.config.lease, state.db_now())

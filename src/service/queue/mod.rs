@@ -516,7 +516,10 @@ pub trait Queue: Send + Sync + 'static {
     ) -> QueueResult<Option<JobRecord>>;
     /// Takes the next queued task (its job's priority, then age, then task order) of a
     /// job whose `requires` `caps` meets and that has not blocklisted `worker`; its job
-    /// becomes `running` with its first task.
+    /// becomes `running` with its first task. None while a queued whole job that
+    /// [`Queue::claim`] would give this worker is ahead of the task's job (higher
+    /// priority, or as high and older), so a worker asking for tasks first and then
+    /// for whole jobs takes both kinds in one priority order.
     async fn claim_task(
         &self,
         worker: &str,

@@ -815,6 +815,11 @@ impl Queue for PostgresQueue {
                    AND (NOT j.requires_gpu OR $2) AND (NOT j.requires_oidn OR $3) AND j.memory_bytes <= $5
                    AND NOT EXISTS (SELECT 1 FROM task_failures f
                                    WHERE f.job_id = t.job_id AND f.worker = $1 AND f.failures >= $4)
+                   AND NOT EXISTS (SELECT 1 FROM jobs w
+                                   WHERE w.status = 'queued' AND w.tasks = 0
+                                     AND (NOT w.requires_gpu OR $2) AND (NOT w.requires_oidn OR $3)
+                                     AND w.memory_bytes <= $5
+                                     AND (w.priority, -w.created_at, -w.seq) > (j.priority, -j.created_at, -j.seq))
                  ORDER BY j.priority DESC, j.created_at, j.seq, t.idx LIMIT 1
                  FOR UPDATE OF t SKIP LOCKED",
             )

@@ -625,6 +625,14 @@ impl Queue for SqliteQueue {
                               AND j.memory_bytes <= ?7
                               AND NOT EXISTS (SELECT 1 FROM task_failures f
                                               WHERE f.job_id = t.job_id AND f.worker = ?1 AND f.failures >= ?6)
+                              AND NOT EXISTS (SELECT 1 FROM jobs w
+                                              WHERE w.status = 'queued' AND w.tasks = 0
+                                                AND (w.requires_gpu = 0 OR ?4) AND (w.requires_oidn = 0 OR ?5)
+                                                AND w.memory_bytes <= ?7
+                                                AND (w.priority > j.priority
+                                                     OR (w.priority = j.priority
+                                                         AND (w.created_at < j.created_at
+                                                              OR (w.created_at = j.created_at AND w.rowid < j.rowid)))))
                             ORDER BY j.priority DESC, j.created_at, j.rowid, t.idx LIMIT 1)
              RETURNING *",
         )

@@ -113,6 +113,7 @@ on_both_stores!(
     a_dead_workers_task_is_retried_and_a_failing_worker_is_blocklisted,
     cancelling_a_split_job_stops_its_tasks,
     claims_meet_the_jobs_requirements,
+    tasks_and_whole_jobs_share_one_priority_order,
 );
 
 fn split_spec(tasks: u32, steps: u64, extra: &str) -> JobSpec {
@@ -931,4 +932,45 @@ fn split_progress_adds_ranges_and_averages_regions() {
         &[(100, Some(0.1)), (0, None), (0, None), (0, None)],
     );
     assert!(p["error"].is_null(), "{p}");
+}
+
+async fn tasks_and_whole_jobs_share_one_priority_order(f: &Fixture) {
+    let q = &*f.queue;
+    let lease = Duration::from_secs(30);
+    let cpu = Capabilities::default();
+    with_scene(q).await;
+    // A split job, then a whole job of higher priority: the whole job goes first.
+    enqueue_ok(q, "split", &split_spec(2, 8, ""), 0).await;
+    enqueue_ok(q, "urgent", &spec_with_priority("s", 5), 1).await;
+    assert!(q.claim_task("w", &cpu, lease, 10).await.unwrap().is_none());
+    assert_eq!(q.claim("w", &cpu, lease, 10).await.unwrap().unwrap().id, "urgent");
+    let (t, j) = q.claim_task("w", &cpu, lease, 11).await.unwrap().unwrap();
+    assert_eq!((j.id.as_str(), t.index), ("split", 0));
+    // Equal priority: the older first, whichever kind it is.
+    enqueue_ok(q, "older", &spec("s"), 2).await;
+    enqueue_ok(q, "newer-split", &split_spec(2, 8, ""), 3).await;
+    // "split" (enqueued at 0) is still ahead of "older" (2): its second task.
+    let (t, j) = q.claim_task("w", &cpu, lease, 12).await.unwrap().unwrap();
+    assert_eq!((j.id.as_str(), t.index), ("split", 1));
+    assert!(q.claim_task("w", &cpu, lease, 13).await.unwrap().is_none());
+    assert_eq!(q.claim("w", &cpu, lease, 13).await.unwrap().unwrap().id, "older");
+    assert_eq!(
+        q.claim_task("w", &cpu, lease, 14).await.unwrap().unwrap().1.id,
+        "newer-split"
+    );
+    // A whole job this worker cannot run does not hold its tasks back.
+    enqueue_ok(
+        q,
+        "gpu-only",
+        &JobSpec::parse(br#"{"scene": "s", "priority": 9, "requires": {"gpu": true}}"#).unwrap(),
+        4,
+    )
+    .await;
+    assert_eq!(
+        q.claim_task("w", &cpu, lease, 15).await.unwrap().unwrap().1.id,
+        "newer-split"
+    );
+    assert!(q.claim_task("w", &cpu, lease, 16).await.unwrap().is_none());
+    assert!(q.claim("w", &cpu, lease, 16).await.unwrap().is_none());
+    assert_eq!(q.claim("g", &gpu(), lease, 17).await.unwrap().unwrap().id, "gpu-only");
 }
