@@ -1313,3 +1313,92 @@ fn the_3d_view_cuts_away_what_alpha_cuts_away() {
         "BLEND 0.4 covers {blend:.3} of the opaque quad's pixels"
     );
 }
+
+/// A split job's tasks and a waiting job's reason in the console (issue 25): a `path`
+/// job of the Cornell box as 2 regions × 2 step ranges, baked by the server's one
+/// worker, shows its 4 bake tasks and the merge with their regions, step ranges and
+/// states; a job requiring a hardware GPU (this machine has none) shows what it waits for.
+#[test]
+fn the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for() {
+    let _cpu = crate::CPU_HEAVY.blocking_lock();
+    let Some(exe) = skip_without_browser("the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (child, url) = spawn_serve(dir.path(), 1, &[]);
+    let _serve = Serve(child);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let http = reqwest::Client::new();
+    let (split, waiting) = rt.block_on(async {
+        let r = http
+            .post(format!("{url}/v1/scenes"))
+            .body(cornell_glb())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 201);
+        let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+        let submit = |body: Value| {
+            let (http, url) = (http.clone(), url.clone());
+            async move {
+                let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+                assert_eq!(r.status(), 202);
+                r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+            }
+        };
+        let split = submit(json!({"scene": scene, "resolution": 24, "stop": {"steps": 8},
+            "tasks": 4, "regions": 2, "params": {"samples_per_step": 2}}))
+        .await;
+        wait_succeeded(&http, &url, &split, Duration::from_secs(120)).await;
+        let waiting = submit(json!({"scene": scene, "resolution": 24, "stop": {"steps": 8},
+            "requires": {"gpu": true}}))
+        .await;
+        (split, waiting)
+    });
+    let mut b = Browser::start(&exe);
+    b.call("Page.navigate", json!({"url": format!("{url}/#job={split}")}));
+    b.wait(
+        "the split job's task table",
+        "document.querySelectorAll('#job-task-rows tr[data-task]').length === 5 && !document.getElementById('job-tasks').hidden",
+        Duration::from_secs(30),
+    );
+    let summary = b.eval("document.getElementById('job-tasks-summary').textContent");
+    assert_eq!(summary, "4 of 4 baked · 2 regions of the grid");
+    let rows = b.eval(
+        "[...document.querySelectorAll('#job-task-rows tr[data-task]')].map(r => [...r.cells].slice(0, 4).map(c => c.textContent).join('|'))",
+    );
+    assert_eq!(
+        rows,
+        json!([
+            "0|0|0–4|succeeded",
+            "1|0|4–8|succeeded",
+            "2|1|0–4|succeeded",
+            "3|1|4–8|succeeded",
+            "merge|||succeeded"
+        ])
+    );
+    let (shots, _keep) = shots_dir();
+    std::fs::write(shots.join("10-split-job-tasks.png"), b.screenshot(Some("#job-tasks"))).unwrap();
+    assert_eq!(b.eval("document.getElementById('job-waiting').hidden"), true);
+
+    b.call("Page.navigate", json!({"url": format!("{url}/?waiting#job={waiting}")}));
+    let text = b.wait(
+        "the waiting job's reason",
+        "!document.getElementById('job-waiting').hidden && document.getElementById('job-waiting').textContent",
+        Duration::from_secs(30),
+    );
+    let text = text.as_str().unwrap_or_default().to_string();
+    assert!(
+        text.starts_with("Waiting for a worker with a hardware GPU (requires.gpu)"),
+        "{text}"
+    );
+    assert_eq!(b.eval("document.getElementById('job-tasks').hidden"), true);
+    b.click("#cancel");
+    b.wait(
+        "the cancellation",
+        "window.lightmapdConsole.job.status === 'cancelled'",
+        Duration::from_secs(30),
+    );
+    let errors = b.unexpected_errors(&[]);
+    assert!(errors.is_empty(), "browser errors: {errors:#?}");
+}

@@ -415,7 +415,14 @@ async function onEvent(id, name, data) {
   if (state.job?.id !== id) return;
   if (name === 'status' || name === 'done' || name === 'cancelled') showJob(data);
   else if (name === 'failed') showJob(data.job);
-  else if (name === 'progress') { state.job.progress = data; showProgress(state.job); }
+  else if (name === 'progress') {
+    state.job.progress = data; showProgress(state.job);
+    // A split job's task table and a waiting job's reason come with the job's view only.
+    if ((state.job.tasks || state.job.waiting_for) && Date.now() - (state.tasksShownAt || 0) > 2000) {
+      state.tasksShownAt = Date.now();
+      showJob(await json('/v1/jobs/' + id));
+    }
+  }
   else if (name === 'snapshot') showJob(await json('/v1/jobs/' + id));
   if (name !== 'progress') refreshJobs().catch(() => {});
 }
@@ -438,6 +445,48 @@ function showProgress(j) {
 
 const TERMINAL = ['succeeded', 'failed', 'cancelled'];
 
+function escapeHtml(s) {
+  return String(s).replace(/[&<>"']/g, c => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;'})[c]);
+}
+
+// Why nobody takes the job (waiting_for), and a split job's tasks (issue 25): each
+// task's region, steps of the job, state, worker and own error; the blocklist.
+function showTasks(j) {
+  const waiting = $('job-waiting');
+  waiting.hidden = !j.waiting_for;
+  waiting.textContent = j.waiting_for ? 'Waiting for ' + j.waiting_for : '';
+  // A job nobody takes sends no events: look again every 5 s while it waits (a worker
+  // that meets it may start).
+  clearTimeout(state.waitTimer);
+  if (j.waiting_for) {
+    state.waitTimer = setTimeout(async () => {
+      if (state.job?.id !== j.id) return;
+      try { showJob(await json('/v1/jobs/' + j.id)); } catch (_) { /* shown at the next event */ }
+    }, 5000);
+  }
+  const box = $('job-tasks');
+  box.hidden = !j.tasks;
+  if (!j.tasks) return;
+  const t = j.tasks;
+  const done = t.list.filter(x => x.kind === 'bake' && x.status === 'succeeded').length;
+  $('job-tasks-summary').textContent = `${done} of ${t.count} baked` + (t.regions > 1 ? ` · ${t.regions} regions of the grid` : '');
+  const cell = v => `<td>${v}</td>`;
+  $('job-task-rows').innerHTML = t.list.map(x => `<tr data-task="${x.index}">` + [
+    x.kind === 'merge' ? 'merge' : String(x.index),
+    x.region == null ? '' : String(x.region),
+    x.step_range ? `${x.step_range[0]}–${x.step_range[1]}` : '',
+    `<span class="badge ${x.status}">${x.status}</span>`,
+    String(x.attempts),
+    x.worker ? `<span class="mono">${escapeHtml(x.worker)}</span>` : '',
+    x.kind === 'merge' ? '' : `${x.steps} steps`,
+    x.error == null ? '' : `${(x.error * 100).toFixed(2)} %`,
+    x.wall_s == null ? '' : `${x.wall_s.toFixed(1)} s`,
+  ].map(cell).join('') + (x.failure ? `</tr><tr><td></td><td colspan="8" class="error">${escapeHtml(x.failure)}</td>` : '') + '</tr>').join('');
+  $('job-blocklist').textContent = t.blocklisted.length
+    ? 'Blocklisted for this job: ' + t.blocklisted.map(b => `${b.worker} (${b.failures} failed attempts)`).join(', ')
+    : '';
+}
+
 function showJob(j) {
   const changed = state.job?.id !== j.id;
   // Views arrive out of order (the cancel request's answer, a snapshot's re-fetch, the
@@ -453,6 +502,7 @@ function showJob(j) {
   const finished = ['succeeded', 'failed', 'cancelled'].includes(j.status);
   $('cancel').disabled = finished || j.cancel_requested;
   $('job-failure').textContent = j.failure || '';
+  showTasks(j);
   const dl = [];
   if (j.status === 'succeeded') {
     // One link per page (the job's summary lists them) and the manifest; a job stored
