@@ -80,13 +80,12 @@ fn delivered_error_is_never_above_raw_on_the_soft_shadow() {
         assert!(out < 0.7 * raw, "{used}: 16 samples: raw {raw}, delivered {out}");
         let (raw, out, est) = errors("sphere-over-plane", 512, 16, used);
         eprintln!("{used}: 8192 samples: raw {raw:.4}, delivered {out:.4} (estimated {est:.4})");
-        // "No worse" up to the blend's own sampling error: its weights come from a
-        // cross-validated estimate of the filter's error, itself noisy, so a converged
-        // bake's delivered error can land a little either side of raw. Measured over six
-        // seeds each (2026-12-05, after path's streams were keyed by pixel): delivered /
-        // raw 0.94-1.0033 for the own filter, 0.80-1.0021 for OIDN, over both scenes;
-        // never above 1.005.
-        assert!(out <= raw * 1.005, "{used}: 8192 samples: raw {raw}, delivered {out}");
+        // The blend's weights come from a cross-validated estimate of the filter's error,
+        // itself noisy; taken one standard error high (`denoised::blend_weights`). Over
+        // six seeds each (2026-12-05), delivered / raw at 8192 samples on both scenes:
+        // 0.947-1.0004 for the own filter, 0.816-0.996 for OIDN (with the estimate taken
+        // as it came: up to 1.0033 and 1.0021). The bar leaves rounding room only.
+        assert!(out <= raw * 1.001, "{used}: 8192 samples: raw {raw}, delivered {out}");
     }
 }
 
@@ -101,8 +100,7 @@ fn delivered_error_is_never_above_raw_on_parallel_plates() {
                 "{used}: {} samples: raw {raw:.4}, delivered {out:.4} (estimated {est:.4})",
                 spp as u64 * steps
             );
-            // At 8192 samples: up to the blend's sampling error (see the soft shadow's).
-            assert!(out <= raw * 1.005, "{used}: {spp}x{steps}: raw {raw}, delivered {out}");
+            assert!(out <= raw * 1.001, "{used}: {spp}x{steps}: raw {raw}, delivered {out}");
         }
     }
 }

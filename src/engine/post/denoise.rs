@@ -139,6 +139,48 @@ pub fn smooth(atlas: &Atlas, chart: &[u32], values: &[f32], radius: i64) -> Vec<
         .collect()
 }
 
+/// Per texel, the mean and the standard error of the mean of `values` over the same
+/// neighbourhood as [`smooth`] (same chart, normals within 25°, `radius` texels): the
+/// sample standard deviation of the neighbours over the square root of their count.
+/// How far a smoothed figure can be trusted (`denoised::blend_weights`).
+pub fn smooth_with_error(atlas: &Atlas, chart: &[u32], values: &[f32], radius: i64) -> Vec<(f32, f32)> {
+    let (w, h) = (atlas.width as i64, atlas.height as i64);
+    atlas
+        .texels
+        .par_iter()
+        .enumerate()
+        .map(|(k, t)| {
+            let (pi, pj) = ((t.pixel as i64) % w, (t.pixel as i64) / w);
+            let (mut sum, mut sq, mut n) = (0.0f64, 0.0f64, 0u32);
+            for qj in (pj - radius).max(0)..=(pj + radius).min(h - 1) {
+                for qi in (pi - radius).max(0)..=(pi + radius).min(w - 1) {
+                    let q = atlas.pixel_texel[(qj * w + qi) as usize];
+                    if q == NO_TEXEL {
+                        continue;
+                    }
+                    let tq = &atlas.texels[q as usize];
+                    if chart[q as usize] == chart[k] && tq.normal.dot(t.normal) > 0.9 {
+                        let v = values[q as usize] as f64;
+                        sum += v;
+                        sq += v * v;
+                        n += 1;
+                    }
+                }
+            }
+            let n = n.max(1) as f64;
+            let mean = sum / n;
+            // Bessel's correction; a lone texel has no spread to measure: its own value
+            // stands as its error.
+            let var = if n > 1.0 {
+                ((sq - n * mean * mean) / (n - 1.0)).max(0.0)
+            } else {
+                mean * mean
+            };
+            (mean as f32, (var / n).sqrt() as f32)
+        })
+        .collect()
+}
+
 /// A chart label per valid texel: the 4-connected islands of valid texels of one mesh in
 /// the lightmap image. The atlas keeps no chart index, and islands are what matters to a
 /// filter: two islands never exchange light, whatever their UV distance. (Two charts of
