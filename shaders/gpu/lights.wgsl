@@ -246,6 +246,27 @@ fn light_weight(mis: bool, pdf_light: f32, cos_n: f32) -> f32 {
 }
 
 fn next_event(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, rng: ptr<function, Rng>) -> Light {
+    // The numbers drawn in the order, and under the conditions, that the estimate below
+    // uses them: the sun's two, then the emitter pick and the point on it.
+    let sources = scene_u.tables2.z;
+    var sun_u = vec2<f32>(0.0);
+    if scene_u.sun.w > 0.0 && (sources & LIGHTS_SUN) != 0u {
+        sun_u.x = rng_next(rng);
+        sun_u.y = rng_next(rng);
+    }
+    var emitter_u = vec3<f32>(0.0);
+    if scene_u.tables2.x > 0u && (sources & LIGHTS_EMITTERS) != 0u {
+        emitter_u.x = rng_next(rng);
+        emitter_u.y = rng_next(rng);
+        emitter_u.z = rng_next(rng);
+    }
+    return next_event_with(x, n, ng, mis, sun_u, emitter_u);
+}
+
+// next_event with its random numbers given: `sun_u` the sun's cone sample, `emitter_u` the
+// emitter pick (x) and the point on the picked triangle (y, z). For a caller whose numbers
+// come from a stratified sequence (`path` with `sampling: sobol`).
+fn next_event_with(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, sun_u: vec2<f32>, emitter_u: vec3<f32>) -> Light {
     var out = Light(vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0), vec3<f32>(0.0));
     let sources = scene_u.tables2.z;
     for (var li = 0u; li < scene_u.tables.z; li++) {
@@ -283,8 +304,8 @@ fn next_event(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, rng: ptr<fun
         }
     }
     if scene_u.sun.w > 0.0 && (sources & LIGHTS_SUN) != 0u {
-        let u1 = rng_next(rng);
-        let u2 = rng_next(rng);
+        let u1 = sun_u.x;
+        let u2 = sun_u.y;
         let d = cone_sample(scene_u.sun_axis.xyz, scene_u.sun_axis.w, u1, u2);
         if front_of(d, n, ng) && bvh_unoccluded(x, d, RAY_FAR) {
             let pdf_light = 1.0 / scene_u.sun.w;
@@ -297,7 +318,7 @@ fn next_event(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, rng: ptr<fun
     }
     let count = scene_u.tables2.x;
     if count > 0u && (sources & LIGHTS_EMITTERS) != 0u {
-        let u = rng_next(rng);
+        let u = emitter_u.x;
         // partition_point(cdf <= u): the first entry whose cdf exceeds u.
         var lo = 0u;
         var hi = count;
@@ -311,8 +332,8 @@ fn next_event(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, rng: ptr<fun
         }
         let k = min(lo, count - 1u);
         let slot = bitcast<u32>(tables[scene_u.tables.w + k].x);
-        var b1 = rng_next(rng);
-        var b2 = rng_next(rng);
+        var b1 = emitter_u.y;
+        var b2 = emitter_u.z;
         if b1 + b2 > 1.0 {
             b1 = 1.0 - b1;
             b2 = 1.0 - b2;

@@ -8,14 +8,28 @@
 // Rays: gpu/bvh.wgsl (bindings 0 and 1), in the scene's world space, f32; the scene's
 // materials, lights and next-event estimation: gpu/lights.wgsl (bindings 2-4).
 //
-// Randomness: PCG-RXS-M-XS 32/32 (O'Neill 2014; the `pcg` hash of common.wgsl is its
+// Randomness, `sampling: sobol` (the default; PATH_SOBOL): as on the CPU
+// (path/sampler.rs), each vertex below the 32nd takes two 4-D sets of an Owen-scrambled
+// Sobol sequence (Burley 2020; the `sobol_burley` crate's construction, its direction
+// numbers uploaded by gpu.rs at binding 10): (direction, direction, emitter point,
+// emitter point) and (emitter pick, sun, sun, roulette). Sample s of step k is point
+// (k / 2) * spp + s of the sequence of half k % 2; a texel's half has its own scramble
+// per block of 2^16 points (hashed from the seed, the pixel, the half and the block with
+// `pcg`, not the CPU's 64-bit SplitMix), so the halves stay independent estimates. The
+// point index is computed in 32 bits: exact up to 2^32 points a half (2^31 steps at 4
+// samples). The 16 direction-number lookups are written out, not looped: llvmpipe counts
+// every loop iteration against the invocation's budget (below). Past the 32nd vertex, and
+// with `sampling: independent`, the PCG stream below.
+//
+// Randomness, the stream: PCG-RXS-M-XS 32/32 (O'Neill 2014; the `pcg` hash of common.wgsl is its
 // output step) with a per-stream increment. A texel's streams differ by increment (a hash
 // of the seed and the texel's pixel, carried in position.w's bits: gpu/texels.rs), a (step, sample)'s by starting state (a hash chain of the
 // seed, step and sample), so no two (seed, step, texel, sample) share a sequence except
 // by a 32-bit hash collision of two (step, sample) keys of one texel. Period 2^32; a path
 // of 65536 bounces draws at most 8 numbers a vertex, 5e5 in all. The streams are not the
-// CPU's (its PCG32 needs 64-bit integers, which WGSL lacks): GPU and CPU bakes agree in
-// the mean, not sample for sample. Floats carry 24 random bits, as on the CPU.
+// CPU's (its PCG32 needs 64-bit integers, which WGSL lacks), nor are the Sobol scrambles:
+// GPU and CPU bakes agree in the mean, not sample for sample. Floats carry 24 random bits
+// from the stream, 23 from the Sobol points (the crate's conversion), as on the CPU.
 //
 // Bounds: a path ends at max_bounces vertices (<= 65536); steps are counted in 32 bits
 // here (4e9 steps); the accumulators are running means in f32 (blend 1/k of the k-th step
@@ -35,12 +49,17 @@ struct PathUniform {
 
 const PATH_DIRECT: u32 = 1u;   // keep the direct layer
 const PATH_MOMENTS: u32 = 2u;  // keep the first moments (sh layers)
+const PATH_SOBOL: u32 = 4u;    // sampling: sobol
+const SOBOL_VERTICES: u32 = 32u;
 
 @group(0) @binding(5) var<uniform> pu: PathUniform;
 @group(0) @binding(6) var<storage, read> texels: array<TexelGeom>;
 @group(0) @binding(7) var<storage, read_write> acc_total: array<vec4<f32>>;
 @group(0) @binding(8) var<storage, read_write> acc_direct: array<vec4<f32>>;
 @group(0) @binding(9) var<storage, read_write> acc_moment: array<vec4<f32>>;
+// Per 4-D set of the sequence (64), its 16 reversed direction numbers, one vec4 (the set's
+// four dimensions) each: set * 16 + bit.
+@group(0) @binding(10) var<storage, read> sobol_vectors: array<vec4<u32>>;
 
 // ---- randomness ------------------------------------------------------------------------
 fn rng_for(texel: u32, sample: u32) -> Rng {
@@ -48,6 +67,95 @@ fn rng_for(texel: u32, sample: u32) -> Rng {
     var r = Rng(pcg(pu.counts.w ^ pcg(sample ^ base)), (pcg(texel ^ pcg(base ^ 0x5bd1e995u)) << 1u) | 1u);
     rng_next(&r);
     return r;
+}
+
+// ---- Sobol points (sobol_burley 0.5's sample_4d, line for line) -----------------------
+fn sb_hash(x: u32) -> u32 {
+    var n = x ^ 0xe6fe3bebu;
+    n ^= n >> 16u;
+    n *= 0x7feb352du;
+    n ^= n >> 15u;
+    n *= 0x846ca68bu;
+    n ^= n >> 16u;
+    return n;
+}
+
+fn sb_hash4(x: vec4<u32>) -> vec4<u32> {
+    var n = x ^ vec4<u32>(0xe6fe3bebu);
+    n ^= n >> vec4<u32>(16u);
+    n *= vec4<u32>(0x7feb352du);
+    n ^= n >> vec4<u32>(15u);
+    n *= vec4<u32>(0x846ca68bu);
+    n ^= n >> vec4<u32>(16u);
+    return n;
+}
+
+fn owen_rev(x: u32, scramble: u32) -> u32 {
+    var n = x;
+    n ^= n * 0x3d20adeau;
+    n += scramble;
+    n *= (scramble >> 16u) | 1u;
+    n ^= n * 0x05526c56u;
+    n ^= n * 0x53a22864u;
+    return n;
+}
+
+fn owen_rev4(x: vec4<u32>, scramble: vec4<u32>) -> vec4<u32> {
+    var n = x;
+    n ^= n * vec4<u32>(0x3d20adeau);
+    n += scramble;
+    n *= (scramble >> vec4<u32>(16u)) | vec4<u32>(1u);
+    n ^= n * vec4<u32>(0x05526c56u);
+    n ^= n * vec4<u32>(0x53a22864u);
+    return n;
+}
+
+// The set's Sobol point for a bit-reversed index: bit 31 - k selects direction number k.
+fn sobol4_rev(index_rev: u32, dims: u32) -> vec4<u32> {
+    let b = dims * 16u;
+    var v = vec4<u32>(0u);
+    if (index_rev & 0x80000000u) != 0u { v ^= sobol_vectors[b]; }
+    if (index_rev & 0x40000000u) != 0u { v ^= sobol_vectors[b + 1u]; }
+    if (index_rev & 0x20000000u) != 0u { v ^= sobol_vectors[b + 2u]; }
+    if (index_rev & 0x10000000u) != 0u { v ^= sobol_vectors[b + 3u]; }
+    if (index_rev & 0x08000000u) != 0u { v ^= sobol_vectors[b + 4u]; }
+    if (index_rev & 0x04000000u) != 0u { v ^= sobol_vectors[b + 5u]; }
+    if (index_rev & 0x02000000u) != 0u { v ^= sobol_vectors[b + 6u]; }
+    if (index_rev & 0x01000000u) != 0u { v ^= sobol_vectors[b + 7u]; }
+    if (index_rev & 0x00800000u) != 0u { v ^= sobol_vectors[b + 8u]; }
+    if (index_rev & 0x00400000u) != 0u { v ^= sobol_vectors[b + 9u]; }
+    if (index_rev & 0x00200000u) != 0u { v ^= sobol_vectors[b + 10u]; }
+    if (index_rev & 0x00100000u) != 0u { v ^= sobol_vectors[b + 11u]; }
+    if (index_rev & 0x00080000u) != 0u { v ^= sobol_vectors[b + 12u]; }
+    if (index_rev & 0x00040000u) != 0u { v ^= sobol_vectors[b + 13u]; }
+    if (index_rev & 0x00020000u) != 0u { v ^= sobol_vectors[b + 14u]; }
+    if (index_rev & 0x00010000u) != 0u { v ^= sobol_vectors[b + 15u]; }
+    return v;
+}
+
+// Point `index` (< 2^16) of 4-D set `dims` of the sequence scrambled by `seed`.
+fn sobol_4d(index: u32, dims: u32, seed: u32) -> vec4<f32> {
+    let shuffled = owen_rev(reverseBits(index), sb_hash(seed ^ 0x79c68e4au));
+    let sobol = sobol4_rev(shuffled, dims);
+    let scramble = vec4<u32>(seed * 0x9c8f2d3bu) ^ vec4<u32>(dims)
+        ^ vec4<u32>(0x912f69bau, 0x174f18abu, 0x691e72cau, 0xb40cc1b8u);
+    let bits = reverseBits(owen_rev4(sobol, sb_hash4(scramble)));
+    return bitcast<vec4<f32>>((bits >> vec4<u32>(9u)) | vec4<u32>(0x3f800000u)) - vec4<f32>(1.0);
+}
+
+// Which point of which scrambled sequence one sample is (the header).
+struct SobolPoint {
+    on: bool,
+    index: u32,
+    scramble: u32,
+}
+
+fn sobol_point(pixel: u32, sample: u32) -> SobolPoint {
+    let step = pu.counts.w;
+    let point = (step >> 1u) * pu.counts.y + sample;
+    let base = pcg(pu.keys.x ^ pcg(pu.keys.y));
+    let scramble = pcg(base ^ pcg(pixel ^ pcg((step & 1u) ^ pcg((point >> 16u) ^ 0x5ab01c0du))));
+    return SobolPoint((pu.keys.w & PATH_SOBOL) != 0u, point & 0xffffu, scramble);
 }
 
 struct PathSample {
@@ -58,7 +166,7 @@ struct PathSample {
 }
 
 // path::PathContext::radiance.
-fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng>) -> PathSample {
+fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng>, sp: SobolPoint) -> PathSample {
     var x = x0;
     var n = n0;
     var ng = ng0;
@@ -74,15 +182,30 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
     let eps = pu.f.y;
     var ended = false;
     loop {
-        let nee = next_event(x, n, ng, true, rng);
+        // This vertex's two Sobol sets (the header), or the stream's numbers.
+        let stratified = sp.on && bounce < SOBOL_VERTICES;
+        var a = vec4<f32>(0.0);
+        var b = vec4<f32>(0.0);
+        var nee: Light;
+        if stratified {
+            a = sobol_4d(sp.index, 2u * bounce, sp.scramble);
+            b = sobol_4d(sp.index, 2u * bounce + 1u, sp.scramble);
+            nee = next_event_with(x, n, ng, true, b.yz, vec3<f32>(b.x, a.z, a.w));
+        } else {
+            nee = next_event(x, n, ng, true, rng);
+        }
         total += throughput * nee.sum;
         if bounce == 0u {
             direct += nee.sum;
             first_nee = nee.sum;
             moment = nee;
         }
-        let u1 = rng_next(rng);
-        let u2 = rng_next(rng);
+        var u1 = a.x;
+        var u2 = a.y;
+        if !stratified {
+            u1 = rng_next(rng);
+            u2 = rng_next(rng);
+        }
         let dir = cosine_sample(n, u1, u2);
         let cos_n = dot(dir, n);
         if dot(dir, ng) <= 0.0 || cos_n <= 0.0 {
@@ -147,7 +270,11 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
                 ended = true;
                 break;
             }
-            if rng_next(rng) * tau >= peak {
+            var ur = b.w;
+            if !stratified {
+                ur = rng_next(rng);
+            }
+            if ur * tau >= peak {
                 ended = true;
                 break;
             }
@@ -188,8 +315,9 @@ fn trace(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     var ran = 0u;
     var cut = false;
     for (var s = 0u; s < spp; s++) {
-        var rng = rng_for(bitcast<u32>(t.position.w), s);
-        let r = radiance(t.position.xyz, t.normal.xyz, t.geo_normal.xyz, &rng);
+        let pixel = bitcast<u32>(t.position.w);
+        var rng = rng_for(pixel, s);
+        let r = radiance(t.position.xyz, t.normal.xyz, t.geo_normal.xyz, &rng, sobol_point(pixel, s));
         ran += 1u;
         cut = cut || r.cut;
         total += r.total;

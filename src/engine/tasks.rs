@@ -617,15 +617,12 @@ pub fn merge(
         validated: Some(&kept),
     };
     let prepared = job::prepare_regions(scene, &request, options, Some(regions), &mut |_| {}, on_plan)?;
-    let texel_ranges: Vec<std::ops::Range<usize>> = if prepared.region_pixels.is_empty() {
-        vec![0..prepared.atlas.texels.len()]
-    } else {
-        prepared
-            .region_pixels
-            .iter()
-            .map(|p| prepared.atlas.texels_in(p.clone()))
-            .collect()
-    };
+    // Each region's texels in the validated whole (one region: all of them).
+    let texel_ranges: Vec<std::ops::Range<usize>> = prepared
+        .region_pixels
+        .iter()
+        .map(|p| prepared.atlas.texels_in(p.clone()))
+        .collect();
     let ordered = check_partials(partials, Some((&prepared.atlas, &texel_ranges)))?;
     let snapshot = merge_regions(&ordered)?;
     let estimate = snapshot.estimate();

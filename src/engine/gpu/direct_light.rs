@@ -123,6 +123,7 @@ impl DirectLight {
             sources,
             emitters: &emitters,
             accumulators: &[("accumulators", 2 * n as u64 * 16)],
+            tables: &[],
         };
         let pass = TexelRayPass::new(ctx, rays, atlas, lighting, spec, uniform)?;
         tracing::debug!(

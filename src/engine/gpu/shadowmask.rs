@@ -120,6 +120,7 @@ impl ShadowmaskPass {
             sources: LightSources::NONE,
             emitters: &rays.emitters(),
             accumulators: &[("accumulators", 2 * 2 * n as u64 * 16)],
+            tables: &[],
         };
         let pass = TexelRayPass::new(ctx, rays, atlas, lighting, spec, uniform)?;
         tracing::debug!(texels = n, lights = lights.len(), "shadowmask pass");

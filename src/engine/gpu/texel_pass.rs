@@ -4,7 +4,8 @@
 //! type owns their common part, so the bind list, the pipeline and the half bookkeeping
 //! exist once: bindings 0-4 are the scene's rays and lights ([`GpuSceneLights`], the
 //! bake's shared uploads), 5 the pass's uniform, 6 the world-space texels (shared per
-//! texel set, `gpu::scene_rays`), then the pass's accumulators, in the order given.
+//! texel set, `gpu::scene_rays`), then the pass's accumulators, in the order given, then
+//! its read-only tables (`path`'s Sobol direction numbers), in the order given.
 //!
 //! How a step runs: the step's parity picks its half; the half's k-th step is blended
 //! with weight 1/k into that half's running mean (the shader reads the weight), so a
@@ -60,6 +61,9 @@ pub struct PassSpec<'a> {
     pub emitters: &'a EmitterTable,
     /// Each accumulator's label and size in bytes (bindings 7, 8, ...).
     pub accumulators: &'a [(&'a str, u64)],
+    /// Read-only tables the shader reads, each with its label (the bindings after the
+    /// accumulators).
+    pub tables: &'a [(&'a str, &'a [u32])],
 }
 
 /// One texel pass of one bake (see the module doc).
@@ -82,6 +86,8 @@ pub struct TexelRayPass<U: StepUniform> {
     pub keep_latest: bool,
     pub lights: GpuSceneLights,
     _texels: Arc<wgpu::Buffer>,
+    /// Bound in `group`; kept with it.
+    _tables: Vec<wgpu::Buffer>,
 }
 
 impl<U: StepUniform> TexelRayPass<U> {
@@ -104,12 +110,18 @@ impl<U: StepUniform> TexelRayPass<U> {
             let buffer = ctx.buffer_zeroed(&label, (*bytes).max(16), usage);
             accumulators.push((label, buffer));
         }
+        let tables: Vec<wgpu::Buffer> = spec
+            .tables
+            .iter()
+            .map(|(name, data)| ctx.buffer_init(&format!("{what} {name}"), data, wgpu::BufferUsages::STORAGE))
+            .collect();
         let uniform_buf = ctx.uniform(&format!("{what} params"), &uniform);
         let module = ctx.shader(spec.shader)?;
         let mut binds: Vec<Bind<'_>> = lights.binds().to_vec();
         binds.push(Bind::Uniform(&uniform_buf));
         binds.push(Bind::Read(&texels));
         binds.extend(accumulators.iter().map(|(_, b)| Bind::Write(b)));
+        binds.extend(tables.iter().map(Bind::Read));
         let layout = layout_of(&ctx, what, wgpu::ShaderStages::COMPUTE, &binds);
         let group = group_of(&ctx, what, &layout, &binds);
         let pipeline = compute_pipeline(&ctx, what, &module, spec.entry, &layout);
@@ -129,6 +141,7 @@ impl<U: StepUniform> TexelRayPass<U> {
             keep_latest: false,
             lights,
             _texels: texels,
+            _tables: tables,
         })
     }
 

@@ -12,10 +12,17 @@
 //! textures (linear RGBA f32, sampled bilinearly with the same wrap rules as
 //! `scene::Texture::sample`).
 //!
-//! Same estimator, different random numbers: the GPU's streams are PCG-RXS-M-XS 32/32 per
-//! (seed, step, texel, sample) (the shader's header), not the CPU's 64-bit PCG32, so a
-//! GPU bake agrees with a CPU bake of the same seed in the mean, within noise, not bit
-//! for bit; the half-accumulator error estimate is the same. A megakernel rather than a
+//! Same estimator and the same sampling, other random numbers: with `sampling: sobol`
+//! (the default) each vertex below the 32nd takes its numbers from two 4-D sets of an
+//! Owen-scrambled Sobol sequence per texel and half, as on the CPU (`path/sampler.rs`):
+//! the shader computes `sobol_burley`'s points itself from the crate's direction numbers,
+//! which [`sobol_vectors`] reads out of the crate and uploads; only the scrambles' seeds
+//! are hashed differently (32-bit `pcg` for the CPU's 64-bit SplitMix). Past the 32nd
+//! vertex, and with `sampling: independent`, PCG-RXS-M-XS 32/32 streams per (seed, step,
+//! pixel, sample) (the shader's header), not the CPU's 64-bit PCG32. So a GPU bake agrees
+//! with a CPU bake of the same seed in the mean, within noise, not bit for bit; the
+//! half-accumulator error estimate is the same. (Until 2026-12-05 the GPU drew every
+//! number from the stream, whatever `sampling` said.) A megakernel rather than a
 //! wavefront: it needs no ray queues in memory and is the first thing to measure
 //! (`docs/performance.md`); paths of very different lengths leave lanes idle, which a
 //! wavefront would recover on hardware GPUs.
@@ -47,6 +54,29 @@ pub fn resolve(device: Device) -> Result<Option<Arc<GpuContext>>, EngineError> {
 
 const PATH_DIRECT: u32 = 1;
 const PATH_MOMENTS: u32 = 2;
+const PATH_SOBOL: u32 = 4;
+
+/// Direction numbers per set.
+const SOBOL_BITS: u32 = 16;
+
+/// The `sobol_burley` crate's reversed direction numbers, as the shader reads them
+/// (binding 10): for each of its 4-D sets, 16 vec4 (number k of the set's four
+/// dimensions). The crate keeps its table private; number k is the point of the index
+/// whose bit-reversed form has only bit 31 - k set (`parts::sobol_rev` XORs exactly the
+/// numbers of the set bits), so the table is read out through the public function, and a
+/// test checks the shader's formula against the crate's points.
+pub fn sobol_vectors() -> Vec<u32> {
+    let sets = sobol_burley::NUM_DIMENSION_SETS_4D;
+    let mut out = Vec::with_capacity((sets * SOBOL_BITS * 4) as usize);
+    for set in 0..sets {
+        for k in 0..SOBOL_BITS {
+            for d in 0..4 {
+                out.push(sobol_burley::parts::sobol_rev(1 << (31 - k), 4 * set + d));
+            }
+        }
+    }
+    out
+}
 
 #[repr(C)]
 #[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
@@ -87,7 +117,11 @@ impl PathGpu {
         // A layer not kept still binds one vec4.
         let acc_len = |keep: bool, per: u64| if keep { 2 * n as u64 * per * vec4 } else { vec4 };
         let seed = inputs.seed;
-        let flags = if want_direct { PATH_DIRECT } else { 0 } | if want_moments { PATH_MOMENTS } else { 0 };
+        let sobol = params.sampling == super::Sampling::Sobol;
+        let flags = if want_direct { PATH_DIRECT } else { 0 }
+            | if want_moments { PATH_MOMENTS } else { 0 }
+            | if sobol { PATH_SOBOL } else { 0 };
+        let vectors = sobol_vectors();
         let uniform = PathUniform {
             counts: [n as u32, params.samples_per_step, params.max_bounces, 0],
             keys: [seed as u32, (seed >> 32) as u32, 0, flags],
@@ -104,6 +138,7 @@ impl PathGpu {
                 ("direct accumulators", acc_len(want_direct, 1)),
                 ("moment accumulators", acc_len(want_moments, 3)),
             ],
+            tables: &[("sobol direction numbers", &vectors)],
         };
         let pass = TexelRayPass::new(ctx, &inputs.rays, &inputs.atlas, &inputs.lighting, spec, uniform)?;
         tracing::info!(
@@ -186,5 +221,63 @@ mod tests {
     fn gpu_layouts_match_the_shaders() {
         use crate::engine::gpu::shaders::{Mirror, assert_mirrors};
         assert_mirrors(&[Mirror::of::<PathUniform>("PathUniform", PATH_TRACE, "PathUniform")]);
+    }
+
+    /// The shader's `sobol_4d` (path_trace.wgsl), line for line in Rust over the table
+    /// [`sobol_vectors`] uploads, gives the crate's points exactly: the table and the
+    /// formula are the crate's, so the GPU's points are the CPU sampler's construction.
+    #[test]
+    fn the_shaders_sobol_formula_over_the_uploaded_table_is_the_crates() {
+        let table = sobol_vectors();
+        let hash = |x: u32| {
+            let mut n = x ^ 0xe6fe3beb;
+            n ^= n >> 16;
+            n = n.wrapping_mul(0x7feb352d);
+            n ^= n >> 15;
+            n = n.wrapping_mul(0x846ca68b);
+            n ^ (n >> 16)
+        };
+        let owen = |x: u32, s: u32| {
+            let mut n = x;
+            n ^= n.wrapping_mul(0x3d20adea);
+            n = n.wrapping_add(s);
+            n = n.wrapping_mul((s >> 16) | 1);
+            n ^= n.wrapping_mul(0x05526c56);
+            n ^ n.wrapping_mul(0x53a22864)
+        };
+        let shader = |index: u32, set: u32, seed: u32| -> [f32; 4] {
+            let shuffled = owen(index.reverse_bits(), hash(seed ^ 0x79c68e4a));
+            let mut v = [0u32; 4];
+            for k in 0..SOBOL_BITS {
+                if shuffled & (0x8000_0000 >> k) != 0 {
+                    for (d, x) in v.iter_mut().enumerate() {
+                        *x ^= table[((set * SOBOL_BITS + k) * 4) as usize + d];
+                    }
+                }
+            }
+            let lanes = [0x912f69bau32, 0x174f18ab, 0x691e72ca, 0xb40cc1b8];
+            std::array::from_fn(|d| {
+                let scramble = seed.wrapping_mul(0x9c8f2d3b) ^ set ^ lanes[d];
+                let bits = owen(v[d], hash(scramble)).reverse_bits();
+                f32::from_bits((bits >> 9) | 0x3f80_0000) - 1.0
+            })
+        };
+        assert_eq!(table.len(), 64 * 16 * 4);
+        for (index, set, seed) in [
+            (0, 0, 0),
+            (1, 0, 7),
+            (12345, 3, 99),
+            (65535, 63, 0xdead_beef),
+            (777, 17, 1),
+        ] {
+            assert_eq!(
+                shader(index, set, seed),
+                sobol_burley::sample_4d(index, set, seed),
+                "{index} {set} {seed}"
+            );
+        }
+        for index in 0..256 {
+            assert_eq!(shader(index, 5, 42), sobol_burley::sample_4d(index, 5, 42));
+        }
     }
 }

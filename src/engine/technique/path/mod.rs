@@ -42,7 +42,8 @@
 //! independently per texel and half so the halves' difference still measures the error;
 //! `independent` draws one PCG32 stream per (seed, step, texel, sample) (`engine::rng`).
 //! Either way the result is bit-identical for a seed regardless of thread count. The GPU
-//! megakernel draws independent PCG streams. "Texel" in these keys is the texel's pixel
+//! megakernel samples the same way (the same Sobol construction, `path/gpu.rs`; its
+//! scrambles and streams are hashed in 32 bits). "Texel" in these keys is the texel's pixel
 //! in the grid (`Texel::pixel`), not its place in the valid-texel list, and "step" is the
 //! job's step: a task that bakes some steps of one region of the grid (`engine::tasks`)
 //! draws exactly the samples the whole bake draws there.
@@ -97,11 +98,12 @@ pub struct PathParams {
     pub rr_threshold: f32,
     /// Where to trace: `auto`, `cpu` or `gpu` (module doc).
     pub device: Device,
-    /// The CPU's sample placement: `sobol` (default) or `independent` (`path/sampler.rs`).
+    /// Sample placement, on the CPU and the GPU: `sobol` (default) or `independent`
+    /// (`path/sampler.rs`).
     pub sampling: Sampling,
 }
 
-/// How the CPU places a texel's samples (`params.sampling`).
+/// How a texel's samples are placed (`params.sampling`), on either device.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Sampling {
