@@ -1330,14 +1330,7 @@ fn the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for() {
     let rt = tokio::runtime::Runtime::new().unwrap();
     let http = reqwest::Client::new();
     let (split, waiting) = rt.block_on(async {
-        let r = http
-            .post(format!("{url}/v1/scenes"))
-            .body(cornell_glb())
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 201);
-        let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+        let scene = service_common::upload_cornell(&http, &url).await;
         let submit = |body: Value| {
             let (http, url) = (http.clone(), url.clone());
             async move {

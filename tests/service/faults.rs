@@ -104,15 +104,7 @@ fn sigkill_at_random_points_loses_no_job() {
     let fast = ["--lease-seconds", "0.5", "--snapshot-interval-s", "0.1"];
     let (mut serve, mut url) = spawn_serve(dir.path(), 1, &fast);
     let mut worker: Child = spawn_worker(dir.path(), &fast);
-    let scene = rt.block_on(async {
-        let r = http
-            .post(format!("{url}/v1/scenes"))
-            .body(cornell_glb())
-            .send()
-            .await
-            .unwrap();
-        r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
-    });
+    let scene = rt.block_on(service_common::upload_cornell(&http, &url));
     let mut rng = Rng::new(12, 0, 0, 0);
     let mut submitted = Vec::new();
     let (mut serve_kills, mut worker_kills) = (0, 0);

@@ -131,14 +131,7 @@ async fn a_restarted_database_cut_connections_and_an_unreachable_store_lose_no_j
         );
     }
     let http = reqwest::Client::builder().pool_max_idle_per_host(0).build().unwrap();
-    let r = http
-        .post(format!("{url}/v1/scenes"))
-        .body(cornell_glb())
-        .send()
-        .await
-        .unwrap();
-    assert!(r.status().is_success());
-    let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let scene = service_common::upload_cornell(&http, &url).await;
     let mut ids = Vec::new();
     for seed in 0..9u64 {
         let body = json!({"scene": scene, "resolution": 16, "stop": {"seconds": 1.5}, "seed": seed});

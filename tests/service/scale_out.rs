@@ -86,14 +86,7 @@ async fn one_api_three_workers_survive_two_sigkills() {
         ));
     }
     let http = reqwest::Client::new();
-    let r = http
-        .post(format!("{url}/v1/scenes"))
-        .body(cornell_glb())
-        .send()
-        .await
-        .unwrap();
-    assert!(r.status().is_success());
-    let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let scene = service_common::upload_cornell(&http, &url).await;
 
     // A long job first in line (priority), then 98 small ones; the second long job is
     // submitted once the first kill is done, so each long job is surely mid-bake (it runs

@@ -113,30 +113,37 @@ pub fn denoise_own(atlas: &Atlas, chart: &[u32], values: &[Vec3], std_error: &[f
 /// at all). As SVGF does, average such per-texel figures over the texel's
 /// (2r+1) × (2r+1) neighbourhood in the same chart with agreeing normals before use.
 pub fn smooth(atlas: &Atlas, chart: &[u32], values: &[f32], radius: i64) -> Vec<f32> {
-    let (w, h) = (atlas.width as i64, atlas.height as i64);
-    atlas
-        .texels
-        .par_iter()
-        .enumerate()
-        .map(|(k, t)| {
-            let (pi, pj) = ((t.pixel as i64) % w, (t.pixel as i64) / w);
+    (0..atlas.texels.len())
+        .into_par_iter()
+        .map(|k| {
             let (mut sum, mut n) = (0.0f32, 0u32);
-            for qj in (pj - radius).max(0)..=(pj + radius).min(h - 1) {
-                for qi in (pi - radius).max(0)..=(pi + radius).min(w - 1) {
-                    let q = atlas.pixel_texel[(qj * w + qi) as usize];
-                    if q == NO_TEXEL {
-                        continue;
-                    }
-                    let tq = &atlas.texels[q as usize];
-                    if chart[q as usize] == chart[k] && tq.normal.dot(t.normal) > 0.9 {
-                        sum += values[q as usize];
-                        n += 1;
-                    }
-                }
-            }
+            for_neighbours(atlas, chart, k, radius, |q| {
+                sum += values[q];
+                n += 1;
+            });
             sum / n.max(1) as f32
         })
         .collect()
+}
+
+/// Calls `visit` with every texel in texel `k`'s neighbourhood: within `radius` texels
+/// in the image, on its chart, its normal within 25° of `k`'s (`k` itself included).
+fn for_neighbours(atlas: &Atlas, chart: &[u32], k: usize, radius: i64, mut visit: impl FnMut(usize)) {
+    let (w, h) = (atlas.width as i64, atlas.height as i64);
+    let t = &atlas.texels[k];
+    let (pi, pj) = ((t.pixel as i64) % w, (t.pixel as i64) / w);
+    for qj in (pj - radius).max(0)..=(pj + radius).min(h - 1) {
+        for qi in (pi - radius).max(0)..=(pi + radius).min(w - 1) {
+            let q = atlas.pixel_texel[(qj * w + qi) as usize];
+            if q == NO_TEXEL {
+                continue;
+            }
+            let tq = &atlas.texels[q as usize];
+            if chart[q as usize] == chart[k] && tq.normal.dot(t.normal) > 0.9 {
+                visit(q as usize);
+            }
+        }
+    }
 }
 
 /// Per texel, the mean and the standard error of the mean of `values` over the same
@@ -144,29 +151,16 @@ pub fn smooth(atlas: &Atlas, chart: &[u32], values: &[f32], radius: i64) -> Vec<
 /// sample standard deviation of the neighbours over the square root of their count.
 /// How far a smoothed figure can be trusted (`denoised::blend_weights`).
 pub fn smooth_with_error(atlas: &Atlas, chart: &[u32], values: &[f32], radius: i64) -> Vec<(f32, f32)> {
-    let (w, h) = (atlas.width as i64, atlas.height as i64);
-    atlas
-        .texels
-        .par_iter()
-        .enumerate()
-        .map(|(k, t)| {
-            let (pi, pj) = ((t.pixel as i64) % w, (t.pixel as i64) / w);
+    (0..atlas.texels.len())
+        .into_par_iter()
+        .map(|k| {
             let (mut sum, mut sq, mut n) = (0.0f64, 0.0f64, 0u32);
-            for qj in (pj - radius).max(0)..=(pj + radius).min(h - 1) {
-                for qi in (pi - radius).max(0)..=(pi + radius).min(w - 1) {
-                    let q = atlas.pixel_texel[(qj * w + qi) as usize];
-                    if q == NO_TEXEL {
-                        continue;
-                    }
-                    let tq = &atlas.texels[q as usize];
-                    if chart[q as usize] == chart[k] && tq.normal.dot(t.normal) > 0.9 {
-                        let v = values[q as usize] as f64;
-                        sum += v;
-                        sq += v * v;
-                        n += 1;
-                    }
-                }
-            }
+            for_neighbours(atlas, chart, k, radius, |q| {
+                let v = values[q] as f64;
+                sum += v;
+                sq += v * v;
+                n += 1;
+            });
             let n = n.max(1) as f64;
             let mean = sum / n;
             // Bessel's correction; a lone texel has no spread to measure: its own value

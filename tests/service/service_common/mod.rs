@@ -18,6 +18,18 @@ pub fn cornell_glb() -> Vec<u8> {
     std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/cornell-box.glb")).unwrap()
 }
 
+/// Uploads the Cornell box to the server at `url` and returns the scene's id.
+pub async fn upload_cornell(http: &reqwest::Client, url: &str) -> String {
+    let r = http
+        .post(format!("{url}/v1/scenes"))
+        .body(cornell_glb())
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_success(), "upload: {}", r.status());
+    r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string()
+}
+
 pub fn test_config(dir: &Path, workers: usize) -> Config {
     Config {
         listen: "127.0.0.1:0".parse().unwrap(),
