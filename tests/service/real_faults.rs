@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
 use service_common::pg::{AUDIT, Children, Db, signal, wait_exit};
-use service_common::{FaultProxy, S3, bin, cornell_glb, exr_is_whole, host_port, spawn_serve_env, submit};
+use service_common::{FaultProxy, S3, bin, exr_is_whole, host_port, spawn_serve_env, submit};
 use sqlx::Row;
 
 /// GET that tolerates a failing API (its database may be down): the JSON of a 2xx
