@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs the Khronos glTF validator (npm package gltf-validator, pinned) on each .glb/.gltf
 # given; prints one JSON line per file ({"file", "errors", "warnings", "infos", "hints",
-# "messages": first errors}) and exits 1 when any file has an error.
+# "messages": first errors, "codes", "unused": the pointers of UNUSED_OBJECT infos}) and
+# exits 1 when any file has an error.
 # Installs the validator on first use into target/tools/gltf-validator (about 1 s, 0.4 MB);
 # needs node and npm (scripts/setup.sh test installs them on Debian). Idempotent.
 set -euo pipefail
@@ -36,7 +37,8 @@ const path = require('path');
     const i = report.issues;
     const errors = i.messages.filter((m) => m.severity === 0).slice(0, 10).map((m) => `${m.code} ${m.pointer || ''}: ${m.message}`);
     console.log(JSON.stringify({file, errors: i.numErrors, warnings: i.numWarnings, infos: i.numInfos, hints: i.numHints,
-      messages: errors, codes: [...new Set(i.messages.map((m) => m.code))]}));
+      messages: errors, codes: [...new Set(i.messages.map((m) => m.code))],
+      unused: i.messages.filter((m) => m.code === 'UNUSED_OBJECT').map((m) => m.pointer || '')}));
     if (i.numErrors > 0) failed = true;
   }
   process.exit(failed ? 1 : 0);

@@ -14,8 +14,13 @@
 //! places a mesh and did not opt out gets `extras.lightmap = {"page", "scale_offset",
 //! "file"}` (docs/conventions.md); other keys of its `extras` stay.
 //!
-//! The accessors a split primitive used before are kept (other primitives may share
-//! them), so the file carries them unused; the validator reports that as information.
+//! The accessors a split primitive used before, and the buffer views only they used,
+//! are removed once nothing else refers to them ([`prune_orphans`]: other primitives,
+//! morph targets, skins, animations and `EXT_mesh_gpu_instancing` may share them), and
+//! every reference renumbered, so the written file has no unused object the input did not
+//! have. Their bytes stay in the binary chunk (nothing points at them; re-packing it
+//! would move every other view). A document using an extension not known to refer to
+//! no accessor or buffer view keeps them, unused, as before.
 //!
 //! Limits: sparse accessors on a primitive that gets new vertices are an error; a node
 //! whose `extras` is not a JSON object gets no `extras.lightmap` (the file stays valid).
@@ -306,12 +311,17 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     // Generated UVs: new vertices per primitive.
     let mut new_accessors: Vec<Value> = Vec::new();
     let accessor_count = doc["accessors"].as_array().map_or(0, Vec::len);
+    // The accessors the split primitives used: unused afterwards unless shared.
+    let mut replaced = std::collections::BTreeSet::new();
     if let Some(layout) = scene.layout.as_deref() {
         for (m, generated) in layout.meshes.iter().enumerate() {
             let Some(generated) = generated else { continue };
             for (p, g) in generated.primitives.iter().enumerate() {
                 let Some(g) = g else { continue };
                 let prim = doc["meshes"][m]["primitives"][p].clone();
+                primitive_accessors(&prim, &mut |a| {
+                    replaced.insert(a);
+                });
                 let mut w = Writer {
                     doc: &doc,
                     source,
@@ -340,6 +350,7 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
             None => doc["accessors"] = Value::Array(new_accessors),
         }
     }
+    prune_orphans(&mut doc, &replaced);
 
     // Per node, where its lightmap is.
     for place in scene.placements() {
@@ -358,6 +369,196 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     align(&mut bin, 4);
     doc["buffers"] = json!([{"byteLength": bin.len()}]);
     Ok(write_glb(&doc, &bin))
+}
+
+/// Extensions known to refer to no accessor and no buffer view (beyond what
+/// [`prune_orphans`] renumbers): with any other in `extensionsUsed`, nothing is removed.
+const PRUNE_SAFE_EXTENSIONS: &[&str] = &[
+    "KHR_lights_punctual",
+    "KHR_materials_clearcoat",
+    "KHR_materials_emissive_strength",
+    "KHR_materials_ior",
+    "KHR_materials_iridescence",
+    "KHR_materials_sheen",
+    "KHR_materials_specular",
+    "KHR_materials_transmission",
+    "KHR_materials_unlit",
+    "KHR_materials_variants",
+    "KHR_materials_volume",
+    "KHR_mesh_quantization",
+    "KHR_texture_transform",
+    "EXT_mesh_gpu_instancing",
+];
+
+/// Calls `f` with every accessor a primitive refers to (attributes, indices, targets).
+fn primitive_accessors(prim: &Value, f: &mut dyn FnMut(usize)) {
+    let mut each = |v: &Value| {
+        if let Some(a) = v.as_u64() {
+            f(a as usize);
+        }
+    };
+    prim["attributes"]
+        .as_object()
+        .into_iter()
+        .flatten()
+        .for_each(|(_, v)| each(v));
+    each(&prim["indices"]);
+    for t in prim["targets"].as_array().into_iter().flatten() {
+        t.as_object().into_iter().flatten().for_each(|(_, v)| each(v));
+    }
+}
+
+/// The array at `key` of `v`, if any. (Not `v[key]`: indexing a JSON object mutably
+/// inserts a `null` where the key is absent, which would write `"skins": null`.)
+fn array_at<'v>(v: &'v mut Value, key: &str) -> impl Iterator<Item = &'v mut Value> {
+    v.get_mut(key).and_then(Value::as_array_mut).into_iter().flatten()
+}
+
+/// Calls `f` with each value of the object at `key` of `v`, if any.
+fn object_values<'v>(v: &'v mut Value, key: &str, f: &mut dyn FnMut(&mut Value)) {
+    if let Some(o) = v.get_mut(key).and_then(Value::as_object_mut) {
+        o.iter_mut().for_each(|(_, x)| f(x));
+    }
+}
+
+/// Every place in `doc` that holds an accessor index, for reading or renumbering.
+fn accessor_refs(doc: &mut Value, f: &mut dyn FnMut(&mut Value)) {
+    for mesh in array_at(doc, "meshes") {
+        for prim in array_at(mesh, "primitives") {
+            object_values(prim, "attributes", f);
+            if let Some(i) = prim.get_mut("indices") {
+                f(i);
+            }
+            for t in array_at(prim, "targets") {
+                if let Some(o) = t.as_object_mut() {
+                    o.iter_mut().for_each(|(_, x)| f(x));
+                }
+            }
+        }
+    }
+    for skin in array_at(doc, "skins") {
+        if let Some(m) = skin.get_mut("inverseBindMatrices") {
+            f(m);
+        }
+    }
+    for anim in array_at(doc, "animations") {
+        for sampler in array_at(anim, "samplers") {
+            for key in ["input", "output"] {
+                if let Some(a) = sampler.get_mut(key) {
+                    f(a);
+                }
+            }
+        }
+    }
+    for node in array_at(doc, "nodes") {
+        if let Some(attrs) = node
+            .pointer_mut("/extensions/EXT_mesh_gpu_instancing/attributes")
+            .and_then(Value::as_object_mut)
+        {
+            attrs.iter_mut().for_each(|(_, v)| f(v));
+        }
+    }
+}
+
+/// Every place in `doc` that holds a buffer view index.
+fn view_refs(doc: &mut Value, f: &mut dyn FnMut(&mut Value)) {
+    for acc in array_at(doc, "accessors") {
+        for ptr in ["/bufferView", "/sparse/indices/bufferView", "/sparse/values/bufferView"] {
+            if let Some(v) = acc.pointer_mut(ptr) {
+                f(v);
+            }
+        }
+    }
+    for img in array_at(doc, "images") {
+        if let Some(v) = img.get_mut("bufferView") {
+            f(v);
+        }
+    }
+}
+
+/// Removes the accessors of `candidates` that nothing refers to any more, then the buffer
+/// views nothing refers to any more that only removed accessors used, renumbering every
+/// reference (module doc). Objects the input already left unused stay.
+fn prune_orphans(doc: &mut Value, candidates: &std::collections::BTreeSet<usize>) {
+    let safe = doc["extensionsUsed"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .all(|e| e.as_str().is_some_and(|e| PRUNE_SAFE_EXTENSIONS.contains(&e)));
+    if candidates.is_empty() || !safe {
+        return;
+    }
+    let mut used = std::collections::BTreeSet::new();
+    accessor_refs(doc, &mut |v| {
+        if let Some(a) = v.as_u64() {
+            used.insert(a as usize);
+        }
+    });
+    let dead: std::collections::BTreeSet<usize> = candidates.difference(&used).copied().collect();
+    if dead.is_empty() {
+        return;
+    }
+    let accessors = doc["accessors"].as_array().cloned().unwrap_or_default();
+    // Views of the removed accessors: removed too unless something else still uses them.
+    let mut view_candidates = std::collections::BTreeSet::new();
+    for &a in &dead {
+        let acc = &accessors[a];
+        for ptr in ["/bufferView", "/sparse/indices/bufferView", "/sparse/values/bufferView"] {
+            if let Some(v) = acc.pointer(ptr).and_then(Value::as_u64) {
+                view_candidates.insert(v as usize);
+            }
+        }
+    }
+    let renumber = |len: usize, dead: &std::collections::BTreeSet<usize>| -> Vec<Option<usize>> {
+        let mut next = 0;
+        (0..len)
+            .map(|i| {
+                (!dead.contains(&i)).then(|| {
+                    next += 1;
+                    next - 1
+                })
+            })
+            .collect()
+    };
+    let map = renumber(accessors.len(), &dead);
+    doc["accessors"] = Value::Array(
+        accessors
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| map[*i].is_some())
+            .map(|(_, a)| a)
+            .collect(),
+    );
+    accessor_refs(doc, &mut |v| {
+        if let Some(new) = v.as_u64().and_then(|a| map.get(a as usize).copied().flatten()) {
+            *v = json!(new);
+        }
+    });
+    let mut views_used = std::collections::BTreeSet::new();
+    view_refs(doc, &mut |v| {
+        if let Some(b) = v.as_u64() {
+            views_used.insert(b as usize);
+        }
+    });
+    let dead_views: std::collections::BTreeSet<usize> = view_candidates.difference(&views_used).copied().collect();
+    if dead_views.is_empty() {
+        return;
+    }
+    let views = doc["bufferViews"].as_array().cloned().unwrap_or_default();
+    let vmap = renumber(views.len(), &dead_views);
+    doc["bufferViews"] = Value::Array(
+        views
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| vmap[*i].is_some())
+            .map(|(_, v)| v)
+            .collect(),
+    );
+    view_refs(doc, &mut |v| {
+        if let Some(new) = v.as_u64().and_then(|b| vmap.get(b as usize).copied().flatten()) {
+            *v = json!(new);
+        }
+    });
 }
 
 fn align(bin: &mut Vec<u8>, to: usize) {
@@ -546,5 +747,90 @@ impl Writer<'_> {
         );
         prim["indices"] = json!(indices);
         Ok(prim)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeSet;
+
+    fn doc() -> Value {
+        json!({
+            "asset": {"version": "2.0"},
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+            "skins": [{"joints": [0], "inverseBindMatrices": 2}],
+            "animations": [{"channels": [], "samplers": [{"input": 3, "output": 0}]}],
+            "nodes": [{"mesh": 0}],
+            "images": [{"bufferView": 3, "mimeType": "image/png"}],
+            "accessors": [
+                {"bufferView": 0, "count": 1},
+                {"bufferView": 1, "count": 1},
+                {"bufferView": 2, "count": 1},
+                {"bufferView": 3, "count": 1}
+            ],
+            "bufferViews": [
+                {"buffer": 0, "byteLength": 4},
+                {"buffer": 0, "byteLength": 8},
+                {"buffer": 0, "byteLength": 12},
+                {"buffer": 0, "byteLength": 16}
+            ]
+        })
+    }
+
+    /// Accessor 1 and its view go; accessor 2 stays (a skin's) and 0 (a mesh's and an
+    /// animation's); every reference is renumbered, and nothing absent is added.
+    #[test]
+    fn orphans_go_and_every_reference_is_renumbered() {
+        let mut d = doc();
+        prune_orphans(&mut d, &BTreeSet::from([0, 1, 2]));
+        assert_eq!(d["accessors"].as_array().unwrap().len(), 3);
+        assert_eq!(d["skins"][0]["inverseBindMatrices"], 1);
+        assert_eq!(d["animations"][0]["samplers"][0], json!({"input": 2, "output": 0}));
+        assert_eq!(d["meshes"][0]["primitives"][0]["attributes"]["POSITION"], 0);
+        let lengths: Vec<u64> = d["bufferViews"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v["byteLength"].as_u64().unwrap())
+            .collect();
+        assert_eq!(lengths, [4, 12, 16]);
+        let views: Vec<u64> = d["accessors"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|a| a["bufferView"].as_u64().unwrap())
+            .collect();
+        assert_eq!(views, [0, 1, 2]);
+        assert_eq!(d["images"][0]["bufferView"], 2);
+        assert!(d.get("targets").is_none() && d["meshes"][0]["primitives"][0].get("targets").is_none());
+        // A document without skins or animations gets none written.
+        let mut bare = doc();
+        for key in ["skins", "animations", "images"] {
+            bare.as_object_mut().unwrap().remove(key);
+        }
+        prune_orphans(&mut bare, &BTreeSet::from([1, 2, 3]));
+        assert!(bare.get("skins").is_none() && bare.get("animations").is_none() && bare.get("images").is_none());
+        assert_eq!(bare["accessors"].as_array().unwrap().len(), 1);
+        assert_eq!(bare["bufferViews"].as_array().unwrap().len(), 1);
+    }
+
+    /// A view another accessor still uses stays; an extension not known to be safe keeps
+    /// everything.
+    #[test]
+    fn shared_views_and_unknown_extensions_keep_what_they_may_use() {
+        let mut d = doc();
+        d["accessors"][1]["bufferView"] = json!(0);
+        prune_orphans(&mut d, &BTreeSet::from([1]));
+        assert_eq!(d["accessors"].as_array().unwrap().len(), 3);
+        assert_eq!(d["bufferViews"].as_array().unwrap().len(), 4);
+        let mut d = doc();
+        d["extensionsUsed"] = json!(["KHR_draco_mesh_compression"]);
+        prune_orphans(&mut d, &BTreeSet::from([1]));
+        assert_eq!(d, {
+            let mut e = doc();
+            e["extensionsUsed"] = json!(["KHR_draco_mesh_compression"]);
+            e
+        });
     }
 }
