@@ -17,12 +17,17 @@
 #    generated level, and how many texels they disagree on) and vpl's reflective shadow
 #    maps (`params.rays` cpu / gpu on the occlusion room under sun and sky, ms a step at
 #    the default `rsm_size` 64 and at 256).
+# 8. `farm` (issues 25 and 20): `region_bench` on the 256k-triangle generated level at 24
+#    texels/m on 4096^2 pages (a whole-grid task against each page task and their merge:
+#    the farm model's preparation split, docs/scaling.md, with validation on the GPU
+#    route), and `path` on the GPU with `sampling` independent against sobol (the Cornell
+#    box at 512^2, 64 steps: ms a step and the estimated error, docs/performance.md).
 # `bench` reads converged references from $BENCH_CACHE (default bench-results/cache) made
 # with $BENCH_REFERENCE_SECONDS (default 300; the key includes it): carry the ones made on
 # the development machine (`target/tmp/honest-error-references`) so no device time goes
 # into a reference.
-# Parts run in the order rays, level, routes, bakes, timings, bench, denoise (correctness first).
-# Usage: BIN=dir OUT=dir BENCH_BUDGET=5 bash scripts/gpu-check.sh [bakes] [timings] [bench] [rays] [level] [routes] [denoise]
+# Parts run in the order rays, level, routes, farm, bakes, timings, bench, denoise (correctness first).
+# Usage: BIN=dir OUT=dir BENCH_BUDGET=5 bash scripts/gpu-check.sh [bakes] [timings] [bench] [rays] [level] [routes] [farm] [denoise]
 set -uo pipefail
 : "${BIN:?}" "${OUT:?}"
 BENCH_BUDGET=${BENCH_BUDGET:-5}
@@ -50,6 +55,13 @@ if [[ $parts == *routes* ]]; then
                 --params "{\"rays\": \"$rays\", \"rsm_size\": $rsm}"
         done
         run "$BIN/exr_diff" /tmp/vpl-cpu.exr /tmp/vpl-gpu.exr  # within noise: docs/vpl.md
+    done
+fi
+if [[ $parts == *farm* ]]; then
+    run "$BIN/region_bench" ${REGION_ARGS:-400 8 24 4096 2 2}
+    for sampling in independent sobol; do
+        run "$BIN/lightmapd" bake /tmp/cornell.glb -o /tmp/sampling-$sampling.exr --resolution 512 --steps 64 \
+            --seed 1 --no-denoise --sky 0.2,0.3,0.5 --params "{\"device\": \"gpu\", \"sampling\": \"$sampling\"}"
     done
 fi
 if [[ $parts == *bakes* ]]; then
