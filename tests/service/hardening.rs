@@ -647,14 +647,7 @@ async fn a_worker_with_less_memory_leaves_a_job_over_its_limit_to_a_bigger_one()
     let (stop_small, small) = start_workers(200 << 20);
     let t = std::time::Instant::now();
     let waiting = loop {
-        let j: Value = s
-            .get(&format!("/v1/jobs/{big}"))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let j = get_json(&s.http, &format!("{}/v1/jobs/{big}", s.url)).await;
         assert_eq!(j["status"], "queued", "{j:#}");
         if let Some(w) = j["waiting_for"].as_str().filter(|w| w.starts_with("a worker with")) {
             break w.to_string();
@@ -669,14 +662,7 @@ async fn a_worker_with_less_memory_leaves_a_job_over_its_limit_to_a_bigger_one()
         "{waiting}"
     );
     tokio::time::sleep(Duration::from_secs(1)).await;
-    let j: Value = s
-        .get(&format!("/v1/jobs/{big}"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let j = get_json(&s.http, &format!("{}/v1/jobs/{big}", s.url)).await;
     assert_eq!((&j["status"], &j["attempts"]), (&json!("queued"), &json!(0)), "{j:#}");
     // A worker with the default 8 GiB takes it and bakes it.
     let (stop_big, bigger) = start_workers(8 << 30);

@@ -76,14 +76,10 @@ async fn one_api_three_workers_survive_two_sigkills() {
         &s3.env,
     );
     let mut procs = Children(vec![api]);
+    // Every worker of this test, the first three and the replacements alike.
+    let spawn_worker = || spawn_pg_worker(&db.url, &store, &s3.env, lease, &["--snapshot-interval-s", "60"]);
     for _ in 0..3 {
-        procs.0.push(spawn_pg_worker(
-            &db.url,
-            &store,
-            &s3.env,
-            lease,
-            &["--snapshot-interval-s", "60"],
-        ));
+        procs.0.push(spawn_worker());
     }
     let http = reqwest::Client::new();
     let scene = service_common::upload_cornell(&http, &url).await;
@@ -134,13 +130,7 @@ async fn one_api_three_workers_survive_two_sigkills() {
         victim.kill().unwrap(); // SIGKILL
         victim.wait().unwrap();
         killed.insert(job, worker);
-        procs.0.push(spawn_pg_worker(
-            &db.url,
-            &store,
-            &s3.env,
-            lease,
-            &["--snapshot-interval-s", "60"],
-        ));
+        procs.0.push(spawn_worker());
     }
 
     // Every job ends; none fails.
