@@ -1,7 +1,8 @@
 //! Error against time for light probes (issue 26 point 5), the figures of docs/probes.md.
 //!
-//! `cargo run --release --example probe_bench [MAX_STEPS]`: bakes a grid of probes with
-//! `path`'s probe estimator (64 samples a probe a step, all cores) in scenes whose probe
+//! `cargo run --release --example probe_bench [MAX_STEPS] [cpu|gpu] [SIDE]`: bakes a grid of
+//! SIDE³ probes (default 4) with `path`'s probe estimator (64 samples a probe a step, on all
+//! cores or on the GPU, lavapipe counting) in scenes whose probe
 //! coefficients have closed forms, and prints after 1, 2, 4, … MAX_STEPS (default 256)
 //! steps the wall time, the set's reported error (`ProbeSet::error`, the RMS of the L0
 //! standard errors over the RMS L0; none after one step) and the true error (RMS over the valid probes of
@@ -14,9 +15,11 @@
 //!   c00 = Le Y00 Ω at each probe with Ω the lamp's solid angle from it (light sampling
 //!   of emitters, MIS with the uniform directions).
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use glam::Vec3;
+use lightmapd::engine::gpu::scene_rays::SceneRays;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
 use lightmapd::engine::scene::library::closed_box;
 use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, import_slice};
@@ -46,7 +49,7 @@ fn import(b: &SceneBuilder) -> Scene {
     import_slice(&b.to_glb(), None).expect("scene imports").0
 }
 
-fn cases() -> Vec<Case> {
+fn cases(side: usize) -> Vec<Case> {
     let grid = |lo: Vec3, hi: Vec3, n: usize| -> Vec<Vec3> {
         let mut v = Vec::new();
         for i in 0..n {
@@ -61,7 +64,7 @@ fn cases() -> Vec<Case> {
     };
     let furnace = import(&closed_box(0.5));
     let offset = furnace.origin_offset.as_vec3();
-    let furnace_probes = grid(Vec3::splat(-0.8), Vec3::splat(0.8), 4)
+    let furnace_probes = grid(Vec3::splat(-0.8), Vec3::splat(0.8), side)
         .into_iter()
         .map(|p| (p - offset, (4.0 * std::f64::consts::PI).sqrt()))
         .collect();
@@ -71,7 +74,7 @@ fn cases() -> Vec<Case> {
     b.square("ground", Vec3::ZERO, 10.0, Vec3::Y, black);
     let sky = import(&b);
     let offset = sky.origin_offset.as_vec3();
-    let sky_probes = grid(Vec3::new(-1.0, 0.2, -1.0), Vec3::new(1.0, 2.0, 1.0), 4)
+    let sky_probes = grid(Vec3::new(-1.0, 0.2, -1.0), Vec3::new(1.0, 2.0, 1.0), side)
         .into_iter()
         .map(|p| (p - offset, 2.0 * std::f64::consts::PI * Y00))
         .collect();
@@ -83,7 +86,7 @@ fn cases() -> Vec<Case> {
     b.square("lamp", Vec3::new(0.0, 1.5, 0.0), 0.2, Vec3::NEG_Y, lamp);
     let lamp_scene = import(&b);
     let offset = lamp_scene.origin_offset.as_vec3();
-    let lamp_probes = grid(Vec3::new(-1.0, 0.2, -1.0), Vec3::new(1.0, 1.2, 1.0), 4)
+    let lamp_probes = grid(Vec3::new(-1.0, 0.2, -1.0), Vec3::new(1.0, 1.2, 1.0), side)
         .into_iter()
         .map(|p| {
             let h = 1.5 - p.y as f64;
@@ -123,30 +126,37 @@ fn cases() -> Vec<Case> {
 }
 
 fn main() {
-    let max_steps: u64 = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(256);
+    let arg = |k: usize| std::env::args().nth(k);
+    let max_steps: u64 = arg(1).and_then(|s| s.parse().ok()).unwrap_or(256);
+    let device = arg(2).unwrap_or_else(|| "cpu".into());
+    let side: usize = arg(3).and_then(|s| s.parse().ok()).unwrap_or(4);
     println!(
-        "| scene | probes | steps | samples a probe | seconds | reported error | true error (L0, RMS) |\n| --- | --- | --- | --- | --- | --- | --- |"
+        "| scene | device | probes | steps | samples a probe | seconds | reported error | true error (L0, RMS) |\n| --- | --- | --- | --- | --- | --- | --- | --- |"
     );
-    for case in cases() {
+    for case in cases(side) {
         let positions: Vec<Vec3> = case.probes.iter().map(|(p, _)| *p).collect();
-        let mut baker = ProbeBaker::new(
-            &case.scene,
+        // The job's route: the baker shares the bake's rays (and, on the GPU, its uploads).
+        let rays = SceneRays::new(Arc::new(case.scene.clone()));
+        let mut baker = ProbeBaker::sharing(
+            &rays,
             case.lighting,
             positions,
-            &json!({"samples_per_step": 64}),
+            &json!({"samples_per_step": 64, "device": device}),
             7,
         )
         .expect("probe baker");
+        let adapter = baker.device();
         let t = Instant::now();
         let mut next = 1;
         for step in 1..=max_steps {
-            baker.step();
+            baker.step().expect("probe step");
             if step != next {
                 continue;
             }
             next *= 2;
+            // After the read-back: on the GPU the steps run asynchronously until then.
+            let set = baker.result().expect("probes");
             let seconds = t.elapsed().as_secs_f64();
-            let set = baker.result();
             let (mut sq, mut n) = (0.0, 0);
             for (p, (_, exact)) in set.probes.iter().zip(&case.probes) {
                 if !p.valid {
@@ -157,7 +167,7 @@ fn main() {
                 n += 1;
             }
             println!(
-                "| {} | {} | {step} | {} | {seconds:.3} | {} | {:.3} % |",
+                "| {} | {adapter} | {} | {step} | {} | {seconds:.3} | {} | {:.3} % |",
                 case.name,
                 n,
                 step * 64,

@@ -22,12 +22,16 @@
 #    the farm model's preparation split, docs/scaling.md, with validation on the GPU
 #    route), and `path` on the GPU with `sampling` independent against sobol (the Cornell
 #    box at 512^2, 64 steps: ms a step and the estimated error, docs/performance.md).
+# 9. `probes` (issue 26): light probes on the GPU against the CPU, `probe_bench` (closed-form
+#    scenes, error against time) with 20^3 = 8000 probes a scene on each device, and the probe
+#    tests (`probes_test`: tests/probes.rs, every closed form on both devices), which must not
+#    skip there.
 # `bench` reads converged references from $BENCH_CACHE (default bench-results/cache) made
 # with $BENCH_REFERENCE_SECONDS (default 300; the key includes it): carry the ones made on
 # the development machine (`target/tmp/honest-error-references`) so no device time goes
 # into a reference.
-# Parts run in the order rays, level, routes, farm, bakes, timings, bench, denoise (correctness first).
-# Usage: BIN=dir OUT=dir BENCH_BUDGET=5 bash scripts/gpu-check.sh [bakes] [timings] [bench] [rays] [level] [routes] [farm] [denoise]
+# Parts run in the order rays, level, routes, farm, probes, bakes, timings, bench, denoise (correctness first).
+# Usage: BIN=dir OUT=dir BENCH_BUDGET=5 bash scripts/gpu-check.sh [bakes] [timings] [bench] [rays] [level] [routes] [farm] [probes] [denoise]
 set -uo pipefail
 : "${BIN:?}" "${OUT:?}"
 BENCH_BUDGET=${BENCH_BUDGET:-5}
@@ -62,6 +66,12 @@ if [[ $parts == *farm* ]]; then
     for sampling in independent sobol; do
         run "$BIN/lightmapd" bake /tmp/cornell.glb -o /tmp/sampling-$sampling.exr --resolution 512 --steps 64 \
             --seed 1 --no-denoise --sky 0.2,0.3,0.5 --params "{\"device\": \"gpu\", \"sampling\": \"$sampling\"}"
+    done
+fi
+if [[ $parts == *probes* ]]; then
+    LIGHTMAPD_REQUIRE_GPU=1 run "$BIN/probes_test" --nocapture
+    for device in cpu gpu; do
+        run "$BIN/probe_bench" ${PROBE_STEPS:-64} $device ${PROBE_SIDE:-20}
     done
 fi
 if [[ $parts == *bakes* ]]; then

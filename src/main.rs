@@ -334,6 +334,24 @@ enum Example {
     CornellBox,
 }
 
+/// `--probe-device`.
+#[derive(Clone, Copy, ValueEnum)]
+enum ProbeDevice {
+    Auto,
+    Cpu,
+    Gpu,
+}
+
+impl From<ProbeDevice> for lightmapd::engine::gpu::RayDevice {
+    fn from(d: ProbeDevice) -> Self {
+        match d {
+            ProbeDevice::Auto => Self::Auto,
+            ProbeDevice::Cpu => Self::Cpu,
+            ProbeDevice::Gpu => Self::Gpu,
+        }
+    }
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum HemisphereArg {
     Upper,
@@ -433,6 +451,9 @@ struct BakeArgs {
     /// Steps of the probe bake (64 samples a probe each).
     #[arg(long, default_value_t = 16)]
     probe_steps: u32,
+    /// Where the probes bake: auto (the GPU when a hardware adapter is there), cpu or gpu.
+    #[arg(long, value_enum, default_value_t = ProbeDevice::Auto)]
+    probe_device: ProbeDevice,
     /// Bake only task K of N (0-based) of a bake split across processes or machines:
     /// its share of `--steps`, written to -o as a task result for `lightmapd merge`
     /// (docs/scaling.md). Every task takes the same options.
@@ -1012,6 +1033,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             spacing: args.probe_spacing,
             positions: Vec::new(),
             steps: args.probe_steps,
+            device: args.probe_device.into(),
         }),
     };
 

@@ -146,6 +146,10 @@ pub struct ProbeRequest {
     /// Steps of `path`'s probe estimator, 64 samples a probe each.
     #[serde(default = "default_probe_steps")]
     pub steps: u32,
+    /// Where the probes bake: `auto` (the GPU when a hardware adapter is there), `cpu` or
+    /// `gpu` (any adapter, lavapipe included), as `path`'s `device`.
+    #[serde(default)]
+    pub device: crate::engine::gpu::RayDevice,
 }
 
 fn default_probe_steps() -> u32 {
@@ -703,10 +707,11 @@ fn bake_probes(
         rays,
         request.lighting,
         at,
-        &serde_json::json!({"samples_per_step": 64}),
+        &serde_json::json!({"samples_per_step": 64, "device": p.device}),
         request.seed,
     )?;
     let probes = baker.valid().len();
+    let device = baker.device();
     let mut go = observer.event(BakeEvent::Probes {
         steps: 0,
         of: p.steps,
@@ -717,16 +722,17 @@ fn bake_probes(
             tracing::info!(steps = k - 1, of = p.steps, "light probes stopped by the observer");
             break;
         }
-        baker.step();
+        baker.step()?;
         go = observer.event(BakeEvent::Probes {
             steps: k,
             of: p.steps,
             probes,
         });
     }
-    let set = baker.result();
+    let set = baker.result()?;
     tracing::info!(
         probes = set.probes.len(),
+        device,
         invalid = set.probes.iter().filter(|x| !x.valid).count(),
         steps = set.steps,
         relative_error = set.error,

@@ -181,6 +181,20 @@ pub struct ProbeSpec {
     #[serde(default = "default_probe_steps")]
     #[schema(default = 16)]
     pub steps: u32,
+    /// Where the probes bake: `auto` (the GPU when the worker has a hardware adapter), `cpu`
+    /// or `gpu`.
+    #[serde(default)]
+    pub device: ProbeDevice,
+}
+
+/// A probe bake's device (`probes.device`).
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, ToSchema, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum ProbeDevice {
+    #[default]
+    Auto,
+    Cpu,
+    Gpu,
 }
 
 fn default_probe_steps() -> u32 {
@@ -193,6 +207,11 @@ impl ProbeSpec {
             spacing: self.spacing,
             positions: self.positions.clone(),
             steps: self.steps,
+            device: match self.device {
+                ProbeDevice::Auto => crate::engine::gpu::RayDevice::Auto,
+                ProbeDevice::Cpu => crate::engine::gpu::RayDevice::Cpu,
+                ProbeDevice::Gpu => crate::engine::gpu::RayDevice::Gpu,
+            },
         }
     }
 }

@@ -35,6 +35,7 @@ use super::layout::{Bind, compute_pipeline, group_of, layout_of};
 use super::scene_lights::{GpuSceneLights, LightSources};
 use super::scene_rays::SceneRays;
 use super::shaders::PassShader;
+use super::texels::GpuTexelGeom;
 use super::{GpuContext, GpuError};
 use crate::engine::atlas::Atlas;
 use crate::engine::raytrace::EmitterTable;
@@ -99,9 +100,51 @@ impl<U: StepUniform> TexelRayPass<U> {
         spec: PassSpec<'_>,
         uniform: U,
     ) -> Result<Self, GpuError> {
+        let texels = rays.gpu_texels(&ctx, spec.what, atlas)?;
+        Self::build(ctx, rays, texels, atlas.texels.len(), lighting, spec, uniform)
+    }
+
+    /// A pass over `points` given by the caller (in the texels' layout, world space; `path`'s
+    /// light probes), each run by `lanes` consecutive invocations: one dispatch runs
+    /// `points.len() * lanes` invocations, and the shader finds its point as the
+    /// invocation index over `lanes`. At least one point.
+    pub fn over_points(
+        ctx: Arc<GpuContext>,
+        rays: &SceneRays,
+        points: &[GpuTexelGeom],
+        lanes: u32,
+        lighting: &Lighting,
+        spec: PassSpec<'_>,
+        uniform: U,
+    ) -> Result<Self, GpuError> {
+        let what = spec.what;
+        check_binding_size(&ctx, &format!("{what}: the points"), points.len() as u64 * 48)?;
+        let invocations = points.len() as u64 * lanes as u64;
+        if invocations > u32::MAX as u64 {
+            return Err(GpuError::Unsupported {
+                adapter: ctx.info.name.clone(),
+                missing: format!(
+                    "{what}: {} points of {lanes} invocations each, more than one dispatch counts (2^32)",
+                    points.len()
+                ),
+            });
+        }
+        let usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+        let buffer = Arc::new(ctx.buffer_init(&format!("{what} points"), points, usage));
+        Self::build(ctx, rays, buffer, invocations as usize, lighting, spec, uniform)
+    }
+
+    fn build(
+        ctx: Arc<GpuContext>,
+        rays: &SceneRays,
+        texels: Arc<wgpu::Buffer>,
+        invocations: usize,
+        lighting: &Lighting,
+        spec: PassSpec<'_>,
+        uniform: U,
+    ) -> Result<Self, GpuError> {
         let what = spec.what;
         let lights = GpuSceneLights::new(&ctx, what, rays, lighting, spec.emitters, spec.sources)?;
-        let texels = rays.gpu_texels(&ctx, what, atlas)?;
         let mut accumulators = Vec::with_capacity(spec.accumulators.len());
         for (name, bytes) in spec.accumulators {
             check_binding_size(&ctx, &format!("{what}: the {name}"), *bytes)?;
@@ -134,7 +177,7 @@ impl<U: StepUniform> TexelRayPass<U> {
             uniform_buf,
             uniform,
             accumulators,
-            texels: atlas.texels.len(),
+            texels: invocations,
             half_steps: [0, 0],
             in_flight: VecDeque::with_capacity(STEPS_IN_FLIGHT + 1),
             first_step: 0,
@@ -149,7 +192,8 @@ impl<U: StepUniform> TexelRayPass<U> {
         &self.ctx
     }
 
-    /// The valid texels the pass runs over.
+    /// The invocations of one step: the valid texels the pass runs over, or the points
+    /// times their lanes ([`TexelRayPass::over_points`]).
     pub fn texels(&self) -> usize {
         self.texels
     }

@@ -80,10 +80,10 @@ pub fn sobol_vectors() -> Vec<u32> {
 
 #[repr(C)]
 #[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
-struct PathUniform {
-    counts: [u32; 4],
-    keys: [u32; 4],
-    f: [f32; 4],
+pub(super) struct PathUniform {
+    pub(super) counts: [u32; 4],
+    pub(super) keys: [u32; 4],
+    pub(super) f: [f32; 4],
 }
 
 impl StepUniform for PathUniform {

@@ -71,6 +71,7 @@ use serde_json::Value;
 
 mod gpu;
 pub mod probes;
+pub mod probes_gpu;
 mod sampler;
 
 use super::api::{
@@ -152,12 +153,17 @@ impl PathParams {
 
 /// `path`'s GPU pass, WGSL in `shaders/path/` (the CPU route needs none).
 pub mod shaders {
-    use crate::engine::gpu::shaders::{BVH, LIGHTS, MATERIALS, PassShader, pass};
+    use crate::engine::gpu::shaders::{BVH, LIGHTS, MATERIALS, PassShader, WgslFile, pass, wgsl_file};
 
+    /// The estimator (E/pi at a surface point by one path), its randomness and bounds: the
+    /// prelude both passes share (no bindings of its own).
+    pub const ESTIMATOR: WgslFile = wgsl_file!("path/estimator.wgsl");
     /// The whole estimator per texel and sample (megakernel) over the GPU BVH.
-    pub const PATH_TRACE: PassShader = pass!("path/path_trace.wgsl", [BVH, MATERIALS, LIGHTS]);
+    pub const PATH_TRACE: PassShader = pass!("path/path_trace.wgsl", [BVH, MATERIALS, LIGHTS, ESTIMATOR]);
+    /// Light probes: one workgroup per probe, its SH to L2 (`probes_gpu`).
+    pub const PROBES: PassShader = pass!("path/probes.wgsl", [BVH, MATERIALS, LIGHTS, ESTIMATOR]);
     /// Every pass of `path`.
-    pub const ALL: &[PassShader] = &[PATH_TRACE];
+    pub const ALL: &[PassShader] = &[PATH_TRACE, PROBES];
 }
 
 /// `path` in the technique table (`technique/table.rs`).

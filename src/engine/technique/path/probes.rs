@@ -55,13 +55,15 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::{PathContext, PathParams, power_heuristic};
+use super::probes_gpu::ProbeGpu;
+use super::{Device, PathContext, PathParams, power_heuristic};
 use crate::engine::accumulate::LUMINANCE;
 use crate::engine::error::EngineError;
 use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::raytrace::{EmitterTable, Tracer, cone_sample, inset};
 use crate::engine::rng::Rng;
 use crate::engine::scene::{LightKind, Lighting, Scene};
+use crate::engine::technique::api::gpu_error;
 
 /// Coefficients of L2 spherical harmonics.
 pub const SH9: usize = 9;
@@ -205,9 +207,14 @@ pub struct ProbeBaker<'a> {
     steps: [u64; 2],
     /// Offset of secondary rays off surfaces (the atlas's surface offset for the scene).
     eps: f32,
+    /// The valid probes' pass when they bake on the GPU (`params.device`); `halves` then
+    /// stay zero until [`ProbeBaker::result`] reads them back.
+    gpu: Option<ProbeGpu>,
 }
 
 impl<'a> ProbeBaker<'a> {
+    /// A baker on the CPU: `params.device` must be `cpu` or `auto` (which stays on the CPU
+    /// here: the GPU route needs the bake's [`SceneRays`], [`ProbeBaker::sharing`]).
     pub fn new(
         scene: &'a Scene,
         lighting: Lighting,
@@ -215,11 +222,19 @@ impl<'a> ProbeBaker<'a> {
         params: &serde_json::Value,
         seed: u64,
     ) -> Result<Self, EngineError> {
+        let params: PathParams = crate::engine::technique::api::parse_params("path", params)?;
+        if params.device == Device::Gpu {
+            return Err(EngineError::BadInput(
+                "probes: device gpu needs the bake's scene rays (ProbeBaker::sharing)".into(),
+            ));
+        }
         let parts = (Arc::new(Tracer::new(scene)), Arc::new(EmitterTable::new(scene)));
         Self::build(scene, parts, lighting, positions, params, seed)
     }
 
-    /// [`ProbeBaker::new`] on the scene of `rays`, tracing the BVH the bake built.
+    /// [`ProbeBaker::new`] on the scene of `rays`, tracing the BVH the bake built: on the
+    /// GPU when `params.device` asks for it (`auto`: a hardware adapter), with the bake's
+    /// GPU uploads of the scene.
     pub fn sharing(
         rays: &'a SceneRays,
         lighting: Lighting,
@@ -227,8 +242,33 @@ impl<'a> ProbeBaker<'a> {
         params: &serde_json::Value,
         seed: u64,
     ) -> Result<Self, EngineError> {
+        let params: PathParams = crate::engine::technique::api::parse_params("path", params)?;
+        let ctx = params.device.context("light probes").map_err(gpu_error)?;
         let parts = (rays.tracer(), rays.emitters());
-        Self::build(rays.scene(), parts, lighting, positions, params, seed)
+        let mut baker = Self::build(rays.scene(), parts, lighting, positions, params, seed)?;
+        if let Some(ctx) = ctx {
+            let points: Vec<(u32, Vec3)> = (0..baker.positions.len())
+                .filter(|&i| baker.valid[i])
+                .map(|i| (i as u32, baker.positions[i]))
+                .collect();
+            baker.gpu = Some(ProbeGpu::new(
+                ctx,
+                rays,
+                &baker.lighting,
+                &points,
+                &baker.params,
+                seed,
+                baker.eps,
+            )?);
+        }
+        Ok(baker)
+    }
+
+    /// Where the probes bake: the GPU adapter's name, or `cpu`.
+    pub fn device(&self) -> String {
+        self.gpu
+            .as_ref()
+            .map_or_else(|| "cpu".to_string(), |g| g.adapter().to_string())
     }
 
     fn build(
@@ -236,10 +276,9 @@ impl<'a> ProbeBaker<'a> {
         (tracer, emitters): (Arc<Tracer>, Arc<EmitterTable>),
         lighting: Lighting,
         positions: Vec<Vec3>,
-        params: &serde_json::Value,
+        params: PathParams,
         seed: u64,
     ) -> Result<Self, EngineError> {
-        let params: PathParams = crate::engine::technique::api::parse_params("path", params)?;
         params.validate()?;
         if let Some(k) = positions.iter().position(|p| !p.is_finite()) {
             return Err(EngineError::BadInput(format!("probes.positions[{k}] is not finite")));
@@ -263,6 +302,7 @@ impl<'a> ProbeBaker<'a> {
             halves: [vec![[Vec3::ZERO; SH9]; n], vec![[Vec3::ZERO; SH9]; n]],
             steps: [0, 0],
             eps,
+            gpu: None,
         })
     }
 
@@ -271,11 +311,16 @@ impl<'a> ProbeBaker<'a> {
     }
 
     /// One step: `samples_per_step` samples for every valid probe, into the half of the
-    /// step's parity (running means).
-    pub fn step(&mut self) {
+    /// step's parity (running means); on the GPU one dispatch, not waited for.
+    pub fn step(&mut self) -> Result<(), EngineError> {
         let step = self.steps[0] + self.steps[1];
         let half = (step % 2) as usize;
         let k = self.steps[half] + 1;
+        if let Some(gpu) = &mut self.gpu {
+            gpu.step()?;
+            self.steps[half] = k;
+            return Ok(());
+        }
         let ctx = PathContext {
             scene: self.scene,
             tracer: &self.tracer,
@@ -309,6 +354,7 @@ impl<'a> ProbeBaker<'a> {
             }
         }
         self.steps[half] = k;
+        Ok(())
     }
 
     /// Adds one sample's SH estimate at `x` to `sum`.
@@ -426,8 +472,16 @@ impl<'a> ProbeBaker<'a> {
         }
     }
 
-    /// The probes as of now.
-    pub fn result(&self) -> ProbeSet {
+    /// The probes as of now (on the GPU, read back first: this waits for the steps).
+    pub fn result(&mut self) -> Result<ProbeSet, EngineError> {
+        if let Some(gpu) = &self.gpu {
+            let [even, odd] = gpu.halves()?;
+            let valid = (0..self.positions.len()).filter(|&i| self.valid[i]);
+            for (i, (e, o)) in valid.zip(even.into_iter().zip(odd)) {
+                self.halves[0][i] = e;
+                self.halves[1][i] = o;
+            }
+        }
         let (ne, no) = (self.steps[0] as f32, self.steps[1] as f32);
         let both_halves = ne > 0.0 && no > 0.0;
         let n = (ne + no).max(1.0);
@@ -454,7 +508,7 @@ impl<'a> ProbeBaker<'a> {
                 }
             })
             .collect();
-        ProbeSet {
+        Ok(ProbeSet {
             convention: "incident radiance, projected on real orthonormal SH to L2 (W m^-2 sr^-1 x sr); E(n)/pi = sum_i A_l c_i Y_i(n) / pi with A = pi, 2pi/3, pi/4",
             basis: "world axes; order Y00, Y1-1 (y), Y10 (z), Y11 (x), Y2-2 (xy), Y2-1 (yz), Y20 (3z^2-1), Y21 (xz), Y22 (x^2-y^2)",
             steps: self.steps[0] + self.steps[1],
@@ -464,7 +518,7 @@ impl<'a> ProbeBaker<'a> {
                 0.0
             }),
             probes,
-        }
+        })
     }
 }
 
