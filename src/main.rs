@@ -448,6 +448,10 @@ struct BakeArgs {
     /// Probe grid spacing in metres.
     #[arg(long)]
     probe_spacing: Option<f32>,
+    /// Split the probe grid's cells that geometry passes through into 8, this many levels
+    /// down (0 to 4): denser probes near surfaces.
+    #[arg(long, default_value_t = 0)]
+    probe_subdivide: u32,
     /// Steps of the probe bake (64 samples a probe each).
     #[arg(long, default_value_t = 16)]
     probe_steps: u32,
@@ -1031,6 +1035,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         // Checked with the rest of the request before the bake (exit 2 naming the field).
         probes: args.probes.as_ref().map(|_| lightmapd::engine::job::ProbeRequest {
             spacing: args.probe_spacing,
+            subdivide: args.probe_subdivide,
             positions: Vec::new(),
             steps: args.probe_steps,
             device: args.probe_device.into(),

@@ -305,6 +305,7 @@ fn probe_job_on(
         },
         probes: Some(lightmapd::engine::job::ProbeRequest {
             spacing: None,
+            subdivide: 0,
             positions: Vec::new(),
             steps: probe_steps,
             device,
@@ -506,4 +507,66 @@ fn gpu_and_cpu_probes_agree_in_the_cornell_box() {
             "coefficient {c}: cpu {m_cpu} vs gpu {m_gpu} (allowed {allowed})"
         );
     }
+}
+
+/// Adaptive placement (issue 26: denser near geometry): an 8 m floor and a 0.3 m square 8 m
+/// above its corner make bounds of 8 x 8 x 8 m, a 2 m grid of 4³ cells. Split where
+/// geometry passes: level 0 splits the 16 floor cells (the floor is their bottom face) and
+/// the corner cell holding the small square, 64 - 17 leaves + 17 x 8 children = 183
+/// probes; level 1 splits the 64 children touching the floor and the one holding the
+/// square, 47 + (136 - 65) + 65 x 8 = 638. Open space keeps the 2 m grid, and the lowest
+/// probes sit a quarter metre over the floor (the centres of the 0.5 m cells).
+#[test]
+fn adaptive_placement_splits_the_cells_geometry_passes_through() {
+    use lightmapd::engine::technique::path::probes::adaptive_positions;
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("floor", Vec3::ZERO, 8.0, Vec3::Y, grey);
+    b.square("marker", Vec3::new(3.25, 8.0, 3.25), 0.3, Vec3::NEG_Y, grey);
+    let scene = import(&b);
+    let offset = scene.origin_offset.as_vec3();
+    let world = |v: &Vec<Vec3>| v.iter().map(|p| *p + offset).collect::<Vec<_>>();
+    let grid = grid_positions(&scene, 2.0, 10_000).unwrap();
+    assert_eq!(adaptive_positions(&scene, 2.0, 0, 10_000).unwrap(), grid);
+    assert_eq!(grid.len(), 64);
+    let one = world(&adaptive_positions(&scene, 2.0, 1, 10_000).unwrap());
+    assert_eq!(one.len(), 183);
+    let two = world(&adaptive_positions(&scene, 2.0, 2, 10_000).unwrap());
+    assert_eq!(two.len(), 638);
+    let lowest = two.iter().map(|p| p.y).fold(f32::INFINITY, f32::min);
+    assert!((lowest - 0.25).abs() < 1e-4, "lowest probe {lowest} m over the floor");
+    // Between 2 and 6 m up, away from the corner cell: the coarse grid, 2 layers of 16.
+    let open: Vec<&Vec3> = two.iter().filter(|p| p.y > 2.0 && p.y < 6.0).collect();
+    assert_eq!(open.len(), 32);
+    assert!(
+        open.iter().all(|p| ((p.y - 1.0) / 2.0).fract().abs() < 1e-4),
+        "{open:?}"
+    );
+    // Each probe is inside the bounds; no two coincide.
+    for p in &two {
+        assert!(p.x.abs() <= 4.0 && p.z.abs() <= 4.0 && p.y >= 0.0 && p.y <= 8.0, "{p}");
+    }
+    let mut keys: Vec<[i64; 3]> = two
+        .iter()
+        .map(|p| (*p * 1000.0).round().as_i64vec3().to_array())
+        .collect();
+    keys.sort();
+    keys.dedup();
+    assert_eq!(keys.len(), two.len());
+    // The limits name the field.
+    let too_many = adaptive_positions(&scene, 2.0, 2, 500).unwrap_err().to_string();
+    assert!(
+        too_many.contains("at most 500") && too_many.contains("subdivide"),
+        "{too_many}"
+    );
+    let deep = adaptive_positions(&scene, 2.0, 5, 10_000).unwrap_err().to_string();
+    assert!(deep.contains("probes.subdivide must be in 0..=4"), "{deep}");
+    let request = lightmapd::engine::job::ProbeRequest {
+        spacing: None,
+        subdivide: 1,
+        positions: vec![[0.0, 1.0, 0.0]],
+        steps: 4,
+        device: lightmapd::engine::gpu::RayDevice::Cpu,
+    };
+    assert!(request.validate().unwrap_err().contains("give probes.spacing too"));
 }

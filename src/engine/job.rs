@@ -70,13 +70,17 @@ pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineErro
 
     if let Some(p) = &request.probes {
         p.validate().map_err(EngineError::BadInput)?;
-        let at = probes::positions_for(scene, p.spacing, &p.positions)?;
+        let at = probes::positions_for(scene, p.spacing, p.subdivide, &p.positions)?;
         plan.run(
             "light probes",
             &format!(
                 "{} probes (grid {}, {} given, {} glTF nodes), radiance SH to L2 by path after the lightmap, {} steps",
                 at.len(),
-                p.spacing.map_or("none".into(), |s| format!("{s} m")),
+                p.spacing.map_or("none".into(), |s| if p.subdivide > 0 {
+                    format!("{s} m split {} levels near geometry", p.subdivide)
+                } else {
+                    format!("{s} m")
+                }),
                 p.positions.len(),
                 scene.probe_nodes.len(),
                 p.steps
@@ -140,6 +144,11 @@ pub struct ProbeRequest {
     /// cell's centre.
     #[serde(default)]
     pub spacing: Option<f32>,
+    /// Splits the grid's cells that geometry passes through into 8, this many levels down
+    /// (0: the plain grid; at most 4): denser probes near surfaces
+    /// (`technique::path::probe_placement`).
+    #[serde(default)]
+    pub subdivide: u32,
     /// Probes at these world positions (the glTF's coordinates).
     #[serde(default)]
     pub positions: Vec<[f64; 3]>,
@@ -166,6 +175,16 @@ impl ProbeRequest {
             && !(s.is_finite() && s > 0.0)
         {
             return Err(format!("probes.spacing must be a positive distance, got {s}"));
+        }
+        if self.subdivide > probes::MAX_SUBDIVIDE {
+            return Err(format!(
+                "probes.subdivide must be in 0..={}, got {}",
+                probes::MAX_SUBDIVIDE,
+                self.subdivide
+            ));
+        }
+        if self.subdivide > 0 && self.spacing.is_none() {
+            return Err("probes.subdivide refines the grid of probes.spacing: give probes.spacing too".into());
         }
         if let Some(k) = self.positions.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
             return Err(format!("probes.positions[{k}] is not finite"));
@@ -702,7 +721,7 @@ fn bake_probes(
     observer: &mut dyn BakeObserver,
 ) -> Result<ProbeSet, EngineError> {
     let started = std::time::Instant::now();
-    let at = probes::positions_for(rays.scene(), p.spacing, &p.positions)?;
+    let at = probes::positions_for(rays.scene(), p.spacing, p.subdivide, &p.positions)?;
     let mut baker = ProbeBaker::sharing(
         rays,
         request.lighting,

@@ -174,6 +174,11 @@ pub struct ProbeSpec {
     /// Grid cell side in metres over the scene's bounds (a probe at each cell's centre).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub spacing: Option<f32>,
+    /// Splits the grid's cells that geometry passes through into 8, this many levels down
+    /// (0 to 4): denser probes near surfaces. Needs `spacing`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    #[schema(default = 0, maximum = 4)]
+    pub subdivide: u32,
     /// Probe positions in the glTF's world coordinates.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub positions: Vec<[f64; 3]>,
@@ -197,6 +202,10 @@ pub enum ProbeDevice {
     Gpu,
 }
 
+fn is_zero(v: &u32) -> bool {
+    *v == 0
+}
+
 fn default_probe_steps() -> u32 {
     16
 }
@@ -205,6 +214,7 @@ impl ProbeSpec {
     fn to_request(&self) -> crate::engine::job::ProbeRequest {
         crate::engine::job::ProbeRequest {
             spacing: self.spacing,
+            subdivide: self.subdivide,
             positions: self.positions.clone(),
             steps: self.steps,
             device: match self.device {

@@ -70,6 +70,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 mod gpu;
+pub mod probe_placement;
 pub mod probes;
 pub mod probes_gpu;
 mod sampler;

@@ -46,8 +46,13 @@
 //! single-sided surface in more than half of them is marked invalid (`valid = false`)
 //! and not baked; a probe in open space or beside a wall sees back faces in none.
 //!
-//! Limits: CPU only (the GPU megakernel bakes texels; probes are few); no adaptive
-//! density.
+//! # Where
+//! On all CPU cores, or on the GPU (`params.device`, the job's `probes.device`): the same
+//! estimator as one compute pass over the bake's GPU uploads ([`super::probes_gpu`]), with
+//! the same half accumulators; the inside test stays on the CPU either way.
+//!
+//! Limits: the GPU's random streams are not the CPU's (the two agree
+//! in the mean within noise, `tests/probes.rs`).
 
 use std::sync::Arc;
 
@@ -55,6 +60,8 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
 
+use super::probe_placement::bounds;
+pub use super::probe_placement::{MAX_SUBDIVIDE, adaptive_positions, grid_positions};
 use super::probes_gpu::ProbeGpu;
 use super::{Device, PathContext, PathParams, power_heuristic};
 use crate::engine::accumulate::LUMINANCE;
@@ -130,12 +137,23 @@ pub struct ProbeSet {
 /// The most probes a bake places.
 pub const MAX_PROBES: usize = 100_000;
 
-/// Where a job's probes go, in the scene's frame: a grid at `spacing` (if given), the
+/// Where a job's probes go, in the scene's frame: a grid at `spacing` (if given; split
+/// `subdivide` levels down where geometry passes, `probe_placement`), the
 /// `given` world positions, and the scene's probe nodes (`extras.light_probe`), at most
 /// [`MAX_PROBES`]. Errors name the job field (`probes.spacing`, `probes.positions[k]`).
-pub fn positions_for(scene: &Scene, spacing: Option<f32>, given: &[[f64; 3]]) -> Result<Vec<Vec3>, EngineError> {
+pub fn positions_for(
+    scene: &Scene,
+    spacing: Option<f32>,
+    subdivide: u32,
+    given: &[[f64; 3]],
+) -> Result<Vec<Vec3>, EngineError> {
     let mut out = match spacing {
-        Some(s) => grid_positions(scene, s, MAX_PROBES)?,
+        Some(s) => adaptive_positions(scene, s, subdivide, MAX_PROBES)?,
+        None if subdivide > 0 => {
+            return Err(EngineError::BadInput(
+                "probes.subdivide refines the grid of probes.spacing: give probes.spacing too".into(),
+            ));
+        }
         None => Vec::new(),
     };
     for (k, p) in given.iter().enumerate() {
@@ -157,36 +175,6 @@ pub fn positions_for(scene: &Scene, spacing: Option<f32>, given: &[[f64; 3]]) ->
             "probes: {} probes, at most {MAX_PROBES}",
             out.len()
         )));
-    }
-    Ok(out)
-}
-
-/// Positions of a grid of cells of side `spacing` over the scene's bounds (cell centres),
-/// at most `max` of them.
-pub fn grid_positions(scene: &Scene, spacing: f32, max: usize) -> Result<Vec<Vec3>, EngineError> {
-    if !(spacing.is_finite() && spacing > 0.0) {
-        return Err(EngineError::BadInput(format!(
-            "probes.spacing must be a positive distance, got {spacing}"
-        )));
-    }
-    let Some((lo, hi)) = bounds(scene) else {
-        return Ok(vec![Vec3::ZERO]);
-    };
-    let cells = ((hi - lo) / spacing).ceil().max(Vec3::ONE);
-    let count = cells.x as f64 * cells.y as f64 * cells.z as f64;
-    if count > max as f64 {
-        return Err(EngineError::BadInput(format!(
-            "probes.spacing {spacing} makes {count} probes over the scene's bounds; at most {max}"
-        )));
-    }
-    let step = (hi - lo) / cells;
-    let mut out = Vec::with_capacity(count as usize);
-    for k in 0..cells.z as u32 {
-        for j in 0..cells.y as u32 {
-            for i in 0..cells.x as u32 {
-                out.push(lo + step * (Vec3::new(i as f32, j as f32, k as f32) + 0.5));
-            }
-        }
     }
     Ok(out)
 }
@@ -520,13 +508,6 @@ impl<'a> ProbeBaker<'a> {
             probes,
         })
     }
-}
-
-/// The scene's bounding box, `None` without triangles.
-fn bounds(scene: &Scene) -> Option<(Vec3, Vec3)> {
-    let mut points = scene.triangles.iter().flat_map(|t| t.p);
-    let first = points.next()?;
-    Some(points.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
 }
 
 /// True when `x` sees the back of a single-sided surface (the rule of
