@@ -614,6 +614,32 @@ async fn probes_are_an_artifact_of_the_job() {
         ),
     )
     .await;
+    // Adaptive placement refines a grid: without one, or too deep, it is refused.
+    for (probes, detail) in [
+        (
+            json!({"positions": [[0.0, 1.0, 0.0]], "subdivide": 2}),
+            "probes.subdivide refines the grid of probes.spacing: give probes.spacing too",
+        ),
+        (
+            json!({"spacing": 0.7, "subdivide": 9}),
+            "probes.subdivide must be in 0..=4, got 9",
+        ),
+    ] {
+        expect_problem(
+            h.post(format!("{}/v1/jobs", s.url))
+                .header("content-type", "application/json")
+                .body(json!({"scene": scene["id"], "probes": probes}).to_string()),
+            422,
+            problem(
+                422,
+                "Unprocessable Entity",
+                "invalid-field",
+                detail,
+                Some("probes.subdivide"),
+            ),
+        )
+        .await;
+    }
     s.running.shutdown().await;
 }
 
