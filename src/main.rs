@@ -327,6 +327,9 @@ struct BenchArgs {
     /// Where converged references are cached.
     #[arg(long, default_value = "bench-results/cache")]
     cache: PathBuf,
+    /// Leave out the light probes' measurements (three closed-form scenes, the budget each).
+    #[arg(long)]
+    no_probes: bool,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -1436,6 +1439,7 @@ fn bench(args: BenchArgs) -> Result<(), Failure> {
         reference_budget: std::time::Duration::from_secs_f64(reference_seconds),
         out_dir: args.out.clone(),
         cache_dir: args.cache,
+        probes: !args.no_probes,
     };
     let samples = lightmapd::bench::run(&cfg, &mut |line| eprintln!("bench: {line}")).map_err(engine_failure)?;
     eprintln!(

@@ -18,6 +18,7 @@ fn analytic_only() -> BenchConfig {
         reference_budget: Duration::ZERO,
         out_dir: std::env::temp_dir(),
         cache_dir: std::env::temp_dir(),
+        probes: false,
     }
 }
 

@@ -86,8 +86,35 @@ fn a_short_run_reports_exact_path_and_obscurances_bias() {
         reference_budget: Duration::from_secs_f64(1.0), // closed forms: never baked
         out_dir: out.clone(),
         cache_dir: out.join("cache"),
+        probes: true,
     };
     let samples = run(&cfg, &mut |l| eprintln!("{l}")).expect("the bench runs");
+    // Light probes (issue 26 point 5): each closed-form scene measured, its last true error
+    // small after a second, and the reported error within a factor 2 of it (the RMS over 64
+    // probes of their half-difference estimates).
+    let csv = std::fs::read_to_string(out.join("probes.csv")).expect("probes.csv");
+    for scene in ["furnace", "open sky", "0.2 m lamp"] {
+        let last = csv
+            .lines()
+            .filter(|l| l.starts_with(scene))
+            .last()
+            .unwrap_or_else(|| panic!("probes.csv has no {scene} row:\n{csv}"));
+        let f: Vec<&str> = last.split(',').collect();
+        let (probes, true_error, estimated): (usize, f64, f64) =
+            (f[2].parse().unwrap(), f[5].parse().unwrap(), f[6].parse().unwrap());
+        eprintln!("probes, {scene}: {probes} probes, true {true_error}, estimated {estimated}");
+        assert_eq!(probes, 64, "{last}");
+        assert!(true_error < 0.05, "{scene}: true error {true_error} after a second");
+        assert!(
+            (0.5..2.0).contains(&(estimated / true_error)),
+            "{scene}: reported {estimated} against true {true_error}"
+        );
+    }
+    assert!(
+        std::fs::read_to_string(out.join("summary.md"))
+            .unwrap()
+            .contains("Light probes")
+    );
     let of = |scene: &str, tech: &str| -> Vec<_> {
         samples
             .iter()

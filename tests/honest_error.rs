@@ -88,6 +88,7 @@ fn measure(
                 reference_budget: Duration::from_secs_f64(budget),
                 out_dir: PathBuf::new(),
                 cache_dir: PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("honest-error-references"),
+                probes: false,
             };
             let reference = bench::reference(&s, &prepared, &cfg).expect("the path reference");
             // The bench's atlas is the unvalidated one (texels inside geometry kept); the

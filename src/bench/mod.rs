@@ -12,7 +12,8 @@
 //! noise and its bias measured at control texels (`engine::control`), whose `path` steps
 //! run inside the clock as in a bake. Outputs: `results.csv`, one log-log SVG plot per scene (written by hand:
 //! a few polylines need no plotting crate), and `summary.md` with the time each
-//! technique needs to reach 10 %, 5 %, 2 % and 1 %.
+//! technique needs to reach 10 %, 5 %, 2 % and 1 %. Light probes ([`probes`]): three
+//! closed-form scenes, the same time points, `probes.csv` and a table in `summary.md`.
 //!
 //! Scenes: the seven small ones of `library::benchmark_scenes` by default (five with a
 //! closed form); the real-size ones of `library::real_size_scenes` (three bundled
@@ -41,6 +42,8 @@ use crate::engine::scene::{Scene, import_slice};
 
 use crate::engine::technique::{self, BakeInputs, EngineError};
 
+pub mod probes;
+
 #[derive(Clone, Debug)]
 pub struct BenchConfig {
     /// Scene names to run ([`select_scenes`]: the small scenes when empty, `real` for every
@@ -53,6 +56,8 @@ pub struct BenchConfig {
     pub reference_budget: Duration,
     pub out_dir: PathBuf,
     pub cache_dir: PathBuf,
+    /// Also measure light probes (`probes`): three closed-form scenes, `budget` each.
+    pub probes: bool,
 }
 
 #[derive(Clone, Debug)]
@@ -335,6 +340,7 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
     std::fs::create_dir_all(&cfg.out_dir).map_err(io)?;
     let mut all_samples = Vec::new();
     let mut refs = Vec::new();
+    let mut probe_count = 0;
     for lib in &chosen {
         let p = prepare(lib)?;
         log(&format!(
@@ -377,8 +383,74 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
         );
     }
     std::fs::write(cfg.out_dir.join("results.csv"), csv).map_err(io)?;
-    std::fs::write(cfg.out_dir.join("summary.md"), summary_md(&all_samples, &refs, cfg)).map_err(io)?;
+    let mut md = summary_md(&all_samples, &refs, cfg);
+    if cfg.probes {
+        let mut probe_samples = Vec::new();
+        for case in probes::probe_cases(PROBE_SIDE)? {
+            log(&format!(
+                "light probes, {}: {:.0} s",
+                case.name,
+                cfg.budget.as_secs_f64()
+            ));
+            probe_samples.extend(probes::measure(&case, cfg.budget)?);
+        }
+        let mut csv = String::from("scene,device,probes,seconds,steps,true_error,estimated_error\n");
+        for s in &probe_samples {
+            let est = s.estimated_error.map(|e| format!("{e:.6}")).unwrap_or_default();
+            let _ = writeln!(
+                csv,
+                "{},{},{},{:.4},{},{:.6},{}",
+                s.scene, s.device, s.probes, s.seconds, s.steps, s.true_error, est
+            );
+        }
+        std::fs::write(cfg.out_dir.join("probes.csv"), csv).map_err(io)?;
+        md.push_str(&probes_md(&probe_samples));
+        probe_count = probe_samples.len();
+    }
+    std::fs::write(cfg.out_dir.join("summary.md"), md).map_err(io)?;
+    if cfg.probes {
+        log(&format!("light probes: {probe_count} measurements in probes.csv"));
+    }
     Ok(all_samples)
+}
+
+/// Probes a side of each probe scene's grid: 4³ = 64 probes.
+const PROBE_SIDE: usize = 4;
+
+/// The probes' table in summary.md: time to each true error, and the last measurement.
+fn probes_md(samples: &[probes::ProbeSample]) -> String {
+    let mut md = String::from(
+        "\nLight probes (closed-form c00, 64 samples a probe a step; `probes.csv`): time to reach a true relative error of L0.\n\n\
+         | scene | device | probes | 10 % | 5 % | 2 % | 1 % | final error (estimated) |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n",
+    );
+    let mut names: Vec<&str> = samples.iter().map(|s| s.scene.as_str()).collect();
+    names.dedup();
+    for name in names {
+        let run: Vec<&probes::ProbeSample> = samples.iter().filter(|s| s.scene == name).collect();
+        let reach = |target: f64| {
+            run.iter()
+                .find(|s| s.true_error <= target)
+                .map(|s| format!("{:.3} s", s.seconds))
+                .unwrap_or_else(|| "—".into())
+        };
+        let Some(last) = run.last() else { continue };
+        let est = last
+            .estimated_error
+            .map(|e| format!("{:.2} %", e * 100.0))
+            .unwrap_or_else(|| "n/a".into());
+        let _ = writeln!(
+            md,
+            "| {name} | {} | {} | {} | {} | {} | {} | {:.2} % ({est}) |",
+            last.device,
+            last.probes,
+            reach(0.10),
+            reach(0.05),
+            reach(0.02),
+            reach(0.01),
+            last.true_error * 100.0
+        );
+    }
+    md
 }
 
 fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cfg: &BenchConfig) -> String {
