@@ -245,6 +245,24 @@ fn light_weight(mis: bool, pdf_light: f32, cos_n: f32) -> f32 {
     return 1.0;
 }
 
+// The emitter triangle's slot that uniform number `u` picks from the emitter table's CDF
+// (EmitterTable::emitter_cdf's partition_point(cdf <= u): the first entry whose cdf exceeds
+// u), for a scene with at least one emitter (scene_u.tables2.x > 0).
+fn emitter_pick(u: f32) -> u32 {
+    let count = scene_u.tables2.x;
+    var lo = 0u;
+    var hi = count;
+    while lo < hi {
+        let mid = (lo + hi) / 2u;
+        if tables[scene_u.tables.w + mid].y <= u {
+            lo = mid + 1u;
+        } else {
+            hi = mid;
+        }
+    }
+    return bitcast<u32>(tables[scene_u.tables.w + min(lo, count - 1u)].x);
+}
+
 fn next_event(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, rng: ptr<function, Rng>) -> Light {
     // The numbers drawn in the order, and under the conditions, that the estimate below
     // uses them: the sun's two, then the emitter pick and the point on it.
@@ -318,20 +336,7 @@ fn next_event_with(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, sun_u: 
     }
     let count = scene_u.tables2.x;
     if count > 0u && (sources & LIGHTS_EMITTERS) != 0u {
-        let u = emitter_u.x;
-        // partition_point(cdf <= u): the first entry whose cdf exceeds u.
-        var lo = 0u;
-        var hi = count;
-        while lo < hi {
-            let mid = (lo + hi) / 2u;
-            if tables[scene_u.tables.w + mid].y <= u {
-                lo = mid + 1u;
-            } else {
-                hi = mid;
-            }
-        }
-        let k = min(lo, count - 1u);
-        let slot = bitcast<u32>(tables[scene_u.tables.w + k].x);
+        let slot = emitter_pick(emitter_u.x);
         var b1 = emitter_u.y;
         var b2 = emitter_u.z;
         if b1 + b2 > 1.0 {

@@ -135,19 +135,7 @@ fn probe_sample(x: vec3<f32>, rng: ptr<function, Rng>, sum: ptr<function, array<
     // One emitter sample, weighted against the uniform direction (power heuristic).
     let count = scene_u.tables2.x;
     if count > 0u {
-        let u = rng_next(rng);
-        // partition_point(cdf <= u): the first entry whose cdf exceeds u.
-        var lo = 0u;
-        var hi = count;
-        while lo < hi {
-            let mid = (lo + hi) / 2u;
-            if tables[scene_u.tables.w + mid].y <= u {
-                lo = mid + 1u;
-            } else {
-                hi = mid;
-            }
-        }
-        let slot = bitcast<u32>(tables[scene_u.tables.w + min(lo, count - 1u)].x);
+        let slot = emitter_pick(rng_next(rng));
         var b1 = rng_next(rng);
         var b2 = rng_next(rng);
         if b1 + b2 > 1.0 {

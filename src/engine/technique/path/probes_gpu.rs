@@ -32,11 +32,11 @@ use super::PathParams;
 use super::gpu::{PathUniform, sobol_vectors};
 use super::probes::SH9;
 use super::shaders::PROBES;
+use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::scene_rays::SceneRays;
 use crate::engine::gpu::texel_pass::{PassSpec, TexelRayPass};
 use crate::engine::gpu::texels::GpuTexelGeom;
-use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::scene::Lighting;
 use crate::engine::technique::api::{EngineError, gpu_error};
 
@@ -64,18 +64,6 @@ impl ProbeGpu {
         seed: u64,
         eps: f32,
     ) -> Result<Self, EngineError> {
-        Self::build(ctx, rays, lighting, points, params, seed, eps).map_err(gpu_error)
-    }
-
-    fn build(
-        ctx: Arc<GpuContext>,
-        rays: &SceneRays,
-        lighting: &Lighting,
-        points: &[(u32, Vec3)],
-        params: &PathParams,
-        seed: u64,
-        eps: f32,
-    ) -> Result<Self, GpuError> {
         let n = points.len();
         let mut geom: Vec<GpuTexelGeom> = points
             .iter()
@@ -107,7 +95,7 @@ impl ProbeGpu {
             tables: &[("sobol direction numbers", &vectors)],
         };
         let lanes = if n == 0 { 0 } else { PROBE_LANES };
-        let pass = TexelRayPass::over_points(ctx, rays, &geom, lanes, lighting, spec, uniform)?;
+        let pass = TexelRayPass::over_points(ctx, rays, &geom, lanes, lighting, spec, uniform).map_err(gpu_error)?;
         tracing::info!(adapter = %pass.ctx().info.name, probes = n, "light probes on the GPU");
         Ok(ProbeGpu {
             pass,
