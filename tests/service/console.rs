@@ -813,9 +813,10 @@ fn the_console_bakes_in_a_real_browser() {
     std::fs::write(shots.join("6-cancelled.png"), b.screenshot(None)).unwrap();
 
     // 5. A job with light probes (issue 26), submitted through the API: its page draws the
-    // 27 grid probes and the given one as spheres in the 3D view.
+    // valid probes as spheres in the 3D view. The 0.7 m grid is split once where geometry
+    // passes (`subdivide`: 209 probes, 24 of them inside the boxes) plus the given one.
     let probe_job = b.eval(
-        "fetch('/v1/jobs', {method: 'POST', headers: {'content-type': 'application/json'}, body: JSON.stringify({scene: window.lightmapdConsole.scenes[0].id, resolution: 16, stop: {steps: 4}, denoise: 'none', probes: {spacing: 0.7, positions: [[0, 1, 0]], steps: 2}})}).then(r => r.json()).then(j => j.id)",
+        "fetch('/v1/jobs', {method: 'POST', headers: {'content-type': 'application/json'}, body: JSON.stringify({scene: window.lightmapdConsole.scenes[0].id, resolution: 16, stop: {steps: 4}, denoise: 'none', probes: {spacing: 0.7, subdivide: 1, positions: [[0, 1, 0]], steps: 2}})}).then(r => r.json()).then(j => j.id)",
     );
     let probe_job = probe_job.as_str().expect("the probe job's id").to_string();
     // A fresh load: the console reads the job from the address when it starts.
@@ -823,14 +824,14 @@ fn the_console_bakes_in_a_real_browser() {
     b.call("Page.navigate", json!({"url": format!("{url}/#job={probe_job}")}));
     let shown = b.wait(
         "the probes in the 3D view",
-        "window.lightmapdConsole.viewer?.probes?.length === 28 && document.getElementById('v-note').textContent",
+        "window.lightmapdConsole.viewer?.probes?.length === 186 && document.getElementById('v-note').textContent",
         Duration::from_secs(60),
     );
     assert!(
         shown
             .as_str()
             .unwrap()
-            .starts_with("28 light probes shown (of 28; 0 inside geometry)"),
+            .starts_with("186 light probes shown (of 210; 24 inside geometry)"),
         "{shown}"
     );
     assert!(
@@ -843,7 +844,7 @@ fn the_console_bakes_in_a_real_browser() {
     assert!(
         line.as_str()
             .unwrap()
-            .ends_with("light probes: step 2 of 2 (28 probes)"),
+            .ends_with("light probes: step 2 of 2 (210 probes)"),
         "{line}"
     );
     b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
