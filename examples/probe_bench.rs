@@ -1,6 +1,6 @@
 //! Error against time for light probes (issue 26 point 5), the figures of docs/probes.md.
 //!
-//! `cargo run --release --example probe_bench [MAX_STEPS] [cpu|gpu] [SIDE]`: bakes a grid of
+//! `cargo run --release --example probe_bench [MAX_STEPS] [cpu|gpu] [SIDE] [sobol|independent]`: bakes a grid of
 //! SIDE³ probes (default 4) with `path`'s probe estimator (64 samples a probe a step, on all
 //! cores or on the GPU, lavapipe counting) in scenes whose probe
 //! coefficients have closed forms, and prints after 1, 2, 4, … MAX_STEPS (default 256)
@@ -20,13 +20,14 @@ fn main() {
     let max_steps: u64 = arg(1).and_then(|s| s.parse().ok()).unwrap_or(256);
     let device = arg(2).unwrap_or_else(|| "cpu".into());
     let side: usize = arg(3).and_then(|s| s.parse().ok()).unwrap_or(4);
+    let sampling = arg(4).unwrap_or_else(|| "sobol".into());
     println!(
         "| scene | device | probes | steps | samples a probe | seconds | reported error | true error (L0, RMS) |\n| --- | --- | --- | --- | --- | --- | --- | --- |"
     );
     for case in probe_cases(side).expect("probe scenes") {
         // The job's route: the baker shares the bake's rays (and, on the GPU, its uploads).
         let rays = SceneRays::new(Arc::new(case.scene.clone()));
-        let mut baker = baker(&case, &rays, &device).expect("probe baker");
+        let mut baker = baker(&case, &rays, &device, &sampling).expect("probe baker");
         let adapter = baker.device();
         let t = Instant::now();
         let mut next = 1;

@@ -89,25 +89,42 @@ fn a_short_run_reports_exact_path_and_obscurances_bias() {
         probes: true,
     };
     let samples = run(&cfg, &mut |l| eprintln!("{l}")).expect("the bench runs");
-    // Light probes (issue 26 point 5): each closed-form scene measured, its last true error
-    // small after a second, and the reported error within a factor 2 of it (the RMS over 64
-    // probes of their half-difference estimates).
+    // Light probes (issue 26 point 5): each closed-form scene measured with both samplings;
+    // with independent samples the last true error is small after a second and the reported
+    // error within a factor 2 of it (the RMS over 64 probes of their half-difference
+    // estimates); with Sobol points the true error is no larger, and the reported one
+    // within a factor 2 too unless both are below 0.01 % and 0.1 % (the open sky is exact
+    // under Sobol, the module doc of bench::probes; the lamp reads 0.003 %, its estimate
+    // 0.005 %, where f32 rounding of the running means is of the same order).
     let csv = std::fs::read_to_string(out.join("probes.csv")).expect("probes.csv");
-    for scene in ["furnace", "open sky", "0.2 m lamp"] {
-        let last = csv
+    let last = |scene: &str, sampling: &str| -> (usize, f64, f64) {
+        let line = csv
             .lines()
-            .filter(|l| l.starts_with(scene))
+            .filter(|l| l.starts_with(scene) && l.split(',').nth(2) == Some(sampling))
             .last()
-            .unwrap_or_else(|| panic!("probes.csv has no {scene} row:\n{csv}"));
-        let f: Vec<&str> = last.split(',').collect();
-        let (probes, true_error, estimated): (usize, f64, f64) =
-            (f[2].parse().unwrap(), f[5].parse().unwrap(), f[6].parse().unwrap());
-        eprintln!("probes, {scene}: {probes} probes, true {true_error}, estimated {estimated}");
-        assert_eq!(probes, 64, "{last}");
-        assert!(true_error < 0.05, "{scene}: true error {true_error} after a second");
+            .unwrap_or_else(|| panic!("probes.csv has no {scene} {sampling} row:\n{csv}"));
+        let f: Vec<&str> = line.split(',').collect();
+        (f[3].parse().unwrap(), f[6].parse().unwrap(), f[7].parse().unwrap())
+    };
+    for scene in ["furnace", "open sky", "0.2 m lamp"] {
+        let (probes, independent, estimated) = last(scene, "independent");
+        let (_, sobol, sobol_estimated) = last(scene, "sobol");
+        eprintln!(
+            "probes, {scene}: {probes} probes; independent: true {independent}, estimated {estimated}; sobol: true {sobol}, estimated {sobol_estimated}"
+        );
+        assert_eq!(probes, 64);
+        assert!(independent < 0.05, "{scene}: true error {independent} after a second");
         assert!(
-            (0.5..2.0).contains(&(estimated / true_error)),
-            "{scene}: reported {estimated} against true {true_error}"
+            (0.5..2.0).contains(&(estimated / independent)),
+            "{scene}: reported {estimated} against true {independent}"
+        );
+        assert!(
+            sobol <= independent,
+            "{scene}: sobol {sobol} against independent {independent}"
+        );
+        assert!(
+            (sobol < 1e-4 && sobol_estimated < 1e-3) || (0.5..2.0).contains(&(sobol_estimated / sobol)),
+            "{scene}: sobol reported {sobol_estimated} against true {sobol}"
         );
     }
     assert!(

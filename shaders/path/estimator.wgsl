@@ -142,6 +142,9 @@ struct SobolPoint {
     on: bool,
     index: u32,
     scramble: u32,
+    // The vertex whose sets the path's first vertex takes: 0 for a texel; 1 for a light
+    // probe, which takes vertex 0's sets itself (path/probes.wgsl), as the CPU's `Deeper`.
+    first: u32,
 }
 
 fn sobol_point(pixel: u32, sample: u32) -> SobolPoint {
@@ -149,7 +152,7 @@ fn sobol_point(pixel: u32, sample: u32) -> SobolPoint {
     let point = (step >> 1u) * pu.counts.y + sample;
     let base = pcg(pu.keys.x ^ pcg(pu.keys.y));
     let scramble = pcg(base ^ pcg(pixel ^ pcg((step & 1u) ^ pcg((point >> 16u) ^ 0x5ab01c0du))));
-    return SobolPoint((pu.keys.w & PATH_SOBOL) != 0u, point & 0xffffu, scramble);
+    return SobolPoint((pu.keys.w & PATH_SOBOL) != 0u, point & 0xffffu, scramble, 0u);
 }
 
 struct PathSample {
@@ -177,13 +180,14 @@ fn radiance(x0: vec3<f32>, n0: vec3<f32>, ng0: vec3<f32>, rng: ptr<function, Rng
     var ended = false;
     loop {
         // This vertex's two Sobol sets (the header), or the stream's numbers.
-        let stratified = sp.on && bounce < SOBOL_VERTICES;
+        let vertex = bounce + sp.first;
+        let stratified = sp.on && vertex < SOBOL_VERTICES;
         var a = vec4<f32>(0.0);
         var b = vec4<f32>(0.0);
         var nee: Light;
         if stratified {
-            a = sobol_4d(sp.index, 2u * bounce, sp.scramble);
-            b = sobol_4d(sp.index, 2u * bounce + 1u, sp.scramble);
+            a = sobol_4d(sp.index, 2u * vertex, sp.scramble);
+            b = sobol_4d(sp.index, 2u * vertex + 1u, sp.scramble);
             nee = next_event_with(x, n, ng, true, b.yz, vec3<f32>(b.x, a.z, a.w));
         } else {
             nee = next_event(x, n, ng, true, rng);

@@ -16,10 +16,13 @@
 // step's half accumulator: per probe and half, 9 vec4 (RGB, coefficient order of sh9);
 // w of coefficient 0 marks samples cut from outside, which the host refuses.
 //
-// Randomness: the PCG stream of path/estimator.wgsl (`rng_for`) keyed by the probe's index
-// in the job's list (position.w's bits), the step and the sample; independent samples, as
-// the CPU's probes (`sampling` applies to texels only; pu.keys.w has no PATH_SOBOL). GPU
-// and CPU probes agree in the mean, not sample for sample. Precision: world space f32; a
+// Randomness, as the CPU's probes: with `sampling: sobol` (PATH_SOBOL, the default) each
+// probe and half has its own Owen-scrambled Sobol sequence (path/estimator.wgsl's
+// `sobol_point`, keyed by the probe's index in the job's list, position.w's bits); the
+// probe's own direction, sun and emitter samples take vertex 0's two sets and the path
+// from a hit goes on from vertex 1. With `independent`, the PCG stream (`rng_for`, the
+// same key, the step and the sample). GPU and CPU probes agree in the mean, not sample for
+// sample (the scrambles and streams are hashed differently). Precision: world space f32; a
 // probe's sum over 64 lanes and its mean over the step's samples in f32 (relative rounding
 // 1e-7 per addition, far below a step's noise).
 
@@ -69,11 +72,23 @@ fn add_sh(sum: ptr<function, array<vec3<f32>, 9>>, l: vec3<f32>, w: vec3<f32>, w
 
 // One sample's SH estimate at `x` into `sum`; true when a ray or path was cut from
 // outside (the traversal's overflow or the adapter's loop budget).
-fn probe_sample(x: vec3<f32>, rng: ptr<function, Rng>, sum: ptr<function, array<vec3<f32>, 9>>) -> bool {
+fn probe_sample(x: vec3<f32>, rng: ptr<function, Rng>, sp: SobolPoint, sum: ptr<function, array<vec3<f32>, 9>>) -> bool {
     var cut = false;
     let eps = pu.f.y;
+    // The probe's own numbers: vertex 0's two Sobol sets, in the texel path's layout
+    // (direction, direction, emitter point, emitter point) and (emitter pick, sun, sun, -),
+    // or the stream's; the path from a hit goes on from vertex 1 (`first`).
+    var a = vec4<f32>(0.0);
+    var b = vec4<f32>(0.0);
+    if sp.on {
+        a = sobol_4d(sp.index, 0u, sp.scramble);
+        b = sobol_4d(sp.index, 1u, sp.scramble);
+    } else {
+        a = vec4<f32>(rng_next(rng), rng_next(rng), rng_next(rng), rng_next(rng));
+        b = vec4<f32>(rng_next(rng), rng_next(rng), rng_next(rng), 0.0);
+    }
     // A uniform direction: sky, or a surface's emitted + reflected radiance.
-    let w = uniform_sphere(rng_next(rng), rng_next(rng));
+    let w = uniform_sphere(a.x, a.y);
     let hit = bvh_closest(x, w, RAY_FAR);
     if hit.overflow {
         cut = true;
@@ -91,7 +106,7 @@ fn probe_sample(x: vec3<f32>, rng: ptr<function, Rng>, sum: ptr<function, array<
             let shading = tri_shading_normal(slot, bary) * side;
             let n = select(ng, shading, dot(shading, ng) > 0.0);
             let p = tri_point(slot, inset(bary)) + ng * eps;
-            let r = radiance(p, n, ng, rng, SobolPoint(false, 0u, 0u));
+            let r = radiance(p, n, ng, rng, SobolPoint(sp.on, sp.index, sp.scramble, 1u));
             cut = cut || r.cut;
             let emitted = emission_at(slot, bary);
             // The emitter sample below could have drawn this direction too.
@@ -127,7 +142,7 @@ fn probe_sample(x: vec3<f32>, rng: ptr<function, Rng>, sum: ptr<function, array<
         }
     }
     if scene_u.sun.w > 0.0 {
-        let d = cone_sample(scene_u.sun_axis.xyz, scene_u.sun_axis.w, rng_next(rng), rng_next(rng));
+        let d = cone_sample(scene_u.sun_axis.xyz, scene_u.sun_axis.w, b.y, b.z);
         if bvh_unoccluded(x, d, RAY_FAR) {
             add_sh(sum, scene_u.sun.xyz, d, scene_u.sun.w);
         }
@@ -135,9 +150,9 @@ fn probe_sample(x: vec3<f32>, rng: ptr<function, Rng>, sum: ptr<function, array<
     // One emitter sample, weighted against the uniform direction (power heuristic).
     let count = scene_u.tables2.x;
     if count > 0u {
-        let slot = emitter_pick(rng_next(rng));
-        var b1 = rng_next(rng);
-        var b2 = rng_next(rng);
+        let slot = emitter_pick(b.x);
+        var b1 = a.z;
+        var b2 = a.w;
         if b1 + b2 > 1.0 {
             b1 = 1.0 - b1;
             b2 = 1.0 - b2;
@@ -179,7 +194,7 @@ fn probe(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
         var ran = 0u;
         for (var s = lid; s < spp; s += PROBE_LANES) {
             var rng = rng_for(key, s);
-            if probe_sample(t.position.xyz, &rng, &sum) {
+            if probe_sample(t.position.xyz, &rng, sobol_point(key, s), &sum) {
                 cut += 1.0;
             }
             ran += 1u;

@@ -56,7 +56,8 @@ pub struct BenchConfig {
     pub reference_budget: Duration,
     pub out_dir: PathBuf,
     pub cache_dir: PathBuf,
-    /// Also measure light probes (`probes`): three closed-form scenes, `budget` each.
+    /// Also measure light probes (`probes`): three closed-form scenes, each with both
+    /// samplings, `budget` each.
     pub probes: bool,
 }
 
@@ -387,20 +388,22 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
     if cfg.probes {
         let mut probe_samples = Vec::new();
         for case in probes::probe_cases(PROBE_SIDE)? {
-            log(&format!(
-                "light probes, {}: {:.0} s",
-                case.name,
-                cfg.budget.as_secs_f64()
-            ));
-            probe_samples.extend(probes::measure(&case, cfg.budget)?);
+            for sampling in ["sobol", "independent"] {
+                log(&format!(
+                    "light probes, {}, {sampling}: {:.0} s",
+                    case.name,
+                    cfg.budget.as_secs_f64()
+                ));
+                probe_samples.extend(probes::measure(&case, cfg.budget, sampling)?);
+            }
         }
-        let mut csv = String::from("scene,device,probes,seconds,steps,true_error,estimated_error\n");
+        let mut csv = String::from("scene,device,sampling,probes,seconds,steps,true_error,estimated_error\n");
         for s in &probe_samples {
             let est = s.estimated_error.map(|e| format!("{e:.6}")).unwrap_or_default();
             let _ = writeln!(
                 csv,
-                "{},{},{},{:.4},{},{:.6},{}",
-                s.scene, s.device, s.probes, s.seconds, s.steps, s.true_error, est
+                "{},{},{},{},{:.4},{},{:.6},{}",
+                s.scene, s.device, s.sampling, s.probes, s.seconds, s.steps, s.true_error, est
             );
         }
         std::fs::write(cfg.out_dir.join("probes.csv"), csv).map_err(io)?;
@@ -421,12 +424,18 @@ const PROBE_SIDE: usize = 4;
 fn probes_md(samples: &[probes::ProbeSample]) -> String {
     let mut md = String::from(
         "\nLight probes (closed-form c00, 64 samples a probe a step; `probes.csv`): time to reach a true relative error of L0.\n\n\
-         | scene | device | probes | 10 % | 5 % | 2 % | 1 % | final error (estimated) |\n| --- | --- | --- | --- | --- | --- | --- | --- |\n",
+         | scene | device | sampling | probes | 10 % | 5 % | 2 % | 1 % | final error (estimated) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n",
     );
-    let mut names: Vec<&str> = samples.iter().map(|s| s.scene.as_str()).collect();
-    names.dedup();
-    for name in names {
-        let run: Vec<&probes::ProbeSample> = samples.iter().filter(|s| s.scene == name).collect();
+    let mut runs: Vec<(&str, &str)> = samples
+        .iter()
+        .map(|s| (s.scene.as_str(), s.sampling.as_str()))
+        .collect();
+    runs.dedup();
+    for (name, sampling) in runs {
+        let run: Vec<&probes::ProbeSample> = samples
+            .iter()
+            .filter(|s| s.scene == name && s.sampling == sampling)
+            .collect();
         let reach = |target: f64| {
             run.iter()
                 .find(|s| s.true_error <= target)
@@ -440,7 +449,7 @@ fn probes_md(samples: &[probes::ProbeSample]) -> String {
             .unwrap_or_else(|| "n/a".into());
         let _ = writeln!(
             md,
-            "| {name} | {} | {} | {} | {} | {} | {} | {:.2} % ({est}) |",
+            "| {name} | {} | {sampling} | {} | {} | {} | {} | {} | {:.2} % ({est}) |",
             last.device,
             last.probes,
             reach(0.10),

@@ -10,6 +10,11 @@
 //!   c00 = Le Y00 Ω at each probe, Ω the lamp's solid angle from it (emitter sampling,
 //!   MIS with the uniform directions).
 //!
+//! Each with both samplings: `sobol` (the default) and `independent`. Under the open sky
+//! `sobol` is exact: the sky is seen where the uniform direction's y = r sin 2πu2 > 0, a
+//! function of one coordinate that every block of a half's stratified points splits
+//! exactly in two; the lamp, sampled on its square by stratified points, comes close.
+//!
 //! The true error is the RMS over the valid probes of |c00 − exact| / exact (luminance);
 //! the reported one is the set's `error` (the L0 standard error from the two halves). The
 //! probes are a SIDE³ grid in each scene (`examples/probe_bench.rs` prints the same cases
@@ -44,6 +49,8 @@ pub struct ProbeSample {
     pub scene: String,
     /// Where the probes baked: `cpu` or the adapter's name.
     pub device: String,
+    /// `sobol` or `independent` (`path`'s `sampling`).
+    pub sampling: String,
     pub probes: usize,
     pub seconds: f64,
     pub steps: u64,
@@ -152,23 +159,29 @@ pub fn true_error(case: &ProbeCase, set: &ProbeSet) -> (f64, usize) {
     ((sq / n.max(1) as f64).sqrt(), n)
 }
 
-/// A probe baker for `case` on `device` (`auto`, `cpu` or `gpu`), sharing `rays`.
-pub fn baker<'a>(case: &ProbeCase, rays: &'a SceneRays, device: &str) -> Result<ProbeBaker<'a>, EngineError> {
+/// A probe baker for `case` on `device` (`auto`, `cpu` or `gpu`) with `sampling` (`sobol`
+/// or `independent`), sharing `rays`.
+pub fn baker<'a>(
+    case: &ProbeCase,
+    rays: &'a SceneRays,
+    device: &str,
+    sampling: &str,
+) -> Result<ProbeBaker<'a>, EngineError> {
     let positions: Vec<Vec3> = case.probes.iter().map(|(p, _)| *p).collect();
     ProbeBaker::sharing(
         rays,
         case.lighting,
         positions,
-        &json!({"samples_per_step": 64, "device": device}),
+        &json!({"samples_per_step": 64, "device": device, "sampling": sampling}),
         7,
     )
 }
 
-/// Bakes `case`'s probes on the `auto` device for `budget`, measuring after 2 steps and
-/// then at budget/128, budget/64, …, budget (the texels' time points).
-pub fn measure(case: &ProbeCase, budget: Duration) -> Result<Vec<ProbeSample>, EngineError> {
+/// Bakes `case`'s probes on the `auto` device with `sampling` for `budget`, measuring
+/// after 2 steps and then at budget/128, budget/64, …, budget (the texels' time points).
+pub fn measure(case: &ProbeCase, budget: Duration, sampling: &str) -> Result<Vec<ProbeSample>, EngineError> {
     let rays = SceneRays::new(std::sync::Arc::new(case.scene.clone()));
-    let mut baker = baker(case, &rays, "auto")?;
+    let mut baker = baker(case, &rays, "auto", sampling)?;
     let device = baker.device();
     let mut samples = Vec::new();
     let start = Instant::now();
@@ -185,6 +198,7 @@ pub fn measure(case: &ProbeCase, budget: Duration) -> Result<Vec<ProbeSample>, E
             samples.push(ProbeSample {
                 scene: case.name.into(),
                 device: device.clone(),
+                sampling: sampling.into(),
                 probes,
                 seconds: start.elapsed().as_secs_f64(),
                 steps,

@@ -54,7 +54,7 @@ pub fn resolve(device: Device) -> Result<Option<Arc<GpuContext>>, EngineError> {
 
 const PATH_DIRECT: u32 = 1;
 const PATH_MOMENTS: u32 = 2;
-const PATH_SOBOL: u32 = 4;
+pub(super) const PATH_SOBOL: u32 = 4;
 
 /// Direction numbers per set.
 const SOBOL_BITS: u32 = 16;

@@ -73,7 +73,7 @@ mod gpu;
 pub mod probe_placement;
 pub mod probes;
 pub mod probes_gpu;
-mod sampler;
+pub(crate) mod sampler;
 
 use super::api::{
     AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params,

@@ -16,8 +16,10 @@
 //! samples of a closed room's long paths would meet llvmpipe's loop budget (65535 loop
 //! iterations an invocation, `shaders/path/estimator.wgsl`).
 //!
-//! The samples are independent (the PCG stream of `estimator.wgsl`), as on the CPU; the
-//! GPU's streams are not the CPU's, so the two agree in the mean within noise, not bit for
+//! The samples are placed as on the CPU (`params.sampling`: Owen-scrambled Sobol points per
+//! probe and half by default, the probe's own numbers from vertex 0's sets and the path
+//! from a hit from vertex 1's; or independent PCG streams); the GPU's scrambles and
+//! streams are hashed differently, so the two agree in the mean within noise, not bit for
 //! bit (`tests/probes.rs` runs the closed forms on both devices).
 //!
 //! Limits: at most [`super::probes::MAX_PROBES`] probes (6.4 M invocations a dispatch);
@@ -29,7 +31,7 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use super::PathParams;
-use super::gpu::{PathUniform, sobol_vectors};
+use super::gpu::{PATH_SOBOL, PathUniform, sobol_vectors};
 use super::probes::SH9;
 use super::shaders::PROBES;
 use crate::engine::gpu::GpuContext;
@@ -77,10 +79,15 @@ impl ProbeGpu {
             // Binds a buffer; the shader runs no probe (counts.x is 0).
             geom.push(bytemuck::Zeroable::zeroed());
         }
-        // No PATH_SOBOL, moments or direct layer: independent samples, the SH only.
+        // No moments or direct layer: the SH only.
+        let flags = if params.sampling == super::Sampling::Sobol {
+            PATH_SOBOL
+        } else {
+            0
+        };
         let uniform = PathUniform {
             counts: [n as u32, params.samples_per_step, params.max_bounces, 0],
-            keys: [seed as u32, (seed >> 32) as u32, 0, 0],
+            keys: [seed as u32, (seed >> 32) as u32, 0, flags],
             f: [params.rr_threshold, eps, 1.0, 0.0],
         };
         let vectors = sobol_vectors();

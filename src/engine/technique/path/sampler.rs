@@ -162,6 +162,26 @@ impl PathSampler for Sobol {
     }
 }
 
+/// `inner`'s numbers one vertex deeper: for an estimator that takes vertex 0's sets
+/// itself (a light probe's own direction and light samples, `path::probes`) before it
+/// continues as a path, whose vertex b then draws the sets of vertex b + 1.
+pub struct Deeper<'a, S: PathSampler>(pub &'a mut S);
+
+impl<S: PathSampler> PathSampler for Deeper<'_, S> {
+    fn direction(&mut self, bounce: u32) -> (f32, f32) {
+        self.0.direction(bounce + 1)
+    }
+    fn sun(&mut self, bounce: u32) -> (f32, f32) {
+        self.0.sun(bounce + 1)
+    }
+    fn emitter(&mut self, bounce: u32) -> (f32, f32, f32) {
+        self.0.emitter(bounce + 1)
+    }
+    fn roulette(&mut self, bounce: u32) -> f32 {
+        self.0.roulette(bounce + 1)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
