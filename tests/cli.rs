@@ -243,6 +243,20 @@ fn bad_options_exit_2() {
         &scene,
         "probes.spacing must be a positive distance, got 0",
     );
+    assert_bad_input(
+        &[
+            "--probes",
+            probes.to_str().unwrap(),
+            "--probe-spacing",
+            "0.5",
+            "--probe-subdivide",
+            "7",
+            "--steps",
+            "1",
+        ],
+        &scene,
+        "probes.subdivide must be in 0..=4, got 7",
+    );
     assert!(!probes.exists());
     // clap's own errors use exit code 2 as well.
     let o = bin().args(["bake", "--resolution", "abc"]).output().unwrap();
