@@ -48,6 +48,7 @@ struct PathUniform {
     counts: vec4<u32>,   // x: valid texels n, y: samples per step, z: max bounces, w: step index
     keys: vec4<u32>,     // x: seed low 32 bits, y: seed high, z: half (0 even, 1 odd), w: PATH_* flags
     f: vec4<f32>,        // x: Russian roulette threshold tau; y: surface offset; z: blend 1/k; w: unused
+    slice: vec4<u32>,    // texels: x the dispatch's first texel, y its texel count (a sliced step); zw unused
 }
 
 const PATH_DIRECT: u32 = 1u;   // keep the direct layer

@@ -17,9 +17,12 @@
 @compute @workgroup_size(64)
 fn trace(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
          @builtin(local_invocation_index) lid: u32) {
-    let i = invocation_index(wid, nwg, lid);
+    // A step runs as one dispatch or in slices (TexelRayPass::step_sliced): this
+    // dispatch's invocations are texels slice.x, slice.x + 1, … (slice.y of them).
+    let j = invocation_index(wid, nwg, lid);
+    let i = pu.slice.x + j;
     let n = pu.counts.x;
-    if i >= n {
+    if j >= pu.slice.y || i >= n {
         return;
     }
     let t = texels[i];

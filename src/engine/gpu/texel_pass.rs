@@ -22,8 +22,13 @@
 //! waited for all of it, past any time limit. Two in flight keep the device busy while
 //! the host prepares the next.
 //!
+//! A step can also run in slices of invocations, each waited for, with a check between
+//! them that may abandon the step and put its half back ([`TexelRayPass::step_sliced`]):
+//! what `path` does with a long step in a bake that has a deadline or may be cancelled.
+//!
 //! Limits: each accumulator must fit the storage-binding limit (checked here, naming the
-//! pass); the step counts go to the shader in 32 bits.
+//! pass); the step counts go to the shader in 32 bits; a sliced step holds one more copy of
+//! a half of every accumulator.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -49,7 +54,30 @@ pub trait StepUniform: Pod {
     /// `step`: the job's global step index; `half`: 0 (even) or 1 (odd); `weight`: 1/k
     /// for the half's k-th step.
     fn set_step(&mut self, step: u64, half: u32, weight: f32);
+    /// The invocations of the next dispatch are `first`, `first + 1`, … of the step's
+    /// (a slice, [`TexelRayPass::step_sliced`]); a pass that cannot slice ignores it and
+    /// must not be stepped sliced.
+    fn set_slice(&mut self, _first: u32, _count: u32) {}
 }
+
+/// How a sliced step ended ([`TexelRayPass::step_sliced`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Sliced {
+    /// Every slice ran: the step counts.
+    Done,
+    /// `go_on` said stop between two slices: the half is as it was before the step.
+    Abandoned,
+}
+
+/// What a slice of a sliced step aims to take: short enough for a deadline or a cancel to
+/// be seen within it, long enough that waiting for each costs little (a wait is well under
+/// a millisecond on hardware drivers and on llvmpipe).
+const SLICE_SECONDS: f64 = 0.05;
+/// The first slice's invocations, before any has been timed: small, because one
+/// invocation may be long (`path` at 64 samples a texel in a 63,720-triangle room on
+/// llvmpipe: a first slice of 4096 texels took seconds); the next slices are sized by its
+/// time.
+const FIRST_SLICE: u64 = 256;
 
 /// What a [`TexelRayPass`] is made of beyond the scene and its texels.
 pub struct PassSpec<'a> {
@@ -89,6 +117,9 @@ pub struct TexelRayPass<U: StepUniform> {
     _texels: Arc<wgpu::Buffer>,
     /// Bound in `group`; kept with it.
     _tables: Vec<wgpu::Buffer>,
+    /// Per accumulator, a half's copy for [`TexelRayPass::step_sliced`] (made on its first
+    /// use).
+    backups: Vec<wgpu::Buffer>,
 }
 
 impl<U: StepUniform> TexelRayPass<U> {
@@ -185,6 +216,7 @@ impl<U: StepUniform> TexelRayPass<U> {
             lights,
             _texels: texels,
             _tables: tables,
+            backups: Vec::new(),
         })
     }
 
@@ -212,6 +244,7 @@ impl<U: StepUniform> TexelRayPass<U> {
         if self.texels > 0 {
             let weight = if self.keep_latest { 1.0 } else { 1.0 / k as f32 };
             self.uniform.set_step(self.first_step + step, half as u32, weight);
+            self.uniform.set_slice(0, self.texels as u32);
             self.ctx
                 .queue
                 .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
@@ -227,6 +260,97 @@ impl<U: StepUniform> TexelRayPass<U> {
         }
         self.half_steps[half] = k;
         Ok(())
+    }
+
+    /// One step in slices of invocations, each waited for, `go_on(done, of)` asked after
+    /// each with the invocations done so far (issue 19 point 10: a step of minutes on a
+    /// large level can stop at a deadline or a cancel). Sliced or whole, a step writes the
+    /// same values (each invocation reads only its own texel's slots). When `go_on`
+    /// says stop before the last slice, the step's half is put back as it was: it is
+    /// copied aside before the first slice and copied back, so the step adds nothing and
+    /// [`half_steps`](TexelRayPass::half_steps) stays. Needs the uniform's
+    /// [`StepUniform::set_slice`], and accumulators that hold the two halves one after the
+    /// other (half h is the buffer's h-th half; a one-vec4 placeholder is left alone).
+    /// Costs: one copy of a half (aside) a step, and the pipelining of
+    /// [`STEPS_IN_FLIGHT`]; slices are sized to [`SLICE_SECONDS`] from the last one's time.
+    pub fn step_sliced(&mut self, go_on: &mut dyn FnMut(u64, u64) -> bool) -> Result<Sliced, GpuError> {
+        let step = self.half_steps[0] + self.half_steps[1];
+        let half = (step % 2) as usize;
+        let k = self.half_steps[half] + 1;
+        let n = self.texels as u64;
+        if n == 0 {
+            self.half_steps[half] = k;
+            return Ok(Sliced::Done);
+        }
+        let weight = if self.keep_latest { 1.0 } else { 1.0 / k as f32 };
+        self.uniform.set_step(self.first_step + step, half as u32, weight);
+        // The half as it is, aside (queued after the steps still in flight).
+        let halves: Vec<(u64, u64)> = self
+            .accumulators
+            .iter()
+            .map(|(_, b)| {
+                let size = b.size() / 2;
+                (half as u64 * size, size)
+            })
+            .collect();
+        if self.backups.is_empty() {
+            for ((label, _), (_, size)) in self.accumulators.iter().zip(&halves) {
+                let usage = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
+                self.backups.push(self.ctx.buffer_zeroed(
+                    &format!("{label} (aside for a sliced step)"),
+                    (*size).max(16),
+                    usage,
+                ));
+            }
+        }
+        let copy = |to_backup: bool| {
+            let mut enc = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some(&format!("{}: half aside", self.label)),
+            });
+            for (((_, acc), backup), (offset, size)) in self.accumulators.iter().zip(&self.backups).zip(&halves) {
+                if *size < 16 {
+                    continue; // a placeholder
+                }
+                if to_backup {
+                    enc.copy_buffer_to_buffer(acc, *offset, backup, 0, *size);
+                } else {
+                    enc.copy_buffer_to_buffer(backup, 0, acc, *offset, *size);
+                }
+            }
+            self.ctx.queue.submit([enc.finish()])
+        };
+        copy(true);
+        let mut first = 0u64;
+        let mut slice = FIRST_SLICE.min(n);
+        while first < n {
+            let count = slice.min(n - first);
+            self.uniform.set_slice(first as u32, count as u32);
+            self.ctx
+                .queue
+                .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
+            let t0 = std::time::Instant::now();
+            let submitted = self
+                .ctx
+                .submit_compute(&self.label, &self.pipeline, &self.group, count as u32);
+            self.ctx.wait_for(&self.label, submitted)?;
+            self.ctx.take_error(&self.label)?;
+            let took = t0.elapsed().as_secs_f64();
+            first += count;
+            if first < n && !go_on(first, n) {
+                let undone = copy(false);
+                self.ctx.wait_for(&self.label, undone)?;
+                self.in_flight.clear();
+                return Ok(Sliced::Abandoned);
+            }
+            // The next slice at SLICE_SECONDS, growing at most 8x a slice (the first slice's
+            // time includes warming up: a pipeline's first dispatch on llvmpipe compiles it).
+            let rate = count as f64 / took.max(1e-6);
+            slice = ((rate * SLICE_SECONDS) as u64).clamp(64, count * 8);
+        }
+        go_on(n, n);
+        self.in_flight.clear();
+        self.half_steps[half] = k;
+        Ok(Sliced::Done)
     }
 
     /// Accumulator `index` itself, for a pass of the same device that reads it.

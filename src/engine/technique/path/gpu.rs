@@ -27,6 +27,9 @@
 //! (`docs/performance.md`); paths of very different lengths leave lanes idle, which a
 //! wavefront would recover on hardware GPUs.
 //!
+//! A step is one dispatch, or, when it may be long in a bake with a deadline or a watcher,
+//! slices of about 50 ms that can be stopped and undone ([`PathGpu::step_sliced`]).
+//!
 //! Precision: world space f32, as the CPU. Limits: every storage buffer must fit the
 //! adapter's binding limit (128 MiB on lavapipe: about 1.4M triangles' shading data, 8M
 //! texture texels, 2M texels with moments), checked up front with an error naming the
@@ -40,6 +43,7 @@ use super::PathParams;
 use super::shaders::PATH_TRACE;
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::scene_lights::LightSources;
+pub use crate::engine::gpu::texel_pass::Sliced;
 use crate::engine::gpu::texel_pass::{PassSpec, StepUniform, TexelRayPass};
 use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
@@ -84,6 +88,8 @@ pub(super) struct PathUniform {
     pub(super) counts: [u32; 4],
     pub(super) keys: [u32; 4],
     pub(super) f: [f32; 4],
+    /// The dispatch's first texel and texel count (a sliced step); the probe pass ignores it.
+    pub(super) slice: [u32; 4],
 }
 
 impl StepUniform for PathUniform {
@@ -91,6 +97,9 @@ impl StepUniform for PathUniform {
         self.counts[3] = step as u32;
         self.keys[2] = half;
         self.f[2] = weight;
+    }
+    fn set_slice(&mut self, first: u32, count: u32) {
+        self.slice = [first, count, 0, 0];
     }
 }
 
@@ -126,6 +135,7 @@ impl PathGpu {
             counts: [n as u32, params.samples_per_step, params.max_bounces, 0],
             keys: [seed as u32, (seed >> 32) as u32, 0, flags],
             f: [params.rr_threshold, inputs.atlas.surface_offset, 1.0, 0.0],
+            slice: [0, n as u32, 0, 0],
         };
         let spec = PassSpec {
             what: "path trace",
@@ -170,6 +180,24 @@ impl PathGpu {
     /// Submits one step (one dispatch); does not wait for it.
     pub fn step(&mut self) -> Result<(), EngineError> {
         self.pass.step().map_err(gpu_error)
+    }
+
+    /// One step in slices of texels of about 50 ms each, waited for, stopping between two
+    /// slices once `deadline` has passed or `progress` asks to stop (the step is then undone
+    /// and adds nothing); `progress` is told how far the step is after each slice. The same
+    /// values as [`PathGpu::step`] when it runs to the end.
+    pub fn step_sliced(
+        &mut self,
+        deadline: Option<std::time::Instant>,
+        progress: Option<&crate::engine::technique::api::StepProgress>,
+    ) -> Result<Sliced, EngineError> {
+        let mut go_on = |done: u64, of: u64| {
+            if let Some(p) = progress {
+                p.set(done, of);
+            }
+            !(progress.is_some_and(|p| p.stop_requested()) || deadline.is_some_and(|d| std::time::Instant::now() >= d))
+        };
+        self.pass.step_sliced(&mut go_on).map_err(gpu_error)
     }
 
     pub fn snapshot(&mut self) -> Result<Snapshot, EngineError> {

@@ -54,8 +54,12 @@
 //! step over a large level's texels cannot carry a bake far past its limit or its cancel. The
 //! samples of the chunks already done are dropped: the half accumulators count whole
 //! steps, and a step over part of the texels would weight those texels differently.
-//! The GPU megakernel's step is one dispatch and runs whole. The chunks done are also
-//! reported as the step's progress (`bake::StepProgress`), for a long step's watchers.
+//! On the GPU, in a bake with a deadline or a watcher, a step that may be long (the first,
+//! and any seen to take [`LONG_GPU_STEP`] or more) runs in slices of texels of about 50 ms
+//! (`PathGpu::step_sliced`, `TexelRayPass::step_sliced`) with the same checks between
+//! slices; a step stopped there is undone on the device (its half copied aside and back),
+//! and shorter steps keep two whole dispatches in flight. The chunks (or slices) done are
+//! also reported as the step's progress (`bake::StepProgress`), for a long step's watchers.
 //!
 //! Limits: no glossy transport, no textures' alpha, no participating media. The sample
 //! point of a texel inside closed geometry sees back faces and bakes black.
@@ -241,9 +245,20 @@ pub struct PathTracer {
     first_step: u64,
     /// The bake's time limit, checked between chunks of a CPU step (module doc).
     deadline: Option<Instant>,
-    /// Where a CPU step reports its chunks done.
+    /// Where a CPU step reports its chunks done (and a sliced GPU step its slices).
     progress: Option<crate::engine::technique::api::StepProgress>,
+    /// How long a GPU step takes, as last seen: a sliced step's own time, or the time
+    /// between two returns of pipelined steps (each returns once the one before it is
+    /// done, so in a steady run that is a step's length); `None` before the first.
+    gpu_step: Option<std::time::Duration>,
+    /// When the last pipelined GPU step returned.
+    gpu_returned: Option<Instant>,
 }
+
+/// A GPU step at least this long runs sliced when the bake has a deadline or a watcher
+/// that may cancel (`PathGpu::step_sliced`): a deadline is then kept to about a slice
+/// (50 ms), and shorter steps keep the pipelining of whole dispatches.
+const LONG_GPU_STEP: std::time::Duration = std::time::Duration::from_millis(250);
 
 /// Paths a CPU step traces between two looks at the deadline: a chunk is this many paths'
 /// worth of texels (256 texels at the default 4 samples, one texel at 1024 or more), a
@@ -279,6 +294,8 @@ impl PathTracer {
             first_step: 0,
             deadline: None,
             progress: None,
+            gpu_step: None,
+            gpu_returned: None,
         })
     }
 }
@@ -294,7 +311,26 @@ impl Technique for PathTracer {
 
     fn step(&mut self) -> Result<(), EngineError> {
         if let Some(gpu) = self.gpu.as_mut() {
-            return gpu.step();
+            // A step that may be long, in a bake that has a limit or may be cancelled, runs
+            // in slices (the first step always: its length is not known yet).
+            let watched = self.deadline.is_some() || self.progress.is_some();
+            if watched && self.gpu_step.is_none_or(|d| d >= LONG_GPU_STEP) {
+                let t0 = Instant::now();
+                if gpu.step_sliced(self.deadline, self.progress.as_ref())? == gpu::Sliced::Abandoned {
+                    tracing::debug!(
+                        "path on the GPU: the deadline passed or a stop was asked mid-step; the step is undone"
+                    );
+                }
+                self.gpu_step = Some(t0.elapsed());
+                self.gpu_returned = None;
+                return Ok(());
+            }
+            gpu.step()?;
+            let now = Instant::now();
+            if let Some(before) = self.gpu_returned.replace(now) {
+                self.gpu_step = Some(now - before);
+            }
+            return Ok(());
         }
         let step = self.first_step + self.acc.steps();
         let spp = self.params.samples_per_step;
@@ -386,6 +422,8 @@ impl Technique for PathTracer {
 
     fn set_deadline(&mut self, deadline: Option<Instant>) {
         self.deadline = deadline;
+        // A GPU step's length is measured again, in slices, under the new limit.
+        self.gpu_step = None;
     }
 
     fn set_step_progress(&mut self, progress: crate::engine::technique::api::StepProgress) {
