@@ -13,13 +13,15 @@
 //!
 //! A step longer than the rest of the budget is cut short instead (issue 19 point 10):
 //! the loop hands the limit's instant to the technique ([`Technique::set_deadline`]); one
-//! that honours it (CPU `path`, whose one step over a large level's texels can take
-//! minutes) abandons a step the moment the limit passes, adding nothing, and the loop
-//! stops with the steps done before. If not one step was done by then the bake fails with
+//! that honours it (`path`, whose one step over a large level's texels can take minutes:
+//! on the CPU between chunks of paths, on the GPU between slices of texels) abandons a
+//! step the moment the limit passes, adding nothing, and the loop stops with the steps
+//! done before. If not one step was done by then the bake fails with
 //! an error that says so (a lightmap of no samples is black, not an answer).
 //!
-//! Limits: techniques that ignore the deadline (the GPU ones: a step is one dispatch, and
-//! a dispatch cannot be stopped once submitted) still finish the step in progress; the
+//! Limits: techniques that ignore the deadline (the GPU ones but `path`: a step is one
+//! dispatch or a few, and a dispatch cannot be stopped once submitted) still finish the
+//! step in progress; the
 //! control texels' reference and the shadowmask pass keep pace with the technique and
 //! are not cut short either.
 

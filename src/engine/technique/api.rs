@@ -150,7 +150,7 @@ pub trait Technique: Send {
     /// and, once it has passed, abandons the step: adds nothing and leaves
     /// [`steps_done`](Technique::steps_done) as it was, so the loop stops within a part of
     /// a step of the limit. The default ignores it (the step runs whole); which
-    /// techniques honour it is in docs/performance.md.
+    /// techniques honour it is in docs/quality.md ("Time budget").
     fn set_deadline(&mut self, _deadline: Option<std::time::Instant>) {}
     /// Where to report how far each step is ([`StepProgress`]), set once before the
     /// first step; the default reports nothing (the watcher sees 0 until the step ends).
