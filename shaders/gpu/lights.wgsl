@@ -263,6 +263,18 @@ fn emitter_pick(u: f32) -> u32 {
     return bitcast<u32>(tables[scene_u.tables.w + min(lo, count - 1u)].x);
 }
 
+// Barycentrics of a uniform point on a triangle from two uniform numbers (the square
+// folded along its diagonal, as raytrace's emitter sampling does).
+fn uniform_bary(u: vec2<f32>) -> vec3<f32> {
+    var b1 = u.x;
+    var b2 = u.y;
+    if b1 + b2 > 1.0 {
+        b1 = 1.0 - b1;
+        b2 = 1.0 - b2;
+    }
+    return vec3<f32>(1.0 - b1 - b2, b1, b2);
+}
+
 fn next_event(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, rng: ptr<function, Rng>) -> Light {
     // The numbers drawn in the order, and under the conditions, that the estimate below
     // uses them: the sun's two, then the emitter pick and the point on it.
@@ -337,13 +349,7 @@ fn next_event_with(x: vec3<f32>, n: vec3<f32>, ng: vec3<f32>, mis: bool, sun_u: 
     let count = scene_u.tables2.x;
     if count > 0u && (sources & LIGHTS_EMITTERS) != 0u {
         let slot = emitter_pick(emitter_u.x);
-        var b1 = emitter_u.y;
-        var b2 = emitter_u.z;
-        if b1 + b2 > 1.0 {
-            b1 = 1.0 - b1;
-            b2 = 1.0 - b2;
-        }
-        let bary = vec3<f32>(1.0 - b1 - b2, b1, b2);
+        let bary = uniform_bary(emitter_u.yz);
         let y = tri_point(slot, bary);
         let to = y - x;
         let dist2 = dot(to, to);

@@ -151,13 +151,7 @@ fn probe_sample(x: vec3<f32>, rng: ptr<function, Rng>, sp: SobolPoint, sum: ptr<
     let count = scene_u.tables2.x;
     if count > 0u {
         let slot = emitter_pick(b.x);
-        var b1 = a.z;
-        var b2 = a.w;
-        if b1 + b2 > 1.0 {
-            b1 = 1.0 - b1;
-            b2 = 1.0 - b2;
-        }
-        let bary = vec3<f32>(1.0 - b1 - b2, b1, b2);
+        let bary = uniform_bary(a.zw);
         let to = tri_point(slot, bary) - x;
         let dist2 = dot(to, to);
         let dist = sqrt(dist2);

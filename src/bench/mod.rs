@@ -417,6 +417,15 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
     Ok(all_samples)
 }
 
+/// The first time in `run` (seconds, true error), in order, at which the error is at most
+/// `target`, as a table cell ("—" when never).
+fn time_to(run: impl IntoIterator<Item = (f64, f64)>, target: f64, digits: usize) -> String {
+    run.into_iter()
+        .find(|(_, e)| *e <= target)
+        .map(|(t, _)| format!("{t:.digits$} s"))
+        .unwrap_or_else(|| "—".into())
+}
+
 /// Probes a side of each probe scene's grid: 4³ = 64 probes.
 const PROBE_SIDE: usize = 4;
 
@@ -436,12 +445,7 @@ fn probes_md(samples: &[probes::ProbeSample]) -> String {
             .iter()
             .filter(|s| s.scene == name && s.sampling == sampling)
             .collect();
-        let reach = |target: f64| {
-            run.iter()
-                .find(|s| s.true_error <= target)
-                .map(|s| format!("{:.3} s", s.seconds))
-                .unwrap_or_else(|| "—".into())
-        };
+        let reach = |target: f64| time_to(run.iter().map(|s| (s.seconds, s.true_error)), target, 3);
         let Some(last) = run.last() else { continue };
         let est = last
             .estimated_error
@@ -494,11 +498,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
             .iter()
             .filter(|s| s.scene == scene && s.technique == tech)
             .collect();
-        let reach_denoised = run
-            .iter()
-            .find(|s| s.denoised_error <= 0.02)
-            .map(|s| format!("{:.2} s", s.seconds))
-            .unwrap_or_else(|| "—".into());
+        let reach_denoised = time_to(run.iter().map(|s| (s.seconds, s.denoised_error)), 0.02, 2);
         let last_denoised = run
             .last()
             .map(|s| {
@@ -510,12 +510,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
             })
             .unwrap_or_default();
         let worse = run.iter().filter(|s| s.denoised_error > s.true_error).count();
-        let reach = |target: f64| {
-            run.iter()
-                .find(|s| s.true_error <= target)
-                .map(|s| format!("{:.2} s", s.seconds))
-                .unwrap_or_else(|| "—".into())
-        };
+        let reach = |target: f64| time_to(run.iter().map(|s| (s.seconds, s.true_error)), target, 2);
         let last = run.last().map(|s| {
             let est = s
                 .estimated_error
