@@ -39,6 +39,8 @@ fn main() {
         technique: "path".into(),
         resolution: page,
         texels_per_unit: Some(density),
+        // The pages this bench measures, not grown to fit the density.
+        max_page_size: Some(page),
         lighting: outdoor_lighting(),
         stop: StopCriteria {
             steps: Some(steps),

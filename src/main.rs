@@ -283,6 +283,9 @@ struct SubmitArgs {
     /// Texel density of generated lightmap UVs (texels per metre).
     #[arg(long)]
     texels_per_unit: Option<f32>,
+    /// At a --texels-per-unit, the widest a page grows before more pages are added.
+    #[arg(long)]
+    max_page_size: Option<u32>,
     /// A succeeded job of the same scene, grid and light to measure this job's error
     /// against (each history point's `true_error`).
     #[arg(long)]
@@ -416,6 +419,11 @@ struct BakeArgs {
     /// at which they fit one --resolution-wide page.
     #[arg(long)]
     texels_per_unit: Option<f32>,
+    /// At a --texels-per-unit, the widest a page grows (from --resolution, doubling) while
+    /// the charts need more than one page; beyond it they take several pages of this size
+    /// (default 4096, or --resolution if larger).
+    #[arg(long)]
+    max_page_size: Option<u32>,
     /// Also write the scene as .glb with its lightmap UVs (TEXCOORD_1), e.g. after they
     /// were generated for a scene that had none.
     #[arg(long)]
@@ -878,6 +886,9 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
     if let Some(t) = args.texels_per_unit {
         job.insert("texels_per_unit".into(), t.into());
     }
+    if let Some(m) = args.max_page_size {
+        job.insert("max_page_size".into(), m.into());
+    }
     if let Some(r) = &args.reference {
         job.insert("reference".into(), r.clone().into());
     }
@@ -1034,6 +1045,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         },
         lightmap_uvs: args.lightmap_uvs,
         texels_per_unit: args.texels_per_unit,
+        max_page_size: args.max_page_size,
         shadowmask_lights: args.shadowmask_lights.clone(),
         // Checked with the rest of the request before the bake (exit 2 naming the field).
         probes: args.probes.as_ref().map(|_| lightmapd::engine::job::ProbeRequest {

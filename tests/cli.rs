@@ -258,6 +258,11 @@ fn bad_options_exit_2() {
         "probes.subdivide must be in 0..=4, got 7",
     );
     assert!(!probes.exists());
+    assert_bad_input(
+        &["--resolution", "512", "--max-page-size", "256", "--steps", "1"],
+        &scene,
+        "max_page_size 256 is below resolution 512: pages start resolution wide and grow up to max_page_size",
+    );
     // clap's own errors use exit code 2 as well.
     let o = bin().args(["bake", "--resolution", "abc"]).output().unwrap();
     assert_eq!(o.status.code(), Some(2));

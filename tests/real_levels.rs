@@ -8,7 +8,9 @@ use std::path::Path;
 
 use glam::{Vec2, Vec3};
 use lightmapd::engine::atlas::Atlas;
-use lightmapd::engine::atlas::unwrap::{LightmapUvs, UvUnwrap, generate_lightmap_uvs, generate_lightmap_uvs_with};
+use lightmapd::engine::atlas::unwrap::{
+    LightmapUvs, UvUnwrap, generate_lightmap_uvs, generate_lightmap_uvs_paged, generate_lightmap_uvs_with,
+};
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, remove_lightmap_uvs, write_glb};
 use lightmapd::engine::scene::{ALBEDO_BOUND, DEFAULT_MATERIAL_ALBEDO, Scene, export, import_slice};
 use serde_json::json;
@@ -153,6 +155,81 @@ fn texels_per_unit_sets_the_density_and_adds_pages() {
     let e =
         generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(-1.0), &UvUnwrap).unwrap_err();
     assert_eq!(e, "texels_per_unit must be a positive number, got -1");
+}
+
+/// `max_page_size` (issue 19 point 2): at a fixed density the page grows from
+/// `resolution` (doubling) until the charts fit one page at the density asked, and only at
+/// `max_page_size` do they take several pages.
+#[test]
+fn a_fixed_density_grows_the_page_before_adding_pages() {
+    let glb = two_squares_without_uvs(["a", "b"], 4.0, 4.0);
+    let squares = |max: u32| {
+        let (mut scene, _) = import_slice(&glb, None).unwrap();
+        let r = generate_lightmap_uvs_paged(
+            &mut scene,
+            256,
+            max,
+            LightmapUvs::GenerateMissing,
+            Some(100.0),
+            &UvUnwrap,
+        )
+        .unwrap();
+        let atlas = Atlas::build(&scene, r.width, r.height).unwrap();
+        assert_eq!(atlas.overlapping_texels, 0, "{r:?}");
+        (r, texels_per_instance(&scene, &atlas))
+    };
+    // 100 texels/m: each 4 m square is a 400 x 400 chart. Up to 1024 wide, both fit one
+    // page at the density asked: no chart is scaled down.
+    let (r, per) = squares(4096);
+    assert_eq!((r.width, r.height, r.generated_pages), (1024, 1024, 1), "{r:?}");
+    assert_eq!(r.texels_per_metre, 100.0);
+    assert!(r.warnings.is_empty(), "{:?}", r.warnings);
+    // Each square holds its 400 x 400 texels (a texel row more or less at each edge).
+    assert!(per.iter().all(|n| n.abs_diff(400 * 400) <= 4 * 401), "{per:?}");
+    // A 512 page holds one chart, not two: two 512 pages, still at 100 texels/m.
+    let (r, per) = squares(512);
+    assert_eq!((r.width, r.height, r.generated_pages), (512, 1024, 2), "{r:?}");
+    assert!(r.warnings.is_empty(), "{:?}", r.warnings);
+    assert!(per.iter().all(|n| n.abs_diff(400 * 400) <= 4 * 401), "{per:?}");
+    // At most 256: the old pages of `resolution`, each chart scaled down with a warning
+    // (as texels_per_unit_sets_the_density_and_adds_pages measures).
+    let (r, _) = squares(256);
+    assert_eq!((r.width, r.generated_pages), (256, 2), "{r:?}");
+    assert_eq!(r.warnings.iter().filter(|w| w.contains("scaled down")).count(), 2);
+    // The automatic density keeps the page `resolution` wide, whatever the maximum.
+    let (mut scene, _) = import_slice(&glb, None).unwrap();
+    let r = generate_lightmap_uvs_paged(&mut scene, 256, 4096, LightmapUvs::GenerateMissing, None, &UvUnwrap).unwrap();
+    assert_eq!((r.width, r.height), (256, 256), "{r:?}");
+
+    // The Kenney level at 40 texels/m, which on 256-wide pages had its density lowered to
+    // fit (texels_per_unit_sets_the_density_and_adds_pages): by default the page grows
+    // and the density asked is the density baked.
+    let mut kenney = level("kenney_fps_level.glb");
+    let r = generate_lightmap_uvs_paged(
+        &mut kenney,
+        256,
+        4096,
+        LightmapUvs::GenerateMissing,
+        Some(40.0),
+        &UvUnwrap,
+    )
+    .unwrap();
+    eprintln!("kenney at 40 texels/m: {r:?}");
+    assert_eq!(r.texels_per_metre, 40.0, "{r:?}");
+    assert!(r.warnings.iter().all(|w| !w.contains("baked at")), "{:?}", r.warnings);
+    assert_eq!(r.generated_pages, 1, "{r:?}");
+    assert!(r.width > 256 && r.width <= 4096, "{r:?}");
+    let atlas = Atlas::build(&kenney, r.width, r.height).unwrap();
+    assert_eq!(atlas.overlapping_texels, 0);
+
+    // A maximum below the resolution names both.
+    let (mut scene, _) = import_slice(&glb, None).unwrap();
+    let e = generate_lightmap_uvs_paged(&mut scene, 256, 128, LightmapUvs::GenerateMissing, Some(8.0), &UvUnwrap)
+        .unwrap_err();
+    assert_eq!(
+        e,
+        "max_page_size 128 is below resolution 256: pages start resolution wide and grow up to max_page_size"
+    );
 }
 
 /// Only the default scene is baked: a mesh no node uses, and a node in another scene,

@@ -126,6 +126,11 @@ pub struct BakeRequest {
     /// Charts that need more than one page get several (`lightmap-P.exr` each).
     #[serde(default)]
     pub texels_per_unit: Option<f32>,
+    /// The widest a page may grow at a fixed `texels_per_unit` before the charts take
+    /// several pages (`atlas::unwrap::unwrap_paged`); None: the larger of
+    /// [`DEFAULT_MAX_PAGE_SIZE`](unwrap::DEFAULT_MAX_PAGE_SIZE) and `resolution`.
+    #[serde(default)]
+    pub max_page_size: Option<u32>,
     /// The lights of the `shadowmask` layer, one per channel (`engine::shadowmask`):
     /// `sun`, a light's name or `#index`; empty: the sun and the scene's lights.
     #[serde(default)]
@@ -193,6 +198,14 @@ impl ProbeRequest {
     }
 }
 
+impl BakeRequest {
+    /// `max_page_size` in effect (its field's doc).
+    pub fn max_page_size(&self) -> u32 {
+        self.max_page_size
+            .unwrap_or_else(|| unwrap::DEFAULT_MAX_PAGE_SIZE.max(self.resolution))
+    }
+}
+
 impl Default for BakeRequest {
     fn default() -> Self {
         BakeRequest {
@@ -210,6 +223,7 @@ impl Default for BakeRequest {
             denoise: Denoiser::Auto,
             lightmap_uvs: LightmapUvs::default(),
             texels_per_unit: None,
+            max_page_size: None,
             shadowmask_lights: Vec::new(),
             probes: None,
         }
@@ -397,6 +411,7 @@ pub(crate) fn prepare_regions(
 ) -> Result<Prepared, EngineError> {
     request.lighting.validate().map_err(EngineError::BadInput)?;
     request.stop.validate()?;
+    unwrap::check_page_sizes(request.resolution, request.max_page_size()).map_err(EngineError::BadInput)?;
     let mut plan = plan_for(&scene, request)?;
     let control = options.control_texels && !technique::entry(&request.technique)?.unbiased;
     if control {
@@ -429,9 +444,10 @@ pub(crate) fn prepare_regions(
     let (scene, unwrap) = if (scene.needs_lightmap_uvs || regenerate || stack_pages) && scene.layout.is_none() {
         let mut generated = (*scene).clone();
         let started = std::time::Instant::now();
-        let report = unwrap::generate_lightmap_uvs_with(
+        let report = unwrap::generate_lightmap_uvs_paged(
             &mut generated,
             request.resolution,
+            request.max_page_size(),
             request.lightmap_uvs,
             request.texels_per_unit,
             &unwrap::UvUnwrap,

@@ -90,8 +90,13 @@ pub struct JobSpec {
     /// one page make more pages). Absent: the highest density at which they fit one page.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub texels_per_unit: Option<f32>,
+    /// At a `texels_per_unit`, the widest a page grows (from `resolution`, doubling) before
+    /// the charts take several pages of this size; at least `resolution`. Absent: 4096 or
+    /// `resolution` if larger, within the server's `max_resolution`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_page_size: Option<u32>,
     /// A succeeded job of the same scene, texel layout (resolution, `lightmap_uvs`,
-    /// `texels_per_unit`) and light whose lightmap is this job's reference: every history
+    /// `texels_per_unit`, `max_page_size`) and light whose lightmap is this job's reference: every history
     /// point then carries `true_error`, the measured error against it, and the plan's
     /// `reference` says which job and how accurate that reference is (docs/accuracy.md).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -297,6 +302,11 @@ impl JobSpec {
         if spec.stop.seconds.is_none() {
             spec.stop.seconds = Some(limits.max_job_seconds);
         }
+        // The engine's default page growth, within this server's largest lightmap side.
+        let max_res = limits.max_resolution.min(crate::engine::atlas::MAX_RESOLUTION);
+        if spec.max_page_size.is_none() && spec.to_request().max_page_size() > max_res {
+            spec.max_page_size = Some(max_res);
+        }
         Ok(spec)
     }
 
@@ -333,6 +343,16 @@ impl JobSpec {
                 "texels_per_unit",
                 format!("texels_per_unit must be a positive number, got {t}"),
             ));
+        }
+        if let Some(m) = self.max_page_size {
+            if m > max_res {
+                return Err(Problem::invalid_field(
+                    "max_page_size",
+                    format!("max_page_size must be between 1 and {max_res}, got {m}"),
+                ));
+            }
+            crate::engine::atlas::unwrap::check_page_sizes(self.resolution, m)
+                .map_err(|e| Problem::invalid_field("max_page_size", e))?;
         }
         if !(self.params.is_null() || self.params.is_object()) {
             return Err(Problem::invalid_field("params", "params must be a JSON object"));
@@ -465,6 +485,7 @@ impl JobSpec {
                 .and_then(|m| m.parse().ok())
                 .unwrap_or_default(),
             texels_per_unit: self.texels_per_unit,
+            max_page_size: self.max_page_size,
             shadowmask_lights: self.shadowmask_lights.clone(),
             probes: self.probes.as_ref().map(ProbeSpec::to_request),
         }
@@ -529,6 +550,9 @@ pub fn check_reference(spec: &JobSpec, id: &str, reference: Option<(&JobSpec, Jo
     } else if r.texels_per_unit != spec.texels_per_unit {
         let d = |v: Option<f32>| v.map_or("the default".to_string(), |v| v.to_string());
         Some(("texels_per_unit", d(r.texels_per_unit), d(spec.texels_per_unit)))
+    } else if r.to_request().max_page_size() != spec.to_request().max_page_size() {
+        let m = |s: &JobSpec| s.to_request().max_page_size().to_string();
+        Some(("max_page_size", m(r), m(spec)))
     } else if r.lighting != spec.lighting {
         let j = |s: &JobSpec| serde_json::to_string(&s.lighting).unwrap_or_default();
         Some(("lighting", j(r), j(spec)))
@@ -957,6 +981,11 @@ mod tests {
         assert_eq!(
             detail(check_reference(&ours, "r", Some((&theirs, JobStatus::Succeeded)))),
             "job r has texels_per_unit 8, this job the default: a reference must bake the same texel grid and light"
+        );
+        let theirs = spec(json!({"scene": "s1", "resolution": 64, "max_page_size": 1024, "outputs": ["shadowmask"]}));
+        assert_eq!(
+            detail(check_reference(&ours, "r", Some((&theirs, JobStatus::Succeeded)))),
+            "job r has max_page_size 1024, this job 4096: a reference must bake the same texel grid and light"
         );
         // A shadowmask takes its lights out of the lightmap: with and without differ.
         let theirs = spec(json!({"scene": "s1", "resolution": 64}));

@@ -891,7 +891,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "samples": 4}).to_string(),
             "samples",
-            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `reference`, `tasks`, `regions`, `requires`".into(),
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `max_page_size`, `reference`, `tasks`, `regions`, `requires`".into(),
         ),
         // A split job (issue 25): the engine's own split names why it cannot be.
         (
@@ -1484,6 +1484,16 @@ async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
             json!({"texels_per_unit": 0.0}),
             "texels_per_unit",
             "texels_per_unit must be a positive number, got 0",
+        ),
+        (
+            json!({"max_page_size": 16}),
+            "max_page_size",
+            "max_page_size 16 is below resolution 32: pages start resolution wide and grow up to max_page_size",
+        ),
+        (
+            json!({"max_page_size": 20000}),
+            "max_page_size",
+            "max_page_size must be between 1 and 4096, got 20000",
         ),
     ] {
         let mut job = json!({"scene": scene["id"], "resolution": 32, "stop": {"steps": 2}});

@@ -206,6 +206,18 @@ impl Unwrapper for UvUnwrap {
     }
 }
 
+/// Default of `max_page_size` (issue 19 point 2): the widest page a fixed density may grow
+/// the page to before it adds pages. 4096 is the largest lightmap Unity's and Godot's
+/// bakers offer by default and what every desktop GPU samples; four such pages fill the
+/// bake's grid ([`MAX_RESOLUTION`](super::MAX_RESOLUTION) rows).
+pub const DEFAULT_MAX_PAGE_SIZE: u32 = 4096;
+
+/// Share of a page the packer is assumed to fill when the page width is first estimated
+/// from the charts' texel area ([`page_width_for`]). The bundled levels measured 33–53 % at
+/// 512 (docs/quality.md); a lower guess gives a wider page than needed (more empty texels),
+/// a higher one an extra unwrap at twice the width.
+const ASSUMED_FILL: f64 = 0.4;
+
 /// [`generate_lightmap_uvs_with`] with the default `generate-missing`.
 pub fn generate_lightmap_uvs(
     scene: &mut Scene,
@@ -215,12 +227,27 @@ pub fn generate_lightmap_uvs(
     generate_lightmap_uvs_with(scene, resolution, LightmapUvs::GenerateMissing, None, unwrapper)
 }
 
-/// Gives the meshes `mode` selects generated lightmap UVs, packed beside the authored
-/// ones (module doc), and records the layout in `scene.layout` for the written glTF.
-/// `resolution` is the page width W.
+/// [`generate_lightmap_uvs_paged`] with pages exactly `resolution` wide (no growth).
 pub fn generate_lightmap_uvs_with(
     scene: &mut Scene,
     resolution: u32,
+    mode: LightmapUvs,
+    texels_per_unit: Option<f32>,
+    unwrapper: &dyn Unwrapper,
+) -> Result<UnwrapReport, String> {
+    generate_lightmap_uvs_paged(scene, resolution, resolution, mode, texels_per_unit, unwrapper)
+}
+
+/// Gives the meshes `mode` selects generated lightmap UVs, packed beside the authored
+/// ones (module doc), and records the layout in `scene.layout` for the written glTF.
+/// `resolution` is the page width W; at a fixed `texels_per_unit` the page grows (doubling
+/// W, up to `max_page_size`) until the generated charts fit one page at that density, and
+/// beyond that the bake gets several `max_page_size` pages ([`unwrap_paged`]). With the
+/// automatic density the page stays `resolution` wide (the density is chosen to fit it).
+pub fn generate_lightmap_uvs_paged(
+    scene: &mut Scene,
+    resolution: u32,
+    max_page_size: u32,
     mode: LightmapUvs,
     texels_per_unit: Option<f32>,
     unwrapper: &dyn Unwrapper,
@@ -230,6 +257,7 @@ pub fn generate_lightmap_uvs_with(
     {
         return Err(format!("texels_per_unit must be a positive number, got {t}"));
     }
+    check_page_sizes(resolution, max_page_size)?;
     let source = scene
         .source
         .clone()
@@ -314,7 +342,6 @@ pub fn generate_lightmap_uvs_with(
         inputs.push(input);
     }
 
-    let w = resolution;
     // Authored pages (an input written by a multi-page bake names several) first, each
     // W × W, in their own order.
     let authored_pages = source
@@ -324,18 +351,21 @@ pub fn generate_lightmap_uvs_with(
         .map(|i| i.authored_page + 1)
         .max()
         .unwrap_or(0);
-    let authored_rows = authored_pages.saturating_mul(w);
     let unwrapped = if inputs.is_empty() {
         None
     } else {
-        Some(unwrap_fitting(
+        Some(unwrap_paged(
             unwrapper,
             &inputs,
             resolution,
+            max_page_size,
             texels_per_unit,
             &mut warnings,
         )?)
     };
+    // The page width: `resolution`, or wider where a fixed density needed it.
+    let w = unwrapped.as_ref().map_or(resolution, |u| u.width);
+    let authored_rows = authored_pages.saturating_mul(w);
     // Page rows: the authored page first, then each generated page.
     let (page_h, pages) = unwrapped.as_ref().map_or((0, 0), |u| (u.page_height, u.pages));
     // Every page is W × W (`stride` rows), also where the packer filled fewer rows: the
@@ -350,10 +380,10 @@ pub fn generate_lightmap_uvs_with(
         ));
     }
     if let Some(u) = &unwrapped
-        && u.width != w
+        && !(resolution..=max_page_size.max(resolution)).contains(&u.width)
     {
         return Err(format!(
-            "the unwrapper made {}-wide pages for a {w}-wide lightmap",
+            "the unwrapper made {}-wide pages for a lightmap of pages {resolution} to {max_page_size} wide",
             u.width
         ));
     }
@@ -486,7 +516,7 @@ pub fn generate_lightmap_uvs_with(
         }
         for (m, achieved, target) in sparse {
             warnings.push(format!(
-                "{}: its charts were scaled down to fit a {w}x{page_h} page, {achieved:.2} texels/m instead of {target:.2} (raise the resolution, or lower texels_per_unit or its extras.lightmap_scale)",
+                "{}: its charts were scaled down to fit a {w}x{page_h} page, {achieved:.2} texels/m instead of {target:.2} (raise max_page_size, or lower texels_per_unit or its extras.lightmap_scale)",
                 mesh_label(scene, m)
             ));
         }
@@ -507,6 +537,119 @@ pub fn generate_lightmap_uvs_with(
     scene.layout = Some(std::sync::Arc::new(layout));
     scene.needs_lightmap_uvs = false;
     Ok(report)
+}
+
+/// `max_page_size` must be a page width the grid can hold and not below `resolution`.
+pub fn check_page_sizes(resolution: u32, max_page_size: u32) -> Result<(), String> {
+    if !(1..=super::MAX_RESOLUTION).contains(&max_page_size) {
+        return Err(format!(
+            "max_page_size must be between 1 and {}, got {max_page_size}",
+            super::MAX_RESOLUTION
+        ));
+    }
+    if max_page_size < resolution {
+        return Err(format!(
+            "max_page_size {max_page_size} is below resolution {resolution}: pages start resolution wide and grow up to max_page_size"
+        ));
+    }
+    Ok(())
+}
+
+/// The unwrap on pages as narrow as they can be: with the automatic density, pages
+/// `resolution` wide (the density is the highest that fits one). At a fixed density the
+/// width starts at [`page_width_for`]'s estimate and doubles, up to `max_page_size`, while
+/// the charts need more than one page or a chart had to be scaled down to fit one; at
+/// `max_page_size` they take as many pages as they need ([`unwrap_fitting`]). Why grow the
+/// page before adding pages: a level designer who sets a density expects one lightmap
+/// where one is enough (Unity and Bakery pack into as few atlases as their maximum size
+/// allows), and a 256-wide page at 40 texels/m splits a room's floor.
+fn unwrap_paged(
+    unwrapper: &dyn Unwrapper,
+    inputs: &[UnwrapMesh],
+    resolution: u32,
+    max_page_size: u32,
+    texels_per_unit: Option<f32>,
+    warnings: &mut Vec<String>,
+) -> Result<Unwrapped, String> {
+    let Some(t) = texels_per_unit.filter(|_| max_page_size > resolution) else {
+        return unwrap_fitting(unwrapper, inputs, resolution, texels_per_unit, warnings);
+    };
+    let mut w = page_width_for(inputs, t, resolution, max_page_size);
+    while w < max_page_size {
+        match unwrapper.unwrap(inputs, w, Some(t)) {
+            Ok(u) if u.pages == 1 && !scaled_down(inputs, &u, t) => {
+                tracing::debug!(width = w, "the charts fit one page");
+                return Ok(u);
+            }
+            Err(e) if !e.contains("doesn't fit") => return Err(e),
+            _ => {}
+        }
+        w = w.saturating_mul(2).min(max_page_size);
+    }
+    unwrap_fitting(unwrapper, inputs, max_page_size, Some(t), warnings)
+}
+
+/// The first page width [`unwrap_paged`] tries: `resolution` doubled until one page holds
+/// the charts' texel area at density `t` (each instance's surface area × (its scale × t)²)
+/// at [`ASSUMED_FILL`], and its largest instance's bounding box, capped at `max_page_size`.
+fn page_width_for(inputs: &[UnwrapMesh], t: f32, resolution: u32, max_page_size: u32) -> u32 {
+    let mut area = 0.0f64;
+    let mut side = 0.0f64;
+    for m in inputs {
+        let p = |i: u32| glam::DVec3::from(m.positions[i as usize].map(f64::from));
+        let local: f64 = m
+            .indices
+            .chunks_exact(3)
+            .map(|c| 0.5 * (p(c[1]) - p(c[0])).cross(p(c[2]) - p(c[0])).length())
+            .sum();
+        // The largest face of the mesh's box: a flat mesh unwraps to about that.
+        let (lo, hi) = m.indices.iter().fold(
+            (glam::DVec3::splat(f64::INFINITY), glam::DVec3::splat(f64::NEG_INFINITY)),
+            |(lo, hi), &i| (lo.min(p(i)), hi.max(p(i))),
+        );
+        let e = (hi - lo).max(glam::DVec3::ZERO);
+        let face = (e.x * e.y).max(e.y * e.z).max(e.x * e.z).sqrt().min(local.sqrt());
+        for &s in &m.instance_scales {
+            let k = f64::from(s) * f64::from(t);
+            area += local * k * k;
+            side = side.max(face * k);
+        }
+    }
+    let need = (area / ASSUMED_FILL).sqrt().max(side + f64::from(2 * PADDING));
+    let mut w = resolution.max(1);
+    while f64::from(w) < need && w < max_page_size {
+        w = w.saturating_mul(2).min(max_page_size);
+    }
+    w
+}
+
+/// Whether some instance's texels came out sparser than [`SCALED_DOWN`] × its density
+/// asked (a chart larger than the page, scaled down to fit it): its rectangle's texel area
+/// times the layout's covered share, over its surface area.
+fn scaled_down(inputs: &[UnwrapMesh], u: &Unwrapped, t: f32) -> bool {
+    let page = glam::DVec2::new(f64::from(u.width), f64::from(u.page_height));
+    inputs.iter().zip(&u.meshes).any(|(m, out)| {
+        let p = |i: u32| glam::DVec3::from(m.positions[i as usize].map(f64::from));
+        let local: f64 = m
+            .indices
+            .chunks_exact(3)
+            .map(|c| 0.5 * (p(c[1]) - p(c[0])).cross(p(c[2]) - p(c[0])).length())
+            .sum();
+        let uv = |i: u32| out.uv[i as usize].as_dvec2();
+        let covered: f64 = out
+            .indices
+            .chunks_exact(3)
+            .map(|c| 0.5 * (uv(c[1]) - uv(c[0])).perp_dot(uv(c[2]) - uv(c[0])).abs())
+            .sum();
+        if local <= 0.0 || covered <= 0.0 {
+            return false;
+        }
+        m.instance_scales.iter().zip(&out.instances).any(|(&s, (_, lo, hi))| {
+            let rect = (hi.as_dvec2() - lo.as_dvec2()) * page;
+            let achieved = (rect.x * rect.y * covered / local).sqrt();
+            achieved < SCALED_DOWN * f64::from(s) * f64::from(t)
+        })
+    })
 }
 
 /// The unwrap at `texels_per_unit`, or, when a layout does not fit a page at that fixed
@@ -537,7 +680,7 @@ fn unwrap_fitting(
         t *= 0.75;
         if let Ok(u) = unwrapper.unwrap(inputs, resolution, Some(t)) {
             warnings.push(format!(
-                "texels_per_unit {asked}: {why}; baked at {t:.2} texels/m instead (an instanced mesh's charts are not scaled down alone; raise the resolution for the density asked)"
+                "texels_per_unit {asked}: {why}; baked at {t:.2} texels/m instead (an instanced mesh's charts are not scaled down alone; raise max_page_size for the density asked)"
             ));
             return Ok(u);
         }
