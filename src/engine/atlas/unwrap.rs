@@ -26,7 +26,10 @@
 //! page and its rectangle in that page ([`Scene::placements`]), so a scene never fails
 //! because its charts do not fit one page. Why one grid rather than one per page: every
 //! technique, the denoiser and the seam solver already work on one texel set, and pages
-//! of one width stack without waste; dilation keeps to each page's rows. The grid may not
+//! of one width stack without waste; dilation keeps to each page's rows. W is
+//! `resolution`, except at a fixed `texels_per_unit`, where it doubles from there until
+//! the generated charts fit one page at that density, up to `max_page_size`
+//! ([`unwrap_paged`]): more pages only once a page cannot grow. The grid may not
 //! exceed [`MAX_RESOLUTION`](super::MAX_RESOLUTION) rows (the GPU techniques' maps of it
 //! are textures). Without authored meshes and with one page the page stays W × W
 //! (`--resolution N` is one N × N page).
