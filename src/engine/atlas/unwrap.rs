@@ -29,7 +29,7 @@
 //! of one width stack without waste; dilation keeps to each page's rows. W is
 //! `resolution`, except at a fixed `texels_per_unit`, where it doubles from there until
 //! the generated charts fit one page at that density, up to `max_page_size`
-//! ([`unwrap_paged`]): more pages only once a page cannot grow. The grid may not
+//! (`unwrap_paged`): more pages only once a page cannot grow. The grid may not
 //! exceed [`MAX_RESOLUTION`](super::MAX_RESOLUTION) rows (the GPU techniques' maps of it
 //! are textures). Without authored meshes and with one page the page stays W × W
 //! (`--resolution N` is one N × N page).
@@ -245,7 +245,7 @@ pub fn generate_lightmap_uvs_with(
 /// ones (module doc), and records the layout in `scene.layout` for the written glTF.
 /// `resolution` is the page width W; at a fixed `texels_per_unit` the page grows (doubling
 /// W, up to `max_page_size`) until the generated charts fit one page at that density, and
-/// beyond that the bake gets several `max_page_size` pages ([`unwrap_paged`]). With the
+/// beyond that the bake gets several `max_page_size` pages (`unwrap_paged`). With the
 /// automatic density the page stays `resolution` wide (the density is chosen to fit it).
 pub fn generate_lightmap_uvs_paged(
     scene: &mut Scene,
