@@ -19,6 +19,10 @@
 //! done before. If not one step was done by then the bake fails with
 //! an error that says so (a lightmap of no samples is black, not an answer).
 //!
+//! A GPU technique's step only queues its dispatches; under a time limit the loop waits
+//! for them ([`Technique::wait_for_steps`]) before it times the step, so the prediction
+//! sees what a step costs on the device rather than what its submission took.
+//!
 //! Limits: techniques that ignore the deadline (the GPU ones but `path`: a step is one
 //! dispatch or a few, and a dispatch cannot be stopped once submitted) still finish the
 //! step in progress; the
@@ -236,6 +240,9 @@ impl BakeLoop {
                         StopReason::Seconds
                     },
                 });
+            }
+            if deadline.is_some() {
+                technique.wait_for_steps()?;
             }
             let step_time = step_start.elapsed();
             longest_step = longest_step.max(step_time);
@@ -493,6 +500,88 @@ mod tests {
         assert!(
             wall < Duration::from_secs(3),
             "the bake ran {wall:?} under a 0.3 s limit"
+        );
+    }
+
+    /// A technique whose step only queues its work, like a GPU technique's dispatch: the
+    /// step returns at once and the device time is paid in `wait_for_steps` (or never,
+    /// here, when the loop does not ask).
+    struct Queued {
+        acc: HalfAccumulator,
+        step_time: Duration,
+        queued: Duration,
+        waits: u32,
+    }
+
+    impl Technique for Queued {
+        fn id(&self) -> &'static str {
+            "queued"
+        }
+        fn params(&self) -> serde_json::Value {
+            serde_json::Value::Null
+        }
+        fn step(&mut self) -> Result<(), EngineError> {
+            self.queued += self.step_time;
+            self.acc.add(&[Vec3::ONE, Vec3::splat(0.5)], None);
+            Ok(())
+        }
+        fn wait_for_steps(&mut self) -> Result<(), EngineError> {
+            std::thread::sleep(std::mem::take(&mut self.queued));
+            self.waits += 1;
+            Ok(())
+        }
+        fn steps_done(&self) -> u64 {
+            self.acc.steps()
+        }
+        fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
+            Ok(self.acc.snapshot())
+        }
+        fn accumulating_pass(&self) -> &'static str {
+            "test pass"
+        }
+    }
+
+    /// Under a time limit the loop waits for each step's device work before timing it, so
+    /// steps of 150 ms queued without waiting are seen as 150 ms long: under a 0.5 s limit
+    /// the bake stops after 3 steps (3 × 150 + 150 > 500), where a loop that timed only the
+    /// submissions would have gone on until some other limit. Without a time limit the
+    /// loop does not wait.
+    #[test]
+    fn queued_steps_are_timed_with_their_device_work() {
+        let mut t = Queued {
+            acc: HalfAccumulator::new(2, false),
+            step_time: Duration::from_millis(150),
+            queued: Duration::ZERO,
+            waits: 0,
+        };
+        let stop = StopCriteria {
+            seconds: Some(0.5),
+            steps: Some(1000),
+            ..Default::default()
+        };
+        let out = BakeLoop::new(stop)
+            .run(&mut t, &mut |_: BakeEvent<'_>| ControlFlow::Continue(()))
+            .unwrap();
+        assert_eq!((out.stopped_by, out.estimate.steps), (StopReason::Seconds, 3));
+        assert_eq!(t.waits, 3);
+        assert!(out.elapsed >= Duration::from_millis(450), "{:?}", out.elapsed);
+
+        let mut t = Queued {
+            acc: HalfAccumulator::new(2, false),
+            step_time: Duration::from_millis(150),
+            queued: Duration::ZERO,
+            waits: 0,
+        };
+        let stop = StopCriteria {
+            steps: Some(10),
+            ..Default::default()
+        };
+        let out = BakeLoop::new(stop)
+            .run(&mut t, &mut |_: BakeEvent<'_>| ControlFlow::Continue(()))
+            .unwrap();
+        assert_eq!(
+            (out.stopped_by, out.estimate.steps, t.waits),
+            (StopReason::Steps, 10, 0)
         );
     }
 

@@ -152,6 +152,16 @@ pub trait Technique: Send {
     /// a step of the limit. The default ignores it (the step runs whole); which
     /// techniques honour it is in docs/quality.md ("Time budget").
     fn set_deadline(&mut self, _deadline: Option<std::time::Instant>) {}
+    /// Blocks until the device has finished the work of every step submitted so far, so
+    /// that the bake loop's clock measures what a step costs. The loop calls it after each
+    /// step of a bake with a time limit. A GPU technique whose step only queues one or a
+    /// few dispatches implements it; without it the loop saw a submission's microseconds
+    /// as the step's length and queued more steps than the limit had room for (`sdf` on
+    /// the Kenney level at 2048², lavapipe: 14.3 s of steps for `--seconds 5`). The
+    /// default (CPU techniques, and `path`, which times its own GPU steps) returns at once.
+    fn wait_for_steps(&mut self) -> Result<(), EngineError> {
+        Ok(())
+    }
     /// Where to report how far each step is ([`StepProgress`]), set once before the
     /// first step; the default reports nothing (the watcher sees 0 until the step ends).
     fn set_step_progress(&mut self, _progress: StepProgress) {}

@@ -1296,6 +1296,10 @@ impl Technique for Obscurance {
         self.step_gpu().map_err(gpu_error)
     }
 
+    fn wait_for_steps(&mut self) -> Result<(), EngineError> {
+        self.ctx.wait_idle().map_err(gpu_error)
+    }
+
     fn steps_done(&self) -> u64 {
         self.steps_done
     }

@@ -951,6 +951,12 @@ impl SdbEngine {
         &self.params
     }
 
+    /// Blocks until the device has done every step submitted so far
+    /// ([`Technique::wait_for_steps`]).
+    pub fn wait_idle(&self) -> Result<(), GpuError> {
+        self.ctx.wait_idle()
+    }
+
     pub fn steps_done(&self) -> u64 {
         self.steps_done
     }
@@ -1384,6 +1390,10 @@ impl Technique for Sdb {
 
     fn step(&mut self) -> Result<(), EngineError> {
         self.engine.step().map_err(gpu_error)
+    }
+
+    fn wait_for_steps(&mut self) -> Result<(), EngineError> {
+        self.engine.wait_idle().map_err(gpu_error)
     }
 
     fn steps_done(&self) -> u64 {

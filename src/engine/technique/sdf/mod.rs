@@ -523,6 +523,8 @@ pub struct Sdf {
     k: f32,
     alpha: f32,
     gpu: Option<SdfGpu>,
+    /// The device the sky pass and the shared direct light run on (None: nothing to bake).
+    device: Option<Arc<GpuContext>>,
     timings: BuildTimings,
     notes: Vec<String>,
 }
@@ -607,6 +609,7 @@ impl Sdf {
             texel_area,
             r_ave,
             gpu: None,
+            device: ctx.clone(),
             timings: BuildTimings::default(),
             notes,
         };
@@ -1050,6 +1053,13 @@ impl Technique for Sdf {
         self.half_steps[parity] += 1;
         self.steps_done += 1;
         Ok(())
+    }
+
+    fn wait_for_steps(&mut self) -> Result<(), EngineError> {
+        match &self.device {
+            Some(ctx) => ctx.wait_idle().map_err(gpu_error),
+            None => Ok(()),
+        }
     }
 
     fn steps_done(&self) -> u64 {

@@ -892,6 +892,10 @@ impl Technique for Vpl {
         self.run_step()
     }
 
+    fn wait_for_steps(&mut self) -> Result<(), EngineError> {
+        self.ctx.wait_idle().map_err(gpu_error)
+    }
+
     fn steps_done(&self) -> u64 {
         self.steps_done
     }
