@@ -277,7 +277,9 @@ struct SubmitArgs {
     /// Denoiser: auto (OIDN when installed, else own), oidn, own, none (the job's `denoise`).
     #[arg(long)]
     denoiser: Option<String>,
-    /// Lightmap UVs: keep (authored only), generate-missing (the server's default), regenerate-all.
+    /// Lightmap UVs: keep (authored only), generate-missing (the server's default),
+    /// regenerate-all, repack-instances (authored UVs of a mesh several nodes place get a
+    /// rectangle per node).
     #[arg(long)]
     lightmap_uvs: Option<String>,
     /// Texel density of generated lightmap UVs (texels per metre).
@@ -412,7 +414,9 @@ struct BakeArgs {
     /// Denoiser: auto (OIDN when installed, else own), oidn, own, none.
     #[arg(long, value_parser = lightmapd::engine::post::denoised::Denoiser::parse)]
     denoiser: Option<lightmapd::engine::post::denoised::Denoiser>,
-    /// Lightmap UVs: keep (authored only), generate-missing (default), regenerate-all.
+    /// Lightmap UVs: keep (authored only), generate-missing (default), regenerate-all,
+    /// repack-instances (authored UVs of a mesh several nodes place get a rectangle per
+    /// node, the UVs kept).
     #[arg(long, default_value = "generate-missing")]
     lightmap_uvs: lightmapd::engine::atlas::unwrap::LightmapUvs,
     /// Texel density of generated lightmap UVs (texels per metre); default: the highest
@@ -1228,6 +1232,12 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             u.utilisation * 100.0,
             u.texels_per_metre
         );
+        if u.repacked_instances > 0 {
+            eprintln!(
+                "repacked instances: {} nodes of meshes with authored UVs, each its own rectangle, on {} page(s)",
+                u.repacked_instances, u.repacked_pages
+            );
+        }
     }
     for w in &s.validation.warnings {
         eprintln!("warning: {w}");

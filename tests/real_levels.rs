@@ -394,3 +394,137 @@ fn albedo_is_bounded_and_reported() {
         report.warnings
     );
 }
+
+/// `lightmap_uvs: repack-instances` (issue 19 point 3): one square mesh with authored
+/// `TEXCOORD_1`, placed by three nodes (one of them scaled 2x). As authored, all three
+/// address the same texels; repacked, each gets a rectangle of its own at one density (the
+/// scaled one four times the texels), the mesh's `TEXCOORD_1` comes back byte for byte, and
+/// the written file, read back with `keep`, addresses the same texels.
+#[test]
+fn repack_instances_gives_shared_authored_uvs_a_rectangle_each() {
+    use std::sync::Arc;
+
+    use lightmapd::engine::bake::StopCriteria;
+    use lightmapd::engine::job::{self, BakeRequest};
+    use lightmapd::engine::scene::{Hemisphere, Lighting, Sky};
+
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.5, 0.5, 0.5]));
+    b.square("tile", Vec3::ZERO, 1.0, Vec3::Y, grey);
+    let (mut doc, bin) = b.to_gltf();
+    let nodes = doc["nodes"].as_array_mut().unwrap();
+    nodes.push(json!({"name": "right", "mesh": 0, "translation": [3.0, 0.0, 0.0]}));
+    nodes.push(json!({"name": "big", "mesh": 0, "translation": [-4.0, 0.0, 0.0], "scale": [2.0, 2.0, 2.0]}));
+    doc["scenes"][0]["nodes"] = json!([0, 1, 2]);
+    let input = write_glb(&doc, &bin);
+    let (scene, report) = import_slice(&input, None).unwrap();
+    assert!(
+        report.warnings.iter().any(|w| w.contains("is placed by 3 nodes")
+            && w.contains("lightmap_uvs: repack-instances gives each its own rectangle")),
+        "{:?}",
+        report.warnings
+    );
+    let request = |uvs: LightmapUvs| BakeRequest {
+        resolution: 64,
+        lightmap_uvs: uvs,
+        lighting: Lighting {
+            sky: Some(Sky {
+                radiance: Vec3::ONE,
+                hemisphere: Hemisphere::Upper,
+            }),
+            sun: None,
+        },
+        stop: StopCriteria {
+            steps: Some(2),
+            ..Default::default()
+        },
+        params: json!({"samples_per_step": 4, "device": "cpu"}),
+        ..Default::default()
+    };
+    // As authored: the three share one set of texels.
+    let shared = job::bake_unobserved(Arc::new(scene.clone()), &request(LightmapUvs::GenerateMissing)).unwrap();
+    assert!(shared.atlas.overlapping_texels > 0);
+
+    let result = job::bake_unobserved(Arc::new(scene), &request(LightmapUvs::RepackInstances)).unwrap();
+    let u = result.summary.generated_uvs.clone().expect("a layout was made");
+    eprintln!("{u:?}");
+    assert_eq!(
+        (
+            u.generated_meshes,
+            u.kept_meshes,
+            u.repacked_instances,
+            u.repacked_pages
+        ),
+        (0, 1, 3, 1),
+        "{u:?}"
+    );
+    assert_eq!((result.atlas.width, result.atlas.height), (64, 64));
+    // The density is the same for all three: the 1 m square's rectangle is its UV box
+    // (0.875 of the UV square) at S = density texels per unit of UV.
+    assert!(u.texels_per_metre > 10.0 && u.utilisation > 0.25, "{u:?}");
+    assert_eq!(result.atlas.overlapping_texels, 0);
+    let per = texels_per_instance(&result.scene, &result.atlas);
+    eprintln!("texels per instance: {per:?}");
+    assert_eq!(per[0], per[1], "two instances of one size get the same rectangle");
+    let ratio = per[2] as f64 / per[0] as f64;
+    assert!((3.4..=4.6).contains(&ratio), "the 2x node has {ratio} times the texels");
+    // The highest density that fits one page: the three rectangles use a fair share of it.
+    assert!(per.iter().sum::<usize>() > 64 * 64 / 4, "{per:?}");
+    // An open upward square under a uniform upper sky: E/π = 1 at every texel.
+    for (k, v) in result.estimate.total.iter().enumerate() {
+        assert!((*v - Vec3::ONE).abs().max_element() < 1e-3, "texel {k}: {v}");
+    }
+
+    // The written file: the mesh and its TEXCOORD_1 as they were, a rectangle per node.
+    let glb = export::to_glb(&result.scene).unwrap();
+    let out = gltf::binary::Glb::from_slice(&glb).unwrap();
+    let written: serde_json::Value = serde_json::from_slice(&out.json).unwrap();
+    let uv_bytes = |doc: &serde_json::Value, bin: &[u8]| -> Vec<u8> {
+        let a = doc["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_1"]
+            .as_u64()
+            .unwrap() as usize;
+        let acc = &doc["accessors"][a];
+        let view = &doc["bufferViews"][acc["bufferView"].as_u64().unwrap() as usize];
+        let start =
+            view["byteOffset"].as_u64().unwrap_or(0) as usize + acc["byteOffset"].as_u64().unwrap_or(0) as usize;
+        bin[start..start + 8 * acc["count"].as_u64().unwrap() as usize].to_vec()
+    };
+    assert_eq!(uv_bytes(&doc, &bin), uv_bytes(&written, out.bin.as_ref().unwrap()));
+    assert_eq!(written["meshes"].as_array().unwrap().len(), 1);
+    let rects: std::collections::HashSet<String> = (0..3)
+        .map(|n| {
+            let l = &written["nodes"][n]["extras"]["lightmap"];
+            assert_eq!(
+                (l["page"].clone(), l["file"].clone()),
+                (json!(0), json!("lightmap-0.exr"))
+            );
+            l["scale_offset"].to_string()
+        })
+        .collect();
+    assert_eq!(rects.len(), 3, "{rects:?}");
+    // Read back with `keep`: the same texels, none shared.
+    let (back, _) = import_slice(&glb, None).unwrap();
+    let again = job::bake_unobserved(
+        Arc::new(back),
+        &BakeRequest {
+            stop: StopCriteria {
+                steps: Some(1),
+                ..Default::default()
+            },
+            ..request(LightmapUvs::Keep)
+        },
+    )
+    .unwrap();
+    assert_eq!(again.atlas.overlapping_texels, 0);
+    assert_eq!(again.atlas.texels.len(), result.atlas.texels.len());
+    for (a, b) in again.scene.triangles.iter().zip(&result.scene.triangles) {
+        for k in 0..3 {
+            assert!(
+                (a.lm[k] - b.lm[k]).abs().max_element() < 1e-6,
+                "{:?} vs {:?}",
+                a.lm,
+                b.lm
+            );
+        }
+    }
+}

@@ -437,7 +437,10 @@ pub(crate) fn prepare_regions(
         );
     }
     on_plan(&plan);
-    let regenerate = request.lightmap_uvs == LightmapUvs::RegenerateAll && scene.source.is_some();
+    let regenerate = matches!(
+        request.lightmap_uvs,
+        LightmapUvs::RegenerateAll | LightmapUvs::RepackInstances
+    ) && scene.source.is_some();
     // Authored UVs on several pages (a file a multi-page bake wrote) are stacked into
     // one grid by the same layout step, with nothing to unwrap.
     let stack_pages = scene.authored_pages() > 1;

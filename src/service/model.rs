@@ -82,7 +82,9 @@ pub struct JobSpec {
     pub denoise: Option<String>,
     /// Lightmap UVs: `keep` (authored `TEXCOORD_1` only; a scene with a mesh without it is
     /// refused), `generate-missing` (authored kept, the others generated) or
-    /// `regenerate-all`. Absent: `generate-missing`.
+    /// `regenerate-all` or `repack-instances` (as `generate-missing`, and an authored mesh
+    /// placed by several nodes gets a rectangle per node, its UVs kept). Absent:
+    /// `generate-missing`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schema(default = "generate-missing")]
     pub lightmap_uvs: Option<String>,

@@ -1478,7 +1478,7 @@ async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
         (
             json!({"lightmap_uvs": "sometimes"}),
             "lightmap_uvs",
-            "lightmap_uvs must be keep, generate-missing or regenerate-all, got \"sometimes\"",
+            "lightmap_uvs must be keep, generate-missing, regenerate-all or repack-instances, got \"sometimes\"",
         ),
         (
             json!({"texels_per_unit": 0.0}),

@@ -34,6 +34,7 @@
 
 pub mod cells;
 pub mod regions;
+pub mod repack;
 pub mod seams;
 pub mod unwrap;
 pub mod validate;

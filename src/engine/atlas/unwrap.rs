@@ -70,6 +70,9 @@ pub enum LightmapUvs {
     GenerateMissing,
     /// Every mesh gets generated UVs (authored ones are replaced in the written glTF).
     RegenerateAll,
+    /// As `generate-missing`, and an authored mesh placed by several nodes gets a
+    /// rectangle per node for its authored layout, its UVs kept (`atlas::repack`).
+    RepackInstances,
 }
 
 impl std::str::FromStr for LightmapUvs {
@@ -79,8 +82,9 @@ impl std::str::FromStr for LightmapUvs {
             "keep" => Ok(LightmapUvs::Keep),
             "generate-missing" => Ok(LightmapUvs::GenerateMissing),
             "regenerate-all" => Ok(LightmapUvs::RegenerateAll),
+            "repack-instances" => Ok(LightmapUvs::RepackInstances),
             _ => Err(format!(
-                "lightmap_uvs must be keep, generate-missing or regenerate-all, got {s:?}"
+                "lightmap_uvs must be keep, generate-missing, regenerate-all or repack-instances, got {s:?}"
             )),
         }
     }
@@ -139,6 +143,10 @@ pub struct UnwrapReport {
     pub kept_meshes: usize,
     /// Nodes with their own rectangle (and `extras.lightmap` in the written glTF).
     pub instances: usize,
+    /// Of those, instances of authored meshes given a rectangle each
+    /// (`repack-instances`), and the pages they take after the generated ones.
+    pub repacked_instances: usize,
+    pub repacked_pages: u32,
     pub warnings: Vec<String>,
 }
 
@@ -287,6 +295,18 @@ pub fn generate_lightmap_uvs_paged(
         }
     }
 
+    // Authored meshes placed by several nodes, under repack-instances: a rectangle each.
+    let mut repack = vec![false; source.meshes.len()];
+    if mode == LightmapUvs::RepackInstances {
+        let mut users = vec![0usize; source.meshes.len()];
+        for inst in source.instances.iter().filter(|i| !i.opt_out) {
+            users[inst.mesh] += 1;
+        }
+        for m in 0..source.meshes.len() {
+            repack[m] = kept[m] && users[m] > 1;
+        }
+    }
+
     // One UnwrapMesh per generated mesh: its primitives concatenated, a group each.
     let mut warnings = Vec::new();
     let mut order: Vec<usize> = Vec::new(); // glTF mesh index per UnwrapMesh
@@ -350,7 +370,7 @@ pub fn generate_lightmap_uvs_paged(
     let authored_pages = source
         .instances
         .iter()
-        .filter(|i| !i.opt_out && kept[i.mesh])
+        .filter(|i| !i.opt_out && kept[i.mesh] && !repack[i.mesh])
         .map(|i| i.authored_page + 1)
         .max()
         .unwrap_or(0);
@@ -366,8 +386,23 @@ pub fn generate_lightmap_uvs_paged(
             &mut warnings,
         )?)
     };
-    // The page width: `resolution`, or wider where a fixed density needed it.
-    let w = unwrapped.as_ref().map_or(resolution, |u| u.width);
+    let items = repack_items(scene, &source.instances, &repack)?;
+    // The page width: `resolution`, or wider where a fixed density needed it (for the
+    // generated charts, or, with none, for the repacked rectangles).
+    let w = match (&unwrapped, texels_per_unit) {
+        (Some(u), _) => u.width,
+        (None, Some(t)) if !items.is_empty() => {
+            let mut w = resolution;
+            while w < max_page_size && {
+                let (pages, _, shrunk) = super::repack::place(&items, f64::from(t), w);
+                pages > 1 || !shrunk.is_empty()
+            } {
+                w = w.saturating_mul(2).min(max_page_size);
+            }
+            w
+        }
+        _ => resolution,
+    };
     let authored_rows = authored_pages.saturating_mul(w);
     // Page rows: the authored page first, then each generated page.
     let (page_h, pages) = unwrapped.as_ref().map_or((0, 0), |u| (u.page_height, u.pages));
@@ -375,10 +410,33 @@ pub fn generate_lightmap_uvs_paged(
     // convention's `extras.lightmap` names a page, not its height, so a file read back
     // can only find its texels again if every page has the width's height.
     let stride = w.max(page_h);
-    let height = authored_rows + pages * stride;
+    // The repacked instances' rectangles: at the density asked, else the generated charts'
+    // density, else the highest that fits one page.
+    let mut repack_density = 0.0;
+    let (repacked_pages, repacked_at) = if items.is_empty() {
+        (0, Vec::new())
+    } else {
+        let density = match (texels_per_unit, &unwrapped) {
+            (Some(t), _) => f64::from(t),
+            (None, Some(u)) => f64::from(u.texels_per_metre),
+            (None, None) => super::repack::fit_density(&items, w),
+        };
+        repack_density = density as f32;
+        let (n, at, shrunk) = super::repack::place(&items, density, w);
+        for k in shrunk {
+            let inst = &source.instances[items[k].instance];
+            warnings.push(format!(
+                "node {} ({}): its rectangle was scaled down to fit a {w}x{w} page (raise max_page_size, or lower texels_per_unit or its extras.lightmap_scale)",
+                inst.node,
+                mesh_label(scene, inst.mesh)
+            ));
+        }
+        (n, at)
+    };
+    let height = authored_rows + pages * stride + repacked_pages * w;
     if height > super::MAX_RESOLUTION {
         return Err(format!(
-            "{authored_pages} authored page(s) of {w}x{w} and {pages} generated page(s) of {w}x{stride} need {height} rows in all, more than the bake's grid may have ({}); lower the resolution, texels_per_unit or the meshes' extras.lightmap_scale",
+            "{authored_pages} authored page(s) of {w}x{w}, {pages} generated page(s) of {w}x{stride} and {repacked_pages} page(s) of repacked instances need {height} rows in all, more than the bake's grid may have ({}); lower the resolution, texels_per_unit or the meshes' extras.lightmap_scale",
             super::MAX_RESOLUTION
         ));
     }
@@ -401,6 +459,11 @@ pub fn generate_lightmap_uvs_paged(
     page_rows.extend((0..pages).map(|p| PageRows {
         first_row: authored_rows + p * stride,
         rows: stride,
+    }));
+    let repacked_rows = authored_rows + pages * stride;
+    page_rows.extend((0..repacked_pages).map(|p| PageRows {
+        first_row: repacked_rows + p * w,
+        rows: w,
     }));
     if page_rows.is_empty() {
         page_rows.push(PageRows {
@@ -452,10 +515,24 @@ pub fn generate_lightmap_uvs_paged(
             layout.scale_offset[k] = Some([size.x, size.y, lo.x, (top + lo.y * page_h as f32) / hf]);
         }
     }
+    // Repacked instances: their authored UVs into their rectangle.
+    for (item, at) in items.iter().zip(&repacked_at) {
+        let so = super::repack::scale_offset(item, at, repacked_rows + at.page * w, w, height);
+        layout.scale_offset[item.instance] = Some(so);
+        let inst = &source.instances[item.instance];
+        let [sx, sy, ox, oy] = inst.authored_scale_offset;
+        let (s0, o0) = (Vec2::new(sx, sy), Vec2::new(ox, oy));
+        let (s1, o1) = (Vec2::new(so[0], so[1]), Vec2::new(so[2], so[3]));
+        for t in &mut scene.triangles[inst.triangles.clone()] {
+            // Back to TEXCOORD_1 (the import applied the node's authored scale_offset),
+            // then into the rectangle.
+            t.lm.iter_mut().for_each(|uv| *uv = ((*uv - o0) / s0) * s1 + o1);
+        }
+    }
     // Authored instances keep their UVs; their page moved to its rows of the grid.
     let squeeze = wf / hf;
     for (k, inst) in source.instances.iter().enumerate() {
-        if !inst.opt_out && kept[inst.mesh] {
+        if !inst.opt_out && kept[inst.mesh] && !repack[inst.mesh] {
             let [sx, sy, ox, oy] = inst.authored_scale_offset;
             let page = inst.authored_page as f32;
             layout.scale_offset[k] = Some([sx, sy * squeeze, ox, (oy + page) * squeeze]);
@@ -466,6 +543,9 @@ pub fn generate_lightmap_uvs_paged(
     for (k, inst) in source.instances.iter().enumerate() {
         let range = inst.triangles.clone();
         if inst.opt_out {
+            continue;
+        }
+        if repack[inst.mesh] {
             continue;
         }
         if kept[inst.mesh] {
@@ -527,19 +607,71 @@ pub fn generate_lightmap_uvs_paged(
 
     let report = UnwrapReport {
         charts: unwrapped.as_ref().map_or(0, |u| u.charts),
-        utilisation: utilisation(scene, &source.instances, &generate),
-        texels_per_metre: unwrapped.as_ref().map_or(0.0, |u| u.texels_per_metre),
+        utilisation: utilisation(
+            scene,
+            &source.instances,
+            &generate.iter().zip(&repack).map(|(g, r)| *g || *r).collect::<Vec<_>>(),
+        ),
+        texels_per_metre: unwrapped.as_ref().map_or(repack_density, |u| u.texels_per_metre),
         width: w,
         height,
         generated_pages: pages,
         generated_meshes: order.len(),
         kept_meshes: kept.iter().filter(|k| **k).count(),
         instances: layout.scale_offset.iter().filter(|s| s.is_some()).count(),
+        repacked_instances: items.len(),
+        repacked_pages,
         warnings,
     };
     scene.layout = Some(std::sync::Arc::new(layout));
     scene.needs_lightmap_uvs = false;
     Ok(report)
+}
+
+/// The instances `repack` selects, each with its mesh's authored UV box and its scale
+/// (`atlas::repack::Item`), from its triangles as imported: their `lm` is TEXCOORD_1 after
+/// the node's authored `scale_offset`, which is undone here.
+fn repack_items(
+    scene: &Scene,
+    instances: &[crate::engine::scene::Instance],
+    repack: &[bool],
+) -> Result<Vec<super::repack::Item>, String> {
+    let mut items = Vec::new();
+    for (k, inst) in instances.iter().enumerate() {
+        if inst.opt_out || !repack[inst.mesh] {
+            continue;
+        }
+        let [sx, sy, ox, oy] = inst.authored_scale_offset;
+        if sx == 0.0 || sy == 0.0 {
+            return Err(format!(
+                "node {}: extras.lightmap.scale_offset has a zero scale, so its TEXCOORD_1 cannot be repacked",
+                inst.node
+            ));
+        }
+        let (s0, o0) = (Vec2::new(sx, sy), Vec2::new(ox, oy));
+        let (mut lo, mut hi) = (Vec2::splat(f32::INFINITY), Vec2::splat(f32::NEG_INFINITY));
+        let (mut world, mut uv) = (0.0f64, 0.0f64);
+        for t in &scene.triangles[inst.triangles.clone()] {
+            let raw = t.lm.map(|l| (l - o0) / s0);
+            for r in raw {
+                lo = lo.min(r);
+                hi = hi.max(r);
+            }
+            world += 0.5 * f64::from((t.p[1] - t.p[0]).cross(t.p[2] - t.p[0]).length());
+            uv += 0.5 * f64::from((raw[1] - raw[0]).perp_dot(raw[2] - raw[0]).abs());
+        }
+        if !(world > 0.0 && uv > 0.0) {
+            // No area to give texels to (degenerate UVs or geometry): nothing to place.
+            continue;
+        }
+        items.push(super::repack::Item {
+            instance: k,
+            lo,
+            hi,
+            uv_scale: (world / uv).sqrt() * f64::from(inst.lightmap_scale),
+        });
+    }
+    Ok(items)
 }
 
 /// `max_page_size` must be a page width the grid can hold and not below `resolution`.
@@ -705,8 +837,8 @@ fn mesh_label(scene: &Scene, m: usize) -> String {
     }
 }
 
-/// UV area of the generated meshes' triangles over the page's: how much of it the new
-/// charts cover.
+/// UV area of the generated (and repacked) meshes' triangles over the grid's: how much of
+/// it the new charts and rectangles cover.
 fn utilisation(scene: &Scene, instances: &[crate::engine::scene::Instance], generate: &[bool]) -> f32 {
     let mut area = 0.0f64;
     for inst in instances.iter().filter(|i| !i.opt_out && generate[i.mesh]) {

@@ -865,7 +865,7 @@ fn shared_authored_warning(
                 .and_then(|m| m.name().map(str::to_string))
                 .unwrap_or_default();
             warnings.push(format!(
-                "mesh {mesh} \"{name}\" has authored TEXCOORD_1 and is placed by {n} nodes: unless their extras.lightmap.scale_offset differ, they share texels (lightmap_uvs: regenerate-all gives each its own rectangle)"
+                "mesh {mesh} \"{name}\" has authored TEXCOORD_1 and is placed by {n} nodes: unless their extras.lightmap.scale_offset differ, they share texels (lightmap_uvs: repack-instances gives each its own rectangle and keeps these UVs; regenerate-all replaces them)"
             ));
         }
     }
