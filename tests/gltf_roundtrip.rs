@@ -5,6 +5,8 @@
 //! node of the scene with a mesh carries `extras.lightmap`; re-importing the file gives
 //! the baked triangles and lightmap UVs back; the Khronos validator finds no error.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use lightmapd::engine::atlas::Atlas;
@@ -56,21 +58,6 @@ fn image_bytes(doc: &Value, bin: &[u8], i: usize) -> Vec<u8> {
     let view = &doc["bufferViews"][doc["images"][i]["bufferView"].as_u64().unwrap() as usize];
     let start = view["byteOffset"].as_u64().unwrap_or(0) as usize;
     bin[start..start + view["byteLength"].as_u64().unwrap() as usize].to_vec()
-}
-
-/// Runs scripts/validate-gltf.sh; returns its JSON line.
-fn validate(path: &Path) -> Value {
-    let out = std::process::Command::new("bash")
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/validate-gltf.sh"))
-        .arg(path)
-        .output()
-        .expect("bash runs");
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    let line = stdout
-        .lines()
-        .last()
-        .unwrap_or_else(|| panic!("validator printed nothing: {}", String::from_utf8_lossy(&out.stderr)));
-    serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}"))
 }
 
 fn roundtrip(name: &str, resolution: u32) {
@@ -244,7 +231,7 @@ fn roundtrip(name: &str, resolution: u32) {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join(name);
     std::fs::write(&path, &glb).unwrap();
-    let v = validate(&path);
+    let v = common::validate_gltf(&path);
     eprintln!("validator: {v}");
     assert_eq!(v["errors"], 0, "{name}: {v}");
     assert_eq!(v["warnings"], 0, "{name}: {v}");
@@ -252,7 +239,7 @@ fn roundtrip(name: &str, resolution: u32) {
     // material samples TEXCOORD_1, so the validator calls each "possibly unused"): the
     // accessors and views the split primitives left behind are removed
     // (`scene::export::prune_orphans`; before, 35, 42 and 70 more infos than the input).
-    let before = validate(&level(name));
+    let before = common::validate_gltf(&level(name));
     let had: Vec<&str> = before["unused"]
         .as_array()
         .unwrap()

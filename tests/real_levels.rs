@@ -4,6 +4,8 @@
 //! and density, `KHR_mesh_quantization`, `KHR_texture_transform`, missing normals, a
 //! texel density in texels per metre with as many pages as it needs, the albedo bound.
 
+mod common;
+
 use std::path::Path;
 
 use glam::{Vec2, Vec3};
@@ -518,6 +520,124 @@ fn repack_instances_gives_shared_authored_uvs_a_rectangle_each() {
     assert_eq!(again.atlas.overlapping_texels, 0);
     assert_eq!(again.atlas.texels.len(), result.atlas.texels.len());
     for (a, b) in again.scene.triangles.iter().zip(&result.scene.triangles) {
+        for k in 0..3 {
+            assert!(
+                (a.lm[k] - b.lm[k]).abs().max_element() < 1e-6,
+                "{:?} vs {:?}",
+                a.lm,
+                b.lm
+            );
+        }
+    }
+}
+
+/// Texel anisotropy of instance `k`: the area-weighted mean, over its triangles, of the
+/// ratio of the largest to the smallest stretch from lightmap texels to world metres.
+fn texel_anisotropy(scene: &Scene, width: u32, height: u32, k: usize) -> f64 {
+    let inst = &scene.source.as_ref().unwrap().instances[k];
+    let (mut sum, mut weight) = (0.0f64, 0.0f64);
+    for t in &scene.triangles[inst.triangles.clone()] {
+        let e = [(t.p[1] - t.p[0]).as_dvec3(), (t.p[2] - t.p[0]).as_dvec3()];
+        let px = |v: Vec2| glam::DVec2::new(f64::from(v.x) * f64::from(width), f64::from(v.y) * f64::from(height));
+        let d = glam::DMat2::from_cols(px(t.lm[1] - t.lm[0]), px(t.lm[2] - t.lm[0]));
+        let area = 0.5 * e[0].cross(e[1]).length();
+        if d.determinant().abs() < 1e-9 || area <= 0.0 {
+            continue;
+        }
+        // J maps texel offsets to world offsets: J · d = e, J = E · D⁻¹ (3 x 2); its
+        // singular values are the square roots of JᵀJ's eigenvalues.
+        let inv = d.inverse();
+        let j0 = e[0] * inv.x_axis.x + e[1] * inv.x_axis.y;
+        let j1 = e[0] * inv.y_axis.x + e[1] * inv.y_axis.y;
+        let (a, b, c) = (j0.dot(j0), j0.dot(j1), j1.dot(j1));
+        let mid = 0.5 * (a + c);
+        let r = (0.25 * (a - c) * (a - c) + b * b).sqrt();
+        let ratio = ((mid + r) / (mid - r).max(1e-30)).sqrt();
+        sum += ratio * area;
+        weight += area;
+    }
+    sum / weight
+}
+
+/// An instance stretched past `OWN_LAYOUT_RATIO` gets a layout of its own (issue 19 point
+/// 3): a sphere placed as it is, stretched 6x along x, and stretched the same way but
+/// turned 90°. The two stretched nodes share one own layout (their shapes differ by a
+/// rotation), unwrapped in the stretched shape, so their texels are about as square as the
+/// plain sphere's; the written glTF carries a copy of the mesh for them.
+#[test]
+fn a_stretched_instance_gets_its_own_layout() {
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.5, 0.5, 0.5]));
+    b.sphere("ball", Vec3::ZERO, 1.0, 24, 12, grey);
+    let (mut doc, bin) = b.to_gltf();
+    remove_lightmap_uvs(&mut doc, None);
+    let nodes = doc["nodes"].as_array_mut().unwrap();
+    nodes.push(json!({"name": "long", "mesh": 0, "translation": [0.0, 4.0, 0.0], "scale": [6.0, 1.0, 1.0]}));
+    // Turned 90° about y: the same stretch, along z.
+    let h = std::f32::consts::FRAC_1_SQRT_2;
+    nodes.push(json!({"name": "long turned", "mesh": 0, "translation": [0.0, 8.0, 0.0], "rotation": [0.0, h, 0.0, h], "scale": [6.0, 1.0, 1.0]}));
+    doc["scenes"][0]["nodes"] = json!([0, 1, 2]);
+    let input = write_glb(&doc, &bin);
+    let (mut scene, _) = import_slice(&input, None).unwrap();
+    let r = generate_lightmap_uvs(&mut scene, 512, &UvUnwrap).unwrap();
+    eprintln!("{r:?}");
+    assert_eq!((r.generated_meshes, r.own_layouts, r.instances), (1, 1, 3), "{r:?}");
+    assert_eq!(r.warnings.len(), 1, "{:?}", r.warnings);
+    assert!(
+        r.warnings[0].starts_with(
+            "node 1 scales mesh 0 \"ball\" 6.0x more along one axis than another: it gets a lightmap layout of its own"
+        ),
+        "{:?}",
+        r.warnings
+    );
+    let atlas = Atlas::build(&scene, r.width, r.height).unwrap();
+    assert_eq!(atlas.overlapping_texels, 0);
+    let aniso: Vec<f64> = (0..3).map(|k| texel_anisotropy(&scene, r.width, r.height, k)).collect();
+    eprintln!("texel anisotropy per node: {aniso:?}");
+    // Stretched nodes: about as square as the plain one (a shared layout would be ~6).
+    assert!(aniso[1] < 1.6 * aniso[0] && aniso[2] < 1.6 * aniso[0], "{aniso:?}");
+    // The density holds on all three: texels over world area within 25 % of each other.
+    let per = texels_per_instance(&scene, &atlas);
+    let area = |k: usize| -> f64 {
+        let inst = &scene.source.as_ref().unwrap().instances[k];
+        scene.triangles[inst.triangles.clone()]
+            .iter()
+            .map(|t| 0.5 * f64::from((t.p[1] - t.p[0]).cross(t.p[2] - t.p[0]).length()))
+            .sum()
+    };
+    let density: Vec<f64> = (0..3).map(|k| per[k] as f64 / area(k)).collect();
+    eprintln!("texels per m² per node: {density:?}");
+    let (lo, hi) = density
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(l, h), d| (l.min(*d), h.max(*d)));
+    assert!(hi < 1.25 * lo, "{density:?}");
+
+    // The written glTF: a copy of the mesh for the two stretched nodes.
+    let glb = export::to_glb(&scene).unwrap();
+    let out = gltf::binary::Glb::from_slice(&glb).unwrap();
+    let written: serde_json::Value = serde_json::from_slice(&out.json).unwrap();
+    assert_eq!(written["meshes"].as_array().unwrap().len(), 2);
+    assert_eq!(written["meshes"][1]["name"], "ball (own lightmap layout 0)");
+    let mesh_of = |n: usize| written["nodes"][n]["mesh"].as_u64().unwrap();
+    assert_eq!((mesh_of(0), mesh_of(1), mesh_of(2)), (0, 1, 1));
+    // lightmaps.json names the mesh the written file's node uses.
+    let placed: Vec<usize> = scene.placements().iter().map(|p| p.mesh).collect();
+    assert_eq!(placed, vec![0, 1, 1]);
+    let path = std::env::temp_dir().join(format!("lightmapd-stretched-{}.glb", std::process::id()));
+    std::fs::write(&path, &glb).unwrap();
+    let v = common::validate_gltf(&path);
+    std::fs::remove_file(&path).ok();
+    assert_eq!(
+        (v["errors"].as_u64(), v["warnings"].as_u64()),
+        (Some(0), Some(0)),
+        "{v}"
+    );
+    // Read back (now authored), it addresses the same texels.
+    let (mut back, report) = import_slice(&glb, None).unwrap();
+    assert!(report.has_lightmap_uvs);
+    let again = generate_lightmap_uvs_with(&mut back, 512, LightmapUvs::Keep, None, &UvUnwrap).unwrap();
+    assert_eq!((again.width, again.height), (r.width, r.height));
+    for (a, b) in back.triangles.iter().zip(&scene.triangles) {
         for k in 0..3 {
             assert!(
                 (a.lm[k] - b.lm[k]).abs().max_element() < 1e-6,

@@ -154,3 +154,19 @@ pub fn mean_deviation(
     }
     (dev / norm, var.sqrt() / norm)
 }
+
+/// Runs scripts/validate-gltf.sh (the Khronos validator) on a written file; returns its
+/// JSON line (`errors`, `warnings`, `infos`, `codes`, `unused`).
+pub fn validate_gltf(path: &std::path::Path) -> serde_json::Value {
+    let out = std::process::Command::new("bash")
+        .arg(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/validate-gltf.sh"))
+        .arg(path)
+        .output()
+        .expect("bash runs");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = stdout
+        .lines()
+        .last()
+        .unwrap_or_else(|| panic!("validator printed nothing: {}", String::from_utf8_lossy(&out.stderr)));
+    serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}"))
+}

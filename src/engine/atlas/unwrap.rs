@@ -39,25 +39,35 @@
 //! `direct-solver` feature: the output is then the same on every CPU, so a lightmap baked
 //! on one machine fits UVs made on another.
 //!
-//! Limits: an instance whose transform scales non-uniformly gets stretched texels (the
-//! layout is shared); above a ratio of [`ANISOTROPY_WARNING`] between its largest and
-//! smallest axis scale the report warns, naming the node (its own unwrap would need a
-//! copy of the mesh). All instances of a mesh share a layout padded for the smallest, so a
-//! much larger instance gets proportionally wider padding.
+//! Stretched instances: an instance whose axis scales differ by more than
+//! [`OWN_LAYOUT_RATIO`] gets a layout of its own, unwrapped in its stretched shape (the
+//! mesh's positions times its transform's linear part over the cube root of its
+//! determinant), shared with the mesh's other instances stretched the same way (equal
+//! `NᵀN`, so shapes that differ by a rotation share); the written glTF gets a copy of the
+//! mesh for them ([`MeshCopy`], `scene::export`), and the report warns, naming the node.
+//! Instances below the ratio share the mesh's layout, their texels stretched by at most it.
+//!
+//! Limits: all instances of a layout share one set of charts padded for the smallest, so
+//! a much larger instance gets proportionally wider padding (`repack-instances` sizes
+//! each authored instance's rectangle on its own). A stretched instance's copy adds a
+//! mesh to the written glTF, so its mesh count is the input's plus the copies.
 
 use std::collections::HashMap;
 
 use glam::{DMat3, Vec2};
 use serde::{Deserialize, Serialize};
 
-use crate::engine::scene::{GeneratedMesh, GeneratedPrimitive, LightmapLayout, PageRows, Scene};
+use crate::engine::scene::{GeneratedMesh, GeneratedPrimitive, LightmapLayout, MeshCopy, PageRows, Scene};
 
 /// Padding around each chart, in texels.
 pub const PADDING: u32 = 3;
 
-/// Axis-scale ratio of an instance's transform above which the report warns that its
-/// texels are stretched.
-pub const ANISOTROPY_WARNING: f64 = 2.0;
+/// Axis-scale ratio of an instance's transform above which it gets a layout of its own,
+/// unwrapped in its stretched shape: below it, texels on it are at most this much longer
+/// one way than the other, which is within what the unwrapper allows itself (its charts
+/// may distort area up to 4x); above it, a wall scaled (10, 3, 0.2) from a unit cube would
+/// get texels 50 times longer across than along.
+pub const OWN_LAYOUT_RATIO: f64 = 2.0;
 
 /// Which lightmap UVs a bake uses (`lightmap_uvs` in a job, `--lightmap-uvs` on the CLI).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -140,6 +150,9 @@ pub struct UnwrapReport {
     pub generated_pages: u32,
     /// Meshes unwrapped, and meshes whose authored UVs were kept.
     pub generated_meshes: usize,
+    /// Extra layouts for instances stretched past [`OWN_LAYOUT_RATIO`] (each a copy of its
+    /// mesh in the written glTF).
+    pub own_layouts: usize,
     pub kept_meshes: usize,
     /// Nodes with their own rectangle (and `extras.lightmap` in the written glTF).
     pub instances: usize,
@@ -307,30 +320,24 @@ pub fn generate_lightmap_uvs_paged(
         }
     }
 
-    // One UnwrapMesh per generated mesh: its primitives concatenated, a group each.
+    // One UnwrapMesh per layout of a generated mesh: its primitives concatenated, a group
+    // each. A mesh's instances share one layout, except those whose transform stretches
+    // it (axis scales more than OWN_LAYOUT_RATIO apart): each distinct stretch gets a layout
+    // of its own, unwrapped in the stretched shape, and a copy of the mesh in the written
+    // glTF (`MeshCopy`).
     let mut warnings = Vec::new();
-    let mut order: Vec<usize> = Vec::new(); // glTF mesh index per UnwrapMesh
+    // Per UnwrapMesh: the glTF mesh, and which of its copies (None: the mesh itself).
+    let mut order: Vec<(usize, Option<usize>)> = Vec::new();
     let mut inputs: Vec<UnwrapMesh> = Vec::new();
     let mut instance_slot: Vec<Option<(usize, usize)>> = vec![None; source.instances.len()];
+    let mut copies: Vec<MeshCopy> = Vec::new();
     for (m, local) in source.meshes.iter().enumerate() {
         let Some(local) = local.as_ref().filter(|_| generate[m]) else {
             continue;
         };
-        let mut input = UnwrapMesh {
-            positions: Vec::new(),
-            indices: Vec::new(),
-            groups: Vec::new(),
-            instance_scales: Vec::new(),
-        };
-        for (p, prim) in local.primitives.iter().enumerate() {
-            let Some(prim) = prim else { continue };
-            let base = input.positions.len() as u32;
-            input.positions.extend(prim.positions.iter().map(|v| v.to_array()));
-            input.indices.extend(prim.indices.iter().map(|i| i + base));
-            input
-                .groups
-                .extend(std::iter::repeat_n(p as u32, prim.indices.len() / 3));
-        }
+        // The mesh's instances by layout: (normalised linear part of the first, its
+        // metric for matching, instances with their scales).
+        let mut layouts: Vec<(Option<DMat3>, Option<DMat3>, Vec<(usize, f32)>)> = Vec::new();
         for (k, inst) in source.instances.iter().enumerate() {
             if inst.mesh != m || inst.opt_out {
                 continue;
@@ -345,24 +352,72 @@ pub fn generate_lightmap_uvs_paged(
                     mesh_name(m)
                 ));
             }
+            let scale = (det.cbrt() as f32 * inst.lightmap_scale).max(1e-6);
             let ratio = axes.iter().cloned().fold(0.0, f64::max) / axes.iter().cloned().fold(f64::INFINITY, f64::min);
-            if ratio > ANISOTROPY_WARNING {
-                warnings.push(format!(
-                    "node {} scales {} {ratio:.1}x more along one axis than another: its lightmap texels are stretched as much",
-                    inst.node,
-                    mesh_name(m)
-                ));
+            let (shape, metric) = if ratio > OWN_LAYOUT_RATIO {
+                let n = lin * (1.0 / det.cbrt());
+                (Some(n), Some(n.transpose() * n))
+            } else {
+                (None, None)
+            };
+            let same = |g: &Option<DMat3>| match (g, &metric) {
+                (None, None) => true,
+                (Some(a), Some(b)) => (*a - *b).to_cols_array().iter().all(|d| d.abs() < 1e-4 * ratio * ratio),
+                _ => false,
+            };
+            match layouts.iter_mut().find(|l| same(&l.1)) {
+                Some(l) => l.2.push((k, scale)),
+                None => {
+                    if shape.is_some() {
+                        warnings.push(format!(
+                            "node {} scales {} {ratio:.1}x more along one axis than another: it gets a lightmap layout of its own (a copy of the mesh in the written glTF)",
+                            inst.node,
+                            mesh_name(m)
+                        ));
+                    }
+                    layouts.push((shape, metric, vec![(k, scale)]));
+                }
             }
-            instance_slot[k] = Some((inputs.len(), input.instance_scales.len()));
-            input
-                .instance_scales
-                .push((det.cbrt() as f32 * inst.lightmap_scale).max(1e-6));
         }
-        if input.indices.is_empty() {
-            continue;
+        // The unstretched layout is the mesh's own; without one, the first stretched one.
+        layouts.sort_by_key(|l| l.0.is_some());
+        for (g, (shape, _, members)) in layouts.into_iter().enumerate() {
+            let mut input = UnwrapMesh {
+                positions: Vec::new(),
+                indices: Vec::new(),
+                groups: Vec::new(),
+                instance_scales: Vec::new(),
+            };
+            for (p, prim) in local.primitives.iter().enumerate() {
+                let Some(prim) = prim else { continue };
+                let base = input.positions.len() as u32;
+                input.positions.extend(prim.positions.iter().map(|v| match &shape {
+                    Some(n) => (*n * v.as_dvec3()).as_vec3().to_array(),
+                    None => v.to_array(),
+                }));
+                input.indices.extend(prim.indices.iter().map(|i| i + base));
+                input
+                    .groups
+                    .extend(std::iter::repeat_n(p as u32, prim.indices.len() / 3));
+            }
+            if input.indices.is_empty() {
+                continue;
+            }
+            for (k, scale) in &members {
+                instance_slot[*k] = Some((inputs.len(), input.instance_scales.len()));
+                input.instance_scales.push(*scale);
+            }
+            let copy = (g > 0).then(|| {
+                copies.push(MeshCopy {
+                    mesh: m,
+                    generated: GeneratedMesh::default(),
+                    instances: members.iter().map(|(k, _)| *k).collect(),
+                });
+                copies.len() - 1
+            });
+            order.push((m, copy));
+            inputs.push(input);
         }
-        order.push(m);
-        inputs.push(input);
     }
 
     // Authored pages (an input written by a multi-page bake names several) first, each
@@ -475,13 +530,14 @@ pub fn generate_lightmap_uvs_paged(
         width: w,
         height,
         meshes: vec![None; source.meshes.len()],
+        copies: Vec::new(),
         scale_offset: vec![None; source.instances.len()],
         pages: page_rows,
     };
     // Per generated mesh: per primitive, split vertices = distinct (original vertex,
     // unwrapped vertex) pairs over its corners.
     if let Some(u) = &unwrapped {
-        for (slot, &m) in order.iter().enumerate() {
+        for (slot, &(m, copy)) in order.iter().enumerate() {
             let local = source.meshes[m].as_ref().expect("generated meshes are placed");
             let out = &u.meshes[slot];
             let mut generated = GeneratedMesh {
@@ -505,8 +561,12 @@ pub fn generate_lightmap_uvs_paged(
                 face += prim.indices.len() / 3;
                 generated.primitives[p] = Some(g);
             }
-            layout.meshes[m] = Some(generated);
+            match copy {
+                None => layout.meshes[m] = Some(generated),
+                Some(c) => copies[c].generated = generated,
+            }
         }
+        layout.copies = std::mem::take(&mut copies);
         for (k, slot) in instance_slot.iter().enumerate() {
             let Some((mi, ii)) = slot else { continue };
             let (page, lo, hi) = u.meshes[*mi].instances[*ii];
@@ -557,7 +617,7 @@ pub fn generate_lightmap_uvs_paged(
             }
             continue;
         }
-        let (Some(generated), Some(so)) = (layout.meshes[inst.mesh].as_ref(), layout.scale_offset[k]) else {
+        let (Some(generated), Some(so)) = (layout.generated_for(k, inst.mesh), layout.scale_offset[k]) else {
             continue;
         };
         let (s, o) = (Vec2::new(so[0], so[1]), Vec2::new(so[2], so[3]));
@@ -616,7 +676,8 @@ pub fn generate_lightmap_uvs_paged(
         width: w,
         height,
         generated_pages: pages,
-        generated_meshes: order.len(),
+        generated_meshes: order.iter().filter(|(_, copy)| copy.is_none()).count(),
+        own_layouts: layout.copies.len(),
         kept_meshes: kept.iter().filter(|k| **k).count(),
         instances: layout.scale_offset.iter().filter(|s| s.is_some()).count(),
         repacked_instances: items.len(),

@@ -12,7 +12,10 @@
 //! glTF requires texture coordinate sets to be numbered from 0 without gaps. Authored
 //! `TEXCOORD_1` accessors are left untouched (bit for bit). Every node of the scene that
 //! places a mesh and did not opt out gets `extras.lightmap = {"page", "scale_offset",
-//! "file"}` (docs/conventions.md); other keys of its `extras` stay.
+//! "file"}` (docs/conventions.md); other keys of its `extras` stay. An instance whose
+//! transform stretches its mesh past `atlas::unwrap::OWN_LAYOUT_RATIO` has a layout of its
+//! own: its mesh is copied (appended to `meshes`, named "NAME (own lightmap layout C)"),
+//! split for that layout, and its node points at the copy.
 //!
 //! The accessors a split primitive used before, and the buffer views only they used,
 //! are removed once nothing else refers to them ([`prune_orphans`]: other primitives,
@@ -314,6 +317,12 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     // The accessors the split primitives used: unused afterwards unless shared.
     let mut replaced = std::collections::BTreeSet::new();
     if let Some(layout) = scene.layout.as_deref() {
+        // The meshes as the input had them, for the copies (the loop below splits them).
+        let original_meshes = if layout.copies.is_empty() {
+            Value::Null
+        } else {
+            doc["meshes"].clone()
+        };
         for (m, generated) in layout.meshes.iter().enumerate() {
             let Some(generated) = generated else { continue };
             for (p, g) in generated.primitives.iter().enumerate() {
@@ -335,6 +344,41 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
                     .split_primitive(&prim, g)
                     .map_err(|e| format!("mesh {m}, primitive {p}: {e}"))?;
                 doc["meshes"][m]["primitives"][p] = prim;
+            }
+        }
+        // A stretched instance's own layout: a copy of its mesh, appended, its nodes
+        // pointed at it.
+        for (c, copy) in layout.copies.iter().enumerate() {
+            let mut mesh = original_meshes[copy.mesh].clone();
+            for (p, g) in copy.generated.primitives.iter().enumerate() {
+                let Some(g) = g else { continue };
+                let prim = mesh["primitives"][p].clone();
+                primitive_accessors(&prim, &mut |a| {
+                    replaced.insert(a);
+                });
+                let mut w = Writer {
+                    doc: &doc,
+                    source,
+                    bin: &mut bin,
+                    views: &mut new_views,
+                    view_base: view_count,
+                    accessors: &mut new_accessors,
+                    accessor_base: accessor_count,
+                };
+                mesh["primitives"][p] = w
+                    .split_primitive(&prim, g)
+                    .map_err(|e| format!("mesh {} (copy {c}), primitive {p}: {e}", copy.mesh))?;
+            }
+            if let Some(name) = mesh.get("name").and_then(Value::as_str).map(str::to_string) {
+                mesh["name"] = json!(format!("{name} (own lightmap layout {c})"));
+            }
+            let meshes = doc["meshes"]
+                .as_array_mut()
+                .ok_or("the document's meshes are not a list")?;
+            meshes.push(mesh);
+            let index = meshes.len() - 1;
+            for &k in &copy.instances {
+                doc["nodes"][source.instances[k].node]["mesh"] = json!(index);
             }
         }
     }

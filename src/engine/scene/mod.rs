@@ -396,12 +396,36 @@ pub struct LightmapLayout {
     pub height: u32,
     /// Per glTF mesh (by index): the generated UVs, when the mesh got them.
     pub meshes: Vec<Option<GeneratedMesh>>,
+    /// Layouts of their own for instances whose transform stretches their mesh
+    /// (`atlas::unwrap::OWN_LAYOUT_RATIO`): each written as a copy of the mesh.
+    pub copies: Vec<MeshCopy>,
     /// Per entry of [`SourceDocument::instances`]: `[sx, sy, ox, oy]` such that the UV in
     /// the bake's grid = TEXCOORD_1 · (sx, sy) + (ox, oy); None for opted-out instances.
     /// [`Scene::placements`] turns it into the page and the page's own scale/offset.
     pub scale_offset: Vec<Option<[f32; 4]>>,
     /// The output pages, as row bands of the grid, top to bottom, covering it.
     pub pages: Vec<PageRows>,
+}
+
+/// A copy of a glTF mesh with a lightmap layout of its own, for the instances listed
+/// (entries of [`SourceDocument::instances`]): `scene::export` appends it to the written
+/// document's meshes and points those instances' nodes at it.
+#[derive(Debug, Clone, Default)]
+pub struct MeshCopy {
+    pub mesh: usize,
+    pub generated: GeneratedMesh,
+    pub instances: Vec<usize>,
+}
+
+impl LightmapLayout {
+    /// The generated UVs instance `instance` (of glTF mesh `mesh`) is baked with: its
+    /// copy's, else its mesh's.
+    pub fn generated_for(&self, instance: usize, mesh: usize) -> Option<&GeneratedMesh> {
+        match self.copies.iter().find(|c| c.instances.contains(&instance)) {
+            Some(c) => Some(&c.generated),
+            None => self.meshes.get(mesh).and_then(Option::as_ref),
+        }
+    }
 }
 
 /// The rows of the bake's texel grid that make one output page (`lightmap-P.exr`): pages
@@ -429,6 +453,8 @@ pub struct Placement {
     pub instance: usize,
     /// The glTF node.
     pub node: usize,
+    /// The mesh the node uses in the written glTF: the input's, or the copy appended for
+    /// a stretched instance's own layout ([`MeshCopy`]).
     pub mesh: usize,
     pub page: u32,
     pub scale_offset: [f32; 4],
@@ -502,10 +528,17 @@ impl Scene {
                     Some(l) => page_placement(&l.pages, l.height, l.scale_offset.get(k).copied().flatten()?),
                     None => (inst.authored_page, inst.authored_scale_offset),
                 };
+                // A copy of the mesh with its own layout is appended after the input's
+                // meshes in the written glTF (`export`): that is the mesh the node uses.
+                let mesh = self
+                    .layout
+                    .as_deref()
+                    .and_then(|l| l.copies.iter().position(|c| c.instances.contains(&k)))
+                    .map_or(inst.mesh, |c| source.json["meshes"].as_array().map_or(0, Vec::len) + c);
                 Some(Placement {
                     instance: k,
                     node: inst.node,
-                    mesh: inst.mesh,
+                    mesh,
                     page,
                     scale_offset,
                 })
