@@ -21,6 +21,7 @@ struct DirectUniform {
     counts: vec4<u32>,  // x: valid texels n, y: samples per step, z: step index, w: half (0 even, 1 odd)
     keys: vec4<u32>,    // x: seed low 32 bits, y: seed high; z: DIRECT_* flags; w: unused
     f: vec4<f32>,       // x: blend 1/k of the half's k-th step; y, z, w: unused
+    slice: vec4<u32>,   // texels: x the dispatch's first, y its count (a sliced step); zw unused
 }
 
 @group(0) @binding(5) var<uniform> du: DirectUniform;
@@ -39,9 +40,12 @@ fn direct_rng(texel: u32, sample: u32) -> Rng {
 @compute @workgroup_size(64)
 fn direct(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
           @builtin(local_invocation_index) lid: u32) {
-    let i = invocation_index(wid, nwg, lid);
+    // A step runs as one dispatch or in slices (TexelRayPass::step_sliced): this
+    // dispatch's invocations are texels slice.x, slice.x + 1, ... (slice.y of them).
+    let j = invocation_index(wid, nwg, lid);
+    let i = du.slice.x + j;
     let n = du.counts.x;
-    if i >= n {
+    if j >= du.slice.y || i >= n {
         return;
     }
     let t = texels[i];

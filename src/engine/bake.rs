@@ -23,9 +23,9 @@
 //! for them ([`Technique::wait_for_steps`]) before it times the step, so the prediction
 //! sees what a step costs on the device rather than what its submission took.
 //!
-//! Limits: techniques that ignore the deadline (the GPU ones but `path`: a step is one
-//! dispatch or a few, and a dispatch cannot be stopped once submitted) still finish the
-//! step in progress; the
+//! Limits: techniques that ignore the deadline (the GPU ones but `path` and `sdf`, whose
+//! long pass is the shared direct light, sliced: a step is one dispatch or a few, and a
+//! dispatch cannot be stopped once submitted) still finish the step in progress; the
 //! control texels' reference and the shadowmask pass keep pace with the technique and
 //! are not cut short either.
 

@@ -39,7 +39,7 @@ use glam::Vec3;
 use super::scene_lights::LightSources;
 use super::scene_rays::SceneRays;
 use super::shaders::DIRECT_LIGHT;
-use super::texel_pass::{PassSpec, StepUniform, TexelRayPass};
+use super::texel_pass::{PassSpec, Sliced, StepUniform, TexelRayPass};
 use super::{GpuContext, GpuError};
 use crate::engine::atlas::Atlas;
 use crate::engine::raytrace::EmitterTable;
@@ -54,6 +54,8 @@ struct DirectUniform {
     counts: [u32; 4],
     keys: [u32; 4],
     f: [f32; 4],
+    /// The dispatch's first texel and texel count (a sliced step).
+    slice: [u32; 4],
 }
 
 impl StepUniform for DirectUniform {
@@ -61,6 +63,9 @@ impl StepUniform for DirectUniform {
         self.counts[2] = step as u32;
         self.counts[3] = half;
         self.f[0] = weight;
+    }
+    fn set_slice(&mut self, first: u32, count: u32) {
+        self.slice = [first, count, 0, 0];
     }
 }
 
@@ -115,6 +120,7 @@ impl DirectLight {
             counts: [n as u32, samples_per_step.clamp(1, MAX_SAMPLES_PER_STEP), 0, 0],
             keys: [seed as u32, (seed >> 32) as u32, if hits { DIRECT_HITS } else { 0 }, 0],
             f: [1.0, 0.0, 0.0, 0.0],
+            slice: [0, n as u32, 0, 0],
         };
         let spec = PassSpec {
             what: &what,
@@ -148,6 +154,18 @@ impl DirectLight {
     /// Submits one step (one dispatch) into the half of its parity; does not wait.
     pub fn step(&mut self) -> Result<(), GpuError> {
         self.pass.step()
+    }
+
+    /// One step of a bake with a deadline or a watcher (`go_on` Some: sliced when it may
+    /// be long, and undone when `go_on` says stop between slices), or of one without
+    /// (`TexelRayPass::step_watched`).
+    pub fn step_watched(&mut self, go_on: Option<&mut dyn FnMut(u64, u64) -> bool>) -> Result<Sliced, GpuError> {
+        self.pass.step_watched(go_on)
+    }
+
+    /// The next watched step is sliced and timed again (a new deadline).
+    pub fn forget_step_length(&mut self) {
+        self.pass.forget_step_length();
     }
 
     /// From now on each step replaces its half instead of joining its mean, so the

@@ -120,7 +120,18 @@ pub struct TexelRayPass<U: StepUniform> {
     /// Per accumulator, a half's copy for [`TexelRayPass::step_sliced`] (made on its first
     /// use).
     backups: Vec<wgpu::Buffer>,
+    /// How long the last step took ([`TexelRayPass::step_watched`]): a sliced step's own
+    /// time, or the time between two returns of pipelined whole steps (each returns once
+    /// the one before it is done, so in a steady run that is a step's length); None before
+    /// the first.
+    last_step: Option<std::time::Duration>,
+    returned: Option<std::time::Instant>,
 }
+
+/// A step at least this long runs sliced in a watched bake ([`TexelRayPass::step_watched`]):
+/// a deadline or a cancel is then kept to about a slice (50 ms), and shorter steps keep the
+/// pipelining of whole dispatches.
+pub const LONG_STEP: std::time::Duration = std::time::Duration::from_millis(250);
 
 impl<U: StepUniform> TexelRayPass<U> {
     pub fn new(
@@ -217,6 +228,8 @@ impl<U: StepUniform> TexelRayPass<U> {
             _texels: texels,
             _tables: tables,
             backups: Vec::new(),
+            last_step: None,
+            returned: None,
         })
     }
 
@@ -260,6 +273,36 @@ impl<U: StepUniform> TexelRayPass<U> {
         }
         self.half_steps[half] = k;
         Ok(())
+    }
+
+    /// One step of a bake that has a deadline or a watcher that may cancel (`go_on` Some:
+    /// asked between slices whether to go on, as in [`TexelRayPass::step_sliced`]), or of
+    /// one that has neither (None: a whole step). A watched step that may be long (the
+    /// first, its length not known yet, and any after a step of [`LONG_STEP`] or more) runs
+    /// in slices; a shorter one runs whole and pipelined.
+    pub fn step_watched(&mut self, go_on: Option<&mut dyn FnMut(u64, u64) -> bool>) -> Result<Sliced, GpuError> {
+        if let Some(go_on) = go_on
+            && self.last_step.is_none_or(|d| d >= LONG_STEP)
+        {
+            let t0 = std::time::Instant::now();
+            let done = self.step_sliced(go_on)?;
+            self.last_step = Some(t0.elapsed());
+            self.returned = None;
+            return Ok(done);
+        }
+        self.step()?;
+        let now = std::time::Instant::now();
+        if let Some(before) = self.returned.replace(now) {
+            self.last_step = Some(now - before);
+        }
+        Ok(Sliced::Done)
+    }
+
+    /// Forgets the last step's length: the next watched step is sliced and timed again
+    /// (a new deadline).
+    pub fn forget_step_length(&mut self) {
+        self.last_step = None;
+        self.returned = None;
     }
 
     /// One step in slices of invocations, each waited for, `go_on(done, of)` asked after

@@ -129,6 +129,22 @@ impl StepProgress {
     }
 }
 
+/// What a step sliced on the GPU asks between slices (`TexelRayPass::step_watched`): it
+/// reports `done` of `of` to `progress`, and says go on unless `deadline` has passed or
+/// the watcher asked to stop.
+pub fn go_on_until(
+    deadline: Option<std::time::Instant>,
+    progress: Option<&StepProgress>,
+) -> impl FnMut(u64, u64) -> bool + '_ {
+    move |done, of| {
+        if let Some(p) = progress {
+            p.set(done, of);
+        }
+        !(progress.is_some_and(StepProgress::stop_requested)
+            || deadline.is_some_and(|d| std::time::Instant::now() >= d))
+    }
+}
+
 pub trait Technique: Send {
     fn id(&self) -> &'static str;
     /// The parameters in effect, defaults filled in (written into the EXR header).

@@ -28,7 +28,7 @@
 //! wavefront would recover on hardware GPUs.
 //!
 //! A step is one dispatch, or, when it may be long in a bake with a deadline or a watcher,
-//! slices of about 50 ms that can be stopped and undone ([`PathGpu::step_sliced`]).
+//! slices of about 50 ms that can be stopped and undone ([`PathGpu::step_watched`]).
 //!
 //! Precision: world space f32, as the CPU. Limits: every storage buffer must fit the
 //! adapter's binding limit (128 MiB on lavapipe: about 1.4M triangles' shading data, 8M
@@ -46,7 +46,7 @@ use crate::engine::gpu::scene_lights::LightSources;
 pub use crate::engine::gpu::texel_pass::Sliced;
 use crate::engine::gpu::texel_pass::{PassSpec, StepUniform, TexelRayPass};
 use crate::engine::gpu::{GpuContext, GpuError};
-use crate::engine::technique::api::{BakeInputs, EngineError, gpu_error};
+use crate::engine::technique::api::{BakeInputs, EngineError, go_on_until, gpu_error};
 
 /// Where `path` runs (`params.device`): the shared layer's [`RayDevice`](crate::engine::gpu::RayDevice).
 pub use crate::engine::gpu::RayDevice as Device;
@@ -177,27 +177,23 @@ impl PathGpu {
         self.pass.first_step = first;
     }
 
-    /// Submits one step (one dispatch); does not wait for it.
-    pub fn step(&mut self) -> Result<(), EngineError> {
-        self.pass.step().map_err(gpu_error)
-    }
-
-    /// One step in slices of texels of about 50 ms each, waited for, stopping between two
-    /// slices once `deadline` has passed or `progress` asks to stop (the step is then undone
-    /// and adds nothing); `progress` is told how far the step is after each slice. The same
-    /// values as [`PathGpu::step`] when it runs to the end.
-    pub fn step_sliced(
+    /// One step of a bake with a deadline or a watcher (sliced when it may be long), or
+    /// of one without (whole): `TexelRayPass::step_watched`.
+    pub fn step_watched(
         &mut self,
         deadline: Option<std::time::Instant>,
         progress: Option<&crate::engine::technique::api::StepProgress>,
     ) -> Result<Sliced, EngineError> {
-        let mut go_on = |done: u64, of: u64| {
-            if let Some(p) = progress {
-                p.set(done, of);
-            }
-            !(progress.is_some_and(|p| p.stop_requested()) || deadline.is_some_and(|d| std::time::Instant::now() >= d))
-        };
-        self.pass.step_sliced(&mut go_on).map_err(gpu_error)
+        let mut go_on = go_on_until(deadline, progress);
+        let watched = deadline.is_some() || progress.is_some();
+        self.pass
+            .step_watched(watched.then_some(&mut go_on as &mut dyn FnMut(u64, u64) -> bool))
+            .map_err(gpu_error)
+    }
+
+    /// The next watched step is sliced and timed again (a new deadline).
+    pub fn forget_step_length(&mut self) {
+        self.pass.forget_step_length();
     }
 
     pub fn snapshot(&mut self) -> Result<Snapshot, EngineError> {

@@ -55,8 +55,8 @@
 //! samples of the chunks already done are dropped: the half accumulators count whole
 //! steps, and a step over part of the texels would weight those texels differently.
 //! On the GPU, in a bake with a deadline or a watcher, a step that may be long (the first,
-//! and any seen to take [`LONG_GPU_STEP`] or more) runs in slices of texels of about 50 ms
-//! (`PathGpu::step_sliced`, `TexelRayPass::step_sliced`) with the same checks between
+//! and any seen to take `gpu::texel_pass::LONG_STEP` or more) runs in slices of texels of about 50 ms
+//! (`PathGpu::step_watched`, `TexelRayPass::step_watched`) with the same checks between
 //! slices; a step stopped there is undone on the device (its half copied aside and back),
 //! and shorter steps keep two whole dispatches in flight. The chunks (or slices) done are
 //! also reported as the step's progress (`bake::StepProgress`), for a long step's watchers.
@@ -247,18 +247,7 @@ pub struct PathTracer {
     deadline: Option<Instant>,
     /// Where a CPU step reports its chunks done (and a sliced GPU step its slices).
     progress: Option<crate::engine::technique::api::StepProgress>,
-    /// How long a GPU step takes, as last seen: a sliced step's own time, or the time
-    /// between two returns of pipelined steps (each returns once the one before it is
-    /// done, so in a steady run that is a step's length); `None` before the first.
-    gpu_step: Option<std::time::Duration>,
-    /// When the last pipelined GPU step returned.
-    gpu_returned: Option<Instant>,
 }
-
-/// A GPU step at least this long runs sliced when the bake has a deadline or a watcher
-/// that may cancel (`PathGpu::step_sliced`): a deadline is then kept to about a slice
-/// (50 ms), and shorter steps keep the pipelining of whole dispatches.
-const LONG_GPU_STEP: std::time::Duration = std::time::Duration::from_millis(250);
 
 /// Paths a CPU step traces between two looks at the deadline: a chunk is this many paths'
 /// worth of texels (256 texels at the default 4 samples, one texel at 1024 or more), a
@@ -294,8 +283,6 @@ impl PathTracer {
             first_step: 0,
             deadline: None,
             progress: None,
-            gpu_step: None,
-            gpu_returned: None,
         })
     }
 }
@@ -313,22 +300,10 @@ impl Technique for PathTracer {
         if let Some(gpu) = self.gpu.as_mut() {
             // A step that may be long, in a bake that has a limit or may be cancelled, runs
             // in slices (the first step always: its length is not known yet).
-            let watched = self.deadline.is_some() || self.progress.is_some();
-            if watched && self.gpu_step.is_none_or(|d| d >= LONG_GPU_STEP) {
-                let t0 = Instant::now();
-                if gpu.step_sliced(self.deadline, self.progress.as_ref())? == gpu::Sliced::Abandoned {
-                    tracing::debug!(
-                        "path on the GPU: the deadline passed or a stop was asked mid-step; the step is undone"
-                    );
-                }
-                self.gpu_step = Some(t0.elapsed());
-                self.gpu_returned = None;
-                return Ok(());
-            }
-            gpu.step()?;
-            let now = Instant::now();
-            if let Some(before) = self.gpu_returned.replace(now) {
-                self.gpu_step = Some(now - before);
+            if gpu.step_watched(self.deadline, self.progress.as_ref())? == gpu::Sliced::Abandoned {
+                tracing::debug!(
+                    "path on the GPU: the deadline passed or a stop was asked mid-step; the step is undone"
+                );
             }
             return Ok(());
         }
@@ -423,7 +398,9 @@ impl Technique for PathTracer {
     fn set_deadline(&mut self, deadline: Option<Instant>) {
         self.deadline = deadline;
         // A GPU step's length is measured again, in slices, under the new limit.
-        self.gpu_step = None;
+        if let Some(gpu) = self.gpu.as_mut() {
+            gpu.forget_step_length();
+        }
     }
 
     fn set_step_progress(&mut self, progress: crate::engine::technique::api::StepProgress) {
