@@ -358,7 +358,6 @@ fn gpu_paths_cut_by_the_adapters_loop_budget_are_refused() {
 fn gpu_sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
     use lightmapd::engine::technique::{self, BakeInputs, Technique};
     use std::sync::Arc;
-    use std::time::{Duration, Instant};
     if !have_gpu() {
         return;
     }
@@ -378,43 +377,5 @@ fn gpu_sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
         let inputs = BakeInputs::new(scene.clone(), atlas.clone(), Lighting::default(), 7, plan);
         technique::create("path", inputs, &gpu(json!({"samples_per_step": 4}))).unwrap()
     };
-    let totals = |t: &mut Box<dyn Technique>| {
-        let s = t.snapshot().unwrap();
-        (s.even.steps, s.odd.steps, s.even.total, s.odd.total)
-    };
-    let mut whole = make();
-    for _ in 0..3 {
-        whole.step().unwrap();
-    }
-    let mut sliced = make();
-    let progress = lightmapd::engine::technique::api::StepProgress::new();
-    sliced.set_step_progress(progress.clone());
-    sliced.set_deadline(Some(Instant::now() + Duration::from_secs(3600)));
-    sliced.step().unwrap();
-    assert_eq!(progress.permille(), 1000, "the watcher heard the last slice");
-    for _ in 0..2 {
-        sliced.step().unwrap();
-    }
-    assert_eq!(sliced.steps_done(), 3);
-    assert!(
-        totals(&mut whole) == totals(&mut sliced),
-        "a sliced step differs from a whole one"
-    );
-
-    // Two whole steps, then a third stopped after its first slice (its half, the even
-    // one, already holds a step: blended at 1/2, the slice's texels would read wrong if
-    // not put back), then the third again, whole.
-    let mut cut = make();
-    for _ in 0..2 {
-        cut.step().unwrap();
-    }
-    cut.set_deadline(Some(Instant::now()));
-    cut.step().unwrap();
-    assert_eq!(cut.steps_done(), 2, "a step stopped between slices does not count");
-    cut.set_deadline(None);
-    cut.step().unwrap();
-    assert!(
-        totals(&mut cut) == totals(&mut whole),
-        "after an abandoned step the half is not as it was"
-    );
+    common::assert_sliced_steps_match_whole(&make);
 }

@@ -344,8 +344,7 @@ fn ao_layer_is_the_sky_visibility() {
 #[test]
 fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
     use lightmapd::engine::scene::Sun;
-    use lightmapd::engine::technique::{self, api::StepProgress};
-    use std::time::{Duration, Instant};
+    use lightmapd::engine::technique;
     let _gpu = common::gpu_serial();
     let scene = Arc::new(import(&sphere_over_plane()));
     // 160²: thousands of texels, more than the first slices (256, then at most 8x more).
@@ -369,41 +368,5 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
         let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting.clone(), 7, plan);
         technique::create("sdf", inputs, &json!({"resolution": 48})).unwrap()
     };
-    let totals = |t: &mut Box<dyn Technique>| {
-        let s = t.snapshot().unwrap();
-        (s.even.steps, s.odd.steps, s.even.total, s.odd.total)
-    };
-    let mut whole = make();
-    for _ in 0..3 {
-        whole.step().unwrap();
-    }
-    let mut sliced = make();
-    let progress = StepProgress::new();
-    sliced.set_step_progress(progress.clone());
-    sliced.set_deadline(Some(Instant::now() + Duration::from_secs(3600)));
-    sliced.step().unwrap();
-    assert_eq!(progress.permille(), 1000, "the watcher heard the last slice");
-    for _ in 0..2 {
-        sliced.step().unwrap();
-    }
-    assert_eq!(sliced.steps_done(), 3);
-    assert!(
-        totals(&mut whole) == totals(&mut sliced),
-        "a sliced step differs from a whole one"
-    );
-
-    // Two whole steps, a third stopped after its first slice, then the third again.
-    let mut cut = make();
-    for _ in 0..2 {
-        cut.step().unwrap();
-    }
-    cut.set_deadline(Some(Instant::now()));
-    cut.step().unwrap();
-    assert_eq!(cut.steps_done(), 2, "a step stopped between slices does not count");
-    cut.set_deadline(None);
-    cut.step().unwrap();
-    assert!(
-        totals(&mut cut) == totals(&mut whole),
-        "after an abandoned step a half is not as it was"
-    );
+    common::assert_sliced_steps_match_whole(&make);
 }

@@ -170,3 +170,50 @@ pub fn validate_gltf(path: &std::path::Path) -> serde_json::Value {
         .unwrap_or_else(|| panic!("validator printed nothing: {}", String::from_utf8_lossy(&out.stderr)));
     serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}"))
 }
+
+/// A technique's GPU steps in slices (issue 19 point 10) against whole ones: with a far
+/// deadline and a watcher, three steps (the first sliced) equal three whole ones bit for
+/// bit and the watcher hears the last slice; two whole steps, then a third stopped after
+/// its first slice by a deadline already past (it does not count), then the third again
+/// whole, equal the three whole ones too: a stopped step leaves every half as it was.
+/// `make` builds a fresh technique over a grid of more texels than the first slices.
+pub fn assert_sliced_steps_match_whole(make: &dyn Fn() -> Box<dyn lightmapd::engine::technique::Technique>) {
+    use lightmapd::engine::technique::api::StepProgress;
+    use std::time::{Duration, Instant};
+    let totals = |t: &mut Box<dyn lightmapd::engine::technique::Technique>| {
+        let s = t.snapshot().unwrap();
+        (s.even.steps, s.odd.steps, s.even.total, s.odd.total)
+    };
+    let mut whole = make();
+    for _ in 0..3 {
+        whole.step().unwrap();
+    }
+    let mut sliced = make();
+    let progress = StepProgress::new();
+    sliced.set_step_progress(progress.clone());
+    sliced.set_deadline(Some(Instant::now() + Duration::from_secs(3600)));
+    sliced.step().unwrap();
+    assert_eq!(progress.permille(), 1000, "the watcher heard the last slice");
+    for _ in 0..2 {
+        sliced.step().unwrap();
+    }
+    assert_eq!(sliced.steps_done(), 3);
+    assert!(
+        totals(&mut whole) == totals(&mut sliced),
+        "a sliced step differs from a whole one"
+    );
+
+    let mut cut = make();
+    for _ in 0..2 {
+        cut.step().unwrap();
+    }
+    cut.set_deadline(Some(Instant::now()));
+    cut.step().unwrap();
+    assert_eq!(cut.steps_done(), 2, "a step stopped between slices does not count");
+    cut.set_deadline(None);
+    cut.step().unwrap();
+    assert!(
+        totals(&mut cut) == totals(&mut whole),
+        "after an abandoned step a half is not as it was"
+    );
+}

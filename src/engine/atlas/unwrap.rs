@@ -110,6 +110,17 @@ pub struct UnwrapMesh {
     pub instance_scales: Vec<f32>,
 }
 
+impl UnwrapMesh {
+    /// Surface area in the mesh's own units.
+    fn area(&self) -> f64 {
+        let p = |i: u32| glam::DVec3::from(self.positions[i as usize].map(f64::from));
+        self.indices
+            .chunks_exact(3)
+            .map(|c| 0.5 * (p(c[1]) - p(c[0])).cross(p(c[2]) - p(c[0])).length())
+            .sum()
+    }
+}
+
 /// One unwrapped mesh: split vertices (UV in the mesh's [0, 1] layout), the same triangles
 /// over them, and per instance its page and rectangle `[min, max]` in page UV.
 pub struct UnwrappedMesh {
@@ -793,11 +804,7 @@ fn page_width_for(inputs: &[UnwrapMesh], t: f32, resolution: u32, max_page_size:
     let mut side = 0.0f64;
     for m in inputs {
         let p = |i: u32| glam::DVec3::from(m.positions[i as usize].map(f64::from));
-        let local: f64 = m
-            .indices
-            .chunks_exact(3)
-            .map(|c| 0.5 * (p(c[1]) - p(c[0])).cross(p(c[2]) - p(c[0])).length())
-            .sum();
+        let local = m.area();
         // The largest face of the mesh's box: a flat mesh unwraps to about that.
         let (lo, hi) = m.indices.iter().fold(
             (glam::DVec3::splat(f64::INFINITY), glam::DVec3::splat(f64::NEG_INFINITY)),
@@ -825,12 +832,7 @@ fn page_width_for(inputs: &[UnwrapMesh], t: f32, resolution: u32, max_page_size:
 fn scaled_down(inputs: &[UnwrapMesh], u: &Unwrapped, t: f32) -> bool {
     let page = glam::DVec2::new(f64::from(u.width), f64::from(u.page_height));
     inputs.iter().zip(&u.meshes).any(|(m, out)| {
-        let p = |i: u32| glam::DVec3::from(m.positions[i as usize].map(f64::from));
-        let local: f64 = m
-            .indices
-            .chunks_exact(3)
-            .map(|c| 0.5 * (p(c[1]) - p(c[0])).cross(p(c[2]) - p(c[0])).length())
-            .sum();
+        let local = m.area();
         let uv = |i: u32| out.uv[i as usize].as_dvec2();
         let covered: f64 = out
             .indices

@@ -317,61 +317,39 @@ pub fn to_glb(scene: &Scene) -> Result<Vec<u8>, String> {
     // The accessors the split primitives used: unused afterwards unless shared.
     let mut replaced = std::collections::BTreeSet::new();
     if let Some(layout) = scene.layout.as_deref() {
-        // The meshes as the input had them, for the copies (the loop below splits them).
-        let original_meshes = if layout.copies.is_empty() {
-            Value::Null
-        } else {
-            doc["meshes"].clone()
+        let mut w = Writer {
+            doc: &doc,
+            source,
+            bin: &mut bin,
+            views: &mut new_views,
+            view_base: view_count,
+            accessors: &mut new_accessors,
+            accessor_base: accessor_count,
         };
+        let mut split = Vec::new();
         for (m, generated) in layout.meshes.iter().enumerate() {
-            let Some(generated) = generated else { continue };
-            for (p, g) in generated.primitives.iter().enumerate() {
-                let Some(g) = g else { continue };
-                let prim = doc["meshes"][m]["primitives"][p].clone();
-                primitive_accessors(&prim, &mut |a| {
-                    replaced.insert(a);
-                });
-                let mut w = Writer {
-                    doc: &doc,
-                    source,
-                    bin: &mut bin,
-                    views: &mut new_views,
-                    view_base: view_count,
-                    accessors: &mut new_accessors,
-                    accessor_base: accessor_count,
-                };
-                let prim = w
-                    .split_primitive(&prim, g)
-                    .map_err(|e| format!("mesh {m}, primitive {p}: {e}"))?;
-                doc["meshes"][m]["primitives"][p] = prim;
+            if let Some(g) = generated {
+                split.push((
+                    m,
+                    w.split_mesh(&doc["meshes"][m], g, &mut replaced, &format!("mesh {m}"))?,
+                ));
             }
         }
-        // A stretched instance's own layout: a copy of its mesh, appended, its nodes
-        // pointed at it.
+        // A stretched instance's own layout: a copy of its mesh (as the input had it),
+        // appended, its nodes pointed at it.
+        let mut copies = Vec::new();
         for (c, copy) in layout.copies.iter().enumerate() {
-            let mut mesh = original_meshes[copy.mesh].clone();
-            for (p, g) in copy.generated.primitives.iter().enumerate() {
-                let Some(g) = g else { continue };
-                let prim = mesh["primitives"][p].clone();
-                primitive_accessors(&prim, &mut |a| {
-                    replaced.insert(a);
-                });
-                let mut w = Writer {
-                    doc: &doc,
-                    source,
-                    bin: &mut bin,
-                    views: &mut new_views,
-                    view_base: view_count,
-                    accessors: &mut new_accessors,
-                    accessor_base: accessor_count,
-                };
-                mesh["primitives"][p] = w
-                    .split_primitive(&prim, g)
-                    .map_err(|e| format!("mesh {} (copy {c}), primitive {p}: {e}", copy.mesh))?;
-            }
+            let what = format!("mesh {} (copy {c})", copy.mesh);
+            let mut mesh = w.split_mesh(&doc["meshes"][copy.mesh], &copy.generated, &mut replaced, &what)?;
             if let Some(name) = mesh.get("name").and_then(Value::as_str).map(str::to_string) {
                 mesh["name"] = json!(format!("{name} (own lightmap layout {c})"));
             }
+            copies.push(mesh);
+        }
+        for (m, mesh) in split {
+            doc["meshes"][m] = mesh;
+        }
+        for (copy, mesh) in layout.copies.iter().zip(copies) {
             let meshes = doc["meshes"]
                 .as_array_mut()
                 .ok_or("the document's meshes are not a list")?;
@@ -652,6 +630,29 @@ fn decode(ct: u64, b: &[u8]) -> f64 {
 }
 
 impl Writer<'_> {
+    /// `mesh` (the input's JSON) with each primitive that has generated UVs in `generated`
+    /// split for them; the accessors the old primitives used go into `replaced`.
+    fn split_mesh(
+        &mut self,
+        mesh: &Value,
+        generated: &super::GeneratedMesh,
+        replaced: &mut std::collections::BTreeSet<usize>,
+        what: &str,
+    ) -> Result<Value, String> {
+        let mut out = mesh.clone();
+        for (p, g) in generated.primitives.iter().enumerate() {
+            let Some(g) = g else { continue };
+            let prim = &mesh["primitives"][p];
+            primitive_accessors(prim, &mut |a| {
+                replaced.insert(a);
+            });
+            out["primitives"][p] = self
+                .split_primitive(prim, g)
+                .map_err(|e| format!("{what}, primitive {p}: {e}"))?;
+        }
+        Ok(out)
+    }
+
     fn push_view(&mut self, bytes: &[u8], stride: Option<usize>, target: u32) -> usize {
         align(self.bin, 4);
         let mut v = json!({"buffer": 0, "byteOffset": self.bin.len(), "byteLength": bytes.len(), "target": target});
