@@ -543,3 +543,35 @@ fn command_line_bakes_the_bundled_scene_with_ao_and_updates_it() {
     assert_eq!(bad.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&bad.stderr).contains("no mesh named \"teapot\""));
 }
+
+/// The shared direct light (the point and spot lights) is stepped first and, under a
+/// deadline or a watcher, in slices (issue 19 point 10): sliced steps equal whole ones bit
+/// for bit, and a step stopped between slices adds nothing to any half (the directions of
+/// the step do not run either).
+#[test]
+fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
+    use lightmapd::engine::scene::build::LightDesc;
+    use lightmapd::engine::technique;
+    let _gpu = common::gpu_serial();
+    let mut b = sphere_over_plane();
+    b.light(LightDesc::Point {
+        position: Vec3::new(0.3, 2.5, -0.2),
+        color: [1.0, 0.8, 0.6],
+        intensity: 5.0,
+    });
+    let scene = Arc::new(import(&b));
+    let atlas = Arc::new(Atlas::build(&scene, 160, 160).unwrap());
+    assert!(atlas.texels.len() > 8192, "{} texels", atlas.texels.len());
+    let lighting = sky(1.0);
+    let make = || -> Box<dyn Technique> {
+        let request = BakeRequest {
+            technique: "obscurance".into(),
+            lighting: lighting.clone(),
+            ..Default::default()
+        };
+        let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
+        let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting.clone(), 7, plan);
+        technique::create("obscurance", inputs, &json!({"map_size": 128})).unwrap()
+    };
+    common::assert_sliced_steps_match_whole(&make);
+}

@@ -23,9 +23,10 @@
 //! for them ([`Technique::wait_for_steps`]) before it times the step, so the prediction
 //! sees what a step costs on the device rather than what its submission took.
 //!
-//! Limits: techniques that ignore the deadline (the GPU ones but `path` and `sdf`, whose
-//! long pass is the shared direct light, sliced: a step is one dispatch or a few, and a
-//! dispatch cannot be stopped once submitted) still finish the step in progress; the
+//! Limits: the parts of a step that ignore the deadline (all of a GPU step but `path`'s
+//! and the shared direct light's in `sdf` and `obscurance`, which run sliced: a step is
+//! one dispatch or a few, and a dispatch cannot be stopped once submitted) still finish
+//! the step in progress; the
 //! control texels' reference and the shadowmask pass keep pace with the technique and
 //! are not cut short either.
 

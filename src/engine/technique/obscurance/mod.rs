@@ -127,7 +127,8 @@ mod update;
 pub use update::{ObscuranceState, UpdateReach, UpdateReport};
 
 use super::api::{
-    AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params,
+    AlphaSupport, BakeInputs, EngineError, LightSource, StepProgress, TaskSplit, Technique, TechniqueEntry,
+    go_on_until, gpu_error, parse_params,
 };
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
@@ -137,6 +138,7 @@ use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene};
 use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowDraw, ShadowView, map_triangle_planes};
+use crate::engine::gpu::texel_pass::Sliced;
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::view::{
     DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view,
@@ -425,8 +427,12 @@ pub struct Obscurance {
     last_ao: Option<Vec<f32>>,
     last_stats: LayerStats,
     /// Point and spot lights, and emitters unless `emitters = gathered`: the shared
-    /// direct-light module, stepped once per step.
+    /// direct-light module, stepped once per step, first: in a bake with a time limit or
+    /// a watcher its step may run in slices and be stopped and undone between two
+    /// (`TexelRayPass::step_watched`), and the rest of the step then does not run.
     shared_direct: Option<DirectLight>,
+    deadline: Option<std::time::Instant>,
+    progress: Option<StepProgress>,
 
     vertex_count: u32,
     vertex_buf: wgpu::Buffer,
@@ -977,6 +983,8 @@ impl Obscurance {
             last_ao: None,
             last_stats: LayerStats::default(),
             shared_direct,
+            deadline: None,
+            progress: None,
             vertex_count: vertices.len() as u32,
             vertex_buf,
             view_buf,
@@ -1024,6 +1032,14 @@ impl Obscurance {
     /// direct pass per sun or directional light). Submits and returns; nothing is read.
     fn step_gpu(&mut self) -> Result<(), GpuError> {
         let parity = (self.steps_done % 2) as usize;
+        if let Some(d) = &mut self.shared_direct {
+            let watched = self.deadline.is_some() || self.progress.is_some();
+            let mut go_on = go_on_until(self.deadline, self.progress.as_ref());
+            if d.step_watched(watched.then_some(&mut go_on as &mut dyn FnMut(u64, u64) -> bool))? == Sliced::Abandoned {
+                tracing::debug!("obscurance: the deadline passed or a stop was asked mid-step; the step is undone");
+                return Ok(());
+            }
+        }
         let n = self.params.map_size;
         let count = self.texels_to_process();
         let dispatch = gpu::dispatch_size_64(count);
@@ -1146,9 +1162,6 @@ impl Obscurance {
                     self.ctx.queue.submit([encoder.finish()]);
                 }
             }
-        }
-        if let Some(d) = &mut self.shared_direct {
-            d.step()?;
         }
         self.half_steps[parity] += 1;
         self.steps_done += 1;
@@ -1298,6 +1311,17 @@ impl Technique for Obscurance {
 
     fn wait_for_steps(&mut self) -> Result<(), EngineError> {
         self.ctx.wait_idle().map_err(gpu_error)
+    }
+
+    fn set_deadline(&mut self, deadline: Option<std::time::Instant>) {
+        self.deadline = deadline;
+        if let Some(d) = &mut self.shared_direct {
+            d.forget_step_length();
+        }
+    }
+
+    fn set_step_progress(&mut self, progress: StepProgress) {
+        self.progress = Some(progress);
     }
 
     fn steps_done(&self) -> u64 {
