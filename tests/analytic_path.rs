@@ -5,9 +5,9 @@ mod common;
 
 use common::{assert_unbiased, bake, import, lum};
 use glam::Vec3;
+use lightmapd::engine::scene::Lighting;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
-use lightmapd::engine::scene::library::{rect_form_factor, sphere_occlusion};
-use lightmapd::engine::scene::{Hemisphere, Lighting, Sky};
+use lightmapd::engine::scene::library::{rect_form_factor, sphere_occlusion, upper_sky};
 use serde_json::json;
 
 /// A closed cube (inward faces) of albedo ρ emitting Le everywhere: the radiance is
@@ -65,16 +65,6 @@ fn closed_cube_albedo_half() {
 #[test]
 fn closed_cube_albedo_point_nine() {
     closed_cube(0.9, 0.25);
-}
-
-fn upper_sky(l: f32) -> Lighting {
-    Lighting {
-        sky: Some(Sky {
-            radiance: Vec3::splat(l),
-            hemisphere: Hemisphere::Upper,
-        }),
-        sun: None,
-    }
 }
 
 #[test]

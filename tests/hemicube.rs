@@ -22,9 +22,9 @@ use glam::Vec3;
 use lightmapd::engine::accumulate::Estimate;
 use lightmapd::engine::gpu::{GpuContext, GpuError, Requirements};
 use lightmapd::engine::job::BakeRequest;
+use lightmapd::engine::scene::Lighting;
 use lightmapd::engine::scene::build::{LightDesc, MaterialDesc, SceneBuilder, cornell_box};
-use lightmapd::engine::scene::library::closed_box;
-use lightmapd::engine::scene::{Hemisphere, Lighting, Sky};
+use lightmapd::engine::scene::library::{closed_box, upper_sky};
 use serde_json::json;
 
 fn have_adapter() -> bool {
@@ -35,16 +35,6 @@ fn have_adapter() -> bool {
             false
         }
         Err(e) => panic!("GPU context (LIGHTMAPD_REQUIRE_GPU=1 makes a missing adapter fatal): {e}"),
-    }
-}
-
-fn upper_sky(l: f32) -> Lighting {
-    Lighting {
-        sky: Some(Sky {
-            radiance: Vec3::splat(l),
-            hemisphere: Hemisphere::Upper,
-        }),
-        sun: None,
     }
 }
 

@@ -20,8 +20,8 @@ use lightmapd::engine::gpu::{self, GpuError, Requirements};
 use lightmapd::engine::job::BakeRequest;
 use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
-use lightmapd::engine::scene::library::{closed_box, sky_plane, sphere_over_plane};
-use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, Sun};
+use lightmapd::engine::scene::library::{closed_box, sky_plane, sphere_over_plane, upper_sky};
+use lightmapd::engine::scene::{Lighting, Scene, Sun};
 use lightmapd::engine::technique::obscurance::{Falloff, Obscurance, ObscuranceHalf, ObscuranceState, UpdateReach};
 use lightmapd::engine::technique::{BakeInputs, Technique};
 use serde_json::{Value, json};
@@ -34,16 +34,6 @@ fn have_adapter() -> bool {
             false
         }
         Err(e) => panic!("GPU context (LIGHTMAPD_REQUIRE_GPU=1 makes a missing adapter fatal): {e}"),
-    }
-}
-
-fn sky(l: f32) -> Lighting {
-    Lighting {
-        sky: Some(Sky {
-            radiance: Vec3::splat(l),
-            hemisphere: Hemisphere::Upper,
-        }),
-        sun: None,
     }
 }
 
@@ -118,7 +108,7 @@ fn open_plane_has_obscurance_one_and_sees_the_sky() {
         let b = bake(
             import(&sky_plane()),
             16,
-            sky(2.0),
+            upper_sky(2.0),
             json!({"map_size": 128, "background": background}),
             8,
         );
@@ -213,7 +203,7 @@ fn point_under_a_black_sphere() {
     let b = bake(
         import(&sphere_over_plane()),
         48,
-        sky(1.0),
+        upper_sky(1.0),
         json!({"dmax": dmax, "map_size": 256}),
         96,
     );
@@ -261,7 +251,13 @@ fn red_wall_tints_the_floor_near_it() {
         Vec3::new(0.0, 0.0, 2.0),
         red,
     );
-    let b = bake(import(&sb), 32, sky(1.0), json!({"map_size": 128, "dmax": 1.0}), 48);
+    let b = bake(
+        import(&sb),
+        32,
+        upper_sky(1.0),
+        json!({"map_size": 128, "dmax": 1.0}),
+        48,
+    );
     let off = b.offset();
     let (mut near, mut far) = (Vec3::ZERO, Vec3::ZERO);
     let (mut near_total, mut far_total) = (Vec3::ZERO, Vec3::ZERO);
@@ -376,14 +372,14 @@ fn incremental_update_recomputes_only_influenced_texels() {
     }
     let params = json!({"map_size": 128, "dmax": 1.0});
     let (res, steps) = (48, 16);
-    let before = bake(blocks(-2.0), res, sky(1.0), params.clone(), steps);
+    let before = bake(blocks(-2.0), res, upper_sky(1.0), params.clone(), steps);
     let state: ObscuranceState = before.tech.state().unwrap();
     assert_eq!(state.steps(), steps);
     let moved = Arc::new(blocks(-1.0));
     let atlas = Arc::new(Atlas::build(&moved, res, res).unwrap());
-    let full = bake(blocks(-1.0), res, sky(1.0), params, steps);
+    let full = bake(blocks(-1.0), res, upper_sky(1.0), params, steps);
     let (mut upd, report) = Obscurance::update(
-        inputs(moved.clone(), atlas.clone(), sky(1.0), 1),
+        inputs(moved.clone(), atlas.clone(), upper_sky(1.0), 1),
         &state,
         &["top", "front", "back", "left", "right"].map(|f| format!("mover {f}")),
         UpdateReach::All,
@@ -393,7 +389,7 @@ fn incremental_update_recomputes_only_influenced_texels() {
     assert!(report.recomputed_texels > 0 && report.recomputed_texels < report.total_texels / 2);
     // The seed's set (hits within dmax) is a subset of the any-distance one.
     let (_, near) = Obscurance::update(
-        inputs(moved.clone(), atlas.clone(), sky(1.0), 1),
+        inputs(moved.clone(), atlas.clone(), upper_sky(1.0), 1),
         &state,
         &["top", "front", "back", "left", "right"].map(|f| format!("mover {f}")),
         UpdateReach::Dmax,
@@ -403,7 +399,7 @@ fn incremental_update_recomputes_only_influenced_texels() {
     assert!(near.recomputed_texels > 0 && near.recomputed_texels <= report.recomputed_texels);
     // Other lighting than the finished bake's is refused, naming the reason.
     let refused = Obscurance::update(
-        inputs(moved.clone(), atlas.clone(), sky(2.0), 1),
+        inputs(moved.clone(), atlas.clone(), upper_sky(2.0), 1),
         &state,
         &["mover top".to_string()],
         UpdateReach::All,
@@ -562,7 +558,7 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
     let scene = Arc::new(import(&b));
     let atlas = Arc::new(Atlas::build(&scene, 160, 160).unwrap());
     assert!(atlas.texels.len() > 8192, "{} texels", atlas.texels.len());
-    let lighting = sky(1.0);
+    let lighting = upper_sky(1.0);
     let make = || -> Box<dyn Technique> {
         let request = BakeRequest {
             technique: "obscurance".into(),

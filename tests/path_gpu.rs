@@ -11,7 +11,7 @@ use common::{assert_unbiased, bake, import, lum};
 use glam::Vec3;
 use lightmapd::engine::gpu::{GpuContext, GpuError, Requirements};
 use lightmapd::engine::scene::build::{LightDesc, MaterialDesc, SceneBuilder, cornell_box};
-use lightmapd::engine::scene::library::{rect_form_factor, sky_plane};
+use lightmapd::engine::scene::library::{rect_form_factor, sky_plane, upper_sky};
 use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, Sun};
 use serde_json::{Value, json};
 
@@ -29,16 +29,6 @@ fn have_gpu() -> bool {
 fn gpu(mut params: Value) -> Value {
     params["device"] = json!("gpu");
     params
-}
-
-fn upper_sky(l: f32) -> Lighting {
-    Lighting {
-        sky: Some(Sky {
-            radiance: Vec3::splat(l),
-            hemisphere: Hemisphere::Upper,
-        }),
-        sun: None,
-    }
 }
 
 /// The furnace: a closed cube of albedo ρ emitting Le reads Le / (1 − ρ) everywhere

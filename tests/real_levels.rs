@@ -408,7 +408,7 @@ fn repack_instances_gives_shared_authored_uvs_a_rectangle_each() {
 
     use lightmapd::engine::bake::StopCriteria;
     use lightmapd::engine::job::{self, BakeRequest};
-    use lightmapd::engine::scene::{Hemisphere, Lighting, Sky};
+    use lightmapd::engine::scene::library::upper_sky;
 
     let mut b = SceneBuilder::new();
     let grey = b.material(MaterialDesc::diffuse("grey", [0.5, 0.5, 0.5]));
@@ -429,13 +429,7 @@ fn repack_instances_gives_shared_authored_uvs_a_rectangle_each() {
     let request = |uvs: LightmapUvs| BakeRequest {
         resolution: 64,
         lightmap_uvs: uvs,
-        lighting: Lighting {
-            sky: Some(Sky {
-                radiance: Vec3::ONE,
-                hemisphere: Hemisphere::Upper,
-            }),
-            sun: None,
-        },
+        lighting: upper_sky(1.0),
         stop: StopCriteria {
             steps: Some(2),
             ..Default::default()

@@ -22,7 +22,8 @@ use common::{bake, import, lum};
 use glam::{Vec2, Vec3};
 use lightmapd::engine::gpu::{GpuContext, GpuError, Requirements};
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box};
-use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, Sun};
+use lightmapd::engine::scene::library::upper_sky;
+use lightmapd::engine::scene::{Lighting, Sun};
 use lightmapd::engine::technique::sdb::{
     AccumulationMode, DirectionSequence, DirectionalLight, SdbEngine, SdbInput, SdbParams, SdbTexel, SdbTriangle,
 };
@@ -404,16 +405,6 @@ fn random_and_stratified_directions_agree() {
 /// Whether the machine has an adapter; prints why a test is skipped otherwise.
 fn have_adapter() -> bool {
     context().is_some()
-}
-
-fn upper_sky(l: f32) -> Lighting {
-    Lighting {
-        sky: Some(Sky {
-            radiance: Vec3::splat(l),
-            hemisphere: Hemisphere::Upper,
-        }),
-        sun: None,
-    }
 }
 
 #[test]

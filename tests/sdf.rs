@@ -15,21 +15,11 @@ use common::{bake, import, lum};
 use glam::Vec3;
 use lightmapd::engine::atlas::{Atlas, Texel};
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
-use lightmapd::engine::scene::library::{sky_plane, sphere_occlusion, sphere_over_plane};
-use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky};
+use lightmapd::engine::scene::library::{sky_plane, sphere_occlusion, sphere_over_plane, upper_sky};
+use lightmapd::engine::scene::{Lighting, Scene};
 use lightmapd::engine::technique::sdf::{BoxShape, DynamicShape, Sdf};
 use lightmapd::engine::technique::{BakeInputs, Technique};
 use serde_json::json;
-
-fn upper_sky(l: f32) -> Lighting {
-    Lighting {
-        sky: Some(Sky {
-            radiance: Vec3::splat(l),
-            hemisphere: Hemisphere::Upper,
-        }),
-        sun: None,
-    }
-}
 
 /// An open plane sees the whole sky: every distance sample along the normal equals its
 /// distance (the signed field of a plane is linear, so trilinear lookups and box-filtered

@@ -16,8 +16,8 @@ use lightmapd::engine::bake::StopCriteria;
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::OutputLayer;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, cornell_box, write_glb};
-use lightmapd::engine::scene::library::{closed_box as closed_box_builder, rect_form_factor};
-use lightmapd::engine::scene::{Hemisphere, Lighting, Scene, Sky, import_slice};
+use lightmapd::engine::scene::library::{closed_box as closed_box_builder, rect_form_factor, upper_sky};
+use lightmapd::engine::scene::{Lighting, Scene, import_slice};
 use lightmapd::engine::technique::{self, LightSource};
 use serde_json::{Value, json};
 
@@ -87,16 +87,6 @@ fn refused_for_emitters(row: &Row, scene: &Scene, lighting: Lighting) -> bool {
             eprintln!("{} refuses the case before baking: {msg}", row.technique);
             true
         }
-    }
-}
-
-fn upper_sky(l: f32) -> Lighting {
-    Lighting {
-        sky: Some(Sky {
-            radiance: Vec3::splat(l),
-            hemisphere: Hemisphere::Upper,
-        }),
-        sun: None,
     }
 }
 

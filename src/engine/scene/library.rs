@@ -57,7 +57,9 @@ pub struct LibraryScene {
     pub analytic: Option<Analytic>,
 }
 
-fn sky(l: f32) -> Lighting {
+/// A uniform sky of radiance `l` over the upper hemisphere, no sun: the lighting of most
+/// closed-form scenes (and of tests).
+pub fn upper_sky(l: f32) -> Lighting {
     Lighting {
         sky: Some(Sky {
             radiance: Vec3::splat(l),
@@ -227,7 +229,7 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
             description: "upward plane under a uniform upper sky of 1: lightmap 1",
             glb: || sky_plane().to_glb(),
             texels_per_metre: None,
-            lighting: sky(1.0),
+            lighting: upper_sky(1.0),
             resolution: 32,
             analytic: Some(|_, _| Some(Vec3::ONE)),
         },
@@ -236,7 +238,7 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
             description: "black sphere r = 1 centred 2 m over a black plane, sky 1: 1 - sin²α cos θ on the plane",
             glb: || sphere_over_plane().to_glb(),
             texels_per_metre: None,
-            lighting: sky(1.0),
+            lighting: upper_sky(1.0),
             resolution: 98,
             analytic: Some(|p, n| {
                 (n.y > 0.99 && p.y.abs() < 0.01)
@@ -274,7 +276,7 @@ pub fn benchmark_scenes() -> Vec<LibraryScene> {
             description: "40 subdivided boxes on a ground plane under the sky, 25 728 triangles (reference: converged path bake)",
             glb: || procedural_blocks().to_glb(),
             texels_per_metre: None,
-            lighting: sky(1.0),
+            lighting: upper_sky(1.0),
             resolution: 128,
             analytic: None,
         },
@@ -309,7 +311,7 @@ pub fn real_size_scenes() -> Vec<LibraryScene> {
             name: "occlusion-room",
             description: "third-party interior, 63,720 triangles, windows to a uniform sky of 1, 512² page",
             glb: || include_bytes!("../../../scenes/third-party/occlusion_room.glb").to_vec(),
-            lighting: sky(1.0),
+            lighting: upper_sky(1.0),
             resolution: 512,
             texels_per_metre: None,
             analytic: None,
