@@ -677,3 +677,42 @@ fn measure_closed_box_level_noise() {
         sd / (1.0 - rho as f64)
     );
 }
+
+/// A step of `hemicube` in a bake with a time limit or a watcher checks them between
+/// chunks of its CPU rays and between slices of its transfer (issue 19 point 10): sliced
+/// steps write the same values as whole ones, bit for bit, and a step stopped between
+/// slices adds nothing and leaves the irradiance the next step reflects as it was, so the
+/// bake goes on as if it had not been started.
+#[test]
+fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
+    use lightmapd::engine::atlas::Atlas;
+    use lightmapd::engine::technique::{self, BakeInputs, Technique};
+    use std::sync::Arc;
+    if !have_adapter() {
+        return;
+    }
+    let _gpu = common::gpu_serial();
+    let scene = Arc::new(import(&cornell_box()));
+    // Two grids: one of more texels than the first slices (256, then at most 8x more
+    // each) but within one chunk of CPU rays, so the stop comes between two slices of
+    // the transfer and the device's halves are put back; one of more than a chunk, so it
+    // comes between two chunks of CPU rays, before anything is written.
+    for (res, texels) in [(112, 8192..=16_384), (160, 16_385..=usize::MAX)] {
+        let atlas = Arc::new(Atlas::build(&scene, res, res).unwrap());
+        assert!(
+            texels.contains(&atlas.texels.len()),
+            "{} texels at {res}²",
+            atlas.texels.len()
+        );
+        let make = || -> Box<dyn Technique> {
+            let request = BakeRequest {
+                technique: "hemicube".into(),
+                ..Default::default()
+            };
+            let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
+            let inputs = BakeInputs::new(scene.clone(), atlas.clone(), Lighting::default(), 7, plan);
+            technique::create("hemicube", inputs, &json!({"shooters_per_step": 4})).unwrap()
+        };
+        common::assert_sliced_steps_match_whole(&make);
+    }
+}

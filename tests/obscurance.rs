@@ -540,10 +540,12 @@ fn command_line_bakes_the_bundled_scene_with_ao_and_updates_it() {
     assert!(String::from_utf8_lossy(&bad.stderr).contains("no mesh named \"teapot\""));
 }
 
-/// The shared direct light (the point and spot lights) is stepped first and, under a
-/// deadline or a watcher, in slices (issue 19 point 10): sliced steps equal whole ones bit
-/// for bit, and a step stopped between slices adds nothing to any half (the directions of
-/// the step do not run either).
+/// Under a deadline or a watcher (issue 19 point 10) a step runs its directions in slices
+/// of whole directions and then the shared direct light (the point and spot lights) in
+/// slices of texels: sliced steps equal whole ones bit for bit, and a step stopped between
+/// two slices adds nothing to any half. Two cases: several directions a step (the stop
+/// comes between two of them), and one (the directions finish, the stop comes in the
+/// direct light, and the directions' halves are put back).
 #[test]
 fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
     use lightmapd::engine::scene::build::LightDesc;
@@ -558,16 +560,27 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
     let scene = Arc::new(import(&b));
     let atlas = Arc::new(Atlas::build(&scene, 160, 160).unwrap());
     assert!(atlas.texels.len() > 8192, "{} texels", atlas.texels.len());
-    let lighting = upper_sky(1.0);
-    let make = || -> Box<dyn Technique> {
-        let request = BakeRequest {
-            technique: "obscurance".into(),
-            lighting: lighting.clone(),
-            ..Default::default()
-        };
-        let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
-        let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting.clone(), 7, plan);
-        technique::create("obscurance", inputs, &json!({"map_size": 128})).unwrap()
+    // A sun too: its shadow map and direct pass run inside each direction.
+    let lighting = Lighting {
+        sun: Some(Sun {
+            direction: Vec3::new(0.3, -1.0, 0.2).normalize(),
+            angular_diameter: 0.53f32.to_radians(),
+            radiance: Vec3::splat(2000.0),
+        }),
+        ..upper_sky(1.0)
     };
-    common::assert_sliced_steps_match_whole(&make);
+    for directions in [8, 1] {
+        let make = || -> Box<dyn Technique> {
+            let request = BakeRequest {
+                technique: "obscurance".into(),
+                lighting: lighting.clone(),
+                ..Default::default()
+            };
+            let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
+            let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting.clone(), 7, plan);
+            let params = json!({"map_size": 128, "directions_per_step": directions});
+            technique::create("obscurance", inputs, &params).unwrap()
+        };
+        common::assert_sliced_steps_match_whole(&make);
+    }
 }

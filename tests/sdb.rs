@@ -925,3 +925,51 @@ fn measure_stratified_vs_random() {
         println!("| {n} | {:.4} | {:.4} |", err[0], err[1]);
     }
 }
+
+/// A step of `sdb` in a bake with a time limit or a watcher (issue 19 point 10) runs its
+/// directions in slices of whole directions and then its small lights' pass in slices of
+/// texels: sliced steps equal whole ones bit for bit, and a step stopped between two
+/// slices adds nothing and leaves its directions and random stream as they were, so the
+/// bake goes on as if it had not been started. Two cases: the Cornell box with a point
+/// light, the ambient-mode correction's antipodal pairs and several directions a step
+/// (the stop comes between two directions); and one direction a step (`leaky` mode, no
+/// pairs), where the directions finish and the stop comes in the small lights' pass, so
+/// the directions' halves are put back.
+#[test]
+fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
+    use lightmapd::engine::atlas::Atlas;
+    use lightmapd::engine::scene::build::LightDesc;
+    use lightmapd::engine::technique::{self, BakeInputs, Technique};
+    if !have_adapter() {
+        return;
+    }
+    let _gpu = common::gpu_serial();
+    let mut b = cornell_box();
+    b.light(LightDesc::Point {
+        position: Vec3::new(0.1, 0.3, 0.2),
+        color: [1.0, 0.8, 0.6],
+        intensity: 2.0,
+    });
+    // A 2 cm lamp on the back wall: a small emitter, sampled anew every step (point
+    // lights alone are computed once a half).
+    let lamp = b.material(MaterialDesc::emissive("lamp", [0.5; 3], [400.0; 3]));
+    b.square("lamp", Vec3::new(0.0, 1.0, -0.99), 0.02, Vec3::Z, lamp);
+    let scene = Arc::new(import(&b));
+    let atlas = Arc::new(Atlas::build(&scene, 144, 144).unwrap());
+    assert!(atlas.texels.len() > 8192, "{} texels", atlas.texels.len());
+    for params in [
+        json!({"map_size": 128, "directions_per_step": 4}),
+        json!({"map_size": 128, "directions_per_step": 1, "mode": "leaky"}),
+    ] {
+        let make = || -> Box<dyn Technique> {
+            let request = lightmapd::engine::job::BakeRequest {
+                technique: "sdb".into(),
+                ..Default::default()
+            };
+            let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
+            let inputs = BakeInputs::new(scene.clone(), atlas.clone(), Lighting::default(), 7, plan);
+            technique::create("sdb", inputs, &params).unwrap()
+        };
+        common::assert_sliced_steps_match_whole(&make);
+    }
+}

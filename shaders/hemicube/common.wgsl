@@ -6,6 +6,7 @@ struct HcParams {
     shoot: vec4<u32>,  // x: top level, y: shooter (merge) level, z: emitter shooters, w: texel shooters
     step: vec4<u32>,   // x: current irradiance half (0/1), y: accumulator half, z: step hash, w: HC_* flags
     f: vec4<f32>,      // x: accumulator blend, y: depth-map side, z: grazing tolerance kappa, w: texel shooters per step (weight divisor)
+    slice: vec4<u32>,  // the transfer's: x its first texel, y its texel count (a sliced step, gpu::slices); zw unused
 }
 
 const HC_GLOSSY: u32 = 1u;      // lobes and incoming directions are kept (glossy variant)

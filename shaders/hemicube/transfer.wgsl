@@ -71,9 +71,13 @@ fn visible(k: u32, s: Shooter, x: vec3<f32>, w: vec3<f32>, d: f32) -> bool {
 @compute @workgroup_size(64)
 fn transfer(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let t = invocation_index(wid, nwg, lid);
+    // A step's transfer is one dispatch or several slices (gpu::slices): this
+    // dispatch's invocations are texels slice.x, slice.x + 1, ... (slice.y of them).
+    // Each writes only its own texel's slots, so slices write what one dispatch does.
+    let j = invocation_index(wid, nwg, lid);
+    let t = params.slice.x + j;
     let n = params.dims.x;
-    if t >= n {
+    if j >= params.slice.y || t >= n {
         return;
     }
     let flags = params.step.w;

@@ -23,6 +23,7 @@ struct SkyParams {
     misc: vec4<u32>,               // x: texel count; y: samples; z: step seed; w: half (0, 1)
     cal: vec4<u32>,                // x: jitters per alpha; y: alpha count; z: step index
     alphas: array<vec4<f32>, 4>,   // calibrate: up to 16 alphas
+    slice: vec4<u32>,              // sky_step: x this dispatch's first texel, y its count (gpu::slices); zw unused
 }
 
 @group(0) @binding(0) var<uniform> vol: SdfVolume;
@@ -79,9 +80,12 @@ fn open_fraction(n: vec3<f32>) -> f32 {
 @compute @workgroup_size(64)
 fn sky_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
             @builtin(local_invocation_index) lid: u32) {
-    let i = invocation_index(wid, nwg, lid);
+    // A step is one dispatch or several slices (gpu::slices): this dispatch's
+    // invocations are texels slice.x, slice.x + 1, ... (slice.y of them).
+    let j = invocation_index(wid, nwg, lid);
+    let i = sp.slice.x + j;
     let n_texels = sp.misc.x;
-    if (i >= n_texels) { return; }
+    if (j >= sp.slice.y || i >= n_texels) { return; }
     let t = texels[i];
     let n = t.normal.xyz;
     let f = open_fraction(n);

@@ -41,8 +41,9 @@ const LIGHT_DIRECTIONAL: u32 = 3u;
 const NO_VIEW: u32 = 0xffffffffu;
 
 struct GatherParams {
-    misc: vec4<u32>,  // x: parity, y: texel count N, z: light count; w: unused
-    bias: vec4<f32>,  // x: blend b (1 / steps in this half), y: normal offset (pixels); z, w: unused
+    misc: vec4<u32>,   // x: parity, y: texel count N, z: light count; w: unused
+    bias: vec4<f32>,   // x: blend b (1 / steps in this half), y: normal offset (pixels); z, w: unused
+    slice: vec4<u32>,  // x: this dispatch's first texel, y: its texel count (a sliced step, gpu::slices); zw unused
 }
 
 @group(0) @binding(0) var<uniform> params: GatherParams;
@@ -87,9 +88,12 @@ fn gather(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = invocation_index(wid, nwg, lid);
+    // A step is one dispatch or several slices (gpu::slices): this dispatch's
+    // invocations are texels slice.x, slice.x + 1, ... (slice.y of them).
+    let j = invocation_index(wid, nwg, lid);
+    let i = params.slice.x + j;
     let n_texels = params.misc.y;
-    if i >= n_texels {
+    if j >= params.slice.y || i >= n_texels {
         return;
     }
     let x = texels[i].position.xyz;

@@ -12,23 +12,28 @@
 //! step's length *before* it, never after.
 //!
 //! A step longer than the rest of the budget is cut short instead (issue 19 point 10):
-//! the loop hands the limit's instant to the technique ([`Technique::set_deadline`]); one
-//! that honours it (`path`, whose one step over a large level's texels can take minutes:
-//! on the CPU between chunks of paths, on the GPU between slices of texels) abandons a
-//! step the moment the limit passes, adding nothing, and the loop stops with the steps
-//! done before. If not one step was done by then the bake fails with
+//! the loop hands the limit's instant to the technique ([`Technique::set_deadline`]),
+//! which abandons a step the moment the limit passes, adding nothing, and the loop stops
+//! with the steps done before. If not one step was done by then the bake fails with
 //! an error that says so (a lightmap of no samples is black, not an answer).
 //!
 //! A GPU technique's step only queues its dispatches; under a time limit the loop waits
 //! for them ([`Technique::wait_for_steps`]) before it times the step, so the prediction
 //! sees what a step costs on the device rather than what its submission took.
 //!
-//! Limits: the parts of a step that ignore the deadline (all of a GPU step but `path`'s
-//! and the shared direct light's in `sdf` and `obscurance`, which run sliced: a step is
-//! one dispatch or a few, and a dispatch cannot be stopped once submitted) still finish
-//! the step in progress; the
-//! control texels' reference and the shadowmask pass keep pace with the technique and
-//! are not cut short either.
+//! Every technique honours the deadline (issue 19 point 10): CPU `path` between chunks of paths;
+//! on the GPU, in a watched bake (a deadline, or a watcher that may cancel), the parts of
+//! a step that grow with the level run in slices of about 50 ms, each waited for, with
+//! what they write put aside first and put back when the step is stopped between two
+//! (`gpu::slices`): `path`'s and the shared direct light's texels (`sdf`, `obscurance`,
+//! `sdb`'s small lights), `vpl`'s gather, `hemicube`'s CPU rays (in chunks) and transfer,
+//! `obscurance`'s and `sdb`'s directions (whole directions a slice).
+//!
+//! Limits: what a slice cannot split still finishes (one direction of `sdb` or
+//! `obscurance`, one slice's texels, the parts of a step that grow with the lights and the
+//! scene rather than the texels: `vpl`'s RSMs, VPL paths and shadow maps, `hemicube`'s
+//! pyramid and depth maps); the control texels' reference and the shadowmask pass keep
+//! pace with the technique and are not cut short either.
 
 use std::ops::ControlFlow;
 use std::sync::Arc;

@@ -38,6 +38,7 @@ pub mod scene_rays;
 pub mod shaders;
 pub mod shadow;
 pub mod shadowmask;
+pub mod slices;
 pub mod texel_pass;
 pub mod texels;
 pub mod tracer;

@@ -40,6 +40,8 @@ use super::layout::{Bind, compute_pipeline, group_of, layout_of};
 use super::scene_lights::{GpuSceneLights, LightSources};
 use super::scene_rays::SceneRays;
 use super::shaders::PassShader;
+use super::slices::{Aside, StepSlicer};
+pub use super::slices::{LONG_STEP, Sliced};
 use super::texels::GpuTexelGeom;
 use super::{GpuContext, GpuError};
 use crate::engine::atlas::Atlas;
@@ -59,25 +61,6 @@ pub trait StepUniform: Pod {
     /// must not be stepped sliced.
     fn set_slice(&mut self, _first: u32, _count: u32) {}
 }
-
-/// How a sliced step ended ([`TexelRayPass::step_sliced`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Sliced {
-    /// Every slice ran: the step counts.
-    Done,
-    /// `go_on` said stop between two slices: the half is as it was before the step.
-    Abandoned,
-}
-
-/// What a slice of a sliced step aims to take: short enough for a deadline or a cancel to
-/// be seen within it, long enough that waiting for each costs little (a wait is well under
-/// a millisecond on hardware drivers and on llvmpipe).
-const SLICE_SECONDS: f64 = 0.05;
-/// The first slice's invocations, before any has been timed: small, because one
-/// invocation may be long (`path` at 64 samples a texel in a 63,720-triangle room on
-/// llvmpipe: a first slice of 4096 texels took seconds); the next slices are sized by its
-/// time.
-const FIRST_SLICE: u64 = 256;
 
 /// What a [`TexelRayPass`] is made of beyond the scene and its texels.
 pub struct PassSpec<'a> {
@@ -117,21 +100,10 @@ pub struct TexelRayPass<U: StepUniform> {
     _texels: Arc<wgpu::Buffer>,
     /// Bound in `group`; kept with it.
     _tables: Vec<wgpu::Buffer>,
-    /// Per accumulator, a half's copy for [`TexelRayPass::step_sliced`] (made on its first
-    /// use).
-    backups: Vec<wgpu::Buffer>,
-    /// How long the last step took ([`TexelRayPass::step_watched`]): a sliced step's own
-    /// time, or the time between two returns of pipelined whole steps (each returns once
-    /// the one before it is done, so in a steady run that is a step's length); None before
-    /// the first.
-    last_step: Option<std::time::Duration>,
-    returned: Option<std::time::Instant>,
+    /// Its slicing state ([`TexelRayPass::step_watched`]): the half aside, the last
+    /// step's length.
+    slicer: StepSlicer,
 }
-
-/// A step at least this long runs sliced in a watched bake ([`TexelRayPass::step_watched`]):
-/// a deadline or a cancel is then kept to about a slice (50 ms), and shorter steps keep the
-/// pipelining of whole dispatches.
-pub const LONG_STEP: std::time::Duration = std::time::Duration::from_millis(250);
 
 impl<U: StepUniform> TexelRayPass<U> {
     pub fn new(
@@ -227,9 +199,7 @@ impl<U: StepUniform> TexelRayPass<U> {
             lights,
             _texels: texels,
             _tables: tables,
-            backups: Vec::new(),
-            last_step: None,
-            returned: None,
+            slicer: StepSlicer::new(what),
         })
     }
 
@@ -282,27 +252,19 @@ impl<U: StepUniform> TexelRayPass<U> {
     /// in slices; a shorter one runs whole and pipelined.
     pub fn step_watched(&mut self, go_on: Option<&mut dyn FnMut(u64, u64) -> bool>) -> Result<Sliced, GpuError> {
         if let Some(go_on) = go_on
-            && self.last_step.is_none_or(|d| d >= LONG_STEP)
+            && self.slicer.slices(true)
         {
-            let t0 = std::time::Instant::now();
-            let done = self.step_sliced(go_on)?;
-            self.last_step = Some(t0.elapsed());
-            self.returned = None;
-            return Ok(done);
+            return self.step_sliced(go_on);
         }
         self.step()?;
-        let now = std::time::Instant::now();
-        if let Some(before) = self.returned.replace(now) {
-            self.last_step = Some(now - before);
-        }
+        self.slicer.returned_whole();
         Ok(Sliced::Done)
     }
 
     /// Forgets the last step's length: the next watched step is sliced and timed again
     /// (a new deadline).
     pub fn forget_step_length(&mut self) {
-        self.last_step = None;
-        self.returned = None;
+        self.slicer.forget();
     }
 
     /// One step in slices of invocations, each waited for, `go_on(done, of)` asked after
@@ -315,7 +277,7 @@ impl<U: StepUniform> TexelRayPass<U> {
     /// [`StepUniform::set_slice`], and accumulators that hold the two halves one after the
     /// other (half h is the buffer's h-th half; a one-vec4 placeholder is left alone).
     /// Costs: one copy of a half (aside) a step, and the pipelining of
-    /// [`STEPS_IN_FLIGHT`]; slices are sized to [`SLICE_SECONDS`] from the last one's time.
+    /// [`STEPS_IN_FLIGHT`]; slices are sized to [`SLICE_SECONDS`](super::slices::SLICE_SECONDS) from the last one's time.
     pub fn step_sliced(&mut self, go_on: &mut dyn FnMut(u64, u64) -> bool) -> Result<Sliced, GpuError> {
         let step = self.half_steps[0] + self.half_steps[1];
         let half = (step % 2) as usize;
@@ -327,73 +289,20 @@ impl<U: StepUniform> TexelRayPass<U> {
         }
         let weight = if self.keep_latest { 1.0 } else { 1.0 / k as f32 };
         self.uniform.set_step(self.first_step + step, half as u32, weight);
-        // The half as it is, aside (queued after the steps still in flight).
-        let halves: Vec<(u64, u64)> = self
-            .accumulators
-            .iter()
-            .map(|(_, b)| {
-                let size = b.size() / 2;
-                (half as u64 * size, size)
-            })
-            .collect();
-        if self.backups.is_empty() {
-            for ((label, _), (_, size)) in self.accumulators.iter().zip(&halves) {
-                let usage = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
-                self.backups.push(self.ctx.buffer_zeroed(
-                    &format!("{label} (aside for a sliced step)"),
-                    (*size).max(16),
-                    usage,
-                ));
-            }
-        }
-        let copy = |to_backup: bool| {
-            let mut enc = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some(&format!("{}: half aside", self.label)),
-            });
-            for (((_, acc), backup), (offset, size)) in self.accumulators.iter().zip(&self.backups).zip(&halves) {
-                if *size < 16 {
-                    continue; // a placeholder
-                }
-                if to_backup {
-                    enc.copy_buffer_to_buffer(acc, *offset, backup, 0, *size);
-                } else {
-                    enc.copy_buffer_to_buffer(backup, 0, acc, *offset, *size);
-                }
-            }
-            self.ctx.queue.submit([enc.finish()])
+        let aside: Vec<Aside<'_>> = self.accumulators.iter().map(|(_, b)| Aside::half(b, half)).collect();
+        let (ctx, label, pipeline, group) = (&self.ctx, &self.label, &self.pipeline, &self.group);
+        let (uniform, uniform_buf) = (&mut self.uniform, &self.uniform_buf);
+        let mut submit = |first: u64, count: u64| {
+            uniform.set_slice(first as u32, count as u32);
+            ctx.queue.write_buffer(uniform_buf, 0, bytemuck::bytes_of(&*uniform));
+            Ok(ctx.submit_compute(label, pipeline, group, count as u32))
         };
-        copy(true);
-        let mut first = 0u64;
-        let mut slice = FIRST_SLICE.min(n);
-        while first < n {
-            let count = slice.min(n - first);
-            self.uniform.set_slice(first as u32, count as u32);
-            self.ctx
-                .queue
-                .write_buffer(&self.uniform_buf, 0, bytemuck::bytes_of(&self.uniform));
-            let t0 = std::time::Instant::now();
-            let submitted = self
-                .ctx
-                .submit_compute(&self.label, &self.pipeline, &self.group, count as u32);
-            self.ctx.wait_for(&self.label, submitted)?;
-            self.ctx.take_error(&self.label)?;
-            let took = t0.elapsed().as_secs_f64();
-            first += count;
-            if first < n && !go_on(first, n) {
-                let undone = copy(false);
-                self.ctx.wait_for(&self.label, undone)?;
-                self.in_flight.clear();
-                return Ok(Sliced::Abandoned);
-            }
-            // The next slice at SLICE_SECONDS, growing at most 8x a slice (the first slice's
-            // time includes warming up: a pipeline's first dispatch on llvmpipe compiles it).
-            let rate = count as f64 / took.max(1e-6);
-            slice = ((rate * SLICE_SECONDS) as u64).clamp(64, count * 8);
-        }
-        go_on(n, n);
+        let done = self.slicer.run(&self.ctx, n, &aside, &mut submit, go_on)?;
         self.in_flight.clear();
-        self.half_steps[half] = k;
-        Ok(Sliced::Done)
+        if done == Sliced::Done {
+            self.half_steps[half] = k;
+        }
+        Ok(done)
     }
 
     /// Accumulator `index` itself, for a pass of the same device that reads it.

@@ -101,6 +101,17 @@
 //! steps are correlated through I_{m-1}, so the half difference under-reports the noise
 //! (measured in docs/hemicube.md), and the transient is a bias it cannot see.
 //!
+//! ## Stopping inside a step (issue 19 point 10)
+//! The parts of a step that grow with the level are the CPU's rays (three or four a
+//! texel) and the transfer (one invocation a texel). In a bake with a time limit or a
+//! watcher that may cancel, a step that may be long runs the CPU rays in chunks of
+//! [`CPU_LIGHT_CHUNK`] texels and the transfer in slices of about 50 ms (`gpu::slices`),
+//! checking between two. Stopped among the rays it has written nothing; stopped among the
+//! slices it puts back the halves it wrote (this step's irradiance and directions, and the
+//! accumulators of its parity) and its weights, so it adds nothing and the next step is
+//! the one it would have been. The pyramid, the shooters and their depth maps run whole:
+//! they grow with the shooters and the scene, not the texels.
+//!
 //! # Departures from the seed
 //! - Emitters shoot from their triangles (exact area and emission, CPU-sampled) rather than
 //!   from their texels, so a 1 cm² lamp is as exact as a large one; the pyramid holds
@@ -154,7 +165,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::api::{
-    AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params,
+    AlphaSupport, BakeInputs, EngineError, LightSource, StepProgress, TaskSplit, Technique, TechniqueEntry,
+    go_on_until, gpu_error, parse_params,
 };
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
@@ -162,6 +174,7 @@ use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, layout_at, layout_of};
 use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowDraw, ShadowView, shadow_vertices};
+use crate::engine::gpu::slices::{Aside, Sliced, StepSlicer};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext};
 use crate::engine::output::OutputLayer;
@@ -276,6 +289,8 @@ struct GpuParams {
     shoot: [u32; 4],
     step: [u32; 4],
     f: [f32; 4],
+    /// The transfer dispatch's first texel and texel count (a sliced step, `gpu::slices`).
+    slice: [u32; 4],
 }
 
 #[repr(C)]
@@ -378,6 +393,11 @@ pub struct Hemicube {
     pyramid_buf: wgpu::Buffer,
     acc_buf: wgpu::Buffer,
     direct_acc_buf: wgpu::Buffer,
+    /// This step's and the last step's irradiance, and their incoming directions (glossy;
+    /// else a placeholder): what the transfer writes besides the accumulators, and what
+    /// a stopped step puts back.
+    irr_buf: wgpu::Buffer,
+    dirs_buf: wgpu::Buffer,
     vertex_buf: wgpu::Buffer,
     shadow: ShadowAtlas,
     power_pipeline: wgpu::ComputePipeline,
@@ -388,7 +408,17 @@ pub struct Hemicube {
     select_bg: wgpu::BindGroup,
     transfer_pipeline: wgpu::ComputePipeline,
     transfer_bg: wgpu::BindGroup,
+    /// The bake's time limit and watcher (issue 19 point 10): a step that may be long
+    /// checks them between chunks of its CPU rays and between slices of its transfer,
+    /// and is undone when either says stop.
+    deadline: Option<std::time::Instant>,
+    progress: Option<StepProgress>,
+    slicer: StepSlicer,
 }
+
+/// Texels per chunk of the CPU rays of a watched step (a check of the deadline between
+/// two): about 20 ms on two cores at three or four rays a texel.
+const CPU_LIGHT_CHUNK: usize = 16_384;
 
 impl Hemicube {
     pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
@@ -551,11 +581,16 @@ impl Hemicube {
         let pixel_texel_buf = ctx.buffer_init("hemicube pixel to texel", &atlas.pixel_texel, U::STORAGE);
         let pieces_buf = ctx.buffer_init("hemicube texel cells", &pieces, U::STORAGE);
         let texel_bytes = 2 * n_texels as u64 * 16;
-        let irr_buf = ctx.buffer_zeroed("hemicube irradiance (two steps)", texel_bytes, U::STORAGE);
+        // Copied aside and back by a sliced step (`gpu::slices`).
+        let irr_buf = ctx.buffer_zeroed(
+            "hemicube irradiance (two steps)",
+            texel_bytes,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
+        );
         let dirs_buf = ctx.buffer_zeroed(
             "hemicube incoming directions (two steps)",
             if glossy { texel_bytes } else { 16 },
-            U::STORAGE,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
         let cpu_light_buf = ctx.buffer_zeroed(
             "hemicube sky/sun/punctual estimate",
@@ -570,12 +605,12 @@ impl Hemicube {
         let acc_buf = ctx.buffer_zeroed(
             "hemicube accumulators (even, odd)",
             texel_bytes,
-            U::STORAGE | U::COPY_SRC,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
         let direct_acc_buf = ctx.buffer_zeroed(
             "hemicube direct accumulators (even, odd)",
             if inputs.want_direct { texel_bytes } else { 16 },
-            U::STORAGE | U::COPY_SRC,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
         let pyramid_buf = ctx.buffer_zeroed("hemicube power pyramid", pyramid_len * 4, U::STORAGE | U::COPY_DST);
         let params_buf = ctx.uniform("hemicube step params", &GpuParams::zeroed());
@@ -735,6 +770,8 @@ impl Hemicube {
             pyramid_buf,
             acc_buf,
             direct_acc_buf,
+            irr_buf,
+            dirs_buf,
             vertex_buf,
             shadow,
             power_pipeline,
@@ -745,6 +782,9 @@ impl Hemicube {
             select_bg,
             transfer_pipeline,
             transfer_bg,
+            deadline: None,
+            progress: None,
+            slicer: StepSlicer::new("hemicube transfer"),
         })
     }
 
@@ -804,19 +844,37 @@ impl Hemicube {
     /// Per texel, one-sample irradiance estimates of the sky, the sun, punctual lights and
     /// the emission of the near field (first N entries: rgb), their luminance-weighted
     /// direction sums (next N), and the near-field gather of reflected light.
-    fn cpu_light(&self, step: u64) -> (Vec<[f32; 4]>, Vec<GpuNear>) {
+    ///
+    /// With `go_on` (a watched step), texels go in chunks of [`CPU_LIGHT_CHUNK`] and
+    /// `go_on(done, of)` is asked between two; None when it says stop (nothing is kept:
+    /// every texel's rays are keyed by step and texel, so the step redone draws the same).
+    #[allow(clippy::type_complexity)]
+    fn cpu_light(
+        &self,
+        step: u64,
+        go_on: Option<&mut dyn FnMut(u64, u64) -> bool>,
+    ) -> Option<(Vec<[f32; 4]>, Vec<GpuNear>)> {
         let Some(tracer) = &self.tracer else {
-            return (Vec::new(), Vec::new());
+            return Some((Vec::new(), Vec::new()));
         };
         let scene = &self.scene;
         let lighting = &self.lighting;
         let seed = self.seed;
-        let per: Vec<(Vec3, Vec3, GpuNear)> = self
-            .atlas
-            .texels
-            .par_iter()
-            .enumerate()
-            .map(|(k, t)| {
+        let texels = &self.atlas.texels;
+        let n = texels.len();
+        let chunk = if go_on.is_some() { CPU_LIGHT_CHUNK } else { n.max(1) };
+        let mut go_on = go_on;
+        let mut per: Vec<(Vec3, Vec3, GpuNear)> = Vec::with_capacity(n);
+        for first in (0..n).step_by(chunk) {
+            if first > 0
+                && let Some(go_on) = go_on.as_mut()
+                && !go_on(first as u64, n as u64)
+            {
+                return None;
+            }
+            let end = (first + chunk).min(n);
+            per.par_extend(texels[first..end].par_iter().enumerate().map(|(i, t)| {
+                let k = first + i;
                 let mut rng = Rng::new(seed, 0xC9_11_6E, step, k as u64);
                 let (x, n, ng) = (t.position, t.normal, t.geo_normal);
                 let front = |d: Vec3| d.dot(n) > 0.0 && d.dot(ng) > 0.0;
@@ -878,14 +936,14 @@ impl Hemicube {
                 }
                 let near = self.near_field(tracer, k, t, step, &mut add);
                 (sum, dir, near)
-            })
-            .collect();
+            }));
+        }
         let light = per
             .iter()
             .map(|(s, _, _)| v4(*s, 0.0))
             .chain(per.iter().map(|(_, d, _)| v4(*d, 0.0)))
             .collect();
-        (light, per.into_iter().map(|(_, _, n)| n).collect())
+        Some((light, per.into_iter().map(|(_, _, n)| n).collect()))
     }
 
     /// The near-field gather at texel `k` (module doc, "Unbiased transfer"): one cosine ray to
@@ -963,23 +1021,36 @@ impl Hemicube {
         } else {
             (self.k_emit, self.k_texel, self.k_emit as f64, self.k_texel as f64)
         };
+        let watched = self.deadline.is_some() || self.progress.is_some();
+        let sliced = self.slicer.slices(watched);
+        let progress = self.progress.clone();
+        // A watched step reports its CPU rays as its first half and its transfer as the
+        // second.
+        let mut go_on = go_on_until(self.deadline, progress.as_ref());
         let q = &self.ctx.queue;
         if k_emit > 0 {
             let samples = self.emitter_samples(step, k_emit, share_emit);
             q.write_buffer(&self.emitters_buf, 0, bytemuck::cast_slice(&samples));
         }
         if self.flags & HC_CPU_LIGHT != 0 {
-            let (light, near) = self.cpu_light(step);
+            let mut first_half = |done: u64, of: u64| go_on(done, 2 * of);
+            let Some((light, near)) = self.cpu_light(
+                step,
+                sliced.then_some(&mut first_half as &mut dyn FnMut(u64, u64) -> bool),
+            ) else {
+                tracing::debug!("hemicube: the deadline passed or a stop was asked mid-step; the step is undone");
+                return Ok(());
+            };
             q.write_buffer(&self.cpu_light_buf, 0, bytemuck::cast_slice(&light));
             q.write_buffer(&self.near_buf, 0, bytemuck::cast_slice(&near));
         }
+        // Kept only once the step is done (a stopped step leaves them).
         let i = (self.half_steps[parity] + 1) as f64;
         let w = i.powf(self.params.ramp as f64);
-        self.half_weight[parity] += w;
-        self.half_steps[parity] += 1;
-        let blend = (w / self.half_weight[parity]) as f32;
+        let half_weight = self.half_weight[parity] + w;
+        let blend = (w / half_weight) as f32;
         let hash = (crate::engine::rng::splitmix64(self.seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)) >> 32) as u32;
-        let gp = GpuParams {
+        let mut gp = GpuParams {
             dims: [self.n_texels, self.atlas.width, self.atlas.height, self.pyr_side],
             shoot: [self.top_level, self.params.shooter_level, k_emit, k_texel],
             step: [(step % 2) as u32, parity as u32, hash, self.flags],
@@ -989,6 +1060,7 @@ impl Hemicube {
                 self.params.grazing_tolerance,
                 share_texel as f32,
             ],
+            slice: [0, self.n_texels, 0, 0],
         };
         q.write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&gp));
         let shooters = k_emit + k_texel;
@@ -1036,17 +1108,51 @@ impl Hemicube {
             self.shadow
                 .render(&mut encoder, &self.vertex_buf, self.vertex_count, draws);
         }
-        {
+        let transfer = |encoder: &mut wgpu::CommandEncoder, (x, y): (u32, u32)| {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("hemicube transfer"),
                 timestamp_writes: None,
             });
             pass.set_pipeline(&self.transfer_pipeline);
             pass.set_bind_group(0, &self.transfer_bg, &[]);
-            let (x, y) = gpu::dispatch_size_64(self.n_texels);
             pass.dispatch_workgroups(x, y, 1);
+        };
+        if sliced {
+            // The pyramid, the shooters and their maps first, on their own: the slices'
+            // timing is the transfer's. This step's irradiance half (`step.x`) is the
+            // accumulators' (`step.y`): both are the step's parity.
+            q.submit([encoder.finish()]);
+            let aside = [
+                Aside::half(&self.irr_buf, parity),
+                Aside::half(&self.dirs_buf, parity),
+                Aside::half(&self.acc_buf, parity),
+                Aside::half(&self.direct_acc_buf, parity),
+            ];
+            let mut submit = |first: u64, count: u64| {
+                gp.slice = [first as u32, count as u32, 0, 0];
+                q.write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&gp));
+                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("hemicube transfer slice"),
+                });
+                transfer(&mut encoder, gpu::dispatch_size_64(count as u32));
+                Ok(q.submit([encoder.finish()]))
+            };
+            let mut second_half = |done: u64, of: u64| go_on(of + done, 2 * of);
+            let done = self
+                .slicer
+                .run(&self.ctx, self.n_texels as u64, &aside, &mut submit, &mut second_half)
+                .map_err(gpu_error)?;
+            if done == Sliced::Abandoned {
+                tracing::debug!("hemicube: the deadline passed or a stop was asked mid-step; the step is undone");
+                return Ok(());
+            }
+        } else {
+            transfer(&mut encoder, gpu::dispatch_size_64(self.n_texels));
+            q.submit([encoder.finish()]);
+            self.slicer.returned_whole();
         }
-        q.submit([encoder.finish()]);
+        self.half_weight[parity] = half_weight;
+        self.half_steps[parity] += 1;
         self.steps_done += 1;
         self.ctx.take_error("hemicube step").map_err(gpu_error)
     }
@@ -1067,6 +1173,15 @@ impl Technique for Hemicube {
 
     fn wait_for_steps(&mut self) -> Result<(), EngineError> {
         self.ctx.wait_idle().map_err(gpu_error)
+    }
+
+    fn set_deadline(&mut self, deadline: Option<std::time::Instant>) {
+        self.deadline = deadline;
+        self.slicer.forget();
+    }
+
+    fn set_step_progress(&mut self, progress: StepProgress) {
+        self.progress = Some(progress);
     }
 
     fn steps_done(&self) -> u64 {

@@ -138,7 +138,7 @@ use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene};
 use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowDraw, ShadowView, map_triangle_planes};
-use crate::engine::gpu::texel_pass::Sliced;
+use crate::engine::gpu::slices::{Aside, Sliced, StepSlicer};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::view::{
     DEPTH_NEAREST, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map, make_view,
@@ -427,12 +427,15 @@ pub struct Obscurance {
     last_ao: Option<Vec<f32>>,
     last_stats: LayerStats,
     /// Point and spot lights, and emitters unless `emitters = gathered`: the shared
-    /// direct-light module, stepped once per step, first: in a bake with a time limit or
-    /// a watcher its step may run in slices and be stopped and undone between two
-    /// (`TexelRayPass::step_watched`), and the rest of the step then does not run.
+    /// direct-light module, stepped once per step, after the directions: in a bake with a
+    /// time limit or a watcher its step may run in slices and be stopped and undone
+    /// between two (`TexelRayPass::step_watched`), and the directions are then put back
+    /// too (`step_gpu`).
     shared_direct: Option<DirectLight>,
     deadline: Option<std::time::Instant>,
     progress: Option<StepProgress>,
+    /// The directions' slices in a watched step (`gpu::slices`).
+    slicer: StepSlicer,
 
     vertex_count: u32,
     vertex_buf: wgpu::Buffer,
@@ -985,6 +988,7 @@ impl Obscurance {
             shared_direct,
             deadline: None,
             progress: None,
+            slicer: StepSlicer::per_unit("obscurance directions"),
             vertex_count: vertices.len() as u32,
             vertex_buf,
             view_buf,
@@ -1029,17 +1033,17 @@ impl Obscurance {
     }
 
     /// One step: `directions_per_step` directions (layers, gather, then a shadow map and
-    /// direct pass per sun or directional light). Submits and returns; nothing is read.
+    /// direct pass per sun or directional light), then the shared direct light's pass.
+    /// Submits and returns; nothing is read.
+    ///
+    /// In a bake with a time limit or a watcher (issue 19 point 10) the directions run in
+    /// slices of whole directions, each waited for (`gpu::slices`, sized to about 50 ms),
+    /// with the halves they write put aside first; the shared direct light then runs
+    /// sliced when it may be long. A stop between two slices of either puts back what the
+    /// step wrote (the directions' halves and counters, its random streams and direction
+    /// sequence) so the step adds nothing and the next is the one it would have been.
     fn step_gpu(&mut self) -> Result<(), GpuError> {
         let parity = (self.steps_done % 2) as usize;
-        if let Some(d) = &mut self.shared_direct {
-            let watched = self.deadline.is_some() || self.progress.is_some();
-            let mut go_on = go_on_until(self.deadline, self.progress.as_ref());
-            if d.step_watched(watched.then_some(&mut go_on as &mut dyn FnMut(u64, u64) -> bool))? == Sliced::Abandoned {
-                tracing::debug!("obscurance: the deadline passed or a stop was asked mid-step; the step is undone");
-                return Ok(());
-            }
-        }
         let n = self.params.map_size;
         let count = self.texels_to_process();
         let dispatch = gpu::dispatch_size_64(count);
@@ -1050,117 +1054,174 @@ impl Obscurance {
         if self.subset_len.is_some() {
             flags |= FLAG_SUBSET;
         }
-        for _ in 0..self.params.directions_per_step {
-            let d = self.directions.next_direction();
-            self.dirs[parity] += 1;
-            let b = 1.0 / self.dirs[parity] as f32;
-            let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
-            let view = make_view(d, &self.corners, n, jitter, 0, DEPTH_NEAREST);
-            let env = |w: Vec3| self.environment.as_ref().map_or(Vec3::ZERO, |e| e(w));
-            let (fwd, back) = (env(d), env(-d));
-            let gather = GpuGatherParams {
-                env_fwd: [fwd.x, fwd.y, fwd.z, b],
-                env_back: [back.x, back.y, back.z, self.dmax_norm],
-                r_ave: [self.r_ave.x, self.r_ave.y, self.r_ave.z, EPS_ALONG_D],
-                misc: [parity as u32, count, self.params.falloff.code(), flags],
-                dims: [
-                    self.lm_pixels,
-                    self.n_texels,
-                    self.node_capacity,
-                    EPS_NORMAL_PLANE.to_bits(),
-                ],
-            };
-            self.ctx
-                .queue
-                .write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
-            self.ctx
-                .queue
-                .write_buffer(&self.gather_buf, 0, bytemuck::bytes_of(&gather));
-            let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("obscurance direction"),
-            });
-            encoder.clear_buffer(&self.heads_buf, 0, None);
-            encoder.clear_buffer(&self.counters_buf, 0, Some(4));
-            {
-                let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                    label: Some("obscurance depth layers"),
-                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                        view: &self.dummy_view,
-                        depth_slice: None,
-                        resolve_target: None,
-                        ops: wgpu::Operations {
-                            load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                            store: wgpu::StoreOp::Discard,
-                        },
-                    })],
-                    depth_stencil_attachment: None,
-                    timestamp_writes: None,
-                    occlusion_query_set: None,
-                    multiview_mask: None,
-                });
-                pass.set_pipeline(&self.layers_pipeline);
-                pass.set_bind_group(0, &self.layers_bg, &[]);
-                pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
-                pass.draw(0..self.vertex_count, 0..1);
+        let watched = self.deadline.is_some() || self.progress.is_some();
+        let before = (self.directions.clone(), self.rng.clone(), self.dirs);
+        let texels = self.n_texels as u64;
+        // The parity's slots of both accumulators ([p N, (p + 1) N) and [(2 + p) N,
+        // (3 + p) N), module doc of gather.wgsl) and the counters (an abandoned
+        // direction's overflow would be counted).
+        fn half(b: &wgpu::Buffer, k: u64, texels: u64) -> Aside<'_> {
+            Aside {
+                buffer: b,
+                offset: k * texels * 16,
+                size: texels * 16,
             }
-            {
-                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("obscurance gather"),
-                    timestamp_writes: None,
+        }
+        let p = parity as u64;
+        let aside = [
+            half(&self.acc_buf, p, texels),
+            half(&self.acc_buf, 2 + p, texels),
+            half(&self.direct_acc_buf, p, texels),
+            half(&self.direct_acc_buf, 2 + p, texels),
+            Aside {
+                buffer: &self.counters_buf,
+                offset: 0,
+                size: MASK_BASE as u64 * 4,
+            },
+        ];
+        let mut submit = |first: u64, k: u64| -> Result<wgpu::SubmissionIndex, GpuError> {
+            let mut last = None;
+            for _ in first..first + k {
+                let d = self.directions.next_direction();
+                self.dirs[parity] += 1;
+                let b = 1.0 / self.dirs[parity] as f32;
+                let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
+                let view = make_view(d, &self.corners, n, jitter, 0, DEPTH_NEAREST);
+                let env = |w: Vec3| self.environment.as_ref().map_or(Vec3::ZERO, |e| e(w));
+                let (fwd, back) = (env(d), env(-d));
+                let gather = GpuGatherParams {
+                    env_fwd: [fwd.x, fwd.y, fwd.z, b],
+                    env_back: [back.x, back.y, back.z, self.dmax_norm],
+                    r_ave: [self.r_ave.x, self.r_ave.y, self.r_ave.z, EPS_ALONG_D],
+                    misc: [parity as u32, count, self.params.falloff.code(), flags],
+                    dims: [
+                        self.lm_pixels,
+                        self.n_texels,
+                        self.node_capacity,
+                        EPS_NORMAL_PLANE.to_bits(),
+                    ],
+                };
+                self.ctx
+                    .queue
+                    .write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
+                self.ctx
+                    .queue
+                    .write_buffer(&self.gather_buf, 0, bytemuck::bytes_of(&gather));
+                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("obscurance direction"),
                 });
-                pass.set_pipeline(&self.gather_pipeline);
-                pass.set_bind_group(0, &self.gather_bg, &[]);
-                pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
-            }
-            // Uniform writes land before the next submit: one submission per view.
-            self.ctx.queue.submit([encoder.finish()]);
-
-            if let Some(shadow) = &self.shadow {
-                for li in 0..self.lights.len() {
-                    let light = self.lights[li];
-                    let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
-                    let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
-                    let view = make_view(ld, &self.corners, n, jitter, 0, DEPTH_NEAREST);
-                    let map = ShadowView::ortho_of(&view, [0, 0]);
-                    let e = light.irradiance_over_pi;
-                    let direct = GpuDirectParams {
-                        irradiance: [e.x, e.y, e.z, b],
-                        bias: [SHADOW_OFFSET_PIXELS, 0.0, 0.0, 0.0],
-                        misc: [
-                            parity as u32,
-                            count,
-                            self.n_texels,
-                            u32::from(self.subset_len.is_some()),
-                        ],
-                    };
-                    self.ctx
-                        .queue
-                        .write_buffer(&shadow.views_buf, 0, bytemuck::bytes_of(&map));
-                    self.ctx
-                        .queue
-                        .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
-                    let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                        label: Some("obscurance direct light"),
+                encoder.clear_buffer(&self.heads_buf, 0, None);
+                encoder.clear_buffer(&self.counters_buf, 0, Some(4));
+                {
+                    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                        label: Some("obscurance depth layers"),
+                        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                            view: &self.dummy_view,
+                            depth_slice: None,
+                            resolve_target: None,
+                            ops: wgpu::Operations {
+                                load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                                store: wgpu::StoreOp::Discard,
+                            },
+                        })],
+                        depth_stencil_attachment: None,
+                        timestamp_writes: None,
+                        occlusion_query_set: None,
+                        multiview_mask: None,
                     });
-                    let draw = ShadowDraw {
-                        view: 0,
-                        tile: [0, 0, n],
-                        rows: n,
-                    };
-                    shadow
-                        .atlas
-                        .render(&mut encoder, &self.vertex_buf, self.vertex_count, [draw]);
-                    {
-                        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                            label: Some("obscurance direct"),
-                            timestamp_writes: None,
-                        });
-                        pass.set_pipeline(&shadow.direct_pipeline);
-                        pass.set_bind_group(0, &shadow.direct_bg, &[]);
-                        pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
-                    }
-                    self.ctx.queue.submit([encoder.finish()]);
+                    pass.set_pipeline(&self.layers_pipeline);
+                    pass.set_bind_group(0, &self.layers_bg, &[]);
+                    pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
+                    pass.draw(0..self.vertex_count, 0..1);
                 }
+                {
+                    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("obscurance gather"),
+                        timestamp_writes: None,
+                    });
+                    pass.set_pipeline(&self.gather_pipeline);
+                    pass.set_bind_group(0, &self.gather_bg, &[]);
+                    pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
+                }
+                // Uniform writes land before the next submit: one submission per view.
+                last = Some(self.ctx.queue.submit([encoder.finish()]));
+
+                if let Some(shadow) = &self.shadow {
+                    for li in 0..self.lights.len() {
+                        let light = self.lights[li];
+                        let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
+                        let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
+                        let view = make_view(ld, &self.corners, n, jitter, 0, DEPTH_NEAREST);
+                        let map = ShadowView::ortho_of(&view, [0, 0]);
+                        let e = light.irradiance_over_pi;
+                        let direct = GpuDirectParams {
+                            irradiance: [e.x, e.y, e.z, b],
+                            bias: [SHADOW_OFFSET_PIXELS, 0.0, 0.0, 0.0],
+                            misc: [
+                                parity as u32,
+                                count,
+                                self.n_texels,
+                                u32::from(self.subset_len.is_some()),
+                            ],
+                        };
+                        self.ctx
+                            .queue
+                            .write_buffer(&shadow.views_buf, 0, bytemuck::bytes_of(&map));
+                        self.ctx
+                            .queue
+                            .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
+                        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                            label: Some("obscurance direct light"),
+                        });
+                        let draw = ShadowDraw {
+                            view: 0,
+                            tile: [0, 0, n],
+                            rows: n,
+                        };
+                        shadow
+                            .atlas
+                            .render(&mut encoder, &self.vertex_buf, self.vertex_count, [draw]);
+                        {
+                            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                                label: Some("obscurance direct"),
+                                timestamp_writes: None,
+                            });
+                            pass.set_pipeline(&shadow.direct_pipeline);
+                            pass.set_bind_group(0, &shadow.direct_bg, &[]);
+                            pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
+                        }
+                        last = Some(self.ctx.queue.submit([encoder.finish()]));
+                    }
+                }
+            }
+            Ok(last.expect("a slice has at least one direction"))
+        };
+        let directions = self.params.directions_per_step as u64;
+        let progress = self.progress.clone();
+        let mut go_on = go_on_until(self.deadline, progress.as_ref());
+        if watched {
+            // Directions are the step's first half of progress, the direct light its second.
+            let mut first_half = |done: u64, of: u64| go_on(done, 2 * of);
+            let done = self
+                .slicer
+                .run(&self.ctx, directions, &aside, &mut submit, &mut first_half)?;
+            if done == Sliced::Abandoned {
+                tracing::debug!("obscurance: the deadline passed or a stop was asked mid-step; the step is undone");
+                (self.directions, self.rng, self.dirs) = before;
+                return Ok(());
+            }
+        } else if directions > 0 {
+            submit(0, directions)?;
+        }
+        if let Some(d) = &mut self.shared_direct {
+            let mut second_half = |done: u64, of: u64| go_on(of + done, 2 * of);
+            let done = d.step_watched(watched.then_some(&mut second_half as &mut dyn FnMut(u64, u64) -> bool))?;
+            if done == Sliced::Abandoned {
+                // The directions finished (sliced, so their halves are aside): put them back.
+                self.slicer.put_back(&self.ctx, &aside)?;
+                tracing::debug!("obscurance: the deadline passed or a stop was asked mid-step; the step is undone");
+                (self.directions, self.rng, self.dirs) = before;
+                return Ok(());
             }
         }
         self.half_steps[parity] += 1;
@@ -1315,6 +1376,7 @@ impl Technique for Obscurance {
 
     fn set_deadline(&mut self, deadline: Option<std::time::Instant>) {
         self.deadline = deadline;
+        self.slicer.forget();
         if let Some(d) = &mut self.shared_direct {
             d.forget_step_length();
         }

@@ -163,7 +163,10 @@ pub fn ambient_mode(scene: &Scene, tracer: &Tracer, atlas: &Atlas, seed: u64) ->
             texel_area,
         };
     }
-    let gain = (0..AMBIENT_RAYS)
+    // Each ray's albedo is collected in ray order and summed in that order: a parallel
+    // reduce adds in an order that depends on the threads' work stealing, and the
+    // gain's last bits then differ between two bakes of one seed (1e-5 of a lightmap).
+    let per_ray: Vec<Vec3> = (0..AMBIENT_RAYS)
         .into_par_iter()
         .map(|i| {
             let mut rng = Rng::new(seed, 0x0A4B_1E47, i as u64, 0);
@@ -185,7 +188,11 @@ pub fn ambient_mode(scene: &Scene, tracer: &Tracer, atlas: &Atlas, seed: u64) ->
                 Vec3::ZERO
             }
         })
-        .reduce(|| Vec3::ZERO, |a, b| a + b);
+        .collect();
+    let gain = per_ray
+        .iter()
+        .fold(glam::DVec3::ZERO, |a, b| a + b.as_dvec3())
+        .as_vec3();
     AmbientMode {
         gain: gain / AMBIENT_RAYS as f32,
         texel_area,

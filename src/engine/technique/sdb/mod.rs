@@ -115,7 +115,8 @@ mod lights;
 pub use lights::{SmallLights, ambient_mode, sdb_input};
 
 use super::api::{
-    AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, gpu_error, parse_params,
+    AlphaSupport, BakeInputs, EngineError, LightSource, StepProgress, TaskSplit, Technique, TechniqueEntry,
+    go_on_until, gpu_error, parse_params,
 };
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::gpu::directions::sample_cone;
@@ -127,6 +128,7 @@ use crate::engine::gpu::layout::{Bind, compute_pipeline, group_at, group_of, lay
 pub use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene, MapTexel, MapTriangle};
 use crate::engine::gpu::scene_rays::{GpuTables, opaque_material_tables};
 use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowDraw, ShadowView, map_triangle_planes};
+use crate::engine::gpu::slices::{Aside, Sliced, StepSlicer};
 use crate::engine::gpu::texels::GpuTexelGeom;
 pub use crate::engine::gpu::view::cullable_triangles;
 use crate::engine::gpu::view::{
@@ -433,6 +435,21 @@ pub struct SdbEngine {
     sun_maps: Option<SunMaps>,
     texel_dispatch: (u32, u32),
     pixel_dispatch: (u32, u32),
+    /// The bake's time limit and watcher (issue 19 point 10): a watched step runs its
+    /// directions in slices and its small lights' pass sliced when long, and is undone
+    /// when either says stop between two slices ([`SdbEngine::step`]).
+    deadline: Option<std::time::Instant>,
+    progress: Option<StepProgress>,
+    slicer: StepSlicer,
+}
+
+/// What a step changes on the host, kept to undo a stopped step.
+struct StepBook {
+    directions: Directions,
+    rng: SplitMix64,
+    dirs: [u64; 2],
+    weights: [f64; 2],
+    half_steps: [u64; 2],
 }
 
 /// The sun's and directional lights' maps in the shared shadow atlas and the direct pass
@@ -575,7 +592,7 @@ impl SdbEngine {
         let fed_acc_buf = ctx.buffer_zeroed(
             "sdb fed estimate accumulators (even, odd)",
             n_texels as u64 * 2 * 16,
-            U::STORAGE | U::COPY_DST,
+            U::STORAGE | U::COPY_SRC | U::COPY_DST,
         );
         let ambient_factor = match (&input.ambient, params.mode) {
             (Some(a), AccumulationMode::Average) => {
@@ -906,6 +923,9 @@ impl SdbEngine {
         Ok(SdbEngine {
             texel_dispatch: gpu::dispatch_size_64(n_texels),
             pixel_dispatch: gpu::dispatch_size_64(width * height),
+            deadline: None,
+            progress: None,
+            slicer: StepSlicer::per_unit("sdb directions"),
             directions: Directions::new(params.directions, input.seed),
             rng: SplitMix64::new(input.seed ^ 0x0A11_CE5E_ED00_0001),
             ctx,
@@ -1121,11 +1141,9 @@ impl SdbEngine {
         (self.rng.next_f64() as f32, self.rng.next_f64() as f32)
     }
 
-    /// One step: resolve, then `directions_per_step` directions (illumination map and
-    /// gather, plus a shadow map and direct pass per directional light). Submits work and
-    /// returns without waiting for it; nothing is read back.
-    pub fn step(&mut self) -> Result<(), GpuError> {
-        let parity = (self.steps_done % 2) as u32;
+    /// The resolve pass (and, with the ambient-mode correction, the bootstrap step's
+    /// drop), submitted.
+    fn submit_resolve(&mut self) {
         let ambient = self.ambient_factor.map_or([0.0; 4], |f| f.extend(0.0).to_array());
         let resolve = GpuResolveParams {
             scale: self.half_scales(),
@@ -1158,9 +1176,19 @@ impl SdbEngine {
             self.drop_bootstrap_step(&mut encoder);
         }
         self.ctx.queue.submit([encoder.finish()]);
+    }
 
-        // What this step's blends leave of the old mean: prod(1 - b).
-        let mut decay = 1.0f64;
+    /// Directions `first .. first + count` of this step (`j` in the pairs rule below),
+    /// each its illumination maps, gather, and sun maps and direct passes, submitted;
+    /// `previous` is the last direction drawn and `decay` what the blends leave of the old
+    /// mean, both carried from one call to the next. Returns the last submission.
+    fn submit_directions(
+        &mut self,
+        parity: u32,
+        (first, count): (u64, u64),
+        previous: &mut Vec3,
+        decay: &mut f64,
+    ) -> wgpu::SubmissionIndex {
         // With the ambient-mode correction, directions come in antipodal pairs (d, -d)
         // within one step: every texel of a closed surface then gathers (and records the
         // step's feed in its fed mean M) in exactly one of the two, which the correction's
@@ -1169,18 +1197,17 @@ impl SdbEngine {
         // used, <x - M> is biased, and the gain g / (1 - g) (9 at albedo 0.9) fed that bias
         // back: the closed box of albedo 0.9 read 17.6 instead of 1 with seed 7 (issue 21).
         let pairs = self.ambient_factor.is_some();
-        let count = self.params.directions_per_step * if pairs { 2 } else { 1 };
-        let mut previous = Vec3::Z;
-        for j in 0..count {
+        let mut last = None;
+        for j in first..first + count {
             let d = if pairs && j % 2 == 1 {
-                -previous
+                -*previous
             } else {
                 self.directions.next_direction()
             };
-            previous = d;
+            *previous = d;
             let dir_index = self.dirs[0] + self.dirs[1];
             let blend = self.next_blend(parity as usize);
-            decay *= 1.0 - blend as f64;
+            *decay *= 1.0 - blend as f64;
             let seed = (self.rng.next_u64() >> 32) as u32 ^ dir_index as u32;
             let jitter = self.jitter();
             let view = make_view(d, &self.corners, self.params.map_size, jitter, seed, DEPTH_STOCHASTIC);
@@ -1221,7 +1248,7 @@ impl SdbEngine {
             }
             // Uniform writes land before the next submit, so each map that reuses the
             // view buffer goes in its own submission.
-            self.ctx.queue.submit([encoder.finish()]);
+            last = Some(self.ctx.queue.submit([encoder.finish()]));
 
             if let Some(sun) = &self.sun_maps {
                 for li in 0..self.lights.len() {
@@ -1253,14 +1280,104 @@ impl SdbEngine {
                     sun.atlas
                         .render(&mut encoder, &self.vertex_buf, self.vertex_count, [draw]);
                     Self::dispatch(&mut encoder, "sdb direct", &sun.pipeline, &sun.bg, self.texel_dispatch);
-                    self.ctx.queue.submit([encoder.finish()]);
+                    last = Some(self.ctx.queue.submit([encoder.finish()]));
                 }
+            }
+        }
+        last.expect("a slice has at least one direction")
+    }
+
+    /// One step: resolve, then `directions_per_step` directions (illumination map and
+    /// gather, plus a shadow map and direct pass per directional light), then the small
+    /// lights. Submits work and returns without waiting for it; nothing is read back.
+    ///
+    /// In a bake with a time limit or a watcher (issue 19 point 10) the resolve and the
+    /// directions run in slices of whole directions, each waited for (`gpu::slices`,
+    /// sized to about 50 ms), with what they write put aside first (the accumulators'
+    /// halves of this step's parity; whole buffers on the step that drops the bootstrap
+    /// step, which clears them), and the small lights' pass runs sliced when it may be
+    /// long. A stop between two slices of either puts back the device's accumulators and
+    /// the host's directions, random stream and weights, so the step adds nothing and
+    /// the next is the one it would have been.
+    pub fn step(&mut self) -> Result<(), GpuError> {
+        let parity = (self.steps_done % 2) as u32;
+        let before = StepBook {
+            directions: self.directions.clone(),
+            rng: self.rng.clone(),
+            dirs: self.dirs,
+            weights: self.weights,
+            half_steps: self.half_steps,
+        };
+        let pairs = self.ambient_factor.is_some();
+        let count = (self.params.directions_per_step * if pairs { 2 } else { 1 }) as u64;
+        let mut previous = Vec3::Z;
+        let mut decay = 1.0f64;
+        let watched = self.deadline.is_some() || self.progress.is_some();
+        let (deadline, progress) = (self.deadline, self.progress.clone());
+        let mut go_on = go_on_until(deadline, progress.as_ref());
+        let small = self
+            .small_emitters
+            .as_ref()
+            .is_some_and(|p| p.lights.every_step || self.steps_done < 2);
+        let ctx = self.ctx.clone();
+        let bootstrap = self.ambient_factor.is_some() && self.steps_done == 1;
+        let buffers: Vec<wgpu::Buffer> = [
+            Some(&self.acc_buf),
+            Some(&self.fed_acc_buf),
+            self.sun_acc_buf.as_ref(),
+            self.direct_acc_buf.as_ref(),
+        ]
+        .into_iter()
+        .flatten()
+        .cloned()
+        .collect();
+        let aside: Vec<Aside<'_>> = buffers
+            .iter()
+            .map(|b| {
+                if bootstrap {
+                    Aside::whole(b)
+                } else {
+                    Aside::half(b, parity as usize)
+                }
+            })
+            .collect();
+        if watched {
+            // The directions are the step's progress, or its first half with small lights.
+            let parts = if small { 2 } else { 1 };
+            let mut first_half = |done: u64, of: u64| go_on(done, parts * of);
+            let mut slicer = std::mem::replace(&mut self.slicer, StepSlicer::per_unit("sdb directions"));
+            let mut submit = |first: u64, k: u64| {
+                if first == 0 {
+                    self.submit_resolve();
+                }
+                Ok(self.submit_directions(parity, (first, k), &mut previous, &mut decay))
+            };
+            let done = slicer.run(&ctx, count, &aside, &mut submit, &mut first_half);
+            self.slicer = slicer;
+            if done? == Sliced::Abandoned {
+                self.undo(before);
+                return Ok(());
+            }
+        } else {
+            self.submit_resolve();
+            if count > 0 {
+                self.submit_directions(parity, (0, count), &mut previous, &mut decay);
             }
         }
         if let Some(pass) = &mut self.small_emitters {
             // Point and spot lights alone are the same every step: one step a half.
-            if pass.lights.every_step || self.steps_done < 2 {
-                pass.lights.light.step()?;
+            if small {
+                let mut second_half = |done: u64, of: u64| go_on(of + done, 2 * of);
+                let done = pass
+                    .lights
+                    .light
+                    .step_watched(watched.then_some(&mut second_half as &mut dyn FnMut(u64, u64) -> bool))?;
+                if done == Sliced::Abandoned {
+                    // The directions finished (sliced, so what they wrote is aside).
+                    self.slicer.put_back(&ctx, &aside)?;
+                    self.undo(before);
+                    return Ok(());
+                }
             }
             // With directional lights their blends already decayed the mean this step.
             let old = if self.lights.is_empty() { decay } else { 1.0 };
@@ -1286,6 +1403,32 @@ impl SdbEngine {
         self.half_steps[parity as usize] += 1;
         self.steps_done += 1;
         self.ctx.take_error("sdb step")
+    }
+
+    /// Puts the host's side of a stopped step back (the device's is put back by the
+    /// slicer).
+    fn undo(&mut self, before: StepBook) {
+        tracing::debug!("sdb: the deadline passed or a stop was asked mid-step; the step is undone");
+        self.directions = before.directions;
+        self.rng = before.rng;
+        self.dirs = before.dirs;
+        self.weights = before.weights;
+        self.half_steps = before.half_steps;
+    }
+
+    /// The bake's time limit ([`Technique::set_deadline`]); the next watched step is
+    /// timed afresh.
+    pub fn set_deadline(&mut self, deadline: Option<std::time::Instant>) {
+        self.deadline = deadline;
+        self.slicer.forget();
+        if let Some(p) = &mut self.small_emitters {
+            p.lights.light.forget_step_length();
+        }
+    }
+
+    /// Where a watched step reports how far it is.
+    pub fn set_step_progress(&mut self, progress: StepProgress) {
+        self.progress = Some(progress);
     }
 
     /// Read both halves back (blocks until the GPU is done).
@@ -1394,6 +1537,14 @@ impl Technique for Sdb {
 
     fn wait_for_steps(&mut self) -> Result<(), EngineError> {
         self.engine.wait_idle().map_err(gpu_error)
+    }
+
+    fn set_deadline(&mut self, deadline: Option<std::time::Instant>) {
+        self.engine.set_deadline(deadline);
+    }
+
+    fn set_step_progress(&mut self, progress: StepProgress) {
+        self.engine.set_step_progress(progress);
     }
 
     fn steps_done(&self) -> u64 {

@@ -118,6 +118,8 @@ impl Sdf {
                 misc: [n, self.params.samples, 0, 0],
                 cal: [CAL_JITTERS, alphas.len() as u32, 0, 0],
                 alphas: a4,
+                // Read by the sky step only.
+                slice: [0, 0, 0, 0],
             },
         );
         let bg = group_of(

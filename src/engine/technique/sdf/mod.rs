@@ -123,7 +123,7 @@ use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
 use crate::engine::gpu::scene_lights::LightSources;
-use crate::engine::gpu::texel_pass::Sliced;
+use crate::engine::gpu::slices::{Aside, Sliced, StepSlicer};
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::{self, GpuContext, GpuError};
 use crate::engine::output::OutputLayer;
@@ -390,6 +390,8 @@ struct GpuSkyParams {
     misc: [u32; 4],
     cal: [u32; 4],
     alphas: [[f32; 4]; 4],
+    /// The sky step's first texel and texel count (a sliced step, `gpu::slices`).
+    slice: [u32; 4],
 }
 
 /// Alphas the calibration tries.
@@ -533,11 +535,14 @@ pub struct Sdf {
     gpu: Option<SdfGpu>,
     /// The device the sky pass and the shared direct light run on (None: nothing to bake).
     device: Option<Arc<GpuContext>>,
-    /// The bake's time limit and watcher: the shared direct light's step, the long part
-    /// of a step (the sun's shadow rays: 13.7 s of a 14 s step on the Kenney level at
-    /// 2048² on lavapipe, the sky 0.3 s), runs sliced under them and can be stopped.
+    /// The bake's time limit and watcher: under them the sky pass runs in slices of
+    /// texels, and the shared direct light's step, the long part of a step (the sun's
+    /// shadow rays: 13.7 s of a 14 s step on the Kenney level at 2048² on lavapipe, the
+    /// sky 0.3 s), runs sliced when long; either can be stopped and undone.
     deadline: Option<Instant>,
     progress: Option<StepProgress>,
+    /// The sky pass's slices (`gpu::slices`).
+    slicer: StepSlicer,
     timings: BuildTimings,
     notes: Vec<String>,
 }
@@ -625,6 +630,7 @@ impl Sdf {
             device: ctx.clone(),
             deadline: None,
             progress: None,
+            slicer: StepSlicer::new("sdf sky"),
             timings: BuildTimings::default(),
             notes,
         };
@@ -1035,22 +1041,14 @@ impl Technique for Sdf {
 
     fn step(&mut self) -> Result<(), EngineError> {
         let parity = (self.steps_done % 2) as usize;
-        // The shared direct light first: it is the part that can be long, and a step it
-        // abandons (deadline or cancel between slices) is undone there and must add
-        // nothing here either.
-        if let Some(d) = &mut self.direct {
-            let watched = self.deadline.is_some() || self.progress.is_some();
-            let mut go_on = go_on_until(self.deadline, self.progress.as_ref());
-            let done = d
-                .step_watched(watched.then_some(&mut go_on as &mut dyn FnMut(u64, u64) -> bool))
-                .map_err(gpu_error)?;
-            if done == Sliced::Abandoned {
-                tracing::debug!("sdf: the deadline passed or a stop was asked mid-step; the step is undone");
-                return Ok(());
-            }
-        }
+        let watched = self.deadline.is_some() || self.progress.is_some();
+        let progress = self.progress.clone();
+        let mut go_on = go_on_until(self.deadline, progress.as_ref());
+        let parts = if self.direct.is_some() { 2 } else { 1 };
+        // The sky pass first: in a watched step in slices of texels with its half aside,
+        // so that a stop in it, or in the shared direct light after it, can put it back.
         if let Some(g) = &self.gpu {
-            let params = GpuSkyParams {
+            let mut params = GpuSkyParams {
                 sky: [self.sky.x, self.sky.y, self.sky.z, if self.upper { 1.0 } else { 0.0 }],
                 fit: [self.k, self.alpha, self.params.bleed, self.weighting_flag()],
                 misc: [
@@ -1061,20 +1059,56 @@ impl Technique for Sdf {
                 ],
                 cal: [0, 0, self.half_steps[parity] as u32, 0],
                 alphas: [[0.0; 4]; 4],
+                slice: [0, self.n_texels, 0, 0],
             };
-            g.ctx.queue.write_buffer(&g.sky_params, 0, bytemuck::bytes_of(&params));
-            let mut encoder = g.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                label: Some("sdf step"),
-            });
-            run_pass(
-                &mut encoder,
-                "sdf sky",
-                &g.sky_pipeline,
-                &g.sky_bg,
-                gpu::dispatch_size_64(self.n_texels),
-            );
-            g.ctx.queue.submit([encoder.finish()]);
+            let mut submit = |first: u64, count: u64| {
+                params.slice = [first as u32, count as u32, 0, 0];
+                g.ctx.queue.write_buffer(&g.sky_params, 0, bytemuck::bytes_of(&params));
+                let mut encoder = g.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("sdf step"),
+                });
+                run_pass(
+                    &mut encoder,
+                    "sdf sky",
+                    &g.sky_pipeline,
+                    &g.sky_bg,
+                    gpu::dispatch_size_64(count as u32),
+                );
+                Ok(g.ctx.queue.submit([encoder.finish()]))
+            };
+            if watched {
+                let mut first_part = |done: u64, of: u64| go_on(done, parts * of);
+                let aside = [Aside::half(&g.acc_buf, parity)];
+                let done = self
+                    .slicer
+                    .run(&g.ctx, self.n_texels as u64, &aside, &mut submit, &mut first_part)
+                    .map_err(gpu_error)?;
+                if done == Sliced::Abandoned {
+                    tracing::debug!("sdf: the deadline passed or a stop was asked mid-step; the step is undone");
+                    return Ok(());
+                }
+            } else {
+                submit(0, self.n_texels as u64).map_err(gpu_error)?;
+            }
             g.ctx.take_error("sdf step").map_err(gpu_error)?;
+        }
+        // Then the shared direct light: sliced when it may be long (with a sun it is
+        // nearly all of a step: 13.7 s of 14 on a 2048² level on lavapipe).
+        if let Some(d) = &mut self.direct {
+            let mut second_part = |done: u64, of: u64| go_on((parts - 1) * of + done, parts * of);
+            let done = d
+                .step_watched(watched.then_some(&mut second_part as &mut dyn FnMut(u64, u64) -> bool))
+                .map_err(gpu_error)?;
+            if done == Sliced::Abandoned {
+                if let Some(g) = &self.gpu {
+                    // The sky pass finished (sliced, so its half is aside): put it back.
+                    self.slicer
+                        .put_back(&g.ctx, &[Aside::half(&g.acc_buf, parity)])
+                        .map_err(gpu_error)?;
+                }
+                tracing::debug!("sdf: the deadline passed or a stop was asked mid-step; the step is undone");
+                return Ok(());
+            }
         }
         self.half_steps[parity] += 1;
         self.steps_done += 1;
@@ -1083,6 +1117,7 @@ impl Technique for Sdf {
 
     fn set_deadline(&mut self, deadline: Option<Instant>) {
         self.deadline = deadline;
+        self.slicer.forget();
         if let Some(d) = &mut self.direct {
             d.forget_step_length();
         }
