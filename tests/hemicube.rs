@@ -694,9 +694,9 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
     let _gpu = common::gpu_serial();
     let scene = Arc::new(import(&cornell_box()));
     // Two grids: one of more texels than the first slices (256, then at most 8x more
-    // each) but within one chunk of CPU rays, so the stop comes between two slices of
-    // the transfer and the device's halves are put back; one of more than a chunk, so it
-    // comes between two chunks of CPU rays, before anything is written.
+    // each) but within one chunk of CPU rays, so the first check of a stopped step is
+    // among the depth maps; one of more than a chunk, so it is between two chunks of CPU
+    // rays, before anything is written.
     for (res, texels) in [(112, 8192..=16_384), (160, 16_385..=usize::MAX)] {
         let atlas = Arc::new(Atlas::build(&scene, res, res).unwrap());
         assert!(
@@ -714,5 +714,8 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
             technique::create("hemicube", inputs, &json!({"shooters_per_step": 4})).unwrap()
         };
         common::assert_sliced_steps_match_whole(&make);
+        // A step is a third CPU rays, a third depth maps, a third transfer: a stop
+        // just past two thirds lands among the transfer's slices, which put back what they wrote.
+        common::assert_stopped_step_adds_nothing(&make, 668);
     }
 }

@@ -582,5 +582,7 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
             technique::create("obscurance", inputs, &params).unwrap()
         };
         common::assert_sliced_steps_match_whole(&make);
+        // Half directions, half direct light: a stop just past half lands in the direct light.
+        common::assert_stopped_step_adds_nothing(&make, 501);
     }
 }

@@ -971,5 +971,8 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
             technique::create("sdb", inputs, &params).unwrap()
         };
         common::assert_sliced_steps_match_whole(&make);
+        // Half resolve and directions, half small lights: a stop just past half lands in the
+        // small lights after the directions finished.
+        common::assert_stopped_step_adds_nothing(&make, 501);
     }
 }

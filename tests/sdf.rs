@@ -359,4 +359,7 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
         technique::create("sdf", inputs, &json!({"resolution": 48})).unwrap()
     };
     common::assert_sliced_steps_match_whole(&make);
+    // Half sky, half direct light: a stop just past half lands in the direct light after the sky
+    // pass finished, which then puts the sky's half back too.
+    common::assert_stopped_step_adds_nothing(&make, 501);
 }

@@ -217,3 +217,48 @@ pub fn assert_sliced_steps_match_whole(make: &dyn Fn() -> Box<dyn lightmapd::eng
         "after an abandoned step a half is not as it was"
     );
 }
+
+/// As [`assert_sliced_steps_match_whole`]'s second half, with the stop put at a chosen
+/// point of the step instead of its first check: two whole steps, then a third watched
+/// and asked to stop once `permille` thousandths of it are done
+/// (`StepProgress::stop_at_permille`), which must not count, then the third again
+/// (watched, no stop point) equal three whole steps bit for bit. For a technique whose
+/// step has several sliced parts, a point in a later part checks that part's put-back.
+pub fn assert_stopped_step_adds_nothing(
+    make: &dyn Fn() -> Box<dyn lightmapd::engine::technique::Technique>,
+    permille: u32,
+) {
+    use lightmapd::engine::technique::api::StepProgress;
+    let totals = |t: &mut Box<dyn lightmapd::engine::technique::Technique>| {
+        let s = t.snapshot().unwrap();
+        (s.even.steps, s.odd.steps, s.even.total, s.odd.total)
+    };
+    let mut whole = make();
+    for _ in 0..3 {
+        whole.step().unwrap();
+    }
+    let mut cut = make();
+    for _ in 0..2 {
+        cut.step().unwrap();
+    }
+    let progress = StepProgress::new();
+    progress.stop_at_permille(permille);
+    cut.set_step_progress(progress.clone());
+    cut.step().unwrap();
+    assert_eq!(
+        cut.steps_done(),
+        2,
+        "a step stopped at {permille} permille does not count"
+    );
+    assert!(
+        progress.permille() >= permille && progress.permille() < 1000,
+        "the step stopped at {} permille, not in the part asked for ({permille})",
+        progress.permille()
+    );
+    progress.stop_at_permille(0);
+    cut.step().unwrap();
+    assert!(
+        totals(&mut cut) == totals(&mut whole),
+        "after a step stopped at {permille} permille a half is not as it was"
+    );
+}

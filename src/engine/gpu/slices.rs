@@ -193,6 +193,7 @@ impl StepSlicer {
             ctx.wait_for(&self.label, submitted)?;
             ctx.take_error(&self.label)?;
             let took = t.elapsed().as_secs_f64();
+            tracing::trace!(pass = %self.label, first, count, of = n, seconds = took, "slice");
             first += count;
             if first < n && !go_on(first, n) {
                 let undone = self.copy(ctx, aside, false);

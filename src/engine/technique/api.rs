@@ -81,6 +81,8 @@ pub struct StepProgress(Arc<StepProgressState>);
 struct StepProgressState {
     permille: std::sync::atomic::AtomicU32,
     stop: std::sync::atomic::AtomicBool,
+    /// Stop once a step has done this many thousandths (0: no such point).
+    stop_at: std::sync::atomic::AtomicU32,
     /// When the loop began its first step; None before, and again once it has ended.
     stepping_since: std::sync::Mutex<Option<std::time::Instant>>,
 }
@@ -127,6 +129,21 @@ impl StepProgress {
     pub fn stop_requested(&self) -> bool {
         self.0.stop.load(std::sync::atomic::Ordering::Relaxed)
     }
+
+    /// Asks a sliced GPU step ([`go_on_until`]) to stop at its first check once it has
+    /// done `permille` thousandths of the step (1 to 999; 0 takes the point away). For
+    /// tests that choose which part of a step a stop lands in: a deadline already passed
+    /// always stops a step at its first check.
+    pub fn stop_at_permille(&self, permille: u32) {
+        self.0.stop_at.store(permille, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Whether the step in progress has passed the point of
+    /// [`stop_at_permille`](StepProgress::stop_at_permille).
+    pub fn past_stop_point(&self) -> bool {
+        let at = self.0.stop_at.load(std::sync::atomic::Ordering::Relaxed);
+        at > 0 && self.permille() >= at
+    }
 }
 
 /// What a step sliced on the GPU asks between slices (`TexelRayPass::step_watched`): it
@@ -140,7 +157,7 @@ pub fn go_on_until(
         if let Some(p) = progress {
             p.set(done, of);
         }
-        !(progress.is_some_and(StepProgress::stop_requested)
+        !(progress.is_some_and(|p| p.stop_requested() || p.past_stop_point())
             || deadline.is_some_and(|d| std::time::Instant::now() >= d))
     }
 }

@@ -105,12 +105,15 @@
 //! The parts of a step that grow with the level are the CPU's rays (three or four a
 //! texel) and the transfer (one invocation a texel). In a bake with a time limit or a
 //! watcher that may cancel, a step that may be long runs the CPU rays in chunks of
-//! [`CPU_LIGHT_CHUNK`] texels and the transfer in slices of about 50 ms (`gpu::slices`),
-//! checking between two. Stopped among the rays it has written nothing; stopped among the
-//! slices it puts back the halves it wrote (this step's irradiance and directions, and the
-//! accumulators of its parity) and its weights, so it adds nothing and the next step is
-//! the one it would have been. The pyramid, the shooters and their depth maps run whole:
-//! they grow with the shooters and the scene, not the texels.
+//! [`CPU_LIGHT_CHUNK`] texels, the shooters' depth maps in slices of whole maps (each the
+//! whole scene drawn: they grow with the triangles, 8 s a step for a 1M-triangle level on
+//! lavapipe) and the transfer in slices of about 50 ms (`gpu::slices`), checking between
+//! two. Stopped among the rays or the maps it has written nothing that counts; stopped
+//! among the transfer's slices it puts back the accumulators' halves of its parity and
+//! its weights, so it adds nothing and the next step is the one it would have been (the
+//! irradiance and directions half it wrote is rewritten whole by that next step before
+//! anything reads it). The pyramid and the shooters'
+//! selection run whole: they grow with the lightmap's pixels, in a few passes.
 //!
 //! # Departures from the seed
 //! - Emitters shoot from their triangles (exact area and emission, CPU-sampled) rather than
@@ -393,11 +396,6 @@ pub struct Hemicube {
     pyramid_buf: wgpu::Buffer,
     acc_buf: wgpu::Buffer,
     direct_acc_buf: wgpu::Buffer,
-    /// This step's and the last step's irradiance, and their incoming directions (glossy;
-    /// else a placeholder): what the transfer writes besides the accumulators, and what
-    /// a stopped step puts back.
-    irr_buf: wgpu::Buffer,
-    dirs_buf: wgpu::Buffer,
     vertex_buf: wgpu::Buffer,
     shadow: ShadowAtlas,
     power_pipeline: wgpu::ComputePipeline,
@@ -414,6 +412,8 @@ pub struct Hemicube {
     deadline: Option<std::time::Instant>,
     progress: Option<StepProgress>,
     slicer: StepSlicer,
+    /// The depth maps' slices (whole maps) in a sliced step.
+    map_slicer: StepSlicer,
 }
 
 /// Texels per chunk of the CPU rays of a watched step (a check of the deadline between
@@ -581,16 +581,11 @@ impl Hemicube {
         let pixel_texel_buf = ctx.buffer_init("hemicube pixel to texel", &atlas.pixel_texel, U::STORAGE);
         let pieces_buf = ctx.buffer_init("hemicube texel cells", &pieces, U::STORAGE);
         let texel_bytes = 2 * n_texels as u64 * 16;
-        // Copied aside and back by a sliced step (`gpu::slices`).
-        let irr_buf = ctx.buffer_zeroed(
-            "hemicube irradiance (two steps)",
-            texel_bytes,
-            U::STORAGE | U::COPY_SRC | U::COPY_DST,
-        );
+        let irr_buf = ctx.buffer_zeroed("hemicube irradiance (two steps)", texel_bytes, U::STORAGE);
         let dirs_buf = ctx.buffer_zeroed(
             "hemicube incoming directions (two steps)",
             if glossy { texel_bytes } else { 16 },
-            U::STORAGE | U::COPY_SRC | U::COPY_DST,
+            U::STORAGE,
         );
         let cpu_light_buf = ctx.buffer_zeroed(
             "hemicube sky/sun/punctual estimate",
@@ -770,8 +765,6 @@ impl Hemicube {
             pyramid_buf,
             acc_buf,
             direct_acc_buf,
-            irr_buf,
-            dirs_buf,
             vertex_buf,
             shadow,
             power_pipeline,
@@ -785,6 +778,7 @@ impl Hemicube {
             deadline: None,
             progress: None,
             slicer: StepSlicer::new("hemicube transfer"),
+            map_slicer: StepSlicer::per_unit("hemicube depth maps"),
         })
     }
 
@@ -1033,10 +1027,10 @@ impl Hemicube {
             q.write_buffer(&self.emitters_buf, 0, bytemuck::cast_slice(&samples));
         }
         if self.flags & HC_CPU_LIGHT != 0 {
-            let mut first_half = |done: u64, of: u64| go_on(done, 2 * of);
+            let mut first_third = |done: u64, of: u64| go_on(done, 3 * of);
             let Some((light, near)) = self.cpu_light(
                 step,
-                sliced.then_some(&mut first_half as &mut dyn FnMut(u64, u64) -> bool),
+                sliced.then_some(&mut first_third as &mut dyn FnMut(u64, u64) -> bool),
             ) else {
                 tracing::debug!("hemicube: the deadline passed or a stop was asked mid-step; the step is undone");
                 return Ok(());
@@ -1094,8 +1088,8 @@ impl Hemicube {
             pass.set_bind_group(0, &self.select_bg, &[]);
             pass.dispatch_workgroups(shooters.div_ceil(64).max(1), 1, 1);
         }
-        if shooters > 0 {
-            let draws = (0..5 * shooters).map(|v| {
+        let draws: Vec<ShadowDraw> = (0..5 * shooters)
+            .map(|v| {
                 let [x, y, side, _] = self.tiles[v as usize];
                 // Side faces: only the half above the shooter's plane is ever looked up.
                 let rows = if v % 5 == 0 { side } else { side / 2 };
@@ -1104,9 +1098,11 @@ impl Hemicube {
                     tile: [x, y, side],
                     rows,
                 }
-            });
+            })
+            .collect();
+        if !sliced && !draws.is_empty() {
             self.shadow
-                .render(&mut encoder, &self.vertex_buf, self.vertex_count, draws);
+                .render(&mut encoder, &self.vertex_buf, self.vertex_count, draws.iter().copied());
         }
         let transfer = |encoder: &mut wgpu::CommandEncoder, (x, y): (u32, u32)| {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
@@ -1118,13 +1114,34 @@ impl Hemicube {
             pass.dispatch_workgroups(x, y, 1);
         };
         if sliced {
-            // The pyramid, the shooters and their maps first, on their own: the slices'
-            // timing is the transfer's. This step's irradiance half (`step.x`) is the
-            // accumulators' (`step.y`): both are the step's parity.
+            // The pyramid and the shooters, then their maps in slices of whole maps (each
+            // the whole scene drawn, 5 a shooter: 8 s a step for a 1M-triangle level on
+            // lavapipe), nothing to put back there (the atlas is redrawn every step), then
+            // the transfer in slices of texels. This step's irradiance half (`step.x`) is
+            // the accumulators' (`step.y`): both are the step's parity.
             q.submit([encoder.finish()]);
+            let mut submit_maps = |first: u64, count: u64| {
+                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("hemicube depth maps slice"),
+                });
+                let part = draws[first as usize..(first + count) as usize].iter().copied();
+                self.shadow
+                    .render_part(&mut encoder, &self.vertex_buf, self.vertex_count, part, first == 0);
+                Ok(q.submit([encoder.finish()]))
+            };
+            let mut second_third = |done: u64, of: u64| go_on(of + done, 3 * of);
+            let done = self
+                .map_slicer
+                .run(&self.ctx, draws.len() as u64, &[], &mut submit_maps, &mut second_third)
+                .map_err(gpu_error)?;
+            if done == Sliced::Abandoned {
+                tracing::debug!("hemicube: the deadline passed or a stop was asked mid-step; the step is undone");
+                return Ok(());
+            }
+            // Only the accumulators: this step's irradiance and directions half is
+            // rewritten whole by the step that follows before any pass reads it (the
+            // pyramid, the selection and the near field read the other half).
             let aside = [
-                Aside::half(&self.irr_buf, parity),
-                Aside::half(&self.dirs_buf, parity),
                 Aside::half(&self.acc_buf, parity),
                 Aside::half(&self.direct_acc_buf, parity),
             ];
@@ -1137,10 +1154,10 @@ impl Hemicube {
                 transfer(&mut encoder, gpu::dispatch_size_64(count as u32));
                 Ok(q.submit([encoder.finish()]))
             };
-            let mut second_half = |done: u64, of: u64| go_on(of + done, 2 * of);
+            let mut last_third = |done: u64, of: u64| go_on(2 * of + done, 3 * of);
             let done = self
                 .slicer
-                .run(&self.ctx, self.n_texels as u64, &aside, &mut submit, &mut second_half)
+                .run(&self.ctx, self.n_texels as u64, &aside, &mut submit, &mut last_third)
                 .map_err(gpu_error)?;
             if done == Sliced::Abandoned {
                 tracing::debug!("hemicube: the deadline passed or a stop was asked mid-step; the step is undone");
@@ -1182,6 +1199,7 @@ impl Technique for Hemicube {
 
     fn set_step_progress(&mut self, progress: StepProgress) {
         self.progress = Some(progress);
+        self.slicer.forget();
     }
 
     fn steps_done(&self) -> u64 {

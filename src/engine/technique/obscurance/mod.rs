@@ -1384,6 +1384,10 @@ impl Technique for Obscurance {
 
     fn set_step_progress(&mut self, progress: StepProgress) {
         self.progress = Some(progress);
+        self.slicer.forget();
+        if let Some(d) = &mut self.shared_direct {
+            d.forget_step_length();
+        }
     }
 
     fn steps_done(&self) -> u64 {

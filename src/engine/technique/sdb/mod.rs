@@ -1143,7 +1143,7 @@ impl SdbEngine {
 
     /// The resolve pass (and, with the ambient-mode correction, the bootstrap step's
     /// drop), submitted.
-    fn submit_resolve(&mut self) {
+    fn submit_resolve(&mut self) -> wgpu::SubmissionIndex {
         let ambient = self.ambient_factor.map_or([0.0; 4], |f| f.extend(0.0).to_array());
         let resolve = GpuResolveParams {
             scale: self.half_scales(),
@@ -1175,7 +1175,7 @@ impl SdbEngine {
         if self.ambient_factor.is_some() && self.steps_done == 1 {
             self.drop_bootstrap_step(&mut encoder);
         }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ctx.queue.submit([encoder.finish()])
     }
 
     /// Directions `first .. first + count` of this step (`j` in the pairs rule below),
@@ -1292,7 +1292,8 @@ impl SdbEngine {
     /// lights. Submits work and returns without waiting for it; nothing is read back.
     ///
     /// In a bake with a time limit or a watcher (issue 19 point 10) the resolve and the
-    /// directions run in slices of whole directions, each waited for (`gpu::slices`,
+    /// directions run in slices of whole passes (the resolve, then whole directions), each
+    /// waited for (`gpu::slices`,
     /// sized to about 50 ms), with what they write put aside first (the accumulators'
     /// halves of this step's parity; whole buffers on the step that drops the bootstrap
     /// step, which clears them), and the small lights' pass runs sliced when it may be
@@ -1346,13 +1347,20 @@ impl SdbEngine {
             let parts = if small { 2 } else { 1 };
             let mut first_half = |done: u64, of: u64| go_on(done, parts * of);
             let mut slicer = std::mem::replace(&mut self.slicer, StepSlicer::per_unit("sdb directions"));
+            // Unit 0 is the resolve (a pass over every lightmap pixel, 0.2 s at 2048² on
+            // lavapipe), units 1 ..= count the directions.
             let mut submit = |first: u64, k: u64| {
+                let mut last = None;
                 if first == 0 {
-                    self.submit_resolve();
+                    last = Some(self.submit_resolve());
                 }
-                Ok(self.submit_directions(parity, (first, k), &mut previous, &mut decay))
+                let directions = (first.max(1) - 1, first + k - first.max(1));
+                if directions.1 > 0 {
+                    last = Some(self.submit_directions(parity, directions, &mut previous, &mut decay));
+                }
+                Ok(last.expect("a slice has at least one unit"))
             };
-            let done = slicer.run(&ctx, count, &aside, &mut submit, &mut first_half);
+            let done = slicer.run(&ctx, count + 1, &aside, &mut submit, &mut first_half);
             self.slicer = slicer;
             if done? == Sliced::Abandoned {
                 self.undo(before);
@@ -1405,6 +1413,18 @@ impl SdbEngine {
         self.ctx.take_error("sdb step")
     }
 
+    /// Runs the first step's resolve once and waits for it, at preparation: the first
+    /// resolve of a bake costs seconds more than the others on a large page (1.4 s
+    /// against 0.2-0.3 s at 2048² on lavapipe: first use of the lightmap-sized buffers
+    /// and of the pass), and a step cannot stop inside one pass. It writes what step 0's
+    /// resolve writes again (the resolve reads only the accumulators, still empty), so a
+    /// bake's values do not change.
+    pub fn warm_up(&mut self) -> Result<(), GpuError> {
+        let done = self.submit_resolve();
+        self.ctx.wait_for("sdb resolve (warming up)", done)?;
+        self.ctx.take_error("sdb resolve (warming up)")
+    }
+
     /// Puts the host's side of a stopped step back (the device's is put back by the
     /// slicer).
     fn undo(&mut self, before: StepBook) {
@@ -1429,6 +1449,10 @@ impl SdbEngine {
     /// Where a watched step reports how far it is.
     pub fn set_step_progress(&mut self, progress: StepProgress) {
         self.progress = Some(progress);
+        self.slicer.forget();
+        if let Some(p) = &mut self.small_emitters {
+            p.lights.light.forget_step_length();
+        }
     }
 
     /// Read both halves back (blocks until the GPU is done).
@@ -1512,7 +1536,8 @@ impl Sdb {
                 .gpu_tables(&ctx, "sdb", &inputs.rays.emitters())
                 .map_err(gpu_error)?,
         );
-        let engine = SdbEngine::new(ctx, input, params.clone()).map_err(gpu_error)?;
+        let mut engine = SdbEngine::new(ctx, input, params.clone()).map_err(gpu_error)?;
+        engine.warm_up().map_err(gpu_error)?;
         Ok(Sdb { engine, params, notes })
     }
 

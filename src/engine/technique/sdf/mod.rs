@@ -1125,6 +1125,10 @@ impl Technique for Sdf {
 
     fn set_step_progress(&mut self, progress: StepProgress) {
         self.progress = Some(progress);
+        self.slicer.forget();
+        if let Some(d) = &mut self.direct {
+            d.forget_step_length();
+        }
     }
 
     fn wait_for_steps(&mut self) -> Result<(), EngineError> {
