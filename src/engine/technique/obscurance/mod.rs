@@ -346,6 +346,12 @@ struct GpuDirectParams {
 }
 
 const TRI_TEXTURED_ALBEDO: u32 = 8;
+/// Triangles drawn into a direction's depth layers in one draw: a direction of a larger
+/// scene draws them in parts, each a unit of a sliced step (`step_gpu`), so a deadline is
+/// seen within a part (about 0.3 s on lavapipe; a whole direction of a 1M-triangle level
+/// took 2.2 s).
+const LAYER_PART_TRIANGLES: u32 = 131_072;
+
 /// The triangle's emission comes from the shared direct-light module, not the gather.
 const TRI_SAMPLED_EMISSION: u32 = 16;
 const FLAG_BACKGROUND_AMBIENT: u32 = 1;
@@ -436,6 +442,8 @@ pub struct Obscurance {
     progress: Option<StepProgress>,
     /// The directions' slices in a watched step (`gpu::slices`).
     slicer: StepSlicer,
+    /// Triangles a direction draws into its depth layers at once ([`LAYER_PART_TRIANGLES`]).
+    layer_part: u32,
 
     vertex_count: u32,
     vertex_buf: wgpu::Buffer,
@@ -989,6 +997,7 @@ impl Obscurance {
             deadline: None,
             progress: None,
             slicer: StepSlicer::per_unit("obscurance directions"),
+            layer_part: LAYER_PART_TRIANGLES,
             vertex_count: vertices.len() as u32,
             vertex_buf,
             view_buf,
@@ -1023,6 +1032,14 @@ impl Obscurance {
         self.params.dmax.unwrap_or(0.0)
     }
 
+    /// Draws a direction's depth layers `triangles` at a time instead of
+    /// [`LAYER_PART_TRIANGLES`]: for a test that a scene drawn in parts bakes what it
+    /// bakes drawn whole, on a scene small enough to bake in a test.
+    #[doc(hidden)]
+    pub fn set_layer_part_triangles(&mut self, triangles: u32) {
+        self.layer_part = triangles.max(1);
+    }
+
     /// List statistics as of the last snapshot.
     pub fn layer_stats(&self) -> LayerStats {
         self.last_stats
@@ -1037,8 +1054,10 @@ impl Obscurance {
     /// Submits and returns; nothing is read.
     ///
     /// In a bake with a time limit or a watcher (issue 19 point 10) the directions run in
-    /// slices of whole directions, each waited for (`gpu::slices`, sized to about 50 ms),
-    /// with the halves they write put aside first; the shared direct light then runs
+    /// slices of whole units, each waited for (`gpu::slices`, sized to about 50 ms): a
+    /// part of the depth layers ([`LAYER_PART_TRIANGLES`]), the gather, or one light's
+    /// shadow map and direct pass; the halves they write are put aside first; the shared
+    /// direct light then runs
     /// sliced when it may be long. A stop between two slices of either puts back what the
     /// step wrote (the directions' halves and counters, its random streams and direction
     /// sequence) so the step adds nothing and the next is the one it would have been.
@@ -1079,124 +1098,149 @@ impl Obscurance {
                 size: MASK_BASE as u64 * 4,
             },
         ];
+        // A direction is `parts` draws of the layers (a part of the triangles each), the
+        // gather, then a shadow map and direct pass per sun or directional light: each a
+        // unit of a sliced step.
+        let parts = (self.vertex_count / 3).div_ceil(self.layer_part).max(1);
+        let lights = if self.shadow.is_some() {
+            self.lights.len() as u32
+        } else {
+            0
+        };
+        let per_direction = (parts + 1 + lights) as u64;
+        let mut b = 0.0f32;
         let mut submit = |first: u64, k: u64| -> Result<wgpu::SubmissionIndex, GpuError> {
             let mut last = None;
-            for _ in first..first + k {
-                let d = self.directions.next_direction();
-                self.dirs[parity] += 1;
-                let b = 1.0 / self.dirs[parity] as f32;
-                let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
-                let view = make_view(d, &self.corners, n, jitter, 0, DEPTH_NEAREST);
-                let env = |w: Vec3| self.environment.as_ref().map_or(Vec3::ZERO, |e| e(w));
-                let (fwd, back) = (env(d), env(-d));
-                let gather = GpuGatherParams {
-                    env_fwd: [fwd.x, fwd.y, fwd.z, b],
-                    env_back: [back.x, back.y, back.z, self.dmax_norm],
-                    r_ave: [self.r_ave.x, self.r_ave.y, self.r_ave.z, EPS_ALONG_D],
-                    misc: [parity as u32, count, self.params.falloff.code(), flags],
-                    dims: [
-                        self.lm_pixels,
-                        self.n_texels,
-                        self.node_capacity,
-                        EPS_NORMAL_PLANE.to_bits(),
-                    ],
-                };
-                self.ctx
-                    .queue
-                    .write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
-                self.ctx
-                    .queue
-                    .write_buffer(&self.gather_buf, 0, bytemuck::bytes_of(&gather));
-                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("obscurance direction"),
-                });
-                encoder.clear_buffer(&self.heads_buf, 0, None);
-                encoder.clear_buffer(&self.counters_buf, 0, Some(4));
-                {
-                    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            for unit in first..first + k {
+                let sub = (unit % per_direction) as u32;
+                if sub == 0 {
+                    let d = self.directions.next_direction();
+                    self.dirs[parity] += 1;
+                    b = 1.0 / self.dirs[parity] as f32;
+                    let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
+                    let view = make_view(d, &self.corners, n, jitter, 0, DEPTH_NEAREST);
+                    let env = |w: Vec3| self.environment.as_ref().map_or(Vec3::ZERO, |e| e(w));
+                    let (fwd, back) = (env(d), env(-d));
+                    let gather = GpuGatherParams {
+                        env_fwd: [fwd.x, fwd.y, fwd.z, b],
+                        env_back: [back.x, back.y, back.z, self.dmax_norm],
+                        r_ave: [self.r_ave.x, self.r_ave.y, self.r_ave.z, EPS_ALONG_D],
+                        misc: [parity as u32, count, self.params.falloff.code(), flags],
+                        dims: [
+                            self.lm_pixels,
+                            self.n_texels,
+                            self.node_capacity,
+                            EPS_NORMAL_PLANE.to_bits(),
+                        ],
+                    };
+                    // Uniform writes land before the next submit, and every unit is its
+                    // own submission: the view and the gather's parameters hold until the
+                    // next direction writes them.
+                    self.ctx
+                        .queue
+                        .write_buffer(&self.view_buf, 0, bytemuck::bytes_of(&view));
+                    self.ctx
+                        .queue
+                        .write_buffer(&self.gather_buf, 0, bytemuck::bytes_of(&gather));
+                }
+                if sub < parts {
+                    let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
                         label: Some("obscurance depth layers"),
-                        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                            view: &self.dummy_view,
-                            depth_slice: None,
-                            resolve_target: None,
-                            ops: wgpu::Operations {
-                                load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                                store: wgpu::StoreOp::Discard,
-                            },
-                        })],
-                        depth_stencil_attachment: None,
-                        timestamp_writes: None,
-                        occlusion_query_set: None,
-                        multiview_mask: None,
                     });
-                    pass.set_pipeline(&self.layers_pipeline);
-                    pass.set_bind_group(0, &self.layers_bg, &[]);
-                    pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
-                    pass.draw(0..self.vertex_count, 0..1);
-                }
-                {
-                    let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                        label: Some("obscurance gather"),
-                        timestamp_writes: None,
-                    });
-                    pass.set_pipeline(&self.gather_pipeline);
-                    pass.set_bind_group(0, &self.gather_bg, &[]);
-                    pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
-                }
-                // Uniform writes land before the next submit: one submission per view.
-                last = Some(self.ctx.queue.submit([encoder.finish()]));
-
-                if let Some(shadow) = &self.shadow {
-                    for li in 0..self.lights.len() {
-                        let light = self.lights[li];
-                        let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
-                        let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
-                        let view = make_view(ld, &self.corners, n, jitter, 0, DEPTH_NEAREST);
-                        let map = ShadowView::ortho_of(&view, [0, 0]);
-                        let e = light.irradiance_over_pi;
-                        let direct = GpuDirectParams {
-                            irradiance: [e.x, e.y, e.z, b],
-                            bias: [SHADOW_OFFSET_PIXELS, 0.0, 0.0, 0.0],
-                            misc: [
-                                parity as u32,
-                                count,
-                                self.n_texels,
-                                u32::from(self.subset_len.is_some()),
-                            ],
-                        };
-                        self.ctx
-                            .queue
-                            .write_buffer(&shadow.views_buf, 0, bytemuck::bytes_of(&map));
-                        self.ctx
-                            .queue
-                            .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
-                        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                            label: Some("obscurance direct light"),
-                        });
-                        let draw = ShadowDraw {
-                            view: 0,
-                            tile: [0, 0, n],
-                            rows: n,
-                        };
-                        shadow
-                            .atlas
-                            .render(&mut encoder, &self.vertex_buf, self.vertex_count, [draw]);
-                        {
-                            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                                label: Some("obscurance direct"),
-                                timestamp_writes: None,
-                            });
-                            pass.set_pipeline(&shadow.direct_pipeline);
-                            pass.set_bind_group(0, &shadow.direct_bg, &[]);
-                            pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
-                        }
-                        last = Some(self.ctx.queue.submit([encoder.finish()]));
+                    if sub == 0 {
+                        encoder.clear_buffer(&self.heads_buf, 0, None);
+                        encoder.clear_buffer(&self.counters_buf, 0, Some(4));
                     }
+                    {
+                        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                            label: Some("obscurance depth layers"),
+                            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                                view: &self.dummy_view,
+                                depth_slice: None,
+                                resolve_target: None,
+                                ops: wgpu::Operations {
+                                    load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                                    store: wgpu::StoreOp::Discard,
+                                },
+                            })],
+                            depth_stencil_attachment: None,
+                            timestamp_writes: None,
+                            occlusion_query_set: None,
+                            multiview_mask: None,
+                        });
+                        pass.set_pipeline(&self.layers_pipeline);
+                        pass.set_bind_group(0, &self.layers_bg, &[]);
+                        pass.set_vertex_buffer(0, self.vertex_buf.slice(..));
+                        // The lists are unsorted and the gather looks for the nearest
+                        // layer, so drawing the triangles in parts builds the same lists.
+                        let from = 3 * self.layer_part * sub;
+                        let to = (from + 3 * self.layer_part).min(self.vertex_count);
+                        pass.draw(from..to, 0..1);
+                    }
+                    last = Some(self.ctx.queue.submit([encoder.finish()]));
+                } else if sub == parts {
+                    let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("obscurance gather"),
+                    });
+                    {
+                        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("obscurance gather"),
+                            timestamp_writes: None,
+                        });
+                        pass.set_pipeline(&self.gather_pipeline);
+                        pass.set_bind_group(0, &self.gather_bg, &[]);
+                        pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
+                    }
+                    last = Some(self.ctx.queue.submit([encoder.finish()]));
+                } else if let Some(shadow) = &self.shadow {
+                    let light = self.lights[(sub - parts - 1) as usize];
+                    let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
+                    let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
+                    let view = make_view(ld, &self.corners, n, jitter, 0, DEPTH_NEAREST);
+                    let map = ShadowView::ortho_of(&view, [0, 0]);
+                    let e = light.irradiance_over_pi;
+                    let direct = GpuDirectParams {
+                        irradiance: [e.x, e.y, e.z, b],
+                        bias: [SHADOW_OFFSET_PIXELS, 0.0, 0.0, 0.0],
+                        misc: [
+                            parity as u32,
+                            count,
+                            self.n_texels,
+                            u32::from(self.subset_len.is_some()),
+                        ],
+                    };
+                    self.ctx
+                        .queue
+                        .write_buffer(&shadow.views_buf, 0, bytemuck::bytes_of(&map));
+                    self.ctx
+                        .queue
+                        .write_buffer(&self.direct_buf, 0, bytemuck::bytes_of(&direct));
+                    let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("obscurance direct light"),
+                    });
+                    let draw = ShadowDraw {
+                        view: 0,
+                        tile: [0, 0, n],
+                        rows: n,
+                    };
+                    shadow
+                        .atlas
+                        .render(&mut encoder, &self.vertex_buf, self.vertex_count, [draw]);
+                    {
+                        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                            label: Some("obscurance direct"),
+                            timestamp_writes: None,
+                        });
+                        pass.set_pipeline(&shadow.direct_pipeline);
+                        pass.set_bind_group(0, &shadow.direct_bg, &[]);
+                        pass.dispatch_workgroups(dispatch.0, dispatch.1, 1);
+                    }
+                    last = Some(self.ctx.queue.submit([encoder.finish()]));
                 }
             }
-            Ok(last.expect("a slice has at least one direction"))
+            Ok(last.expect("a slice has at least one unit"))
         };
-        let directions = self.params.directions_per_step as u64;
+        let units = self.params.directions_per_step as u64 * per_direction;
         let progress = self.progress.clone();
         let mut go_on = go_on_until(self.deadline, progress.as_ref());
         if watched {
@@ -1204,14 +1248,14 @@ impl Obscurance {
             let mut first_half = |done: u64, of: u64| go_on(done, 2 * of);
             let done = self
                 .slicer
-                .run(&self.ctx, directions, &aside, &mut submit, &mut first_half)?;
+                .run(&self.ctx, units, &aside, &mut submit, &mut first_half)?;
             if done == Sliced::Abandoned {
                 tracing::debug!("obscurance: the deadline passed or a stop was asked mid-step; the step is undone");
                 (self.directions, self.rng, self.dirs) = before;
                 return Ok(());
             }
-        } else if directions > 0 {
-            submit(0, directions)?;
+        } else if units > 0 {
+            submit(0, units)?;
         }
         if let Some(d) = &mut self.shared_direct {
             let mut second_half = |done: u64, of: u64| go_on(of + done, 2 * of);
