@@ -171,6 +171,14 @@ pub fn validate_gltf(path: &std::path::Path) -> serde_json::Value {
     serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}"))
 }
 
+/// A technique's halves as a snapshot reads them: steps and totals, compared bit for bit.
+type Halves = (u64, u64, Vec<glam::Vec3>, Vec<glam::Vec3>);
+
+fn halves_of(t: &mut Box<dyn lightmapd::engine::technique::Technique>) -> Halves {
+    let s = t.snapshot().unwrap();
+    (s.even.steps, s.odd.steps, s.even.total, s.odd.total)
+}
+
 /// A technique's GPU steps in slices (issue 19 point 10) against whole ones: with a far
 /// deadline and a watcher, three steps (the first sliced) equal three whole ones bit for
 /// bit and the watcher hears the last slice; two whole steps, then a third stopped after
@@ -180,10 +188,6 @@ pub fn validate_gltf(path: &std::path::Path) -> serde_json::Value {
 pub fn assert_sliced_steps_match_whole(make: &dyn Fn() -> Box<dyn lightmapd::engine::technique::Technique>) {
     use lightmapd::engine::technique::api::StepProgress;
     use std::time::{Duration, Instant};
-    let totals = |t: &mut Box<dyn lightmapd::engine::technique::Technique>| {
-        let s = t.snapshot().unwrap();
-        (s.even.steps, s.odd.steps, s.even.total, s.odd.total)
-    };
     let mut whole = make();
     for _ in 0..3 {
         whole.step().unwrap();
@@ -199,7 +203,7 @@ pub fn assert_sliced_steps_match_whole(make: &dyn Fn() -> Box<dyn lightmapd::eng
     }
     assert_eq!(sliced.steps_done(), 3);
     assert!(
-        totals(&mut whole) == totals(&mut sliced),
+        halves_of(&mut whole) == halves_of(&mut sliced),
         "a sliced step differs from a whole one"
     );
 
@@ -213,7 +217,7 @@ pub fn assert_sliced_steps_match_whole(make: &dyn Fn() -> Box<dyn lightmapd::eng
     cut.set_deadline(None);
     cut.step().unwrap();
     assert!(
-        totals(&mut cut) == totals(&mut whole),
+        halves_of(&mut cut) == halves_of(&mut whole),
         "after an abandoned step a half is not as it was"
     );
 }
@@ -229,10 +233,6 @@ pub fn assert_stopped_step_adds_nothing(
     permille: u32,
 ) {
     use lightmapd::engine::technique::api::StepProgress;
-    let totals = |t: &mut Box<dyn lightmapd::engine::technique::Technique>| {
-        let s = t.snapshot().unwrap();
-        (s.even.steps, s.odd.steps, s.even.total, s.odd.total)
-    };
     let mut whole = make();
     for _ in 0..3 {
         whole.step().unwrap();
@@ -258,7 +258,7 @@ pub fn assert_stopped_step_adds_nothing(
     progress.stop_at_permille(0);
     cut.step().unwrap();
     assert!(
-        totals(&mut cut) == totals(&mut whole),
+        halves_of(&mut cut) == halves_of(&mut whole),
         "after a step stopped at {permille} permille a half is not as it was"
     );
 }

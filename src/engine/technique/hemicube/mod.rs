@@ -1120,19 +1120,17 @@ impl Hemicube {
             // the transfer in slices of texels. This step's irradiance half (`step.x`) is
             // the accumulators' (`step.y`): both are the step's parity.
             q.submit([encoder.finish()]);
-            let mut submit_maps = |first: u64, count: u64| {
-                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("hemicube depth maps slice"),
-                });
-                let part = draws[first as usize..(first + count) as usize].iter().copied();
-                self.shadow
-                    .render_part(&mut encoder, &self.vertex_buf, self.vertex_count, part, first == 0);
-                Ok(q.submit([encoder.finish()]))
-            };
             let mut second_third = |done: u64, of: u64| go_on(of + done, 3 * of);
             let done = self
-                .map_slicer
-                .run(&self.ctx, draws.len() as u64, &[], &mut submit_maps, &mut second_third)
+                .shadow
+                .render_sliced(
+                    &self.ctx,
+                    &mut self.map_slicer,
+                    &self.vertex_buf,
+                    self.vertex_count,
+                    &draws,
+                    &mut second_third,
+                )
                 .map_err(gpu_error)?;
             if done == Sliced::Abandoned {
                 tracing::debug!("hemicube: the deadline passed or a stop was asked mid-step; the step is undone");

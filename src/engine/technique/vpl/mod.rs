@@ -910,19 +910,17 @@ impl Vpl {
             // 0.17 s a map for a 1M-triangle level on lavapipe, 165 maps a step by
             // default with a sun and a sky), nothing to put back: the atlas is redrawn
             // every step. They are the step's first half of progress, the gather its second.
-            let mut submit = |first: u64, count: u64| {
-                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("vpl maps slice"),
-                });
-                let part = draws[first as usize..(first + count) as usize].iter().copied();
-                self.shadow
-                    .render_part(&mut encoder, &self.vertex_buf, self.vertex_count, part, first == 0);
-                Ok(q.submit([encoder.finish()]))
-            };
             let mut first_half = |done: u64, of: u64| go_on(done, 2 * of);
             let done = self
-                .map_slicer
-                .run(&self.ctx, draws.len() as u64, &[], &mut submit, &mut first_half)
+                .shadow
+                .render_sliced(
+                    &self.ctx,
+                    &mut self.map_slicer,
+                    &self.vertex_buf,
+                    self.vertex_count,
+                    &draws,
+                    &mut first_half,
+                )
                 .map_err(gpu_error)?;
             if done == Sliced::Abandoned {
                 tracing::debug!("vpl: the deadline passed or a stop was asked mid-step; the step is undone");
