@@ -1146,11 +1146,12 @@ impl Hemicube {
             let mut submit = |first: u64, count: u64| {
                 gp.slice = [first as u32, count as u32, 0, 0];
                 q.write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&gp));
-                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("hemicube transfer slice"),
-                });
-                transfer(&mut encoder, gpu::dispatch_size_64(count as u32));
-                Ok(q.submit([encoder.finish()]))
+                Ok(self.ctx.submit_compute(
+                    "hemicube transfer",
+                    &self.transfer_pipeline,
+                    &self.transfer_bg,
+                    count as u32,
+                ))
             };
             let mut last_third = |done: u64, of: u64| go_on(2 * of + done, 3 * of);
             let done = self

@@ -1058,7 +1058,19 @@ impl SdbEngine {
     /// share of the wrong answer (2 / n^2 of it after n steps with `ramp` 1), which in a
     /// stiff room is most of the error left.
     fn drop_bootstrap_step(&mut self, encoder: &mut wgpu::CommandEncoder) {
-        for b in [
+        for b in self.accumulators() {
+            encoder.clear_buffer(b, 0, None);
+        }
+        // The other half (odd, about to take this step's directions) is still empty.
+        self.dirs[0] = 0;
+        self.weights[0] = 0.0;
+        self.half_steps[0] = 0;
+    }
+
+    /// Every accumulator a step blends into (both halves each): the lightmap's, the fed
+    /// estimate's, and the sun's and the direct layer's where they exist.
+    fn accumulators(&self) -> impl Iterator<Item = &wgpu::Buffer> {
+        [
             Some(&self.acc_buf),
             Some(&self.fed_acc_buf),
             self.sun_acc_buf.as_ref(),
@@ -1066,13 +1078,6 @@ impl SdbEngine {
         ]
         .into_iter()
         .flatten()
-        {
-            encoder.clear_buffer(b, 0, None);
-        }
-        // The other half (odd, about to take this step's directions) is still empty.
-        self.dirs[0] = 0;
-        self.weights[0] = 0.0;
-        self.half_steps[0] = 0;
     }
 
     /// Render the map along the current view into array layer `layer`; the layer goes to
@@ -1322,16 +1327,8 @@ impl SdbEngine {
             .is_some_and(|p| p.lights.every_step || self.steps_done < 2);
         let ctx = self.ctx.clone();
         let bootstrap = self.ambient_factor.is_some() && self.steps_done == 1;
-        let buffers: Vec<wgpu::Buffer> = [
-            Some(&self.acc_buf),
-            Some(&self.fed_acc_buf),
-            self.sun_acc_buf.as_ref(),
-            self.direct_acc_buf.as_ref(),
-        ]
-        .into_iter()
-        .flatten()
-        .cloned()
-        .collect();
+        // Handles (not borrows): the slices' closure borrows `self` mutably.
+        let buffers: Vec<wgpu::Buffer> = self.accumulators().cloned().collect();
         let aside: Vec<Aside<'_>> = buffers
             .iter()
             .map(|b| {

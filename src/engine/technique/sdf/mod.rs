@@ -1064,17 +1064,8 @@ impl Technique for Sdf {
             let mut submit = |first: u64, count: u64| {
                 params.slice = [first as u32, count as u32, 0, 0];
                 g.ctx.queue.write_buffer(&g.sky_params, 0, bytemuck::bytes_of(&params));
-                let mut encoder = g.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("sdf step"),
-                });
-                run_pass(
-                    &mut encoder,
-                    "sdf sky",
-                    &g.sky_pipeline,
-                    &g.sky_bg,
-                    gpu::dispatch_size_64(count as u32),
-                );
-                Ok(g.ctx.queue.submit([encoder.finish()]))
+                Ok(g.ctx
+                    .submit_compute("sdf sky", &g.sky_pipeline, &g.sky_bg, count as u32))
             };
             if watched {
                 let mut first_part = |done: u64, of: u64| go_on(done, parts * of);

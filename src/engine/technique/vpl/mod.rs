@@ -934,11 +934,9 @@ impl Vpl {
             let mut submit = |first: u64, count: u64| {
                 params.slice = [first as u32, count as u32, 0, 0];
                 q.write_buffer(&self.gather_buf, 0, bytemuck::bytes_of(&params));
-                let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-                    label: Some("vpl gather slice"),
-                });
-                gather(&mut encoder, gpu::dispatch_size_64(count as u32));
-                Ok(q.submit([encoder.finish()]))
+                Ok(self
+                    .ctx
+                    .submit_compute("vpl gather", &self.gather_pipeline, &self.gather_bg, count as u32))
             };
             let mut second_half = |done: u64, of: u64| go_on(of + done, 2 * of);
             let done = self
