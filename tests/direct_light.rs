@@ -313,7 +313,7 @@ fn one_bake_builds_its_bvh_once_and_uploads_the_scene_once() {
     let mut mask = ShadowmaskBake::new(&rays, &atlas, &lighting, 1, &[OutputLayer::Shadowmask], &["sun".into()])
         .expect("shadowmask prepares")
         .expect("a sun to mask");
-    let mut control = ControlTexels::new(&rays, &atlas, lighting, 1).expect("control texels");
+    let mut control = ControlTexels::new(&rays, &atlas, lighting, 1, 1).expect("control texels");
     tech.step().expect("sdf step");
     mask.step().expect("shadowmask step");
     control

@@ -240,6 +240,99 @@ fn three_gpu_tasks_merge_to_the_single_bake() {
     assert_same_bake(&single, &merged.estimate);
 }
 
+/// RMS of the luminance difference of two layers over the RMS luminance of the first.
+fn rms_difference(a: &[Vec3], b: &[Vec3]) -> f64 {
+    let ms = |v: &mut dyn Iterator<Item = f64>| v.map(|x| x * x).sum::<f64>() / a.len() as f64;
+    let rms = ms(&mut a.iter().map(|v| v.dot(LUMINANCE) as f64)).sqrt();
+    ms(&mut a.iter().zip(b).map(|(x, y)| (*x - *y).dot(LUMINANCE) as f64)).sqrt() / rms
+}
+
+/// Every technique but path splits into independent chains (engine::tasks): three
+/// chains of 4 steps, each with its own seed, merge to a bake of 12 steps. Not the single
+/// bake's samples, so the merge is compared with it within what both say their error is
+/// (bias and noise, measured at control texels against path, the chains' references
+/// merged); the merged halves are the chains' halves averaged by steps, exactly.
+#[test]
+fn chains_of_every_other_technique_merge_within_the_stated_error() {
+    let _gpu = common::gpu_serial();
+    let scene = Arc::new(scene::import_slice(&sphere_over_plane().to_glb(), None).unwrap().0);
+    for technique in ["vpl", "sdf", "obscurance", "sdb", "hemicube"] {
+        let mut request = request("cpu", 12);
+        request.resolution = 40;
+        request.technique = technique.into();
+        request.params = serde_json::Value::Null;
+        request.lighting.sky = Some(sky());
+        request.outputs = vec![OutputLayer::Direct];
+        let parts = bake_tasks(&scene, &request, TaskShape::steps(3));
+        // Each chain bakes its 4 steps; the halves count what the technique keeps (sdb
+        // leaves its first, bootstrap step out of them, in every chain).
+        let kept = |p: &Partial| p.header.half_steps[0] + p.header.half_steps[1];
+        assert!(
+            parts
+                .iter()
+                .all(|p| p.header.task.steps == 4 && (3..=4).contains(&kept(p))),
+            "{technique}"
+        );
+        // Distinct seeds: the chains are different bakes, with the same parameters (sdf's
+        // calibration, from the job's seed, included) and the same control texels.
+        assert_ne!(
+            parts[0].snapshot.even.total, parts[1].snapshot.even.total,
+            "{technique}"
+        );
+        assert!(
+            parts.iter().all(|p| p.header.params == parts[0].header.params),
+            "{technique}"
+        );
+        let control = |p: &Partial| p.header.control.as_ref().map(|c| c.texels.clone());
+        let texels = parts[0].header.texels as usize;
+        assert!(
+            control(&parts[0]).is_some_and(|t| t.len() == 256.min(texels)),
+            "{technique}"
+        );
+        assert!(parts.iter().all(|p| control(p) == control(&parts[0])), "{technique}");
+        let merged = tasks::merge(scene.clone(), &parts, &BakeOptions::default(), &mut |_| {}).unwrap();
+        let m = &merged.estimate;
+        let ([even, odd], n) = m.halves.clone().unwrap();
+        let sum = |h: usize| parts.iter().map(|p| p.header.half_steps[h]).sum::<u64>();
+        assert_eq!(n, [sum(0), sum(1)], "{technique}");
+        assert_eq!(merged.summary.steps, sum(0) + sum(1), "{technique}");
+        for (k, half) in [(0usize, &even), (1, &odd)] {
+            let mean = |i: usize| {
+                parts
+                    .iter()
+                    .map(|p| [&p.snapshot.even, &p.snapshot.odd][k].total[i])
+                    .sum::<Vec3>()
+                    / 3.0
+            };
+            assert!(
+                worst(half, &(0..half.len()).map(mean).collect::<Vec<_>>()) < 1e-5,
+                "{technique}"
+            );
+        }
+        // The merged error: bias measured at the chains' control texels.
+        assert_eq!(m.error.control_texels, Some(256.min(texels) as u32), "{technique}");
+        let (Some(em), Some(bias)) = (m.error.relative, m.error.bias) else {
+            panic!("{technique}: no error estimate {:?}", m.error)
+        };
+        assert!(bias <= em, "{technique}: bias {bias} over the whole {em}");
+        let single = whole(&scene, &request);
+        let ew = single.error.relative.unwrap();
+        let d = rms_difference(&single.total, &m.total);
+        let allowed = 3.0 * ((em * em + ew * ew) as f64).sqrt();
+        eprintln!("{technique}: merged {em:.4} (bias {bias:.4}), single {ew:.4}, difference {d:.4}");
+        assert!(
+            d <= allowed,
+            "{technique}: merged differs from a single bake by {d:.4} of the RMS, stated {em:.4} and {ew:.4}"
+        );
+        if matches!(technique, "obscurance" | "sdf") {
+            let ao = m.ao.as_ref().expect("the merged ao layer");
+            assert_eq!(ao.len(), m.total.len(), "{technique}");
+            let mean: f32 = ao.iter().sum::<f32>() / ao.len() as f32;
+            assert!((0.05..1.0).contains(&mean), "{technique}: mean ao {mean}");
+        }
+    }
+}
+
 #[test]
 fn the_merge_refuses_what_is_not_every_task_of_one_request() {
     let scene = scene();
@@ -398,18 +491,30 @@ fn three_processes_and_a_merge_write_the_single_bakes_lightmap() {
 }
 
 #[test]
-fn a_technique_that_does_not_split_is_refused_before_baking() {
+fn a_split_a_technique_does_not_allow_is_refused_before_baking() {
     let out = bin()
         .arg("bake")
         .arg(cornell())
         .arg("-o")
         .arg(tmp("never.lmtask"))
-        .args(["--technique", "hemicube", "--steps", "8", "--task", "0/2"])
+        .args([
+            "--technique",
+            "hemicube",
+            "--steps",
+            "8",
+            "--task",
+            "0/2",
+            "--regions",
+            "2",
+        ])
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{stderr}");
-    assert!(stderr.contains("hemicube bakes are not split into tasks"), "{stderr}");
+    assert!(
+        stderr.contains("hemicube bakes are split into independent chains of the whole grid, not into regions"),
+        "{stderr}"
+    );
     let out = bin()
         .arg("bake")
         .arg(cornell())

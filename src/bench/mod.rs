@@ -248,7 +248,7 @@ pub fn measure(
     let mut control = if technique::entry(technique)?.unbiased || p.atlas.texels.is_empty() {
         None
     } else {
-        Some(ControlTexels::new(&p.rays, &p.atlas, lib.lighting, 1)?)
+        Some(ControlTexels::new(&p.rays, &p.atlas, lib.lighting, 1, 1)?)
     };
     let mut technique_time = Duration::ZERO;
     let mut samples = Vec::new();

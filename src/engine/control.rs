@@ -52,7 +52,7 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use serde::Serialize;
 
-use crate::engine::accumulate::{Estimate, LUMINANCE};
+use crate::engine::accumulate::{Estimate, LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::error::EngineError;
 use crate::engine::gpu::scene_rays::SceneRays;
@@ -91,12 +91,22 @@ pub struct ControlTexels {
 }
 
 impl ControlTexels {
-    /// Picks up to [`CONTROL_TEXELS`] texels of `atlas` and prepares `path` on them.
-    pub fn new(rays: &Arc<SceneRays>, atlas: &Atlas, lighting: Lighting, seed: u64) -> Result<Self, EngineError> {
+    /// Picks up to [`CONTROL_TEXELS`] texels of `atlas` with `pick_seed` and prepares
+    /// `path` on them with streams from `seed`. A single bake gives its seed for both; the
+    /// chains of a split bake (`engine::tasks`) give the job's seed to pick with, so
+    /// every chain's control sees the same texels, and their own seeds to trace with, so
+    /// their references are independent and average in the merge.
+    pub fn new(
+        rays: &Arc<SceneRays>,
+        atlas: &Atlas,
+        lighting: Lighting,
+        pick_seed: u64,
+        seed: u64,
+    ) -> Result<Self, EngineError> {
         let scene = rays.scene();
         let n = atlas.texels.len();
         let m = n.min(CONTROL_TEXELS);
-        let mut rng = Rng::new(seed, 0xC0_17_20_1E, 0x51, 0);
+        let mut rng = Rng::new(pick_seed, 0xC0_17_20_1E, 0x51, 0);
         let stride = n as f64 / m.max(1) as f64;
         let start = rng.next_f32() as f64 * stride;
         let indices: Vec<usize> = (0..m)
@@ -137,6 +147,17 @@ impl ControlTexels {
         self.indices.len()
     }
 
+    /// The control texels, as indices into the bake's texels.
+    pub fn indices(&self) -> &[usize] {
+        &self.indices
+    }
+
+    /// The reference's halves at the control texels, in [`indices`](Self::indices)'
+    /// order: what a task of a split bake hands the merge (`engine::tasks`).
+    pub fn reference(&mut self) -> Result<Snapshot, EngineError> {
+        self.reference.snapshot()
+    }
+
     /// Steps the reference while its time is below [`CONTROL_SHARE`] of `technique_time`
     /// (at least once in all).
     pub fn keep_up(&mut self, technique_time: Duration) -> Result<(), EngineError> {
@@ -153,75 +174,87 @@ impl ControlTexels {
     /// into `estimate.error` (see the module doc). Does nothing before both halves of both
     /// have a step.
     pub fn assess(&mut self, estimate: &mut Estimate) -> Result<Option<ControlReport>, EngineError> {
-        let (Some(se_t), Some(noise)) = (estimate.texel_error.as_ref(), estimate.error.relative) else {
+        if estimate.texel_error.is_none() || estimate.error.relative.is_none() {
             return Ok(None);
-        };
+        }
         let reference = self.reference.snapshot()?.estimate();
-        let Some(se_p) = reference.texel_error.as_ref() else {
-            return Ok(None);
-        };
-        let rms_t = estimate.error.rms_luminance as f64;
-        let lum = |v: Vec3| v.dot(LUMINANCE) as f64;
-        let m = self.indices.len() as f64;
-        // The error relative to the answer, not to the technique's own values (a
-        // technique that reads 3x too bright would otherwise divide its error by 3):
-        // the RMS of the answer estimated from path's values, less path's variance.
-        let ms_ref = reference
-            .total
-            .iter()
-            .zip(se_p)
-            .map(|(p, s)| lum(*p).powi(2) - (*s as f64).powi(2))
-            .sum::<f64>()
-            / m;
-        let rms = ms_ref.max(0.0).sqrt();
-        if rms <= 0.0 || rms_t <= 0.0 || self.indices.is_empty() {
-            return Ok(None);
-        }
-        let mut d = Vec::with_capacity(self.indices.len());
-        let mut noise_at_control = 0.0f64;
-        for (j, &k) in self.indices.iter().enumerate() {
-            let diff = lum(estimate.total[k]) - lum(reference.total[j]);
-            d.push(diff * diff - (se_p[j] as f64).powi(2));
-            noise_at_control += (se_t[k] as f64).powi(2);
-        }
-        let mean = d.iter().sum::<f64>() / m;
-        let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1.0).max(1.0);
-        let se = (var / m).sqrt();
-        // The noise floor, calibrated at the control texels: where the control's 90 %
-        // upper bound of the whole error (noise included) is below what the halves say
-        // the noise alone is there, the halves over-state it (a stratified sequence whose
-        // union errs less than either half), and the page's noise figure is scaled down
-        // by the same factor. The scale, not a replacement: noise the control texels do
-        // not see keeps its share of the floor.
-        let noise_control_ms = noise_at_control / m;
-        let calibration = noise_calibration(mean, se, noise_control_ms);
-        let noise_ms = (noise as f64 * rms_t).powi(2) * calibration;
-        let rel = |ms: f64| (ms.max(noise_ms).sqrt() / rms) as f32;
-        let report = ControlReport {
-            texels: self.indices.len(),
-            reference_steps: reference.steps,
-            relative: (mean.max(0.0).sqrt() / rms) as f32,
-            bias: ((mean - noise_control_ms * calibration).max(0.0).sqrt() / rms) as f32,
-            interval: [rel(mean - Z90 * se), rel(mean + Z90 * se)],
-        };
-        // The noise part as the floor stands: calibrated, on the answer's scale (as the
-        // total and the bias), so the parts never exceed the whole.
-        estimate.error.noise = Some((noise_ms.sqrt() / rms) as f32);
-        estimate.error.relative = Some(rel(mean));
-        estimate.error.bias = Some(report.bias);
-        estimate.error.interval = Some(report.interval);
-        estimate.error.control_texels = Some(report.texels as u32);
-        tracing::debug!(
-            control_texels = report.texels,
-            reference_steps = report.reference_steps,
-            halves_noise = noise,
-            calibration,
-            bias = report.bias,
-            relative = ?estimate.error.relative,
-            "control texels"
-        );
-        Ok(Some(report))
+        Ok(assess_against(&self.indices, &reference, estimate))
     }
+}
+
+/// Compares `estimate` with `reference`, path's estimate at the control texels
+/// `indices` (indices into `estimate`'s texels, in the reference's order), and folds the
+/// result into `estimate.error` (see the module doc). Does nothing before both halves of
+/// both have a step. [`ControlTexels::assess`] during a bake; the merge of a split bake's
+/// chains with their references merged (`engine::tasks`).
+pub fn assess_against(indices: &[usize], reference: &Estimate, estimate: &mut Estimate) -> Option<ControlReport> {
+    let (Some(se_t), Some(noise)) = (estimate.texel_error.as_ref(), estimate.error.relative) else {
+        return None;
+    };
+    let Some(se_p) = reference.texel_error.as_ref() else {
+        return None;
+    };
+    let rms_t = estimate.error.rms_luminance as f64;
+    let lum = |v: Vec3| v.dot(LUMINANCE) as f64;
+    let m = indices.len() as f64;
+    // The error relative to the answer, not to the technique's own values (a
+    // technique that reads 3x too bright would otherwise divide its error by 3):
+    // the RMS of the answer estimated from path's values, less path's variance.
+    let ms_ref = reference
+        .total
+        .iter()
+        .zip(se_p)
+        .map(|(p, s)| lum(*p).powi(2) - (*s as f64).powi(2))
+        .sum::<f64>()
+        / m;
+    let rms = ms_ref.max(0.0).sqrt();
+    if rms <= 0.0 || rms_t <= 0.0 || indices.is_empty() {
+        return None;
+    }
+    let mut d = Vec::with_capacity(indices.len());
+    let mut noise_at_control = 0.0f64;
+    for (j, &k) in indices.iter().enumerate() {
+        let diff = lum(estimate.total[k]) - lum(reference.total[j]);
+        d.push(diff * diff - (se_p[j] as f64).powi(2));
+        noise_at_control += (se_t[k] as f64).powi(2);
+    }
+    let mean = d.iter().sum::<f64>() / m;
+    let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1.0).max(1.0);
+    let se = (var / m).sqrt();
+    // The noise floor, calibrated at the control texels: where the control's 90 %
+    // upper bound of the whole error (noise included) is below what the halves say
+    // the noise alone is there, the halves over-state it (a stratified sequence whose
+    // union errs less than either half), and the page's noise figure is scaled down
+    // by the same factor. The scale, not a replacement: noise the control texels do
+    // not see keeps its share of the floor.
+    let noise_control_ms = noise_at_control / m;
+    let calibration = noise_calibration(mean, se, noise_control_ms);
+    let noise_ms = (noise as f64 * rms_t).powi(2) * calibration;
+    let rel = |ms: f64| (ms.max(noise_ms).sqrt() / rms) as f32;
+    let report = ControlReport {
+        texels: indices.len(),
+        reference_steps: reference.steps,
+        relative: (mean.max(0.0).sqrt() / rms) as f32,
+        bias: ((mean - noise_control_ms * calibration).max(0.0).sqrt() / rms) as f32,
+        interval: [rel(mean - Z90 * se), rel(mean + Z90 * se)],
+    };
+    // The noise part as the floor stands: calibrated, on the answer's scale (as the
+    // total and the bias), so the parts never exceed the whole.
+    estimate.error.noise = Some((noise_ms.sqrt() / rms) as f32);
+    estimate.error.relative = Some(rel(mean));
+    estimate.error.bias = Some(report.bias);
+    estimate.error.interval = Some(report.interval);
+    estimate.error.control_texels = Some(report.texels as u32);
+    tracing::debug!(
+        control_texels = report.texels,
+        reference_steps = report.reference_steps,
+        halves_noise = noise,
+        calibration,
+        bias = report.bias,
+        relative = ?estimate.error.relative,
+        "control texels"
+    );
+    Some(report)
 }
 
 /// The factor the page's half-difference noise floor is scaled by: the control's 90 %

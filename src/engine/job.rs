@@ -707,6 +707,19 @@ impl Prepared {
         stop: StopCriteria,
         options: &BakeOptions,
     ) -> Result<BakeLoop, EngineError> {
+        self.bake_loop_picking(request, stop, options, request.seed)
+    }
+
+    /// [`bake_loop`](Self::bake_loop) whose control texels are picked with
+    /// `control_pick` (a chain of a split bake: the job's seed, where `request` carries
+    /// the chain's own).
+    pub fn bake_loop_picking(
+        &self,
+        request: &BakeRequest,
+        stop: StopCriteria,
+        options: &BakeOptions,
+        control_pick: u64,
+    ) -> Result<BakeLoop, EngineError> {
         let mut bake_loop = BakeLoop::new(stop);
         bake_loop.snapshot_interval = options.snapshot_interval;
         bake_loop.step_progress = options.step_progress.clone();
@@ -715,6 +728,7 @@ impl Prepared {
                 &self.rays,
                 &self.atlas,
                 request.lighting,
+                control_pick,
                 request.seed,
             )?);
         }

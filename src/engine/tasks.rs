@@ -22,11 +22,33 @@
 //!   order of the step additions; regions alone are bit-identical on the CPU), so the
 //!   merged estimate, its error estimate from the halves' difference (DESIGN §4) and the
 //!   delivered lightmap are a single bake's, not a different bake "within noise".
-//! - every other technique (`Whole`): one task. Their steps are chains over the whole
-//!   scene (`sdb`, `hemicube`), running ratios over whole-scene means (`obscurance`'s
-//!   ambient term), or their error includes a bias measured at control texels spread over
-//!   the whole grid (`vpl`, `sdf`): no region of them is a region of a single bake, and
-//!   no step range a range of it. The row says which.
+//! - every other technique (`Chains`): *independent chains*. Their steps are chains over
+//!   the whole grid (`sdb`, `hemicube`: each step transports the light the steps before it
+//!   left), running ratios over a stratified sequence and a whole-grid mean (`obscurance`),
+//!   or their error includes a bias measured at control texels spread over the whole grid
+//!   (`vpl`, `sdf`, and the three others): no range of their steps and no region of their
+//!   grid is a part of a single bake (the row says why, per technique). But a whole bake
+//!   is a function of its seed, so task k bakes the whole grid from step 0 with its own
+//!   seed ([`chain_seed`]: chain 0 the job's) for its share of the job's steps, and the
+//!   merge is the same step-weighted mean of the halves ([`merge_halves`]).
+//!   - *Why the mean is right.* The chains are independent draws of one estimator (same
+//!     scene, parameters and step count up to one), so their mean has the expectation of
+//!     one chain, its noise divided by sqrt(chains), and a chain's bias. Each half of the
+//!     merge is the mean of the chains' halves, so the halves' difference still measures
+//!     the merged noise (DESIGN §4).
+//!   - *What it costs.* A chain of S/K steps is not a chain of S steps: what decays with
+//!     the steps (sdb's and hemicube's transient of the first bounces, about 1/M² with
+//!     their ramp weights; sdb's bootstrap step, left out of its halves, in every chain)
+//!     stays at its S/K-step size. That is bias, not noise, and the merge measures it as a
+//!     single bake does: each chain's control texels (the job's seed picks them, so every
+//!     chain has the same) are traced by path with the chain's own seed; the chains'
+//!     references are averaged like the halves, and the merged lightmap is assessed
+//!     against that (`control::assess_against`), so the merged error states the bias of
+//!     short chains. Preparation-time fits (`sdf`'s calibration of k and alpha) draw from
+//!     the job's seed (`BakeInputs::prepare_seed`), so every chain bakes with the same
+//!     constants and the parameters the job reports are the chains'.
+//!   - Each chain repeats the whole-scene work once (the scene's maps, fields, rays'
+//!     structures): chains pay off when steps dominate, which is the long bake.
 //!
 //! A split bake's stop rule is `stop.steps`, the job's total; `stop.seconds` bounds
 //! each task on its own (a task that runs out of time delivers fewer steps, and the
@@ -36,8 +58,9 @@
 //! no task sees.
 //!
 //! A task's result is a [`Partial`]: the request, the task, a fingerprint of the texel
-//! set it baked (its region's), both halves' means with their step counts, and the
-//! pixel of each texel (what its validation kept). Its file
+//! set it baked (its region's), both halves' means with their step counts, the
+//! pixel of each texel (what its validation kept), the technique's `ao` layer when it has
+//! one, and a chain's control texels with its reference's halves there. Its file
 //! format is this module's own (an 8-byte magic, the JSON header's length and the
 //! header, then little-endian f32 arrays; docs/scaling.md has the layout): the data is
 //! per valid texel, not per pixel, so an image format would only add a layout to undo,
@@ -64,19 +87,22 @@ use sha2::{Digest, Sha256};
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::bake::{BakeObserver, StopCriteria, StopReason};
+use crate::engine::control;
 use crate::engine::job::{self, BakeOptions, BakeRequest, BakeResult};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::Plan;
 use crate::engine::scene::Scene;
 use crate::engine::technique::api::TaskSplit;
-use crate::engine::technique::{self, EngineError};
+use crate::engine::technique::{self, BakeInputs, EngineError};
 
 /// At most this many tasks per bake.
 pub const MAX_TASKS: u32 = 1024;
 
 /// The format version a [`Partial`] file carries; a merge refuses others. 2: tasks carry
 /// their region (format 1 had step ranges only, and path streams keyed by texel index).
-pub const PARTIAL_FORMAT: u32 = 2;
+/// 3: chains (`TaskRange::chain`), with their control texels' reference and their `ao`
+/// layer.
+pub const PARTIAL_FORMAT: u32 = 3;
 
 const MAGIC: &[u8; 8] = b"LMDTASK1";
 
@@ -110,6 +136,10 @@ pub struct TaskRange {
     pub regions: u32,
     pub first_step: u64,
     pub steps: u64,
+    /// An independent chain ([`TaskSplit::Chains`]): the whole grid baked from step 0
+    /// with the seed [`chain_seed`]`(job's seed, index)`; `first_step` is then 0.
+    #[serde(default)]
+    pub chain: bool,
 }
 
 impl TaskRange {
@@ -118,6 +148,17 @@ impl TaskRange {
             tasks: self.count,
             regions: self.regions,
         }
+    }
+}
+
+/// The seed chain `index` of a job seeded `seed` bakes with: chain 0 the job's own (so
+/// a one-chain split is the single bake), the others SplitMix64 of the seed and the
+/// index, so no two chains of a job draw the same streams.
+pub fn chain_seed(seed: u64, index: u32) -> u64 {
+    if index == 0 {
+        seed
+    } else {
+        crate::engine::rng::splitmix64(seed ^ u64::from(index).wrapping_mul(0x9E37_79B9_7F4A_7C15))
     }
 }
 
@@ -145,14 +186,20 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
             regions: 1,
             first_step: 0,
             steps,
+            chain: false,
         }]);
     }
-    if let TaskSplit::Whole(why) = entry.tasks {
-        return bad(format!(
-            "tasks: {} bakes are not split into tasks ({why}); bake it as one task",
-            request.technique
-        ));
-    }
+    let chains = match entry.tasks {
+        TaskSplit::StepsAndRegions => false,
+        TaskSplit::Chains(why) if regions > 1 => {
+            return bad(format!(
+                "regions: {} bakes are split into independent chains of the whole grid, not into regions ({why}); \
+                 give regions 1",
+                request.technique
+            ));
+        }
+        TaskSplit::Chains(_) => true,
+    };
     if request.stop.target_error.is_some() {
         return bad(
             "tasks: stop.target_error is a rule about the whole bake's error, which no task sees alone; \
@@ -165,12 +212,28 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
     };
     let ranges = shape.ranges();
     if total < 2 * ranges as u64 {
+        let what = if chains { "chains" } else { "step ranges per region" };
         return bad(format!(
-            "tasks: stop.steps ({total}) must be at least twice the step ranges per region ({ranges}): each task bakes a step of each half"
+            "tasks: stop.steps ({total}) must be at least twice the {what} ({ranges}): each task bakes a step of each half"
         ));
     }
     if request.outputs.contains(&OutputLayer::Shadowmask) {
         return bad("tasks: the shadowmask layer is not baked in split bakes yet; bake it as one task".into());
+    }
+    if chains {
+        // Every chain starts at step 0; the job's steps dealt out evenly.
+        let n = u64::from(count);
+        return Ok((0..count)
+            .map(|index| TaskRange {
+                index,
+                count,
+                region: 0,
+                regions: 1,
+                first_step: 0,
+                steps: total / n + u64::from(u64::from(index) < total % n),
+                chain: true,
+            })
+            .collect());
     }
     // Pairs of steps dealt out evenly, so every range starts on an even step; an odd
     // total leaves one step for the last range.
@@ -193,6 +256,7 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
                 regions,
                 first_step,
                 steps,
+                chain: false,
             }
         })
         .collect())
@@ -206,6 +270,48 @@ pub struct Partial {
     /// The pixel of each texel it baked, in order: the texels its validation kept, which
     /// the merge takes instead of validating the whole grid again.
     pub pixels: Vec<u32>,
+    /// The technique's `ao` layer (`Technique::ao`) per texel, when it has one.
+    pub ao: Option<Vec<f32>>,
+}
+
+/// A chain's control texels (`engine::control`) and its path reference's halves at them:
+/// the merge averages the chains' references and measures the merged lightmap's bias
+/// against that, as a single bake measures its own. Small (256 texels), so kept in the
+/// JSON header.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ControlHalves {
+    /// Indices into the task's texels; every chain of a job has the same (picked with the
+    /// job's seed).
+    pub texels: Vec<u32>,
+    pub half_steps: [u64; 2],
+    pub even: Vec<[f32; 3]>,
+    pub odd: Vec<[f32; 3]>,
+}
+
+impl ControlHalves {
+    fn of(indices: &[usize], reference: &Snapshot) -> ControlHalves {
+        let flat = |v: &[Vec3]| v.iter().map(|x| x.to_array()).collect();
+        ControlHalves {
+            texels: indices.iter().map(|&k| k as u32).collect(),
+            half_steps: [reference.even.steps, reference.odd.steps],
+            even: flat(&reference.even.total),
+            odd: flat(&reference.odd.total),
+        }
+    }
+
+    fn snapshot(&self) -> Snapshot {
+        let half = |steps: u64, v: &[[f32; 3]]| HalfEstimate {
+            steps,
+            total: v.iter().map(|x| Vec3::from_array(*x)).collect(),
+            direct: None,
+            moments: None,
+        };
+        Snapshot {
+            even: half(self.half_steps[0], &self.even),
+            odd: half(self.half_steps[1], &self.odd),
+        }
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -225,6 +331,10 @@ pub struct PartialHeader {
     pub half_steps: [u64; 2],
     pub direct: bool,
     pub moments: bool,
+    /// Whether an `ao` layer follows the pixels.
+    pub ao: bool,
+    /// A chain's control texels and reference (a biased technique's, `engine::control`).
+    pub control: Option<ControlHalves>,
     /// The task's own bake time.
     pub seconds: f64,
     pub stopped_by: StopReason,
@@ -276,6 +386,9 @@ pub fn bake_task(
     // The task's probes are the merge's to bake, once.
     let mut own = request.clone();
     own.probes = None;
+    if task.chain {
+        own.seed = chain_seed(request.seed, task.index);
+    }
     let regions = (task.regions > 1).then_some(job::RegionsOf {
         count: task.regions,
         keep: Some(task.region),
@@ -283,17 +396,30 @@ pub fn bake_task(
     });
     let prepared = job::prepare_regions(scene, &own, options, regions, on_atlas, on_plan)?;
     let pixels: Vec<u32> = prepared.atlas.texels.iter().map(|t| t.pixel).collect();
-    let mut tech = technique::create(&request.technique, prepared.inputs(request), &request.params)?;
+    let inputs = BakeInputs {
+        prepare_seed: request.seed,
+        ..prepared.inputs(&own)
+    };
+    let mut tech = technique::create(&request.technique, inputs, &request.params)?;
     tech.start_at_step(task.first_step)?;
     let stop = StopCriteria {
         steps: Some(task.steps),
         seconds: request.stop.seconds,
         target_error: None,
     };
-    let outcome = prepared
-        .bake_loop(request, stop, options)?
-        .run(tech.as_mut(), observer)?;
+    // A chain's control texels are the job's (picked with its seed), its reference
+    // traced with the chain's seed.
+    let mut bake_loop = prepared.bake_loop_picking(&own, stop, options, request.seed)?;
+    let outcome = bake_loop.run(tech.as_mut(), observer)?;
     let snapshot = tech.snapshot()?;
+    let control = match &mut bake_loop.control {
+        Some(c) => {
+            let reference = c.reference()?;
+            Some(ControlHalves::of(c.indices(), &reference))
+        }
+        None => None,
+    };
+    let ao = tech.ao();
     let header = PartialHeader {
         format: PARTIAL_FORMAT,
         request: request.clone(),
@@ -306,12 +432,15 @@ pub fn bake_task(
         half_steps: [snapshot.even.steps, snapshot.odd.steps],
         direct: snapshot.even.direct.is_some(),
         moments: snapshot.even.moments.is_some(),
+        ao: ao.is_some(),
+        control,
         seconds: outcome.elapsed.as_secs_f64(),
         stopped_by: outcome.stopped_by,
     };
     tracing::info!(
         task = task.index,
         tasks = task.count,
+        chain = task.chain,
         first_step = task.first_step,
         steps = snapshot.even.steps + snapshot.odd.steps,
         seconds = header.seconds,
@@ -321,6 +450,7 @@ pub fn bake_task(
         header,
         snapshot,
         pixels,
+        ao,
     })
 }
 
@@ -353,6 +483,14 @@ impl Partial {
         for p in &self.pixels {
             out.extend_from_slice(&p.to_le_bytes());
         }
+        if self.header.ao != self.ao.is_some() {
+            return Err(EngineError::Internal(
+                "a task's ao layer and its header disagree".into(),
+            ));
+        }
+        for a in self.ao.iter().flatten() {
+            out.extend_from_slice(&a.to_le_bytes());
+        }
         Ok(out)
     }
 
@@ -377,7 +515,7 @@ impl Partial {
         let n = usize::try_from(header.texels).map_err(|_| bad("texel count too large".into()))?;
         let per_texel = 1 + usize::from(header.direct) + 3 * usize::from(header.moments);
         let want = n
-            .checked_mul(per_texel * 2 * 12 + 4)
+            .checked_mul(per_texel * 2 * 12 + 4 + 4 * usize::from(header.ao))
             .ok_or_else(|| bad("texel count too large".into()))?;
         let data = &bytes[16 + len..];
         if data.len() != want {
@@ -412,14 +550,27 @@ impl Partial {
             }
         });
         let [even, odd] = std::mem::take(&mut halves);
-        let pixels = data[at..]
-            .chunks_exact(4)
-            .map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes")))
+        let words =
+            |bytes: &[u8]| -> Vec<[u8; 4]> { bytes.chunks_exact(4).map(|c| c.try_into().expect("4 bytes")).collect() };
+        let pixels = words(&data[at..at + 4 * n])
+            .into_iter()
+            .map(u32::from_le_bytes)
             .collect();
+        let ao = header
+            .ao
+            .then(|| words(&data[at + 4 * n..]).into_iter().map(f32::from_le_bytes).collect());
+        if let Some(c) = &header.control
+            && (c.even.len() != c.texels.len()
+                || c.odd.len() != c.texels.len()
+                || c.texels.iter().any(|&k| u64::from(k) >= header.texels))
+        {
+            return Err(bad("its control texels do not fit its texels".into()));
+        }
         Ok(Partial {
             header,
             snapshot: Snapshot { even, odd },
             pixels,
+            ao,
         })
     }
 }
@@ -507,6 +658,62 @@ pub fn merge_regions(ordered: &[&Partial]) -> Result<Snapshot, EngineError> {
     })
 }
 
+/// The merged `ao` layer (step-weighted per region, the regions side by side, as the
+/// halves), when the tasks have one.
+fn merge_ao(ordered: &[&Partial], ranges: usize) -> Option<Vec<f32>> {
+    ordered
+        .chunks(ranges)
+        .map(|group| {
+            let steps = |p: &Partial| (p.snapshot.even.steps + p.snapshot.odd.steps) as f64;
+            let all: f64 = group.iter().map(|p| steps(p)).sum::<f64>().max(1.0);
+            let n = group[0].ao.as_ref()?.len();
+            let mut acc = vec![0f64; n];
+            for p in group {
+                for (a, x) in acc.iter_mut().zip(p.ao.as_ref()?) {
+                    *a += steps(p) / all * f64::from(*x);
+                }
+            }
+            Some(acc.into_iter().map(|a| a as f32).collect::<Vec<f32>>())
+        })
+        .collect::<Option<Vec<_>>>()
+        .map(|parts| parts.concat())
+}
+
+/// The tasks' control texels as indices into the merged texels, and their references
+/// merged: per region the chains' references averaged by steps (every chain of a region
+/// has the same control texels, picked with the job's seed), the regions' side by side.
+fn merge_control(ordered: &[&Partial], ranges: usize) -> Result<Option<(Vec<usize>, Snapshot)>, EngineError> {
+    if ordered.iter().any(|p| p.header.control.is_none()) {
+        return Ok(None);
+    }
+    let (mut indices, mut parts, mut offset) = (Vec::new(), Vec::new(), 0usize);
+    for group in ordered.chunks(ranges) {
+        let controls: Vec<&ControlHalves> = group.iter().filter_map(|p| p.header.control.as_ref()).collect();
+        if controls.iter().any(|c| c.texels != controls[0].texels) {
+            return Err(EngineError::BadInput(format!(
+                "merge: the chains of task {} measured their bias at other control texels than it: \
+                 results of another version or a damaged one",
+                group[0].header.task.index
+            )));
+        }
+        let snaps: Vec<Snapshot> = controls.iter().map(|c| c.snapshot()).collect();
+        parts.push(merge_halves(&snaps.iter().collect::<Vec<_>>()));
+        indices.extend(controls[0].texels.iter().map(|&k| offset + k as usize));
+        offset += group[0].header.texels as usize;
+    }
+    let join = |pick: fn(&Snapshot) -> &HalfEstimate| HalfEstimate {
+        steps: parts.iter().map(|p| pick(p).steps).min().unwrap_or(0),
+        total: parts.iter().flat_map(|p| pick(p).total.iter().copied()).collect(),
+        direct: None,
+        moments: None,
+    };
+    let reference = Snapshot {
+        even: join(|s| &s.even),
+        odd: join(|s| &s.odd),
+    };
+    Ok(Some((indices, reference)))
+}
+
 /// Checks that `partials` are every task of one request, each baked on its region's
 /// texels of `atlas` (when given: the whole texel set and each region's range of it),
 /// and returns them in task order.
@@ -551,8 +758,13 @@ pub fn check_partials<'a>(
         if h.stopped_by == StopReason::Cancelled {
             return bad(format!("{name} was cancelled; bake it again"));
         }
-        if (h.direct, h.moments, &h.params) != (h0.direct, h0.moments, &h0.params) {
+        if (h.direct, h.moments, h.ao, &h.params) != (h0.direct, h0.moments, h0.ao, &h0.params) {
             return bad(format!("{name} kept other layers or parameters than task result 0"));
+        }
+        if h.control.is_some() != h0.control.is_some() {
+            return bad(format!(
+                "{name} measured its bias at control texels and task result 0 did not, or the other way round"
+            ));
         }
         if let Some((f, texels)) = prints.as_ref().map(|p| &p[h.task.region as usize])
             && (h.fingerprint != *f || h.texels != *texels)
@@ -625,7 +837,13 @@ pub fn merge(
         .collect();
     let ordered = check_partials(partials, Some((&prepared.atlas, &texel_ranges)))?;
     let snapshot = merge_regions(&ordered)?;
-    let estimate = snapshot.estimate();
+    let mut estimate = snapshot.estimate();
+    estimate.ao = merge_ao(&ordered, ranges);
+    // A biased technique's error: the merged lightmap against the chains' references
+    // merged, as a single bake's control texels assess its snapshots.
+    if let Some((indices, reference)) = merge_control(&ordered, ranges)? {
+        control::assess_against(&indices, &reference.estimate(), &mut estimate);
+    }
     if let Some((layer, k, v)) = estimate.first_non_finite() {
         return Err(EngineError::Internal(format!(
             "merged tasks hold a non-finite value {v:?} at texel {k} of the {layer} layer; the lightmap was not written"
@@ -689,7 +907,8 @@ mod tests {
     #[test]
     fn what_cannot_be_split_is_refused_naming_why() {
         let err = |r: &BakeRequest, n| split(r, TaskShape::steps(n)).unwrap_err().to_string();
-        assert!(err(&request("sdb", Some(64)), 2).contains("sdb bakes are not split into tasks"));
+        assert!(err(&request("sdb", None), 2).contains("needs stop.steps"));
+        assert!(err(&request("sdb", Some(5)), 3).contains("at least twice the chains (3)"));
         assert!(err(&request("path", None), 2).contains("needs stop.steps"));
         assert!(err(&request("path", Some(3)), 2).contains("at least twice the step ranges per region (2)"));
         assert!(err(&request("path", Some(64)), 0).contains("tasks must be in 1..=1024"));
@@ -717,10 +936,45 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(few.contains("step ranges per region (3)"), "{few}");
+        // A chain technique has no regions, and says why.
         let sdb = split(&request("sdb", Some(64)), TaskShape { tasks: 2, regions: 2 })
             .unwrap_err()
             .to_string();
-        assert!(sdb.contains("sdb bakes are not split into tasks"), "{sdb}");
+        assert!(
+            sdb.starts_with("regions: sdb bakes are split into independent chains of the whole grid")
+                && sdb.contains("a region's light depends on every other region's"),
+            "{sdb}"
+        );
+    }
+
+    /// Chains: every technique but path; each bakes from step 0 over the whole grid, the
+    /// job's steps dealt out evenly, each with its own seed (chain 0 the job's).
+    #[test]
+    fn chains_share_the_steps_and_have_their_own_seeds() {
+        for tech in ["vpl", "sdf", "obscurance", "sdb", "hemicube"] {
+            let t = split(&request(tech, Some(11)), TaskShape::steps(3)).unwrap();
+            let got: Vec<(u32, u32, u64, u64, bool)> = t
+                .iter()
+                .map(|r| (r.index, r.region, r.first_step, r.steps, r.chain))
+                .collect();
+            assert_eq!(
+                got,
+                vec![(0, 0, 0, 4, true), (1, 0, 0, 4, true), (2, 0, 0, 3, true)],
+                "{tech}"
+            );
+        }
+        assert!(
+            split(&request("path", Some(11)), TaskShape::steps(3))
+                .unwrap()
+                .iter()
+                .all(|r| !r.chain)
+        );
+        let seeds: Vec<u64> = (0..64).map(|k| chain_seed(7, k)).collect();
+        assert_eq!(seeds[0], 7);
+        let mut unique = seeds.clone();
+        unique.sort_unstable();
+        unique.dedup();
+        assert_eq!(unique.len(), seeds.len());
     }
 
     /// Task k is region k / ranges over range k % ranges; every region gets every range.
@@ -784,6 +1038,13 @@ mod tests {
             half_steps: [2, 2],
             direct: true,
             moments: true,
+            ao: true,
+            control: Some(ControlHalves {
+                texels: vec![0, 2],
+                half_steps: [3, 4],
+                even: vec![[1.0, 2.0, 3.0], [0.5, 0.5, 0.5]],
+                odd: vec![[1.5, 2.5, 3.5], [0.25, 0.5, 0.75]],
+            }),
             seconds: 0.5,
             stopped_by: StopReason::Steps,
         };
@@ -794,10 +1055,12 @@ mod tests {
                 odd: half(2, 0.25, 3),
             },
             pixels: vec![1, 5, 9],
+            ao: Some(vec![0.25, 0.5, 1.0]),
         };
         let bytes = p.encode().unwrap();
         let back = Partial::decode(&bytes, "t").unwrap();
         assert_eq!(back.pixels, p.pixels);
+        assert_eq!(back.ao, p.ao);
         assert_eq!(back.header, p.header);
         assert_eq!(back.snapshot.odd.moments, p.snapshot.odd.moments);
         assert_eq!(back.snapshot.even.direct, p.snapshot.even.direct);
@@ -810,5 +1073,69 @@ mod tests {
         );
         let junk = Partial::decode(b"not a task result", "x").unwrap_err().to_string();
         assert!(junk.contains("no LMDTASK1 magic"), "{junk}");
+        // A control texel past the task's texels.
+        let mut bad = p.clone();
+        bad.header.control.as_mut().unwrap().texels[1] = 3;
+        let err = Partial::decode(&bad.encode().unwrap(), "c").unwrap_err().to_string();
+        assert!(err.contains("control texels do not fit"), "{err}");
+    }
+
+    /// The chains' controls merge by their steps; the ao layer too, and regions side by side.
+    #[test]
+    fn controls_and_ao_merge_by_steps() {
+        let part = |steps: u64, v: f32, region: u32| {
+            let c = ControlHalves {
+                texels: vec![1],
+                half_steps: [steps, steps],
+                even: vec![[v; 3]],
+                odd: vec![[2.0 * v; 3]],
+            };
+            let mut task = split(&request("sdb", Some(8)), TaskShape::steps(2)).unwrap()[0];
+            task.region = region;
+            Partial {
+                header: PartialHeader {
+                    format: PARTIAL_FORMAT,
+                    request: request("sdb", Some(8)),
+                    task,
+                    params: Value::Null,
+                    width: 2,
+                    height: 2,
+                    texels: 2,
+                    fingerprint: String::new(),
+                    half_steps: [steps, steps],
+                    direct: false,
+                    moments: false,
+                    ao: true,
+                    control: Some(c),
+                    seconds: 0.0,
+                    stopped_by: StopReason::Steps,
+                },
+                snapshot: Snapshot {
+                    even: half(steps, v, 2),
+                    odd: half(steps, v, 2),
+                },
+                pixels: vec![0, 1],
+                ao: Some(vec![v, 0.0]),
+            }
+        };
+        let (a, b) = (part(3, 1.0, 0), part(1, 5.0, 0));
+        let (texels, reference) = merge_control(&[&a, &b], 2).unwrap().unwrap();
+        assert_eq!(texels, vec![1]);
+        assert_eq!((reference.even.steps, reference.odd.steps), (4, 4));
+        assert_eq!(reference.even.total[0], Vec3::splat(2.0));
+        assert_eq!(reference.odd.total[0], Vec3::splat(4.0));
+        assert_eq!(merge_ao(&[&a, &b], 2), Some(vec![2.0, 0.0]));
+        // Two regions of one task each: the second region's control texel is offset by
+        // the first region's texels.
+        let (texels, reference) = merge_control(&[&a, &b], 1).unwrap().unwrap();
+        assert_eq!(texels, vec![1, 3]);
+        assert_eq!(reference.even.total, vec![Vec3::splat(1.0), Vec3::splat(5.0)]);
+        assert_eq!(reference.even.steps, 1);
+        assert_eq!(merge_ao(&[&a, &b], 1), Some(vec![1.0, 0.0, 5.0, 0.0]));
+        // Chains that picked other control texels are refused.
+        let mut c = part(1, 5.0, 0);
+        c.header.control.as_mut().unwrap().texels = vec![0];
+        let err = merge_control(&[&a, &c], 2).unwrap_err().to_string();
+        assert!(err.contains("other control texels"), "{err}");
     }
 }

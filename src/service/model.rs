@@ -403,7 +403,7 @@ impl JobSpec {
                 regions: self.regions.unwrap_or(1),
             };
             // The engine's own split: it names why a technique or a stop rule cannot be
-            // split ("sdb bakes are not split into tasks (…)", "needs stop.steps").
+            // split ("regions: sdb bakes are split into independent chains …", "needs stop.steps").
             crate::engine::tasks::split(&request, shape).map_err(|e| {
                 let m = e.to_string();
                 let field = if m.starts_with("regions") { "regions" } else { "tasks" };
@@ -844,8 +844,13 @@ pub struct TaskView {
     pub kind: String,
     /// A bake task's region of the grid (`TasksView.regions`).
     pub region: Option<u32>,
-    /// A bake task's steps of the job, `[first, end)`.
+    /// A bake task's steps of the job, `[first, end)`; a chain's start at 0.
     pub step_range: Option<[u64; 2]>,
+    /// The seed of a bake task that is an independent chain (every technique but
+    /// `path`: the whole grid baked with its own seed, `engine::tasks`); absent for
+    /// `path`'s step ranges, which share the job's.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub chain_seed: Option<u64>,
     pub status: crate::service::queue::TaskStatus,
     pub attempts: u32,
     pub worker: Option<String>,

@@ -671,6 +671,10 @@ pub async fn describe_job(state: &AppState, j: &JobRecord) -> JobView {
                                 .map(|r| [r.first_step, r.first_step + r.steps])
                         })
                         .flatten(),
+                    chain_seed: (!t.is_merge())
+                        .then(|| ranges.get(t.index as usize).filter(|r| r.chain))
+                        .flatten()
+                        .map(|r| crate::engine::tasks::chain_seed(j.spec.seed, r.index)),
                     kind: if t.is_merge() { "merge" } else { "bake" }.into(),
                     status: t.status,
                     attempts: t.attempts,

@@ -910,6 +910,11 @@ async fn every_error_status_has_its_problem_body() {
             "regions must divide tasks (each region is baked as tasks / regions step ranges): 4 regions of 6 tasks".into(),
         ),
         (
+            json!({"scene": scene, "technique": "sdb", "tasks": 4, "regions": 2, "stop": {"steps": 60}}).to_string(),
+            "regions",
+            "regions: sdb bakes are split into independent chains of the whole grid, not into regions (each step gathers the reflected light of the running estimate all earlier steps built, over every texel: a range of steps cannot start without the steps before it, and a region's light depends on every other region's); give regions 1".into(),
+        ),
+        (
             json!({"scene": scene, "regions": 2, "stop": {"steps": 60}}).to_string(),
             "regions",
             "regions splits a job's tasks: give tasks too (a multiple of regions)".into(),

@@ -20,6 +20,10 @@
 //! - then a `path` job on the Cornell box's one page split into 3 tiles (bands of rows,
 //!   `tasks: 3, regions: 3`) on the two surviving workers: its lightmap equals the
 //!   single-process bake's to 1e-6;
+//! - then a `vpl` job on the two pages split into 2 independent chains (each with its
+//!   own seed, shown as the task's `chain_seed`): its lightmap is within three times the
+//!   stated errors of the single-process bake's, and its error carries the bias measured
+//!   at the chains' merged control texels;
 //! - the surviving processes exit 0 on SIGTERM.
 //!
 //! `cancelling_a_split_job_stops_its_tasks_within_seconds`: one worker process bakes a
@@ -344,6 +348,71 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         "tiled and single bake differ by {tiles_vs_single:.2e} (relative RMS)"
     );
     eprintln!("farm: 40 steps of one page as 3 tiles on 2 workers: merged vs single {tiles_vs_single:.1e}");
+
+    // Chains: a `vpl` job (a biased technique with control texels) as two independent
+    // chains, each with its own seed, on the two workers. Not the single bake's samples:
+    // the merged lightmap is compared with it within the errors both state, and the
+    // merged error carries the bias measured at the chains' merged control texels.
+    let chained = json!({
+        "scene": scene, "technique": "vpl", "resolution": 40, "seed": 5,
+        "lighting": {"sky": {"radiance": [1, 1, 1]}},
+        "stop": {"steps": 8}, "tasks": 2, "denoise": "none",
+    });
+    let chain_id = submit(&http, &farm.url, chained.clone()).await;
+    let chain_url = format!("{}/v1/jobs/{chain_id}", farm.url);
+    let t = Instant::now();
+    let job = loop {
+        let j = get_json(&http, &chain_url).await;
+        if j["status"] != "queued" && j["status"] != "running" {
+            break j;
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(180),
+            "the chained job never ended: {j:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let list = job["tasks"]["list"].as_array().unwrap();
+    let chains: Vec<(Value, Value)> = list[..2]
+        .iter()
+        .map(|t| (t["step_range"].clone(), t["chain_seed"].clone()))
+        .collect();
+    assert_eq!(
+        chains,
+        [
+            (json!([0, 4]), json!(5)),
+            (json!([0, 4]), json!(lightmapd::engine::tasks::chain_seed(5, 1)))
+        ]
+    );
+    let error = &job["summary"]["error"];
+    assert!(error["control_texels"].as_u64().unwrap() > 0, "{error:#}");
+    let merged_error = error["relative"].as_f64().unwrap();
+    let r = http.get(format!("{chain_url}/lightmap-0.exr")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let mut pages = vec![r.bytes().await.unwrap()];
+    let r = http.get(format!("{chain_url}/lightmap-1.exr")).send().await.unwrap();
+    pages.push(r.bytes().await.unwrap());
+    let merged = ReferenceLightmap::from_pages(&pages).unwrap();
+    let single = bake(&JobSpec::parse(chained.to_string().as_bytes()).unwrap().to_request());
+    let single_values: Vec<glam::Vec3> =
+        ReferenceLightmap::from_pages(&single.pages.iter().map(|p| &p.exr[..]).collect::<Vec<_>>())
+            .unwrap()
+            .per_texel(&single.atlas)
+            .unwrap()
+            .into_iter()
+            .map(|v| v.unwrap_or_default())
+            .collect();
+    let chains_vs_single = relative_error(&single_values, &merged.per_texel(&single.atlas).unwrap());
+    let single_error = single.summary.error.relative.unwrap() as f64;
+    let stated = (merged_error.powi(2) + single_error.powi(2)).sqrt();
+    assert!(
+        chains_vs_single > 0.0 && chains_vs_single < 3.0 * stated,
+        "chains and single bake differ by {chains_vs_single:.4}, stated {merged_error:.4} and {single_error:.4}"
+    );
+    eprintln!(
+        "farm: 8 vpl steps as 2 chains on 2 workers: merged vs single {chains_vs_single:.4} (stated {merged_error:.4} and {single_error:.4})"
+    );
     farm.stop().await;
 }
 

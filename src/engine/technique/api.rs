@@ -38,6 +38,11 @@ pub struct BakeInputs {
     pub atlas: Arc<Atlas>,
     pub lighting: Lighting,
     pub seed: u64,
+    /// The seed of what a technique measures once before its steps to choose its own
+    /// constants (`sdf`'s calibration): `seed` in a single bake; the job's seed in every
+    /// chain of a split one (`engine::tasks`), so the chains bake with the same constants
+    /// and report the same parameters while their steps draw from their own `seed`.
+    pub prepare_seed: u64,
     /// Keep a separate direct-light layer (for the `direct` / `indirect` outputs).
     pub want_direct: bool,
     /// What to create: a technique builds only the passes its plan lists.
@@ -59,6 +64,7 @@ impl BakeInputs {
             atlas,
             lighting,
             seed,
+            prepare_seed: seed,
             want_direct: false,
             plan,
         }
@@ -223,8 +229,14 @@ pub enum TaskSplit {
     /// tiles, `atlas::regions`), the sums of its two half-accumulators add to the whole
     /// bake's exactly, and its region's texels are the whole bake's.
     StepsAndRegions,
-    /// Not split; the reason, for the error a split request gets.
-    Whole(&'static str),
+    /// A step depends on the whole grid's state or on whole-grid measurements (a chain
+    /// of steps, running ratios, a bias measured at control texels spread over the grid),
+    /// so no range of steps and no region of the grid is a part of a single bake; but the
+    /// whole bake is a function of its seed alone. A task is an *independent chain*: the
+    /// whole grid baked from step 0 with its own seed (`tasks::chain_seed`), and the merge
+    /// is the step-weighted mean of the chains' halves. The reason says why not step
+    /// ranges or regions, for the error a request with regions gets.
+    Chains(&'static str),
 }
 
 /// Which of a technique's visibility queries honour glTF alpha (`alphaMode` MASK and

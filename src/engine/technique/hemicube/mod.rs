@@ -1257,8 +1257,8 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| parse_params::<HemicubeParams>("hemicube", p)?.validate(),
     unbiased: false,
     alpha: AlphaSupport::Everywhere,
-    tasks: TaskSplit::Whole(
-        "each step is one iteration of the random transport operator applied to the radiosity the steps before it left, a chain over the whole scene: a range of steps cannot start without them",
+    tasks: TaskSplit::Chains(
+        "each step is one iteration of the random transport operator applied to the radiosity the steps before it left, over every texel: a range of steps cannot start without the steps before it, and a region's light depends on every other region's",
     ),
 };
 

@@ -501,8 +501,8 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| ObscuranceParams::from_json(p).map(|_| ()),
     unbiased: false,
     alpha: AlphaSupport::Everywhere,
-    tasks: TaskSplit::Whole(
-        "its halves are running ratios over a stratified direction sequence rotated once per bake, not sums of independent steps",
+    tasks: TaskSplit::Chains(
+        "its halves are running ratios over a stratified direction sequence rotated once per bake, and its ambient term is a mean over every texel: neither a range of steps nor a region is a part of one bake",
     ),
 };
 

@@ -29,7 +29,12 @@ impl Sdf {
             .iter()
             .enumerate()
             .filter(|(_, t)| open(t.normal) > 1e-3)
-            .map(|(i, _)| (Rng::new(self.seed, 0x5DF, i as u64, 0).next_u32() as u64, i as u32))
+            .map(|(i, _)| {
+                (
+                    Rng::new(inputs.prepare_seed, 0x5DF, i as u64, 0).next_u32() as u64,
+                    i as u32,
+                )
+            })
             .collect();
         order.sort_unstable();
         let picked: Vec<u32> = order
@@ -62,7 +67,7 @@ impl Sdf {
             .par_iter()
             .map(|&i| {
                 let t = &atlas.texels[i as usize];
-                let mut rng = Rng::new(self.seed, 0x5DF_CA1, i as u64, 0);
+                let mut rng = Rng::new(inputs.prepare_seed, 0x5DF_CA1, i as u64, 0);
                 let mut seen = 0u32;
                 for _ in 0..rays {
                     let dir = cosine_sample(t.normal, rng.next_f32(), rng.next_f32());

@@ -1242,8 +1242,8 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
         tested: "the sun, directional, point and spot lights and emitters (the shared direct-light pass's GPU rays)",
         opaque: "the signed distance field that gathers the sky and the bounce holds occupancy, not coverage (its k and alpha, fitted to alpha-tested CPU rays, absorb cut-outs only on average over the scene); it",
     },
-    tasks: TaskSplit::Whole(
-        "its bias is measured at control texels stepped beside the bake by time (engine::control), and tasks do not merge those measurements",
+    tasks: TaskSplit::Chains(
+        "its occlusion falloff is calibrated at texels drawn from the whole grid, and its bias is measured at control texels spread over it (engine::control): a region's calibration and control texels are not the bake's",
     ),
 };
 

@@ -1040,8 +1040,8 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| parse_params::<VplParams>("vpl", p)?.validate(),
     unbiased: false,
     alpha: AlphaSupport::Everywhere,
-    tasks: TaskSplit::Whole(
-        "its bias is measured at control texels stepped beside the bake by time (engine::control), and tasks do not merge those measurements",
+    tasks: TaskSplit::Chains(
+        "its lights are drawn from a stratified sequence advanced step by step, and its bias is measured at control texels spread over the whole grid (engine::control): a range of steps is not a part of one bake, and a region's control texels are not the bake's",
     ),
 };
 
