@@ -266,7 +266,15 @@ pub(crate) fn task_failed(index: i64, count: i64, attempts: i64, worker: &str, r
 /// knows neither; page regions of very different sizes make it approximate). `fraction`
 /// as for a whole bake of `spec.stop`. The merge's own error estimate, from the merged
 /// halves, replaces it when the job ends.
+///
+/// Independent chains (every technique but `path`, `engine::tasks`) report errors that
+/// include their bias (control texels), which is the same in every chain and does not
+/// average down: their error is the step-weighted *mean* `Σ (s_k/S) e_k`, an upper bound
+/// of the merged error (the triangle inequality: the noise parts would add in
+/// quadrature, the bias parts linearly), never an understatement.
 pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks: &[(u64, Option<f32>)]) -> Value {
+    let chains = crate::engine::technique::entry(&spec.technique)
+        .is_ok_and(|e| matches!(e.tasks, crate::engine::technique::api::TaskSplit::Chains(_)));
     let regions = spec.regions.unwrap_or(1).max(1) as usize;
     let per_region = tasks.len().div_ceil(regions).max(1);
     let parts: Vec<(u64, Option<f64>)> = tasks
@@ -275,11 +283,12 @@ pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks:
             let steps: u64 = group.iter().map(|t| t.0).sum();
             let error = (steps > 0 && group.iter().all(|t| t.0 == 0 || t.1.is_some())).then(|| {
                 let s = steps as f64;
-                group
-                    .iter()
-                    .filter_map(|&(k, e)| e.map(|e| (k as f64 / s * e as f64).powi(2)))
-                    .sum::<f64>()
-                    .sqrt()
+                let weighted = group.iter().filter_map(|&(k, e)| e.map(|e| k as f64 / s * e as f64));
+                if chains {
+                    weighted.sum::<f64>()
+                } else {
+                    weighted.map(|x| x * x).sum::<f64>().sqrt()
+                }
             });
             (steps, error)
         })

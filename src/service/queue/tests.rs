@@ -932,6 +932,20 @@ fn split_progress_adds_ranges_and_averages_regions() {
         &[(100, Some(0.1)), (0, None), (0, None), (0, None)],
     );
     assert!(p["error"].is_null(), "{p}");
+    // Chains (sdb): their errors carry a bias every chain shares, so the job's is their
+    // step-weighted mean, not the quadrature sum: four chains of error 0.2 are 0.2, and
+    // 300 steps at 0.1 with 100 at 0.3 are 0.15.
+    let spec = split_spec(4, 400, r#", "technique": "sdb""#);
+    let p = merged_progress(&spec, Some(0), 1000, &[(100, Some(0.2)); 4]);
+    assert_eq!(p["steps"], 400);
+    assert!((p["error"].as_f64().unwrap() - 0.2).abs() < 1e-6, "{p}");
+    let p = merged_progress(
+        &spec,
+        Some(0),
+        1000,
+        &[(100, Some(0.1)), (100, Some(0.1)), (100, Some(0.1)), (100, Some(0.3))],
+    );
+    assert!((p["error"].as_f64().unwrap() - 0.15).abs() < 1e-6, "{p}");
 }
 
 async fn tasks_and_whole_jobs_share_one_priority_order(f: &Fixture) {
