@@ -205,6 +205,49 @@ fn page_and_tile_tasks_merge_to_the_single_bake_exactly() {
     }
 }
 
+/// A region's task builds only its region's texels (`Atlas::build_pixels`), cut from the
+/// grid's coverage (one bit a pixel): the same cut as the whole atlas's, and the same
+/// texels, pixel for pixel, as the whole atlas narrowed to the region. Two pages (the
+/// ground's authored one and the ball's generated one), cut into 1 to 7 regions (pages,
+/// then tiles across them), and the Cornell box's one page into 1 to 5 tiles.
+#[test]
+fn a_region_built_alone_is_the_whole_atlas_narrowed() {
+    use lightmapd::engine::atlas::Atlas;
+    use lightmapd::engine::atlas::unwrap::{UvUnwrap, generate_lightmap_uvs_paged};
+    let mut paged = (*two_pages()).clone();
+    generate_lightmap_uvs_paged(&mut paged, 40, 40, Default::default(), None, &UvUnwrap).unwrap();
+    let layout = paged.layout.clone().expect("a paged layout");
+    let cornell = (*scene()).clone();
+    for (scene, width, height, counts) in [
+        (&paged, layout.width, layout.height, 1..=7u32),
+        (&cornell, 20, 20, 1..=5),
+    ] {
+        let whole = Atlas::build(scene, width, height).unwrap();
+        let coverage = Atlas::coverage(scene, width, height).unwrap();
+        assert_eq!(coverage.texels(), whole.texels.len());
+        assert_eq!(coverage.pages.len(), whole.pages.len());
+        for count in counts {
+            let pixels = whole.region_pixels(count).unwrap();
+            assert_eq!(coverage.region_pixels(count).unwrap(), pixels, "{count} regions");
+            for range in pixels {
+                let narrowed = whole.region(whole.texels_in(range.clone()));
+                let alone = Atlas::build_pixels(scene, width, height, range.clone()).unwrap();
+                assert_eq!(
+                    format!("{:?}", alone.texels),
+                    format!("{:?}", narrowed.texels),
+                    "{count} regions, pixels {range:?}"
+                );
+                assert_eq!(alone.pixel_texel, narrowed.pixel_texel);
+                assert_eq!(
+                    (alone.pages.len(), alone.surface_offset),
+                    (narrowed.pages.len(), narrowed.surface_offset)
+                );
+            }
+        }
+    }
+    assert!(layout.pages.len() >= 2, "{} pages", layout.pages.len());
+}
+
 /// Regions times step ranges: the two pages, each as three step ranges (6 tasks).
 #[test]
 fn pages_times_step_ranges_merge_to_the_single_bake() {

@@ -500,35 +500,47 @@ pub(crate) fn prepare_regions(
             )));
         }
     }
-    let mut atlas = Atlas::build(&scene, width, height).map_err(|e| EngineError::BadInput(e.to_string()))?;
+    let atlas_error = |e: crate::engine::atlas::AtlasError| EngineError::BadInput(e.to_string());
+    let region_error =
+        |m: String| EngineError::BadInput(format!("tasks: {m}; ask for fewer regions or a higher resolution"));
     let mut region_pixels = Vec::new();
     let mut validated = None;
-    if let Some(RegionsOf {
-        count,
-        keep,
-        validated: kept,
-    }) = regions
-    {
-        validated = kept;
-        region_pixels = atlas
-            .region_pixels(count)
-            .map_err(|m| EngineError::BadInput(format!("tasks: {m}; ask for fewer regions or a higher resolution")))?;
-        if let Some(k) = keep {
+    let mut atlas = match regions {
+        // A region's task: the cut from the grid's coverage (a bit a pixel), then only
+        // the region's rows rasterised and only its texels built, so a page task's
+        // texel set costs its page, not the whole grid (`Atlas::build_pixels`).
+        Some(RegionsOf {
+            count,
+            keep: Some(k),
+            validated: kept,
+        }) if count > 1 => {
+            validated = kept;
+            let coverage = Atlas::coverage(&scene, width, height).map_err(atlas_error)?;
+            region_pixels = coverage.region_pixels(count).map_err(region_error)?;
             let pixels = region_pixels
                 .get(k as usize)
                 .cloned()
                 .ok_or_else(|| EngineError::Internal(format!("region {k} of {count} asked for")))?;
-            let texels = atlas.texels_in(pixels);
+            let atlas = Atlas::build_pixels(&scene, width, height, pixels).map_err(atlas_error)?;
             tracing::info!(
                 region = k,
                 regions = count,
-                texels = texels.len(),
-                of = atlas.texels.len(),
+                texels = atlas.texels.len(),
+                of = coverage.texels(),
                 "the task's region of the grid"
             );
-            atlas = atlas.region(texels);
+            atlas
         }
-    }
+        Some(RegionsOf {
+            count, validated: kept, ..
+        }) => {
+            validated = kept;
+            let atlas = Atlas::build(&scene, width, height).map_err(atlas_error)?;
+            region_pixels = atlas.region_pixels(count).map_err(region_error)?;
+            atlas
+        }
+        None => Atlas::build(&scene, width, height).map_err(atlas_error)?,
+    };
     let rays = SceneRays::new(scene.clone());
     // On a hardware GPU its rays go through the BVH query pass (issue 20 point 3: 56.6 s of a
     // 15.6 M-texel level's 60.5 s preparation was the CPU's tracing); elsewhere the CPU's.

@@ -39,6 +39,8 @@ pub mod seams;
 pub mod unwrap;
 pub mod validate;
 
+use std::ops::Range;
+
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -162,132 +164,207 @@ fn owns_edge(a: Vec2, b: Vec2) -> bool {
     d.y < 0.0 || (d.y == 0.0 && d.x > 0.0)
 }
 
+fn check_resolution(width: u32, height: u32) -> Result<(), AtlasError> {
+    if width == 0 || height == 0 || width > MAX_RESOLUTION || height > MAX_RESOLUTION {
+        return Err(AtlasError::Resolution(width, height));
+    }
+    Ok(())
+}
+
+/// The texels of `claims`, the claims of the pixels from `first` on, in pixel order.
+fn texels_of(scene: &Scene, width: u32, height: u32, claims: &[Option<Claim>], first: usize) -> Vec<Texel> {
+    let (w, h) = (width as usize, height as usize);
+    let offset = SURFACE_OFFSET * scene.scale();
+    claims
+        .par_iter()
+        .enumerate()
+        .filter_map(|(k, c)| c.as_ref().map(|c| (first + k, c)))
+        .map(|(pix, c)| {
+            let t = &scene.triangles[c.triangle as usize];
+            let b = c.bary;
+            let mut surface = t.p[0] * b.x + t.p[1] * b.y + t.p[2] * b.z;
+            // A centre on or next to an edge (charts laid out with half-texel margins
+            // put whole rows exactly on one) puts the sample point on the crease with
+            // the next mesh, and a ray from it toward that mesh starts in its plane,
+            // where t = 0 is no hit: the ray passes behind it (module doc). Every
+            // sample point is moved a fixed small distance toward its triangle's
+            // centroid, so none lies on an edge.
+            let centroid = (t.p[0] + t.p[1] + t.p[2]) / 3.0;
+            surface += (centroid - surface).normalize_or_zero() * (EDGE_INSET * offset);
+            let geo = t.geometric_normal();
+            let mut n = (t.n[0] * b.x + t.n[1] * b.y + t.n[2] * b.z).normalize_or_zero();
+            // A shading normal on the far side of the surface is a broken export;
+            // integrate the geometric hemisphere rather than the wrong one.
+            if n.dot(geo) <= 0.0 {
+                n = geo;
+            }
+            let uv_area = 0.5 * (t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs();
+            Texel {
+                mesh: t.mesh,
+                size: (t.area() / (uv_area * (w * h) as f32)).sqrt(),
+                pixel: pix as u32,
+                position: surface + geo * offset,
+                normal: n,
+                geo_normal: geo,
+                albedo: scene.albedo(t, b),
+                emission: scene.emission(t, b),
+                triangle: c.triangle,
+            }
+        })
+        .collect()
+}
+
+/// Every pixel's texel index, or [`NO_TEXEL`].
+fn pixel_texels(texels: &[Texel], pixels: usize) -> Vec<u32> {
+    let mut pixel_texel = vec![NO_TEXEL; pixels];
+    for (k, t) in texels.iter().enumerate() {
+        pixel_texel[t.pixel as usize] = k as u32;
+    }
+    pixel_texel
+}
+
+/// The layout's pages when it made this grid; otherwise the grid is one page.
+fn grid_pages(scene: &Scene, width: u32, height: u32) -> Vec<PageRows> {
+    scene
+        .layout
+        .as_deref()
+        .filter(|l| (l.width, l.height) == (width, height) && !l.pages.is_empty())
+        .map_or_else(
+            || {
+                vec![PageRows {
+                    first_row: 0,
+                    rows: height,
+                }]
+            },
+            |l| l.pages.clone(),
+        )
+}
+
+/// Calls `visit(pixel, triangle, barycentrics)` for every texel centre in `pixels` that
+/// a triangle of `scene` covers, triangle by triangle in scene order (so the first visit
+/// of a pixel is its claim): the rasterisation of the module doc, over the rows the
+/// range touches only.
+fn rasterise(scene: &Scene, width: u32, height: u32, pixels: Range<u32>, mut visit: impl FnMut(usize, u32, Vec3)) {
+    let (w, h) = (width as usize, height as usize);
+    let size = Vec2::new(width as f32, height as f32);
+    let (first, end) = (pixels.start as usize, pixels.end as usize);
+    if first >= end {
+        return;
+    }
+    let (row_lo, row_hi) = (first / w, ((end - 1) / w) as i64);
+    for (ti, tri) in scene.triangles.iter().enumerate() {
+        let mut q = [tri.lm[0] * size, tri.lm[1] * size, tri.lm[2] * size];
+        let mut order = [0usize, 1, 2];
+        let area2 = (q[1] - q[0]).perp_dot(q[2] - q[0]);
+        if area2 == 0.0 || !area2.is_finite() {
+            continue;
+        }
+        if area2 < 0.0 {
+            q.swap(1, 2);
+            order.swap(1, 2);
+        }
+        let area2 = area2.abs();
+        let lo = q[0].min(q[1]).min(q[2]);
+        let hi = q[0].max(q[1]).max(q[2]);
+        let i0 = (lo.x - 0.5).ceil().max(0.0) as usize;
+        let j0 = ((lo.y - 0.5).ceil().max(0.0) as usize).max(row_lo);
+        let i1 = ((hi.x - 0.5).floor() as i64).min(w as i64 - 1);
+        let j1 = ((hi.y - 0.5).floor() as i64).min(h as i64 - 1).min(row_hi);
+        if i1 < i0 as i64 || j1 < j0 as i64 {
+            continue;
+        }
+        let edges = [(1usize, 2usize), (2, 0), (0, 1)];
+        let owns = edges.map(|(a, b)| owns_edge(q[a], q[b]));
+        for j in j0..=j1 as usize {
+            for i in i0..=i1 as usize {
+                let pix = j * w + i;
+                if pix < first || pix >= end {
+                    continue;
+                }
+                let p = Vec2::new(i as f32 + 0.5, j as f32 + 0.5);
+                let mut e = [0.0f32; 3];
+                let mut inside = true;
+                for (k, (a, b)) in edges.iter().enumerate() {
+                    e[k] = edge_function(q[*a], q[*b], p);
+                    if e[k] < 0.0 || (e[k] == 0.0 && !owns[k]) {
+                        inside = false;
+                        break;
+                    }
+                }
+                if !inside {
+                    continue;
+                }
+                // e[k] is the weight of the vertex opposite edge k, in oriented order.
+                let mut bary = [0.0f32; 3];
+                for k in 0..3 {
+                    bary[order[k]] = e[k] / area2;
+                }
+                visit(pix, ti as u32, Vec3::from_array(bary));
+            }
+        }
+    }
+}
+
+/// Which pixels of a grid hold a texel (before validation), one bit each: what cutting
+/// the grid into a split bake's regions needs (`atlas::regions`) without building the
+/// texels themselves, so a region's task builds only its own ([`Atlas::build_pixels`]).
+/// 1/8 byte a pixel, against [`Atlas::build`]'s 25 bytes a pixel and some 100 a texel.
+pub struct Coverage {
+    pub width: u32,
+    pub height: u32,
+    pub pages: Vec<PageRows>,
+    bits: Vec<u64>,
+    /// Texels before each 64-pixel word.
+    before: Vec<u32>,
+}
+
+impl Coverage {
+    /// Valid texels (before validation) in the grid.
+    pub fn texels(&self) -> usize {
+        self.before.last().copied().unwrap_or(0) as usize + self.bits.last().map_or(0, |b| b.count_ones() as usize)
+    }
+
+    /// How many texels lie on pixels below `pixel` (where a texel of that pixel would be
+    /// in the atlas's texel list).
+    pub fn texels_before(&self, pixel: u64) -> usize {
+        let word = (pixel / 64) as usize;
+        if word >= self.bits.len() {
+            return self.texels();
+        }
+        let mask = (1u64 << (pixel % 64)) - 1;
+        self.before[word] as usize + (self.bits[word] & mask).count_ones() as usize
+    }
+
+    /// The pixel of texel `k` (k < [`texels`](Self::texels)).
+    pub fn pixel_of(&self, k: usize) -> u32 {
+        let word = self.before.partition_point(|&b| b as usize <= k) - 1;
+        let mut bits = self.bits[word];
+        for _ in 0..(k - self.before[word] as usize) {
+            bits &= bits - 1;
+        }
+        (word * 64) as u32 + bits.trailing_zeros()
+    }
+}
+
 impl Atlas {
     pub fn build(scene: &Scene, width: u32, height: u32) -> Result<Atlas, AtlasError> {
-        if width == 0 || height == 0 || width > MAX_RESOLUTION || height > MAX_RESOLUTION {
-            return Err(AtlasError::Resolution(width, height));
-        }
+        check_resolution(width, height)?;
         let (w, h) = (width as usize, height as usize);
-        let size = Vec2::new(width as f32, height as f32);
         let mut claims: Vec<Option<Claim>> = (0..w * h).map(|_| None).collect();
         let mut overlapping = vec![false; w * h];
-
-        for (ti, tri) in scene.triangles.iter().enumerate() {
-            let mut q = [tri.lm[0] * size, tri.lm[1] * size, tri.lm[2] * size];
-            let mut order = [0usize, 1, 2];
-            let area2 = (q[1] - q[0]).perp_dot(q[2] - q[0]);
-            if area2 == 0.0 || !area2.is_finite() {
-                continue;
+        rasterise(scene, width, height, 0..width * height, |pix, triangle, bary| {
+            if claims[pix].is_some() {
+                overlapping[pix] = true;
+            } else {
+                claims[pix] = Some(Claim { triangle, bary });
             }
-            if area2 < 0.0 {
-                q.swap(1, 2);
-                order.swap(1, 2);
-            }
-            let area2 = area2.abs();
-            let lo = q[0].min(q[1]).min(q[2]);
-            let hi = q[0].max(q[1]).max(q[2]);
-            let i0 = (lo.x - 0.5).ceil().max(0.0) as usize;
-            let j0 = (lo.y - 0.5).ceil().max(0.0) as usize;
-            let i1 = ((hi.x - 0.5).floor() as i64).min(w as i64 - 1);
-            let j1 = ((hi.y - 0.5).floor() as i64).min(h as i64 - 1);
-            if i1 < i0 as i64 || j1 < j0 as i64 {
-                continue;
-            }
-            let edges = [(1usize, 2usize), (2, 0), (0, 1)];
-            let owns = edges.map(|(a, b)| owns_edge(q[a], q[b]));
-            for j in j0..=j1 as usize {
-                for i in i0..=i1 as usize {
-                    let p = Vec2::new(i as f32 + 0.5, j as f32 + 0.5);
-                    let mut e = [0.0f32; 3];
-                    let mut inside = true;
-                    for (k, (a, b)) in edges.iter().enumerate() {
-                        e[k] = edge_function(q[*a], q[*b], p);
-                        if e[k] < 0.0 || (e[k] == 0.0 && !owns[k]) {
-                            inside = false;
-                            break;
-                        }
-                    }
-                    if !inside {
-                        continue;
-                    }
-                    // e[k] is the weight of the vertex opposite edge k, in oriented order.
-                    let mut bary = [0.0f32; 3];
-                    for k in 0..3 {
-                        bary[order[k]] = e[k] / area2;
-                    }
-                    let pix = j * w + i;
-                    if claims[pix].is_some() {
-                        overlapping[pix] = true;
-                    } else {
-                        claims[pix] = Some(Claim {
-                            triangle: ti as u32,
-                            bary: Vec3::from_array(bary),
-                        });
-                    }
-                }
-            }
-        }
-
-        let offset = SURFACE_OFFSET * scene.scale();
-        let texels: Vec<Texel> = claims
-            .par_iter()
-            .enumerate()
-            .filter_map(|(pix, c)| c.as_ref().map(|c| (pix, c)))
-            .map(|(pix, c)| {
-                let t = &scene.triangles[c.triangle as usize];
-                let b = c.bary;
-                let mut surface = t.p[0] * b.x + t.p[1] * b.y + t.p[2] * b.z;
-                // A centre on or next to an edge (charts laid out with half-texel margins
-                // put whole rows exactly on one) puts the sample point on the crease with
-                // the next mesh, and a ray from it toward that mesh starts in its plane,
-                // where t = 0 is no hit: the ray passes behind it (module doc). Every
-                // sample point is moved a fixed small distance toward its triangle's
-                // centroid, so none lies on an edge.
-                let centroid = (t.p[0] + t.p[1] + t.p[2]) / 3.0;
-                surface += (centroid - surface).normalize_or_zero() * (EDGE_INSET * offset);
-                let geo = t.geometric_normal();
-                let mut n = (t.n[0] * b.x + t.n[1] * b.y + t.n[2] * b.z).normalize_or_zero();
-                // A shading normal on the far side of the surface is a broken export;
-                // integrate the geometric hemisphere rather than the wrong one.
-                if n.dot(geo) <= 0.0 {
-                    n = geo;
-                }
-                let uv_area = 0.5 * (t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs();
-                Texel {
-                    mesh: t.mesh,
-                    size: (t.area() / (uv_area * (w * h) as f32)).sqrt(),
-                    pixel: pix as u32,
-                    position: surface + geo * offset,
-                    normal: n,
-                    geo_normal: geo,
-                    albedo: scene.albedo(t, b),
-                    emission: scene.emission(t, b),
-                    triangle: c.triangle,
-                }
-            })
-            .collect();
+        });
+        let texels = texels_of(scene, width, height, &claims, 0);
         if texels.is_empty() {
             return Err(AtlasError::Empty(width, height));
         }
-        let mut pixel_texel = vec![NO_TEXEL; w * h];
-        for (k, t) in texels.iter().enumerate() {
-            pixel_texel[t.pixel as usize] = k as u32;
-        }
+        let pixel_texel = pixel_texels(&texels, w * h);
         let links = gutter_links(scene, &pixel_texel, &texels, width, height);
-        // The layout's pages when it made this grid; otherwise the grid is one page.
-        let pages = scene
-            .layout
-            .as_deref()
-            .filter(|l| (l.width, l.height) == (width, height) && !l.pages.is_empty())
-            .map_or_else(
-                || {
-                    vec![PageRows {
-                        first_row: 0,
-                        rows: height,
-                    }]
-                },
-                |l| l.pages.clone(),
-            );
         Ok(Atlas {
             width,
             height,
@@ -298,9 +375,76 @@ impl Atlas {
             overlap_pixels: (0..w * h).filter(|p| overlapping[*p]).map(|p| p as u32).collect(),
             inside_pixels: Vec::new(),
             validation: None,
-            surface_offset: offset,
+            surface_offset: SURFACE_OFFSET * scene.scale(),
             seams: seams::find_seams(scene, width, height),
-            pages,
+            pages: grid_pages(scene, width, height),
+        })
+    }
+
+    /// The atlas of the texels on `pixels` alone, as [`Atlas::build`]`(..).region(..)`
+    /// makes it (the same grid, pages and pixels, only those texels valid, no gutter
+    /// links or seams: the merge delivers the whole grid), but rasterising only the rows
+    /// the range touches and building only its texels: a region task's texel set
+    /// (`job::prepare_regions`), whose memory and time are its region's, not the whole
+    /// grid's. Its `overlapping_texels` counts the range's overlaps only.
+    pub fn build_pixels(scene: &Scene, width: u32, height: u32, pixels: Range<u32>) -> Result<Atlas, AtlasError> {
+        check_resolution(width, height)?;
+        let n = (width * height) as usize;
+        let (first, end) = (pixels.start as usize, (pixels.end as usize).min(n));
+        let mut claims: Vec<Option<Claim>> = (first..end.max(first)).map(|_| None).collect();
+        let mut overlapping = 0u32;
+        rasterise(scene, width, height, pixels, |pix, triangle, bary| {
+            let c = &mut claims[pix - first];
+            if c.is_some() {
+                overlapping += 1;
+            } else {
+                *c = Some(Claim { triangle, bary });
+            }
+        });
+        let texels = texels_of(scene, width, height, &claims, first);
+        if texels.is_empty() {
+            return Err(AtlasError::Empty(width, height));
+        }
+        Ok(Atlas {
+            width,
+            height,
+            pixel_texel: pixel_texels(&texels, n),
+            texels,
+            links: Vec::new(),
+            overlapping_texels: overlapping,
+            overlap_pixels: Vec::new(),
+            inside_pixels: Vec::new(),
+            validation: None,
+            surface_offset: SURFACE_OFFSET * scene.scale(),
+            seams: Vec::new(),
+            pages: grid_pages(scene, width, height),
+        })
+    }
+
+    /// Which pixels of the `width` x `height` grid hold a texel: the rasterisation of
+    /// [`Atlas::build`] keeping one bit a pixel.
+    pub fn coverage(scene: &Scene, width: u32, height: u32) -> Result<Coverage, AtlasError> {
+        check_resolution(width, height)?;
+        let n = width as usize * height as usize;
+        let mut bits = vec![0u64; n.div_ceil(64)];
+        rasterise(scene, width, height, 0..width * height, |pix, _, _| {
+            bits[pix / 64] |= 1 << (pix % 64)
+        });
+        let mut before = Vec::with_capacity(bits.len());
+        let mut sum = 0u32;
+        for b in &bits {
+            before.push(sum);
+            sum += b.count_ones();
+        }
+        if sum == 0 {
+            return Err(AtlasError::Empty(width, height));
+        }
+        Ok(Coverage {
+            width,
+            height,
+            pages: grid_pages(scene, width, height),
+            bits,
+            before,
         })
     }
 

@@ -32,58 +32,91 @@
 
 use std::ops::Range;
 
-use super::{Atlas, NO_TEXEL};
+use super::{Atlas, Coverage, NO_TEXEL, PageRows};
+
+/// The texel ranges of `count` regions of a grid of `n` texels, `width` wide, cut into
+/// `pages`, where `texels_before(pixel)` counts the texels on pixels below `pixel` (the
+/// module doc's cut; shared by [`Atlas`] and [`Coverage`], which must agree).
+fn cut(
+    n: usize,
+    count: u32,
+    width: u32,
+    pages: &[PageRows],
+    texels_before: impl Fn(u64) -> usize,
+) -> Result<Vec<Range<usize>>, String> {
+    let count = count.max(1) as usize;
+    if n < count {
+        return Err(format!(
+            "{count} regions asked of a lightmap with {n} valid texels: at most one region per texel"
+        ));
+    }
+    if count == 1 {
+        return Ok(std::iter::once(0..n).collect());
+    }
+    if count <= pages.len() {
+        // The first texel of every page, then n: page p is starts[p]..starts[p + 1].
+        let mut starts: Vec<usize> = pages
+            .iter()
+            .map(|band| texels_before(u64::from(band.first_row) * u64::from(width)))
+            .collect();
+        starts.push(n);
+        let pages = pages.len();
+        // Boundary k (1..count) at the page boundary b nearest k/count of the texels,
+        // kept strictly increasing and leaving at least one page per later region.
+        let mut cuts = vec![0usize];
+        for k in 1..count {
+            let ideal = n as f64 * k as f64 / count as f64;
+            let lo = cuts[k - 1] + 1;
+            let hi = pages - (count - k);
+            let b = (lo..=hi)
+                .min_by(|&a, &b| {
+                    let da = (starts[a] as f64 - ideal).abs();
+                    let db = (starts[b] as f64 - ideal).abs();
+                    da.total_cmp(&db)
+                })
+                .unwrap_or(lo);
+            cuts.push(b);
+        }
+        cuts.push(pages);
+        let grouped: Vec<Range<usize>> = cuts.windows(2).map(|w| starts[w[0]]..starts[w[1]]).collect();
+        if grouped.iter().all(|r| !r.is_empty()) {
+            return Ok(grouped);
+        }
+    }
+    Ok((0..count).map(|k| k * n / count..(k + 1) * n / count).collect())
+}
+
+/// The pixel ranges of texel ranges `ranges` of a grid of `end` pixels: region k is
+/// every pixel from its first texel's (`pixel_of`) up to the next region's first
+/// texel's (region 0 from pixel 0, the last to the end of the grid).
+fn pixel_ranges(ranges: &[Range<usize>], end: u32, pixel_of: impl Fn(usize) -> u32) -> Vec<Range<u32>> {
+    let starts: Vec<u32> = ranges
+        .iter()
+        .enumerate()
+        .map(|(k, r)| if k == 0 { 0 } else { pixel_of(r.start) })
+        .collect();
+    (0..starts.len())
+        .map(|k| starts[k]..starts.get(k + 1).copied().unwrap_or(end))
+        .collect()
+}
+
+impl Coverage {
+    /// [`Atlas::region_pixels`] of the atlas this coverage is of, without building it:
+    /// what a region's task needs before it builds its region alone
+    /// ([`Atlas::build_pixels`]).
+    pub fn region_pixels(&self, count: u32) -> Result<Vec<Range<u32>>, String> {
+        let ranges = cut(self.texels(), count, self.width, &self.pages, |p| self.texels_before(p))?;
+        Ok(pixel_ranges(&ranges, self.width * self.height, |k| self.pixel_of(k)))
+    }
+}
 
 impl Atlas {
     /// The texel ranges of this grid's `count` regions, in order, covering every texel
     /// once. Refused (with the reason) when there are fewer texels than regions.
     pub fn regions(&self, count: u32) -> Result<Vec<Range<usize>>, String> {
-        let n = self.texels.len();
-        let count = count.max(1) as usize;
-        if n < count {
-            return Err(format!(
-                "{count} regions asked of a lightmap with {n} valid texels: at most one region per texel"
-            ));
-        }
-        if count == 1 {
-            return Ok(std::iter::once(0..n).collect());
-        }
-        if count <= self.pages.len() {
-            // The first texel of every page, then n: page p is starts[p]..starts[p + 1].
-            let width = self.width as u64;
-            let mut starts: Vec<usize> = self
-                .pages
-                .iter()
-                .map(|band| {
-                    let first_pixel = u64::from(band.first_row) * width;
-                    self.texels.partition_point(|t| u64::from(t.pixel) < first_pixel)
-                })
-                .collect();
-            starts.push(n);
-            let pages = self.pages.len();
-            // Boundary k (1..count) at the page boundary b nearest k/count of the texels,
-            // kept strictly increasing and leaving at least one page per later region.
-            let mut cuts = vec![0usize];
-            for k in 1..count {
-                let ideal = n as f64 * k as f64 / count as f64;
-                let lo = cuts[k - 1] + 1;
-                let hi = pages - (count - k);
-                let b = (lo..=hi)
-                    .min_by(|&a, &b| {
-                        let da = (starts[a] as f64 - ideal).abs();
-                        let db = (starts[b] as f64 - ideal).abs();
-                        da.total_cmp(&db)
-                    })
-                    .unwrap_or(lo);
-                cuts.push(b);
-            }
-            cuts.push(pages);
-            let grouped: Vec<Range<usize>> = cuts.windows(2).map(|w| starts[w[0]]..starts[w[1]]).collect();
-            if grouped.iter().all(|r| !r.is_empty()) {
-                return Ok(grouped);
-            }
-        }
-        Ok((0..count).map(|k| k * n / count..(k + 1) * n / count).collect())
+        cut(self.texels.len(), count, self.width, &self.pages, |first_pixel| {
+            self.texels.partition_point(|t| u64::from(t.pixel) < first_pixel)
+        })
     }
 
     /// The pixel ranges of [`Atlas::regions`]: region k is every pixel from its first
@@ -93,15 +126,9 @@ impl Atlas {
     /// [`Atlas::texels_in`].
     pub fn region_pixels(&self, count: u32) -> Result<Vec<Range<u32>>, String> {
         let ranges = self.regions(count)?;
-        let end = self.width * self.height;
-        let starts: Vec<u32> = ranges
-            .iter()
-            .enumerate()
-            .map(|(k, r)| if k == 0 { 0 } else { self.texels[r.start].pixel })
-            .collect();
-        Ok((0..starts.len())
-            .map(|k| starts[k]..starts.get(k + 1).copied().unwrap_or(end))
-            .collect())
+        Ok(pixel_ranges(&ranges, self.width * self.height, |k| {
+            self.texels[k].pixel
+        }))
     }
 
     /// The texels whose pixels lie in `pixels` (texels are in pixel order, so a range).
@@ -251,6 +278,50 @@ mod tests {
             .map(|p| b.texels_in(p))
             .collect();
         assert_eq!(found, vec![0..3, 3..5, 5..8]);
+    }
+
+    /// The coverage of `a`'s texels.
+    fn coverage(a: &Atlas) -> Coverage {
+        let n = (a.width * a.height) as usize;
+        let mut bits = vec![0u64; n.div_ceil(64)];
+        for t in &a.texels {
+            bits[t.pixel as usize / 64] |= 1 << (t.pixel % 64);
+        }
+        let mut before = Vec::new();
+        let mut sum = 0;
+        for b in &bits {
+            before.push(sum);
+            sum += b.count_ones();
+        }
+        Coverage {
+            width: a.width,
+            height: a.height,
+            pages: a.pages.clone(),
+            bits,
+            before,
+        }
+    }
+
+    /// The cut from a coverage is the atlas's, for every count (pages, grouped pages,
+    /// runs of texels, and the refusal), here over words of 64 pixels.
+    #[test]
+    fn a_coverage_cuts_where_its_atlas_cuts() {
+        let wide: Vec<u32> = (0..300).filter(|p| p % 7 != 3 && p % 11 != 0).collect();
+        for a in [
+            atlas(4, &[2, 1, 3], &[0, 3, 7, 9, 10, 11, 12, 20, 23]),
+            atlas(4, &[2, 1, 3], &[0, 1, 2, 3, 13, 14]),
+            atlas(50, &[2, 3, 1], &wide),
+        ] {
+            let c = coverage(&a);
+            assert_eq!(c.texels(), a.texels.len());
+            for (k, t) in a.texels.iter().enumerate() {
+                assert_eq!(c.pixel_of(k), t.pixel);
+                assert_eq!(c.texels_before(u64::from(t.pixel)), k);
+            }
+            for count in 1..=a.texels.len() as u32 + 1 {
+                assert_eq!(c.region_pixels(count), a.region_pixels(count), "{count}");
+            }
+        }
     }
 
     #[test]
