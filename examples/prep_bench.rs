@@ -8,7 +8,9 @@
 //! TEXELS_PER_METRE on pages PAGE_SIZE wide. Phases, each timed on its own with the
 //! process's peak resident size after it (`VmHWM`, which only grows):
 //! import (the .glb in memory), UV generation (`atlas::unwrap`: unwrap, pack, pages),
-//! texel set (`Atlas::build`: rasterisation, gutter links, seam search), BVH
+//! a page task's share (`Atlas::coverage` and the cut into page regions, then
+//! `Atlas::build_pixels` of region 0: what a split bake's page task builds instead of the
+//! whole texel set), texel set (`Atlas::build`: rasterisation, gutter links, seam search), BVH
 //! (`SceneRays::new`, the tracer built on first use), texel validation (backface rays:
 //! the GPU route of `gpu::validate` first when a hardware GPU is present, or with
 //! `PREP_GPU=1` on any adapter, then the CPU's, and how many texels the two disagree on).
@@ -80,9 +82,32 @@ fn main() {
         println!("warning: {w}");
     }
 
-    let t = Instant::now();
+    // What a page's task of a split bake prepares instead of the whole texel set
+    // (issue 25, docs/scaling.md): the grid's coverage (a bit a pixel) to cut it, then
+    // page 0's texels alone. Before the whole texel set, so the peak after them is theirs.
     let (w, h) = scene.layout.as_ref().map_or((page, page), |l| (l.width, l.height));
     let scene = Arc::new(scene);
+    let pages = scene.layout.as_ref().map_or(1, |l| l.pages.len()) as u32;
+    let t = Instant::now();
+    let coverage = Atlas::coverage(&scene, w, h).expect("coverage");
+    let cut = coverage.region_pixels(pages).expect("regions");
+    row(
+        &format!(
+            "coverage and the cut into {pages} page regions ({} texels)",
+            coverage.texels()
+        ),
+        t,
+    );
+    drop(coverage);
+    let t = Instant::now();
+    let page0 = Atlas::build_pixels(&scene, w, h, cut[0].clone()).expect("page 0's texels");
+    row(
+        &format!("texel set of region 0 alone ({} texels)", page0.texels.len()),
+        t,
+    );
+    drop(page0);
+
+    let t = Instant::now();
     let mut atlas = Atlas::build(&scene, w, h).expect("texel set");
     row(
         &format!(

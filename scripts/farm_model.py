@@ -12,7 +12,10 @@ TEXELS = 497e6             # 64 pages of 4096² at the generated level's 46 % co
 WORK = 1044.0              # GPU-seconds: 497 M texels x 336 paths / 160 M paths/s (H200)
 IMPORT = 1.15              # import and UVs, per process that prepares the level
 PREP_WHOLE = 1035.0        # texel set + BVH + validation of the whole level (1.01 s / 485 k texels, H200 + 16 cores)
-RASTER = 11.8              # of which the texel set and BVH: 2.96 s / 15.6 M texels on 2 cores, scaled to 16 cores
+SCALE = 497 / 15.6 * 2 / 16  # prep_bench's 15.6 M-texel level on 2 cores -> this level on 16
+RASTER = (4.47 + 0.08) * SCALE  # of which the whole texel set (4.47 s) and BVH (0.08 s): prep_bench, 2026-12-05
+BVH = 0.08 * SCALE
+COVER = 0.22 * SCALE       # the grid's coverage and its cut into regions (a bit a pixel): what a page task rasterises whole
 VALIDATE = PREP_WHOLE - RASTER  # the rest: validation, proportional to the texels validated
 RESULT = 28 * TEXELS / 1e9  # GB of one task result covering every texel (28 B a texel)
 BANDWIDTH = 1.0            # GB/s to and from the store per worker (assumed; no farm here)
@@ -31,7 +34,9 @@ def pages_times_ranges(w):
     """64 page regions x k step ranges (k = max(1, W // 64)); one merge."""
     k = max(1, w // PAGES)
     tasks = PAGES * k
-    task = IMPORT + RASTER + VALIDATE / PAGES + WORK / tasks + RESULT / PAGES / BANDWIDTH
+    # A page task builds its page's texels only (`Atlas::build_pixels`): the coverage of
+    # the whole grid, the BVH of the whole scene, a 64th of the texel set and validation.
+    task = IMPORT + COVER + BVH + (RASTER - BVH) / PAGES + VALIDATE / PAGES + WORK / tasks + RESULT / PAGES / BANDWIDTH
     waves = math.ceil(tasks / w)
     merge = IMPORT + RASTER + k * 2 * RESULT / BANDWIDTH
     return waves * task + merge, tasks * task + merge

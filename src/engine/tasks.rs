@@ -73,8 +73,11 @@
 //!
 //! Limits: no shadowmask layer in a split bake yet (its pass would need the same step
 //! offset and region); a task's probes are not baked (the merge bakes them, once); every
-//! task imports the scene and rasterises the whole grid's texel set (a region task then
-//! validates and bakes only its region), so a task's memory is the whole grid's.
+//! task imports the whole scene and builds its BVH; a region's task rasterises the whole
+//! grid only into a bit a pixel to cut it (`Atlas::coverage`) and builds, validates and
+//! bakes its region's texels alone (`Atlas::build_pixels`), but keeps the pixel-to-texel
+//! index of the whole grid (4 bytes a pixel); a chain's task is a whole bake; the merge
+//! builds the whole texel set.
 
 use std::sync::Arc;
 use std::time::Duration;
