@@ -25,8 +25,13 @@
 //! counts against this worker and the task is tried again, elsewhere once this worker is
 //! blocklisted (`queue::BLOCKLIST_AFTER`), up to `queue::MAX_ATTEMPTS` attempts.
 //!
-//! Limits: no snapshots while the tasks run (the halves of different tasks meet only in
-//! the merge), so the job's history is the merge's one point; the merge re-imports the
+//! History: while the tasks run, the queue appends the job's merged progress to its
+//! history (`queue::running_history`: the tasks' raw estimates merged, a point when the
+//! steps grew by a quarter or every five seconds); the merge's point, the delivered
+//! lightmap's error, ends it.
+//!
+//! Limits: no snapshot images while the tasks run (the halves of different tasks meet
+//! only in the merge), so the job's snapshots are the merge's lightmap; the merge re-imports the
 //! scene and reads all results into memory (28 bytes a texel a task: 470 MB a task for a
 //! full 4096² page, a region's task only its region's texels), so it needs that memory
 //! once.
@@ -379,8 +384,12 @@ async fn merge(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecor
         "tasks merged"
     );
     let progress = Progress::new(s.steps, s.seconds, s.error.relative, &job.spec.stop);
+    // On the running points' clock (`queue::running_history`): wall time since the job
+    // started, not the tasks' bake time added up (the summary's `seconds`).
     let history = [HistoryPoint {
-        seconds: s.seconds,
+        seconds: job
+            .started_at
+            .map_or(s.seconds, |t| (state.db_now() - t).max(0) as f64 / 1000.0),
         steps: s.steps,
         error: s.error.relative,
         raw_error: s.error.raw_relative.or(s.error.relative),

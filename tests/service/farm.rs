@@ -16,6 +16,8 @@
 //!   "another bake within noise";
 //! - the merged error estimate (from the merged halves) matches its true error, measured
 //!   against a 6000-step bake of another seed, within [0.6, 1.5];
+//! - the job's history ran while the tasks baked (at least one point of their merged
+//!   progress before the merge's, steps rising, the error falling to the merge's);
 //! - the task results are deleted from the store once the lightmap is stored;
 //! - then a `path` job on the Cornell box's one page split into 3 tiles (bands of rows,
 //!   `tasks: 3, regions: 3`) on the two surviving workers: its lightmap equals the
@@ -209,7 +211,6 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     assert_eq!(job["summary"]["steps"], 1200);
     assert_eq!(job["progress"]["steps"], 1200);
     assert_eq!(job["summary"]["atlas"]["pages"], 2, "{job:#}");
-    assert_eq!(job["history"].as_array().unwrap().len(), 1);
     // One abandoned attempt counts against the dead worker (not yet blocklisted).
     let failures: Vec<(String, i32)> = sqlx::query("SELECT worker, failures FROM task_failures WHERE job_id = $1")
         .bind(&id)
@@ -268,6 +269,19 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     );
     let single_error = single.summary.error.relative.unwrap();
     let merged_error = job["summary"]["error"]["relative"].as_f64().unwrap() as f32;
+    // The history ran while the tasks baked (their merged progress), and the merge's
+    // point, the delivered lightmap's error, ends it.
+    let history = job["history"].as_array().unwrap();
+    let steps: Vec<u64> = history.iter().map(|p| p["steps"].as_u64().unwrap()).collect();
+    assert!(history.len() >= 2, "a running history: {history:#?}");
+    assert!(steps.windows(2).all(|w| w[0] <= w[1]), "{steps:?}");
+    assert_eq!(steps.last(), Some(&1200));
+    assert_eq!(history.last().unwrap()["error"].as_f64().unwrap() as f32, merged_error);
+    let first = history[0]["error"].as_f64().unwrap() as f32;
+    assert!(
+        first > merged_error,
+        "the running error fell: {first} then {merged_error}"
+    );
     assert!(
         (merged_error / single_error - 1.0).abs() < 1e-3,
         "merged error estimate {merged_error}, single bake's {single_error}"

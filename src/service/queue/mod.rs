@@ -305,6 +305,48 @@ pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks:
     serde_json::to_value(crate::service::model::Progress::new(steps, elapsed, error, &spec.stop)).unwrap_or(Value::Null)
 }
 
+/// The most points a split job's running history keeps (as a single bake's worker).
+pub const MAX_RUNNING_HISTORY: usize = 2000;
+
+/// A split job's running history: `history` with its merged progress (`progress`, from
+/// [`merged_progress`]) appended as a point, or `None` when the progress has not moved on
+/// enough since the last point to be worth one. A point is due once the steps have grown
+/// by a quarter and a second has passed, or five seconds have passed with any new steps,
+/// so the curve is dense while the error falls fast and about one point per five seconds
+/// later (a single bake's snapshots thin out the same way). Its `error` and `raw_error`
+/// are the merged raw estimate: nothing is denoised or delivered before the merge, whose
+/// own point ([`history_then`]) ends the curve.
+pub fn running_history(history: &Value, progress: &Value) -> Option<Value> {
+    let p: crate::service::model::Progress = serde_json::from_value(progress.clone()).ok()?;
+    let error = p.error.filter(|_| p.steps > 0)?;
+    let mut points: Vec<crate::service::model::HistoryPoint> =
+        serde_json::from_value(history.clone()).unwrap_or_default();
+    if let Some(last) = points.last() {
+        let grown = p.steps as f64 >= 1.25 * last.steps as f64 && p.elapsed_s >= last.seconds + 1.0;
+        let due = p.steps > last.steps && p.elapsed_s >= last.seconds + 5.0;
+        if !(grown || due) || points.len() >= MAX_RUNNING_HISTORY {
+            return None;
+        }
+    }
+    points.push(crate::service::model::HistoryPoint {
+        seconds: p.elapsed_s,
+        steps: p.steps,
+        error: Some(error),
+        raw_error: Some(error),
+        noise: None,
+        bias: None,
+        true_error: None,
+    });
+    serde_json::to_value(points).ok()
+}
+
+/// A split job's history once merged: its running points, then the merge's.
+pub fn history_then(running: &Value, merged: &Value) -> Value {
+    let mut points = running.as_array().cloned().unwrap_or_default();
+    points.extend(merged.as_array().cloned().unwrap_or_default());
+    Value::Array(points)
+}
+
 pub type QueueResult<T> = Result<T, sqlx::Error>;
 
 #[derive(Clone, Debug)]

@@ -76,7 +76,7 @@ use tokio::task::JoinHandle;
 use super::{
     BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
     Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
-    TaskStatus, TokenRecord, WorkerRecord, lease_given_up, merged_progress, task_failed,
+    TaskStatus, TokenRecord, WorkerRecord, history_then, lease_given_up, merged_progress, running_history, task_failed,
 };
 use crate::service::model::{JobSpec, JobStatus};
 use crate::service::{Hub, shutting_down};
@@ -289,7 +289,7 @@ async fn try_lock_job(c: &mut PgConnection, job: &str) -> QueueResult<bool> {
 
 /// Writes a split job's merged progress from its bake tasks' rows.
 async fn refresh_progress(c: &mut PgConnection, job: &str, now: i64) -> QueueResult<()> {
-    let Some(row) = sqlx::query("SELECT spec, started_at FROM jobs WHERE id = $1")
+    let Some(row) = sqlx::query("SELECT spec, started_at, history FROM jobs WHERE id = $1")
         .bind(job)
         .fetch_optional(&mut *c)
         .await?
@@ -305,12 +305,20 @@ async fn refresh_progress(c: &mut PgConnection, job: &str, now: i64) -> QueueRes
             .await?;
     let tasks: Vec<(u64, Option<f32>)> = tasks.into_iter().map(|(s, e)| (s.max(0) as u64, e)).collect();
     let progress = merged_progress(&spec, row.try_get("started_at")?, now, &tasks);
-    sqlx::query("UPDATE jobs SET progress = $2, updated_at = $3 WHERE id = $1 AND status = 'running'")
-        .bind(job)
-        .bind(progress)
-        .bind(now)
-        .execute(&mut *c)
-        .await?;
+    let history = row
+        .try_get::<Option<Value>, _>("history")?
+        .unwrap_or(Value::Array(vec![]));
+    let history = running_history(&history, &progress);
+    sqlx::query(
+        "UPDATE jobs SET progress = $2, updated_at = $3, history = COALESCE($4, history)
+         WHERE id = $1 AND status = 'running'",
+    )
+    .bind(job)
+    .bind(progress)
+    .bind(now)
+    .bind(history)
+    .execute(&mut *c)
+    .await?;
     Ok(())
 }
 
@@ -989,6 +997,12 @@ impl Queue for PostgresQueue {
                 plan,
             } => {
                 set("succeeded").bind(None::<String>).execute(&mut *tx).await?;
+                let running: Option<Value> = sqlx::query_scalar("SELECT history FROM jobs WHERE id = $1")
+                    .bind(job)
+                    .fetch_optional(&mut *tx)
+                    .await?
+                    .flatten();
+                let history = history_then(&running.unwrap_or(Value::Null), history);
                 sqlx::query(
                     "UPDATE jobs SET status = 'succeeded', finished_at = $2, updated_at = $2, summary = $3,
                          progress = $4, history = $5, plan = $6

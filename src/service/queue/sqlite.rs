@@ -26,7 +26,7 @@ use sqlx::sqlite::{
 use super::{
     BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
     Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
-    TaskStatus, TokenRecord, WorkerRecord, lease_given_up, merged_progress, task_failed,
+    TaskStatus, TokenRecord, WorkerRecord, history_then, lease_given_up, merged_progress, running_history, task_failed,
 };
 use crate::service::model::{JobSpec, JobStatus};
 
@@ -146,7 +146,7 @@ async fn write_tx(pool: &SqlitePool) -> QueueResult<sqlx::Transaction<'static, s
 
 /// Writes a split job's merged progress from its bake tasks' rows.
 async fn refresh_progress(c: &mut SqliteConnection, job: &str, now: i64) -> QueueResult<()> {
-    let Some(row) = sqlx::query("SELECT spec, started_at FROM jobs WHERE id = ?")
+    let Some(row) = sqlx::query("SELECT spec, started_at, history FROM jobs WHERE id = ?")
         .bind(job)
         .fetch_optional(&mut *c)
         .await?
@@ -165,12 +165,18 @@ async fn refresh_progress(c: &mut SqliteConnection, job: &str, now: i64) -> Queu
         .map(|(s, e)| (s as u64, e.map(|e| e as f32)))
         .collect();
     let progress = merged_progress(&spec, row.try_get("started_at")?, now, &tasks);
-    sqlx::query("UPDATE jobs SET progress = ?2, updated_at = ?3 WHERE id = ?1 AND status = 'running'")
-        .bind(job)
-        .bind(progress.to_string())
-        .bind(now)
-        .execute(&mut *c)
-        .await?;
+    let history = json_col(&row, "history")?.unwrap_or(Value::Array(vec![]));
+    let history = running_history(&history, &progress);
+    sqlx::query(
+        "UPDATE jobs SET progress = ?2, updated_at = ?3, history = COALESCE(?4, history)
+         WHERE id = ?1 AND status = 'running'",
+    )
+    .bind(job)
+    .bind(progress.to_string())
+    .bind(now)
+    .bind(history.as_ref().map(Value::to_string))
+    .execute(&mut *c)
+    .await?;
     Ok(())
 }
 
@@ -766,6 +772,15 @@ impl Queue for SqliteQueue {
                 plan,
             } => {
                 set("succeeded").bind(None::<String>).execute(&mut *tx).await?;
+                let running: Option<String> = sqlx::query_scalar("SELECT history FROM jobs WHERE id = ?1")
+                    .bind(job)
+                    .fetch_optional(&mut *tx)
+                    .await?
+                    .flatten();
+                let running = running
+                    .and_then(|h| serde_json::from_str(&h).ok())
+                    .unwrap_or(Value::Null);
+                let history = history_then(&running, history);
                 sqlx::query(
                     "UPDATE jobs SET status = 'succeeded', finished_at = ?2, updated_at = ?2, summary = ?3,
                          progress = ?4, history = ?5, plan = ?6

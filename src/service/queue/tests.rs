@@ -897,6 +897,45 @@ fn embedded_migrations_are_the_migration_folders() {
     }
 }
 
+/// A split job's running history: a point when the merged progress has moved on (a
+/// quarter more steps and a second, or any new steps and five seconds), none without an
+/// error or steps; the merge's point appended after them.
+#[test]
+fn a_split_jobs_history_runs_until_the_merge() {
+    let progress = |steps: u64, elapsed_s: f64, error: Option<f32>| json!({"steps": steps, "fraction": 0.5, "elapsed_s": elapsed_s, "error": error});
+    let empty = json!([]);
+    assert_eq!(running_history(&empty, &progress(0, 1.0, Some(0.5))), None);
+    assert_eq!(running_history(&empty, &progress(10, 1.0, None)), None);
+    let h = running_history(&empty, &progress(10, 1.0, Some(0.2))).unwrap();
+    assert_eq!(
+        h,
+        json!([{"seconds": 1.0, "steps": 10, "error": 0.2f32, "raw_error": 0.2f32}])
+    );
+    // 12 steps (under a quarter more) a second later, 13 after half a second: not yet.
+    assert_eq!(running_history(&h, &progress(12, 2.0, Some(0.19))), None);
+    assert_eq!(running_history(&h, &progress(13, 1.5, Some(0.19))), None);
+    // A quarter more and a second: due; so are any new steps after five seconds.
+    let h = running_history(&h, &progress(13, 2.0, Some(0.18))).unwrap();
+    assert_eq!(h.as_array().unwrap().len(), 2);
+    assert_eq!(running_history(&h, &progress(13, 9.0, Some(0.18))), None);
+    let h = running_history(&h, &progress(14, 7.0, Some(0.17))).unwrap();
+    let steps: Vec<u64> = h
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["steps"].as_u64().unwrap())
+        .collect();
+    assert_eq!(steps, [10, 13, 14]);
+    let merged = history_then(&h, &json!([{"seconds": 8.0, "steps": 14, "error": 0.05f32}]));
+    assert_eq!(merged.as_array().unwrap().len(), 4);
+    assert_eq!(merged[3]["error"], json!(0.05f32));
+    // A job that ran no point yet (or a store's NULL) keeps just the merge's.
+    assert_eq!(
+        history_then(&Value::Null, &json!([{"steps": 1}])),
+        json!([{"steps": 1}])
+    );
+}
+
 /// A split job's progress from its tasks (no store involved): step ranges of one region
 /// add their steps and their errors in quadrature by step weight; regions average.
 #[test]
