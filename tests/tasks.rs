@@ -376,6 +376,52 @@ fn chains_of_every_other_technique_merge_within_the_stated_error() {
     }
 }
 
+/// vpl splits by region as well (`TaskSplit::ChainsAndRegions`): the two pages as two
+/// tasks with the job's seed are the single bake's texels bit for bit (the VPLs come from
+/// the scene and the seed alone, and the normalised frame is the scene's); each region
+/// measures its bias at its own control texels, which the merge joins. Two pages × two
+/// chains merge within the stated errors.
+#[test]
+fn vpl_pages_are_the_single_bakes_pages() {
+    let _gpu = common::gpu_serial();
+    let scene = two_pages();
+    let mut request = request("cpu", 8);
+    request.technique = "vpl".into();
+    request.resolution = 40;
+    request.params = serde_json::Value::Null;
+    request.lighting.sky = Some(sky());
+    request.outputs = vec![OutputLayer::Direct];
+    let single = whole(&scene, &request);
+    let pages = bake_tasks(&scene, &request, TaskShape { tasks: 2, regions: 2 });
+    assert_ne!(pages[0].header.texels, pages[1].header.texels);
+    let merged = tasks::merge(scene.clone(), &pages, &BakeOptions::default(), &mut |_| {}).unwrap();
+    let m = &merged.estimate;
+    assert_eq!(m.halves, single.halves, "halves");
+    assert_eq!(m.total, single.total);
+    assert_eq!(m.direct, single.direct);
+    // The error: the two regions' control texels joined (up to 256 each).
+    let controls: u32 = pages
+        .iter()
+        .map(|p| p.header.control.as_ref().unwrap().texels.len() as u32)
+        .sum();
+    assert!(controls > 256, "{controls}");
+    assert_eq!(m.error.control_texels, Some(controls));
+    let (em, ew) = (m.error.relative.unwrap(), single.error.relative.unwrap());
+    assert!(em / ew > 0.5 && em / ew < 2.0, "merged {em}, single {ew}");
+    // Pages times chains.
+    let parts = bake_tasks(&scene, &request, TaskShape { tasks: 4, regions: 2 });
+    let merged = tasks::merge(scene.clone(), &parts, &BakeOptions::default(), &mut |_| {}).unwrap();
+    let em = merged.estimate.error.relative.unwrap();
+    let d = rms_difference(&single.total, &merged.estimate.total);
+    eprintln!(
+        "vpl 2 pages x 2 chains: merged {em:.4}, single {ew:.4}, difference {d:.4}; pages' control texels {controls}"
+    );
+    assert!(
+        d > 0.0 && d <= 3.0 * ((em * em + ew * ew) as f64).sqrt(),
+        "{d} against {em} and {ew}"
+    );
+}
+
 #[test]
 fn the_merge_refuses_what_is_not_every_task_of_one_request() {
     let scene = scene();

@@ -22,6 +22,12 @@
 //!   order of the step additions; regions alone are bit-identical on the CPU), so the
 //!   merged estimate, its error estimate from the halves' difference (DESIGN §4) and the
 //!   delivered lightmap are a single bake's, not a different bake "within noise".
+//! - `vpl` (`ChainsAndRegions`): regions as `path`'s (a texel gathers from the scene's
+//!   lights, which come from the scene and the seed alone, and its frame is the scene's:
+//!   a region's task with the job's seed bakes exactly the single bake's texels of its
+//!   region, each region measuring its bias at its own control texels, which the merge
+//!   joins), and within a region independent chains as below (its lights come from a
+//!   stratified sequence advanced step by step, so not step ranges).
 //! - every other technique (`Chains`): *independent chains*. Their steps are chains over
 //!   the whole grid (`sdb`, `hemicube`: each step transports the light the steps before it
 //!   left), running ratios over a stratified sequence and a whole-grid mean (`obscurance`),
@@ -146,6 +152,17 @@ pub struct TaskRange {
 }
 
 impl TaskRange {
+    /// The seed this task bakes with, of a job seeded `job`: a chain's own
+    /// ([`chain_seed`] of its place among its region's chains, so every region's first
+    /// chain has the job's), else the job's.
+    pub fn seed(&self, job: u64) -> u64 {
+        if self.chain {
+            chain_seed(job, self.index % self.shape().ranges().max(1))
+        } else {
+            job
+        }
+    }
+
     pub fn shape(&self) -> TaskShape {
         TaskShape {
             tasks: self.count,
@@ -201,7 +218,7 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
                 request.technique
             ));
         }
-        TaskSplit::Chains(_) => true,
+        TaskSplit::Chains(_) | TaskSplit::ChainsAndRegions(_) => true,
     };
     if request.stop.target_error.is_some() {
         return bad(
@@ -215,7 +232,11 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
     };
     let ranges = shape.ranges();
     if total < 2 * ranges as u64 {
-        let what = if chains { "chains" } else { "step ranges per region" };
+        let what = match (chains, regions > 1) {
+            (true, false) => "chains",
+            (true, true) => "chains per region",
+            (false, _) => "step ranges per region",
+        };
         return bad(format!(
             "tasks: stop.steps ({total}) must be at least twice the {what} ({ranges}): each task bakes a step of each half"
         ));
@@ -224,17 +245,21 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
         return bad("tasks: the shadowmask layer is not baked in split bakes yet; bake it as one task".into());
     }
     if chains {
-        // Every chain starts at step 0; the job's steps dealt out evenly.
-        let n = u64::from(count);
+        // Every chain starts at step 0; each region's chains share the job's steps
+        // evenly.
+        let n = u64::from(ranges);
         return Ok((0..count)
-            .map(|index| TaskRange {
-                index,
-                count,
-                region: 0,
-                regions: 1,
-                first_step: 0,
-                steps: total / n + u64::from(u64::from(index) < total % n),
-                chain: true,
+            .map(|index| {
+                let c = u64::from(index % ranges);
+                TaskRange {
+                    index,
+                    count,
+                    region: index / ranges,
+                    regions,
+                    first_step: 0,
+                    steps: total / n + u64::from(c < total % n),
+                    chain: true,
+                }
             })
             .collect());
     }
@@ -389,9 +414,7 @@ pub fn bake_task(
     // The task's probes are the merge's to bake, once.
     let mut own = request.clone();
     own.probes = None;
-    if task.chain {
-        own.seed = chain_seed(request.seed, task.index);
-    }
+    own.seed = task.seed(request.seed);
     let regions = (task.regions > 1).then_some(job::RegionsOf {
         count: task.regions,
         keep: Some(task.region),
@@ -971,6 +994,16 @@ mod tests {
                 .unwrap()
                 .iter()
                 .all(|r| !r.chain)
+        );
+        // vpl's chains within regions: each region's first chain has the job's seed.
+        let t = split(&request("vpl", Some(9)), TaskShape { tasks: 4, regions: 2 }).unwrap();
+        let got: Vec<(u32, u64, u64)> = t.iter().map(|r| (r.region, r.steps, r.seed(7))).collect();
+        let other = chain_seed(7, 1);
+        assert_eq!(got, vec![(0, 5, 7), (0, 4, other), (1, 5, 7), (1, 4, other)]);
+        let few = split(&request("vpl", Some(3)), TaskShape { tasks: 4, regions: 2 }).unwrap_err();
+        assert!(
+            few.to_string().contains("at least twice the chains per region (2)"),
+            "{few}"
         );
         let seeds: Vec<u64> = (0..64).map(|k| chain_seed(7, k)).collect();
         assert_eq!(seeds[0], 7);

@@ -674,7 +674,7 @@ pub async fn describe_job(state: &AppState, j: &JobRecord) -> JobView {
                     chain_seed: (!t.is_merge())
                         .then(|| ranges.get(t.index as usize).filter(|r| r.chain))
                         .flatten()
-                        .map(|r| crate::engine::tasks::chain_seed(j.spec.seed, r.index)),
+                        .map(|r| r.seed(j.spec.seed)),
                     kind: if t.is_merge() { "merge" } else { "bake" }.into(),
                     status: t.status,
                     attempts: t.attempts,

@@ -40,6 +40,19 @@ impl SceneFrame {
         SceneFrame { lo, hi, centre, radius }
     }
 
+    /// The frame of the scene's triangles grown by `margin` on every side: one that
+    /// holds every texel sample point of any atlas of the scene when `margin` is at least
+    /// the atlas's surface offset (a sample point is that far off its triangle, along the
+    /// normal), and is the same for the whole grid and a region of it (`vpl`'s page tasks
+    /// bake exactly a single bake's texels of their page, `engine::tasks`).
+    pub fn of_scene(scene: &Scene, margin: f32) -> Self {
+        let f = Self::of_points(scene.triangles.iter().flat_map(|t| t.p));
+        if scene.triangles.is_empty() {
+            return f;
+        }
+        Self::of_points([f.lo - Vec3::splat(margin), f.hi + Vec3::splat(margin)])
+    }
+
     /// The frame of the scene's triangles and the atlas's texel sample points.
     pub fn of(scene: &Scene, atlas: &Atlas) -> Self {
         Self::of_points(

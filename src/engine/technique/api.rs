@@ -237,6 +237,12 @@ pub enum TaskSplit {
     /// is the step-weighted mean of the chains' halves. The reason says why not step
     /// ranges or regions, for the error a request with regions gets.
     Chains(&'static str),
+    /// [`Chains`](TaskSplit::Chains) within regions of the grid (pages or tiles, as
+    /// `StepsAndRegions`): a texel's value depends on the scene and the seed, never on
+    /// another texel (nor on which texels the grid holds), so a region's task with the
+    /// job's seed bakes exactly the single bake's texels of its region, and its chains
+    /// average as `Chains`. The reason says why not step ranges.
+    ChainsAndRegions(&'static str),
 }
 
 /// Which of a technique's visibility queries honour glTF alpha (`alphaMode` MASK and

@@ -273,8 +273,10 @@ pub(crate) fn task_failed(index: i64, count: i64, attempts: i64, worker: &str, r
 /// of the merged error (the triangle inequality: the noise parts would add in
 /// quadrature, the bias parts linearly), never an understatement.
 pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks: &[(u64, Option<f32>)]) -> Value {
-    let chains = crate::engine::technique::entry(&spec.technique)
-        .is_ok_and(|e| matches!(e.tasks, crate::engine::technique::api::TaskSplit::Chains(_)));
+    let chains = crate::engine::technique::entry(&spec.technique).is_ok_and(|e| {
+        use crate::engine::technique::api::TaskSplit;
+        matches!(e.tasks, TaskSplit::Chains(_) | TaskSplit::ChainsAndRegions(_))
+    });
     let regions = spec.regions.unwrap_or(1).max(1) as usize;
     let per_region = tasks.len().div_ceil(regions).max(1);
     let parts: Vec<(u64, Option<f64>)> = tasks

@@ -384,8 +384,10 @@ impl Vpl {
         let atlas = inputs.atlas.clone();
         let lighting = inputs.lighting;
 
-        // Normalised space: the bounds of triangles and texel points together.
-        let frame = SceneFrame::of(&scene, &atlas);
+        // Normalised space: the triangles' bounds with room for the texels' sample points
+        // (twice their offset), which a region of the grid shares with the whole
+        // (`engine::tasks`: a page task's texels are the single bake's, bit for bit).
+        let frame = SceneFrame::of_scene(&scene, 2.0 * atlas.surface_offset);
         let (centre, radius) = (frame.centre, frame.radius);
 
         // Primary lights, fixed for the bake.
@@ -1040,8 +1042,8 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| parse_params::<VplParams>("vpl", p)?.validate(),
     unbiased: false,
     alpha: AlphaSupport::Everywhere,
-    tasks: TaskSplit::Chains(
-        "its lights are drawn from a stratified sequence advanced step by step, and its bias is measured at control texels spread over the whole grid (engine::control): a range of steps is not a part of one bake, and a region's control texels are not the bake's",
+    tasks: TaskSplit::ChainsAndRegions(
+        "its lights are drawn from a stratified sequence advanced step by step, so a range of steps is not a part of one bake; every texel gathers from the scene's lights alone, so a region's texels (pages or tiles) are the single bake's",
     ),
 };
 
