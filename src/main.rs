@@ -475,12 +475,15 @@ struct BakeArgs {
     probe_device: ProbeDevice,
     /// Bake only task K of N (0-based) of a bake split across processes or machines:
     /// its share of `--steps`, written to -o as a task result for `lightmapd merge`
-    /// (docs/scaling.md). Every task takes the same options.
+    /// (docs/scaling.md). Every task takes the same options. A `path` task is a range of
+    /// the job's steps; any other technique's is an independent chain (the whole grid
+    /// from step 0 with its own seed), which the merge averages.
     #[arg(long, value_parser = parse_task)]
     task: Option<(u32, u32)>,
     /// With --task: the N tasks are R regions of the grid (its pages when R is at most the
     /// page count, else bands of rows with equal texel counts), each baked as N / R step
-    /// ranges; task K bakes region K / (N / R). Only `path` splits by regions.
+    /// ranges (`path`) or chains (`vpl`); task K bakes region K / (N / R). Only `path`
+    /// and `vpl` split by regions.
     #[arg(long, requires = "task", value_parser = clap::value_parser!(u32).range(1..))]
     regions: Option<u32>,
 }
