@@ -125,6 +125,19 @@ impl Farm {
     }
 }
 
+/// Polls the job at `url` until it has ended, failing after `limit` with `what`.
+async fn until_ended(http: &reqwest::Client, url: &str, limit: Duration, what: &str) -> Value {
+    let t = Instant::now();
+    loop {
+        let j = get_json(http, url).await;
+        if j["status"] != "queued" && j["status"] != "running" {
+            return j;
+        }
+        assert!(t.elapsed() < limit, "{what} never ended: {j:#}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     let _cpu = crate::CPU_HEAVY.lock().await;
@@ -173,15 +186,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     child.wait().unwrap();
     let killed_at = started.elapsed();
 
-    let t = Instant::now();
-    let job = loop {
-        let j = get_json(&http, &job_url).await;
-        if j["status"] != "queued" && j["status"] != "running" {
-            break j;
-        }
-        assert!(t.elapsed() < Duration::from_secs(180), "the job never ended: {j:#}");
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    };
+    let job = until_ended(&http, &job_url, Duration::from_secs(180), "the job").await;
     let drained = started.elapsed();
     assert_eq!(job["status"], "succeeded", "{job:#}");
     let list = job["tasks"]["list"].as_array().unwrap();
@@ -317,18 +322,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     });
     let tiled = submit(&http, &farm.url, tiles.clone()).await;
     let tiled_url = format!("{}/v1/jobs/{tiled}", farm.url);
-    let t = Instant::now();
-    let job = loop {
-        let j = get_json(&http, &tiled_url).await;
-        if j["status"] != "queued" && j["status"] != "running" {
-            break j;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(120),
-            "the tiled job never ended: {j:#}"
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    };
+    let job = until_ended(&http, &tiled_url, Duration::from_secs(120), "the tiled job").await;
     assert_eq!(job["status"], "succeeded", "{job:#}");
     let regions: Vec<u64> = job["tasks"]["list"].as_array().unwrap()[..3]
         .iter()
@@ -374,18 +368,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     });
     let chain_id = submit(&http, &farm.url, chained.clone()).await;
     let chain_url = format!("{}/v1/jobs/{chain_id}", farm.url);
-    let t = Instant::now();
-    let job = loop {
-        let j = get_json(&http, &chain_url).await;
-        if j["status"] != "queued" && j["status"] != "running" {
-            break j;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(180),
-            "the chained job never ended: {j:#}"
-        );
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    };
+    let job = until_ended(&http, &chain_url, Duration::from_secs(180), "the chained job").await;
     assert_eq!(job["status"], "succeeded", "{job:#}");
     let list = job["tasks"]["list"].as_array().unwrap();
     let chains: Vec<(Value, Value)> = list[..2]
