@@ -5,7 +5,10 @@
 //! REF_SAMPLES samples per texel, default 65536) at 4 … 1024 steps of `path` (4 samples
 //! a step; env `MAX_STEPS` = 4096 adds 4096), raw and after each denoiser, unblended and
 //! blended, with the delivered error estimate and the error on chart borders (texels within 2 of another chart or
-//! an empty texel). SCENE is a bench scene (default cornell-box) or a .glb path.
+//! an empty texel), and OIDN run on each chart alone (issue 22 point 2's third way: its
+//! bounding box padded by 8 texels, every other pixel filled from that chart only),
+//! against the delivered way (the whole image, every gutter filled first, read back at
+//! valid texels). SCENE is a bench scene (default cornell-box) or a .glb path.
 //!
 //! `… -- cost SIZE`: OIDN's time and peak memory on a SIZE² lightmap (run one size per
 //! process so the peak is that size's).
@@ -16,7 +19,7 @@ use std::time::Instant;
 use glam::Vec3;
 use lightmapd::bench::{prepare, true_error};
 use lightmapd::engine::accumulate::Estimate;
-use lightmapd::engine::atlas::{Atlas, NO_TEXEL};
+use lightmapd::engine::atlas::{Atlas, GutterLink, NO_TEXEL};
 use lightmapd::engine::job::BakeRequest;
 use lightmapd::engine::post::denoise::charts;
 use lightmapd::engine::post::denoised::{self, Used};
@@ -44,6 +47,56 @@ fn path_tech(scene: &Arc<Scene>, atlas: &Arc<Atlas>, lighting: Lighting, seed: u
     let plan = lightmapd::engine::job::plan_for(scene, &request).unwrap();
     let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, seed, plan);
     technique::create("path", inputs, &serde_json::json!({ "samples_per_step": spp })).unwrap()
+}
+
+/// OIDN on each chart alone: the chart's bounding box, padded by 8 texels, cut from an
+/// image whose other pixels are filled from this chart only (the gutter fill of an atlas
+/// holding just its texels), filtered, and read back at the chart's texels.
+fn oidn_per_chart(o: &Oidn, atlas: &Atlas, chart: &[u32], values: &[Vec3]) -> Vec<Vec3> {
+    const PAD: usize = 8;
+    let (w, h) = (atlas.width as usize, atlas.height as usize);
+    let mut out = values.to_vec();
+    for c in 0..chart.iter().max().map_or(0, |m| m + 1) {
+        let members: Vec<usize> = (0..atlas.texels.len()).filter(|&k| chart[k] == c).collect();
+        let mut sub = atlas.clone();
+        sub.texels = members.iter().map(|&k| atlas.texels[k]).collect();
+        sub.pixel_texel = vec![NO_TEXEL; w * h];
+        for (i, t) in sub.texels.iter().enumerate() {
+            sub.pixel_texel[t.pixel as usize] = i as u32;
+        }
+        sub.links = atlas
+            .links
+            .iter()
+            .filter_map(|l| {
+                let i = members.binary_search(&(l.texel as usize)).ok()?;
+                Some(GutterLink {
+                    pixel: l.pixel,
+                    texel: i as u32,
+                })
+            })
+            .collect();
+        let own: Vec<Vec3> = members.iter().map(|&k| values[k]).collect();
+        let img = lightmapd::engine::post::dilate(&sub, &own, denoised::FILL_RINGS);
+        let (mut i0, mut j0, mut i1, mut j1) = (w, h, 0, 0);
+        for t in &sub.texels {
+            let (i, j) = (t.pixel as usize % w, t.pixel as usize / w);
+            (i0, j0, i1, j1) = (i0.min(i), j0.min(j), i1.max(i), j1.max(j));
+        }
+        let (i0, j0) = (i0.saturating_sub(PAD), j0.saturating_sub(PAD));
+        let (i1, j1) = ((i1 + PAD).min(w - 1), (j1 + PAD).min(h - 1));
+        let (bw, bh) = (i1 - i0 + 1, j1 - j0 + 1);
+        let crop: Vec<Vec3> = (j0..=j1)
+            .flat_map(|j| img[j * w + i0..=j * w + i1].iter().copied())
+            .collect();
+        let filtered = o
+            .filter(bw as u32, bh as u32, &crop, None, Mode::Lightmap)
+            .expect("OIDN filters a chart");
+        for (&k, t) in members.iter().zip(&sub.texels) {
+            let (i, j) = (t.pixel as usize % w, t.pixel as usize / w);
+            out[k] = filtered[(j - j0) * bw + (i - i0)];
+        }
+    }
+    out
 }
 
 fn border_mask(atlas: &Atlas, chart: &[u32]) -> Vec<bool> {
@@ -134,9 +187,9 @@ fn errors(args: &[String]) {
     let ref_border = masked(&reference, &border);
     let oidn = Oidn::available();
     println!(
-        "| steps | raw | own | own blended | oidn | oidn + normal | oidn blended | estimated (oidn blended) | raw estimated | mean weight | border raw | border oidn | border oidn blended |"
+        "| steps | raw | own | own blended | oidn | oidn + normal | oidn blended | estimated (oidn blended) | raw estimated | mean weight | border raw | border oidn | border oidn blended | oidn per chart | border oidn per chart |"
     );
-    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
+    println!("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |");
     let mut tech = path_tech(&scene, &atlas, lighting, 1, 4);
     let pct = |e: f64| format!("{:.2} %", e * 100.0);
     // Every fourth power of two from 4 to MAX_STEPS (default 1024; 4096 on a GPU, where
@@ -154,7 +207,7 @@ fn errors(args: &[String]) {
         let raw = true_error(&est.total, &reference);
         let own = denoised::filter_unblended(&atlas, &chart, Used::Own, &est.total, &se);
         let own_b = denoised::apply(&atlas, &est, Used::Own);
-        let (oidn_e, oidn_n, oidn_b, est_b, w, b_oidn, b_blend) = if oidn {
+        let (oidn_e, oidn_n, oidn_b, est_b, w, b_oidn, b_blend, tiled, b_tiled) = if oidn {
             let o = Oidn::get().unwrap();
             let d = denoised::filter_unblended(&atlas, &chart, Used::Oidn, &est.total, &se);
             let normals: Vec<Vec3> = atlas.texels.iter().map(|t| t.normal).collect();
@@ -175,6 +228,12 @@ fn errors(args: &[String]) {
             let (b, weights) = denoised::apply_with_weights(&atlas, &est, Used::Oidn);
             eprintln!("  {target} steps: oidn blended in {:.2} s", tb.elapsed().as_secs_f64());
             let w = weights.iter().map(|w| *w as f64).sum::<f64>() / weights.len().max(1) as f64;
+            let tt = Instant::now();
+            let per_chart = oidn_per_chart(o, &atlas, &chart, &est.total);
+            eprintln!(
+                "  {target} steps: oidn per chart in {:.2} s",
+                tt.elapsed().as_secs_f64()
+            );
             (
                 pct(true_error(&d, &reference)),
                 rt_err,
@@ -183,13 +242,15 @@ fn errors(args: &[String]) {
                 format!("{w:.2}"),
                 pct(true_error(&d, &ref_border)),
                 pct(true_error(&b.total, &ref_border)),
+                pct(true_error(&per_chart, &reference)),
+                pct(true_error(&per_chart, &ref_border)),
             )
         } else {
             let na = || "n/a".to_string();
-            (na(), na(), na(), na(), na(), na(), na())
+            (na(), na(), na(), na(), na(), na(), na(), na(), na())
         };
         println!(
-            "| {target} | {} | {} | {} | {oidn_e} | {oidn_n} | {oidn_b} | {est_b} | {} | {w} | {} | {b_oidn} | {b_blend} |",
+            "| {target} | {} | {} | {} | {oidn_e} | {oidn_n} | {oidn_b} | {est_b} | {} | {w} | {} | {b_oidn} | {b_blend} | {tiled} | {b_tiled} |",
             pct(raw),
             pct(true_error(&own, &reference)),
             pct(true_error(&own_b.total, &reference)),
