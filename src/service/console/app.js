@@ -7,7 +7,8 @@
 const $ = id => document.getElementById(id);
 const esc = s => String(s ?? '').replace(/[&<>"']/g, c => ({'&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;'}[c]));
 const state = {token: sessionStorage.getItem('lightmapd-token') || '', techniques: null, scenes: [], job: null,
-  stream: null, viewer: null, geometryFor: null, lightmap: null, lightmapKey: null, snapshotSeen: 0};
+  stream: null, viewer: null, geometryFor: null, lightmap: null, lightmapKey: null, snapshotSeen: 0,
+  rendering: null};
 
 class ApiError extends Error {
   constructor(status, problem) { super(problem.detail || problem.title || ('HTTP ' + status)); this.status = status; this.problem = problem; }
@@ -527,7 +528,14 @@ function showJob(j) {
   drawPlot(j);
   for (const tr of document.querySelectorAll('#job-rows tr')) tr.classList.toggle('current', tr.dataset.job === j.id);
   if (changed) $('v-note').textContent = '';
-  updateGeometry(j).then(() => updateLightmap(j)).catch(err => { $('v-note').textContent = err.message; });
+  // One view update at a time, in the order the job's states arrived: a snapshot's update
+  // still loading the geometry when the end's update set the final lightmap used to finish
+  // last and put the snapshot back (the geometry load clears the shown key), so a fast job
+  // could end showing a snapshot.
+  state.rendering = (state.rendering || Promise.resolve())
+    .then(() => updateGeometry(j))
+    .then(() => updateLightmap(j))
+    .catch(err => { $('v-note').textContent = err.message; });
 }
 
 function showPlan(j) {
