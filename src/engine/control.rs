@@ -33,6 +33,11 @@
 //!
 //! Luminance (`accumulate::LUMINANCE`) throughout, as the noise estimate.
 //!
+//! Split bakes (`engine::tasks`): every chain of a job picks the same control texels (the
+//! job's seed) and traces them with its own seed; the merge averages the chains'
+//! references by steps and assesses the merged lightmap with [`assess_against`], the
+//! comparison [`ControlTexels::assess`] makes during a bake.
+//!
 //! Budget: the control is stepped after a technique step while its time is below
 //! [`CONTROL_SHARE`] of the technique's, so it costs at most about a fifth of the bake (and
 //! one step at least, so a bake of one long step still has a control estimate).

@@ -28,6 +28,11 @@
 //! one side of a wall, so their crease points still saw the sky through the adjacent wall
 //! (`vpl` +47 % / +45 % in the connected rooms, +1.3 % / −4.2 % with the whole offset).
 //!
+//! A split bake's region task (`engine::tasks`) needs only its region: [`Atlas::coverage`]
+//! runs the same rasterisation keeping one bit a pixel (enough to cut the grid into
+//! regions, `atlas::regions`), and [`Atlas::build_pixels`] rasterises only the rows of
+//! one pixel range and builds only its texels, equal to the whole atlas's texels there.
+//!
 //! Limits: one sample per texel centre (no supersampling of texels half on a chart); a
 //! texel whose sample point lies inside closed geometry is still valid here (techniques
 //! see back faces from it).
