@@ -125,6 +125,18 @@ impl Farm {
     }
 }
 
+/// A bake's lightmap as delivered (its stored pages: seams stitched, gutters dilated),
+/// read back per texel of its atlas.
+fn delivered(r: &job::BakeResult) -> Vec<glam::Vec3> {
+    ReferenceLightmap::from_pages(&r.pages.iter().map(|p| &p.exr[..]).collect::<Vec<_>>())
+        .unwrap()
+        .per_texel(&r.atlas)
+        .unwrap()
+        .into_iter()
+        .map(|v| v.unwrap_or_default())
+        .collect()
+}
+
 /// Polls the job at `url` until it has ended, failing after `limit` with `what`.
 async fn until_ended(http: &reqwest::Client, url: &str, limit: Duration, what: &str) -> Value {
     let t = Instant::now();
@@ -258,15 +270,8 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     };
     let single = bake(&request);
     // Delivered against delivered: both pages as stored (seams stitched, gutters dilated).
-    let single_pages =
-        ReferenceLightmap::from_pages(&single.pages.iter().map(|p| &p.exr[..]).collect::<Vec<_>>()).unwrap();
     let merged_values = merged.per_texel(&single.atlas).unwrap();
-    let single_values: Vec<glam::Vec3> = single_pages
-        .per_texel(&single.atlas)
-        .unwrap()
-        .into_iter()
-        .map(|v| v.unwrap_or_default())
-        .collect();
+    let single_values = delivered(&single);
     let single_vs_merged = relative_error(&single_values, &merged_values);
     assert!(
         single_vs_merged < 1e-6,
@@ -343,13 +348,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         &mut |_| {},
     )
     .unwrap();
-    let single_values: Vec<glam::Vec3> = ReferenceLightmap::from_pages(&[&single.pages[0].exr[..]])
-        .unwrap()
-        .per_texel(&single.atlas)
-        .unwrap()
-        .into_iter()
-        .map(|v| v.unwrap_or_default())
-        .collect();
+    let single_values = delivered(&single);
     let tiles_vs_single = relative_error(&single_values, &merged.per_texel(&single.atlas).unwrap());
     assert!(
         tiles_vs_single < 1e-6,
@@ -392,14 +391,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     pages.push(r.bytes().await.unwrap());
     let merged = ReferenceLightmap::from_pages(&pages).unwrap();
     let single = bake(&JobSpec::parse(chained.to_string().as_bytes()).unwrap().to_request());
-    let single_values: Vec<glam::Vec3> =
-        ReferenceLightmap::from_pages(&single.pages.iter().map(|p| &p.exr[..]).collect::<Vec<_>>())
-            .unwrap()
-            .per_texel(&single.atlas)
-            .unwrap()
-            .into_iter()
-            .map(|v| v.unwrap_or_default())
-            .collect();
+    let single_values = delivered(&single);
     let chains_vs_single = relative_error(&single_values, &merged.per_texel(&single.atlas).unwrap());
     let single_error = single.summary.error.relative.unwrap() as f64;
     let stated = (merged_error.powi(2) + single_error.powi(2)).sqrt();
