@@ -655,8 +655,15 @@ pub fn merge_regions(ordered: &[&Partial]) -> Result<Snapshot, EngineError> {
         .chunks(ranges)
         .map(|group| merge_halves(&group.iter().map(|p| &p.snapshot).collect::<Vec<_>>()))
         .collect();
+    Ok(side_by_side(regions))
+}
+
+/// Regions' halves side by side, in order (each region's texels a run of the whole's): a
+/// half's step count is the fewest any region got, a layer is kept when every region
+/// has it.
+fn side_by_side(regions: Vec<Snapshot>) -> Snapshot {
     if regions.len() == 1 {
-        return Ok(regions.into_iter().next().expect("one region"));
+        return regions.into_iter().next().expect("one region");
     }
     let join = |pick: fn(&Snapshot) -> &HalfEstimate| -> HalfEstimate {
         let halves: Vec<&HalfEstimate> = regions.iter().map(pick).collect();
@@ -678,10 +685,10 @@ pub fn merge_regions(ordered: &[&Partial]) -> Result<Snapshot, EngineError> {
                 .map(|parts| parts.concat()),
         }
     };
-    Ok(Snapshot {
+    Snapshot {
         even: join(|s| &s.even),
         odd: join(|s| &s.odd),
-    })
+    }
 }
 
 /// The merged `ao` layer (step-weighted per region, the regions side by side, as the
@@ -727,17 +734,7 @@ fn merge_control(ordered: &[&Partial], ranges: usize) -> Result<Option<(Vec<usiz
         indices.extend(controls[0].texels.iter().map(|&k| offset + k as usize));
         offset += group[0].header.texels as usize;
     }
-    let join = |pick: fn(&Snapshot) -> &HalfEstimate| HalfEstimate {
-        steps: parts.iter().map(|p| pick(p).steps).min().unwrap_or(0),
-        total: parts.iter().flat_map(|p| pick(p).total.iter().copied()).collect(),
-        direct: None,
-        moments: None,
-    };
-    let reference = Snapshot {
-        even: join(|s| &s.even),
-        odd: join(|s| &s.odd),
-    };
-    Ok(Some((indices, reference)))
+    Ok(Some((indices, side_by_side(parts))))
 }
 
 /// Checks that `partials` are every task of one request, each baked on its region's
