@@ -376,6 +376,127 @@ fn chains_of_every_other_technique_merge_within_the_stated_error() {
     }
 }
 
+/// Bakes `task` of `request` handing its halves on at every snapshot: the live halves
+/// (through the file format) and the atlas it baked.
+fn bake_live(
+    scene: &Arc<Scene>,
+    request: &BakeRequest,
+    task: tasks::TaskRange,
+) -> (Vec<Partial>, Partial, Arc<lightmapd::engine::atlas::Atlas>) {
+    let got = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let sink = got.clone();
+    let mut atlas = None;
+    let result = tasks::bake_task_live(
+        scene.clone(),
+        request,
+        task,
+        &BakeOptions::default(),
+        &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+        &mut |a| atlas = Some(a.clone()),
+        &mut |_| {},
+        Some(tasks::LiveTask {
+            every: std::time::Duration::ZERO,
+            sink: Box::new(move |p: Partial| sink.lock().unwrap().push(p.encode().unwrap())),
+        }),
+    )
+    .unwrap();
+    let live = got
+        .lock()
+        .unwrap()
+        .iter()
+        .map(|b| Partial::decode(b, "live halves").unwrap())
+        .collect();
+    (live, result, atlas.unwrap())
+}
+
+/// A split job's snapshots while its tasks run (issue 25 point 2): the running tasks'
+/// halves merged are the single bake's at the steps done. `path`'s step ranges draw the
+/// single bake's samples, so task 0's halves after 4 steps are the single bake of 4, and
+/// task 0's 6 steps with task 1's first 2 (steps 6 and 7) the single bake of 8, halves,
+/// layers and error estimate. A running task's halves are never taken as its result.
+#[test]
+fn running_tasks_merge_to_the_single_bake_at_the_steps_done() {
+    let scene = scene();
+    let request = request("cpu", 12);
+    let split = tasks::split(&request, TaskShape::steps(2)).unwrap();
+    let (live0, done0, atlas) = bake_live(&scene, &request, split[0]);
+    let (live1, _, atlas1) = bake_live(&scene, &request, split[1]);
+    assert_eq!(atlas.texels.len(), atlas1.texels.len());
+    // The doubling schedule: snapshots at 2, 4 and the task's end, each handed on.
+    let steps = |v: &[Partial]| -> Vec<u64> { v.iter().map(|p| p.header.half_steps.iter().sum()).collect() };
+    assert_eq!(steps(&live0), [2, 4, 6]);
+    assert_eq!(steps(&live1), [2, 4, 6]);
+    assert!(live0.iter().all(|p| p.header.live) && !done0.header.live);
+    let at = |n: u64| {
+        let mut r = request.clone();
+        r.stop.steps = Some(n);
+        whole(&scene, &r)
+    };
+    let four = tasks::merge_running(&atlas, std::slice::from_ref(&live0[1])).unwrap();
+    assert_same_bake(&at(4), &four);
+    let eight = tasks::merge_running(&atlas, &[done0.clone(), live1[0].clone()]).unwrap();
+    assert_same_bake(&at(8), &eight);
+    // The final merge takes results only, and says which is not one.
+    let err = match tasks::merge(
+        scene.clone(),
+        &[done0.clone(), live1[2].clone()],
+        &BakeOptions::default(),
+        &mut |_| {},
+    ) {
+        Ok(_) => panic!("a running task's halves were merged as its result"),
+        Err(e) => e.to_string(),
+    };
+    assert!(
+        err.contains("task 1/2) is a running task's halves, not its result"),
+        "{err}"
+    );
+    // A task given twice, or halves of another texel set, are refused by name.
+    let err = tasks::merge_running(&atlas, &[live0[0].clone(), live0[1].clone()])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("task 0/2 is given twice"), "{err}");
+    let mut other = request.clone();
+    other.resolution = 24;
+    let small = tasks::split(&other, TaskShape::steps(2)).unwrap();
+    let (_, _, other_atlas) = bake_live(&scene, &other, small[0]);
+    let err = tasks::merge_running(&other_atlas, &[done0]).unwrap_err().to_string();
+    assert!(err.contains("task 0/2 was baked on another texel set"), "{err}");
+}
+
+/// A chained technique's running halves merge with their bias measured: two `vpl` chains'
+/// first halves merge to the mean of the two, assessed at the job's control texels.
+#[test]
+fn running_chains_merge_with_their_bias_measured() {
+    let _gpu = common::gpu_serial();
+    let scene = Arc::new(scene::import_slice(&sphere_over_plane().to_glb(), None).unwrap().0);
+    let mut request = request("cpu", 8);
+    request.resolution = 32;
+    request.technique = "vpl".into();
+    request.params = serde_json::Value::Null;
+    request.lighting.sky = Some(sky());
+    request.outputs = vec![];
+    let split = tasks::split(&request, TaskShape::steps(2)).unwrap();
+    let (a, _, atlas) = bake_live(&scene, &request, split[0]);
+    let (b, _, _) = bake_live(&scene, &request, split[1]);
+    let m = tasks::merge_running(&atlas, &[a[0].clone(), b[0].clone()]).unwrap();
+    assert_eq!(m.steps, 4);
+    let mean: Vec<Vec3> = a[0]
+        .snapshot
+        .estimate()
+        .total
+        .iter()
+        .zip(&b[0].snapshot.estimate().total)
+        .map(|(x, y)| (*x + *y) / 2.0)
+        .collect();
+    assert!(worst(&mean, &m.total) < 1e-5);
+    let texels = atlas.texels.len().min(256) as u32;
+    assert_eq!(m.error.control_texels, Some(texels), "{:?}", m.error);
+    let (Some(e), Some(bias), Some(noise)) = (m.error.relative, m.error.bias, m.error.noise) else {
+        panic!("no bias measured: {:?}", m.error)
+    };
+    assert!(bias <= e && noise <= e && e > 0.0, "{:?}", m.error);
+}
+
 /// vpl splits by region as well (`TaskSplit::ChainsAndRegions`): the two pages as two
 /// tasks with the job's seed are the single bake's texels bit for bit (the VPLs come from
 /// the scene and the seed alone, and the normalised frame is the scene's); each region

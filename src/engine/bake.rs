@@ -31,6 +31,12 @@
 //! `sdb`'s small lights), `vpl`'s gather, `hemicube`'s CPU rays (in chunks) and transfer,
 //! `obscurance`'s and `sdb`'s directions (whole directions a slice).
 //!
+//! A task of a split bake (`engine::tasks`) may also ask for its halves while it runs
+//! ([`LiveHook`]): at a snapshot, at most once every `every`, the loop hands the
+//! technique's halves (and its control texels' reference) to the hook, so the service can
+//! merge the tasks' halves into the job's snapshots while they bake (issue 25 point 2).
+//! A clone of the halves, so only when asked for.
+//!
 //! Limits: what a slice cannot split still finishes (one direction of `sdb` or
 //! `obscurance`, one slice's texels, the parts of a step that grow with the lights and the
 //! scene rather than the texels: `vpl`'s RSMs, VPL paths and shadow maps, `hemicube`'s
@@ -43,7 +49,7 @@ use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 
-use crate::engine::accumulate::Estimate;
+use crate::engine::accumulate::{Estimate, Snapshot};
 use crate::engine::control::ControlTexels;
 use crate::engine::error::EngineError;
 use crate::engine::scene::Scene;
@@ -161,6 +167,36 @@ pub struct BakeLoop {
     /// The shadowmask pass (`engine::shadowmask`): stepped once per technique step; every
     /// snapshot loses its lights' direct light after the control texels assessed it.
     pub shadowmask: Option<ShadowmaskBake>,
+    /// Where a split bake's task hands its halves while it runs (None: nowhere).
+    pub live: Option<LiveHook>,
+}
+
+/// What a running task hands on at a snapshot: the technique's halves as they are, its
+/// `ao` layer, its control texels with their reference's halves (a biased technique's),
+/// and the loop's time.
+pub struct LiveHalves {
+    pub snapshot: Snapshot,
+    pub ao: Option<Vec<f32>>,
+    pub control: Option<(Vec<usize>, Snapshot)>,
+    pub elapsed: Duration,
+}
+
+/// Receives a running bake's halves ([`LiveHalves`]) at its snapshots, at most once every
+/// `every` (the first snapshot always).
+pub struct LiveHook {
+    pub every: Duration,
+    pub sink: Box<dyn FnMut(LiveHalves) + Send>,
+    last: Option<Instant>,
+}
+
+impl LiveHook {
+    pub fn new(every: Duration, sink: Box<dyn FnMut(LiveHalves) + Send>) -> LiveHook {
+        LiveHook {
+            every,
+            sink,
+            last: None,
+        }
+    }
 }
 
 /// Takes the loop's clock out of its step progress when `run` returns, whichever way,
@@ -183,6 +219,7 @@ impl BakeLoop {
             snapshot_interval: Duration::from_secs(5),
             control: None,
             shadowmask: None,
+            live: None,
         }
     }
 
@@ -234,7 +271,7 @@ impl BakeLoop {
                         elapsed.as_secs_f64()
                     )));
                 }
-                let estimate = self.snapshot(technique)?;
+                let estimate = self.snapshot(technique, elapsed)?;
                 let cancelled = observer
                     .event(BakeEvent::Snapshot {
                         estimate: &estimate,
@@ -288,7 +325,7 @@ impl BakeLoop {
                 next_doubling = steps.saturating_mul(2);
             }
             last_snapshot = Instant::now();
-            let estimate = self.snapshot(technique)?;
+            let estimate = self.snapshot(technique, elapsed)?;
             tracing::debug!(
                 technique = technique.id(),
                 step = steps,
@@ -329,14 +366,30 @@ impl BakeLoop {
 
 impl BakeLoop {
     /// The technique's estimate now, with its obscurance, its bias assessed at the
-    /// control texels and the shadowmask lights taken out, checked finite.
-    fn snapshot(&mut self, technique: &mut dyn Technique) -> Result<Estimate, EngineError> {
+    /// control texels and the shadowmask lights taken out, checked finite; the halves go
+    /// to the live hook when it is due.
+    fn snapshot(&mut self, technique: &mut dyn Technique, elapsed: Duration) -> Result<Estimate, EngineError> {
         let snapshot = technique.snapshot()?;
         let mut estimate = snapshot.estimate();
         estimate.ao = technique.ao();
         check_finite(technique, &estimate)?;
         if let Some(c) = &mut self.control {
             c.assess(&mut estimate)?;
+        }
+        if let Some(live) = &mut self.live
+            && live.last.is_none_or(|t| t.elapsed() >= live.every)
+        {
+            live.last = Some(Instant::now());
+            let control = match &mut self.control {
+                Some(c) => Some((c.indices().to_vec(), c.reference()?)),
+                None => None,
+            };
+            (live.sink)(LiveHalves {
+                snapshot: snapshot.clone(),
+                ao: estimate.ao.clone(),
+                control,
+                elapsed,
+            });
         }
         if let Some(s) = &self.shadowmask {
             estimate = s.apply(snapshot, &estimate)?;

@@ -72,6 +72,11 @@
 //! per valid texel, not per pixel, so an image format would only add a layout to undo,
 //! and the header is plain JSON any tool reads.
 //!
+//! While it runs, a task may hand its halves so far on ([`bake_task_live`]: a
+//! [`Partial`] marked `live`), and [`merge_running`] merges whatever the tasks have so
+//! far into the job's running estimate (the service's snapshots of a split job); the
+//! final merge refuses such halves.
+//!
 //! The merge rebuilds the texel set and its regions from the scene and request
 //! (deterministic, `job::prepare_regions`), taking the tasks' validation (the texels
 //! they kept) instead of tracing it again, and refuses partials of another request,
@@ -93,9 +98,9 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use sha2::{Digest, Sha256};
 
-use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::accumulate::{Estimate, HalfEstimate, Snapshot};
 use crate::engine::atlas::Atlas;
-use crate::engine::bake::{BakeObserver, StopCriteria, StopReason};
+use crate::engine::bake::{BakeObserver, LiveHalves, LiveHook, StopCriteria, StopReason};
 use crate::engine::control;
 use crate::engine::job::{self, BakeOptions, BakeRequest, BakeResult};
 use crate::engine::output::OutputLayer;
@@ -366,6 +371,10 @@ pub struct PartialHeader {
     /// The task's own bake time.
     pub seconds: f64,
     pub stopped_by: StopReason,
+    /// A running task's halves so far ([`bake_task_live`]), for the job's snapshots: never
+    /// a result the merge takes.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub live: bool,
 }
 
 /// The texel set's fingerprint: SHA-256 over the grid's size and every valid texel's
@@ -404,6 +413,30 @@ pub fn bake_task(
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
     on_plan: &mut dyn FnMut(&Plan),
 ) -> Result<Partial, EngineError> {
+    bake_task_live(scene, request, task, options, observer, on_atlas, on_plan, None)
+}
+
+/// Where a running task's halves go ([`bake_task_live`]): a [`Partial`] marked `live`,
+/// at a snapshot, at most once every `every`.
+pub struct LiveTask {
+    pub every: Duration,
+    pub sink: Box<dyn FnMut(Partial) + Send>,
+}
+
+/// [`bake_task`] that also hands its halves so far to `live` while it runs (the
+/// service merges them into the job's snapshots, [`merge_running`]). The partial is
+/// built on the bake thread: a clone of the halves and the texels' pixels.
+#[allow(clippy::too_many_arguments)]
+pub fn bake_task_live(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    task: TaskRange,
+    options: &BakeOptions,
+    observer: &mut dyn BakeObserver,
+    on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+    on_plan: &mut dyn FnMut(&Plan),
+    live: Option<LiveTask>,
+) -> Result<Partial, EngineError> {
     let tasks = split(request, task.shape())?;
     if tasks.get(task.index as usize) != Some(&task) {
         return Err(EngineError::BadInput(format!(
@@ -436,6 +469,49 @@ pub fn bake_task(
     // A chain's control texels are the job's (picked with its seed), its reference
     // traced with the chain's seed.
     let mut bake_loop = prepared.bake_loop_picking(&own, stop, options, request.seed)?;
+    if let Some(LiveTask { every, mut sink }) = live {
+        let template = PartialHeader {
+            format: PARTIAL_FORMAT,
+            request: request.clone(),
+            task,
+            params: tech.params(),
+            width: prepared.atlas.width,
+            height: prepared.atlas.height,
+            texels: prepared.atlas.texels.len() as u64,
+            fingerprint: fingerprint(&prepared.atlas),
+            half_steps: [0, 0],
+            direct: false,
+            moments: false,
+            ao: false,
+            control: None,
+            seconds: 0.0,
+            stopped_by: StopReason::Steps,
+            live: true,
+        };
+        let pixels = pixels.clone();
+        bake_loop.live = Some(LiveHook::new(
+            every,
+            Box::new(move |h: LiveHalves| {
+                let header = PartialHeader {
+                    half_steps: [h.snapshot.even.steps, h.snapshot.odd.steps],
+                    direct: h.snapshot.even.direct.is_some(),
+                    moments: h.snapshot.even.moments.is_some(),
+                    ao: h.ao.is_some(),
+                    control: h
+                        .control
+                        .map(|(indices, reference)| ControlHalves::of(&indices, &reference)),
+                    seconds: h.elapsed.as_secs_f64(),
+                    ..template.clone()
+                };
+                sink(Partial {
+                    header,
+                    snapshot: h.snapshot,
+                    pixels: pixels.clone(),
+                    ao: h.ao,
+                });
+            }),
+        ));
+    }
     let outcome = bake_loop.run(tech.as_mut(), observer)?;
     let snapshot = tech.snapshot()?;
     let control = match &mut bake_loop.control {
@@ -462,6 +538,7 @@ pub fn bake_task(
         control,
         seconds: outcome.elapsed.as_secs_f64(),
         stopped_by: outcome.stopped_by,
+        live: false,
     };
     tracing::info!(
         task = task.index,
@@ -778,6 +855,11 @@ pub fn check_partials<'a>(
                 "{name}: its region and step range are not ones the request splits into"
             ));
         }
+        if h.live {
+            return bad(format!(
+                "{name} is a running task's halves, not its result: bake the task to its end"
+            ));
+        }
         if h.stopped_by == StopReason::Cancelled {
             return bad(format!("{name} was cancelled; bake it again"));
         }
@@ -888,6 +970,78 @@ pub fn merge(
         // Nobody watches a merge: its probes (if any) run to the end.
         &mut |_: crate::engine::bake::BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
     )
+}
+
+/// A running split bake's estimate from what its tasks have baked so far: the halves of
+/// every task given (a running task's so far, from [`bake_task_live`], or a finished
+/// one's result) merged as the final merge merges them, then assessed at the control
+/// texels. These are the job's snapshots while its tasks run (issue 25 point 2).
+///
+/// Why it means what a single bake's snapshot means: `path`'s step ranges draw the
+/// single bake's samples at their steps, so the merged halves are a single bake's over
+/// the steps done (a set of steps, not the first ones in order when a later range has
+/// run ahead: the same expectation); chains are independent draws, so their running
+/// means merge by steps as their results do. A task with nothing yet is left out (fewer
+/// steps or chains, the same expectation), and its halves' difference still measures the
+/// merged noise. One region only: a region's task holds its texels alone, and a snapshot
+/// is of every texel (refused otherwise, naming it).
+pub fn merge_running(atlas: &Atlas, parts: &[Partial]) -> Result<Estimate, EngineError> {
+    let bad = |m: String| Err(EngineError::BadInput(m));
+    let Some(first) = parts.first() else {
+        return bad("running merge: no task halves given".into());
+    };
+    let h0 = &first.header;
+    if h0.task.regions > 1 {
+        return bad(format!(
+            "running merge: the job is split into {} regions; a snapshot needs every texel, which no region's task holds",
+            h0.task.regions
+        ));
+    }
+    let print = fingerprint(atlas);
+    let mut seen = vec![false; h0.task.count as usize];
+    for p in parts {
+        let h = &p.header;
+        let name = format!("task {}/{}", h.task.index, h.task.count);
+        if h.request != h0.request || h.task.shape() != h0.task.shape() {
+            return bad(format!(
+                "running merge: {name} is of another request than task {}",
+                h0.task.index
+            ));
+        }
+        if (h.direct, h.moments, h.ao, &h.params) != (h0.direct, h0.moments, h0.ao, &h0.params) {
+            return bad(format!(
+                "running merge: {name} kept other layers or parameters than task {}",
+                h0.task.index
+            ));
+        }
+        if h.fingerprint != print || h.texels != atlas.texels.len() as u64 {
+            return bad(format!("running merge: {name} was baked on another texel set"));
+        }
+        if h.stopped_by == StopReason::Cancelled {
+            return bad(format!("running merge: {name} was cancelled"));
+        }
+        match seen.get_mut(h.task.index as usize) {
+            Some(s) if !*s => *s = true,
+            _ => {
+                return bad(format!(
+                    "running merge: {name} is given twice or is not one of the job's"
+                ));
+            }
+        }
+    }
+    let all: Vec<&Partial> = parts.iter().collect();
+    let snapshot = merge_halves(&all.iter().map(|p| &p.snapshot).collect::<Vec<_>>());
+    let mut estimate = snapshot.estimate();
+    estimate.ao = merge_ao(&all, all.len());
+    if let Some((indices, reference)) = merge_control(&all, all.len())? {
+        control::assess_against(&indices, &reference.estimate(), &mut estimate);
+    }
+    if let Some((layer, k, v)) = estimate.first_non_finite() {
+        return Err(EngineError::Internal(format!(
+            "running merge: the tasks' halves hold a non-finite value {v:?} at texel {k} of the {layer} layer"
+        )));
+    }
+    Ok(estimate)
 }
 
 #[cfg(test)]
@@ -1080,6 +1234,7 @@ mod tests {
             }),
             seconds: 0.5,
             stopped_by: StopReason::Steps,
+            live: false,
         };
         let p = Partial {
             header,
@@ -1142,6 +1297,7 @@ mod tests {
                     control: Some(c),
                     seconds: 0.0,
                     stopped_by: StopReason::Steps,
+                    live: false,
                 },
                 snapshot: Snapshot {
                     even: half(steps, v, 2),

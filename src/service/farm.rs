@@ -30,29 +30,38 @@
 //! steps grew by a quarter or every five seconds); the merge's point, the delivered
 //! lightmap's error, ends it.
 //!
-//! Limits: no snapshot images while the tasks run (the halves of different tasks meet
-//! only in the merge), so the job's snapshots are the merge's lightmap; the merge re-imports the
+//! Snapshots while the tasks run (one region): each task stores its halves so far at
+//! its snapshots (`tasks/<k>.live.lmtask`), and the task whose turn the queue gives
+//! (one a snapshot interval for the job) merges every task's halves so far
+//! (`engine::tasks::merge_running`), denoises and stores them as the job's next snapshot,
+//! as a whole job's (`running_snapshots`).
+//!
+//! Limits: a job split into regions has no snapshots while its tasks run (no task holds
+//! every texel; the merge's lightmap is its only image); the merge re-imports the
 //! scene and reads all results into memory (28 bytes a texel a task: 470 MB a task for a
 //! full 4096² page, a region's task only its region's texels), so it needs that memory
 //! once.
 
 use std::ops::ControlFlow;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use serde_json::{Value, json};
+use tracing::Instrument;
 
+use crate::engine::atlas::Atlas;
 use crate::engine::bake::{BakeEvent, StepProgress, StopReason};
-use crate::engine::job::BakeOptions;
+use crate::engine::job::{self, BakeOptions};
 use crate::engine::plan::Plan;
 use crate::engine::tasks::{self, Partial};
 use crate::engine::technique::EngineError;
 use crate::service::model::{HistoryPoint, Progress};
 use crate::service::queue::{JobRecord, Lease, TaskBeat, TaskOutcome, TaskRecord};
 use crate::service::worker::{
-    Lessee, LoadError, TICK, import_files, load_patiently, load_scene, store_final, while_holding,
+    Lessee, LoadError, SnapshotFiles, TICK, import_files, load_patiently, load_scene, store_final, store_snapshot,
+    thin_snapshots, while_holding,
 };
 use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
 
@@ -129,6 +138,9 @@ pub async fn run_task(state: &AppState, worker: &str, task: TaskRecord, job: Job
             if let Err(e) = state.artifacts.delete(&store::task_partial(&job.id, k)).await {
                 tracing::warn!(task = k, error = %e, "cannot delete a merged task's result");
             }
+            if let Err(e) = state.artifacts.delete(&store::task_live(&job.id, k)).await {
+                tracing::warn!(task = k, error = %e, "cannot delete a merged task's running halves");
+            }
         }
     }
 }
@@ -165,6 +177,27 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
     };
     let beat = Arc::new(Mutex::new(TaskBeat::default()));
     let step = StepProgress::default();
+    // The job's snapshots while it runs: this task's halves so far go to the store and,
+    // on this task's turn, the tasks' halves merged become the next snapshot. Only with
+    // one region: a region's task holds its own texels alone.
+    let every = state.config.snapshot_interval;
+    let live_every = (range.regions <= 1).then_some(every);
+    let (live_tx, live_rx) = tokio::sync::mpsc::channel::<Partial>(1);
+    let atlas: Arc<OnceLock<Arc<Atlas>>> = Arc::default();
+    let quiet_until: Arc<Mutex<Option<Instant>>> = Arc::default();
+    let snapshots = tokio::spawn(
+        running_snapshots(
+            state.clone(),
+            worker.to_string(),
+            job.clone(),
+            task.clone(),
+            live_rx,
+            atlas.clone(),
+            quiet_until.clone(),
+            flag.clone(),
+        )
+        .instrument(tracing::Span::current()),
+    );
     let thread = {
         let (beat, flag, step, limits) = (beat.clone(), flag.clone(), step.clone(), state.config.limits.clone());
         let span = tracing::Span::current();
@@ -200,14 +233,28 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
                     ControlFlow::Break(())
                 }
             };
-            let partial = tasks::bake_task(
+            // Halves due while the last are still being stored or merged (a full
+            // channel), or within the quiet time the last ones earned, are skipped.
+            let live = live_every.map(|every| tasks::LiveTask {
+                every,
+                sink: Box::new(move |p: Partial| {
+                    let quiet = quiet_until.lock().ok().and_then(|q| *q);
+                    if quiet.is_none_or(|t| Instant::now() >= t) {
+                        let _ = live_tx.try_send(p);
+                    }
+                }),
+            });
+            let partial = tasks::bake_task_live(
                 Arc::new(scene),
                 &request,
                 range,
                 &options,
                 &mut observer,
+                &mut |a| {
+                    let _ = atlas.set(a.clone());
+                },
                 &mut |_| {},
-                &mut |_| {},
+                live,
             )?;
             // Encoded here, off the runtime: a full page's result is hundreds of MB.
             let error = partial.snapshot.estimate().error.relative;
@@ -258,6 +305,13 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
             }
         }
     };
+    // The bake has ended: a running snapshot in hand is finished (the lease renewed
+    // meanwhile), unless the task is stopping.
+    if flag.get() == StopSignal::None {
+        let _ = while_holding(state, lessee, worker, flag, snapshots).await;
+    } else {
+        snapshots.abort();
+    }
     let (header, error, bytes) = match (flag.get(), result) {
         (StopSignal::LeaseLost, _) => return End::Lost,
         (_, Err(e)) => {
@@ -298,6 +352,177 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
         seconds: header.seconds,
         error,
     }))
+}
+
+/// A split job's snapshots while its tasks run (issue 25 point 2): each of this task's
+/// running halves (`engine::tasks::bake_task_live`) is stored as `tasks/<k>.live.lmtask`;
+/// then, when the queue gives this task the job's next snapshot
+/// ([`Queue::claim_task_snapshot`](crate::service::queue::Queue::claim_task_snapshot):
+/// one a snapshot interval for the whole job, whichever task asks first), every task's
+/// halves (a finished task's result, a running one's latest halves, none for one not
+/// started) are merged (`tasks::merge_running`), denoised and encoded as a whole job's
+/// snapshot is, stored under that number and recorded. Ends when the bake drops its
+/// sender; a failure costs that snapshot only.
+///
+/// What it costs: each round moves this task's halves to the store (28 bytes a texel),
+/// and a snapshot's maker reads every task's (N × 28 bytes a texel), merges and denoises
+/// them: nothing on a small level, seconds on a 4096² page. So a round that took d keeps
+/// the next one off for 9 d (`quiet_until`, read by the bake's sink): this work takes at
+/// most a tenth of the task's wall time, on top of the snapshot interval.
+#[allow(clippy::too_many_arguments)]
+async fn running_snapshots(
+    state: AppState,
+    worker: String,
+    job: JobRecord,
+    task: TaskRecord,
+    mut live: tokio::sync::mpsc::Receiver<Partial>,
+    atlas: Arc<OnceLock<Arc<Atlas>>>,
+    quiet_until: Arc<Mutex<Option<Instant>>>,
+    flag: Arc<StopFlag>,
+) {
+    let request = Arc::new(job.spec.to_request());
+    while let Some(own) = live.recv().await {
+        if flag.get() != StopSignal::None {
+            return;
+        }
+        let began = Instant::now();
+        running_round(&state, &worker, &job, &task, own, &atlas, &request).await;
+        let took = began.elapsed();
+        if let Ok(mut q) = quiet_until.lock() {
+            *q = Some(Instant::now() + took * 9);
+        }
+    }
+}
+
+/// One round of [`running_snapshots`]: store this task's halves, and make the job's
+/// next snapshot when it is this task's turn.
+async fn running_round(
+    state: &AppState,
+    worker: &str,
+    job: &JobRecord,
+    task: &TaskRecord,
+    own: Partial,
+    atlas: &OnceLock<Arc<Atlas>>,
+    request: &Arc<crate::engine::job::BakeRequest>,
+) {
+    let began = Instant::now();
+    let encoded = tokio::task::spawn_blocking(move || {
+        let bytes = own.encode();
+        (own, bytes)
+    })
+    .await;
+    let (own, bytes) = match encoded {
+        Ok((own, Ok(bytes))) => (own, bytes),
+        Ok((_, Err(e))) => {
+            tracing::warn!(error = %e, "cannot encode the task's running halves");
+            return;
+        }
+        Err(e) => {
+            tracing::warn!(error = %e, "the encoder of the task's running halves panicked");
+            return;
+        }
+    };
+    let path = store::task_live(&job.id, task.index);
+    if let Err(e) = state.artifacts.put(&path, Bytes::from(bytes)).await {
+        tracing::warn!(error = %e, "cannot store the task's running halves");
+        return;
+    }
+    let claim = state.queue.claim_task_snapshot(
+        &job.id,
+        task.index,
+        worker,
+        state.config.snapshot_interval,
+        state.db_now(),
+    );
+    let n = match claim.await {
+        Ok(Some(n)) => n,
+        Ok(None) => return,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot claim the job's next snapshot");
+            return;
+        }
+    };
+    let Some(atlas) = atlas.get().cloned() else { return };
+    let files = match running_snapshot(state, job, task, own, atlas, request.clone()).await {
+        Ok(f) => f,
+        Err(e) => {
+            tracing::warn!(snapshot = n, error = %e, "cannot make the job's running snapshot");
+            return;
+        }
+    };
+    let (steps, error) = (files.steps, files.error);
+    if let Err(e) = store_snapshot(state, &job.id, n, files).await {
+        tracing::warn!(snapshot = n, error = %e, "cannot store the job's running snapshot");
+        return;
+    }
+    match state.queue.task_snapshot_stored(&job.id, n).await {
+        Ok(true) => {
+            let seconds = began.elapsed().as_secs_f64();
+            tracing::info!(snapshot = n, steps, error, seconds, "running snapshot stored");
+            thin_snapshots(state, &job.id, n).await;
+            state.hub.job_changed(&job.id);
+        }
+        // The job ended meanwhile: its final lightmap is what it keeps.
+        Ok(false) | Err(_) => {
+            let _ = state.artifacts.delete(&store::snapshot_exr(&job.id, n)).await;
+            let _ = state.artifacts.delete(&store::snapshot_png(&job.id, n)).await;
+        }
+    }
+}
+
+/// The job's snapshot from every task's halves so far, this task's `own` among them.
+async fn running_snapshot(
+    state: &AppState,
+    job: &JobRecord,
+    task: &TaskRecord,
+    own: Partial,
+    atlas: Arc<Atlas>,
+    request: Arc<crate::engine::job::BakeRequest>,
+) -> Result<SnapshotFiles, String> {
+    let mut others = Vec::new();
+    for k in (0..task.count).filter(|k| *k != task.index) {
+        let mut found = None;
+        for path in [store::task_partial(&job.id, k), store::task_live(&job.id, k)] {
+            match state.artifacts.get(&path).await {
+                Ok(Some(b)) => {
+                    found = Some(b);
+                    break;
+                }
+                Ok(None) => {}
+                Err(e) => return Err(format!("cannot read task {k}'s halves: {e}")),
+            }
+        }
+        others.extend(found.map(|b| (k, b)));
+    }
+    let elapsed = job
+        .started_at
+        .map_or(0.0, |t| (state.db_now() - t).max(0) as f64 / 1000.0);
+    let made = tokio::task::spawn_blocking(move || -> Result<SnapshotFiles, EngineError> {
+        let mut parts = vec![own];
+        for (k, b) in others {
+            parts.push(Partial::decode(&b, &format!("task {k}'s halves"))?);
+        }
+        let estimate = tasks::merge_running(&atlas, &parts)?;
+        let delivered = job::finish(&atlas, &estimate, &request);
+        let exr = job::delivered_exr(
+            &atlas,
+            &delivered,
+            &request,
+            &request.params,
+            Duration::from_secs_f64(elapsed),
+        )?;
+        let png = job::preview_png(&atlas, &delivered)?;
+        Ok(SnapshotFiles {
+            exr,
+            png,
+            steps: estimate.steps,
+            error: delivered.error.relative,
+        })
+    });
+    match made.await {
+        Ok(r) => r.map_err(|e| e.to_string()),
+        Err(e) => Err(format!("the snapshot thread panicked: {e}")),
+    }
 }
 
 /// Every bake task's stored result, in task order.

@@ -648,3 +648,9 @@ mod tests {
 pub fn task_partial(job: &str, k: u32) -> Path {
     Path::from(format!("jobs/{job}/tasks/{k}.lmtask"))
 }
+
+/// Bake task `k`'s halves so far while it runs (a `.lmtask` marked live), which the
+/// job's running snapshots merge; replaced as it bakes on, deleted with the results.
+pub fn task_live(job: &str, k: u32) -> Path {
+    Path::from(format!("jobs/{job}/tasks/{k}.live.lmtask"))
+}

@@ -258,11 +258,11 @@ struct Shared {
     step: crate::engine::bake::StepProgress,
 }
 
-struct SnapshotFiles {
-    exr: Vec<u8>,
-    png: Vec<u8>,
-    steps: u64,
-    error: Option<f32>,
+pub(crate) struct SnapshotFiles {
+    pub(crate) exr: Vec<u8>,
+    pub(crate) png: Vec<u8>,
+    pub(crate) steps: u64,
+    pub(crate) error: Option<f32>,
 }
 
 async fn run_job(state: &AppState, worker: &str, job: JobRecord, engine: &Arc<EngineShared>) {
@@ -712,7 +712,7 @@ pub(crate) async fn while_holding<T>(
 }
 
 /// Deletes the snapshots that storing snapshot `n` made surplus (snapshot retention).
-async fn thin_snapshots(state: &AppState, job: &str, n: u32) {
+pub(crate) async fn thin_snapshots(state: &AppState, job: &str, n: u32) {
     for k in store::snapshots_to_drop(n, state.config.snapshot_keep) {
         let exr = state.artifacts.delete(&store::snapshot_exr(job, k)).await;
         let png = state.artifacts.delete(&store::snapshot_png(job, k)).await;
@@ -726,7 +726,12 @@ async fn thin_snapshots(state: &AppState, job: &str, n: u32) {
     }
 }
 
-async fn store_snapshot(state: &AppState, job: &str, n: u32, files: SnapshotFiles) -> Result<(), object_store::Error> {
+pub(crate) async fn store_snapshot(
+    state: &AppState,
+    job: &str,
+    n: u32,
+    files: SnapshotFiles,
+) -> Result<(), object_store::Error> {
     state
         .artifacts
         .put(&store::snapshot_exr(job, n), Bytes::from(files.exr))

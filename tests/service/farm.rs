@@ -22,6 +22,12 @@
 //! - then a `path` job on the Cornell box's one page split into 3 tiles (bands of rows,
 //!   `tasks: 3, regions: 3`) on the two surviving workers: its lightmap equals the
 //!   single-process bake's to 1e-6;
+//! - then a `path` job on the Cornell box's page split into 2 step ranges (one region):
+//!   snapshots are stored while its tasks run, each the tasks' halves so far merged
+//!   (`tasks::merge_running`); the latest taken while the job runs differs from the final
+//!   lightmap by less than three times the error it states, the tiled job (no single task
+//!   holds every texel) stores none, and the tasks' running halves are deleted with
+//!   their results;
 //! - then a `vpl` job on the two pages split into 2 independent chains (each with its
 //!   own seed, shown as the task's `chain_seed`): its lightmap is within three times the
 //!   stated errors of the single-process bake's, and its error carries the bias measured
@@ -355,6 +361,67 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         "tiled and single bake differ by {tiles_vs_single:.2e} (relative RMS)"
     );
     eprintln!("farm: 40 steps of one page as 3 tiles on 2 workers: merged vs single {tiles_vs_single:.1e}");
+    assert_eq!(job["snapshots"], 0, "no task of a tiled job holds every texel: {job:#}");
+
+    // Snapshots while the tasks run: one region in two step ranges of 1000 steps (several
+    // seconds each here), the snapshots made from the tasks' halves so far.
+    let ranges = json!({
+        "scene": cornell, "technique": "path", "resolution": 32, "seed": 3,
+        "stop": {"steps": 2000}, "tasks": 2, "denoise": "none",
+    });
+    let ranged = submit(&http, &farm.url, ranges).await;
+    let ranged_url = format!("{}/v1/jobs/{ranged}", farm.url);
+    let t = Instant::now();
+    let mut running = None;
+    let job = loop {
+        let j = get_json(&http, &ranged_url).await;
+        if j["status"] != "queued" && j["status"] != "running" {
+            break j;
+        }
+        let n = j["snapshots"].as_u64().unwrap();
+        if n >= 1 && running.as_ref().is_none_or(|(m, _)| *m < n) {
+            let r = http
+                .get(format!("{ranged_url}/lightmap.exr?snapshot={n}"))
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 200, "snapshot {n} of a running job");
+            running = Some((n, r.bytes().await.unwrap()));
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "the ranged job never ended: {j:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let (n, bytes) = running.expect("a snapshot stored while the tasks ran");
+    let snapshot = ReferenceLightmap::from_pages(&[bytes]).unwrap();
+    let stated = snapshot.reported_error.expect("the snapshot states its error") as f64;
+    let r = http.get(format!("{ranged_url}/lightmap.exr")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let done = ReferenceLightmap::from_pages(&[r.bytes().await.unwrap()]).unwrap();
+    let final_error = done.reported_error.unwrap() as f64;
+    let finals = done.per_texel(&single.atlas).unwrap();
+    let shown: Vec<glam::Vec3> = snapshot
+        .per_texel(&single.atlas)
+        .unwrap()
+        .into_iter()
+        .map(|v| v.unwrap_or_default())
+        .collect();
+    let apart = relative_error(&shown, &finals);
+    assert!(
+        apart > 0.0 && apart < 3.0 * stated && stated > final_error,
+        "running snapshot {n} differs from the final lightmap by {apart:.4}; it states {stated:.4}, the final {final_error:.4}"
+    );
+    for k in 0..2 {
+        let key = store::task_live(&ranged, k);
+        assert!(artifacts.get(&key).await.unwrap().is_none(), "{key} is still stored");
+    }
+    eprintln!(
+        "farm: 2000 steps as 2 step ranges: {} snapshots while running; snapshot {n} states {stated:.4}, differs from the final ({final_error:.4}) by {apart:.4}",
+        job["snapshots"]
+    );
 
     // Chains: a `vpl` job (a biased technique with control texels) as two independent
     // chains, each with its own seed, on the two workers. Not the single bake's samples:

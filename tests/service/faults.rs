@@ -401,6 +401,21 @@ impl Queue for DroppedDb {
         self.check()?;
         self.inner.task_heartbeat(job, index, worker, lease, beat, now).await
     }
+    async fn claim_task_snapshot(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        interval: Duration,
+        now: i64,
+    ) -> QueueResult<Option<u32>> {
+        self.check()?;
+        self.inner.claim_task_snapshot(job, index, worker, interval, now).await
+    }
+    async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool> {
+        self.check()?;
+        self.inner.task_snapshot_stored(job, n).await
+    }
     async fn finish_task(&self, job: &str, index: u32, worker: &str, o: &TaskOutcome, now: i64) -> QueueResult<bool> {
         self.check()?;
         self.inner.finish_task(job, index, worker, o, now).await

@@ -36,9 +36,12 @@
 //! does not meet; the API reads the live workers to say what a job nobody takes is
 //! waiting for.
 //!
+//! Snapshots of a split job while its tasks run: a task's worker claims the next number
+//! ([`Queue::claim_task_snapshot`], one claim a snapshot interval for the whole job),
+//! stores the merged snapshot under it and records it ([`Queue::task_snapshot_stored`]).
+//!
 //! Limits: a re-run starts the bake again from step 0 (the engine cannot resume from a
-//! snapshot); snapshots of earlier attempts stay, numbered on. A split job stores no
-//! snapshots while its tasks run (its tasks' halves meet only in the merge).
+//! snapshot); snapshots of earlier attempts stay, numbered on.
 
 pub mod postgres;
 pub mod sqlite;
@@ -591,6 +594,24 @@ pub trait Queue: Send + Sync + 'static {
         beat: Option<&TaskBeat>,
         now: i64,
     ) -> QueueResult<Lease>;
+    /// Claims the number of a split job's next snapshot for the worker running task
+    /// `index` (snapshots while the tasks run, `service::farm`): `Some(n)` when that task
+    /// is this worker's and running, the job is running and no snapshot was claimed in
+    /// the last `interval`; `None` otherwise. One claim an interval, whichever task asks
+    /// first, so the tasks take turns and a finished task hands the turn on. Numbers go
+    /// on from the job's stored snapshots (an earlier attempt's included).
+    async fn claim_task_snapshot(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        interval: Duration,
+        now: i64,
+    ) -> QueueResult<Option<u32>>;
+    /// Records a running split job's snapshot `n` as stored: its count becomes `n`
+    /// unless a later claim was stored first. `false` when the job is no longer running
+    /// (the caller deletes what it stored).
+    async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool>;
     /// Records the end of a task (see [`TaskOutcome`]); `false` when its lease was lost.
     async fn finish_task(
         &self,

@@ -91,6 +91,11 @@ pub(crate) const MIGRATIONS: &[(i64, &str, &str)] = &[
         include_str!("../../../migrations/postgres/0002_roles_and_retention.sql"),
     ),
     (3, "tasks", include_str!("../../../migrations/postgres/0003_tasks.sql")),
+    (
+        4,
+        "task snapshots",
+        include_str!("../../../migrations/postgres/0004_task_snapshots.sql"),
+    ),
 ];
 
 static MIGRATOR: std::sync::LazyLock<sqlx::migrate::Migrator> =
@@ -929,6 +934,43 @@ impl Queue for PostgresQueue {
         }
         tx.commit().await?;
         Ok(Lease::Held { cancel })
+    }
+
+    async fn claim_task_snapshot(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        interval: Duration,
+        now: i64,
+    ) -> QueueResult<Option<u32>> {
+        // One statement: concurrent claims queue on the job's row and see the winner's
+        // `snapshot_claimed_at` when they re-check it, so one wins an interval.
+        let n: Option<i32> = sqlx::query_scalar(
+            "UPDATE jobs SET snapshot_claims = GREATEST(snapshot_claims, snapshots) + 1, snapshot_claimed_at = $3
+             WHERE id = $1 AND status = 'running'
+               AND (snapshot_claimed_at IS NULL OR snapshot_claimed_at <= $3 - $4)
+               AND EXISTS (SELECT 1 FROM tasks WHERE job_id = $1 AND idx = $2 AND worker = $5 AND status = 'running')
+             RETURNING snapshot_claims",
+        )
+        .bind(job)
+        .bind(index as i32)
+        .bind(now)
+        .bind(interval.as_millis().min(i64::MAX as u128) as i64)
+        .bind(worker)
+        .fetch_optional(&self.pool)
+        .await?;
+        Ok(n.map(|n| n.max(0) as u32))
+    }
+
+    async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool> {
+        let done =
+            sqlx::query("UPDATE jobs SET snapshots = GREATEST(snapshots, $2) WHERE id = $1 AND status = 'running'")
+                .bind(job)
+                .bind(i32::try_from(n).unwrap_or(i32::MAX))
+                .execute(&self.pool)
+                .await?;
+        Ok(done.rows_affected() == 1)
     }
 
     async fn finish_task(

@@ -45,6 +45,11 @@ pub(crate) const MIGRATIONS: &[(i64, &str, &str)] = &[
         include_str!("../../../migrations/sqlite/0003_roles_and_retention.sql"),
     ),
     (4, "tasks", include_str!("../../../migrations/sqlite/0004_tasks.sql")),
+    (
+        5,
+        "task snapshots",
+        include_str!("../../../migrations/sqlite/0005_task_snapshots.sql"),
+    ),
 ];
 
 static MIGRATOR: std::sync::LazyLock<sqlx::migrate::Migrator> =
@@ -703,6 +708,41 @@ impl Queue for SqliteQueue {
         }
         tx.commit().await?;
         Ok(Lease::Held { cancel: cancel != 0 })
+    }
+
+    async fn claim_task_snapshot(
+        &self,
+        job: &str,
+        index: u32,
+        worker: &str,
+        interval: Duration,
+        now: i64,
+    ) -> QueueResult<Option<u32>> {
+        // One statement; SQLite runs one writer at a time, so one claim wins an interval.
+        let n: Option<i64> = sqlx::query_scalar(
+            "UPDATE jobs SET snapshot_claims = MAX(snapshot_claims, snapshots) + 1, snapshot_claimed_at = ?3
+             WHERE id = ?1 AND status = 'running'
+               AND (snapshot_claimed_at IS NULL OR snapshot_claimed_at <= ?3 - ?4)
+               AND EXISTS (SELECT 1 FROM tasks WHERE job_id = ?1 AND idx = ?2 AND worker = ?5 AND status = 'running')
+             RETURNING snapshot_claims",
+        )
+        .bind(job)
+        .bind(i64::from(index))
+        .bind(now)
+        .bind(interval.as_millis().min(i64::MAX as u128) as i64)
+        .bind(worker)
+        .fetch_optional(&self.pool)
+        .await?;
+        Ok(n.map(|n| n.clamp(0, i64::from(u32::MAX)) as u32))
+    }
+
+    async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool> {
+        let done = sqlx::query("UPDATE jobs SET snapshots = MAX(snapshots, ?2) WHERE id = ?1 AND status = 'running'")
+            .bind(job)
+            .bind(i64::from(n))
+            .execute(&self.pool)
+            .await?;
+        Ok(done.rows_affected() == 1)
     }
 
     async fn finish_task(

@@ -114,6 +114,7 @@ on_both_stores!(
     cancelling_a_split_job_stops_its_tasks,
     claims_meet_the_jobs_requirements,
     tasks_and_whole_jobs_share_one_priority_order,
+    a_split_jobs_tasks_take_turns_at_its_snapshots,
 );
 
 fn split_spec(tasks: u32, steps: u64, extra: &str) -> JobSpec {
@@ -860,6 +861,72 @@ async fn other_processes_hear_of_new_work_and_job_changes(f: &Fixture) {
     );
     let _ = stop_tx.send(true);
     task.await.unwrap();
+}
+
+/// Snapshots while a split job's tasks run: one claim a snapshot interval for the whole
+/// job, whichever running task asks first; only a running task's own worker may claim;
+/// numbers go on from the stored count, and a snapshot stored late never lowers it.
+async fn a_split_jobs_tasks_take_turns_at_its_snapshots(f: &Fixture) {
+    let q = &*f.queue;
+    let lease = Duration::from_secs(30);
+    let every = Duration::from_secs(2);
+    let none = Capabilities::default();
+    with_scene(q).await;
+    enqueue_ok(q, "j", &split_spec(2, 12, ""), 10).await;
+    // Not running yet: nobody's turn.
+    assert_eq!(q.claim_task_snapshot("j", 0, "w1", every, 15).await.unwrap(), None);
+    for w in ["w1", "w2"] {
+        q.claim_task(w, &none, lease, 20).await.unwrap().unwrap();
+    }
+    assert_eq!(
+        q.claim_task_snapshot("j", 0, "w2", every, 100).await.unwrap(),
+        None,
+        "not w2's task"
+    );
+    assert_eq!(q.claim_task_snapshot("j", 0, "w1", every, 100).await.unwrap(), Some(1));
+    assert_eq!(
+        q.claim_task_snapshot("j", 1, "w2", every, 1000).await.unwrap(),
+        None,
+        "within the interval"
+    );
+    assert_eq!(q.claim_task_snapshot("j", 1, "w2", every, 2100).await.unwrap(), Some(2));
+    // Claim 2 is stored first, then claim 1: the count stays at the later.
+    assert!(q.task_snapshot_stored("j", 2).await.unwrap());
+    assert!(q.task_snapshot_stored("j", 1).await.unwrap());
+    assert_eq!(q.job("j").await.unwrap().unwrap().snapshots, 2);
+    // A finished task hands the turn to the other.
+    let beat = TaskBeat {
+        steps: 6,
+        seconds: 1.0,
+        error: Some(0.1),
+    };
+    assert!(
+        q.finish_task("j", 0, "w1", &TaskOutcome::Baked(beat), 2200)
+            .await
+            .unwrap()
+    );
+    assert_eq!(
+        q.claim_task_snapshot("j", 0, "w1", every, 4200).await.unwrap(),
+        None,
+        "task 0 has ended"
+    );
+    assert_eq!(q.claim_task_snapshot("j", 1, "w2", every, 4200).await.unwrap(), Some(3));
+    // Once the job is over, nothing more is recorded.
+    assert!(
+        q.finish_task("j", 1, "w2", &TaskOutcome::Baked(beat), 4300)
+            .await
+            .unwrap()
+    );
+    let (m, _) = q.claim_task("w3", &none, lease, 4400).await.unwrap().unwrap();
+    let merged = TaskOutcome::Merged {
+        summary: json!({"steps": 12}),
+        progress: json!({"steps": 12, "fraction": 1.0}),
+        history: json!([]),
+        plan: json!({}),
+    };
+    assert!(q.finish_task("j", m.index, "w3", &merged, 4500).await.unwrap());
+    assert!(!q.task_snapshot_stored("j", 3).await.unwrap());
+    assert_eq!(q.job("j").await.unwrap().unwrap().snapshots, 2);
 }
 
 /// The embedded migrations are exactly the files of `migrations/<store>/`, with the
