@@ -377,6 +377,28 @@ pub struct PartialHeader {
     pub live: bool,
 }
 
+impl PartialHeader {
+    /// This header for `snapshot`'s halves (their steps and layers), with its `ao` layer
+    /// or not, its control texels' reference and its bake time.
+    fn with_halves(
+        &self,
+        snapshot: &Snapshot,
+        ao: bool,
+        control: Option<ControlHalves>,
+        elapsed: Duration,
+    ) -> PartialHeader {
+        PartialHeader {
+            half_steps: [snapshot.even.steps, snapshot.odd.steps],
+            direct: snapshot.even.direct.is_some(),
+            moments: snapshot.even.moments.is_some(),
+            ao,
+            control,
+            seconds: elapsed.as_secs_f64(),
+            ..self.clone()
+        }
+    }
+}
+
 /// The texel set's fingerprint: SHA-256 over the grid's size and every valid texel's
 /// pixel, sample point and normal, so a merge notices partials of another texel set even
 /// when it has as many texels.
@@ -469,40 +491,39 @@ pub fn bake_task_live(
     // A chain's control texels are the job's (picked with its seed), its reference
     // traced with the chain's seed.
     let mut bake_loop = prepared.bake_loop_picking(&own, stop, options, request.seed)?;
+    // What every partial of this task says about it (parameters are fixed at creation);
+    // the halves' part is filled in per partial.
+    let template = PartialHeader {
+        format: PARTIAL_FORMAT,
+        request: request.clone(),
+        task,
+        params: tech.params(),
+        width: prepared.atlas.width,
+        height: prepared.atlas.height,
+        texels: prepared.atlas.texels.len() as u64,
+        fingerprint: fingerprint(&prepared.atlas),
+        half_steps: [0, 0],
+        direct: false,
+        moments: false,
+        ao: false,
+        control: None,
+        seconds: 0.0,
+        stopped_by: StopReason::Steps,
+        live: false,
+    };
     if let Some(LiveTask { every, mut sink }) = live {
         let template = PartialHeader {
-            format: PARTIAL_FORMAT,
-            request: request.clone(),
-            task,
-            params: tech.params(),
-            width: prepared.atlas.width,
-            height: prepared.atlas.height,
-            texels: prepared.atlas.texels.len() as u64,
-            fingerprint: fingerprint(&prepared.atlas),
-            half_steps: [0, 0],
-            direct: false,
-            moments: false,
-            ao: false,
-            control: None,
-            seconds: 0.0,
-            stopped_by: StopReason::Steps,
             live: true,
+            ..template.clone()
         };
         let pixels = pixels.clone();
         bake_loop.live = Some(LiveHook::new(
             every,
             Box::new(move |h: LiveHalves| {
-                let header = PartialHeader {
-                    half_steps: [h.snapshot.even.steps, h.snapshot.odd.steps],
-                    direct: h.snapshot.even.direct.is_some(),
-                    moments: h.snapshot.even.moments.is_some(),
-                    ao: h.ao.is_some(),
-                    control: h
-                        .control
-                        .map(|(indices, reference)| ControlHalves::of(&indices, &reference)),
-                    seconds: h.elapsed.as_secs_f64(),
-                    ..template.clone()
-                };
+                let control = h
+                    .control
+                    .map(|(indices, reference)| ControlHalves::of(&indices, &reference));
+                let header = template.with_halves(&h.snapshot, h.ao.is_some(), control, h.elapsed);
                 sink(Partial {
                     header,
                     snapshot: h.snapshot,
@@ -523,22 +544,8 @@ pub fn bake_task_live(
     };
     let ao = tech.ao();
     let header = PartialHeader {
-        format: PARTIAL_FORMAT,
-        request: request.clone(),
-        task,
-        params: tech.params(),
-        width: prepared.atlas.width,
-        height: prepared.atlas.height,
-        texels: prepared.atlas.texels.len() as u64,
-        fingerprint: fingerprint(&prepared.atlas),
-        half_steps: [snapshot.even.steps, snapshot.odd.steps],
-        direct: snapshot.even.direct.is_some(),
-        moments: snapshot.even.moments.is_some(),
-        ao: ao.is_some(),
-        control,
-        seconds: outcome.elapsed.as_secs_f64(),
         stopped_by: outcome.stopped_by,
-        live: false,
+        ..template.with_halves(&snapshot, ao.is_some(), control, outcome.elapsed)
     };
     tracing::info!(
         task = task.index,
