@@ -19,7 +19,7 @@ use std::time::Instant;
 use glam::Vec3;
 use lightmapd::bench::{prepare, true_error};
 use lightmapd::engine::accumulate::Estimate;
-use lightmapd::engine::atlas::{Atlas, GutterLink, NO_TEXEL};
+use lightmapd::engine::atlas::{Atlas, GutterLink, NO_TEXEL, PixelTexels};
 use lightmapd::engine::job::BakeRequest;
 use lightmapd::engine::post::denoise::charts;
 use lightmapd::engine::post::denoised::{self, Used};
@@ -60,10 +60,7 @@ fn oidn_per_chart(o: &Oidn, atlas: &Atlas, chart: &[u32], values: &[Vec3]) -> Ve
         let members: Vec<usize> = (0..atlas.texels.len()).filter(|&k| chart[k] == c).collect();
         let mut sub = atlas.clone();
         sub.texels = members.iter().map(|&k| atlas.texels[k]).collect();
-        sub.pixel_texel = vec![NO_TEXEL; w * h];
-        for (i, t) in sub.texels.iter().enumerate() {
-            sub.pixel_texel[t.pixel as usize] = i as u32;
-        }
+        sub.pixel_texel = PixelTexels::of(&sub.texels, 0..w * h);
         sub.links = atlas
             .links
             .iter()

@@ -238,6 +238,16 @@ fn a_region_built_alone_is_the_whole_atlas_narrowed() {
                     "{count} regions, pixels {range:?}"
                 );
                 assert_eq!(alone.pixel_texel, narrowed.pixel_texel);
+                // Its pixel index covers its own pixels, not the whole grid's.
+                let window = alone.pixel_texel.window();
+                assert_eq!(window, range.start as usize..range.end as usize);
+                for t in &alone.texels {
+                    assert_eq!(
+                        alone.texels[alone.pixel_texel[t.pixel as usize] as usize].pixel,
+                        t.pixel
+                    );
+                }
+                assert_eq!(alone.pixel_texel[window.end], lightmapd::engine::atlas::NO_TEXEL);
                 assert_eq!(
                     (alone.pages.len(), alone.surface_offset),
                     (narrowed.pages.len(), narrowed.surface_offset)

@@ -121,7 +121,7 @@ impl ControlTexels {
             width: atlas.width,
             height: atlas.height,
             texels: indices.iter().map(|&k| atlas.texels[k]).collect(),
-            pixel_texel: Vec::new(),
+            pixel_texel: Default::default(),
             links: Vec::new(),
             overlapping_texels: 0,
             surface_offset: atlas.surface_offset,

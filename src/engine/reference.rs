@@ -78,7 +78,7 @@ impl ReferenceLightmap {
             ));
         }
         let mut out = vec![None; atlas.texels.len()];
-        for (pixel, &t) in atlas.pixel_texel.iter().enumerate() {
+        for (pixel, t) in atlas.pixel_texel.iter() {
             if t != NO_TEXEL {
                 let v = self.rgb[pixel];
                 // A non-finite reference texel is left out rather than poisoning the sum.

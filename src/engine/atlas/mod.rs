@@ -101,8 +101,9 @@ pub struct Atlas {
     pub height: u32,
     /// Valid texels only, in pixel order.
     pub texels: Vec<Texel>,
-    /// For every pixel, its index in `texels`, or [`NO_TEXEL`].
-    pub pixel_texel: Vec<u32>,
+    /// For every pixel, its index in `texels`, or [`NO_TEXEL`] (indexed by pixel; a
+    /// region's atlas holds the window of its pixels only).
+    pub pixel_texel: PixelTexels,
     pub links: Vec<GutterLink>,
     pub overlapping_texels: u32,
     pub surface_offset: f32,
@@ -219,13 +220,71 @@ fn texels_of(scene: &Scene, width: u32, height: u32, claims: &[Option<Claim>], f
         .collect()
 }
 
-/// Every pixel's texel index, or [`NO_TEXEL`].
-fn pixel_texels(texels: &[Texel], pixels: usize) -> Vec<u32> {
-    let mut pixel_texel = vec![NO_TEXEL; pixels];
-    for (k, t) in texels.iter().enumerate() {
-        pixel_texel[t.pixel as usize] = k as u32;
+/// Every pixel's texel index, or [`NO_TEXEL`], over a window of the grid's pixels: the
+/// whole grid for a whole atlas, a region's pixels for a region's (`build_pixels`), so a
+/// region's task does not hold an index of every pixel of the level (4 bytes a pixel:
+/// 4.3 GB for 64 pages of 4096²). Indexing a pixel outside the window gives
+/// [`NO_TEXEL`]: no texel of this atlas is there.
+#[derive(Clone, Debug, Default)]
+pub struct PixelTexels {
+    first: usize,
+    map: Vec<u32>,
+}
+
+impl PixelTexels {
+    /// The index of `texels` (in pixel order) over the pixels `window`.
+    pub fn of(texels: &[Texel], window: Range<usize>) -> PixelTexels {
+        let mut map = vec![NO_TEXEL; window.end.saturating_sub(window.start)];
+        for (k, t) in texels.iter().enumerate() {
+            map[t.pixel as usize - window.start] = k as u32;
+        }
+        PixelTexels {
+            first: window.start,
+            map,
+        }
     }
-    pixel_texel
+
+    /// The pixels it covers.
+    pub fn window(&self) -> Range<usize> {
+        self.first..self.first + self.map.len()
+    }
+
+    /// The whole grid's index, when it covers the `pixels` of the whole grid (a whole
+    /// atlas); `None` for a region's.
+    pub fn whole(&self, pixels: usize) -> Option<&[u32]> {
+        (self.first == 0 && self.map.len() == pixels).then_some(&self.map)
+    }
+
+    /// Every (pixel, texel index) of the window, empty pixels included.
+    pub fn iter(&self) -> impl Iterator<Item = (usize, u32)> + '_ {
+        self.map.iter().enumerate().map(|(i, &t)| (self.first + i, t))
+    }
+
+    /// Maps every texel index through `f` (empty pixels stay empty).
+    pub fn remap(&mut self, f: impl Fn(u32) -> u32) {
+        for t in self.map.iter_mut().filter(|t| **t != NO_TEXEL) {
+            *t = f(*t);
+        }
+    }
+}
+
+/// The same texels at the same pixels, whatever the windows.
+impl PartialEq for PixelTexels {
+    fn eq(&self, other: &Self) -> bool {
+        let held = |p: &PixelTexels| p.iter().filter(|(_, t)| *t != NO_TEXEL).collect::<Vec<_>>();
+        held(self) == held(other)
+    }
+}
+
+impl std::ops::Index<usize> for PixelTexels {
+    type Output = u32;
+
+    fn index(&self, pixel: usize) -> &u32 {
+        pixel
+            .checked_sub(self.first)
+            .and_then(|i| self.map.get(i))
+            .unwrap_or(&NO_TEXEL)
+    }
 }
 
 /// The layout's pages when it made this grid; otherwise the grid is one page.
@@ -368,7 +427,7 @@ impl Atlas {
         if texels.is_empty() {
             return Err(AtlasError::Empty(width, height));
         }
-        let pixel_texel = pixel_texels(&texels, w * h);
+        let pixel_texel = PixelTexels::of(&texels, 0..w * h);
         let links = gutter_links(scene, &pixel_texel, &texels, width, height);
         Ok(Atlas {
             width,
@@ -413,7 +472,7 @@ impl Atlas {
         Ok(Atlas {
             width,
             height,
-            pixel_texel: pixel_texels(&texels, n),
+            pixel_texel: PixelTexels::of(&texels, first..end.max(first)),
             texels,
             links: Vec::new(),
             overlapping_texels: overlapping,
@@ -519,7 +578,7 @@ fn closest_point(p: Vec2, q: &[Vec2; 3]) -> Vec2 {
 /// `score(i, j, texel)`; `None` scores leave a texel out. Dilation's links and the texel
 /// cells (`cells`) both look for "the texel this bit of chart belongs to" this way.
 pub(crate) fn nearest_texel_around(
-    pixel_texel: &[u32],
+    pixel_texel: &PixelTexels,
     width: u32,
     height: u32,
     pix: usize,
@@ -544,10 +603,16 @@ pub(crate) fn nearest_texel_around(
     best.map(|(_, t)| t)
 }
 
-fn gutter_links(scene: &Scene, pixel_texel: &[u32], texels: &[Texel], width: u32, height: u32) -> Vec<GutterLink> {
+fn gutter_links(
+    scene: &Scene,
+    pixel_texel: &PixelTexels,
+    texels: &[Texel],
+    width: u32,
+    height: u32,
+) -> Vec<GutterLink> {
     let (w, h) = (width as i64, height as i64);
     let size = Vec2::new(width as f32, height as f32);
-    let mut linked = vec![false; pixel_texel.len()];
+    let mut linked = vec![false; pixel_texel.window().len()];
     let mut links = Vec::new();
     // A texel square meets the triangle when its centre is within half a diagonal of it.
     let reach = std::f32::consts::FRAC_1_SQRT_2;

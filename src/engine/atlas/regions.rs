@@ -32,7 +32,7 @@
 
 use std::ops::Range;
 
-use super::{Atlas, Coverage, NO_TEXEL, PageRows};
+use super::{Atlas, Coverage, PageRows, PixelTexels};
 
 /// The texel ranges of `count` regions of a grid of `n` texels, `width` wide, cut into
 /// `pages`, where `texels_before(pixel)` counts the texels on pixels below `pixel` (the
@@ -142,15 +142,15 @@ impl Atlas {
     /// grid and pixels, only those texels valid.
     pub fn region(&self, texels: Range<usize>) -> Atlas {
         let kept = &self.texels[texels.clone()];
-        let mut pixel_texel = vec![NO_TEXEL; self.pixel_texel.len()];
-        for (k, t) in kept.iter().enumerate() {
-            pixel_texel[t.pixel as usize] = k as u32;
-        }
+        // The window of its texels' pixels: outside it, no texel of the region.
+        let window = kept.first().map_or(0..0, |a| {
+            a.pixel as usize..kept.last().map_or(a.pixel, |b| b.pixel) as usize + 1
+        });
         Atlas {
             width: self.width,
             height: self.height,
             texels: kept.to_vec(),
-            pixel_texel,
+            pixel_texel: PixelTexels::of(kept, window),
             links: Vec::new(),
             overlapping_texels: self.overlapping_texels,
             surface_offset: self.surface_offset,
@@ -166,7 +166,7 @@ impl Atlas {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::atlas::Texel;
+    use crate::engine::atlas::{NO_TEXEL, Texel};
     use crate::engine::scene::PageRows;
     use glam::Vec3;
 
@@ -196,15 +196,11 @@ mod tests {
                 size: 1.0,
             })
             .collect();
-        let mut pixel_texel = vec![NO_TEXEL; (width * height) as usize];
-        for (k, t) in texels.iter().enumerate() {
-            pixel_texel[t.pixel as usize] = k as u32;
-        }
         Atlas {
             width,
             height,
+            pixel_texel: PixelTexels::of(&texels, 0..(width * height) as usize),
             texels,
-            pixel_texel,
             links: Vec::new(),
             overlapping_texels: 0,
             surface_offset: 1e-4,

@@ -229,11 +229,7 @@ impl Atlas {
                 kept.push(*t);
             }
         }
-        for p in self.pixel_texel.iter_mut() {
-            if *p != NO_TEXEL {
-                *p = remap[*p as usize];
-            }
-        }
+        self.pixel_texel.remap(|k| remap[k as usize]);
         self.links.retain_mut(|l| {
             l.texel = remap[l.texel as usize];
             l.texel != NO_TEXEL

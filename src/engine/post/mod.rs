@@ -27,7 +27,7 @@ pub const DEFAULT_RINGS: u32 = 8;
 pub fn dilate(atlas: &Atlas, values: &[Vec3], rings: u32) -> Vec<Vec3> {
     let (w, h) = (atlas.width as usize, atlas.height as usize);
     let mut img = atlas.to_image(values, Vec3::ZERO);
-    let mut filled: Vec<bool> = atlas.pixel_texel.iter().map(|t| *t != NO_TEXEL).collect();
+    let mut filled: Vec<bool> = (0..w * h).map(|p| atlas.pixel_texel[p] != NO_TEXEL).collect();
     for link in &atlas.links {
         img[link.pixel as usize] = values[link.texel as usize];
         filled[link.pixel as usize] = true;

@@ -26,8 +26,8 @@ use std::collections::HashMap;
 
 use glam::{Vec2, Vec3};
 
-use crate::engine::atlas::NO_TEXEL;
 pub use crate::engine::atlas::seams::{SeamSample, find_seams};
+use crate::engine::atlas::{NO_TEXEL, PixelTexels};
 
 /// Weight of a seam term against a valid texel's data term.
 pub const SEAM_WEIGHT: f32 = 4.0;
@@ -71,7 +71,7 @@ pub fn seam_discontinuity(image: &[Vec3], w: u32, h: u32, seams: &[SeamSample]) 
 
 /// Makes the two sides of every seam agree in `image` (a full, dilated W × H image);
 /// `pixel_texel` tells valid texels from gutter ones.
-pub fn stitch(image: &mut [Vec3], w: u32, h: u32, pixel_texel: &[u32], seams: &[SeamSample]) {
+pub fn stitch(image: &mut [Vec3], w: u32, h: u32, pixel_texel: &PixelTexels, seams: &[SeamSample]) {
     if seams.is_empty() {
         return;
     }

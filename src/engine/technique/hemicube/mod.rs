@@ -578,7 +578,12 @@ impl Hemicube {
             .collect();
         let geom_buf = ctx.buffer_init("hemicube texel geometry", &geom, U::STORAGE);
         let mats_buf = ctx.buffer_init("hemicube texel lobes", &mats, U::STORAGE);
-        let pixel_texel_buf = ctx.buffer_init("hemicube pixel to texel", &atlas.pixel_texel, U::STORAGE);
+        // Hemicube bakes the whole grid (its tasks are chains, never regions).
+        let whole = atlas
+            .pixel_texel
+            .whole(atlas.width as usize * atlas.height as usize)
+            .ok_or_else(|| EngineError::Internal("hemicube needs the whole grid's texels, not a region's".into()))?;
+        let pixel_texel_buf = ctx.buffer_init("hemicube pixel to texel", whole, U::STORAGE);
         let pieces_buf = ctx.buffer_init("hemicube texel cells", &pieces, U::STORAGE);
         let texel_bytes = 2 * n_texels as u64 * 16;
         let irr_buf = ctx.buffer_zeroed("hemicube irradiance (two steps)", texel_bytes, U::STORAGE);
