@@ -86,9 +86,9 @@
 //! offset and region); a task's probes are not baked (the merge bakes them, once); every
 //! task imports the whole scene and builds its BVH; a region's task rasterises the whole
 //! grid only into a bit a pixel to cut it (`Atlas::coverage`) and builds, validates and
-//! bakes its region's texels alone (`Atlas::build_pixels`), but keeps the pixel-to-texel
-//! index of the whole grid (4 bytes a pixel); a chain's task is a whole bake; the merge
-//! builds the whole texel set.
+//! bakes its region's texels alone (`Atlas::build_pixels`, its pixel-to-texel index
+//! a window of its own pixels); a chain's task is a whole bake; the merge builds the
+//! whole texel set.
 
 use std::sync::Arc;
 use std::time::Duration;

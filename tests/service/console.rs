@@ -1133,6 +1133,118 @@ fn a_scene_without_uvs_shows_in_3d_while_it_bakes() {
     assert!(errors.is_empty(), "browser errors: {errors:#?}");
 }
 
+/// Each job's final lightmap drawn by the console's 3D view from one camera (env
+/// `LIGHTMAPD_RENDER_CAMERA`, relative to the scene's home view), the lightmap alone:
+/// one PNG each.
+fn render_jobs(exe: &Path, url: &str, jobs: &[String]) -> Vec<Vec<u8>> {
+    let camera =
+        std::env::var("LIGHTMAPD_RENDER_CAMERA").unwrap_or_else(|_| "{dist: 0.9, yaw: 0.5, pitch: 0.75}".into());
+    let mut b = Browser::start(exe);
+    let mut views = Vec::new();
+    for (k, id) in jobs.iter().enumerate() {
+        b.call("Page.navigate", json!({"url": format!("{url}/?render={k}#job={id}")}));
+        b.wait(
+            "the job's final lightmap in the viewer",
+            &format!(
+                "window.lightmapdConsole?.lightmapKey === '{id}/final' && window.lightmapdConsole.viewer?.lightmap && true"
+            ),
+            Duration::from_secs(60),
+        );
+        b.eval(&format!(
+            "(() => {{ const v = window.lightmapdConsole.viewer, h = v.cam.home, c = {camera}; \
+             Object.assign(v.cam, {{target: h.target.slice(), dist: c.dist * h.radius, yaw: c.yaw, pitch: c.pitch}}); \
+             const m = document.getElementById('v-mode'); m.value = 'lightmap'; m.dispatchEvent(new Event('change')); v.draw(); }})()"
+        ));
+        b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
+        views.push(b.screenshot(Some("#view3d")));
+    }
+    views
+}
+
+/// Mean absolute difference of two pictures' gray levels, of 255, over every pixel.
+fn mean_difference(a: &[u8], b: &[u8]) -> f64 {
+    let gray = |png: &[u8]| image::load_from_memory(png).unwrap().to_luma8();
+    let (a, b) = (gray(a), gray(b));
+    let n = (a.width() * a.height()) as f64;
+    a.pixels()
+        .zip(b.pixels())
+        .map(|(p, q)| (p.0[0] as f64 - q.0[0] as f64).abs())
+        .sum::<f64>()
+        / n
+}
+
+/// Issue 25's split bakes as a user sees them (run by hand, `--ignored`; it writes
+/// docs/scaling/rendered_*.png): the living room baked whole and split into tasks on one
+/// worker, `path` (4 tasks: 2 bands of rows x 2 step ranges, the single bake's samples)
+/// and `vpl` (2 independent chains), each drawn by the console's 3D view from one
+/// camera. Prints each split picture's mean absolute difference from its whole bake's,
+/// and the whole `path` bake's from a second seed's (the size noise alone makes).
+#[test]
+#[ignore]
+fn render_split_against_whole() {
+    let Some(exe) = skip_without_browser("render_split_against_whole") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "30"]);
+    let _serve = Serve(child);
+    let glb = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party/living_room.glb")).unwrap();
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let http = reqwest::Client::new();
+    let runs = [
+        ("path_whole", "path", 64, 1, 1, 1),
+        ("path_split", "path", 64, 4, 2, 1),
+        ("path_whole_seed2", "path", 64, 1, 1, 2),
+        ("vpl_whole", "vpl", 16, 1, 1, 1),
+        ("vpl_chains", "vpl", 16, 2, 1, 1),
+    ];
+    let jobs: Vec<String> = rt.block_on(async {
+        let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
+        assert_eq!(r.status(), 201);
+        let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+        let mut ids = Vec::new();
+        for (_, technique, steps, tasks, regions, seed) in runs {
+            let mut body = json!({"scene": scene, "technique": technique, "resolution": 256,
+                "stop": {"steps": steps}, "seed": seed,
+                "lighting": {"sky": {"radiance": [1, 1, 1]}}});
+            if tasks > 1 {
+                body["tasks"] = json!(tasks);
+                body["regions"] = json!(regions);
+            }
+            let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+            assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+            ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
+        }
+        for (id, (name, ..)) in ids.iter().zip(runs) {
+            let j = wait_succeeded(&http, &url, id, Duration::from_secs(900)).await;
+            eprintln!(
+                "{name}: {} steps, error {} (raw {}), denoiser {}",
+                j["summary"]["steps"],
+                j["summary"]["error"]["relative"],
+                j["summary"]["error"]["raw_relative"],
+                j["summary"]["denoiser"]
+            );
+        }
+        ids
+    });
+    let views = render_jobs(&exe, &url, &jobs);
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scaling");
+    std::fs::create_dir_all(&out).unwrap();
+    for ((name, ..), png) in runs.iter().zip(&views) {
+        std::fs::write(out.join(format!("rendered_living_room_{name}.png")), png).unwrap();
+    }
+    for (what, a, b) in [
+        ("path split vs whole", 1, 0),
+        ("path whole, seed 2 vs seed 1", 2, 0),
+        ("vpl chains vs whole", 4, 3),
+    ] {
+        eprintln!(
+            "{what}: mean |difference| {:.2} of 255",
+            mean_difference(&views[a], &views[b])
+        );
+    }
+}
+
 /// Issue 22's rendered before/after (run by hand, `--ignored`; it writes
 /// docs/denoise/rendered_*.png): the living room baked by `path` at 16 steps raw and
 /// denoised, and at 512 steps raw as the reference, each drawn by the console's 3D view
@@ -1184,41 +1296,12 @@ fn render_denoise_before_after() {
         }
         ids
     });
-    let camera =
-        std::env::var("LIGHTMAPD_RENDER_CAMERA").unwrap_or_else(|_| "{dist: 0.9, yaw: 0.5, pitch: 0.75}".into());
-    let mut b = Browser::start(&exe);
-    let mut views = Vec::new();
-    for (k, id) in jobs.iter().enumerate() {
-        b.call("Page.navigate", json!({"url": format!("{url}/?render={k}#job={id}")}));
-        b.wait(
-            "the job's final lightmap in the viewer",
-            &format!(
-                "window.lightmapdConsole?.lightmapKey === '{id}/final' && window.lightmapdConsole.viewer?.lightmap && true"
-            ),
-            Duration::from_secs(60),
-        );
-        b.eval(&format!(
-            "(() => {{ const v = window.lightmapdConsole.viewer, h = v.cam.home, c = {camera}; \
-             Object.assign(v.cam, {{target: h.target.slice(), dist: c.dist * h.radius, yaw: c.yaw, pitch: c.pitch}}); \
-             const m = document.getElementById('v-mode'); m.value = 'lightmap'; m.dispatchEvent(new Event('change')); v.draw(); }})()"
-        ));
-        b.eval("new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))");
-        views.push(b.screenshot(Some("#view3d")));
-    }
+    let views = render_jobs(&exe, &url, &jobs);
     let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/denoise");
     std::fs::create_dir_all(&out).unwrap();
-    let gray = |png: &[u8]| image::load_from_memory(png).unwrap().to_luma8();
-    let reference = gray(&views[2]);
     for ((name, _, _), png) in runs.iter().zip(&views) {
         std::fs::write(out.join(format!("rendered_living_room_{name}.png")), png).unwrap();
-        let g = gray(png);
-        let n = (g.width() * g.height()) as f64;
-        let diff = g
-            .pixels()
-            .zip(reference.pixels())
-            .map(|(p, q)| (p.0[0] as f64 - q.0[0] as f64).abs())
-            .sum::<f64>()
-            / n;
+        let diff = mean_difference(png, &views[2]);
         eprintln!("{name}: mean |difference| from the reference {diff:.2} of 255");
     }
 }
