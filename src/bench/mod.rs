@@ -486,7 +486,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
     );
     let _ = writeln!(
         md,
-        "| scene | technique | 10 % | 5 % | 2 % | 1 % | 2 % denoised | final error (estimated) | final denoised (estimated) | snapshots denoised worse than raw |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"
+        "| scene | technique | steps | 10 % | 5 % | 2 % | 1 % | 2 % denoised | final error (estimated) | final denoised (estimated) | snapshots denoised worse than raw | worst denoised / raw (at steps) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"
     );
     let mut keys: Vec<(&str, &str)> = samples
         .iter()
@@ -510,6 +510,18 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
             })
             .unwrap_or_default();
         let worse = run.iter().filter(|s| s.denoised_error > s.true_error).count();
+        // The largest ratio, where raw has an error to compare with (a closed form met
+        // to rounding is no test of the denoiser).
+        let worst = run
+            .iter()
+            .filter(|s| s.true_error > 1e-5)
+            .map(|s| (s.denoised_error / s.true_error, s.steps))
+            .max_by(|a, b| a.0.total_cmp(&b.0))
+            .map_or_else(|| "n/a".into(), |(r, steps)| format!("{r:.3} ({steps})"));
+        let steps = match (run.first(), run.last()) {
+            (Some(a), Some(b)) => format!("{}-{}", a.steps, b.steps),
+            _ => String::new(),
+        };
         let reach = |target: f64| time_to(run.iter().map(|s| (s.seconds, s.true_error)), target, 2);
         let last = run.last().map(|s| {
             let est = s
@@ -520,7 +532,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
         });
         let _ = writeln!(
             md,
-            "| {scene} | {tech} | {} | {} | {} | {} | {reach_denoised} | {} | {last_denoised} | {worse} of {} |",
+            "| {scene} | {tech} | {steps} | {} | {} | {} | {} | {reach_denoised} | {} | {last_denoised} | {worse} of {} | {worst} |",
             reach(0.10),
             reach(0.05),
             reach(0.02),

@@ -1178,7 +1178,7 @@ fn mean_difference(a: &[u8], b: &[u8]) -> f64 {
 /// worker, `path` (4 tasks: 2 bands of rows x 2 step ranges, the single bake's samples)
 /// and `vpl` (2 independent chains), each drawn by the console's 3D view from one
 /// camera. Prints each split picture's mean absolute difference from its whole bake's,
-/// and the whole `path` bake's from a second seed's (the size noise alone makes).
+/// and each whole bake's from a second seed's (the size noise alone makes).
 #[test]
 #[ignore]
 fn render_split_against_whole() {
@@ -1197,6 +1197,7 @@ fn render_split_against_whole() {
         ("path_whole_seed2", "path", 64, 1, 1, 2),
         ("vpl_whole", "vpl", 16, 1, 1, 1),
         ("vpl_chains", "vpl", 16, 2, 1, 1),
+        ("vpl_whole_seed2", "vpl", 16, 1, 1, 2),
     ];
     let jobs: Vec<String> = rt.block_on(async {
         let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
@@ -1237,6 +1238,7 @@ fn render_split_against_whole() {
         ("path split vs whole", 1, 0),
         ("path whole, seed 2 vs seed 1", 2, 0),
         ("vpl chains vs whole", 4, 3),
+        ("vpl whole, seed 2 vs seed 1", 5, 3),
     ] {
         eprintln!(
             "{what}: mean |difference| {:.2} of 255",
