@@ -442,9 +442,10 @@ fn running_tasks_merge_to_the_single_bake_at_the_steps_done() {
         r.stop.steps = Some(n);
         whole(&scene, &r)
     };
-    let four = tasks::merge_running(&atlas, std::slice::from_ref(&live0[1])).unwrap();
+    let all = [0..atlas.texels.len()];
+    let four = tasks::merge_running(&atlas, &all, std::slice::from_ref(&live0[1])).unwrap();
     assert_same_bake(&at(4), &four);
-    let eight = tasks::merge_running(&atlas, &[done0.clone(), live1[0].clone()]).unwrap();
+    let eight = tasks::merge_running(&atlas, &all, &[done0.clone(), live1[0].clone()]).unwrap();
     assert_same_bake(&at(8), &eight);
     // The final merge takes results only, and says which is not one.
     let err = match tasks::merge(
@@ -461,7 +462,7 @@ fn running_tasks_merge_to_the_single_bake_at_the_steps_done() {
         "{err}"
     );
     // A task given twice, or halves of another texel set, are refused by name.
-    let err = tasks::merge_running(&atlas, &[live0[0].clone(), live0[1].clone()])
+    let err = tasks::merge_running(&atlas, &all, &[live0[0].clone(), live0[1].clone()])
         .unwrap_err()
         .to_string();
     assert!(err.contains("task 0/2 is given twice"), "{err}");
@@ -469,8 +470,45 @@ fn running_tasks_merge_to_the_single_bake_at_the_steps_done() {
     other.resolution = 24;
     let small = tasks::split(&other, TaskShape::steps(2)).unwrap();
     let (_, _, other_atlas) = bake_live(&scene, &other, small[0]);
-    let err = tasks::merge_running(&other_atlas, &[done0]).unwrap_err().to_string();
+    let err = tasks::merge_running(&other_atlas, &[0..other_atlas.texels.len()], &[done0])
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("task 0/2 was baked on another texel set"), "{err}");
+}
+
+/// A split by regions: its snapshots need the whole grid's texel set, which no region's
+/// task holds; `running_atlas` builds it from the regions' kept texels once every region
+/// has halves. The two pages, region 0 after 4 of its 8 steps beside region 1's 8: each
+/// region's texels are the single bake's at those steps, bit for bit.
+#[test]
+fn running_regions_merge_on_the_whole_texel_set() {
+    let scene = two_pages();
+    let mut request = request("cpu", 8);
+    request.resolution = 40;
+    request.lighting.sky = Some(sky());
+    let split = tasks::split(&request, TaskShape { tasks: 2, regions: 2 }).unwrap();
+    let (live0, _, _) = bake_live(&scene, &request, split[0]);
+    let (_, done1, _) = bake_live(&scene, &request, split[1]);
+    let err = tasks::running_atlas(scene.clone(), std::slice::from_ref(&done1), &BakeOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("region 0 has no halves yet"), "{err}");
+    let parts = [live0[1].clone(), done1];
+    let (atlas, ranges) = tasks::running_atlas(scene.clone(), &parts, &BakeOptions::default()).unwrap();
+    let merged = tasks::merge_running(&atlas, &ranges, &parts).unwrap();
+    let at = |n: u64| {
+        let mut r = request.clone();
+        r.stop.steps = Some(n);
+        whole(&scene, &r)
+    };
+    let (four, eight) = (at(4), at(8));
+    assert_eq!(ranges.len(), 2);
+    assert_eq!(ranges[1].end, four.total.len());
+    assert_eq!(merged.total[ranges[0].clone()], four.total[ranges[0].clone()]);
+    assert_eq!(merged.total[ranges[1].clone()], eight.total[ranges[1].clone()]);
+    // A half counts the fewest steps any region has, as the final merge's.
+    assert_eq!(merged.steps, 4);
+    assert!(merged.error.relative.is_some_and(|e| e > 0.0));
 }
 
 /// A chained technique's running halves merge with their bias measured: two `vpl` chains'
@@ -488,7 +526,7 @@ fn running_chains_merge_with_their_bias_measured() {
     let split = tasks::split(&request, TaskShape::steps(2)).unwrap();
     let (a, _, atlas) = bake_live(&scene, &request, split[0]);
     let (b, _, _) = bake_live(&scene, &request, split[1]);
-    let m = tasks::merge_running(&atlas, &[a[0].clone(), b[0].clone()]).unwrap();
+    let m = tasks::merge_running(&atlas, &[0..atlas.texels.len()], &[a[0].clone(), b[0].clone()]).unwrap();
     assert_eq!(m.steps, 4);
     let mean: Vec<Vec3> = a[0]
         .snapshot

@@ -777,15 +777,15 @@ fn side_by_side(regions: Vec<Snapshot>) -> Snapshot {
 
 /// The merged `ao` layer (step-weighted per region, the regions side by side, as the
 /// halves), when the tasks have one.
-fn merge_ao(ordered: &[&Partial], ranges: usize) -> Option<Vec<f32>> {
-    ordered
-        .chunks(ranges)
+fn merge_ao(groups: &[&[&Partial]]) -> Option<Vec<f32>> {
+    groups
+        .iter()
         .map(|group| {
             let steps = |p: &Partial| (p.snapshot.even.steps + p.snapshot.odd.steps) as f64;
             let all: f64 = group.iter().map(|p| steps(p)).sum::<f64>().max(1.0);
             let n = group[0].ao.as_ref()?.len();
             let mut acc = vec![0f64; n];
-            for p in group {
+            for p in group.iter() {
                 for (a, x) in acc.iter_mut().zip(p.ao.as_ref()?) {
                     *a += steps(p) / all * f64::from(*x);
                 }
@@ -799,12 +799,12 @@ fn merge_ao(ordered: &[&Partial], ranges: usize) -> Option<Vec<f32>> {
 /// The tasks' control texels as indices into the merged texels, and their references
 /// merged: per region the chains' references averaged by steps (every chain of a region
 /// has the same control texels, picked with the job's seed), the regions' side by side.
-fn merge_control(ordered: &[&Partial], ranges: usize) -> Result<Option<(Vec<usize>, Snapshot)>, EngineError> {
-    if ordered.iter().any(|p| p.header.control.is_none()) {
+fn merge_control(groups: &[&[&Partial]]) -> Result<Option<(Vec<usize>, Snapshot)>, EngineError> {
+    if groups.iter().flat_map(|g| g.iter()).any(|p| p.header.control.is_none()) {
         return Ok(None);
     }
     let (mut indices, mut parts, mut offset) = (Vec::new(), Vec::new(), 0usize);
-    for group in ordered.chunks(ranges) {
+    for group in groups {
         let controls: Vec<&ControlHalves> = group.iter().filter_map(|p| p.header.control.as_ref()).collect();
         if controls.iter().any(|c| c.texels != controls[0].texels) {
             return Err(EngineError::BadInput(format!(
@@ -926,34 +926,16 @@ pub fn merge(
     // takes instead of tracing the whole grid's validation again.
     let unchecked = check_partials(partials, None)?;
     let ranges = first.header.task.shape().ranges().max(1) as usize;
-    let kept: Vec<u32> = unchecked
-        .chunks(ranges)
-        .flat_map(|group| group[0].pixels.iter().copied())
-        .collect();
-    if kept.windows(2).any(|w| w[0] >= w[1]) {
-        return Err(EngineError::BadInput(
-            "merge: the task results' texels are not in pixel order: a damaged or foreign result".into(),
-        ));
-    }
-    let regions = job::RegionsOf {
-        count: first.header.task.regions.max(1),
-        keep: None,
-        validated: Some(&kept),
-    };
-    let prepared = job::prepare_regions(scene, &request, options, Some(regions), &mut |_| {}, on_plan)?;
-    // Each region's texels in the validated whole (one region: all of them).
-    let texel_ranges: Vec<std::ops::Range<usize>> = prepared
-        .region_pixels
-        .iter()
-        .map(|p| prepared.atlas.texels_in(p.clone()))
-        .collect();
+    let by_region: Vec<&Partial> = unchecked.chunks(ranges).map(|group| group[0]).collect();
+    let (prepared, texel_ranges) = prepare_whole(scene, &request, options, &by_region, on_plan)?;
     let ordered = check_partials(partials, Some((&prepared.atlas, &texel_ranges)))?;
     let snapshot = merge_regions(&ordered)?;
     let mut estimate = snapshot.estimate();
-    estimate.ao = merge_ao(&ordered, ranges);
+    let groups: Vec<&[&Partial]> = ordered.chunks(ranges).collect();
+    estimate.ao = merge_ao(&groups);
     // A biased technique's error: the merged lightmap against the chains' references
     // merged, as a single bake's control texels assess its snapshots.
-    if let Some((indices, reference)) = merge_control(&ordered, ranges)? {
+    if let Some((indices, reference)) = merge_control(&groups)? {
         control::assess_against(&indices, &reference.estimate(), &mut estimate);
     }
     if let Some((layer, k, v)) = estimate.first_non_finite() {
@@ -979,33 +961,101 @@ pub fn merge(
     )
 }
 
+/// The whole texel set of a split bake from one task's partial of each region, in
+/// region order: the grid prepared as the single bake's (`job::prepare_regions`), taking
+/// the texels the tasks' validation kept instead of tracing it again, and each region's
+/// range of its texels.
+fn prepare_whole(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    options: &BakeOptions,
+    by_region: &[&Partial],
+    on_plan: &mut dyn FnMut(&Plan),
+) -> Result<(job::Prepared, Vec<std::ops::Range<usize>>), EngineError> {
+    let kept: Vec<u32> = by_region.iter().flat_map(|p| p.pixels.iter().copied()).collect();
+    if kept.windows(2).any(|w| w[0] >= w[1]) {
+        return Err(EngineError::BadInput(
+            "merge: the task results' texels are not in pixel order: a damaged or foreign result".into(),
+        ));
+    }
+    let regions = job::RegionsOf {
+        count: by_region.len().max(1) as u32,
+        keep: None,
+        validated: Some(&kept),
+    };
+    let prepared = job::prepare_regions(scene, request, options, Some(regions), &mut |_| {}, on_plan)?;
+    // Each region's texels in the validated whole (one region: all of them).
+    let texel_ranges = prepared
+        .region_pixels
+        .iter()
+        .map(|p| prepared.atlas.texels_in(p.clone()))
+        .collect();
+    Ok((prepared, texel_ranges))
+}
+
+/// The whole grid's texel set, for the running snapshots of a bake split into regions
+/// ([`merge_running`]): from `parts`, at least one partial of every region (a task of a
+/// region holds its own texels alone). It costs what the merge's preparation costs (the
+/// whole texel set and the scene's BVH), and is refused, as a bake is, when it needs
+/// more than `options.max_memory_bytes`.
+pub fn running_atlas(
+    scene: Arc<Scene>,
+    parts: &[Partial],
+    options: &BakeOptions,
+) -> Result<(Arc<Atlas>, Vec<std::ops::Range<usize>>), EngineError> {
+    let first = parts
+        .first()
+        .ok_or_else(|| EngineError::BadInput("running merge: no task halves given".into()))?;
+    let count = first.header.task.regions.max(1);
+    let by_region = (0..count)
+        .map(|r| {
+            parts
+                .iter()
+                .find(|p| p.header.task.region == r)
+                .ok_or_else(|| EngineError::BadInput(format!("running merge: region {r} has no halves yet")))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let (prepared, ranges) = prepare_whole(scene, &first.header.request, options, &by_region, &mut |_| {})?;
+    Ok((prepared.atlas, ranges))
+}
+
 /// A running split bake's estimate from what its tasks have baked so far: the halves of
 /// every task given (a running task's so far, from [`bake_task_live`], or a finished
 /// one's result) merged as the final merge merges them, then assessed at the control
 /// texels. These are the job's snapshots while its tasks run (issue 25 point 2).
+/// `atlas` is the whole grid's texel set and `regions` each region's range of its
+/// texels: with one region, the task's own atlas and all of it; with several,
+/// [`running_atlas`]'s.
 ///
 /// Why it means what a single bake's snapshot means: `path`'s step ranges draw the
 /// single bake's samples at their steps, so the merged halves are a single bake's over
 /// the steps done (a set of steps, not the first ones in order when a later range has
 /// run ahead: the same expectation); chains are independent draws, so their running
-/// means merge by steps as their results do. A task with nothing yet is left out (fewer
-/// steps or chains, the same expectation), and its halves' difference still measures the
-/// merged noise. One region only: a region's task holds its texels alone, and a snapshot
-/// is of every texel (refused otherwise, naming it).
-pub fn merge_running(atlas: &Atlas, parts: &[Partial]) -> Result<Estimate, EngineError> {
+/// means merge by steps as their results do; regions are disjoint texels side by side,
+/// each at the steps its tasks have done (a half's step count is the fewest any region
+/// has, as in the final merge). A task with nothing yet is left out (fewer steps or
+/// chains, the same expectation), and the halves' difference still measures the merged
+/// noise; a region with nothing yet is refused, naming it.
+pub fn merge_running(
+    atlas: &Atlas,
+    regions: &[std::ops::Range<usize>],
+    parts: &[Partial],
+) -> Result<Estimate, EngineError> {
     let bad = |m: String| Err(EngineError::BadInput(m));
     let Some(first) = parts.first() else {
         return bad("running merge: no task halves given".into());
     };
     let h0 = &first.header;
-    if h0.task.regions > 1 {
+    if regions.len() != h0.task.regions.max(1) as usize {
         return bad(format!(
-            "running merge: the job is split into {} regions; a snapshot needs every texel, which no region's task holds",
-            h0.task.regions
+            "running merge: the job is split into {} regions, the texel set given into {}",
+            h0.task.regions,
+            regions.len()
         ));
     }
-    let print = fingerprint(atlas);
+    let prints: Vec<String> = regions.iter().map(|r| texels_fingerprint(atlas, r.clone())).collect();
     let mut seen = vec![false; h0.task.count as usize];
+    let mut groups: Vec<Vec<&Partial>> = vec![Vec::new(); regions.len()];
     for p in parts {
         let h = &p.header;
         let name = format!("task {}/{}", h.task.index, h.task.count);
@@ -1021,7 +1071,11 @@ pub fn merge_running(atlas: &Atlas, parts: &[Partial]) -> Result<Estimate, Engin
                 h0.task.index
             ));
         }
-        if h.fingerprint != print || h.texels != atlas.texels.len() as u64 {
+        let r = h.task.region as usize;
+        if regions
+            .get(r)
+            .is_none_or(|range| h.fingerprint != prints[r] || h.texels != range.len() as u64)
+        {
             return bad(format!("running merge: {name} was baked on another texel set"));
         }
         if h.stopped_by == StopReason::Cancelled {
@@ -1035,12 +1089,21 @@ pub fn merge_running(atlas: &Atlas, parts: &[Partial]) -> Result<Estimate, Engin
                 ));
             }
         }
+        groups[r].push(p);
     }
-    let all: Vec<&Partial> = parts.iter().collect();
-    let snapshot = merge_halves(&all.iter().map(|p| &p.snapshot).collect::<Vec<_>>());
+    if let Some(r) = groups.iter().position(|g| g.is_empty()) {
+        return bad(format!("running merge: region {r} has no halves yet"));
+    }
+    let groups: Vec<&[&Partial]> = groups.iter().map(|g| g.as_slice()).collect();
+    let snapshot = side_by_side(
+        groups
+            .iter()
+            .map(|g| merge_halves(&g.iter().map(|p| &p.snapshot).collect::<Vec<_>>()))
+            .collect(),
+    );
     let mut estimate = snapshot.estimate();
-    estimate.ao = merge_ao(&all, all.len());
-    if let Some((indices, reference)) = merge_control(&all, all.len())? {
+    estimate.ao = merge_ao(&groups);
+    if let Some((indices, reference)) = merge_control(&groups)? {
         control::assess_against(&indices, &reference.estimate(), &mut estimate);
     }
     if let Some((layer, k, v)) = estimate.first_non_finite() {
@@ -1315,23 +1378,23 @@ mod tests {
             }
         };
         let (a, b) = (part(3, 1.0, 0), part(1, 5.0, 0));
-        let (texels, reference) = merge_control(&[&a, &b], 2).unwrap().unwrap();
+        let (texels, reference) = merge_control(&[&[&a, &b]]).unwrap().unwrap();
         assert_eq!(texels, vec![1]);
         assert_eq!((reference.even.steps, reference.odd.steps), (4, 4));
         assert_eq!(reference.even.total[0], Vec3::splat(2.0));
         assert_eq!(reference.odd.total[0], Vec3::splat(4.0));
-        assert_eq!(merge_ao(&[&a, &b], 2), Some(vec![2.0, 0.0]));
+        assert_eq!(merge_ao(&[&[&a, &b]]), Some(vec![2.0, 0.0]));
         // Two regions of one task each: the second region's control texel is offset by
         // the first region's texels.
-        let (texels, reference) = merge_control(&[&a, &b], 1).unwrap().unwrap();
+        let (texels, reference) = merge_control(&[&[&a], &[&b]]).unwrap().unwrap();
         assert_eq!(texels, vec![1, 3]);
         assert_eq!(reference.even.total, vec![Vec3::splat(1.0), Vec3::splat(5.0)]);
         assert_eq!(reference.even.steps, 1);
-        assert_eq!(merge_ao(&[&a, &b], 1), Some(vec![1.0, 0.0, 5.0, 0.0]));
+        assert_eq!(merge_ao(&[&[&a], &[&b]]), Some(vec![1.0, 0.0, 5.0, 0.0]));
         // Chains that picked other control texels are refused.
         let mut c = part(1, 5.0, 0);
         c.header.control.as_mut().unwrap().texels = vec![0];
-        let err = merge_control(&[&a, &c], 2).unwrap_err().to_string();
+        let err = merge_control(&[&[&a, &c]]).unwrap_err().to_string();
         assert!(err.contains("other control texels"), "{err}");
     }
 }

@@ -30,19 +30,22 @@
 //! steps grew by a quarter or every five seconds); the merge's point, the delivered
 //! lightmap's error, ends it.
 //!
-//! Snapshots while the tasks run (one region): each task stores its halves so far at
-//! its snapshots (`tasks/<k>.live.lmtask`), and the task whose turn the queue gives
-//! (one a snapshot interval for the job) merges every task's halves so far
-//! (`engine::tasks::merge_running`), denoises and stores them as the job's next snapshot,
-//! as a whole job's (`running_snapshots`).
+//! Snapshots while the tasks run: each task stores its halves so far at its snapshots
+//! (`tasks/<k>.live.lmtask`), and the task whose turn the queue gives (one a snapshot
+//! interval for the job) merges every task's halves so far
+//! (`engine::tasks::merge_running`; a region split's on the whole texel set, which that
+//! task builds once), denoises and stores them as the job's next snapshot, as a whole
+//! job's (`running_snapshots`).
 //!
-//! Limits: a job split into regions has no snapshots while its tasks run (no task holds
-//! every texel; the merge's lightmap is its only image); the merge re-imports the
+//! Limits: a region split's snapshots wait until every region has halves (with fewer
+//! workers than regions, until the last region's task starts), and a task whose worker
+//! cannot hold the whole texel set (its memory limit) makes none; the merge re-imports the
 //! scene and reads all results into memory (28 bytes a texel a task: 470 MB a task for a
 //! full 4096² page, a region's task only its region's texels), so it needs that memory
 //! once.
 
 use std::ops::ControlFlow;
+use std::ops::Range;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
@@ -53,8 +56,9 @@ use tracing::Instrument;
 
 use crate::engine::atlas::Atlas;
 use crate::engine::bake::{BakeEvent, StepProgress, StopReason};
-use crate::engine::job::{self, BakeOptions};
+use crate::engine::job::{self, BakeOptions, BakeRequest};
 use crate::engine::plan::Plan;
+use crate::engine::scene::Scene;
 use crate::engine::tasks::{self, Partial};
 use crate::engine::technique::EngineError;
 use crate::service::model::{HistoryPoint, Progress};
@@ -178,13 +182,9 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
     let beat = Arc::new(Mutex::new(TaskBeat::default()));
     let step = StepProgress::default();
     // The job's snapshots while it runs: this task's halves so far go to the store and,
-    // on this task's turn, the tasks' halves merged become the next snapshot. Only with
-    // one region: a region's task holds its own texels alone.
-    let every = state.config.snapshot_interval;
-    let live_every = (range.regions <= 1).then_some(every);
+    // on this task's turn, the tasks' halves merged become the next snapshot.
     let (live_tx, live_rx) = tokio::sync::mpsc::channel::<Partial>(1);
-    let atlas: Arc<OnceLock<Arc<Atlas>>> = Arc::default();
-    let quiet_until: Arc<Mutex<Option<Instant>>> = Arc::default();
+    let live = Arc::new(Live::default());
     let snapshots = tokio::spawn(
         running_snapshots(
             state.clone(),
@@ -192,12 +192,12 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
             job.clone(),
             task.clone(),
             live_rx,
-            atlas.clone(),
-            quiet_until.clone(),
+            live.clone(),
             flag.clone(),
         )
         .instrument(tracing::Span::current()),
     );
+    let every = state.config.snapshot_interval;
     let thread = {
         let (beat, flag, step, limits) = (beat.clone(), flag.clone(), step.clone(), state.config.limits.clone());
         let span = tracing::Span::current();
@@ -233,28 +233,33 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
                     ControlFlow::Break(())
                 }
             };
+            let scene = Arc::new(scene);
+            let _ = live.scene.set(scene.clone());
             // Halves due while the last are still being stored or merged (a full
             // channel), or within the quiet time the last ones earned, are skipped.
-            let live = live_every.map(|every| tasks::LiveTask {
-                every,
-                sink: Box::new(move |p: Partial| {
-                    let quiet = quiet_until.lock().ok().and_then(|q| *q);
-                    if quiet.is_none_or(|t| Instant::now() >= t) {
-                        let _ = live_tx.try_send(p);
-                    }
-                }),
-            });
+            let sink = {
+                let live = live.clone();
+                tasks::LiveTask {
+                    every,
+                    sink: Box::new(move |p: Partial| {
+                        let quiet = live.quiet_until.lock().ok().and_then(|q| *q);
+                        if quiet.is_none_or(|t| Instant::now() >= t) {
+                            let _ = live_tx.try_send(p);
+                        }
+                    }),
+                }
+            };
             let partial = tasks::bake_task_live(
-                Arc::new(scene),
+                scene,
                 &request,
                 range,
                 &options,
                 &mut observer,
                 &mut |a| {
-                    let _ = atlas.set(a.clone());
+                    let _ = live.atlas.set(a.clone());
                 },
                 &mut |_| {},
-                live,
+                Some(sink),
             )?;
             // Encoded here, off the runtime: a full page's result is hundreds of MB.
             let error = partial.snapshot.estimate().error.relative;
@@ -354,6 +359,29 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
     }))
 }
 
+/// What a task's running snapshots share with its bake thread.
+#[derive(Default)]
+struct Live {
+    /// The task's own texel set (with one region, the whole grid's).
+    atlas: OnceLock<Arc<Atlas>>,
+    /// The scene as the task imported it: a region split's whole texel set is built
+    /// from it.
+    scene: OnceLock<Arc<Scene>>,
+    /// No halves are handed on before this ([`running_snapshots`]' cost).
+    quiet_until: Mutex<Option<Instant>>,
+}
+
+/// The whole grid's texel set a task's running snapshots are made on, and each
+/// region's range of its texels.
+enum Whole {
+    /// Not yet known: with one region the task's own; with several, built once every
+    /// region has halves (`tasks::running_atlas`).
+    Unknown,
+    Ready(Arc<Atlas>, Arc<Vec<Range<usize>>>),
+    /// Refused (over this worker's memory limit): this task makes no snapshots.
+    Refused,
+}
+
 /// A split job's snapshots while its tasks run (issue 25 point 2): each of this task's
 /// running halves (`engine::tasks::bake_task_live`) is stored as `tasks/<k>.live.lmtask`;
 /// then, when the queue gives this task the job's next snapshot
@@ -361,168 +389,239 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
 /// one a snapshot interval for the whole job, whichever task asks first), every task's
 /// halves (a finished task's result, a running one's latest halves, none for one not
 /// started) are merged (`tasks::merge_running`), denoised and encoded as a whole job's
-/// snapshot is, stored under that number and recorded. Ends when the bake drops its
-/// sender; a failure costs that snapshot only.
+/// snapshot is, stored under that number and recorded; a claim that comes to nothing is
+/// handed back, so the numbers have no gaps. Ends when the bake drops its sender.
+///
+/// A job split into regions needs the whole grid's texel set for its snapshots, which a
+/// region's task does not hold: the task builds it once, when every region has halves,
+/// from the regions' kept texels (`tasks::running_atlas`: the merge's preparation, no
+/// validation rays), unless it needs more than this worker's memory limit; then this
+/// task makes none.
 ///
 /// What it costs: each round moves this task's halves to the store (28 bytes a texel),
 /// and a snapshot's maker reads every task's (N × 28 bytes a texel), merges and denoises
 /// them: nothing on a small level, seconds on a 4096² page. So a round that took d keeps
 /// the next one off for 9 d (`quiet_until`, read by the bake's sink): this work takes at
 /// most a tenth of the task's wall time, on top of the snapshot interval.
-#[allow(clippy::too_many_arguments)]
 async fn running_snapshots(
     state: AppState,
     worker: String,
     job: JobRecord,
     task: TaskRecord,
-    mut live: tokio::sync::mpsc::Receiver<Partial>,
-    atlas: Arc<OnceLock<Arc<Atlas>>>,
-    quiet_until: Arc<Mutex<Option<Instant>>>,
+    mut halves: tokio::sync::mpsc::Receiver<Partial>,
+    live: Arc<Live>,
     flag: Arc<StopFlag>,
 ) {
     let request = Arc::new(job.spec.to_request());
-    while let Some(own) = live.recv().await {
+    let mut whole = Whole::Unknown;
+    while let Some(own) = halves.recv().await {
         if flag.get() != StopSignal::None {
             return;
         }
         let began = Instant::now();
-        running_round(&state, &worker, &job, &task, own, &atlas, &request).await;
+        let round = Round {
+            state: &state,
+            worker: &worker,
+            job: &job,
+            task: &task,
+            live: &live,
+            request: &request,
+        };
+        round.run(own, &mut whole).await;
         let took = began.elapsed();
-        if let Ok(mut q) = quiet_until.lock() {
+        if let Ok(mut q) = live.quiet_until.lock() {
             *q = Some(Instant::now() + took * 9);
         }
     }
 }
 
-/// One round of [`running_snapshots`]: store this task's halves, and make the job's
-/// next snapshot when it is this task's turn.
-async fn running_round(
-    state: &AppState,
-    worker: &str,
-    job: &JobRecord,
-    task: &TaskRecord,
-    own: Partial,
-    atlas: &OnceLock<Arc<Atlas>>,
-    request: &Arc<crate::engine::job::BakeRequest>,
-) {
-    let began = Instant::now();
-    let encoded = tokio::task::spawn_blocking(move || {
-        let bytes = own.encode();
-        (own, bytes)
-    })
-    .await;
-    let (own, bytes) = match encoded {
-        Ok((own, Ok(bytes))) => (own, bytes),
-        Ok((_, Err(e))) => {
-            tracing::warn!(error = %e, "cannot encode the task's running halves");
+/// One round of [`running_snapshots`].
+struct Round<'a> {
+    state: &'a AppState,
+    worker: &'a str,
+    job: &'a JobRecord,
+    task: &'a TaskRecord,
+    live: &'a Arc<Live>,
+    request: &'a Arc<BakeRequest>,
+}
+
+impl Round<'_> {
+    /// Stores this task's halves, and makes the job's next snapshot when it is this
+    /// task's turn.
+    async fn run(&self, own: Partial, whole: &mut Whole) {
+        let (state, job, task) = (self.state, self.job, self.task);
+        let began = Instant::now();
+        let encoded = tokio::task::spawn_blocking(move || {
+            let bytes = own.encode();
+            (own, bytes)
+        })
+        .await;
+        let (own, bytes) = match encoded {
+            Ok((own, Ok(bytes))) => (own, bytes),
+            Ok((_, Err(e))) => {
+                tracing::warn!(error = %e, "cannot encode the task's running halves");
+                return;
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "the encoder of the task's running halves panicked");
+                return;
+            }
+        };
+        let path = store::task_live(&job.id, task.index);
+        if let Err(e) = state.artifacts.put(&path, Bytes::from(bytes)).await {
+            tracing::warn!(error = %e, "cannot store the task's running halves");
             return;
         }
-        Err(e) => {
-            tracing::warn!(error = %e, "the encoder of the task's running halves panicked");
+        if matches!(whole, Whole::Refused) {
             return;
         }
-    };
-    let path = store::task_live(&job.id, task.index);
-    if let Err(e) = state.artifacts.put(&path, Bytes::from(bytes)).await {
-        tracing::warn!(error = %e, "cannot store the task's running halves");
-        return;
+        let claim = state.queue.claim_task_snapshot(
+            &job.id,
+            task.index,
+            self.worker,
+            state.config.snapshot_interval,
+            state.db_now(),
+        );
+        let n = match claim.await {
+            Ok(Some(n)) => n,
+            Ok(None) => return,
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot claim the job's next snapshot");
+                return;
+            }
+        };
+        let files = match self.snapshot(own, whole).await {
+            Ok(f) => f,
+            Err(e) => {
+                tracing::info!(snapshot = n, why = %e, "no running snapshot this time");
+                if let Err(e) = state.queue.release_task_snapshot(&job.id, n).await {
+                    tracing::warn!(snapshot = n, error = %e, "cannot hand back the snapshot's number");
+                }
+                return;
+            }
+        };
+        let (steps, error) = (files.steps, files.error);
+        if let Err(e) = store_snapshot(state, &job.id, n, files).await {
+            tracing::warn!(snapshot = n, error = %e, "cannot store the job's running snapshot");
+            let _ = state.queue.release_task_snapshot(&job.id, n).await;
+            return;
+        }
+        match state.queue.task_snapshot_stored(&job.id, n).await {
+            Ok(true) => {
+                let seconds = began.elapsed().as_secs_f64();
+                tracing::info!(snapshot = n, steps, error, seconds, "running snapshot stored");
+                thin_snapshots(state, &job.id, n).await;
+                state.hub.job_changed(&job.id);
+            }
+            // The job ended meanwhile: its final lightmap is what it keeps.
+            Ok(false) | Err(_) => {
+                let _ = state.artifacts.delete(&store::snapshot_exr(&job.id, n)).await;
+                let _ = state.artifacts.delete(&store::snapshot_png(&job.id, n)).await;
+            }
+        }
     }
-    let claim = state.queue.claim_task_snapshot(
-        &job.id,
-        task.index,
-        worker,
-        state.config.snapshot_interval,
-        state.db_now(),
-    );
-    let n = match claim.await {
-        Ok(Some(n)) => n,
-        Ok(None) => return,
-        Err(e) => {
-            tracing::warn!(error = %e, "cannot claim the job's next snapshot");
-            return;
+
+    /// The job's snapshot from every task's halves so far, this task's `own` among
+    /// them; builds the whole texel set into `whole` when it needs it and can.
+    async fn snapshot(&self, own: Partial, whole: &mut Whole) -> Result<SnapshotFiles, String> {
+        let (state, job, task) = (self.state, self.job, self.task);
+        let mut others = Vec::new();
+        for k in (0..task.count).filter(|k| *k != task.index) {
+            let mut found = None;
+            for path in [store::task_partial(&job.id, k), store::task_live(&job.id, k)] {
+                match state.artifacts.get(&path).await {
+                    Ok(Some(b)) => {
+                        found = Some(b);
+                        break;
+                    }
+                    Ok(None) => {}
+                    Err(e) => return Err(format!("cannot read task {k}'s halves: {e}")),
+                }
+            }
+            others.extend(found.map(|b| (k, b)));
         }
-    };
-    let Some(atlas) = atlas.get().cloned() else { return };
-    let files = match running_snapshot(state, job, task, own, atlas, request.clone()).await {
-        Ok(f) => f,
-        Err(e) => {
-            tracing::warn!(snapshot = n, error = %e, "cannot make the job's running snapshot");
-            return;
-        }
-    };
-    let (steps, error) = (files.steps, files.error);
-    if let Err(e) = store_snapshot(state, &job.id, n, files).await {
-        tracing::warn!(snapshot = n, error = %e, "cannot store the job's running snapshot");
-        return;
-    }
-    match state.queue.task_snapshot_stored(&job.id, n).await {
-        Ok(true) => {
-            let seconds = began.elapsed().as_secs_f64();
-            tracing::info!(snapshot = n, steps, error, seconds, "running snapshot stored");
-            thin_snapshots(state, &job.id, n).await;
-            state.hub.job_changed(&job.id);
-        }
-        // The job ended meanwhile: its final lightmap is what it keeps.
-        Ok(false) | Err(_) => {
-            let _ = state.artifacts.delete(&store::snapshot_exr(&job.id, n)).await;
-            let _ = state.artifacts.delete(&store::snapshot_png(&job.id, n)).await;
+        let elapsed = job
+            .started_at
+            .map_or(0.0, |t| (state.db_now() - t).max(0) as f64 / 1000.0);
+        let ready = match whole {
+            Whole::Ready(a, r) => Some((a.clone(), r.clone())),
+            Whole::Unknown if task_regions(job) <= 1 => {
+                let a = self
+                    .live
+                    .atlas
+                    .get()
+                    .cloned()
+                    .ok_or("the task's texel set is not built yet")?;
+                let r = Arc::new(vec![0..a.texels.len()]);
+                *whole = Whole::Ready(a.clone(), r.clone());
+                Some((a, r))
+            }
+            _ => None,
+        };
+        let scene = self.live.scene.get().cloned();
+        let (request, limit) = (self.request.clone(), state.config.limits.max_job_memory_bytes);
+        let made = tokio::task::spawn_blocking(move || {
+            let mut parts = vec![own];
+            for (k, b) in others {
+                parts.push(Partial::decode(&b, &format!("task {k}'s halves")).map_err(|e| (e, false))?);
+            }
+            let (atlas, regions, built) = match ready {
+                Some((a, r)) => (a, r, false),
+                None => {
+                    let scene = scene.ok_or_else(|| (EngineError::Internal("no scene yet".into()), false))?;
+                    let options = BakeOptions {
+                        max_memory_bytes: Some(limit),
+                        ..Default::default()
+                    };
+                    // Only a region without halves yet is worth trying again.
+                    let (a, r) = tasks::running_atlas(scene, &parts, &options).map_err(|e| {
+                        let again = e.to_string().contains("has no halves yet");
+                        (e, !again)
+                    })?;
+                    (a, Arc::new(r), true)
+                }
+            };
+            let estimate = tasks::merge_running(&atlas, &regions, &parts).map_err(|e| (e, false))?;
+            let delivered = job::finish(&atlas, &estimate, &request);
+            let exr = job::delivered_exr(
+                &atlas,
+                &delivered,
+                &request,
+                &request.params,
+                Duration::from_secs_f64(elapsed),
+            )
+            .map_err(|e| (e, false))?;
+            let png = job::preview_png(&atlas, &delivered).map_err(|e| (e, false))?;
+            let files = SnapshotFiles {
+                exr,
+                png,
+                steps: estimate.steps,
+                error: delivered.error.relative,
+            };
+            Ok::<_, (EngineError, bool)>((files, built.then_some((atlas, regions))))
+        });
+        match made.await {
+            Ok(Ok((files, built))) => {
+                if let Some((a, r)) = built {
+                    *whole = Whole::Ready(a, r);
+                }
+                Ok(files)
+            }
+            Ok(Err((e, refused))) => {
+                if refused {
+                    tracing::warn!(error = %e, "no running snapshots from this task: the whole texel set cannot be built here");
+                    *whole = Whole::Refused;
+                }
+                Err(e.to_string())
+            }
+            Err(e) => Err(format!("the snapshot thread panicked: {e}")),
         }
     }
 }
 
-/// The job's snapshot from every task's halves so far, this task's `own` among them.
-async fn running_snapshot(
-    state: &AppState,
-    job: &JobRecord,
-    task: &TaskRecord,
-    own: Partial,
-    atlas: Arc<Atlas>,
-    request: Arc<crate::engine::job::BakeRequest>,
-) -> Result<SnapshotFiles, String> {
-    let mut others = Vec::new();
-    for k in (0..task.count).filter(|k| *k != task.index) {
-        let mut found = None;
-        for path in [store::task_partial(&job.id, k), store::task_live(&job.id, k)] {
-            match state.artifacts.get(&path).await {
-                Ok(Some(b)) => {
-                    found = Some(b);
-                    break;
-                }
-                Ok(None) => {}
-                Err(e) => return Err(format!("cannot read task {k}'s halves: {e}")),
-            }
-        }
-        others.extend(found.map(|b| (k, b)));
-    }
-    let elapsed = job
-        .started_at
-        .map_or(0.0, |t| (state.db_now() - t).max(0) as f64 / 1000.0);
-    let made = tokio::task::spawn_blocking(move || -> Result<SnapshotFiles, EngineError> {
-        let mut parts = vec![own];
-        for (k, b) in others {
-            parts.push(Partial::decode(&b, &format!("task {k}'s halves"))?);
-        }
-        let estimate = tasks::merge_running(&atlas, &parts)?;
-        let delivered = job::finish(&atlas, &estimate, &request);
-        let exr = job::delivered_exr(
-            &atlas,
-            &delivered,
-            &request,
-            &request.params,
-            Duration::from_secs_f64(elapsed),
-        )?;
-        let png = job::preview_png(&atlas, &delivered)?;
-        Ok(SnapshotFiles {
-            exr,
-            png,
-            steps: estimate.steps,
-            error: delivered.error.relative,
-        })
-    });
-    match made.await {
-        Ok(r) => r.map_err(|e| e.to_string()),
-        Err(e) => Err(format!("the snapshot thread panicked: {e}")),
-    }
+/// The regions a job's grid is split into.
+fn task_regions(job: &JobRecord) -> u32 {
+    job.spec.regions.unwrap_or(1)
 }
 
 /// Every bake task's stored result, in task order.

@@ -416,6 +416,10 @@ impl Queue for DroppedDb {
         self.check()?;
         self.inner.task_snapshot_stored(job, n).await
     }
+    async fn release_task_snapshot(&self, job: &str, n: u32) -> QueueResult<()> {
+        self.check()?;
+        self.inner.release_task_snapshot(job, n).await
+    }
     async fn finish_task(&self, job: &str, index: u32, worker: &str, o: &TaskOutcome, now: i64) -> QueueResult<bool> {
         self.check()?;
         self.inner.finish_task(job, index, worker, o, now).await

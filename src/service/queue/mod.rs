@@ -612,6 +612,10 @@ pub trait Queue: Send + Sync + 'static {
     /// unless a later claim was stored first. `false` when the job is no longer running
     /// (the caller deletes what it stored).
     async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool>;
+    /// Hands back claim `n` that stored nothing (its snapshot could not be made), when no
+    /// later claim was made, so the next claim takes its number again: a job's snapshots
+    /// are numbered without gaps.
+    async fn release_task_snapshot(&self, job: &str, n: u32) -> QueueResult<()>;
     /// Records the end of a task (see [`TaskOutcome`]); `false` when its lease was lost.
     async fn finish_task(
         &self,

@@ -745,6 +745,15 @@ impl Queue for SqliteQueue {
         Ok(done.rows_affected() == 1)
     }
 
+    async fn release_task_snapshot(&self, job: &str, n: u32) -> QueueResult<()> {
+        sqlx::query("UPDATE jobs SET snapshot_claims = ?2 - 1 WHERE id = ?1 AND snapshot_claims = ?2")
+            .bind(job)
+            .bind(i64::from(n))
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
     async fn finish_task(
         &self,
         job: &str,

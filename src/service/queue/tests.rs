@@ -890,6 +890,13 @@ async fn a_split_jobs_tasks_take_turns_at_its_snapshots(f: &Fixture) {
         "within the interval"
     );
     assert_eq!(q.claim_task_snapshot("j", 1, "w2", every, 2100).await.unwrap(), Some(2));
+    // A claim that stored nothing is handed back: the next takes its number again; one
+    // with a later claim after it is not.
+    q.release_task_snapshot("j", 2).await.unwrap();
+    assert_eq!(q.claim_task_snapshot("j", 0, "w1", every, 4100).await.unwrap(), Some(2));
+    q.release_task_snapshot("j", 1).await.unwrap();
+    assert_eq!(q.claim_task_snapshot("j", 0, "w1", every, 6100).await.unwrap(), Some(3));
+    q.release_task_snapshot("j", 3).await.unwrap();
     // Claim 2 is stored first, then claim 1: the count stays at the later.
     assert!(q.task_snapshot_stored("j", 2).await.unwrap());
     assert!(q.task_snapshot_stored("j", 1).await.unwrap());
@@ -901,30 +908,33 @@ async fn a_split_jobs_tasks_take_turns_at_its_snapshots(f: &Fixture) {
         error: Some(0.1),
     };
     assert!(
-        q.finish_task("j", 0, "w1", &TaskOutcome::Baked(beat), 2200)
+        q.finish_task("j", 0, "w1", &TaskOutcome::Baked(beat), 12200)
             .await
             .unwrap()
     );
     assert_eq!(
-        q.claim_task_snapshot("j", 0, "w1", every, 4200).await.unwrap(),
+        q.claim_task_snapshot("j", 0, "w1", every, 14200).await.unwrap(),
         None,
         "task 0 has ended"
     );
-    assert_eq!(q.claim_task_snapshot("j", 1, "w2", every, 4200).await.unwrap(), Some(3));
+    assert_eq!(
+        q.claim_task_snapshot("j", 1, "w2", every, 14200).await.unwrap(),
+        Some(3)
+    );
     // Once the job is over, nothing more is recorded.
     assert!(
-        q.finish_task("j", 1, "w2", &TaskOutcome::Baked(beat), 4300)
+        q.finish_task("j", 1, "w2", &TaskOutcome::Baked(beat), 14300)
             .await
             .unwrap()
     );
-    let (m, _) = q.claim_task("w3", &none, lease, 4400).await.unwrap().unwrap();
+    let (m, _) = q.claim_task("w3", &none, lease, 14400).await.unwrap().unwrap();
     let merged = TaskOutcome::Merged {
         summary: json!({"steps": 12}),
         progress: json!({"steps": 12, "fraction": 1.0}),
         history: json!([]),
         plan: json!({}),
     };
-    assert!(q.finish_task("j", m.index, "w3", &merged, 4500).await.unwrap());
+    assert!(q.finish_task("j", m.index, "w3", &merged, 14500).await.unwrap());
     assert!(!q.task_snapshot_stored("j", 3).await.unwrap());
     assert_eq!(q.job("j").await.unwrap().unwrap().snapshots, 2);
 }
