@@ -163,6 +163,12 @@ pub struct ErrorSummary {
     /// this the raw estimate's; `None` for a raw estimate.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub raw_relative: Option<f32>,
+    /// The factor the control texels found the halves' noise over-stated by (at most 1;
+    /// `control::assess_against`): the per-texel `texel_error` is the halves' and is left
+    /// as it is, and the denoiser's blend scales its variance by this. Internal: not
+    /// reported.
+    #[serde(skip)]
+    pub noise_scale: Option<f32>,
 }
 
 fn combine(a: &[Vec3], na: u64, b: &[Vec3], nb: u64) -> Vec<Vec3> {
@@ -231,6 +237,7 @@ impl Snapshot {
                 control_texels: None,
                 rms_luminance,
                 raw_relative: None,
+                noise_scale: None,
             },
         }
     }

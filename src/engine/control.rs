@@ -250,6 +250,7 @@ pub fn assess_against(indices: &[usize], reference: &Estimate, estimate: &mut Es
     estimate.error.bias = Some(report.bias);
     estimate.error.interval = Some(report.interval);
     estimate.error.control_texels = Some(report.texels as u32);
+    estimate.error.noise_scale = Some(calibration as f32);
     tracing::debug!(
         control_texels = report.texels,
         reference_steps = report.reference_steps,

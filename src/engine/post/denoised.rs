@@ -34,7 +34,12 @@
 //!    low by chance lets the filter's bias in where the bake has converged (measured
 //!    over six seeds at 8192 samples: up to 0.33 % worse than raw with M, at most 0.04 %
 //!    with M⁺), while one that comes out high only gives up a little of the filter's
-//!    gain at low sample counts.
+//!    gain at low sample counts. For a biased technique V is the halves' variance times
+//!    the factor its control texels found the halves over-state the noise by
+//!    (`error.noise_scale`, `control::assess_against`; at most 1): a stratified
+//!    sequence's union (`vpl`, `obscurance`) errs less than its halves say, and an
+//!    over-stated V trusted the filter over a raw value that was better (the bench's
+//!    `vpl` on the parallel plates: denoised worse than raw at 8 of 8 snapshots).
 //! 4. Delivered error per texel: √(w² M + (1 − w)² V) (M itself, the best estimate);
 //!    the map's relative error is
 //!    its RMS over the RMS luminance, as for the raw estimate (`accumulate`).
@@ -211,10 +216,17 @@ pub fn blend_weights(
     halves: &[Vec<Vec3>; 2],
     half_steps: [u64; 2],
     filtered: &[Vec<Vec3>; 2],
+    noise_scale: f32,
 ) -> Blend {
     let n = (half_steps[0] + half_steps[1]) as f32;
     let raw_var: Vec<f32> = se.iter().map(|e| e * e).collect();
-    let v = smooth(atlas, chart, &raw_var, SMOOTH_RADIUS);
+    // The raw lightmap's own variance: the halves' figure, scaled down where the control
+    // texels measured that they over-state it (a stratified sequence's union errs less
+    // than its halves say: `vpl`, `obscurance`), so the filter is not trusted over a raw
+    // value that is better than the halves claim. Each half's own variance (below) is the
+    // halves' figure as it is.
+    let own_var: Vec<f32> = raw_var.iter().map(|v| v * noise_scale.clamp(0.0, 1.0)).collect();
+    let v = smooth(atlas, chart, &own_var, SMOOTH_RADIUS);
     // Variance of each half's mean: the combined mean's, times n / n_h.
     let scale = [n / half_steps[0].max(1) as f32, n / half_steps[1].max(1) as f32];
     let cross: Vec<f32> = (0..se.len())
@@ -282,7 +294,15 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
         filter(atlas, &chart, used, &halves[0], &half_se(0), Layer::Irradiance),
         filter(atlas, &chart, used, &halves[1], &half_se(1), Layer::Irradiance),
     ];
-    let blend = blend_weights(atlas, &chart, se, halves, *half_steps, &filtered_halves);
+    let blend = blend_weights(
+        atlas,
+        &chart,
+        se,
+        halves,
+        *half_steps,
+        &filtered_halves,
+        estimate.error.noise_scale.unwrap_or(1.0),
+    );
     out.total = mix(&estimate.total, &whole, &blend.weight);
     if let Some(d) = &estimate.direct {
         out.direct = Some(mix(
