@@ -140,7 +140,7 @@ fn blend_weight_fades_out_as_the_bake_converges() {
         ];
         let se = vec![s; n];
         let filtered = [vec![Vec3::splat(1.05); n], vec![Vec3::splat(1.05); n]];
-        let blend = blend_weights(&atlas, &chart, &se, &halves, [8, 8], &filtered, 1.0);
+        let blend = blend_weights(&atlas, &chart, &se, &halves, [8, 8], &filtered, Default::default());
         let mean = blend.weight.iter().sum::<f32>() / n as f32;
         assert!(
             (expect_low..=expect_high).contains(&mean),

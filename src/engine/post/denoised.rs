@@ -39,7 +39,12 @@
 //!    (`error.noise_scale`, `control::assess_against`; at most 1): a stratified
 //!    sequence's union (`vpl`, `obscurance`) errs less than its halves say, and an
 //!    over-stated V trusted the filter over a raw value that was better (the bench's
-//!    `vpl` on the parallel plates: denoised worse than raw at 8 of 8 snapshots).
+//!    `vpl` on the parallel plates: denoised worse than raw at 8 of 8 snapshots). And a
+//!    biased technique's map errs by its measured bias b (`error.bias`) besides its
+//!    noise; the filter's own bias, at most √M, may add to it, so the weight is the one
+//!    best for the worst case of that sum, w = (V − √M⁺ b) / (V + M⁺), not below 0
+//!    ([`Leanings`]): where bias dominates the filter stays out (docs/quality.md, the
+//!    bench over every technique).
 //! 4. Delivered error per texel: √(w² M + (1 − w)² V) (M itself, the best estimate);
 //!    the map's relative error is
 //!    its RMS over the RMS luminance, as for the raw estimate (`accumulate`).
@@ -207,6 +212,24 @@ pub struct Blend {
     pub texel_error: Vec<f32>,
 }
 
+/// What leans the blend one way or the other besides the two variances.
+#[derive(Clone, Copy, Debug)]
+pub struct Leanings {
+    /// The factor the halves over-state the raw map's noise by (at most 1).
+    pub noise_scale: f32,
+    /// The technique's measured bias, absolute (luminance), 0 for an unbiased one.
+    pub bias: f32,
+}
+
+impl Default for Leanings {
+    fn default() -> Self {
+        Leanings {
+            noise_scale: 1.0,
+            bias: 0.0,
+        }
+    }
+}
+
 /// The blend of step 3 from the raw standard errors, the raw halves and the filtered
 /// halves (`filtered[h]` = D(halves[h])).
 pub fn blend_weights(
@@ -216,8 +239,9 @@ pub fn blend_weights(
     halves: &[Vec<Vec3>; 2],
     half_steps: [u64; 2],
     filtered: &[Vec<Vec3>; 2],
-    noise_scale: f32,
+    lean: Leanings,
 ) -> Blend {
+    let noise_scale = lean.noise_scale;
     let n = (half_steps[0] + half_steps[1]) as f32;
     let raw_var: Vec<f32> = se.iter().map(|e| e * e).collect();
     // The raw lightmap's own variance: the halves' figure, scaled down where the control
@@ -251,7 +275,14 @@ pub fn blend_weights(
             // itself), while one that came out high only gives up a little of the gain.
             let m_best = m.max(v / 256.0);
             let m_safe = (m + m_err).max(v / 256.0);
-            let w = if v > 0.0 { v / (v + m_safe) } else { 0.0 };
+            // A biased technique's map errs by its bias b besides its noise, and the
+            // filter's own bias (at most √M) may add to it: the weight that is best for
+            // the worst case of that sum, (V − √M b) / (V + M), not below 0.
+            let w = if v > 0.0 {
+                ((v - m_safe.sqrt() * lean.bias) / (v + m_safe)).max(0.0)
+            } else {
+                0.0
+            };
             (w, (w * w * m_best + (1.0 - w) * (1.0 - w) * v).sqrt())
         })
         .unzip();
@@ -301,7 +332,12 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
         halves,
         *half_steps,
         &filtered_halves,
-        estimate.error.noise_scale.unwrap_or(1.0),
+        Leanings {
+            noise_scale: estimate.error.noise_scale.unwrap_or(1.0),
+            // The measured bias on the lightmap's scale (the control texels report it
+            // relative to the answer's RMS, which the map's RMS stands in for).
+            bias: estimate.error.bias.unwrap_or(0.0) * estimate.error.rms_luminance,
+        },
     );
     out.total = mix(&estimate.total, &whole, &blend.weight);
     if let Some(d) = &estimate.direct {
