@@ -155,6 +155,17 @@ async fn until_ended(http: &reqwest::Client, url: &str, limit: Duration, what: &
     }
 }
 
+/// Waits for `key` to be deleted: a merged job's task results go right *after* the job
+/// is marked succeeded (its lightmap is stored first), so a poll that saw the end can
+/// still see them for a moment; ten seconds is far beyond that moment.
+async fn until_deleted(artifacts: &lightmapd::service::store::Artifacts, key: &object_store::path::Path) {
+    let t = Instant::now();
+    while artifacts.get(key).await.unwrap().is_some() {
+        assert!(t.elapsed() < Duration::from_secs(10), "{key} is still stored");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     let _cpu = crate::CPU_HEAVY.lock().await;
@@ -247,8 +258,9 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     // The task results went once the lightmap was stored.
     let artifacts = crate::s3_store::open(&farm.s3, &farm.store).await;
     for k in 0..6 {
-        let key = store::task_partial(&id, k);
-        assert!(artifacts.get(&key).await.unwrap().is_none(), "{key} is still stored");
+        for key in [store::task_partial(&id, k), store::task_live(&id, k)] {
+            until_deleted(&artifacts, &key).await;
+        }
     }
 
     // Both merged pages are the single-process bake of the same job.
@@ -410,12 +422,13 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         .collect();
     let apart = relative_error(&shown, &finals);
     assert!(
-        apart > 0.0 && apart < 3.0 * stated && stated > final_error,
+        // The last one may be made after the tasks' final halves (all the steps, the
+        // final lightmap itself): never more error than the final's, but not above it.
+        apart <= 3.0 * stated && stated >= 0.99 * final_error,
         "running snapshot {n} differs from the final lightmap by {apart:.4}; it states {stated:.4}, the final {final_error:.4}"
     );
     for k in 0..2 {
-        let key = store::task_live(&ranged, k);
-        assert!(artifacts.get(&key).await.unwrap().is_none(), "{key} is still stored");
+        until_deleted(&artifacts, &store::task_live(&ranged, k)).await;
     }
     eprintln!(
         "farm: 2000 steps as 2 bands of rows: {} snapshots while running; snapshot {n} states {stated:.4}, differs from the final ({final_error:.4}) by {apart:.4}",
