@@ -1133,6 +1133,39 @@ fn a_scene_without_uvs_shows_in_3d_while_it_bakes() {
     assert!(errors.is_empty(), "browser errors: {errors:#?}");
 }
 
+/// Uploads the bundled living room to the server at `url`, submits one job on it per
+/// `(name, body)` (the body without its `scene`), waits for each to succeed within
+/// `limit` and prints its steps, errors and denoiser; the jobs' ids, in order.
+fn bake_living_room(url: &str, bodies: &[(&str, Value)], limit: Duration) -> Vec<String> {
+    let glb = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party/living_room.glb")).unwrap();
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let http = reqwest::Client::new();
+    rt.block_on(async {
+        let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
+        assert_eq!(r.status(), 201);
+        let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+        let mut ids = Vec::new();
+        for (_, body) in bodies {
+            let mut body = body.clone();
+            body["scene"] = json!(scene);
+            let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
+            assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+            ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
+        }
+        for (id, (name, _)) in ids.iter().zip(bodies) {
+            let j = wait_succeeded(&http, url, id, limit).await;
+            eprintln!(
+                "{name} ({id}): {} steps, error {} (raw {}), denoiser {}",
+                j["summary"]["steps"],
+                j["summary"]["error"]["relative"],
+                j["summary"]["error"]["raw_relative"],
+                j["summary"]["denoiser"]
+            );
+        }
+        ids
+    })
+}
+
 /// Each job's final lightmap drawn by the console's 3D view from one camera (env
 /// `LIGHTMAPD_RENDER_CAMERA`, relative to the scene's home view), the lightmap alone:
 /// one PNG each.
@@ -1188,9 +1221,6 @@ fn render_split_against_whole() {
     let dir = tempfile::tempdir().unwrap();
     let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "30"]);
     let _serve = Serve(child);
-    let glb = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party/living_room.glb")).unwrap();
-    let rt = tokio::runtime::Runtime::new().unwrap();
-    let http = reqwest::Client::new();
     let runs = [
         ("path_whole", "path", 64, 1, 1, 1),
         ("path_split", "path", 64, 4, 2, 1),
@@ -1199,35 +1229,17 @@ fn render_split_against_whole() {
         ("vpl_chains", "vpl", 16, 2, 1, 1),
         ("vpl_whole_seed2", "vpl", 16, 1, 1, 2),
     ];
-    let jobs: Vec<String> = rt.block_on(async {
-        let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
-        assert_eq!(r.status(), 201);
-        let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
-        let mut ids = Vec::new();
-        for (_, technique, steps, tasks, regions, seed) in runs {
-            let mut body = json!({"scene": scene, "technique": technique, "resolution": 256,
-                "stop": {"steps": steps}, "seed": seed,
-                "lighting": {"sky": {"radiance": [1, 1, 1]}}});
-            if tasks > 1 {
-                body["tasks"] = json!(tasks);
-                body["regions"] = json!(regions);
-            }
-            let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
-            assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
-            ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
+    let bodies = runs.map(|(name, technique, steps, tasks, regions, seed)| {
+        let mut body = json!({"technique": technique, "resolution": 256,
+            "stop": {"steps": steps}, "seed": seed,
+            "lighting": {"sky": {"radiance": [1, 1, 1]}}});
+        if tasks > 1 {
+            body["tasks"] = json!(tasks);
+            body["regions"] = json!(regions);
         }
-        for (id, (name, ..)) in ids.iter().zip(runs) {
-            let j = wait_succeeded(&http, &url, id, Duration::from_secs(900)).await;
-            eprintln!(
-                "{name}: {} steps, error {} (raw {}), denoiser {}",
-                j["summary"]["steps"],
-                j["summary"]["error"]["relative"],
-                j["summary"]["error"]["raw_relative"],
-                j["summary"]["denoiser"]
-            );
-        }
-        ids
+        (name, body)
     });
+    let jobs = bake_living_room(&url, &bodies, Duration::from_secs(900));
     let views = render_jobs(&exe, &url, &jobs);
     let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scaling");
     std::fs::create_dir_all(&out).unwrap();
@@ -1261,9 +1273,6 @@ fn render_denoise_before_after() {
     let dir = tempfile::tempdir().unwrap();
     let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "30"]);
     let _serve = Serve(child);
-    let glb = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party/living_room.glb")).unwrap();
-    let rt = tokio::runtime::Runtime::new().unwrap();
-    let http = reqwest::Client::new();
     let reference = if std::env::var_os("LIGHTMAPD_RENDER_QUICK").is_some() {
         16
     } else {
@@ -1274,30 +1283,12 @@ fn render_denoise_before_after() {
         ("denoised_16", 16, "auto"),
         ("reference_512", reference, "none"),
     ];
-    let jobs: Vec<String> = rt.block_on(async {
-        let r = http.post(format!("{url}/v1/scenes")).body(glb).send().await.unwrap();
-        assert_eq!(r.status(), 201);
-        let scene = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
-        let mut ids = Vec::new();
-        for (_, steps, denoise) in runs {
-            let body = json!({"scene": scene, "resolution": 512, "stop": {"steps": steps}, "seed": 1,
-                "denoise": denoise, "lighting": {"sky": {"radiance": [1, 1, 1]}}});
-            let r = http.post(format!("{url}/v1/jobs")).json(&body).send().await.unwrap();
-            assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
-            ids.push(r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string());
-        }
-        for id in &ids {
-            let j = wait_succeeded(&http, &url, id, Duration::from_secs(600)).await;
-            eprintln!(
-                "{id}: {} steps, error {} (raw {}), denoiser {}",
-                j["summary"]["steps"],
-                j["summary"]["error"]["relative"],
-                j["summary"]["error"]["raw_relative"],
-                j["summary"]["denoiser"]
-            );
-        }
-        ids
+    let bodies = runs.map(|(name, steps, denoise)| {
+        let body = json!({"resolution": 512, "stop": {"steps": steps}, "seed": 1,
+            "denoise": denoise, "lighting": {"sky": {"radiance": [1, 1, 1]}}});
+        (name, body)
     });
+    let jobs = bake_living_room(&url, &bodies, Duration::from_secs(600));
     let views = render_jobs(&exe, &url, &jobs);
     let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/denoise");
     std::fs::create_dir_all(&out).unwrap();
