@@ -27,7 +27,9 @@
 //!
 //! History: while the tasks run, the queue appends the job's merged progress to its
 //! history (`queue::running_history`: the tasks' raw estimates merged, a point when the
-//! steps grew by a quarter or every five seconds); the merge's point, the delivered
+//! steps grew by a quarter or every five seconds) until the first running snapshot is
+//! stored; from then on each running snapshot adds its point, the delivered error of
+//! what it holds, as a single bake's snapshots do; the merge's point, the delivered
 //! lightmap's error, ends it.
 //!
 //! Snapshots while the tasks run: each task stores its halves so far at its snapshots
@@ -490,7 +492,7 @@ impl Round<'_> {
                 return;
             }
         };
-        let files = match self.snapshot(own, whole).await {
+        let (files, mut point) = match self.snapshot(own, whole).await {
             Ok(f) => f,
             Err(e) => {
                 tracing::info!(snapshot = n, why = %e, "no running snapshot this time");
@@ -506,7 +508,12 @@ impl Round<'_> {
             let _ = state.queue.release_task_snapshot(&job.id, n).await;
             return;
         }
-        match state.queue.task_snapshot_stored(&job.id, n).await {
+        // On the running history's clock: wall time since the job started, when stored.
+        if let Some(t) = job.started_at {
+            point.seconds = (state.db_now() - t).max(0) as f64 / 1000.0;
+        }
+        let point = serde_json::to_value(point).unwrap_or(Value::Null);
+        match state.queue.task_snapshot_stored(&job.id, n, &point).await {
             Ok(true) => {
                 let seconds = began.elapsed().as_secs_f64();
                 tracing::info!(snapshot = n, steps, error, seconds, "running snapshot stored");
@@ -523,7 +530,7 @@ impl Round<'_> {
 
     /// The job's snapshot from every task's halves so far, this task's `own` among
     /// them; builds the whole texel set into `whole` when it needs it and can.
-    async fn snapshot(&self, own: Partial, whole: &mut Whole) -> Result<SnapshotFiles, String> {
+    async fn snapshot(&self, own: Partial, whole: &mut Whole) -> Result<(SnapshotFiles, HistoryPoint), String> {
         let (state, job, task) = (self.state, self.job, self.task);
         let mut others = Vec::new();
         for k in (0..task.count).filter(|k| *k != task.index) {
@@ -598,7 +605,19 @@ impl Round<'_> {
                 steps: estimate.steps,
                 error: delivered.error.relative,
             };
-            Ok::<_, (EngineError, bool)>((files, built.then_some((atlas, regions))))
+            // The history's point for this snapshot, as a single bake's: the delivered
+            // error, with the raw one beside it (`seconds` is set when it is stored).
+            let e = &delivered.error;
+            let point = HistoryPoint {
+                seconds: elapsed,
+                steps: estimate.steps,
+                error: e.relative,
+                raw_error: e.raw_relative.or(e.relative),
+                noise: e.noise,
+                bias: e.bias,
+                true_error: None,
+            };
+            Ok::<_, (EngineError, bool)>(((files, point), built.then_some((atlas, regions))))
         });
         match made.await {
             Ok(Ok((files, built))) => {

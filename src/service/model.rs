@@ -763,9 +763,9 @@ pub struct HistoryPoint {
     /// The relative error of the lightmap as delivered at that point (the snapshot EXR's
     /// `lightmapd:relative_error`: denoised and blended when a denoiser runs; for a biased
     /// technique, bias and noise measured at control texels; `docs/accuracy.md`). A job
-    /// split into tasks delivers nothing before its merge: its points until then hold the
-    /// tasks' raw estimates merged (`queue::running_history`), here and in `raw_error`,
-    /// and `seconds` is the wall time since it started.
+    /// split into tasks: its running snapshots' points are the same; before its first,
+    /// its points hold the tasks' raw estimates merged (`queue::running_history`), here
+    /// and in `raw_error`; `seconds` is the wall time since it started.
     pub error: Option<f32>,
     /// The raw estimate's, before denoising (what `stop.target_error` is checked against).
     #[serde(default, skip_serializing_if = "Option::is_none")]

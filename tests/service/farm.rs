@@ -26,7 +26,8 @@
 //!   are stored while its tasks run, each the tasks' halves so far merged
 //!   (`tasks::merge_running`) on the whole texel set (`tasks::running_atlas`); the latest
 //!   taken while the job runs differs from the final lightmap by less than three times
-//!   the error it states, and the tasks' running halves are deleted with their results;
+//!   the error it states, the job's history holds its point with that error, and the
+//!   tasks' running halves are deleted with their results;
 //! - then a `vpl` job on the two pages split into 2 independent chains (each with its
 //!   own seed, shown as the task's `chain_seed`): its lightmap is within three times the
 //!   stated errors of the single-process bake's, its error carries the bias measured
@@ -426,6 +427,16 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         // final lightmap itself): never more error than the final's, but not above it.
         apart <= 3.0 * stated && stated >= 0.99 * final_error,
         "running snapshot {n} differs from the final lightmap by {apart:.4}; it states {stated:.4}, the final {final_error:.4}"
+    );
+    // The job's history holds that snapshot's point with the error it states, as a
+    // single bake's history holds its snapshots' (the merged raw progress only before
+    // the first).
+    let history = job["history"].as_array().unwrap();
+    assert!(
+        history
+            .iter()
+            .any(|p| p["error"].as_f64().map(|e| e as f32) == Some(stated as f32)),
+        "no history point states snapshot {n}'s {stated}: {history:#?}"
     );
     for k in 0..2 {
         until_deleted(&artifacts, &store::task_live(&ranged, k)).await;

@@ -412,9 +412,9 @@ impl Queue for DroppedDb {
         self.check()?;
         self.inner.claim_task_snapshot(job, index, worker, interval, now).await
     }
-    async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool> {
+    async fn task_snapshot_stored(&self, job: &str, n: u32, point: &serde_json::Value) -> QueueResult<bool> {
         self.check()?;
-        self.inner.task_snapshot_stored(job, n).await
+        self.inner.task_snapshot_stored(job, n, point).await
     }
     async fn release_task_snapshot(&self, job: &str, n: u32) -> QueueResult<()> {
         self.check()?;

@@ -319,9 +319,14 @@ pub const MAX_RUNNING_HISTORY: usize = 2000;
 /// by a quarter and a second has passed, or five seconds have passed with any new steps,
 /// so the curve is dense while the error falls fast and about one point per five seconds
 /// later (a single bake's snapshots thin out the same way). Its `error` and `raw_error`
-/// are the merged raw estimate: nothing is denoised or delivered before the merge, whose
-/// own point ([`history_then`]) ends the curve.
-pub fn running_history(history: &Value, progress: &Value) -> Option<Value> {
+/// are the merged raw estimate. Once the job has stored a running snapshot (`snapshots`
+/// above 0) the history is its snapshots' points instead, each the delivered error of
+/// what that snapshot holds ([`Queue::task_snapshot_stored`]), as a single bake's is:
+/// `None` then. The merge's own point ([`history_then`]) ends the curve.
+pub fn running_history(history: &Value, progress: &Value, snapshots: u32) -> Option<Value> {
+    if snapshots > 0 {
+        return None;
+    }
     let p: crate::service::model::Progress = serde_json::from_value(progress.clone()).ok()?;
     let error = p.error.filter(|_| p.steps > 0)?;
     let mut points: Vec<crate::service::model::HistoryPoint> =
@@ -609,9 +614,11 @@ pub trait Queue: Send + Sync + 'static {
         now: i64,
     ) -> QueueResult<Option<u32>>;
     /// Records a running split job's snapshot `n` as stored: its count becomes `n`
-    /// unless a later claim was stored first. `false` when the job is no longer running
-    /// (the caller deletes what it stored).
-    async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool>;
+    /// unless a later claim was stored first, and `point` (a `HistoryPoint`: the
+    /// delivered error of what the snapshot holds) is appended to its history, which
+    /// holds snapshots' points from then on ([`running_history`]). `false` when the job
+    /// is no longer running (the caller deletes what it stored).
+    async fn task_snapshot_stored(&self, job: &str, n: u32, point: &Value) -> QueueResult<bool>;
     /// Hands back claim `n` that stored nothing (its snapshot could not be made), when no
     /// later claim was made, so the next claim takes its number again: a job's snapshots
     /// are numbered without gaps.

@@ -294,7 +294,7 @@ async fn try_lock_job(c: &mut PgConnection, job: &str) -> QueueResult<bool> {
 
 /// Writes a split job's merged progress from its bake tasks' rows.
 async fn refresh_progress(c: &mut PgConnection, job: &str, now: i64) -> QueueResult<()> {
-    let Some(row) = sqlx::query("SELECT spec, started_at, history FROM jobs WHERE id = $1")
+    let Some(row) = sqlx::query("SELECT spec, started_at, history, snapshots FROM jobs WHERE id = $1")
         .bind(job)
         .fetch_optional(&mut *c)
         .await?
@@ -313,7 +313,8 @@ async fn refresh_progress(c: &mut PgConnection, job: &str, now: i64) -> QueueRes
     let history = row
         .try_get::<Option<Value>, _>("history")?
         .unwrap_or(Value::Array(vec![]));
-    let history = running_history(&history, &progress);
+    let snapshots: i32 = row.try_get("snapshots")?;
+    let history = running_history(&history, &progress, snapshots.max(0) as u32);
     sqlx::query(
         "UPDATE jobs SET progress = $2, updated_at = $3, history = COALESCE($4, history)
          WHERE id = $1 AND status = 'running'",
@@ -963,13 +964,21 @@ impl Queue for PostgresQueue {
         Ok(n.map(|n| n.max(0) as u32))
     }
 
-    async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool> {
-        let done =
-            sqlx::query("UPDATE jobs SET snapshots = GREATEST(snapshots, $2) WHERE id = $1 AND status = 'running'")
-                .bind(job)
-                .bind(i32::try_from(n).unwrap_or(i32::MAX))
-                .execute(&self.pool)
-                .await?;
+    async fn task_snapshot_stored(&self, job: &str, n: u32, point: &Value) -> QueueResult<bool> {
+        // Under the job's lock: `refresh_progress` reads the history and writes it back,
+        // and must not write over the point appended here.
+        let mut tx = self.pool.begin().await?;
+        lock_job(&mut tx, job).await?;
+        let done = sqlx::query(
+            "UPDATE jobs SET snapshots = GREATEST(snapshots, $2), history = history || jsonb_build_array($3::jsonb)
+             WHERE id = $1 AND status = 'running'",
+        )
+        .bind(job)
+        .bind(i32::try_from(n).unwrap_or(i32::MAX))
+        .bind(point)
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
         Ok(done.rows_affected() == 1)
     }
 

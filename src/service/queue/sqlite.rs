@@ -151,7 +151,7 @@ async fn write_tx(pool: &SqlitePool) -> QueueResult<sqlx::Transaction<'static, s
 
 /// Writes a split job's merged progress from its bake tasks' rows.
 async fn refresh_progress(c: &mut SqliteConnection, job: &str, now: i64) -> QueueResult<()> {
-    let Some(row) = sqlx::query("SELECT spec, started_at, history FROM jobs WHERE id = ?")
+    let Some(row) = sqlx::query("SELECT spec, started_at, history, snapshots FROM jobs WHERE id = ?")
         .bind(job)
         .fetch_optional(&mut *c)
         .await?
@@ -171,7 +171,8 @@ async fn refresh_progress(c: &mut SqliteConnection, job: &str, now: i64) -> Queu
         .collect();
     let progress = merged_progress(&spec, row.try_get("started_at")?, now, &tasks);
     let history = json_col(&row, "history")?.unwrap_or(Value::Array(vec![]));
-    let history = running_history(&history, &progress);
+    let snapshots: i64 = row.try_get("snapshots")?;
+    let history = running_history(&history, &progress, snapshots.clamp(0, i64::from(u32::MAX)) as u32);
     sqlx::query(
         "UPDATE jobs SET progress = ?2, updated_at = ?3, history = COALESCE(?4, history)
          WHERE id = ?1 AND status = 'running'",
@@ -736,12 +737,18 @@ impl Queue for SqliteQueue {
         Ok(n.map(|n| n.clamp(0, i64::from(u32::MAX)) as u32))
     }
 
-    async fn task_snapshot_stored(&self, job: &str, n: u32) -> QueueResult<bool> {
-        let done = sqlx::query("UPDATE jobs SET snapshots = MAX(snapshots, ?2) WHERE id = ?1 AND status = 'running'")
-            .bind(job)
-            .bind(i64::from(n))
-            .execute(&self.pool)
-            .await?;
+    async fn task_snapshot_stored(&self, job: &str, n: u32, point: &Value) -> QueueResult<bool> {
+        // One statement: SQLite runs one writer at a time, and `refresh_progress` reads
+        // the history only inside a transaction that already writes.
+        let done = sqlx::query(
+            "UPDATE jobs SET snapshots = MAX(snapshots, ?2), history = json_insert(history, '$[#]', json(?3))
+             WHERE id = ?1 AND status = 'running'",
+        )
+        .bind(job)
+        .bind(i64::from(n))
+        .bind(point.to_string())
+        .execute(&self.pool)
+        .await?;
         Ok(done.rows_affected() == 1)
     }
 

@@ -897,10 +897,37 @@ async fn a_split_jobs_tasks_take_turns_at_its_snapshots(f: &Fixture) {
     q.release_task_snapshot("j", 1).await.unwrap();
     assert_eq!(q.claim_task_snapshot("j", 0, "w1", every, 6100).await.unwrap(), Some(3));
     q.release_task_snapshot("j", 3).await.unwrap();
-    // Claim 2 is stored first, then claim 1: the count stays at the later.
-    assert!(q.task_snapshot_stored("j", 2).await.unwrap());
-    assert!(q.task_snapshot_stored("j", 1).await.unwrap());
+    // Before any snapshot, the merged progress is a history point once every task has
+    // an error.
+    let beat_of = |steps, error| TaskBeat {
+        steps,
+        seconds: 1.0,
+        error: Some(error),
+    };
+    for (k, w) in [(0, "w1"), (1, "w2")] {
+        q.task_heartbeat("j", k, w, lease, Some(&beat_of(4, 0.1)), 6200)
+            .await
+            .unwrap();
+    }
+    let raw = q.job("j").await.unwrap().unwrap().history;
+    assert_eq!(raw.as_array().map(Vec::len), Some(1), "{raw}");
+    // Claim 2 is stored first, then claim 1: the count stays at the later, and each
+    // appends its point (the delivered error of what it holds) to the history.
+    let point = |steps: u64, error: f32| json!({"seconds": 7.0, "steps": steps, "error": error, "raw_error": 0.3f32});
+    assert!(q.task_snapshot_stored("j", 2, &point(6, 0.2)).await.unwrap());
+    assert!(q.task_snapshot_stored("j", 1, &point(4, 0.25)).await.unwrap());
     assert_eq!(q.job("j").await.unwrap().unwrap().snapshots, 2);
+    // From the first snapshot on, heartbeats add no raw points: the history is the
+    // snapshots' points, as a single bake's.
+    q.task_heartbeat("j", 1, "w2", lease, Some(&beat_of(6, 0.1)), 9200)
+        .await
+        .unwrap();
+    let history = q.job("j").await.unwrap().unwrap().history;
+    assert_eq!(
+        history.as_array().unwrap()[1..],
+        [point(6, 0.2), point(4, 0.25)],
+        "{history}"
+    );
     // A finished task hands the turn to the other.
     let beat = TaskBeat {
         steps: 6,
@@ -935,8 +962,14 @@ async fn a_split_jobs_tasks_take_turns_at_its_snapshots(f: &Fixture) {
         plan: json!({}),
     };
     assert!(q.finish_task("j", m.index, "w3", &merged, 14500).await.unwrap());
-    assert!(!q.task_snapshot_stored("j", 3).await.unwrap());
-    assert_eq!(q.job("j").await.unwrap().unwrap().snapshots, 2);
+    assert!(!q.task_snapshot_stored("j", 3, &point(12, 0.1)).await.unwrap());
+    let job = q.job("j").await.unwrap().unwrap();
+    assert_eq!(job.snapshots, 2);
+    assert_eq!(
+        job.history.as_array().map(Vec::len),
+        Some(3),
+        "nothing appended once over"
+    );
 }
 
 /// The embedded migrations are exactly the files of `migrations/<store>/`, with the
@@ -981,21 +1014,21 @@ fn embedded_migrations_are_the_migration_folders() {
 fn a_split_jobs_history_runs_until_the_merge() {
     let progress = |steps: u64, elapsed_s: f64, error: Option<f32>| json!({"steps": steps, "fraction": 0.5, "elapsed_s": elapsed_s, "error": error});
     let empty = json!([]);
-    assert_eq!(running_history(&empty, &progress(0, 1.0, Some(0.5))), None);
-    assert_eq!(running_history(&empty, &progress(10, 1.0, None)), None);
-    let h = running_history(&empty, &progress(10, 1.0, Some(0.2))).unwrap();
+    assert_eq!(running_history(&empty, &progress(0, 1.0, Some(0.5)), 0), None);
+    assert_eq!(running_history(&empty, &progress(10, 1.0, None), 0), None);
+    let h = running_history(&empty, &progress(10, 1.0, Some(0.2)), 0).unwrap();
     assert_eq!(
         h,
         json!([{"seconds": 1.0, "steps": 10, "error": 0.2f32, "raw_error": 0.2f32}])
     );
     // 12 steps (under a quarter more) a second later, 13 after half a second: not yet.
-    assert_eq!(running_history(&h, &progress(12, 2.0, Some(0.19))), None);
-    assert_eq!(running_history(&h, &progress(13, 1.5, Some(0.19))), None);
+    assert_eq!(running_history(&h, &progress(12, 2.0, Some(0.19)), 0), None);
+    assert_eq!(running_history(&h, &progress(13, 1.5, Some(0.19)), 0), None);
     // A quarter more and a second: due; so are any new steps after five seconds.
-    let h = running_history(&h, &progress(13, 2.0, Some(0.18))).unwrap();
+    let h = running_history(&h, &progress(13, 2.0, Some(0.18)), 0).unwrap();
     assert_eq!(h.as_array().unwrap().len(), 2);
-    assert_eq!(running_history(&h, &progress(13, 9.0, Some(0.18))), None);
-    let h = running_history(&h, &progress(14, 7.0, Some(0.17))).unwrap();
+    assert_eq!(running_history(&h, &progress(13, 9.0, Some(0.18)), 0), None);
+    let h = running_history(&h, &progress(14, 7.0, Some(0.17)), 0).unwrap();
     let steps: Vec<u64> = h
         .as_array()
         .unwrap()
@@ -1003,6 +1036,8 @@ fn a_split_jobs_history_runs_until_the_merge() {
         .map(|p| p["steps"].as_u64().unwrap())
         .collect();
     assert_eq!(steps, [10, 13, 14]);
+    // Once a running snapshot is stored, its points are the history: no raw point.
+    assert_eq!(running_history(&h, &progress(40, 30.0, Some(0.1)), 1), None);
     let merged = history_then(&h, &json!([{"seconds": 8.0, "steps": 14, "error": 0.05f32}]));
     assert_eq!(merged.as_array().unwrap().len(), 4);
     assert_eq!(merged[3]["error"], json!(0.05f32));
