@@ -11,7 +11,9 @@
 //! valid texels). SCENE is a bench scene (default cornell-box) or a .glb path.
 //!
 //! `… -- cost SIZE`: OIDN's time and peak memory on a SIZE² lightmap (run one size per
-//! process so the peak is that size's).
+//! process so the peak is that size's); `… -- cost-denoise SIZE`: the whole denoising
+//! step's time at SIZE²; `… -- dump …`: the estimates and filter outputs as JSON for
+//! trying filters outside Rust.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -287,11 +289,97 @@ fn cost(args: &[String]) {
     assert_eq!(out.len(), n);
 }
 
+/// `cost-denoise SIZE`: the whole denoising step's time (`denoised::apply`: the image
+/// denoiser on the lightmap and its halves, the regression pass, the weights) on the
+/// sky plane baked at SIZE², 2 steps of `path` at 1 sample, own filter and OIDN.
+fn cost_denoise(args: &[String]) {
+    let size: u32 = args.first().and_then(|s| s.parse().ok()).unwrap_or(1024);
+    let lib = benchmark_scenes().into_iter().find(|s| s.name == "sky-plane").unwrap();
+    let p = prepare(&lib).unwrap();
+    let atlas = Arc::new(Atlas::build(&p.scene, size, size).unwrap());
+    let mut tech = path_tech(&p.scene, &atlas, lib.lighting, 1, 1);
+    tech.step().unwrap();
+    tech.step().unwrap();
+    let est = tech.snapshot().unwrap().estimate();
+    let chart = charts(&atlas);
+    let t = Instant::now();
+    let halves = est.halves.as_ref().unwrap();
+    let _ = lightmapd::engine::post::regress::fit(&atlas, &chart, &est.total, Some([&halves.0[0], &halves.0[1]]));
+    let regress_s = t.elapsed().as_secs_f64();
+    println!("| size | texels | regression pass | own, whole step | oidn, whole step |");
+    let mut row = format!("| {size}² | {} | {regress_s:.2} s |", atlas.texels.len());
+    for used in [Used::Own, Used::Oidn] {
+        if used == Used::Oidn && !Oidn::available() {
+            row += " n/a |";
+            continue;
+        }
+        let t = Instant::now();
+        let _ = denoised::apply(&atlas, &est, used);
+        row += &format!(" {:.2} s |", t.elapsed().as_secs_f64());
+    }
+    println!("{row}");
+}
+
+/// `dump SCENE REF_SAMPLES STEPS… OUT.json`: the reference, and per step count the
+/// raw estimate, its halves, standard errors and the OIDN and blended outputs, with each
+/// texel's pixel, position, normal and chart: the input for trying filters outside Rust.
+fn dump(args: &[String]) {
+    let name = args[0].as_str();
+    let ref_samples: u64 = args[1].parse().unwrap();
+    let out_path = args.last().unwrap();
+    let steps: Vec<u64> = args[2..args.len() - 1].iter().map(|s| s.parse().unwrap()).collect();
+    let lib = benchmark_scenes()
+        .into_iter()
+        .find(|s| s.name == name)
+        .expect("bench scene");
+    let p = prepare(&lib).unwrap();
+    let (scene, atlas, lighting) = (p.scene, p.atlas, lib.lighting);
+    let chart = charts(&atlas);
+    let mut r = path_tech(&scene, &atlas, lighting, 987_654, 64);
+    for _ in 0..(ref_samples / 64).max(2) {
+        r.step().unwrap();
+    }
+    let v3 = |v: &[Vec3]| v.iter().map(|x| [x.x, x.y, x.z]).collect::<Vec<_>>();
+    let reference = r.snapshot().unwrap().estimate().total;
+    let mut runs = Vec::new();
+    let mut tech = path_tech(&scene, &atlas, lighting, 1, 4);
+    for target in steps {
+        while tech.steps_done() < target {
+            tech.step().unwrap();
+        }
+        let est: Estimate = tech.snapshot().unwrap().estimate();
+        let se = est.texel_error.clone().unwrap();
+        let (halves, hs) = est.halves.clone().unwrap();
+        let oidn = denoised::filter_unblended(&atlas, &chart, Used::Oidn, &est.total, &se);
+        let oidn_h: Vec<_> = halves
+            .iter()
+            .map(|h| v3(&denoised::filter_unblended(&atlas, &chart, Used::Oidn, h, &se)))
+            .collect();
+        let blended = denoised::apply(&atlas, &est, Used::Oidn).total;
+        runs.push(serde_json::json!({
+            "steps": target, "half_steps": hs, "total": v3(&est.total), "se": se,
+            "halves": [v3(&halves[0]), v3(&halves[1])], "oidn": v3(&oidn), "oidn_halves": oidn_h,
+            "blended": v3(&blended),
+        }));
+    }
+    let j = serde_json::json!({
+        "width": atlas.width, "height": atlas.height,
+        "pixel": atlas.texels.iter().map(|t| t.pixel).collect::<Vec<_>>(),
+        "position": atlas.texels.iter().map(|t| [t.position.x, t.position.y, t.position.z]).collect::<Vec<_>>(),
+        "normal": atlas.texels.iter().map(|t| [t.normal.x, t.normal.y, t.normal.z]).collect::<Vec<_>>(),
+        "size": atlas.texels.iter().map(|t| t.size).collect::<Vec<_>>(),
+        "chart": chart, "reference": v3(&reference), "runs": runs,
+    });
+    std::fs::write(out_path, serde_json::to_vec(&j).unwrap()).unwrap();
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.first().map(String::as_str) {
         Some("cost") => cost(&args[1..]),
+        Some("dump") => dump(&args[1..]),
+        Some("cost-denoise") => cost_denoise(&args[1..]),
         Some("errors") | None => errors(args.get(1..).unwrap_or(&[])),
-        Some(other) => eprintln!("unknown mode {other:?}: errors or cost"),
+        Some(other) => eprintln!("unknown mode {other:?}: errors, cost, cost-denoise or dump"),
     }
 }

@@ -11,7 +11,7 @@ use lightmapd::bench::{prepare, true_error};
 use lightmapd::engine::atlas::Atlas;
 use lightmapd::engine::job::{BakeRequest, bake_unobserved};
 use lightmapd::engine::post::denoise::charts;
-use lightmapd::engine::post::denoised::{self, Denoiser, Used, blend_weights};
+use lightmapd::engine::post::denoised::{self, Denoiser, Used, combine_weights, cross_validated};
 use lightmapd::engine::post::oidn::Oidn;
 use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
 use lightmapd::engine::scene::import_slice;
@@ -81,7 +81,7 @@ fn delivered_error_is_never_above_raw_on_the_soft_shadow() {
         let (raw, out, est) = errors("sphere-over-plane", 512, 16, used);
         eprintln!("{used}: 8192 samples: raw {raw:.4}, delivered {out:.4} (estimated {est:.4})");
         // The blend's weights come from a cross-validated estimate of the filter's error,
-        // itself noisy; taken one standard error high (`denoised::blend_weights`). Over
+        // itself noisy; taken one standard error high (`denoised::combine_weights`). Over
         // six seeds each (2026-12-05), delivered / raw at 8192 samples on both scenes:
         // 0.947-1.0004 for the own filter, 0.816-0.996 for OIDN (with the estimate taken
         // as it came: up to 1.0033 and 1.0021). The bar leaves rounding room only.
@@ -115,8 +115,10 @@ fn two_quads() -> Atlas {
     Atlas::build(&scene, 32, 32).unwrap()
 }
 
-/// The blend weight is V / (V + M): with a raw error a thousand times below the filter's
-/// (biased) error it is ~0, with a raw error far above it ~1.
+/// The raw value's weight against a filter's: with a raw error a thousand times below
+/// the filter's (biased) error the filter gets ~0, with a raw error far above it ~1; the
+/// delivered error is never above either part's. The filter is known only through its
+/// outputs on the halves, as `denoised::apply` knows OIDN.
 #[test]
 fn blend_weight_fades_out_as_the_bake_converges() {
     let atlas = two_quads();
@@ -139,18 +141,26 @@ fn blend_weight_fades_out_as_the_bake_converges() {
                 .collect::<Vec<_>>(),
         ];
         let se = vec![s; n];
-        let filtered = [vec![Vec3::splat(1.05); n], vec![Vec3::splat(1.05); n]];
-        let blend = blend_weights(&atlas, &chart, &se, &halves, [8, 8], &filtered, Default::default());
-        let mean = blend.weight.iter().sum::<f32>() / n as f32;
+        let filtered = vec![Vec3::splat(1.05).dot(lightmapd::engine::accumulate::LUMINANCE); n];
+        let cross = cross_validated(&se, &halves, [8, 8], [&filtered, &filtered], None);
+        let c = combine_weights(&atlas, &chart, &se, &[cross], Default::default());
+        assert_eq!(c.stride, 2);
+        let share = c.filtered_share();
+        let mean = share.iter().sum::<f32>() / n as f32;
         assert!(
             (expect_low..=expect_high).contains(&mean),
             "raw error {s}: mean weight {mean}, expected in [{expect_low}, {expect_high}]"
         );
         // The delivered error is never above the raw one nor the filter's.
-        for (k, e) in blend.texel_error.iter().enumerate() {
+        for (k, e) in c.texel_error.iter().enumerate() {
             assert!(
                 *e <= s * 1.0001 && *e <= 0.0501,
                 "texel {k}: delivered error {e} (raw {s})"
+            );
+            assert!(
+                (c.at(k).iter().sum::<f32>() - 1.0).abs() < 1e-5,
+                "texel {k}: weights {:?}",
+                c.at(k)
             );
         }
     }
@@ -326,4 +336,39 @@ fn directional_layers_are_never_worse_after_denoising() {
             mean_y(reference)
         );
     }
+}
+
+/// The check at a biased technique's control texels keeps the filters' move only as far
+/// as it measurably brings the map closer to `path`'s values there: all of a move onto
+/// the answer, none of a move away from it, none where the control is too noisy to tell,
+/// and nothing to check where the filters moved no control texel.
+#[test]
+fn the_control_check_keeps_only_a_measured_gain() {
+    use lightmapd::engine::accumulate::ControlValues;
+    use lightmapd::engine::post::denoised::checked_share;
+    let n = 256;
+    let truth: Vec<Vec3> = (0..n).map(|k| Vec3::splat(1.0 + 0.1 * (k as f32).sin())).collect();
+    // The raw map is off by a bias of 0.05; path's values carry noise of 0.01 or 1.
+    let raw: Vec<Vec3> = truth.iter().map(|t| *t + Vec3::splat(0.05)).collect();
+    let mut rng = lightmapd::engine::rng::Rng::new(4, 0, 0, 0);
+    let control = |noise: f32, rng: &mut lightmapd::engine::rng::Rng| ControlValues {
+        texels: (0..n).collect(),
+        luminance: truth
+            .iter()
+            .map(|t| t.x + (rng.next_f32() - 0.5) * 12f32.sqrt() * noise)
+            .collect(),
+    };
+    let quiet = control(0.01, &mut rng);
+    let onto = checked_share(&raw, &truth, &quiet).unwrap();
+    assert!(onto > 0.9, "a move onto the answer kept {onto}");
+    let away: Vec<Vec3> = raw.iter().map(|r| *r + Vec3::splat(0.05)).collect();
+    assert_eq!(
+        checked_share(&raw, &away, &quiet),
+        Some(0.0),
+        "a move away from the answer"
+    );
+    let loud = control(1.0, &mut rng);
+    let unsure = checked_share(&raw, &truth, &loud).unwrap();
+    assert!(unsure < 0.5, "a gain the control cannot resolve kept {unsure}");
+    assert_eq!(checked_share(&raw, &raw, &quiet), None, "no move, nothing to check");
 }

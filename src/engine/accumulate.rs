@@ -98,6 +98,20 @@ pub struct Estimate {
     /// The chosen lights' baked visibility (`engine::shadowmask`), when asked for; the
     /// bake loop fills it in.
     pub shadowmask: Option<ShadowmaskLayer>,
+    /// The unbiased reference at a biased technique's control texels, once they have
+    /// assessed this estimate (`control::assess_against`): the denoiser checks there
+    /// that what it delivers is closer to the answer than the raw map
+    /// (`post::denoised`).
+    pub control: Option<std::sync::Arc<ControlValues>>,
+}
+
+/// `path`'s luminance at the control texels, as the denoiser's check reads it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ControlValues {
+    /// The control texels, as indices into the estimate's texels.
+    pub texels: Vec<usize>,
+    /// `path`'s luminance there, in the same order.
+    pub luminance: Vec<f32>,
 }
 
 impl Estimate {
@@ -229,6 +243,7 @@ impl Snapshot {
             halves: (na > 0 && nb > 0).then(|| ([self.even.total.clone(), self.odd.total.clone()], [na, nb])),
             texel_error,
             shadowmask: None,
+            control: None,
             error: ErrorSummary {
                 relative,
                 noise: None,

@@ -251,6 +251,10 @@ pub fn assess_against(indices: &[usize], reference: &Estimate, estimate: &mut Es
     estimate.error.interval = Some(report.interval);
     estimate.error.control_texels = Some(report.texels as u32);
     estimate.error.noise_scale = Some(calibration as f32);
+    estimate.control = Some(std::sync::Arc::new(crate::engine::accumulate::ControlValues {
+        texels: indices.to_vec(),
+        luminance: reference.total.iter().map(|p| lum(*p) as f32).collect(),
+    }));
     tracing::debug!(
         control_texels = report.texels,
         reference_steps = report.reference_steps,

@@ -5,8 +5,12 @@
 //! How: a sum of the big allocations, each bounded from above. Every pixel of the
 //! lightmap is counted as a valid texel (the real texel set is smaller: chart gutters and
 //! empty space hold none), each with its [`Texel`] record and its accumulators: two
-//! halves, the combined estimate, the step's samples and the denoiser's input and output
-//! (six copies of every kept layer). Output images (one f32 RGB image per EXR layer plus
+//! halves, the combined estimate, the step's samples, the snapshot's copies and the
+//! denoiser's input and output (nine copies of every kept layer: six were counted until
+//! a bake without a denoiser measured 232 B a pixel at 1024² against 208 estimated,
+//! 2026-12-06), and the denoiser's working set: the local regressions' candidates and
+//! their weights ([`DENOISE_BYTES_PER_TEXEL`], whatever the kept layers: they are
+//! filtered one at a time) and OIDN's buffers ([`OIDN_BYTES_PER_PIXEL`]). Output images (one f32 RGB image per EXR layer plus
 //! its encoding) and the PNG preview are per pixel. Triangles are counted at the import's
 //! f64 staging copy plus the scene's own and the BVH's, 512 bytes each; textures at four
 //! f32 per pixel plus the 8-bit image they were decoded from. A fixed 64 MiB covers the
@@ -32,7 +36,18 @@ pub const BYTES_PER_TEXTURE_TEXEL: u64 = 20;
 /// The process before any job: runtime, code, buffers.
 pub const BASE_BYTES: u64 = 64 << 20;
 /// Copies of every accumulated layer a bake holds at once (module doc).
-const ACCUMULATOR_COPIES: u64 = 6;
+const ACCUMULATOR_COPIES: u64 = 9;
+/// The denoiser's working set per texel (`post::denoised`, `post::regress`): seven fits'
+/// values (84 B), their halves' luminance (56) and gains (28), eight candidates'
+/// cross-validated errors (32) and their smoothed means and errors (64), nine weights
+/// (36), the raw variance twice (8), the delivered error, chart labels and the image
+/// denoiser's outputs (28). Measured with the own filter (2026-12-06, Cornell box):
+/// 285 B a texel over no denoiser at 1024², 294 B at 2048².
+pub const DENOISE_BYTES_PER_TEXEL: u64 = 336;
+/// OIDN's buffers per lightmap pixel as a bake uses them (three filter runs on the
+/// gutter-filled image; measured over the own filter, Cornell box, 2026-12-06: 552 B a
+/// pixel at 512², 513 at 1024², 500 at 2048²; docs/reliability.md).
+pub const OIDN_BYTES_PER_PIXEL: u64 = 560;
 
 /// What a job's memory depends on.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -92,7 +107,13 @@ pub fn estimate_bytes(s: &JobShape) -> u64 {
     // The shadowmask: its two halves read back (visibility and light, 32 B each) and the
     // delivered layer (16 B).
     let mask = if s.shadowmask { 2 * 32 + 16 } else { 0 };
-    let per_texel = std::mem::size_of::<Texel>() as u64 + 4 + ACCUMULATOR_COPIES * accumulated + 4 + mask;
+    let per_texel = std::mem::size_of::<Texel>() as u64
+        + 4
+        + ACCUMULATOR_COPIES * accumulated
+        + 4
+        + mask
+        + DENOISE_BYTES_PER_TEXEL
+        + OIDN_BYTES_PER_PIXEL;
     // Written per pixel: R,G,B, the optional layers (validity and debug are one channel
     // each, counted as RGB to stay on the high side), and the encoded file.
     let layers = 2

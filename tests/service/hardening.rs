@@ -98,14 +98,16 @@ async fn limits_answer_with_their_status_and_field() {
         ),
     )
     .await;
-    // 1024² texels: 64 MiB for the process plus 208 bytes a texel (engine::footprint)
-    // is 272 MiB, over the 200 MiB limit; the 32 triangles add next to nothing.
+    // 1024² texels: 64 MiB for the process plus 1140 bytes a texel (engine::footprint:
+    // 244 for the texel set, its accumulators and the written images, 896 for the
+    // denoiser's working set and OIDN's) is 1204 MiB, over the 200 MiB limit; the 32
+    // triangles add next to nothing.
     expect_problem(
         job(json!({"scene": scene, "resolution": 1024, "stop": {"steps": 1}})),
         422,
         invalid(
             "resolution",
-            "the job needs an estimated 272 MiB (1024² texels, 32 triangles), more than this server's limit of 200 MiB per job (--max-job-memory-mb): lower the resolution",
+            "the job needs an estimated 1204 MiB (1024² texels, 32 triangles), more than this server's limit of 200 MiB per job (--max-job-memory-mb): lower the resolution",
         ),
     )
     .await;
@@ -657,7 +659,7 @@ async fn a_worker_with_less_memory_leaves_a_job_over_its_limit_to_a_bigger_one()
     };
     assert!(
         waiting.starts_with(
-            "a worker with a per-job memory limit of at least 272 MiB (the job's estimate; --max-job-memory-mb): none of the 1 live workers has all of it ("
+            "a worker with a per-job memory limit of at least 1204 MiB (the job's estimate; --max-job-memory-mb): none of the 1 live workers has all of it ("
         ) && waiting.ends_with("; 200 MiB a job))"),
         "{waiting}"
     );

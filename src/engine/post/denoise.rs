@@ -149,7 +149,9 @@ fn for_neighbours(atlas: &Atlas, chart: &[u32], k: usize, radius: i64, mut visit
 /// Per texel, the mean and the standard error of the mean of `values` over the same
 /// neighbourhood as [`smooth`] (same chart, normals within 25°, `radius` texels): the
 /// sample standard deviation of the neighbours over the square root of their count.
-/// How far a smoothed figure can be trusted (`denoised::blend_weights`).
+/// How far a smoothed figure can be trusted (`denoised::combine_weights`). A value that
+/// is not finite stands for "none here" (a fit with too few texels) and is left out;
+/// with none at all the mean is NaN.
 pub fn smooth_with_error(atlas: &Atlas, chart: &[u32], values: &[f32], radius: i64) -> Vec<(f32, f32)> {
     (0..atlas.texels.len())
         .into_par_iter()
@@ -157,11 +159,16 @@ pub fn smooth_with_error(atlas: &Atlas, chart: &[u32], values: &[f32], radius: i
             let (mut sum, mut sq, mut n) = (0.0f64, 0.0f64, 0u32);
             for_neighbours(atlas, chart, k, radius, |q| {
                 let v = values[q] as f64;
-                sum += v;
-                sq += v * v;
-                n += 1;
+                if v.is_finite() {
+                    sum += v;
+                    sq += v * v;
+                    n += 1;
+                }
             });
-            let n = n.max(1) as f64;
+            if n == 0 {
+                return (f32::NAN, f32::NAN);
+            }
+            let n = n as f64;
             let mean = sum / n;
             // Bessel's correction; a lone texel has no spread to measure: its own value
             // stands as its error.

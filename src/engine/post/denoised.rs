@@ -2,73 +2,98 @@
 //! error estimate for what is delivered.
 //!
 //! What: [`Denoiser`] is the job's choice (`auto`, `oidn`, `own`, `none`); [`apply`]
-//! turns a raw [`Estimate`] into the delivered one: every layer denoised, blended back
+//! turns a raw [`Estimate`] into the delivered one: every layer denoised, weighted
 //! towards the raw value where the bake has converged, and `texel_error` / `error` the
 //! estimate of the delivered lightmap's error (the raw figure stays in
 //! `error.raw_relative`).
 //!
 //! How:
-//! 1. Filter. OIDN ([`super::oidn`], `RTLightmap`, HDR irradiance) sees the whole
-//!    lightmap image with the gutters and every unused texel filled first (dilation from
-//!    the nearest chart, [`FILL_RINGS`] rings: a black gutter would pull chart borders
-//!    dark) and is read back at valid texels only (mask after). The own filter
-//!    ([`super::denoise`]) works on texels and never crosses a chart. `RTLightmap` takes
-//!    no auxiliary images; the `RT` filter with a normal image was measured against it
-//!    (docs/quality.md) and is not used. Directional (`sh`) layers are filtered by OIDN's
-//!    directional mode as coefficients normalised by the lightmap (in [-1, 1]), then
-//!    scaled back.
-//! 2. Estimate the filter's own error by cross-validation: each half (even and odd
-//!    steps) is filtered on its own, and the filtered even half is compared with the raw
-//!    odd half, which is independent of it and unbiased: E[(D(a) − b)²] = MSE(D(a)) +
-//!    Var(b), so (D(a) − b)² − Var(b), averaged over both pairings and smoothed over a
-//!    7 × 7 neighbourhood in the chart, estimates the filter's mean squared error,
-//!    bias included. It is the error of a filtered *half*, an upper bound on that of the
-//!    filtered whole (fewer samples: more noise and more blur).
-//! 3. Blend: delivered = raw + w (filtered − raw) with w = V / (V + M⁺), V the raw
-//!    variance (smoothed like M), M the filter's error from 2: the weighting that
-//!    minimises the mean squared error of two independent estimates. As the bake
-//!    converges V → 0 while M keeps the filter's bias, so w → 0 and the delivered map
-//!    becomes the raw one: the denoiser fades out instead of blurring a converged bake.
-//!    M⁺ is M plus one standard error of its neighbourhood mean
-//!    (`denoise::smooth_with_error`): M is itself an estimate, and one that comes out
-//!    low by chance lets the filter's bias in where the bake has converged (measured
-//!    over six seeds at 8192 samples: up to 0.33 % worse than raw with M, at most 0.04 %
-//!    with M⁺), while one that comes out high only gives up a little of the filter's
-//!    gain at low sample counts. For a biased technique V is the halves' variance times
-//!    the factor its control texels found the halves over-state the noise by
-//!    (`error.noise_scale`, `control::assess_against`; at most 1): a stratified
-//!    sequence's union (`vpl`, `obscurance`) errs less than its halves say, and an
-//!    over-stated V trusted the filter over a raw value that was better (the bench's
-//!    `vpl` on the parallel plates: denoised worse than raw at 8 of 8 snapshots). And a
-//!    biased technique's map errs by its measured bias b (`error.bias`) besides its
-//!    noise; the filter's own bias, at most √M, may add to it, so the weight is the one
-//!    best for the worst case of that sum, w = (V − √M⁺ b) / (V + M⁺), not below 0
-//!    ([`Leanings`]): where bias dominates the filter stays out (docs/quality.md, the
-//!    bench over every technique).
-//! 4. Delivered error per texel: √(w² M + (1 − w)² V) (M itself, the best estimate);
-//!    the map's relative error is
-//!    its RMS over the RMS luminance, as for the raw estimate (`accumulate`).
+//! 1. Candidates. Besides the raw value, every texel has the seven local polynomial
+//!    fits of [`super::regress`] (planes and quadrics over windows of radius 1 to 8 in
+//!    its chart) and the image denoiser's output: OIDN ([`super::oidn`],
+//!    `RTLightmap`, HDR irradiance), which sees the whole lightmap image with the
+//!    gutters and every unused texel filled first (dilation from the nearest chart,
+//!    [`FILL_RINGS`] rings: a black gutter would pull chart borders dark) and is read
+//!    back at valid texels only (mask after), or where OIDN is not installed the own
+//!    filter ([`super::denoise`]), which works on texels and never crosses a chart.
+//!    `RTLightmap` takes no auxiliary images; the `RT` filter with a normal image was
+//!    measured against it (docs/quality.md) and is not used. Directional (`sh`)
+//!    layers are filtered by OIDN's directional mode as coefficients normalised by the
+//!    lightmap (in [-1, 1]), then scaled back.
+//! 2. Estimate each candidate's own error by cross-validation: the candidate filter is
+//!    run on each half (even and odd steps) on its own, and the filtered even half is
+//!    compared with the raw odd half, which is independent of it and unbiased:
+//!    E[(D(a) − b)²] = MSE(D(a)) + Var(b), so (D(a) − b)² − Var(b), averaged over both
+//!    pairings ([`cross_validated`]) and smoothed over a 7 × 7 neighbourhood in the
+//!    chart, estimates the filter's mean squared error, bias included. That is the
+//!    error of a filtered *half*; for the fits, whose noise gain a₀ is known, half of
+//!    a filtered half's noise (a₀ Var(half) / 2) is taken off, which leaves the
+//!    filtered whole's; for the image denoiser it stays an upper bound.
+//! 3. Combine ([`combine_weights`]): delivered = Σ w_c D_c, over the raw value (its
+//!    error the raw variance V, smoothed like M) and the candidates (M⁺, M plus one
+//!    standard error of its neighbourhood mean, `denoise::smooth_with_error`), with
+//!    w_c ∝ 1 / M_c², normalised. As the bake converges V → 0 while every filter's M
+//!    keeps its bias, so the raw value takes the whole weight: the denoiser fades out
+//!    instead of blurring a converged bake; where the bake is noisy the fit that suits
+//!    the texel (small and curved near an edge, wide and flat on a plain wall) or the
+//!    image denoiser takes it. Selecting one candidate by its noisy M, or blending a
+//!    single filter with the raw value, lost a third of the gain on the Cornell box
+//!    (docs/quality.md). M is taken one standard error high because it is itself an
+//!    estimate: one that comes out low by chance lets a filter's bias in where the
+//!    bake has converged (measured over six seeds at 8192 samples: up to 0.33 % worse
+//!    than raw with M, at most 0.04 % with M⁺), while one that comes out high only
+//!    gives up a little of the gain at low sample counts. For a biased technique V is
+//!    the halves' variance times the factor its control texels found the halves
+//!    over-state the noise by (`error.noise_scale`, `control::assess_against`; at most
+//!    1): a stratified sequence's union (`vpl`, `obscurance`) errs less than its halves
+//!    say, and an over-stated V trusted the filter over a raw value that was better.
+//!    And a biased technique's map errs by its measured bias b (`error.bias`) besides
+//!    its noise; a filter's own bias, at most √M, may add to it. For one filter the
+//!    weight best for the worst case of that sum is (V − √M⁺ b) / (V + M⁺), the
+//!    unbiased weight times 1 − √M⁺ b / V; each filter's weight here takes that factor
+//!    (not below 0; [`Leanings`]): where bias dominates the filters stay out.
+//! 4. For a biased technique, check at its control texels ([`checked_share`]): `path`'s
+//!    values there are unbiased and independent of the bake, so whether the filters'
+//!    move D − R brings the map closer to the answer can be measured there, bias
+//!    included, which the halves cannot do (they share the technique's bias). The move
+//!    is kept only as far as it measurably helps (the best share of it, B / A, with B
+//!    one-sided 95 % low; 0 where no gain can be shown) and scaled down over the whole
+//!    map otherwise. Without it the weights of 3 still let a filter's blur move a
+//!    bias-dominated map the way its bias already goes (`vpl` on the parallel plates:
+//!    up to 8 % worse than raw, docs/quality.md).
+//! 5. Delivered error per texel: √(Σ w_c M_c) (each part's best estimate, M itself and
+//!    V): the mean squared error of a convex combination is at most the weighted mean
+//!    of its parts', whatever their correlation (Jensen), so this bounds it; the map's
+//!    relative error is its RMS over the RMS luminance, as for the raw estimate
+//!    (`accumulate`).
 //!
-//! Limits: the blend weight comes from luminance and is used for all three channels
-//! and for the direct and directional layers too; M is an upper bound (a filtered half
-//! is worse than the filtered whole), so the blend leans towards raw; the cross-
-//! validation needs both halves, so an estimate with one half's steps is not denoised.
-//! Each denoised estimate costs three filter runs of the lightmap (whole and halves)
-//! plus one per extra layer.
+//! Limits: the weights come from luminance and are used for all three channels and for
+//! the direct and directional layers too; the image denoiser's M is an upper bound (a
+//! filtered half is worse than the filtered whole), so the weights lean away from it;
+//! the cross-validation needs both halves, so an estimate with one half's steps is not
+//! denoised. Each denoised estimate costs three image-filter runs of the lightmap
+//! (whole and halves) and one regression pass, plus one of each per extra layer.
 
 use std::fmt;
 
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+use rayon::prelude::*;
+
 use super::denoise::{charts, denoise_own, smooth, smooth_with_error};
 use super::oidn::{Mode, Oidn};
-use crate::engine::accumulate::{Estimate, LUMINANCE};
+use super::regress;
+use crate::engine::accumulate::{ControlValues, Estimate, LUMINANCE};
 use crate::engine::atlas::Atlas;
 
 /// Rings of dilation before OIDN sees the image: wider than OIDN's tiles' overlap is
 /// not needed, enough that every chart border has filled texels around it.
 pub const FILL_RINGS: u32 = 16;
+/// One-sided 95 % normal quantile for the control texels' check ([`checked_share`]).
+const CHECK_Z: f64 = 1.645;
+/// The most candidates [`combine_weights`] takes besides the raw value.
+pub const MAX_CANDIDATES: usize = 15;
 /// Neighbourhood radius (texels) for the variance and error figures of the blend.
 const SMOOTH_RADIUS: i64 = 3;
 
@@ -103,8 +128,12 @@ impl Denoiser {
     pub fn summary(self) -> &'static str {
         match self {
             Denoiser::Auto => "Intel Open Image Denoise when its library is installed, else the own filter",
-            Denoiser::Oidn => "Intel Open Image Denoise (RTLightmap, HDR), blended by the bake's error estimate",
-            Denoiser::Own => "the own edge-aware a-trous filter, guided by chart, blended by the error estimate",
+            Denoiser::Oidn => {
+                "Intel Open Image Denoise (RTLightmap, HDR) and local regressions, weighted with the raw estimate by cross-validated error"
+            }
+            Denoiser::Own => {
+                "the own edge-aware a-trous filter and local regressions, guided by chart, weighted with the raw estimate by cross-validated error"
+            }
             Denoiser::None => "the raw estimate",
         }
     }
@@ -160,10 +189,16 @@ impl fmt::Display for Used {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Used::Oidn => match Oidn::get() {
-                Ok(o) => write!(f, "{} RTLightmap, blended by error", o.describe()),
+                Ok(o) => write!(
+                    f,
+                    "{} RTLightmap with local regressions, weighted by cross-validated error",
+                    o.describe()
+                ),
                 Err(_) => f.write_str("oidn (unavailable)"),
             },
-            Used::Own => f.write_str("own (edge-aware a-trous), blended by error"),
+            Used::Own => {
+                f.write_str("own (edge-aware a-trous) with local regressions, weighted by cross-validated error")
+            }
             Used::None => f.write_str("none"),
         }
     }
@@ -204,12 +239,44 @@ fn filter(atlas: &Atlas, chart: &[u32], used: Used, values: &[Vec3], se: &[f32],
     denoise_own(atlas, chart, values, se)
 }
 
-/// Per-texel blend weights and delivered standard errors (see the module doc, 2-4).
-pub struct Blend {
-    /// Weight of the filtered value, in [0, 1].
-    pub weight: Vec<f32>,
+/// Per-texel weights of the candidates and delivered standard errors (see the module
+/// doc, 2-4).
+pub struct Combination {
+    /// Candidates per texel: the raw value first, then those whose errors were given.
+    pub stride: usize,
+    /// `stride` weights per texel (texel-major), each in [0, 1], summing to 1.
+    pub weights: Vec<f32>,
     /// Estimated standard error of the delivered luminance.
     pub texel_error: Vec<f32>,
+    /// The raw value's variance V per texel (smoothed; the raw candidate's error).
+    pub raw_var: Vec<f32>,
+}
+
+impl Combination {
+    /// Keeps `share` of the filters' move away from the raw value at every texel:
+    /// their weights times `share`, the raw value's the rest; the delivered error by
+    /// the same bound, (1 − share) V + share × the combination's.
+    pub fn scale_filters(&mut self, share: f32) {
+        let share = share.clamp(0.0, 1.0);
+        for (k, w) in self.weights.chunks_mut(self.stride).enumerate() {
+            for x in w[1..].iter_mut() {
+                *x *= share;
+            }
+            w[0] = 1.0 - w[1..].iter().sum::<f32>();
+            let e = &mut self.texel_error[k];
+            *e = ((1.0 - share) * self.raw_var[k] + share * *e * *e).max(0.0).sqrt();
+        }
+    }
+
+    /// Texel `k`'s weights, the raw value's first.
+    pub fn at(&self, k: usize) -> &[f32] {
+        &self.weights[k * self.stride..(k + 1) * self.stride]
+    }
+
+    /// Per texel, the weight left to the filters (1 − the raw value's).
+    pub fn filtered_share(&self) -> Vec<f32> {
+        self.weights.chunks(self.stride).map(|w| 1.0 - w[0]).collect()
+    }
 }
 
 /// What leans the blend one way or the other besides the two variances.
@@ -230,70 +297,177 @@ impl Default for Leanings {
     }
 }
 
-/// The blend of step 3 from the raw standard errors, the raw halves and the filtered
-/// halves (`filtered[h]` = D(halves[h])).
-pub fn blend_weights(
-    atlas: &Atlas,
-    chart: &[u32],
+/// Step 2 for one candidate filter D, per texel: the cross-validated estimate of the
+/// mean squared error of D applied to the whole estimate, from D's output on each half
+/// (`filtered[h]`, luminance) against the other raw half: ½ Σ_h [(D(h) − other)² −
+/// Var(other)], less ½ `gain` Var(half) when D's noise gain is known (a filtered half
+/// carries twice the noise that the filtered whole does; without it the figure is
+/// that of a filtered half, an upper bound). NaN where D offers no value.
+pub fn cross_validated(
     se: &[f32],
     halves: &[Vec<Vec3>; 2],
     half_steps: [u64; 2],
-    filtered: &[Vec<Vec3>; 2],
-    lean: Leanings,
-) -> Blend {
-    let noise_scale = lean.noise_scale;
+    filtered: [&[f32]; 2],
+    gain: Option<&[f32]>,
+) -> Vec<f32> {
     let n = (half_steps[0] + half_steps[1]) as f32;
-    let raw_var: Vec<f32> = se.iter().map(|e| e * e).collect();
-    // The raw lightmap's own variance: the halves' figure, scaled down where the control
-    // texels measured that they over-state it (a stratified sequence's union errs less
-    // than its halves say: `vpl`, `obscurance`), so the filter is not trusted over a raw
-    // value that is better than the halves claim. Each half's own variance (below) is the
-    // halves' figure as it is.
-    let own_var: Vec<f32> = raw_var.iter().map(|v| v * noise_scale.clamp(0.0, 1.0)).collect();
-    let v = smooth(atlas, chart, &own_var, SMOOTH_RADIUS);
     // Variance of each half's mean: the combined mean's, times n / n_h.
     let scale = [n / half_steps[0].max(1) as f32, n / half_steps[1].max(1) as f32];
-    let cross: Vec<f32> = (0..se.len())
+    (0..se.len())
         .map(|k| {
+            let var = se[k] * se[k];
             let l = |x: Vec3| x.dot(LUMINANCE);
-            let e0 = l(filtered[0][k] - halves[1][k]).powi(2) - raw_var[k] * scale[1];
-            let e1 = l(filtered[1][k] - halves[0][k]).powi(2) - raw_var[k] * scale[0];
-            0.5 * (e0 + e1)
+            let e0 = (filtered[0][k] - l(halves[1][k])).powi(2) - var * scale[1];
+            let e1 = (filtered[1][k] - l(halves[0][k])).powi(2) - var * scale[0];
+            let own = gain.map_or(0.0, |g| 0.5 * g[k] * var * 0.5 * (scale[0] + scale[1]));
+            0.5 * (e0 + e1) - own
         })
-        .collect();
-    let m = smooth_with_error(atlas, chart, &cross, SMOOTH_RADIUS);
-    let (weight, texel_error) = v
-        .iter()
-        .zip(&m)
-        .map(|(&v, &(m, m_err))| {
-            // The cross-validated figure is itself noisy and can fall to zero or below;
-            // no filter removes all noise, so M is kept above V / 256 (a filter averaging
-            // 256 independent texels) and the delivered error is never claimed zero.
-            // The weight takes M one standard error high: an M that came out low by
-            // chance would let the filter's bias in where the bake has converged (the
-            // delivered map measured 0.2-0.3 % worse than raw at 8192 samples with M
-            // itself), while one that came out high only gives up a little of the gain.
-            let m_best = m.max(v / 256.0);
-            let m_safe = (m + m_err).max(v / 256.0);
-            // A biased technique's map errs by its bias b besides its noise, and the
-            // filter's own bias (at most √M) may add to it: the weight that is best for
-            // the worst case of that sum, (V − √M b) / (V + M), not below 0.
-            let w = if v > 0.0 {
-                ((v - m_safe.sqrt() * lean.bias) / (v + m_safe)).max(0.0)
-            } else {
-                0.0
-            };
-            (w, (w * w * m_best + (1.0 - w) * (1.0 - w) * v).sqrt())
-        })
-        .unzip();
-    Blend { weight, texel_error }
+        .collect()
 }
 
-fn mix(raw: &[Vec3], filtered: &[Vec3], w: &[f32]) -> Vec<Vec3> {
-    raw.iter()
-        .zip(filtered)
-        .zip(w)
-        .map(|((r, f), w)| *r + (*f - *r) * *w)
+/// Steps 3 and 4: each texel's weights over the raw value (its variance V from the
+/// halves, smoothed) and the candidates whose cross-validated errors are `cross` (from
+/// [`cross_validated`]; smoothed over the 7 × 7 neighbourhood with their standard
+/// error), and the delivered standard error.
+pub fn combine_weights(atlas: &Atlas, chart: &[u32], se: &[f32], cross: &[Vec<f32>], lean: Leanings) -> Combination {
+    let noise_scale = lean.noise_scale;
+    // The raw lightmap's own variance: the halves' figure, scaled down where the control
+    // texels measured that they over-state it (a stratified sequence's union errs less
+    // than its halves say: `vpl`, `obscurance`), so a filter is not trusted over a raw
+    // value that is better than the halves claim.
+    let own_var: Vec<f32> = se.iter().map(|e| e * e * noise_scale.clamp(0.0, 1.0)).collect();
+    let v = smooth(atlas, chart, &own_var, SMOOTH_RADIUS);
+    let m: Vec<Vec<(f32, f32)>> = cross
+        .iter()
+        .map(|c| smooth_with_error(atlas, chart, c, SMOOTH_RADIUS))
+        .collect();
+    let stride = 1 + cross.len();
+    assert!(cross.len() <= MAX_CANDIDATES, "{} candidates", cross.len());
+    let b = lean.bias.max(0.0);
+    let mut weights = vec![0.0f32; v.len() * stride];
+    let mut texel_error = vec![0.0f32; v.len()];
+    weights
+        .par_chunks_mut(stride)
+        .zip(texel_error.par_iter_mut())
+        .enumerate()
+        .for_each(|(k, (w, err))| {
+            let v = v[k];
+            w[0] = 1.0;
+            if v <= 0.0 {
+                // Nothing to take away: the raw value stands, and so does its error.
+                *err = 0.0;
+                return;
+            }
+            // Every candidate is weighted by the inverse square of its expected squared
+            // error. A biased technique's map errs by its bias b besides its noise, and
+            // a filter's own bias (at most √M) may add to it: each filter's weight is
+            // also scaled by 1 − √M b / V, not below 0, the factor by which the weight
+            // best for the worst case of that sum, (V − √M b) / (V + M), falls short of
+            // the unbiased one, V / (V + M); where bias dominates the filters stay out.
+            // In f64 and relative to the raw value's (1): the squares of a dark texel's
+            // variances leave f32's range.
+            let raw = v as f64;
+            let mut rel = [0.0f64; 1 + MAX_CANDIDATES];
+            rel[0] = 1.0;
+            for (c, mc) in m.iter().enumerate() {
+                let (mean, mean_err) = mc[k];
+                if !mean.is_finite() {
+                    continue;
+                }
+                // The cross-validated figure is itself noisy and can fall to zero or
+                // below; no filter removes all noise, so M is kept above V / 256 (a
+                // filter averaging 256 independent texels). The weight takes M one
+                // standard error high: an M that came out low by chance would let a
+                // filter's bias in where the bake has converged (the delivered map
+                // measured 0.2-0.3 % worse than raw at 8192 samples with M itself),
+                // while one that came out high only gives up a little of the gain.
+                let safe = ((mean + mean_err.max(0.0)) as f64).max(v as f64 / 256.0);
+                let shrink = (1.0 - safe.sqrt() * b as f64 / raw).max(0.0);
+                rel[c + 1] = (raw / safe).powi(2) * shrink;
+            }
+            let sum: f64 = rel[..w.len()].iter().sum();
+            if !sum.is_finite() {
+                // Not expected (every ratio is at most 256²); the raw value is safe.
+                w.fill(0.0);
+                w[0] = 1.0;
+                *err = v.sqrt();
+                return;
+            }
+            for (x, r) in w.iter_mut().zip(&rel) {
+                *x = (r / sum) as f32;
+            }
+            // The delivered error: a convex combination errs, in mean square, by at most
+            // the weighted mean of its parts' mean squared errors (Jensen), whatever
+            // their correlation; the parts' own best estimates M (not one standard
+            // error high), the raw value's V.
+            let parts: f32 = m
+                .iter()
+                .zip(&w[1..])
+                .filter(|(_, w)| **w > 0.0)
+                .map(|(mc, w)| w * mc[k].0.max(v / 256.0))
+                .sum();
+            *err = (w[0] * v + parts).max(0.0).sqrt();
+        });
+    Combination {
+        stride,
+        weights,
+        texel_error,
+        raw_var: v,
+    }
+}
+
+/// Step 5, for a biased technique: the share of the filters' move D − R to keep, as
+/// checked at its control texels against `path`'s values P there. With the move scaled
+/// by s, the squared error there changes by s² A − 2 s B, A = mean (D − R)², B =
+/// mean (D − R)(P − R); P is unbiased and independent of the bake, so B estimates
+/// mean (D − R)(T − R) against the answer T, and s = B / A is best. B is taken one-sided
+/// 95 % low (1.645 standard errors of its mean over the control texels, which holds
+/// P's noise and the spread between texels), so the check keeps the filters' move only
+/// as far as it measurably brings the map closer to the answer: 0 where that cannot be
+/// shown, never above 1. `None` where there is nothing to check (fewer than two control
+/// texels, or the filters moved none of them).
+pub fn checked_share(raw: &[Vec3], delivered: &[Vec3], control: &ControlValues) -> Option<f32> {
+    let m = control.texels.len();
+    if m < 2 {
+        return None;
+    }
+    let lum = |v: Vec3| v.dot(LUMINANCE) as f64;
+    let (mut a, mut b, mut bb) = (0.0f64, 0.0f64, 0.0f64);
+    for (&k, &p) in control.texels.iter().zip(&control.luminance) {
+        let d = lum(delivered[k]) - lum(raw[k]);
+        let x = d * (p as f64 - lum(raw[k]));
+        a += d * d;
+        b += x;
+        bb += x * x;
+    }
+    let n = m as f64;
+    let (a, b) = (a / n, b / n);
+    if a <= 0.0 {
+        return None;
+    }
+    let var = ((bb / n - b * b) * n / (n - 1.0)).max(0.0);
+    let low = b - CHECK_Z * (var / n).sqrt();
+    Some((low / a).clamp(0.0, 1.0) as f32)
+}
+
+/// The candidates' values of one layer at every texel: the raw value, the regression
+/// fits (a fit not offered at a texel takes the raw value; its weight there is 0) and
+/// the image denoiser's output when one ran, mixed by the combination's weights.
+fn mix(raw: &[Vec3], fits: &regress::Fits, image: Option<&[Vec3]>, c: &Combination) -> Vec<Vec3> {
+    (0..raw.len())
+        .into_par_iter()
+        .map(|k| {
+            let w = c.at(k);
+            let mut out = raw[k] * w[0];
+            for f in 0..regress::CANDIDATES {
+                let v = fits.values[k][f];
+                out += if v.is_finite() { v } else { raw[k] } * w[1 + f];
+            }
+            if let Some(img) = image {
+                out += img[k] * w[1 + regress::CANDIDATES];
+            }
+            out
+        })
         .collect()
 }
 
@@ -303,8 +477,8 @@ pub fn apply(atlas: &Atlas, estimate: &Estimate, used: Used) -> Estimate {
     apply_with_weights(atlas, estimate, used).0
 }
 
-/// [`apply`], also returning the blend weight of the filtered value per texel (empty
-/// when nothing was filtered).
+/// [`apply`], also returning the weight left to the filters per texel (1 − the raw
+/// value's; empty when nothing was filtered).
 pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Estimate, Vec<f32>) {
     let mut out = estimate.clone();
     let (Some(se), Some((halves, half_steps))) = (&estimate.texel_error, &estimate.halves) else {
@@ -320,18 +494,48 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
         let s = (n / half_steps[h].max(1) as f32).sqrt();
         se.iter().map(|e| e * s).collect()
     };
-    let whole = filter(atlas, &chart, used, &estimate.total, se, Layer::Irradiance);
-    let filtered_halves = [
-        filter(atlas, &chart, used, &halves[0], &half_se(0), Layer::Irradiance),
-        filter(atlas, &chart, used, &halves[1], &half_se(1), Layer::Irradiance),
-    ];
-    let blend = blend_weights(
-        atlas,
-        &chart,
+    // The candidates: the regression fits of the lightmap and of each half, then the
+    // image denoiser on the lightmap and on each half.
+    let fits = regress::fit(atlas, &chart, &estimate.total, Some([&halves[0], &halves[1]]));
+    let image = filter(atlas, &chart, used, &estimate.total, se, Layer::Irradiance);
+    let image_halves: [Vec<f32>; 2] = [0, 1].map(|h| {
+        filter(atlas, &chart, used, &halves[h], &half_se(h), Layer::Irradiance)
+            .iter()
+            .map(|v| v.dot(LUMINANCE))
+            .collect()
+    });
+    let fit_halves = fits.halves.as_ref().expect("fitted with halves");
+    let mut cross: Vec<Vec<f32>> = (0..regress::CANDIDATES)
+        .into_par_iter()
+        .map(|f| {
+            let column = |h: usize| -> Vec<f32> {
+                (0..se.len())
+                    .map(|k| {
+                        if fits.values[k][f].is_finite() {
+                            fit_halves[h][k][f]
+                        } else {
+                            f32::NAN
+                        }
+                    })
+                    .collect()
+            };
+            let gain: Vec<f32> = fits.gain.iter().map(|g| g[f]).collect();
+            let (a, b) = (column(0), column(1));
+            cross_validated(se, halves, *half_steps, [&a, &b], Some(&gain))
+        })
+        .collect();
+    cross.push(cross_validated(
         se,
         halves,
         *half_steps,
-        &filtered_halves,
+        [&image_halves[0], &image_halves[1]],
+        None,
+    ));
+    let mut combination = combine_weights(
+        atlas,
+        &chart,
+        se,
+        &cross,
         Leanings {
             noise_scale: estimate.error.noise_scale.unwrap_or(1.0),
             // The measured bias on the lightmap's scale (the control texels report it
@@ -339,13 +543,21 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
             bias: estimate.error.bias.unwrap_or(0.0) * estimate.error.rms_luminance,
         },
     );
-    out.total = mix(&estimate.total, &whole, &blend.weight);
+    out.total = mix(&estimate.total, &fits, Some(&image), &combination);
+    let checked = estimate
+        .control
+        .as_deref()
+        .and_then(|c| checked_share(&estimate.total, &out.total, c));
+    if let Some(share) = checked.filter(|s| *s < 1.0) {
+        combination.scale_filters(share);
+        for (d, r) in out.total.iter_mut().zip(&estimate.total) {
+            *d = *r + (*d - *r) * share;
+        }
+    }
     if let Some(d) = &estimate.direct {
-        out.direct = Some(mix(
-            d,
-            &filter(atlas, &chart, used, d, se, Layer::Irradiance),
-            &blend.weight,
-        ));
+        let fits = regress::fit(atlas, &chart, d, None);
+        let image = filter(atlas, &chart, used, d, se, Layer::Irradiance);
+        out.direct = Some(mix(d, &fits, Some(&image), &combination));
     }
     if let Some(m) = &estimate.moments {
         out.moments = Some(denoise_moments(
@@ -356,12 +568,12 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
             &estimate.total,
             &out.total,
             se,
-            &blend.weight,
+            &combination,
         ));
     }
     let count = out.total.len().max(1) as f64;
     let rms = (out.total.iter().map(|v| (v.dot(LUMINANCE) as f64).powi(2)).sum::<f64>() / count).sqrt();
-    let rms_err = (blend.texel_error.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / count).sqrt();
+    let rms_err = (combination.texel_error.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / count).sqrt();
     out.error.raw_relative = estimate.error.relative;
     let noise = if rms > 0.0 { (rms_err / rms) as f32 } else { 0.0 };
     // The bias the control texels measured is still there after denoising (the filter
@@ -375,25 +587,27 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
         out.error.interval = None;
     }
     out.error.rms_luminance = rms as f32;
-    out.texel_error = Some(blend.texel_error);
+    out.texel_error = Some(combination.texel_error.clone());
     out.halves = None;
-    let mean_weight = blend.weight.iter().map(|w| *w as f64).sum::<f64>() / count;
+    let share = combination.filtered_share();
+    let mean_weight = share.iter().map(|w| *w as f64).sum::<f64>() / count;
     tracing::debug!(
         denoiser = %used,
         steps = estimate.steps,
         raw_error = ?estimate.error.relative,
         delivered_error = ?out.error.relative,
         mean_weight,
+        checked_share = ?checked,
         ms = started.elapsed().as_millis() as u64,
         "denoised"
     );
-    (out, blend.weight)
+    (out, share)
 }
 
 /// Directional moments: OIDN's directional mode wants coefficients in [-1, 1], so each
 /// axis is divided by the raw lightmap (per channel), filtered, and multiplied by the
-/// delivered lightmap; the own filter takes the moments as they are. Blended like the
-/// lightmap.
+/// delivered lightmap; the own filter takes the moments as they are. Each axis's
+/// regression fits and filtered values are mixed by the lightmap's weights.
 #[allow(clippy::too_many_arguments)]
 fn denoise_moments(
     atlas: &Atlas,
@@ -403,7 +617,7 @@ fn denoise_moments(
     raw_total: &[Vec3],
     total: &[Vec3],
     se: &[f32],
-    weight: &[f32],
+    combination: &Combination,
 ) -> Vec<[Vec3; 3]> {
     let axes: Vec<Vec<Vec3>> = (0..3)
         .map(|k| {
@@ -422,7 +636,8 @@ fn denoise_moments(
             } else {
                 filter(atlas, chart, used, &raw, se, Layer::Directional)
             };
-            mix(&raw, &filtered, weight)
+            let fits = regress::fit(atlas, chart, &raw, None);
+            mix(&raw, &fits, Some(&filtered), combination)
         })
         .collect();
     (0..m.len()).map(|t| [axes[0][t], axes[1][t], axes[2][t]]).collect()

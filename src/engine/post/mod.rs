@@ -6,14 +6,16 @@
 //! its own chart's nearest valid value), then rings of empty texels are filled outward,
 //! each with the mean of its already-filled 8-neighbours, for `rings` rings.
 //!
-//! Denoising: [`denoised`] (OIDN or the own filter of [`denoise`], blended by the
-//! bake's error estimate).
+//! Denoising: [`denoised`] (OIDN or the own filter of [`denoise`], and the local
+//! regressions of [`regress`], weighted with the raw estimate by their cross-validated
+//! errors).
 //!
 //! Limits: a ring may average two charts' values where their gutters meet.
 
 pub mod denoise;
 pub mod denoised;
 pub mod oidn;
+pub mod regress;
 pub mod seams;
 
 use glam::Vec3;
