@@ -19,8 +19,9 @@
 //! bake's two halves, and `denoised` weights the fits, the raw value and the image
 //! denoiser by those estimates, texel by texel. This is local polynomial regression
 //! with a data-driven choice of bandwidth in the manner of the regression denoisers of
-//! Moon et al. (SIGGRAPH Asia 2014) and of Rousselle et al.'s dual-buffer selection
-//! (2012), in lightmap space with box weights.
+//! Moon et al. (weighted local regression, ACM TOG 2014) and of Rousselle et al.'s
+//! dual-buffer selection (2012), in lightmap space with box weights; the weighting
+//! itself is `denoised`'s.
 //!
 //! How: one pass per texel over its 17 × 17 window. Each neighbour's offset (di, dj)
 //! gives the monomials x = (1, di, dj, di², di·dj, dj²); its moments x xᵀ and its values
