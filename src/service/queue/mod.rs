@@ -350,6 +350,21 @@ pub fn running_history(history: &Value, progress: &Value, snapshots: u32) -> Opt
     serde_json::to_value(points).ok()
 }
 
+/// A split job's history with a running snapshot's `point` added: every last point with
+/// more steps than it is dropped first, so the curve's steps never go back. Those are
+/// merged raw points recorded from the tasks' heartbeats ahead of the halves the
+/// snapshot was made from, or, where two snapshots were stored out of their order, the
+/// later one's point.
+pub fn with_snapshot_point(history: &Value, point: &Value) -> Value {
+    let steps = |p: &Value| p["steps"].as_u64().unwrap_or(0);
+    let mut points = history.as_array().cloned().unwrap_or_default();
+    while points.last().is_some_and(|last| steps(last) > steps(point)) {
+        points.pop();
+    }
+    points.push(point.clone());
+    Value::Array(points)
+}
+
 /// A split job's history once merged: its running points, then the merge's.
 pub fn history_then(running: &Value, merged: &Value) -> Value {
     let mut points = running.as_array().cloned().unwrap_or_default();
@@ -615,8 +630,9 @@ pub trait Queue: Send + Sync + 'static {
     ) -> QueueResult<Option<u32>>;
     /// Records a running split job's snapshot `n` as stored: its count becomes `n`
     /// unless a later claim was stored first, and `point` (a `HistoryPoint`: the
-    /// delivered error of what the snapshot holds) is appended to its history, which
-    /// holds snapshots' points from then on ([`running_history`]). `false` when the job
+    /// delivered error of what the snapshot holds) is added to its history
+    /// ([`with_snapshot_point`]), which holds snapshots' points from then on
+    /// ([`running_history`]). `false` when the job
     /// is no longer running (the caller deletes what it stored).
     async fn task_snapshot_stored(&self, job: &str, n: u32, point: &Value) -> QueueResult<bool>;
     /// Hands back claim `n` that stored nothing (its snapshot could not be made), when no

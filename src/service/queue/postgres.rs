@@ -77,6 +77,7 @@ use super::{
     BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
     Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
     TaskStatus, TokenRecord, WorkerRecord, history_then, lease_given_up, merged_progress, running_history, task_failed,
+    with_snapshot_point,
 };
 use crate::service::model::{JobSpec, JobStatus};
 use crate::service::{Hub, shutting_down};
@@ -966,16 +967,23 @@ impl Queue for PostgresQueue {
 
     async fn task_snapshot_stored(&self, job: &str, n: u32, point: &Value) -> QueueResult<bool> {
         // Under the job's lock: `refresh_progress` reads the history and writes it back,
-        // and must not write over the point appended here.
+        // and must not write over the point added here.
         let mut tx = self.pool.begin().await?;
         lock_job(&mut tx, job).await?;
+        let history: Option<Value> =
+            sqlx::query_scalar("SELECT history FROM jobs WHERE id = $1 AND status = 'running'")
+                .bind(job)
+                .fetch_optional(&mut *tx)
+                .await?;
+        let Some(history) = history else {
+            return Ok(false);
+        };
         let done = sqlx::query(
-            "UPDATE jobs SET snapshots = GREATEST(snapshots, $2), history = history || jsonb_build_array($3::jsonb)
-             WHERE id = $1 AND status = 'running'",
+            "UPDATE jobs SET snapshots = GREATEST(snapshots, $2), history = $3 WHERE id = $1 AND status = 'running'",
         )
         .bind(job)
         .bind(i32::try_from(n).unwrap_or(i32::MAX))
-        .bind(point)
+        .bind(with_snapshot_point(&history, point))
         .execute(&mut *tx)
         .await?;
         tx.commit().await?;

@@ -27,6 +27,7 @@ use super::{
     BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
     Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
     TaskStatus, TokenRecord, WorkerRecord, history_then, lease_given_up, merged_progress, running_history, task_failed,
+    with_snapshot_point,
 };
 use crate::service::model::{JobSpec, JobStatus};
 
@@ -738,18 +739,29 @@ impl Queue for SqliteQueue {
     }
 
     async fn task_snapshot_stored(&self, job: &str, n: u32, point: &Value) -> QueueResult<bool> {
-        // One statement: SQLite runs one writer at a time, and `refresh_progress` reads
-        // the history only inside a transaction that already writes.
-        let done = sqlx::query(
-            "UPDATE jobs SET snapshots = MAX(snapshots, ?2), history = json_insert(history, '$[#]', json(?3))
-             WHERE id = ?1 AND status = 'running'",
-        )
-        .bind(job)
-        .bind(i64::from(n))
-        .bind(point.to_string())
-        .execute(&self.pool)
-        .await?;
-        Ok(done.rows_affected() == 1)
+        // The count's write comes first, so the transaction holds SQLite's one write lock
+        // before it reads the history (no `refresh_progress` can come in between).
+        let mut tx = self.pool.begin().await?;
+        let done = sqlx::query("UPDATE jobs SET snapshots = MAX(snapshots, ?2) WHERE id = ?1 AND status = 'running'")
+            .bind(job)
+            .bind(i64::from(n))
+            .execute(&mut *tx)
+            .await?;
+        if done.rows_affected() != 1 {
+            return Ok(false);
+        }
+        let history: String = sqlx::query_scalar("SELECT history FROM jobs WHERE id = ?")
+            .bind(job)
+            .fetch_one(&mut *tx)
+            .await?;
+        let history: Value = serde_json::from_str(&history).unwrap_or(Value::Array(vec![]));
+        sqlx::query("UPDATE jobs SET history = ?2 WHERE id = ?1")
+            .bind(job)
+            .bind(with_snapshot_point(&history, point).to_string())
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(true)
     }
 
     async fn release_task_snapshot(&self, job: &str, n: u32) -> QueueResult<()> {

@@ -911,11 +911,27 @@ async fn a_split_jobs_tasks_take_turns_at_its_snapshots(f: &Fixture) {
     }
     let raw = q.job("j").await.unwrap().unwrap().history;
     assert_eq!(raw.as_array().map(Vec::len), Some(1), "{raw}");
-    // Claim 2 is stored first, then claim 1: the count stays at the later, and each
-    // appends its point (the delivered error of what it holds) to the history.
+    let raw_steps = raw[0]["steps"].as_u64().unwrap();
+    // Claim 2 is stored first, then claim 1: the count stays at the later. Each adds its
+    // point (the delivered error of what it holds) to the history; claim 1's, made from
+    // fewer steps, takes the place of claim 2's, so the steps never go back.
     let point = |steps: u64, error: f32| json!({"seconds": 7.0, "steps": steps, "error": error, "raw_error": 0.3f32});
-    assert!(q.task_snapshot_stored("j", 2, &point(6, 0.2)).await.unwrap());
-    assert!(q.task_snapshot_stored("j", 1, &point(4, 0.25)).await.unwrap());
+    assert!(
+        q.task_snapshot_stored("j", 2, &point(raw_steps + 4, 0.2))
+            .await
+            .unwrap()
+    );
+    let history = q.job("j").await.unwrap().unwrap().history;
+    assert_eq!(
+        history.as_array().unwrap()[1..],
+        [point(raw_steps + 4, 0.2)],
+        "{history}"
+    );
+    assert!(
+        q.task_snapshot_stored("j", 1, &point(raw_steps + 2, 0.25))
+            .await
+            .unwrap()
+    );
     assert_eq!(q.job("j").await.unwrap().unwrap().snapshots, 2);
     // From the first snapshot on, heartbeats add no raw points: the history is the
     // snapshots' points, as a single bake's.
@@ -924,8 +940,8 @@ async fn a_split_jobs_tasks_take_turns_at_its_snapshots(f: &Fixture) {
         .unwrap();
     let history = q.job("j").await.unwrap().unwrap().history;
     assert_eq!(
-        history.as_array().unwrap()[1..],
-        [point(6, 0.2), point(4, 0.25)],
+        history.as_array().unwrap()[..],
+        [raw[0].clone(), point(raw_steps + 2, 0.25)],
         "{history}"
     );
     // A finished task hands the turn to the other.
@@ -965,11 +981,7 @@ async fn a_split_jobs_tasks_take_turns_at_its_snapshots(f: &Fixture) {
     assert!(!q.task_snapshot_stored("j", 3, &point(12, 0.1)).await.unwrap());
     let job = q.job("j").await.unwrap().unwrap();
     assert_eq!(job.snapshots, 2);
-    assert_eq!(
-        job.history.as_array().map(Vec::len),
-        Some(3),
-        "nothing appended once over"
-    );
+    assert_eq!(job.history.as_array().map(Vec::len), Some(2), "nothing added once over");
 }
 
 /// The embedded migrations are exactly the files of `migrations/<store>/`, with the
@@ -1038,6 +1050,28 @@ fn a_split_jobs_history_runs_until_the_merge() {
     assert_eq!(steps, [10, 13, 14]);
     // Once a running snapshot is stored, its points are the history: no raw point.
     assert_eq!(running_history(&h, &progress(40, 30.0, Some(0.1)), 1), None);
+    // A snapshot's point drops the last points that have more steps than it (raw points
+    // recorded ahead of the halves it was made from): steps never go back.
+    let snap = json!({"seconds": 8.0, "steps": 13, "error": 0.15f32});
+    let with = with_snapshot_point(&h, &snap);
+    let steps: Vec<u64> = with
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["steps"].as_u64().unwrap())
+        .collect();
+    assert_eq!(steps, [10, 13, 13]);
+    assert_eq!(with[2], snap);
+    let ahead = json!({"seconds": 9.0, "steps": 20, "error": 0.1f32});
+    assert_eq!(with_snapshot_point(&with, &ahead).as_array().unwrap().len(), 4);
+    let behind = json!({"seconds": 9.0, "steps": 12, "error": 0.1f32});
+    let steps: Vec<u64> = with_snapshot_point(&with, &behind)
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["steps"].as_u64().unwrap())
+        .collect();
+    assert_eq!(steps, [10, 12]);
     let merged = history_then(&h, &json!([{"seconds": 8.0, "steps": 14, "error": 0.05f32}]));
     assert_eq!(merged.as_array().unwrap().len(), 4);
     assert_eq!(merged[3]["error"], json!(0.05f32));
