@@ -240,7 +240,7 @@ fn filter(atlas: &Atlas, chart: &[u32], used: Used, values: &[Vec3], se: &[f32],
 }
 
 /// Per-texel weights of the candidates and delivered standard errors (see the module
-/// doc, 2-4).
+/// doc, 3-5).
 pub struct Combination {
     /// Candidates per texel: the raw value first, then those whose errors were given.
     pub stride: usize,
@@ -325,7 +325,7 @@ pub fn cross_validated(
         .collect()
 }
 
-/// Steps 3 and 4: each texel's weights over the raw value (its variance V from the
+/// Steps 3 and 5: each texel's weights over the raw value (its variance V from the
 /// halves, smoothed) and the candidates whose cross-validated errors are `cross` (from
 /// [`cross_validated`]; smoothed over the 7 × 7 neighbourhood with their standard
 /// error), and the delivered standard error.
