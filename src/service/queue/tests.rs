@@ -1026,6 +1026,13 @@ fn embedded_migrations_are_the_migration_folders() {
 fn a_split_jobs_history_runs_until_the_merge() {
     let progress = |steps: u64, elapsed_s: f64, error: Option<f32>| json!({"steps": steps, "fraction": 0.5, "elapsed_s": elapsed_s, "error": error});
     let empty = json!([]);
+    let steps_of = |h: &Value| -> Vec<u64> {
+        h.as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["steps"].as_u64().unwrap())
+            .collect()
+    };
     assert_eq!(running_history(&empty, &progress(0, 1.0, Some(0.5)), 0), None);
     assert_eq!(running_history(&empty, &progress(10, 1.0, None), 0), None);
     let h = running_history(&empty, &progress(10, 1.0, Some(0.2)), 0).unwrap();
@@ -1041,37 +1048,19 @@ fn a_split_jobs_history_runs_until_the_merge() {
     assert_eq!(h.as_array().unwrap().len(), 2);
     assert_eq!(running_history(&h, &progress(13, 9.0, Some(0.18)), 0), None);
     let h = running_history(&h, &progress(14, 7.0, Some(0.17)), 0).unwrap();
-    let steps: Vec<u64> = h
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|p| p["steps"].as_u64().unwrap())
-        .collect();
-    assert_eq!(steps, [10, 13, 14]);
+    assert_eq!(steps_of(&h), [10, 13, 14]);
     // Once a running snapshot is stored, its points are the history: no raw point.
     assert_eq!(running_history(&h, &progress(40, 30.0, Some(0.1)), 1), None);
     // A snapshot's point drops the last points that have more steps than it (raw points
     // recorded ahead of the halves it was made from): steps never go back.
     let snap = json!({"seconds": 8.0, "steps": 13, "error": 0.15f32});
     let with = with_snapshot_point(&h, &snap);
-    let steps: Vec<u64> = with
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|p| p["steps"].as_u64().unwrap())
-        .collect();
-    assert_eq!(steps, [10, 13, 13]);
+    assert_eq!(steps_of(&with), [10, 13, 13]);
     assert_eq!(with[2], snap);
     let ahead = json!({"seconds": 9.0, "steps": 20, "error": 0.1f32});
     assert_eq!(with_snapshot_point(&with, &ahead).as_array().unwrap().len(), 4);
     let behind = json!({"seconds": 9.0, "steps": 12, "error": 0.1f32});
-    let steps: Vec<u64> = with_snapshot_point(&with, &behind)
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|p| p["steps"].as_u64().unwrap())
-        .collect();
-    assert_eq!(steps, [10, 12]);
+    assert_eq!(steps_of(&with_snapshot_point(&with, &behind)), [10, 12]);
     let merged = history_then(&h, &json!([{"seconds": 8.0, "steps": 14, "error": 0.05f32}]));
     assert_eq!(merged.as_array().unwrap().len(), 4);
     assert_eq!(merged[3]["error"], json!(0.05f32));
