@@ -128,6 +128,32 @@ fn masked(reference: &[Option<Vec3>], mask: &[bool]) -> Vec<Option<Vec3>> {
         .collect()
 }
 
+/// The reference of `key` from `target/denoise-quality-refs` (little-endian f32 RGB per
+/// texel), or baked by `bake` and kept there: a real interior's reference takes minutes
+/// on two cores, and every comparison of a change to the denoiser needs the same one.
+fn cached_reference(key: &str, bake: impl FnOnce() -> Vec<Vec3>) -> Vec<Vec3> {
+    let dir = std::path::Path::new("target/denoise-quality-refs");
+    let file = dir.join(format!("{key}.bin"));
+    if let Ok(bytes) = std::fs::read(&file) {
+        eprintln!("reference: {}", file.display());
+        return bytes
+            .chunks_exact(12)
+            .map(|c| {
+                let f = |i: usize| f32::from_le_bytes(c[i..i + 4].try_into().unwrap());
+                Vec3::new(f(0), f(4), f(8))
+            })
+            .collect();
+    }
+    let values = bake();
+    let bytes: Vec<u8> = values
+        .iter()
+        .flat_map(|v| v.to_array().into_iter().flat_map(f32::to_le_bytes))
+        .collect();
+    std::fs::create_dir_all(dir).unwrap();
+    std::fs::write(&file, bytes).unwrap();
+    values
+}
+
 fn errors(args: &[String]) {
     let name = args.first().map(String::as_str).unwrap_or("cornell-box");
     let ref_samples: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(65536);
@@ -171,18 +197,28 @@ fn errors(args: &[String]) {
         chart.iter().max().map(|m| m + 1).unwrap_or(0),
         border.iter().filter(|b| **b).count()
     );
-    let t = Instant::now();
-    let mut r = path_tech(&scene, &atlas, lighting, 987_654, 64);
-    for _ in 0..(ref_samples / 64).max(2) {
-        r.step().unwrap();
-    }
-    let rest = r.snapshot().unwrap().estimate();
-    eprintln!(
-        "reference: {:.1} s, own estimated error {:.3} %",
-        t.elapsed().as_secs_f64(),
-        rest.error.relative.unwrap_or(0.0) * 100.0
+    let key = format!(
+        "{}-{}-{ref_samples}",
+        std::path::Path::new(name).file_stem().unwrap().to_string_lossy(),
+        atlas.texels.len()
     );
-    let reference: Vec<Option<Vec3>> = rest.total.iter().map(|v| Some(*v)).collect();
+    let reference: Vec<Option<Vec3>> = cached_reference(&key, || {
+        let t = Instant::now();
+        let mut r = path_tech(&scene, &atlas, lighting, 987_654, 64);
+        for _ in 0..(ref_samples / 64).max(2) {
+            r.step().unwrap();
+        }
+        let rest = r.snapshot().unwrap().estimate();
+        eprintln!(
+            "reference: {:.1} s, own estimated error {:.3} %",
+            t.elapsed().as_secs_f64(),
+            rest.error.relative.unwrap_or(0.0) * 100.0
+        );
+        rest.total
+    })
+    .into_iter()
+    .map(Some)
+    .collect();
     let ref_border = masked(&reference, &border);
     let oidn = Oidn::available();
     println!(

@@ -517,7 +517,7 @@ fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cf
             .filter(|s| s.true_error > 1e-5)
             .map(|s| (s.denoised_error / s.true_error, s.steps))
             .max_by(|a, b| a.0.total_cmp(&b.0))
-            .map_or_else(|| "n/a".into(), |(r, steps)| format!("{r:.3} ({steps})"));
+            .map_or_else(|| "n/a".into(), |(r, steps)| format!("{r:.4} ({steps})"));
         let steps = match (run.first(), run.last()) {
             (Some(a), Some(b)) => format!("{}-{}", a.steps, b.steps),
             _ => String::new(),

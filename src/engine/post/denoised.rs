@@ -26,9 +26,14 @@
 //!    E[(D(a) − b)²] = MSE(D(a)) + Var(b), so (D(a) − b)² − Var(b), averaged over both
 //!    pairings ([`cross_validated`]) and smoothed over a 7 × 7 neighbourhood in the
 //!    chart, estimates the filter's mean squared error, bias included. That is the
-//!    error of a filtered *half*; for the fits, whose noise gain a₀ is known, half of
-//!    a filtered half's noise (a₀ Var(half) / 2) is taken off, which leaves the
-//!    filtered whole's; for the image denoiser it stays an upper bound.
+//!    error of a filtered *half*, which carries twice the noise of the filtered
+//!    whole; the excess is taken off: for the fits from their known noise gain a₀
+//!    (a₀ Var(half) / 2), for the image denoiser as measured between its two
+//!    filtered halves ((D(a) − D(b))² / 4, [`HalfNoise`]). For a linear filter both
+//!    leave the filtered whole's error; for the image denoiser what is left is the
+//!    error of the filter it chose for a half applied to the whole, still an upper
+//!    bound of what it does with the whole's lower noise, a tighter one than a
+//!    filtered half's (which weighted OIDN below its due, docs/quality.md).
 //! 3. Combine ([`combine_weights`]): delivered = Σ w_c D_c, over the raw value (its
 //!    error the raw variance V, smoothed like M) and the candidates (M⁺, M plus one
 //!    standard error of its neighbourhood mean, `denoise::smooth_with_error`), with
@@ -68,8 +73,9 @@
 //!    (`accumulate`).
 //!
 //! Limits: the weights come from luminance and are used for all three channels and for
-//! the direct and directional layers too; the image denoiser's M is an upper bound (a
-//! filtered half is worse than the filtered whole), so the weights lean away from it;
+//! the direct and directional layers too; the image denoiser's M is an upper bound (it
+//! adapts to the noise it sees, and the half's filter is what is measured), so the
+//! weights lean a little away from it;
 //! the cross-validation needs both halves, so an estimate with one half's steps is not
 //! denoised. Each denoised estimate costs three image-filter runs of the lightmap
 //! (whole and halves) and one regression pass, plus one of each per extra layer.
@@ -297,29 +303,52 @@ impl Default for Leanings {
     }
 }
 
+/// How [`cross_validated`] turns a filtered half's error into the filtered whole's.
+#[derive(Clone, Copy, Debug)]
+pub enum HalfNoise<'a> {
+    /// A linear filter's noise gain per texel (the fits' a₀ = Σ l²): its output's noise
+    /// is a₀ times its input's variance.
+    Gain(&'a [f32]),
+    /// Measured from the two filtered halves (the image denoiser's, whose gain is not
+    /// known): D(a) and D(b) are independent draws of the same filter's output, so
+    /// ½ (D(a) − D(b))² estimates a filtered half's noise.
+    Measured,
+}
+
 /// Step 2 for one candidate filter D, per texel: the cross-validated estimate of the
 /// mean squared error of D applied to the whole estimate, from D's output on each half
 /// (`filtered[h]`, luminance) against the other raw half: ½ Σ_h [(D(h) − other)² −
-/// Var(other)], less ½ `gain` Var(half) when D's noise gain is known (a filtered half
-/// carries twice the noise that the filtered whole does; without it the figure is
-/// that of a filtered half, an upper bound). NaN where D offers no value.
+/// Var(other)], less what a filtered half's noise exceeds the filtered whole's by. A
+/// half's variance is s_h times the whole's (s_h = n / n_h, Σ 1/s_h = 1), so D's noise
+/// g Var s_h on a half is g Var on the whole, and the pairings' mean carries
+/// g Var ((s₀ + s₁)/2 − 1) more than the whole's (g Var with equal halves). For a
+/// linear filter (`HalfNoise::Gain`) that is exact. For the image denoiser g Var
+/// (s₀ + s₁) is measured as E[(D(a) − D(b))²] (`HalfNoise::Measured`), and what is
+/// left is the error of the filter it used on a half applied to the whole, which a
+/// denoiser that adapts to its input's noise can only improve on with the whole's
+/// lower noise; the figure stays an upper bound, a tighter one than a filtered half's.
+/// NaN where D offers no value.
 pub fn cross_validated(
     se: &[f32],
     halves: &[Vec<Vec3>; 2],
     half_steps: [u64; 2],
     filtered: [&[f32]; 2],
-    gain: Option<&[f32]>,
+    noise: HalfNoise,
 ) -> Vec<f32> {
     let n = (half_steps[0] + half_steps[1]) as f32;
     // Variance of each half's mean: the combined mean's, times n / n_h.
     let scale = [n / half_steps[0].max(1) as f32, n / half_steps[1].max(1) as f32];
+    let excess = 0.5 * (scale[0] + scale[1]) - 1.0;
     (0..se.len())
         .map(|k| {
             let var = se[k] * se[k];
             let l = |x: Vec3| x.dot(LUMINANCE);
             let e0 = (filtered[0][k] - l(halves[1][k])).powi(2) - var * scale[1];
             let e1 = (filtered[1][k] - l(halves[0][k])).powi(2) - var * scale[0];
-            let own = gain.map_or(0.0, |g| 0.5 * g[k] * var * 0.5 * (scale[0] + scale[1]));
+            let own = match noise {
+                HalfNoise::Gain(g) => g[k] * var * excess,
+                HalfNoise::Measured => (filtered[0][k] - filtered[1][k]).powi(2) * excess / (scale[0] + scale[1]),
+            };
             0.5 * (e0 + e1) - own
         })
         .collect()
@@ -457,16 +486,23 @@ fn mix(raw: &[Vec3], fits: &regress::Fits, image: Option<&[Vec3]>, c: &Combinati
     (0..raw.len())
         .into_par_iter()
         .map(|k| {
+            // Σ w_c D_c with Σ w_c = 1, written as the raw value plus the weighted moves
+            // D_c − raw: where the bake has converged and the filters keep weights of
+            // 1e-6, the raw value comes back to its last bit instead of through a sum of
+            // rounded products, so rounding alone cannot make a converged map worse.
             let w = c.at(k);
-            let mut out = raw[k] * w[0];
+            let r = raw[k];
+            let mut moved = Vec3::ZERO;
             for f in 0..regress::CANDIDATES {
                 let v = fits.values[k][f];
-                out += if v.is_finite() { v } else { raw[k] } * w[1 + f];
+                if v.is_finite() {
+                    moved += (v - r) * w[1 + f];
+                }
             }
             if let Some(img) = image {
-                out += img[k] * w[1 + regress::CANDIDATES];
+                moved += (img[k] - r) * w[1 + regress::CANDIDATES];
             }
-            out
+            r + moved
         })
         .collect()
 }
@@ -521,7 +557,7 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
             };
             let gain: Vec<f32> = fits.gain.iter().map(|g| g[f]).collect();
             let (a, b) = (column(0), column(1));
-            cross_validated(se, halves, *half_steps, [&a, &b], Some(&gain))
+            cross_validated(se, halves, *half_steps, [&a, &b], HalfNoise::Gain(&gain))
         })
         .collect();
     cross.push(cross_validated(
@@ -529,7 +565,7 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
         halves,
         *half_steps,
         [&image_halves[0], &image_halves[1]],
-        None,
+        HalfNoise::Measured,
     ));
     let mut combination = combine_weights(
         atlas,
