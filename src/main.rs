@@ -319,9 +319,15 @@ struct BenchArgs {
     /// cores; the figures are coarse).
     #[arg(long)]
     quick: bool,
-    /// Bake time per scene and technique [default: 20, or 1 with --quick].
+    /// Bake time per scene and technique [default: 20, or 1 with --quick]; with --steps,
+    /// the most a scene and technique may take.
     #[arg(long)]
     budget_seconds: Option<f64>,
+    /// A sweep by steps instead of by time: a snapshot at 4, 16, 64, … steps up to this
+    /// many (powers of 4, at least 4), each scene and technique stopping there or at its
+    /// budget, whichever comes first.
+    #[arg(long)]
+    steps: Option<u64>,
     /// Bake time of a path reference for scenes with no closed form (cached) [default: 90,
     /// or 10 with --quick].
     #[arg(long)]
@@ -1450,7 +1456,15 @@ fn bench(args: BenchArgs) -> Result<(), Failure> {
             return Err(bad_input(format!("{what} must be a positive number, got {v}")));
         }
     }
+    if let Some(n) = args.steps
+        && n < 4
+    {
+        return Err(bad_input(format!(
+            "--steps must be at least 4 (the first snapshot), got {n}"
+        )));
+    }
     let cfg = lightmapd::bench::BenchConfig {
+        steps: args.steps,
         scenes: args.scenes,
         techniques: if args.techniques.is_empty() {
             lightmapd::engine::technique::TECHNIQUES

@@ -83,6 +83,7 @@ fn a_short_run_reports_exact_path_and_obscurances_bias() {
         scenes: vec!["closed-box-0.5".into(), "sky-plane".into()],
         techniques: vec!["path".into(), "obscurance".into()],
         budget: Duration::from_secs_f64(1.0),
+        steps: None,
         reference_budget: Duration::from_secs_f64(1.0), // closed forms: never baked
         out_dir: out.clone(),
         cache_dir: out.join("cache"),
@@ -170,4 +171,47 @@ fn a_short_run_reports_exact_path_and_obscurances_bias() {
     let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
     assert!(summary.contains("| 10 % | 5 % | 2 % | 1 % |"), "{summary}");
     assert!(summary.contains("| sky-plane | path | "), "{summary}");
+}
+
+/// `--steps`: snapshots at exactly 4, 16 and 64 steps, each with the denoised figures,
+/// where the budget allows; where it does not, the row ends at the steps it reached with
+/// one snapshot there (a zero budget: at the first two steps, the fewest a snapshot
+/// needs). `path` on the sky plane (closed form 1) takes milliseconds a step.
+#[test]
+fn a_step_sweep_snapshots_at_powers_of_four() {
+    let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("bench-step-sweep");
+    let _ = std::fs::remove_dir_all(&out);
+    let cfg = |scene: &str, technique: &str, budget: f64| BenchConfig {
+        scenes: vec![scene.into()],
+        techniques: vec![technique.into()],
+        budget: Duration::from_secs_f64(budget),
+        steps: Some(64),
+        reference_budget: Duration::from_secs_f64(1.0), // closed forms: never baked
+        out_dir: out.clone(),
+        cache_dir: out.join("cache"),
+        probes: false,
+    };
+    let samples = run(&cfg("sky-plane", "path", 600.0), &mut |l| eprintln!("{l}")).expect("the bench runs");
+    let steps: Vec<u64> = samples.iter().map(|s| s.steps).collect();
+    assert_eq!(steps, [4, 16, 64]);
+    for s in &samples {
+        assert!(s.true_error < 0.05, "{} steps: true error {}", s.steps, s.true_error);
+        assert!(
+            s.denoised_error <= s.true_error,
+            "{} steps: denoised {} against raw {}",
+            s.steps,
+            s.denoised_error,
+            s.true_error
+        );
+    }
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(
+        summary.starts_with("Snapshots at 4, 16, 64, … up to 64 steps"),
+        "{summary}"
+    );
+    assert!(summary.contains("| sky-plane | path | 4-64 |"), "{summary}");
+
+    let capped = run(&cfg("closed-box-0.5", "path", 0.0), &mut |l| eprintln!("{l}")).expect("the bench runs");
+    let steps: Vec<u64> = capped.iter().map(|s| s.steps).collect();
+    assert_eq!(steps, [2], "stopped by the budget after the first two steps");
 }

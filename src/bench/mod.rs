@@ -2,7 +2,9 @@
 //! scenes (DESIGN §4, issue 5).
 //!
 //! How: for each scene of `engine::scene::library` and each technique, bake with a
-//! snapshot at geometric time points (budget/128, budget/64, …, budget) and measure the
+//! snapshot at geometric time points (budget/128, budget/64, …, budget), or with
+//! `--steps N` at 4, 16, 64, … N steps (issue 22's sweep of the denoiser by step count,
+//! the budget then a cap), and measure the
 //! true error of each snapshot against the reference: the closed-form answer where the
 //! scene has one, else a long `path` bake cached on disk, keyed by a hash of the scene
 //! file, resolution, lighting and reference budget (so a changed scene is never compared
@@ -50,8 +52,11 @@ pub struct BenchConfig {
     /// real-size one).
     pub scenes: Vec<String>,
     pub techniques: Vec<String>,
-    /// Bake time per scene and technique.
+    /// Bake time per scene and technique (with `steps`, the most it may take).
     pub budget: Duration,
+    /// A sweep by steps: snapshots at 4, 16, 64, … up to this many steps (each scene and
+    /// technique stops there or at `budget`), instead of at geometric time points.
+    pub steps: Option<u64>,
     /// Bake time of a `path` reference where a scene has no closed form.
     pub reference_budget: Duration,
     pub out_dir: PathBuf,
@@ -232,13 +237,16 @@ fn write_cached(path: &Path, values: &[Vec3], error: f64) -> std::io::Result<()>
     crate::engine::output::write_atomically(path, &bytes)
 }
 
-/// Bakes `technique` on a prepared scene, measuring at geometric time points.
+/// Bakes `technique` on a prepared scene, measuring at geometric time points (budget/128,
+/// budget/64, …, budget), or with `steps` at 4, 16, 64, … steps up to it, stopping at the
+/// budget if that comes first (a last snapshot then at the steps reached).
 pub fn measure(
     lib: &LibraryScene,
     p: &PreparedScene,
     reference: &Reference,
     technique: &str,
     budget: Duration,
+    steps: Option<u64>,
 ) -> Result<Vec<Sample>, EngineError> {
     let mut tech = technique::create(technique, inputs(p, lib, technique, 1)?, &serde_json::Value::Null)?;
     // A biased technique's estimate is what a job reports: its noise and, through the
@@ -253,7 +261,9 @@ pub fn measure(
     let mut technique_time = Duration::ZERO;
     let mut samples = Vec::new();
     let start = Instant::now();
-    let mut next = budget.as_secs_f64() / 128.0;
+    // Never 0: the doubling below would not move it past the clock (a zero budget hung).
+    let mut next = (budget.as_secs_f64() / 128.0).max(1e-6);
+    let (mut next_step, mut recorded) = (4u64, 0u64);
     let request = BakeRequest {
         technique: technique.into(),
         lighting: lib.lighting,
@@ -286,17 +296,28 @@ pub fn measure(
             c.keep_up(technique_time)?;
         }
         let t = start.elapsed().as_secs_f64();
-        if tech.steps_done() >= 2 && (t >= next || t >= budget.as_secs_f64()) {
+        let done = tech.steps_done();
+        let over = t >= budget.as_secs_f64() && done >= 2;
+        let due = match steps {
+            // The sweep's snapshot, the last one, or the budget's end between two.
+            Some(last) => done >= next_step || done >= last || (over && done > recorded),
+            None => done >= 2 && (t >= next || t >= budget.as_secs_f64()),
+        };
+        if due {
             let mut est = tech.snapshot()?.estimate();
             if let Some(c) = &mut control {
                 c.assess(&mut est)?;
             }
             record(&est, t);
+            recorded = done;
             while next <= t {
                 next *= 2.0;
             }
+            while next_step <= done {
+                next_step *= 4;
+            }
         }
-        if t >= budget.as_secs_f64() && tech.steps_done() >= 2 {
+        if over || steps.is_some_and(|last| done >= last) {
             break;
         }
     }
@@ -360,8 +381,15 @@ pub fn run(cfg: &BenchConfig, log: &mut dyn FnMut(&str)) -> Result<Vec<Sample>, 
         ));
         let mut scene_samples = Vec::new();
         for t in &cfg.techniques {
-            log(&format!("{}: {t} for {:.0} s", lib.name, cfg.budget.as_secs_f64()));
-            scene_samples.extend(measure(lib, &p, &r, t, cfg.budget)?);
+            match cfg.steps {
+                Some(n) => log(&format!(
+                    "{}: {t} to {n} steps, at most {:.0} s",
+                    lib.name,
+                    cfg.budget.as_secs_f64()
+                )),
+                None => log(&format!("{}: {t} for {:.0} s", lib.name, cfg.budget.as_secs_f64())),
+            }
+            scene_samples.extend(measure(lib, &p, &r, t, cfg.budget, cfg.steps)?);
         }
         std::fs::write(
             cfg.out_dir.join(format!("{}.svg", lib.name)),
@@ -468,11 +496,18 @@ fn probes_md(samples: &[probes::ProbeSample]) -> String {
 
 fn summary_md(samples: &[Sample], refs: &[(&str, String, f64, usize, usize)], cfg: &BenchConfig) -> String {
     let mut md = String::new();
-    let _ = writeln!(
-        md,
-        "Budget {:.0} s per scene and technique.\n",
-        cfg.budget.as_secs_f64()
-    );
+    let _ = match cfg.steps {
+        Some(n) => writeln!(
+            md,
+            "Snapshots at 4, 16, 64, … up to {n} steps, at most {:.0} s per scene and technique (a row that stops at the budget ends at the steps it reached).\n",
+            cfg.budget.as_secs_f64()
+        ),
+        None => writeln!(
+            md,
+            "Budget {:.0} s per scene and technique.\n",
+            cfg.budget.as_secs_f64()
+        ),
+    };
     let _ = writeln!(
         md,
         "| scene | triangles | texels | reference | reference error |\n| --- | --- | --- | --- | --- |"
