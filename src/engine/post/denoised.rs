@@ -66,11 +66,12 @@
 //!    map otherwise. Without it the weights of 3 still let a filter's blur move a
 //!    bias-dominated map the way its bias already goes (`vpl` on the parallel plates:
 //!    up to 8 % worse than raw, docs/quality.md).
-//! 5. Delivered error per texel: √(Σ w_c M_c) (each part's best estimate, M itself and
-//!    V): the mean squared error of a convex combination is at most the weighted mean
-//!    of its parts', whatever their correlation (Jensen), so this bounds it; the map's
-//!    relative error is its RMS over the RMS luminance, as for the raw estimate
-//!    (`accumulate`).
+//! 5. Delivered error per texel: Σ w_c √M_c (each part's best estimate, M itself and
+//!    V): the RMS error of a convex combination is at most the weighted mean of its
+//!    parts' RMS errors, whatever their correlation (the triangle inequality, i.e.
+//!    Minkowski), so this bounds it, and more tightly than √(Σ w_c M_c) (Jensen, used
+//!    until 2026-12-06); the map's relative error is its RMS over the RMS luminance, as
+//!    for the raw estimate (`accumulate`).
 //!
 //! Limits: the weights come from luminance and are used for all three channels and for
 //! the direct and directional layers too; the image denoiser's M is an upper bound (it
@@ -270,7 +271,8 @@ impl Combination {
             }
             w[0] = 1.0 - w[1..].iter().sum::<f32>();
             let e = &mut self.texel_error[k];
-            *e = ((1.0 - share) * self.raw_var[k] + share * *e * *e).max(0.0).sqrt();
+            // The same bound (Minkowski) for the raw value and the combination mixed.
+            *e = ((1.0 - share) * self.raw_var[k].max(0.0).sqrt() + share * *e).max(0.0);
         }
     }
 
@@ -425,17 +427,18 @@ pub fn combine_weights(atlas: &Atlas, chart: &[u32], se: &[f32], cross: &[Vec<f3
             for (x, r) in w.iter_mut().zip(&rel) {
                 *x = (r / sum) as f32;
             }
-            // The delivered error: a convex combination errs, in mean square, by at most
-            // the weighted mean of its parts' mean squared errors (Jensen), whatever
-            // their correlation; the parts' own best estimates M (not one standard
-            // error high), the raw value's V.
+            // The delivered error: a convex combination's RMS error is at most the
+            // weighted mean of its parts' RMS errors (the triangle inequality for the
+            // RMS, Minkowski), whatever their correlation; the parts' own best estimates
+            // M (not one standard error high), the raw value's V. (Σ w √M)² is never
+            // above Σ w M, the Jensen bound used before 2026-12-06, and is as safe.
             let parts: f32 = m
                 .iter()
                 .zip(&w[1..])
                 .filter(|(_, w)| **w > 0.0)
-                .map(|(mc, w)| w * mc[k].0.max(v / 256.0))
+                .map(|(mc, w)| w * mc[k].0.max(v / 256.0).sqrt())
                 .sum();
-            *err = (w[0] * v + parts).max(0.0).sqrt();
+            *err = (w[0] * v.sqrt() + parts).max(0.0);
         });
     Combination {
         stride,
