@@ -4,11 +4,10 @@
 //! How: for each scene of `engine::scene::library` and each technique, bake with a
 //! snapshot at geometric time points (budget/128, budget/64, …, budget), or with
 //! `--steps N` at 4, 16, 64, … N steps (issue 22's sweep of the denoiser by step count,
-//! the budget then a cap), and measure the
-//! true error of each snapshot against the reference: the closed-form answer where the
-//! scene has one, else a long `path` bake cached on disk, keyed by a hash of the scene
-//! file, resolution, lighting and reference budget (so a changed scene is never compared
-//! with a stale reference). The error metric is the one of `docs/accuracy.md`:
+//! the budget then a cap), and measure the true error of each snapshot against the
+//! reference: the closed-form answer where the scene has one, else a long `path` bake
+//! cached on disk, keyed by a hash of the scene file, resolution, lighting and reference
+//! budget (so a changed scene is never compared with a stale reference). The error metric is the one of `docs/accuracy.md`:
 //! RMS over reference texels of the luminance difference, over the RMS reference
 //! luminance. The estimated error is the one a job reports: for a biased technique its
 //! noise and its bias measured at control texels (`engine::control`), whose `path` steps
