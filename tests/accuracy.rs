@@ -15,6 +15,7 @@ fn analytic_only() -> BenchConfig {
         scenes: vec![],
         techniques: vec![],
         budget: Duration::ZERO,
+        steps: None,
         reference_budget: Duration::ZERO,
         out_dir: std::env::temp_dir(),
         cache_dir: std::env::temp_dir(),

@@ -85,6 +85,7 @@ fn measure(
                 scenes: Vec::new(),
                 techniques: Vec::new(),
                 budget: Duration::ZERO,
+                steps: None,
                 reference_budget: Duration::from_secs_f64(budget),
                 out_dir: PathBuf::new(),
                 cache_dir: PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("honest-error-references"),
