@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::Vec3;
-use lightmapd::bench::{prepare, true_error};
+use lightmapd::bench::{prepare, read_cached, true_error, write_cached};
 use lightmapd::engine::accumulate::Estimate;
 use lightmapd::engine::atlas::{Atlas, GutterLink, NO_TEXEL, PixelTexels};
 use lightmapd::engine::job::BakeRequest;
@@ -128,30 +128,23 @@ fn masked(reference: &[Option<Vec3>], mask: &[bool]) -> Vec<Option<Vec3>> {
         .collect()
 }
 
-/// The reference of `key` from `target/denoise-quality-refs` (little-endian f32 RGB per
-/// texel), or baked by `bake` and kept there: a real interior's reference takes minutes
-/// on two cores, and every comparison of a change to the denoiser needs the same one.
-fn cached_reference(key: &str, bake: impl FnOnce() -> Vec<Vec3>) -> Vec<Vec3> {
-    let dir = std::path::Path::new("target/denoise-quality-refs");
-    let file = dir.join(format!("{key}.bin"));
-    if let Ok(bytes) = std::fs::read(&file) {
-        eprintln!("reference: {}", file.display());
-        return bytes
-            .chunks_exact(12)
-            .map(|c| {
-                let f = |i: usize| f32::from_le_bytes(c[i..i + 4].try_into().unwrap());
-                Vec3::new(f(0), f(4), f(8))
-            })
-            .collect();
+/// The reference of `key` from `target/denoise-quality-refs` (the bench's cache format,
+/// `bench::read_cached`), or baked by `bake` and kept there: a real interior's reference
+/// takes minutes on two cores, and every comparison of a change to the denoiser needs
+/// the same one. `bake` returns the values and their own estimated relative error.
+fn cached_reference(key: &str, texels: usize, bake: impl FnOnce() -> (Vec<Vec3>, f64)) -> Vec<Option<Vec3>> {
+    let file = std::path::Path::new("target/denoise-quality-refs").join(format!("{key}.ref"));
+    if let Some(r) = read_cached(&file, texels) {
+        eprintln!(
+            "reference: {}, own estimated error {:.3} %",
+            file.display(),
+            r.error * 100.0
+        );
+        return r.values;
     }
-    let values = bake();
-    let bytes: Vec<u8> = values
-        .iter()
-        .flat_map(|v| v.to_array().into_iter().flat_map(f32::to_le_bytes))
-        .collect();
-    std::fs::create_dir_all(dir).unwrap();
-    std::fs::write(&file, bytes).unwrap();
-    values
+    let (values, error) = bake();
+    write_cached(&file, &values, error).unwrap();
+    values.into_iter().map(Some).collect()
 }
 
 fn errors(args: &[String]) {
@@ -202,7 +195,7 @@ fn errors(args: &[String]) {
         std::path::Path::new(name).file_stem().unwrap().to_string_lossy(),
         atlas.texels.len()
     );
-    let reference: Vec<Option<Vec3>> = cached_reference(&key, || {
+    let reference = cached_reference(&key, atlas.texels.len(), || {
         let t = Instant::now();
         let mut r = path_tech(&scene, &atlas, lighting, 987_654, 64);
         for _ in 0..(ref_samples / 64).max(2) {
@@ -214,11 +207,8 @@ fn errors(args: &[String]) {
             t.elapsed().as_secs_f64(),
             rest.error.relative.unwrap_or(0.0) * 100.0
         );
-        rest.total
-    })
-    .into_iter()
-    .map(Some)
-    .collect();
+        (rest.total, rest.error.relative.unwrap_or(0.0) as f64)
+    });
     let ref_border = masked(&reference, &border);
     let oidn = Oidn::available();
     println!(

@@ -202,7 +202,9 @@ pub fn reference(lib: &LibraryScene, p: &PreparedScene, cfg: &BenchConfig) -> Re
     })
 }
 
-fn read_cached(path: &Path, texels: usize) -> Option<Reference> {
+/// A cached reference of `texels` texels at `path` (its own error, then f32 RGB per
+/// texel, little-endian), or `None` when it is missing or of another size.
+pub fn read_cached(path: &Path, texels: usize) -> Option<Reference> {
     let bytes = std::fs::read(path).ok()?;
     if bytes.len() != 8 + texels * 12 {
         return None;
@@ -223,7 +225,8 @@ fn read_cached(path: &Path, texels: usize) -> Option<Reference> {
     })
 }
 
-fn write_cached(path: &Path, values: &[Vec3], error: f64) -> std::io::Result<()> {
+/// Writes a reference for [`read_cached`], atomically.
+pub fn write_cached(path: &Path, values: &[Vec3], error: f64) -> std::io::Result<()> {
     if let Some(dir) = path.parent() {
         std::fs::create_dir_all(dir)?;
     }
