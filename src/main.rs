@@ -488,8 +488,9 @@ struct BakeArgs {
     task: Option<(u32, u32)>,
     /// With --task: the N tasks are R regions of the grid (its pages when R is at most the
     /// page count, else bands of rows with equal texel counts), each baked as N / R step
-    /// ranges (`path`) or chains (`vpl`); task K bakes region K / (N / R). Only `path`
-    /// and `vpl` split by regions.
+    /// ranges (`path`) or chains (`vpl`, `sdf`, `obscurance`); task K bakes region
+    /// K / (N / R). `sdb` and `hemicube` do not split by regions (each step moves light
+    /// over the whole grid).
     #[arg(long, requires = "task", value_parser = clap::value_parser!(u32).range(1..))]
     regions: Option<u32>,
 }

@@ -159,14 +159,16 @@ fn sdf_bounce_is_exact_in_the_furnace() {
             1.0 - rho
         );
     }
-    // params.bounce = false: direct light only.
+    // params.bounce = false: direct light only. 64 steps: the emitters' light sampling
+    // is heavy-tailed in a box's corners, and at 4 steps seeds 1-5 read 0.44-0.56 (at 64:
+    // 0.48-0.52), so 4 steps passed or failed by the streams' luck.
     let (_, est) = bake(
         import(&closed_box(0.5)),
         16,
         Lighting::default(),
         "sdf",
         json!({"bounce": false}),
-        4,
+        64,
     );
     let mean = est.total.iter().map(|v| lum(*v)).sum::<f64>() / est.total.len() as f64;
     assert!((mean - 0.5).abs() < 0.03, "no bounce: {mean}");

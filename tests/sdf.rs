@@ -131,12 +131,15 @@ fn run(sdf: &mut Sdf, steps: u64) -> Vec<Vec3> {
 /// plus the dynamic box against the scene with the box's faces: the distance fields
 /// differ only where the voxelised box's sign or the flood's choice of triangle differ
 /// from the exact box distance, so the ground must agree to 1 % of the sky (measured
-/// 0.7 %).
+/// 0.7 %). The box sits a little off the voxel grid's planes: centred at the origin its
+/// faces lay exactly on them, where the voxelisation is degenerate (a grid moved by 1e-4
+/// m, when the volume's bounds stopped including the texels' offset points, took the
+/// difference from 0.7 % to 2.6 %).
 /// Then moving the box with `set_dynamic` (no new voxelisation) bakes what a fresh bake
 /// with the box at the new place bakes.
 #[test]
 fn dynamic_box_matches_the_same_box_as_geometry_and_moves() {
-    let centre = Vec3::new(0.0, 1.0, 0.0);
+    let centre = Vec3::new(0.013, 1.0, -0.021);
     let half = Vec3::splat(0.5);
     let mut with_box = SceneBuilder::new();
     let grey = with_box.material(MaterialDesc::diffuse("grey", [0.5; 3]));

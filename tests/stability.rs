@@ -726,10 +726,12 @@ stability_suite!(
 
 // `sdf`: sky light from its distance volume, every other light from the shared
 // direct-light module (GPU rays), bounced by one scene-wide ambient. Measured (lavapipe):
-// - the stiff closed boxes -5.4 % at both albedos: the noise of the emitters' light
+// - the stiff closed boxes -8.2 % at both albedos: the noise of the emitters' light
 //   sampling (8 steps x 4 samples a texel here), which the scene-wide ambient shares by
 //   all texels, so the texels' mean does not average it away (the furnace at 32 steps x
-//   16 samples reads -0.4 %, tests/direct_light.rs); bound 0.08;
+//   16 samples reads -0.4 %, tests/direct_light.rs). One draw of a heavy-tailed mean:
+//   seeds 1-8 read -8.8 % to +3.8 % at albedo 0.99 (2026-12-06, streams keyed by pixel;
+//   -5.4 % with the earlier keying by texel index); bound 0.12;
 // - the back-to-back sheets' floor +18 %: the distance field's sky visibility under a
 //   thin sheet (a sign the two faces disagree on, docs/sdf.md) on top of the exact
 //   emitter; bound 0.25;
@@ -743,7 +745,7 @@ stability_suite!(
         technique: "sdf",
         params: json!({"resolution": 32}),
         bias: 0.01,
-        open_failures: &[(STIFF_BOX, 0.08), (BACK_TO_BACK, 0.25)],
+        open_failures: &[(STIFF_BOX, 0.12), (BACK_TO_BACK, 0.25)],
     },
     leak <= 0.35,
     rooms <= 0.7

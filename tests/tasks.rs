@@ -591,6 +591,98 @@ fn vpl_pages_are_the_single_bakes_pages() {
     );
 }
 
+/// `sdf` and `obscurance` split into regions too (issue 25 point 1): their streams (sdf's
+/// jitter, the shared direct light's) are keyed by pixel, their frames are the scene's,
+/// what they read of the whole grid is built the same in every task (sdf's calibration
+/// texels, drawn over the whole grid by pixel; obscurance's material maps and R_ave, from
+/// the grid's texels before validation), and their one scene-wide ambient (sdf's bounce,
+/// obscurance's I_A) is closed over every region by the merge (`engine::ambient`). The
+/// two pages of a grey ground and a red ball under a sky and a low sun (the ground
+/// bounces light onto the ball, so each page alone closes another ambient): each page
+/// task bakes what the single bake bakes there, to float rounding, which it does not
+/// without the closure; sdf's pages calibrate as the single bake does.
+#[test]
+fn sdf_and_obscurance_pages_are_the_single_bakes_pages() {
+    use lightmapd::engine::scene::Sun;
+    let _gpu = common::gpu_serial();
+    // The sphere over a plane, in colour (its library version is black: nothing bounces).
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.6; 3]));
+    let red = b.material(MaterialDesc::diffuse("red", [0.8, 0.2, 0.1]));
+    b.square("ground", Vec3::ZERO, 6.0, Vec3::Y, grey);
+    b.sphere("ball", Vec3::new(0.0, 2.0, 0.0), 1.0, 48, 24, red);
+    let (mut doc, bin) = b.to_gltf();
+    remove_lightmap_uvs(&mut doc, Some(&[1]));
+    let scene = Arc::new(scene::import_slice(&write_glb(&doc, &bin), None).unwrap().0);
+    for (technique, params) in [
+        (
+            "sdf",
+            serde_json::json!({"resolution": 48, "calibration_texels": 64, "calibration_rays": 32}),
+        ),
+        (
+            "obscurance",
+            serde_json::json!({"map_size": 128, "directions_per_step": 4}),
+        ),
+    ] {
+        let mut request = request("cpu", 6);
+        request.technique = technique.into();
+        request.resolution = 40;
+        request.params = params;
+        request.lighting.sky = Some(sky());
+        request.lighting.sun = Some(Sun {
+            direction: Vec3::new(0.6, -0.5, 0.3).normalize(),
+            angular_diameter: 0.0093,
+            radiance: Vec3::splat(2000.0),
+        });
+        request.outputs = vec![OutputLayer::Direct];
+        let single = job::bake_unobserved(scene.clone(), &request).unwrap();
+        let pages = bake_tasks(&scene, &request, TaskShape { tasks: 2, regions: 2 });
+        assert_ne!(pages[0].header.texels, pages[1].header.texels);
+        assert_eq!(pages[0].header.params, pages[1].header.params, "{technique}");
+        // A one-task split is the single bake; its header carries the parameters in effect.
+        let one = bake_tasks(&scene, &request, TaskShape::steps(1));
+        assert_eq!(one[0].snapshot.estimate().total, single.estimate.total, "{technique}");
+        assert_eq!(pages[0].header.params, one[0].header.params, "{technique}");
+        if technique == "sdf" {
+            assert_eq!(pages[0].header.params["calibration"]["texels"], 64);
+        }
+        // Each page closed its own ambient, unlike the whole grid's.
+        let own: Vec<Vec3> = pages
+            .iter()
+            .map(|p| p.ambient.as_ref().expect("an ambient reported")[0].sums.closure())
+            .collect();
+        assert!(
+            (own[0] - own[1]).abs().max_element() > 0.01 * own[0].max_element(),
+            "{technique}: the pages' own ambients {own:?} should differ"
+        );
+        let unclosed: Vec<Vec3> = pages.iter().flat_map(|p| p.snapshot.estimate().total).collect();
+        let before = worst(&single.estimate.total, &unclosed);
+        let merged = tasks::merge(scene.clone(), &pages, &BakeOptions::default(), &mut |_| {}).unwrap();
+        let m = &merged.estimate;
+        let after = worst(&single.estimate.total, &m.total);
+        eprintln!(
+            "{technique} two pages: ambients {own:?}; worst difference before the closure {before:.2e}, after {after:.2e}"
+        );
+        assert!(before > 1e-3, "{technique}: {before}");
+        assert!(after < 1e-5, "{technique}: {after}");
+        assert_eq!(
+            m.direct, single.estimate.direct,
+            "{technique}: the direct light bit for bit"
+        );
+        assert_eq!(m.ao, single.estimate.ao, "{technique}: the ao layer bit for bit");
+        let (halves, single_halves) = (m.halves.as_ref().unwrap(), single.estimate.halves.as_ref().unwrap());
+        assert_eq!(halves.1, single_halves.1);
+        for h in 0..2 {
+            assert!(worst(&single_halves.0[h], &halves.0[h]) < 1e-5, "{technique}: half {h}");
+        }
+        let controls: u32 = pages
+            .iter()
+            .map(|p| p.header.control.as_ref().unwrap().texels.len() as u32)
+            .sum();
+        assert_eq!(m.error.control_texels, Some(controls), "{technique}");
+    }
+}
+
 /// The merged error of chains states their true error (issue 25 point 5), bias of short
 /// chains included: every technique that splits into chains bakes the closed box of
 /// albedo 0.9 (lightmap 1 everywhere: the stiff case, where the first bounces' transient

@@ -11,8 +11,10 @@
 // hemisphere that sees the scene, which a technique's bounce model weights its ambient by.
 //
 // Randomness: the PCG-RXS-M-XS 32/32 streams of gpu/lights.wgsl, keyed as `path` keys
-// them (increment from the seed and texel, state from the seed, step and sample) but with
-// a different salt, so a technique that runs this pass beside `path`'s control texels
+// them (increment from the seed and the texel's pixel, state from the seed, step and
+// sample) but with a different salt. The pixel, not the texel's place in the list
+// (position.w carries it, gpu/texels.rs world_texels): a task baking one region of the
+// grid draws the streams a whole bake draws at those texels (engine::tasks), so a technique that runs this pass beside `path`'s control texels
 // never shares a stream with them. Bounds: `samples` <= 65535 / (lights + 2) keeps the
 // invocation far inside llvmpipe's loop budget (the host caps it); steps in 32 bits.
 // Precision: world space f32; running means in f32 (1e-7 relative a step).
@@ -54,7 +56,7 @@ fn direct(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     var hits = 0.0;
     let x = t.position.xyz;
     for (var s = 0u; s < spp; s++) {
-        var rng = direct_rng(i, s);
+        var rng = direct_rng(bitcast<u32>(t.position.w), s);
         e += next_event(x, t.normal.xyz, t.geo_normal.xyz, false, &rng).sum;
         if (du.keys.z & DIRECT_HITS) != 0u {
             let u1 = rng_next(&rng);

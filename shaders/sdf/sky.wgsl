@@ -11,8 +11,9 @@
 // darken less in their own colour.
 // `sky_step` adds L_sky F C (rgb) and F C (w, bleed-free: the sky visibility) into the
 // half accumulator of this step. u, the sample-distance jitter in [-1/2, 1/2), is a
-// per-texel PCG hash plus the step index times the golden ratio, so the steps of a texel
-// stratify u and both halves converge to the mean over u.
+// PCG hash of the texel's pixel (position.w's bits: a region's task draws the jitters a
+// whole bake draws there, engine::tasks) plus the step index times the golden ratio, so
+// the steps of a texel stratify u and both halves converge to the mean over u.
 // `calibrate` writes the raw sums S for calibration texels x alphas x fixed jitters.
 // Trilinear lookups past the volume's outermost voxel centres add the distance to the
 // clamped point (the triangle inequality's bound, exact for surfaces inside the volume).
@@ -89,7 +90,7 @@ fn sky_step(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     let t = texels[i];
     let n = t.normal.xyz;
     let f = open_fraction(n);
-    let u = fract(unit_float(pcg(i ^ pcg(sp.misc.z))) + f32(sp.cal.z) * 0.618034) - 0.5;
+    let u = fract(unit_float(pcg(bitcast<u32>(t.position.w) ^ pcg(sp.misc.z))) + f32(sp.cal.z) * 0.618034) - 0.5;
     let s = occlusion_sums(t.position.xyz, n, sp.fit.y, u);
     let c = min(exp(sp.fit.x * s), vec4<f32>(1.0));
     let slot = sp.misc.w * n_texels + i;

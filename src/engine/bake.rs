@@ -172,11 +172,12 @@ pub struct BakeLoop {
 }
 
 /// What a running task hands on at a snapshot: the technique's halves as they are, its
-/// `ao` layer, its control texels with their reference's halves (a biased technique's),
-/// and the loop's time.
+/// `ao` layer, its scene-wide ambient (`Technique::ambient`), its control texels with
+/// their reference's halves (a biased technique's), and the loop's time.
 pub struct LiveHalves {
     pub snapshot: Snapshot,
     pub ao: Option<Vec<f32>>,
+    pub ambient: Option<[crate::engine::ambient::AmbientHalf; 2]>,
     pub control: Option<(Vec<usize>, Snapshot)>,
     pub elapsed: Duration,
 }
@@ -387,6 +388,7 @@ impl BakeLoop {
             (live.sink)(LiveHalves {
                 snapshot: snapshot.clone(),
                 ao: estimate.ao.clone(),
+                ambient: technique.ambient(),
                 control,
                 elapsed,
             });

@@ -4,6 +4,7 @@
 //! [`post`] dilation → [`output`] EXR; [`tasks`] splits one bake over several workers.
 
 pub mod accumulate;
+pub mod ambient;
 pub mod atlas;
 pub mod bake;
 pub mod control;

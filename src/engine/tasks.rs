@@ -28,13 +28,21 @@
 //!   region, each region measuring its bias at its own control texels, which the merge
 //!   joins), and within a region independent chains as below (its lights come from a
 //!   stratified sequence advanced step by step, so not step ranges).
-//! - every other technique (`Chains`): *independent chains*. Their steps are chains over
-//!   the whole grid (`sdb`, `hemicube`: each step transports the light the steps before it
-//!   left), running ratios over a stratified sequence and a whole-grid mean (`obscurance`),
-//!   or their error includes a bias measured at control texels spread over the whole grid
-//!   (`vpl`, `sdf`, and the three others): no range of their steps and no region of their
-//!   grid is a part of a single bake (the row says why, per technique). But a whole bake
-//!   is a function of its seed, so task k bakes the whole grid from step 0 with its own
+//! - `sdf` and `obscurance` (`ChainsAndRegions` too): regions as `vpl`'s, with two more
+//!   things made the same in every task. What they read of the whole grid is built alike
+//!   whichever region a task holds (sdf's calibration texels, drawn over the whole grid by
+//!   a key of their pixel, `Coverage::smallest`; obscurance's material maps and R_ave,
+//!   from the grid's texels before validation, `Atlas::grid_texels`), and their light
+//!   bounces through one scene-wide ambient made of sums over every texel, which a task
+//!   reports with each texel's weight (`Technique::ambient`, `engine::ambient`) and the
+//!   merge closes over every region ([`close_ambient`]): chain j of every region is one
+//!   whole bake, so each task's texels are moved from the ambient its region alone closed
+//!   to that bake's. Their streams (sdf's jitter, the shared direct light's) are keyed by
+//!   pixel, and their volumes' and maps' frames are the scene's triangles'.
+//! - `sdb` and `hemicube` (`Chains`): *independent chains* only. Each step transports
+//!   the light the steps before it left over the whole grid, so no range of their steps
+//!   and no region of their grid is a part of a single bake (the row says why). But a
+//!   whole bake is a function of its seed, so task k bakes the whole grid from step 0 with its own
 //!   seed ([`chain_seed`]: chain 0 the job's) for its share of the job's steps, and the
 //!   merge is the same step-weighted mean of the halves ([`merge_halves`]).
 //!   - *Why the mean is right.* The chains are independent draws of one estimator (same
@@ -99,6 +107,7 @@ use serde_json::Value;
 use sha2::{Digest, Sha256};
 
 use crate::engine::accumulate::{Estimate, HalfEstimate, Snapshot};
+use crate::engine::ambient::{AmbientHalf, AmbientSums};
 use crate::engine::atlas::Atlas;
 use crate::engine::bake::{BakeObserver, LiveHalves, LiveHook, StopCriteria, StopReason};
 use crate::engine::control;
@@ -115,8 +124,9 @@ pub const MAX_TASKS: u32 = 1024;
 /// The format version a [`Partial`] file carries; a merge refuses others. 2: tasks carry
 /// their region (format 1 had step ranges only, and path streams keyed by texel index).
 /// 3: chains (`TaskRange::chain`), with their control texels' reference and their `ao`
-/// layer.
-pub const PARTIAL_FORMAT: u32 = 3;
+/// layer. 4: a technique's scene-wide ambient (`ambient`), and `sdf`'s and the shared
+/// direct light's streams keyed by pixel.
+pub const PARTIAL_FORMAT: u32 = 4;
 
 const MAGIC: &[u8; 8] = b"LMDTASK1";
 
@@ -305,6 +315,10 @@ pub struct Partial {
     pub pixels: Vec<u32>,
     /// The technique's `ao` layer (`Technique::ao`) per texel, when it has one.
     pub ao: Option<Vec<f32>>,
+    /// The technique's scene-wide ambient per half (`Technique::ambient`): the sums over
+    /// the task's texels (also in the header) and each texel's weight, which the merge
+    /// closes over every region ([`close_ambient`]).
+    pub ambient: Option<[AmbientHalf; 2]>,
 }
 
 /// A chain's control texels (`engine::control`) and its path reference's halves at them:
@@ -366,6 +380,10 @@ pub struct PartialHeader {
     pub moments: bool,
     /// Whether an `ao` layer follows the pixels.
     pub ao: bool,
+    /// The technique's scene-wide ambient sums per half, when it has one; each half's
+    /// texel weights (rgb) follow the `ao` layer.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ambient: Option<[AmbientSums; 2]>,
     /// A chain's control texels and reference (a biased technique's, `engine::control`).
     pub control: Option<ControlHalves>,
     /// The task's own bake time.
@@ -384,6 +402,7 @@ impl PartialHeader {
         &self,
         snapshot: &Snapshot,
         ao: bool,
+        ambient: Option<&[AmbientHalf; 2]>,
         control: Option<ControlHalves>,
         elapsed: Duration,
     ) -> PartialHeader {
@@ -392,6 +411,7 @@ impl PartialHeader {
             direct: snapshot.even.direct.is_some(),
             moments: snapshot.even.moments.is_some(),
             ao,
+            ambient: ambient.map(|a| [a[0].sums, a[1].sums]),
             control,
             seconds: elapsed.as_secs_f64(),
             ..self.clone()
@@ -506,6 +526,7 @@ pub fn bake_task_live(
         direct: false,
         moments: false,
         ao: false,
+        ambient: None,
         control: None,
         seconds: 0.0,
         stopped_by: StopReason::Steps,
@@ -523,12 +544,13 @@ pub fn bake_task_live(
                 let control = h
                     .control
                     .map(|(indices, reference)| ControlHalves::of(&indices, &reference));
-                let header = template.with_halves(&h.snapshot, h.ao.is_some(), control, h.elapsed);
+                let header = template.with_halves(&h.snapshot, h.ao.is_some(), h.ambient.as_ref(), control, h.elapsed);
                 sink(Partial {
                     header,
                     snapshot: h.snapshot,
                     pixels: pixels.clone(),
                     ao: h.ao,
+                    ambient: h.ambient,
                 });
             }),
         ));
@@ -543,9 +565,10 @@ pub fn bake_task_live(
         None => None,
     };
     let ao = tech.ao();
+    let ambient = tech.ambient();
     let header = PartialHeader {
         stopped_by: outcome.stopped_by,
-        ..template.with_halves(&snapshot, ao.is_some(), control, outcome.elapsed)
+        ..template.with_halves(&snapshot, ao.is_some(), ambient.as_ref(), control, outcome.elapsed)
     };
     tracing::info!(
         task = task.index,
@@ -561,6 +584,7 @@ pub fn bake_task_live(
         snapshot,
         pixels,
         ao,
+        ambient,
     })
 }
 
@@ -601,6 +625,17 @@ impl Partial {
         for a in self.ao.iter().flatten() {
             out.extend_from_slice(&a.to_le_bytes());
         }
+        let sums = self.ambient.as_ref().map(|a| [a[0].sums, a[1].sums]);
+        if self.header.ambient != sums || self.ambient.iter().flatten().any(|a| a.weight.len() != n) {
+            return Err(EngineError::Internal("a task's ambient and its header disagree".into()));
+        }
+        for half in self.ambient.iter().flatten() {
+            for w in &half.weight {
+                for c in w.to_array() {
+                    out.extend_from_slice(&c.to_le_bytes());
+                }
+            }
+        }
         Ok(out)
     }
 
@@ -625,7 +660,9 @@ impl Partial {
         let n = usize::try_from(header.texels).map_err(|_| bad("texel count too large".into()))?;
         let per_texel = 1 + usize::from(header.direct) + 3 * usize::from(header.moments);
         let want = n
-            .checked_mul(per_texel * 2 * 12 + 4 + 4 * usize::from(header.ao))
+            .checked_mul(
+                per_texel * 2 * 12 + 4 + 4 * usize::from(header.ao) + 2 * 12 * usize::from(header.ambient.is_some()),
+            )
             .ok_or_else(|| bad("texel count too large".into()))?;
         let data = &bytes[16 + len..];
         if data.len() != want {
@@ -666,9 +703,31 @@ impl Partial {
             .into_iter()
             .map(u32::from_le_bytes)
             .collect();
-        let ao = header
-            .ao
-            .then(|| words(&data[at + 4 * n..]).into_iter().map(f32::from_le_bytes).collect());
+        let after_ao = at + 4 * n + 4 * n * usize::from(header.ao);
+        let ao = header.ao.then(|| {
+            words(&data[at + 4 * n..after_ao])
+                .into_iter()
+                .map(f32::from_le_bytes)
+                .collect()
+        });
+        let ambient = header.ambient.map(|sums| {
+            [0usize, 1].map(|h| {
+                let part = &data[after_ao + h * 12 * n..after_ao + (h + 1) * 12 * n];
+                AmbientHalf {
+                    sums: sums[h],
+                    weight: words(part)
+                        .chunks_exact(3)
+                        .map(|c| {
+                            Vec3::new(
+                                f32::from_le_bytes(c[0]),
+                                f32::from_le_bytes(c[1]),
+                                f32::from_le_bytes(c[2]),
+                            )
+                        })
+                        .collect(),
+                }
+            })
+        });
         if let Some(c) = &header.control
             && (c.even.len() != c.texels.len()
                 || c.odd.len() != c.texels.len()
@@ -681,6 +740,7 @@ impl Partial {
             snapshot: Snapshot { even, odd },
             pixels,
             ao,
+            ambient,
         })
     }
 }
@@ -723,23 +783,6 @@ pub fn merge_halves(parts: &[&Snapshot]) -> Snapshot {
         even: half(|s| &s.even),
         odd: half(|s| &s.odd),
     }
-}
-
-/// The bake's halves from every task's, in task order (region-major): each region's
-/// step ranges merged ([`merge_halves`]), then the regions' texels one after another,
-/// which is the whole grid's texel order (regions are consecutive runs of it). A half's
-/// step count is the fewest any region got (they differ only when `stop.seconds` cut
-/// some task short).
-pub fn merge_regions(ordered: &[&Partial]) -> Result<Snapshot, EngineError> {
-    let first = ordered
-        .first()
-        .ok_or_else(|| EngineError::BadInput("merge: no task results given".into()))?;
-    let ranges = first.header.task.shape().ranges().max(1) as usize;
-    let regions: Vec<Snapshot> = ordered
-        .chunks(ranges)
-        .map(|group| merge_halves(&group.iter().map(|p| &p.snapshot).collect::<Vec<_>>()))
-        .collect();
-    Ok(side_by_side(regions))
 }
 
 /// Regions' halves side by side, in order (each region's texels a run of the whole's): a
@@ -794,6 +837,84 @@ fn merge_ao(groups: &[&[&Partial]]) -> Option<Vec<f32>> {
         })
         .collect::<Option<Vec<_>>>()
         .map(|parts| parts.concat())
+}
+
+/// The tasks with each one's scene-wide ambient (`engine::ambient`) closed over the whole
+/// grid instead of its region alone, grouped as given (per region, its chains), or None
+/// when the technique has none. Chain j of every region (its place among its region's
+/// chains, whose seed it bakes with, [`TaskRange::seed`]) is one whole bake, so each
+/// task's halves are rebased onto the sums of chain j over every region, half by half:
+/// its texels then hold what a single bake of that seed holds there. A region without
+/// chain j (a running merge, before that chain has halves) lends the mean of its chains'
+/// sums instead. The halves are copied (the rebased lightmap is a new layer).
+fn close_ambient(groups: &[&[&Partial]]) -> Option<Vec<Vec<Partial>>> {
+    let all = || groups.iter().flat_map(|g| g.iter());
+    if all().all(|p| p.ambient.is_none()) {
+        return None;
+    }
+    let ranges = all().next()?.header.task.shape().ranges().max(1);
+    let sums = |p: &Partial, h: usize| p.ambient.as_ref().map(|a| a[h].sums);
+    let whole = |j: u32, h: usize| {
+        let mut w = AmbientSums::default();
+        for g in groups {
+            match g
+                .iter()
+                .find(|q| q.header.task.index % ranges == j)
+                .and_then(|q| sums(q, h))
+            {
+                Some(s) => w.add(&s),
+                None => w.add(&AmbientSums::mean(
+                    &g.iter().filter_map(|q| sums(q, h)).collect::<Vec<_>>(),
+                )),
+            }
+        }
+        w
+    };
+    Some(
+        groups
+            .iter()
+            .map(|g| {
+                g.iter()
+                    .map(|p| {
+                        let mut out = (*p).clone();
+                        if let Some(own) = &p.ambient {
+                            let j = p.header.task.index % ranges;
+                            own[0].rebase(&whole(j, 0), &mut out.snapshot.even.total);
+                            own[1].rebase(&whole(j, 1), &mut out.snapshot.odd.total);
+                        }
+                        out
+                    })
+                    .collect()
+            })
+            .collect(),
+    )
+}
+
+/// The merged estimate of tasks grouped by region (each group its region's step ranges
+/// or chains, in task order): a scene-wide ambient closed over every region's texels
+/// ([`close_ambient`]), each region's halves merged by steps, the regions side by side,
+/// the `ao` layer alike, and a biased technique's error assessed against the chains'
+/// control references merged, as a single bake's control texels assess its snapshots.
+fn merged_estimate(groups: &[&[&Partial]]) -> Result<Estimate, EngineError> {
+    let closed = close_ambient(groups);
+    let closed_refs: Option<Vec<Vec<&Partial>>> =
+        closed.as_ref().map(|c| c.iter().map(|g| g.iter().collect()).collect());
+    let groups: Vec<&[&Partial]> = match &closed_refs {
+        Some(c) => c.iter().map(|g| g.as_slice()).collect(),
+        None => groups.to_vec(),
+    };
+    let snapshot = side_by_side(
+        groups
+            .iter()
+            .map(|g| merge_halves(&g.iter().map(|p| &p.snapshot).collect::<Vec<_>>()))
+            .collect(),
+    );
+    let mut estimate = snapshot.estimate();
+    estimate.ao = merge_ao(&groups);
+    if let Some((indices, reference)) = merge_control(&groups)? {
+        control::assess_against(&indices, &reference.estimate(), &mut estimate);
+    }
+    Ok(estimate)
 }
 
 /// The tasks' control texels as indices into the merged texels, and their references
@@ -870,7 +991,9 @@ pub fn check_partials<'a>(
         if h.stopped_by == StopReason::Cancelled {
             return bad(format!("{name} was cancelled; bake it again"));
         }
-        if (h.direct, h.moments, h.ao, &h.params) != (h0.direct, h0.moments, h0.ao, &h0.params) {
+        if (h.direct, h.moments, h.ao, h.ambient.is_some(), &h.params)
+            != (h0.direct, h0.moments, h0.ao, h0.ambient.is_some(), &h0.params)
+        {
             return bad(format!("{name} kept other layers or parameters than task result 0"));
         }
         if h.control.is_some() != h0.control.is_some() {
@@ -929,15 +1052,8 @@ pub fn merge(
     let by_region: Vec<&Partial> = unchecked.chunks(ranges).map(|group| group[0]).collect();
     let (prepared, texel_ranges) = prepare_whole(scene, &request, options, &by_region, on_plan)?;
     let ordered = check_partials(partials, Some((&prepared.atlas, &texel_ranges)))?;
-    let snapshot = merge_regions(&ordered)?;
-    let mut estimate = snapshot.estimate();
     let groups: Vec<&[&Partial]> = ordered.chunks(ranges).collect();
-    estimate.ao = merge_ao(&groups);
-    // A biased technique's error: the merged lightmap against the chains' references
-    // merged, as a single bake's control texels assess its snapshots.
-    if let Some((indices, reference)) = merge_control(&groups)? {
-        control::assess_against(&indices, &reference.estimate(), &mut estimate);
-    }
+    let estimate = merged_estimate(&groups)?;
     if let Some((layer, k, v)) = estimate.first_non_finite() {
         return Err(EngineError::Internal(format!(
             "merged tasks hold a non-finite value {v:?} at texel {k} of the {layer} layer; the lightmap was not written"
@@ -1065,7 +1181,9 @@ pub fn merge_running(
                 h0.task.index
             ));
         }
-        if (h.direct, h.moments, h.ao, &h.params) != (h0.direct, h0.moments, h0.ao, &h0.params) {
+        if (h.direct, h.moments, h.ao, h.ambient.is_some(), &h.params)
+            != (h0.direct, h0.moments, h0.ao, h0.ambient.is_some(), &h0.params)
+        {
             return bad(format!(
                 "running merge: {name} kept other layers or parameters than task {}",
                 h0.task.index
@@ -1095,17 +1213,7 @@ pub fn merge_running(
         return bad(format!("running merge: region {r} has no halves yet"));
     }
     let groups: Vec<&[&Partial]> = groups.iter().map(|g| g.as_slice()).collect();
-    let snapshot = side_by_side(
-        groups
-            .iter()
-            .map(|g| merge_halves(&g.iter().map(|p| &p.snapshot).collect::<Vec<_>>()))
-            .collect(),
-    );
-    let mut estimate = snapshot.estimate();
-    estimate.ao = merge_ao(&groups);
-    if let Some((indices, reference)) = merge_control(&groups)? {
-        control::assess_against(&indices, &reference.estimate(), &mut estimate);
-    }
+    let estimate = merged_estimate(&groups)?;
     if let Some((layer, k, v)) = estimate.first_non_finite() {
         return Err(EngineError::Internal(format!(
             "running merge: the tasks' halves hold a non-finite value {v:?} at texel {k} of the {layer} layer"
@@ -1296,6 +1404,7 @@ mod tests {
             direct: true,
             moments: true,
             ao: true,
+            ambient: None,
             control: Some(ControlHalves {
                 texels: vec![0, 2],
                 half_steps: [3, 4],
@@ -1314,8 +1423,38 @@ mod tests {
             },
             pixels: vec![1, 5, 9],
             ao: Some(vec![0.25, 0.5, 1.0]),
+            ambient: None,
         };
+        // With a scene-wide ambient: sums in the header, weights after the ao layer.
+        let mut p = p;
+        let sums = |x: f64| AmbientSums {
+            area: 2.0,
+            albedo: [x, 0.5, 0.25],
+            source: [0.1, x, 0.3],
+            hit: 1.5,
+        };
+        p.ambient = Some([
+            AmbientHalf {
+                sums: sums(1.0),
+                weight: vec![Vec3::splat(0.5), Vec3::new(0.1, 0.2, 0.3), Vec3::ZERO],
+            },
+            AmbientHalf {
+                sums: sums(0.75),
+                weight: vec![Vec3::ONE, Vec3::splat(0.25), Vec3::new(1.0, 0.0, 0.5)],
+            },
+        ]);
+        p.header.ambient = Some([sums(1.0), sums(0.75)]);
         let bytes = p.encode().unwrap();
+        assert_eq!(Partial::decode(&bytes, "t").unwrap().ambient, p.ambient);
+        let mut disagree = p.clone();
+        disagree.header.ambient = None;
+        assert!(
+            disagree
+                .encode()
+                .unwrap_err()
+                .to_string()
+                .contains("ambient and its header disagree")
+        );
         let back = Partial::decode(&bytes, "t").unwrap();
         assert_eq!(back.pixels, p.pixels);
         assert_eq!(back.ao, p.ao);
@@ -1364,6 +1503,7 @@ mod tests {
                     direct: false,
                     moments: false,
                     ao: true,
+                    ambient: None,
                     control: Some(c),
                     seconds: 0.0,
                     stopped_by: StopReason::Steps,
@@ -1375,6 +1515,7 @@ mod tests {
                 },
                 pixels: vec![0, 1],
                 ao: Some(vec![v, 0.0]),
+                ambient: None,
             }
         };
         let (a, b) = (part(3, 1.0, 0), part(1, 5.0, 0));
@@ -1396,5 +1537,79 @@ mod tests {
         c.header.control.as_mut().unwrap().texels = vec![0];
         let err = merge_control(&[&[&a, &c]]).unwrap_err().to_string();
         assert!(err.contains("other control texels"), "{err}");
+    }
+
+    /// The merge closes a scene-wide ambient per chain over every region: chain j of
+    /// region 0 is rebased onto the sums of chain j of both regions, and a region without
+    /// chain j (a running merge) lends its chains' mean.
+    #[test]
+    fn an_ambient_is_closed_per_chain_over_the_regions() {
+        let req = request("sdf", Some(8));
+        let shape = TaskShape { tasks: 4, regions: 2 };
+        let tasks = split(&req, shape).unwrap();
+        let sums = |source: f64| AmbientSums {
+            area: 1.0,
+            albedo: [0.5; 3],
+            source: [source; 3],
+            hit: 1.0,
+        };
+        let part = |k: usize, source: f64| {
+            let t = tasks[k];
+            let b = sums(source).closure();
+            let ambient = AmbientHalf {
+                sums: sums(source),
+                weight: vec![Vec3::ONE],
+            };
+            let mut snapshot = Snapshot {
+                even: half(2, 0.0, 1),
+                odd: half(2, 0.0, 1),
+            };
+            for v in snapshot.even.total.iter_mut().chain(snapshot.odd.total.iter_mut()) {
+                *v += b;
+            }
+            Partial {
+                header: PartialHeader {
+                    format: PARTIAL_FORMAT,
+                    request: req.clone(),
+                    task: t,
+                    params: Value::Null,
+                    width: 2,
+                    height: 2,
+                    texels: 1,
+                    fingerprint: String::new(),
+                    half_steps: [2, 2],
+                    direct: false,
+                    moments: false,
+                    ao: false,
+                    ambient: Some([sums(source), sums(source)]),
+                    control: None,
+                    seconds: 0.0,
+                    stopped_by: StopReason::Steps,
+                    live: false,
+                },
+                snapshot,
+                pixels: vec![0],
+                ao: None,
+                ambient: Some([ambient.clone(), ambient]),
+            }
+        };
+        // Region 0: chains 0 and 1 (tasks 0, 1); region 1: tasks 2, 3.
+        let (a0, a1, b0, b1) = (part(0, 0.1), part(1, 0.3), part(2, 0.5), part(3, 0.9));
+        let closed = close_ambient(&[&[&a0, &a1], &[&b0, &b1]]).unwrap();
+        // B over two texels of area 1 and albedo 0.5, every direction a hit: the mean
+        // source over 1 - 0.5.
+        let want = |s0: f64, s1: f64| ((s0 + s1) / 2.0 / 0.5) as f32;
+        let got = |p: &Partial| p.snapshot.even.total[0].x;
+        assert!((got(&closed[0][0]) - want(0.1, 0.5)).abs() < 1e-6);
+        assert!((got(&closed[1][0]) - want(0.1, 0.5)).abs() < 1e-6);
+        assert!((got(&closed[0][1]) - want(0.3, 0.9)).abs() < 1e-6);
+        assert!((got(&closed[1][1]) - want(0.3, 0.9)).abs() < 1e-6);
+        // Region 1 without chain 1 yet: it lends its one chain's sums.
+        let closed = close_ambient(&[&[&a0, &a1], &[&b0]]).unwrap();
+        assert!((got(&closed[0][1]) - want(0.3, 0.5)).abs() < 1e-6);
+        let mut none = a0.clone();
+        none.ambient = None;
+        none.header.ambient = None;
+        assert!(close_ambient(&[&[&none]]).is_none());
     }
 }

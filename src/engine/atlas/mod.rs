@@ -178,13 +178,20 @@ fn check_resolution(width: u32, height: u32) -> Result<(), AtlasError> {
 }
 
 /// The texels of `claims`, the claims of the pixels from `first` on, in pixel order.
-fn texels_of(scene: &Scene, width: u32, height: u32, claims: &[Option<Claim>], first: usize) -> Vec<Texel> {
+/// The texels of `claims`, claim k on pixel `pixel_of(k)`.
+fn texels_of(
+    scene: &Scene,
+    width: u32,
+    height: u32,
+    claims: &[Option<Claim>],
+    pixel_of: impl Fn(usize) -> usize + Sync,
+) -> Vec<Texel> {
     let (w, h) = (width as usize, height as usize);
     let offset = SURFACE_OFFSET * scene.scale();
     claims
         .par_iter()
         .enumerate()
-        .filter_map(|(k, c)| c.as_ref().map(|c| (first + k, c)))
+        .filter_map(|(k, c)| c.as_ref().map(|c| (pixel_of(k), c)))
         .map(|(pix, c)| {
             let t = &scene.triangles[c.triangle as usize];
             let b = c.bary;
@@ -399,6 +406,63 @@ impl Coverage {
         self.before[word] as usize + (self.bits[word] & mask).count_ones() as usize
     }
 
+    /// The covered pixels with the `count` smallest `key`s (ties: the smaller pixel), in
+    /// that order: a seeded draw of texels from the whole grid that does not depend on
+    /// which region of it a task holds. One pass over the covered pixels with a bounded
+    /// heap per thread: memory O(count), not a key per pixel.
+    pub fn smallest(&self, count: usize, key: impl Fn(u32) -> u64 + Sync) -> Vec<u32> {
+        use std::collections::BinaryHeap;
+        if count == 0 {
+            return Vec::new();
+        }
+        let push = |heap: &mut BinaryHeap<(u64, u32)>, item: (u64, u32)| {
+            if heap.len() < count {
+                heap.push(item);
+            } else if heap.peek().is_some_and(|top| item < *top) {
+                heap.pop();
+                heap.push(item);
+            }
+        };
+        const WORDS: usize = 1 << 12;
+        let heap = self
+            .bits
+            .par_chunks(WORDS)
+            .enumerate()
+            .map(|(c, words)| {
+                let mut heap = BinaryHeap::new();
+                for (w, &bits) in words.iter().enumerate() {
+                    let mut b = bits;
+                    while b != 0 {
+                        let pixel = ((c * WORDS + w) * 64) as u32 + b.trailing_zeros();
+                        push(&mut heap, (key(pixel), pixel));
+                        b &= b - 1;
+                    }
+                }
+                heap
+            })
+            .reduce(BinaryHeap::new, |mut a, b| {
+                for item in b {
+                    push(&mut a, item);
+                }
+                a
+            });
+        heap.into_sorted_vec().into_iter().map(|(_, p)| p).collect()
+    }
+
+    /// The covered pixels, ascending.
+    pub fn pixels(&self) -> impl Iterator<Item = u32> + '_ {
+        self.bits.iter().enumerate().flat_map(|(w, &bits)| {
+            let mut b = bits;
+            std::iter::from_fn(move || {
+                (b != 0).then(|| {
+                    let p = (w * 64) as u32 + b.trailing_zeros();
+                    b &= b - 1;
+                    p
+                })
+            })
+        })
+    }
+
     /// The pixel of texel `k` (k < [`texels`](Self::texels)).
     pub fn pixel_of(&self, k: usize) -> u32 {
         let word = self.before.partition_point(|&b| b as usize <= k) - 1;
@@ -423,7 +487,7 @@ impl Atlas {
                 claims[pix] = Some(Claim { triangle, bary });
             }
         });
-        let texels = texels_of(scene, width, height, &claims, 0);
+        let texels = texels_of(scene, width, height, &claims, |k| k);
         if texels.is_empty() {
             return Err(AtlasError::Empty(width, height));
         }
@@ -465,7 +529,7 @@ impl Atlas {
                 *c = Some(Claim { triangle, bary });
             }
         });
-        let texels = texels_of(scene, width, height, &claims, first);
+        let texels = texels_of(scene, width, height, &claims, |k| first + k);
         if texels.is_empty() {
             return Err(AtlasError::Empty(width, height));
         }
@@ -483,6 +547,51 @@ impl Atlas {
             seams: Vec::new(),
             pages: grid_pages(scene, width, height),
         })
+    }
+
+    /// The texels on `pixels` (ascending, each once) as [`Atlas::build`] makes them,
+    /// without building any other (a pixel no chart covers has none): a draw of a few
+    /// texels of the whole grid that a region's task makes as a single bake does
+    /// ([`Coverage::smallest`]; `sdf`'s calibration). Rasterises the rows the pixels
+    /// span.
+    pub fn texels_at(scene: &Scene, width: u32, height: u32, pixels: &[u32]) -> Result<Vec<Texel>, AtlasError> {
+        check_resolution(width, height)?;
+        let (Some(&first), Some(&last)) = (pixels.first(), pixels.last()) else {
+            return Ok(Vec::new());
+        };
+        let mut claims: Vec<Option<Claim>> = (0..pixels.len()).map(|_| None).collect();
+        rasterise(scene, width, height, first..last + 1, |pix, triangle, bary| {
+            if let Ok(k) = pixels.binary_search(&(pix as u32))
+                && claims[k].is_none()
+            {
+                claims[k] = Some(Claim { triangle, bary });
+            }
+        });
+        Ok(texels_of(scene, width, height, &claims, |k| pixels[k] as usize))
+    }
+
+    /// Every texel of the grid *before validation* (the inside texels too), in pixel
+    /// order: this atlas's texels and its removed ones when it holds the whole grid,
+    /// otherwise (a region's task) the whole grid's built anew. What a technique that
+    /// reads the whole grid's materials ( `obscurance`'s albedo map and R_ave) takes, so a
+    /// region's task reads the single bake's. A region's call costs the whole grid's
+    /// rasterisation and texels (some 100 bytes a texel while it runs).
+    pub fn grid_texels(&self, scene: &Scene) -> Result<Vec<Texel>, AtlasError> {
+        let whole = self.pixel_texel.window() == (0..(self.width * self.height) as usize);
+        if whole {
+            if self.inside_pixels.is_empty() {
+                return Ok(self.texels.clone());
+            }
+            let mut inside = self.inside_pixels.clone();
+            inside.sort_unstable();
+            let mut all = self.texels.clone();
+            all.extend(Atlas::texels_at(scene, self.width, self.height, &inside)?);
+            all.sort_unstable_by_key(|t| t.pixel);
+            return Ok(all);
+        }
+        let coverage = Atlas::coverage(scene, self.width, self.height)?;
+        let pixels: Vec<u32> = coverage.pixels().collect();
+        Atlas::texels_at(scene, self.width, self.height, &pixels)
     }
 
     /// Which pixels of the `width` x `height` grid hold a texel: the rasterisation of
@@ -665,6 +774,38 @@ mod tests {
     use super::*;
     use crate::engine::scene::build::{MaterialDesc, SceneBuilder};
     use crate::engine::scene::import_slice;
+
+    /// A draw of texels by a key of their pixel ([`Coverage::smallest`], then
+    /// [`Atlas::texels_at`]) gives the texels the whole grid's atlas has on those pixels,
+    /// in key order, whatever else is built.
+    #[test]
+    fn texels_drawn_by_pixel_are_the_whole_grids() {
+        let scene = import_slice(&crate::engine::scene::library::procedural_blocks().to_glb(), None)
+            .unwrap()
+            .0;
+        let atlas = Atlas::build(&scene, 48, 48).unwrap();
+        let coverage = Atlas::coverage(&scene, 48, 48).unwrap();
+        let key = |p: u32| u64::from(p.wrapping_mul(2_654_435_761) >> 7);
+        let drawn = coverage.smallest(40, key);
+        assert_eq!(drawn.len(), 40);
+        let keys: Vec<(u64, u32)> = drawn.iter().map(|&p| (key(p), p)).collect();
+        assert!(keys.windows(2).all(|w| w[0] < w[1]), "in key order");
+        let mut all: Vec<(u64, u32)> = atlas.texels.iter().map(|t| (key(t.pixel), t.pixel)).collect();
+        all.sort_unstable();
+        assert_eq!(&all[..40], keys.as_slice(), "the smallest keys of every texel");
+        let mut sorted = drawn.clone();
+        sorted.sort_unstable();
+        let texels = Atlas::texels_at(&scene, 48, 48, &sorted).unwrap();
+        assert_eq!(texels.len(), 40);
+        for t in &texels {
+            let whole = &atlas.texels[atlas.pixel_texel[t.pixel as usize] as usize];
+            assert_eq!(
+                (t.position, t.normal, t.albedo, t.size, t.triangle),
+                (whole.position, whole.normal, whole.albedo, whole.size, whole.triangle)
+            );
+        }
+        assert_eq!(coverage.smallest(usize::MAX >> 1, key).len(), atlas.texels.len());
+    }
 
     fn one_quad(margin: f32) -> Scene {
         let mut b = SceneBuilder::new();

@@ -184,6 +184,13 @@ pub trait Technique: Send {
     fn ao(&self) -> Option<Vec<f32>> {
         None
     }
+    /// A scene-wide ambient the last snapshot's halves hold (`engine::ambient`): per half,
+    /// the area-weighted sums over this bake's texels it was closed from and each texel's
+    /// weight, for techniques that bounce light through one (`sdf`). A split bake's merge
+    /// closes it over every region's texels ([`TaskSplit::ChainsAndRegions`]).
+    fn ambient(&self) -> Option<[crate::engine::ambient::AmbientHalf; 2]> {
+        None
+    }
     /// The instant the bake's time limit ends (issue 19 point 10), set once before the
     /// first step. A technique whose step can be long checks it between parts of a step
     /// and, once it has passed, abandons the step: adds nothing and leaves
@@ -239,9 +246,11 @@ pub enum TaskSplit {
     Chains(&'static str),
     /// [`Chains`](TaskSplit::Chains) within regions of the grid (pages or tiles, as
     /// `StepsAndRegions`): a texel's value depends on the scene and the seed, never on
-    /// another texel (nor on which texels the grid holds), so a region's task with the
-    /// job's seed bakes exactly the single bake's texels of its region, and its chains
-    /// average as `Chains`. The reason says why not step ranges.
+    /// another texel (nor on which texels the grid holds), except through a scene-wide
+    /// ambient the technique reports ([`Technique::ambient`]), which the merge closes
+    /// over every region's texels; so a region's task with the job's seed bakes the
+    /// single bake's texels of its region, and its chains average as `Chains`. The
+    /// reason says why not step ranges.
     ChainsAndRegions(&'static str),
 }
 

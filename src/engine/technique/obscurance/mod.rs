@@ -89,6 +89,17 @@
 //!   seed), whose emission the gather then ignores (`TRI_SAMPLED_EMISSION`). Their light is
 //!   added to the direct light of each half before D_ave, so I_A bounces it like the rest.
 //!
+//! # Split bakes (`engine::tasks`, issue 25)
+//! A task may bake one region of the grid (pages or bands of rows) and get the single
+//! bake's texels there: the layers, directions and map jitter come from the scene and the
+//! seed, the frame from the triangles alone, the shared direct light's streams are keyed
+//! by pixel, and the two things made of the whole grid are built alike in every task: the
+//! albedo and emission maps the gather reads at the surfaces it sees, and R_ave, from the
+//! grid's texels *before validation* (`Atlas::grid_texels`; a texel validation drops lies
+//! inside closed geometry, where no ray sees it, and keeps its own surface's material).
+//! The measured I_A is closed from sums over the bake's texels (`engine::ambient`), which
+//! the merge closes over every region (`Technique::ambient`: the sums and W per half).
+//!
 //! # Incremental update (seed section 5)
 //! During a bake every hit ORs two bits for the mesh it hit into the texel's influence
 //! mask: 16 + (mesh index mod 16) for a hit at any distance, (mesh index mod 16) for one
@@ -118,6 +129,8 @@
 
 use std::sync::Arc;
 
+use crate::engine::ambient::{AmbientHalf, AmbientSums, MIN_ABSORPTION};
+use crate::engine::gpu::map_scene::MapTexel;
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -360,8 +373,6 @@ const FLAG_SUBSET: u32 = 2;
 const MASK_BASE: usize = 4;
 const EPS_NORMAL_PLANE: f32 = 1e-5;
 const EPS_ALONG_D: f32 = 1e-5;
-/// Guard on 1 - c R_ave: an albedo-1 closed scene has no finite ambient.
-const MIN_ABSORPTION: f32 = 1e-6;
 /// How far a receiver moves along its geometric normal before the sun map's test, in map
 /// pixels: against a neighbouring triangle's plane passing just above it on tessellated
 /// curved surfaces (the plane test needs no depth bias; gpu/shadow_view.wgsl).
@@ -394,6 +405,8 @@ pub struct ObscuranceHalf {
     pub hit: Vec<f32>,
     /// The ambient intensity this half's lightmap used.
     pub ambient: Vec3,
+    /// The sums it was closed from (`ambient = measured`), for a split bake's merge.
+    pub sums: Option<AmbientSums>,
 }
 
 // ---------------------------------------------------------------------------------------
@@ -431,6 +444,8 @@ pub struct Obscurance {
     subset_len: Option<u32>,
     node_capacity: u32,
     last_ao: Option<Vec<f32>>,
+    /// The measured I_A's sums and weights as of the last snapshot (`Technique::ambient`).
+    last_ambient: Option<[AmbientHalf; 2]>,
     last_stats: LayerStats,
     /// Point and spot lights, and emitters unless `emitters = gathered`: the shared
     /// direct-light module, stepped once per step, after the directions: in a bake with a
@@ -501,8 +516,8 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| ObscuranceParams::from_json(p).map(|_| ()),
     unbiased: false,
     alpha: AlphaSupport::Everywhere,
-    tasks: TaskSplit::Chains(
-        "its halves are running ratios over a stratified direction sequence rotated once per bake, and its ambient term is a mean over every texel: neither a range of steps nor a region is a part of one bake",
+    tasks: TaskSplit::ChainsAndRegions(
+        "its halves are running ratios over a stratified direction sequence rotated once per bake, so a range of steps is not a part of one bake; a texel's obscurance comes from the scene's layers along the bake's directions, the maps of the whole grid's materials and R_ave (built from the grid's texels before validation, whichever region the task holds), and I_A from one scene-wide closure that the merge closes over every region, so a region's texels (pages or tiles) are the single bake's",
     ),
 };
 
@@ -622,14 +637,10 @@ impl Obscurance {
         let (width, height) = (atlas.width.max(1), atlas.height.max(1));
         let n_texels = input.texels.len() as u32;
 
-        // Normalised scene space, as sdb: bounds of triangles and texel points.
-        let frame = SceneFrame::of_points(
-            input
-                .triangles
-                .iter()
-                .flat_map(|t| t.p)
-                .chain(input.texels.iter().map(|t| t.position)),
-        );
+        // Normalised scene space: the triangles' bounds, not the texels' (a region's task
+        // has only its region's texels, engine::tasks; a texel's sample point lies on its
+        // triangle, pushed off by the atlas's small surface offset).
+        let frame = SceneFrame::of_points(input.triangles.iter().flat_map(|t| t.p));
         let (lo, hi, scale) = (frame.lo, frame.hi, frame.radius);
         let norm = |p: Vec3| frame.norm(p);
         let corners: [Vec3; 8] = frame.corners();
@@ -637,18 +648,25 @@ impl Obscurance {
         params.dmax = Some(dmax);
         let dmax_norm = dmax / scale;
 
-        // Scene averages: R_ave over texels (texture-aware), weighted by texel area;
-        // Eq. 5's emission over triangles (exact for small emitters without texels).
+        // The whole grid's texels before validation: the albedo and emission maps the
+        // gather reads at the surfaces it sees, and R_ave, are the grid's, whichever
+        // region of it this bake holds (engine::tasks: a region's task reads the single
+        // bake's maps). Before validation, so that a region's task, which validates only
+        // its own texels, has the same set: a texel validation drops lies inside closed
+        // geometry, where no ray sees it, and keeps its own surface's material.
+        let grid = atlas
+            .grid_texels(scene)
+            .map_err(|e| EngineError::Internal(format!("obscurance: the grid's texels: {e}")))?;
+        // Scene averages: R_ave over those texels (texture-aware), weighted by texel
+        // area; Eq. 5's emission over triangles (exact for small emitters without texels).
+        let r_ave = {
+            let mut sums = AmbientSums::default();
+            for t in &grid {
+                sums.add_texel(t.size * t.size, t.albedo, Vec3::ZERO, 0.0);
+            }
+            sums.r_ave()
+        };
         let texel_area: Vec<f32> = atlas.texels.iter().map(|t| t.size * t.size).collect();
-        let area_sum: f64 = texel_area.iter().map(|a| *a as f64).sum::<f64>().max(f64::MIN_POSITIVE);
-        let r_ave = (atlas
-            .texels
-            .iter()
-            .zip(&texel_area)
-            .map(|(t, a)| t.albedo.as_dvec3() * *a as f64)
-            .sum::<glam::DVec3>()
-            / area_sum)
-            .as_vec3();
         let (mut tri_area, mut emitted) = (0.0f64, glam::DVec3::ZERO);
         for t in &scene.triangles {
             let a = t.area() as f64;
@@ -661,22 +679,34 @@ impl Obscurance {
         // Geometry and materials.
         let mut vertices = Vec::with_capacity(input.triangles.len() * 3);
         let pix = (width * height) as usize;
-        let fill = fill_map(width, height, &input.texels);
+        let grid: Vec<MapTexel> = grid
+            .iter()
+            .map(|t| MapTexel {
+                pixel: t.pixel,
+                position: t.position,
+                normal: t.normal,
+                geo_normal: t.geo_normal,
+                albedo: t.albedo,
+                emission: t.emission,
+            })
+            .collect();
+        let fill = fill_map(width, height, &grid);
         let mut materials: Vec<[f32; 4]> = Vec::with_capacity(2 * pix + 2 * input.triangles.len());
         for &k in &fill {
             materials.push(if k == NO_TEXEL {
                 [0.0; 4]
             } else {
-                input.texels[k as usize].albedo.extend(1.0).to_array()
+                grid[k as usize].albedo.extend(1.0).to_array()
             });
         }
         for &k in &fill {
             materials.push(if k == NO_TEXEL {
                 [0.0; 4]
             } else {
-                input.texels[k as usize].emission.extend(1.0).to_array()
+                grid[k as usize].emission.extend(1.0).to_array()
             });
         }
+        drop(grid);
         let mut norm_area = 0.0f64;
         // Which emitters the shared module samples (`params.emitters`).
         let world_pixel = (hi - lo).length() / params.map_size as f32;
@@ -992,6 +1022,7 @@ impl Obscurance {
             subset_len: None,
             node_capacity,
             last_ao: None,
+            last_ambient: None,
             last_stats: LayerStats::default(),
             shared_direct,
             deadline: None,
@@ -1306,12 +1337,6 @@ impl Obscurance {
                 "obscurance: some directions had more fragments than the node pool holds; surfaces behind them were missed"
             );
         }
-        let area_sum: f64 = self
-            .texel_area
-            .iter()
-            .map(|a| *a as f64)
-            .sum::<f64>()
-            .max(f64::MIN_POSITIVE);
         let shared: Option<[DirectHalf; 2]> = match &self.shared_direct {
             Some(d) => Some(d.halves().map_err(gpu_error)?),
             None => None,
@@ -1337,17 +1362,17 @@ impl Obscurance {
                     *d += *e;
                 }
             }
-            let ambient = match self.params.ambient {
-                AmbientSource::Emitters => self.eq5_ambient,
+            // I_A: Eq. 5's from the triangles, or the measured closure over this bake's
+            // texels (`engine::ambient`, with R_ave the grid's), whose sums a split bake's
+            // merge closes over every region.
+            let (ambient, sums) = match self.params.ambient {
+                AmbientSource::Emitters => (self.eq5_ambient, None),
                 AmbientSource::Measured => {
-                    let (mut d_ave, mut c) = (glam::DVec3::ZERO, 0.0f64);
+                    let mut sums = AmbientSums::default();
                     for k in 0..n {
-                        let wgt = self.texel_area[k] as f64;
-                        d_ave += dir[k].as_dvec3() * wgt;
-                        c += hit[k] as f64 * wgt;
+                        sums.add_texel(self.texel_area[k], self.r_ave, dir[k], hit[k]);
                     }
-                    let (d_ave, c) = ((d_ave / area_sum).as_vec3(), (c / area_sum) as f32);
-                    d_ave / (Vec3::ONE - c.clamp(0.0, 1.0) * self.r_ave).max(Vec3::splat(MIN_ABSORPTION))
+                    (sums.closure(), Some(sums))
                 }
             };
             ObscuranceHalf {
@@ -1357,6 +1382,7 @@ impl Obscurance {
                 direct: dir,
                 hit,
                 ambient,
+                sums,
             }
         };
         Ok([half(0), half(1)])
@@ -1440,6 +1466,27 @@ impl Technique for Obscurance {
 
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
         let halves = self.halves()?;
+        // A measured I_A is B = I_A times W in each texel's indirect light.
+        self.last_ambient = match &halves {
+            [
+                ObscuranceHalf {
+                    sums: Some(a), w: wa, ..
+                },
+                ObscuranceHalf {
+                    sums: Some(b), w: wb, ..
+                },
+            ] => Some([
+                AmbientHalf {
+                    sums: *a,
+                    weight: wa.clone(),
+                },
+                AmbientHalf {
+                    sums: *b,
+                    weight: wb.clone(),
+                },
+            ]),
+            _ => None,
+        };
         let (snapshot, ao) = obscurance_snapshot(halves, self.want_direct);
         self.last_ao = Some(ao);
         Ok(snapshot)
@@ -1447,6 +1494,10 @@ impl Technique for Obscurance {
 
     fn ao(&self) -> Option<Vec<f32>> {
         self.last_ao.clone()
+    }
+
+    fn ambient(&self) -> Option<[AmbientHalf; 2]> {
+        self.last_ambient.clone()
     }
 
     fn accumulating_pass(&self) -> &'static str {

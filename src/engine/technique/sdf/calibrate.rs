@@ -4,9 +4,18 @@
 //! golden-section search for each alpha of [`CAL_ALPHAS`], each alpha's C averaged over
 //! [`CAL_JITTERS`] fixed jitters so the fit matches what the steps converge to. The report
 //! ([`CalibrationReport`]) goes into the plan and the job status.
+//!
+//! The texels are drawn from the whole grid by a seeded key of their *pixel*
+//! ([`calibration_texels`]: the grid's coverage, the texels of the smallest keys built
+//! alone and validated as the atlas validates), never from the bake's own texel list: a
+//! task that bakes one page or band of the grid (`engine::tasks`) calibrates at the same
+//! texels, with the same rays, as the single bake, so it bakes with the same k and alpha.
+//! Costs a rasterisation of the whole grid into a bit a pixel (0.22 s for 15.6 M texels,
+//! docs/scaling.md) and the candidates' validation rays.
 
 #[allow(clippy::wildcard_imports)]
 use super::*;
+use crate::engine::atlas::{Atlas, Texel, validate};
 
 impl Sdf {
     /// Fits k and alpha (whichever the job left out) against CPU ray-cast sky
@@ -14,7 +23,6 @@ impl Sdf {
     pub(super) fn calibrate(&mut self, inputs: &BakeInputs) -> Result<CalibrationReport, GpuError> {
         let g = self.gpu.as_ref().expect("calibration runs after the volume");
         let scene = &inputs.scene;
-        let atlas = &inputs.atlas;
         let upper = self.upper;
         let open = |n: Vec3| {
             if upper {
@@ -23,25 +31,16 @@ impl Sdf {
                 1.0
             }
         };
-        // Texels that can see sky at all, picked in a seeded random order.
-        let mut order: Vec<(u64, u32)> = atlas
-            .texels
-            .iter()
-            .enumerate()
-            .filter(|(_, t)| open(t.normal) > 1e-3)
-            .map(|(i, _)| {
-                (
-                    Rng::new(inputs.prepare_seed, 0x5DF, i as u64, 0).next_u32() as u64,
-                    i as u32,
-                )
-            })
-            .collect();
-        order.sort_unstable();
-        let picked: Vec<u32> = order
-            .iter()
-            .take(self.params.calibration_texels as usize)
-            .map(|x| x.1)
-            .collect();
+        // Texels that can see sky at all, picked in a seeded random order of their
+        // pixels over the whole grid and validated as the atlas validates (module doc):
+        // the same texels whether the bake holds the whole grid or one region of it.
+        let picked = calibration_texels(inputs, self.params.calibration_texels as usize, |t: &Texel| {
+            open(t.normal) > 1e-3
+        })
+        .map_err(|e| GpuError::Device {
+            during: "sdf calibration's texels".into(),
+            message: e.to_string(),
+        })?;
         let n = picked.len() as u32;
         if n == 0 {
             return Ok(CalibrationReport {
@@ -65,9 +64,8 @@ impl Sdf {
         let sky_of = |w: Vec3| inputs.lighting.sky_radiance(w) != Vec3::ZERO;
         let reference: Vec<f32> = picked
             .par_iter()
-            .map(|&i| {
-                let t = &atlas.texels[i as usize];
-                let mut rng = Rng::new(inputs.prepare_seed, 0x5DF_CA1, i as u64, 0);
+            .map(|t| {
+                let mut rng = Rng::new(inputs.prepare_seed, 0x5DF_CA1, u64::from(t.pixel), 0);
                 let mut seen = 0u32;
                 for _ in 0..rays {
                     let dir = cosine_sample(t.normal, rng.next_f32(), rng.next_f32());
@@ -84,7 +82,7 @@ impl Sdf {
                 seen as f32 / rays as f32
             })
             .collect();
-        let opens: Vec<f32> = picked.iter().map(|&i| open(atlas.texels[i as usize].normal)).collect();
+        let opens: Vec<f32> = picked.iter().map(|t| open(t.normal)).collect();
 
         // GPU sums for every alpha tried and every fixed jitter.
         let alphas: Vec<f32> = match self.params.alpha {
@@ -93,8 +91,7 @@ impl Sdf {
         };
         let texels: Vec<GpuTexelGeom> = picked
             .iter()
-            .map(|&i| {
-                let t = &atlas.texels[i as usize];
+            .map(|t| {
                 let p = (t.position - g.centre) / g.scale;
                 GpuTexelGeom {
                     position: [p.x, p.y, p.z, 0.0],
@@ -255,5 +252,47 @@ pub(super) fn ray_hits_shape(s: &DynamicShape, c: Vec3, origin: Vec3, dir: Vec3)
         let (a, b, cc) = (d.dot(d), o.dot(d), o.dot(o) - 1.0);
         let disc = b * b - a * cc;
         disc >= 0.0 && (-b + disc.sqrt()) > 0.0
+    }
+}
+
+/// Up to `n` texels of the whole grid that `accept` takes, in the order of a key of their
+/// pixel seeded by the prepare seed, each kept only where the atlas's validation keeps it
+/// (its back-face fraction within [`validate::BACKFACE_TOLERANCE`], the CPU's rays,
+/// which are keyed by pixel): the same texels in a single bake and in a region's task.
+/// Starts with 4 n candidates and widens fourfold while too few pass.
+fn calibration_texels(
+    inputs: &BakeInputs,
+    n: usize,
+    accept: impl Fn(&Texel) -> bool,
+) -> Result<Vec<Texel>, crate::engine::atlas::AtlasError> {
+    if n == 0 {
+        return Ok(Vec::new());
+    }
+    let (scene, width, height) = (&inputs.scene, inputs.atlas.width, inputs.atlas.height);
+    let coverage = Atlas::coverage(scene, width, height)?;
+    let key = |p: u32| u64::from(Rng::new(inputs.prepare_seed, 0x5DF, u64::from(p), 0).next_u32());
+    let tracer = inputs.rays.tracer();
+    let total = coverage.texels();
+    let mut m = (4 * n).min(total);
+    loop {
+        let order = coverage.smallest(m, key);
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        let candidates: Vec<Texel> = Atlas::texels_at(scene, width, height, &sorted)?
+            .into_iter()
+            .filter(|t| accept(t))
+            .collect();
+        let fractions = validate::backface_fractions(scene, &tracer, &candidates);
+        let kept: std::collections::HashMap<u32, Texel> = candidates
+            .into_iter()
+            .zip(fractions)
+            .filter(|(_, f)| *f <= validate::BACKFACE_TOLERANCE)
+            .map(|(t, _)| (t.pixel, t))
+            .collect();
+        let picked: Vec<Texel> = order.iter().filter_map(|p| kept.get(p).cloned()).take(n).collect();
+        if picked.len() == n || m >= total {
+            return Ok(picked);
+        }
+        m = (4 * m).min(total);
     }
 }

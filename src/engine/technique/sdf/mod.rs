@@ -79,6 +79,14 @@
 //!    prefer the room it was emitted in (one ambient for the whole scene). Computed per
 //!    half from that half's estimates, so the halves stay independent.
 //!
+//! Split bakes (`engine::tasks`, issue 25): a task may bake one region of the grid and get
+//! the single bake's texels there. The volume's frame is the triangles' and the dynamic
+//! shapes' (not the texels'), the sky jitter and the shared direct light's streams are
+//! keyed by the texel's pixel, the calibration draws its texels over the whole grid by a
+//! key of their pixel (`calibrate`), and the bounce's B is closed from sums over the bake's
+//! texels (`engine::ambient`), which the merge closes over every region
+//! (`Technique::ambient`: the sums and each texel's h per half).
+//!
 //! A step runs the shared direct light first, then the sky pass. In a bake with a time
 //! limit or a watcher, the direct light's step (the long one: the sun's shadow rays over
 //! every texel) may run in slices of about 50 ms and be stopped and undone between two
@@ -119,6 +127,7 @@ use super::api::{
     go_on_until, gpu_error, parse_params,
 };
 use crate::engine::accumulate::{HalfEstimate, Snapshot};
+use crate::engine::ambient::{AmbientHalf, AmbientSums};
 use crate::engine::gpu::direct_light::{DirectHalf, DirectLight, MAX_SAMPLES_PER_STEP};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
@@ -528,8 +537,8 @@ pub struct Sdf {
     /// Per valid texel: albedo and area, for the bounce's scene averages.
     texel_albedo: Vec<Vec3>,
     texel_area: Vec<f32>,
-    /// Area-weighted mean albedo R_ave.
-    r_ave: Vec3,
+    /// The bounce's ambient of the last snapshot's halves (`Technique::ambient`).
+    last_ambient: Option<[AmbientHalf; 2]>,
     k: f32,
     alpha: f32,
     gpu: Option<SdfGpu>,
@@ -601,15 +610,6 @@ impl Sdf {
             _ => None,
         };
         let texel_area: Vec<f32> = atlas.texels.iter().map(|t| t.size * t.size).collect();
-        let area_sum: f64 = texel_area.iter().map(|a| *a as f64).sum::<f64>().max(f64::MIN_POSITIVE);
-        let r_ave = (atlas
-            .texels
-            .iter()
-            .zip(&texel_area)
-            .map(|(t, a)| t.albedo.as_dvec3() * *a as f64)
-            .sum::<glam::DVec3>()
-            / area_sum)
-            .as_vec3();
         let mut sdf = Sdf {
             k: params.k.unwrap_or(DEFAULT_K),
             alpha: params.alpha.unwrap_or(DEFAULT_ALPHA),
@@ -625,7 +625,7 @@ impl Sdf {
             direct: None,
             texel_albedo: atlas.texels.iter().map(|t| t.albedo).collect(),
             texel_area,
-            r_ave,
+            last_ambient: None,
             gpu: None,
             device: ctx.clone(),
             deadline: None,
@@ -681,21 +681,16 @@ impl Sdf {
         let scene = &inputs.scene;
         let atlas = &inputs.atlas;
         let origin_offset = scene.origin_offset;
-        // Bounds: triangles, texel points and every dynamic shape.
-        // The movable shapes' bounds count too, so a shape moved to the scene's edge
-        // stays inside the volume.
+        // Bounds: triangles and every dynamic shape; not the texels, so a region's task
+        // (engine::tasks), which has only its region's, builds the whole bake's volume
+        // (texel points lie on the triangles, pushed off by the atlas's small surface
+        // offset, which the volume's two voxels of padding hold). The movable shapes'
+        // bounds count, so a shape moved to the scene's edge stays inside the volume.
         let shapes = self.params.dynamic.iter().flat_map(|s| {
             let c = (s.centre() - origin_offset).as_vec3();
             [c - s.size(), c + s.size()]
         });
-        let frame = SceneFrame::of_points(
-            scene
-                .triangles
-                .iter()
-                .flat_map(|t| t.p)
-                .chain(atlas.texels.iter().map(|t| t.position))
-                .chain(shapes),
-        );
+        let frame = SceneFrame::of_points(scene.triangles.iter().flat_map(|t| t.p).chain(shapes));
         let (lo, hi, centre, scale) = (frame.lo, frame.hi, frame.centre, frame.radius);
         let norm = |p: Vec3| frame.norm(p);
         let layout = VolumeLayout::new(norm(lo), norm(hi), self.params.resolution, self.params.samples);
@@ -725,7 +720,13 @@ impl Sdf {
         let texels: Vec<GpuTexelGeom> = atlas
             .texels
             .iter()
-            .map(|t| GpuTexelGeom::new(&frame, t.position, t.normal, t.geo_normal))
+            .map(|t| {
+                // position.w: the pixel's bits, which the sky pass keys its jitter by
+                // (shaders/sdf/sky.wgsl), so a region's task jitters as a whole bake does.
+                let mut g = GpuTexelGeom::new(&frame, t.position, t.normal, t.geo_normal);
+                g.position[3] = f32::from_bits(t.pixel);
+                g
+            })
             .collect();
 
         let voxels = layout.voxels();
@@ -1004,27 +1005,19 @@ impl SdfGpu {
     }
 }
 
-/// Guard on 1 - c R_ave: an albedo-1 closed scene has no finite ambient.
-const MIN_ABSORPTION: f32 = 1e-3;
-
-/// The ambient radiance the shared direct light leaves on surfaces, after every bounce
-/// of the one-ambient model (the module doc's *Bounce*): B1 = sum(A rho D) / sum(A), the
-/// area-weighted outgoing radiance of the directly lit surfaces, closed over further
-/// bounces by the geometric series B = B1 / (1 - c R_ave), c = sum(A h) / sum(A) the
-/// mean fraction h of a texel's hemisphere that sees surfaces (the shared pass's rays).
-fn shared_bounce(d: &DirectHalf, albedo: &[Vec3], area: &[f32], r_ave: Vec3) -> Vec3 {
-    let (mut b1, mut c, mut a_sum) = (glam::DVec3::ZERO, 0.0f64, 0.0f64);
+/// The bounce's ambient over one half (the module doc's *Bounce*, `engine::ambient`): the
+/// area-weighted sums of rho D (the outgoing radiance of the directly lit surfaces), of h
+/// (the fraction of a texel's cosine-weighted hemisphere that sees surfaces, the shared
+/// pass's rays) and of the albedo, and each texel's weight h.
+fn shared_bounce(d: &DirectHalf, albedo: &[Vec3], area: &[f32]) -> AmbientHalf {
+    let mut sums = AmbientSums::default();
     for k in 0..d.light.len() {
-        let a = area[k] as f64;
-        b1 += (albedo[k] * d.light[k]).as_dvec3() * a;
-        c += d.hit[k].clamp(0.0, 1.0) as f64 * a;
-        a_sum += a;
+        sums.add_texel(area[k], albedo[k], albedo[k] * d.light[k], d.hit[k]);
     }
-    if a_sum <= 0.0 {
-        return Vec3::ZERO;
+    AmbientHalf {
+        sums,
+        weight: d.hit.iter().map(|h| Vec3::splat(h.clamp(0.0, 1.0))).collect(),
     }
-    let (b1, c) = ((b1 / a_sum).as_vec3(), (c / a_sum) as f32);
-    b1 / (Vec3::ONE - c * r_ave).max(Vec3::splat(MIN_ABSORPTION))
 }
 
 impl Technique for Sdf {
@@ -1147,7 +1140,8 @@ impl Technique for Sdf {
             None => None,
         };
         let bounce = self.params.bounce;
-        let half = |h: usize| {
+        let mut bounced: [Option<AmbientHalf>; 2] = [None, None];
+        let mut half = |h: usize| {
             let steps = self.half_steps[h];
             let scale = if steps > 0 { 1.0 / steps as f32 } else { 0.0 };
             let slice = &acc[h * n..(h + 1) * n];
@@ -1164,10 +1158,12 @@ impl Technique for Sdf {
                     total[k] += d.light[k];
                 }
                 if bounce {
-                    let b = shared_bounce(d, &self.texel_albedo, &self.texel_area, self.r_ave);
+                    let ambient = shared_bounce(d, &self.texel_albedo, &self.texel_area);
+                    let b = ambient.sums.closure();
                     for k in 0..n {
-                        total[k] += b * d.hit[k].clamp(0.0, 1.0);
+                        total[k] += b * ambient.weight[k];
                     }
+                    bounced[h] = Some(ambient);
                 }
             }
             HalfEstimate {
@@ -1191,10 +1187,16 @@ impl Technique for Sdf {
                 })
                 .collect(),
         );
-        Ok(Snapshot {
-            even: half(0),
-            odd: half(1),
-        })
+        let (even, odd) = (half(0), half(1));
+        self.last_ambient = match bounced {
+            [Some(e), Some(o)] => Some([e, o]),
+            _ => None,
+        };
+        Ok(Snapshot { even, odd })
+    }
+
+    fn ambient(&self) -> Option<[AmbientHalf; 2]> {
+        self.last_ambient.clone()
     }
 
     fn ao(&self) -> Option<Vec<f32>> {
@@ -1242,8 +1244,8 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
         tested: "the sun, directional, point and spot lights and emitters (the shared direct-light pass's GPU rays)",
         opaque: "the signed distance field that gathers the sky and the bounce holds occupancy, not coverage (its k and alpha, fitted to alpha-tested CPU rays, absorb cut-outs only on average over the scene); it",
     },
-    tasks: TaskSplit::Chains(
-        "its occlusion falloff is calibrated at texels drawn from the whole grid, and its bias is measured at control texels spread over it (engine::control): a region's calibration and control texels are not the bake's",
+    tasks: TaskSplit::ChainsAndRegions(
+        "its sky jitter is stratified along each texel's steps and its halves are running means of the shared direct light, so a range of steps is not a part of one bake; a texel's sky and direct light come from the scene, the seed and its pixel, its calibration from texels drawn over the whole grid by pixel, and its bounce from one scene-wide ambient that the merge closes over every region, so a region's texels (pages or tiles) are the single bake's",
     ),
 };
 
