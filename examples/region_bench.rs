@@ -2,16 +2,18 @@
 //! docs/scaling.md "A farm model"): wall time, its bake time and the rest (import, UVs,
 //! texel set, BVH, validation), result size, and the merge of all regions.
 //!
-//! `cargo run --release --example region_bench -- BOXES CELLS TEXELS_PER_METRE PAGE_SIZE REGIONS STEPS`
-//! (defaults 40 8 10 1024 4 2): the generated level of `prep_bench` (a 100 m ground and
-//! BOXES boxes of 10 · CELLS² triangles, UVs generated at TEXELS_PER_METRE on pages
-//! PAGE_SIZE wide), `path` on the CPU at 1 sample a step for STEPS steps. Rows: one task
-//! of the whole grid (`tasks: 1`), then every region task of `tasks = regions = REGIONS`,
-//! then the merge of those. The level's glb is built in memory first and imported by each
-//! task, as a worker would.
+//! `cargo run --release --example region_bench -- BOXES CELLS TEXELS_PER_METRE PAGE_SIZE REGIONS STEPS [TECHNIQUE]`
+//! (defaults 40 8 10 1024 4 2 path): the generated level of `prep_bench` (a 100 m ground
+//! and BOXES boxes of 10 · CELLS² triangles, UVs generated at TEXELS_PER_METRE on pages
+//! PAGE_SIZE wide), baked for STEPS steps by TECHNIQUE: `path` on the CPU at 1 sample a
+//! step, any other technique that splits by regions with its defaults (on the GPU).
+//! Rows: one task of the whole grid (`tasks: 1`), then every region task of `tasks =
+//! regions = REGIONS`, then the merge of those, and how far the merge is from the whole
+//! grid's task (the largest texel difference over the RMS). The level's glb is built in
+//! memory first and imported by each task, as a worker would.
 //!
-//! Limits: CPU only (the GPU route is what a farm would run; the preparation it times is
-//! the same code); one generated layout.
+//! Limits: `path` on the CPU only (the GPU route is what a farm would run; the
+//! preparation it times is the same code); one generated layout.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -26,6 +28,7 @@ use lightmapd::engine::tasks::{self, Partial, TaskShape};
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let arg = |k: usize, d: f64| args.get(k).and_then(|a| a.parse::<f64>().ok()).unwrap_or(d);
+    let technique = args.get(6).cloned().unwrap_or_else(|| "path".into());
     let (boxes, cells, density, page, regions, steps) = (
         arg(0, 40.0) as u32,
         arg(1, 8.0) as u32,
@@ -36,7 +39,7 @@ fn main() {
     );
     let glb = generated_level(boxes, cells);
     let request = BakeRequest {
-        technique: "path".into(),
+        technique: technique.clone(),
         resolution: page,
         texels_per_unit: Some(density),
         // The pages this bench measures, not grown to fit the density.
@@ -47,12 +50,16 @@ fn main() {
             seconds: None,
             target_error: None,
         },
-        params: serde_json::json!({"device": "cpu", "samples_per_step": 1}),
+        params: if technique == "path" {
+            serde_json::json!({"device": "cpu", "samples_per_step": 1})
+        } else {
+            serde_json::Value::Null
+        },
         denoise: Denoiser::None,
         ..BakeRequest::default()
     };
     println!(
-        "level: {boxes} boxes of {} triangles, {density} texels/m on {page}-wide pages; path {steps} steps of 1 sample; {} threads",
+        "level: {boxes} boxes of {} triangles, {density} texels/m on {page}-wide pages; {technique} {steps} steps; {} threads",
         10 * cells * cells,
         rayon::current_num_threads()
     );
@@ -88,7 +95,7 @@ fn main() {
         );
         p
     };
-    run(TaskShape::steps(1), 0);
+    let whole = run(TaskShape::steps(1), 0);
     let shape = TaskShape {
         tasks: regions,
         regions,
@@ -102,4 +109,13 @@ fn main() {
         merged.estimate.total.len(),
         t.elapsed().as_secs_f64()
     );
+    let single = whole.snapshot.estimate().total;
+    let lum = |v: glam::Vec3| f64::from(v.dot(lightmapd::engine::accumulate::LUMINANCE));
+    let rms = (single.iter().map(|v| lum(*v).powi(2)).sum::<f64>() / single.len().max(1) as f64).sqrt();
+    let worst = single
+        .iter()
+        .zip(&merged.estimate.total)
+        .map(|(a, b)| (lum(*a) - lum(*b)).abs())
+        .fold(0.0f64, f64::max);
+    println!("merged against the whole grid's task: largest texel difference {:.2e} of the RMS", worst / rms.max(f64::MIN_POSITIVE));
 }
