@@ -49,6 +49,19 @@ pub struct MapTexel {
     pub emission: Vec3,
 }
 
+impl From<&crate::engine::atlas::Texel> for MapTexel {
+    fn from(t: &crate::engine::atlas::Texel) -> Self {
+        MapTexel {
+            pixel: t.pixel,
+            position: t.position,
+            normal: t.normal,
+            geo_normal: t.geo_normal,
+            albedo: t.albedo,
+            emission: t.emission,
+        }
+    }
+}
+
 /// A light of (near) zero solid angle handled with shadow maps: the sun, directional
 /// lights.
 #[derive(Debug, Clone, Copy)]
@@ -99,18 +112,7 @@ impl MapScene {
                 }
             })
             .collect();
-        let texels = atlas
-            .texels
-            .iter()
-            .map(|t| MapTexel {
-                pixel: t.pixel,
-                position: t.position,
-                normal: t.normal,
-                geo_normal: t.geo_normal,
-                albedo: t.albedo,
-                emission: t.emission,
-            })
-            .collect();
+        let texels = atlas.texels.iter().map(MapTexel::from).collect();
         let mut lights = Vec::new();
         if let Some(sun) = lighting.sun {
             lights.push(DirectionalLight {

@@ -679,17 +679,7 @@ impl Obscurance {
         // Geometry and materials.
         let mut vertices = Vec::with_capacity(input.triangles.len() * 3);
         let pix = (width * height) as usize;
-        let grid: Vec<MapTexel> = grid
-            .iter()
-            .map(|t| MapTexel {
-                pixel: t.pixel,
-                position: t.position,
-                normal: t.normal,
-                geo_normal: t.geo_normal,
-                albedo: t.albedo,
-                emission: t.emission,
-            })
-            .collect();
+        let grid: Vec<MapTexel> = grid.iter().map(MapTexel::from).collect();
         let fill = fill_map(width, height, &grid);
         let mut materials: Vec<[f32; 4]> = Vec::with_capacity(2 * pix + 2 * input.triangles.len());
         for &k in &fill {
