@@ -84,7 +84,7 @@ fn padded_glb(base: &[u8], pad: usize, tag: u8) -> Vec<u8> {
     let new_len = bin_len + pad;
     json["buffers"][0]["byteLength"] = json!(new_len);
     let mut text = serde_json::to_vec(&json).unwrap();
-    while text.len() % 4 != 0 {
+    while !text.len().is_multiple_of(4) {
         text.push(b' ');
     }
     let total = 12 + 8 + text.len() + 8 + new_len;

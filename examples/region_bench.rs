@@ -117,5 +117,8 @@ fn main() {
         .zip(&merged.estimate.total)
         .map(|(a, b)| (lum(*a) - lum(*b)).abs())
         .fold(0.0f64, f64::max);
-    println!("merged against the whole grid's task: largest texel difference {:.2e} of the RMS", worst / rms.max(f64::MIN_POSITIVE));
+    println!(
+        "merged against the whole grid's task: largest texel difference {:.2e} of the RMS",
+        worst / rms.max(f64::MIN_POSITIVE)
+    );
 }

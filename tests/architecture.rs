@@ -295,14 +295,14 @@ fn edges() -> (Vec<Edge>, BTreeSet<String>) {
         };
         let src = std::fs::read_to_string(&f).unwrap();
         for p in paths_in(&src, &module) {
-            if let Some(to) = unit_of(&p, &top, &techniques) {
-                if to != from {
-                    out.push(Edge {
-                        file: rel.to_string_lossy().into_owned(),
-                        from: from.clone(),
-                        to,
-                    });
-                }
+            if let Some(to) = unit_of(&p, &top, &techniques)
+                && to != from
+            {
+                out.push(Edge {
+                    file: rel.to_string_lossy().into_owned(),
+                    from: from.clone(),
+                    to,
+                });
             }
         }
     }

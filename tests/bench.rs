@@ -101,8 +101,7 @@ fn a_short_run_reports_exact_path_and_obscurances_bias() {
     let last = |scene: &str, sampling: &str| -> (usize, f64, f64) {
         let line = csv
             .lines()
-            .filter(|l| l.starts_with(scene) && l.split(',').nth(2) == Some(sampling))
-            .last()
+            .rfind(|l| l.starts_with(scene) && l.split(',').nth(2) == Some(sampling))
             .unwrap_or_else(|| panic!("probes.csv has no {scene} {sampling} row:\n{csv}"));
         let f: Vec<&str> = line.split(',').collect();
         (f[3].parse().unwrap(), f[6].parse().unwrap(), f[7].parse().unwrap())

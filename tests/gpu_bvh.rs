@@ -132,7 +132,7 @@ fn make_rays(scene: &Scene, seed: u64, count: usize) -> Rays {
                 let (t, _) = lightmapd::engine::raytrace::basis(n);
                 let lift = [1e-2, 1e-3, 1e-4][(rng.next_f32() * 3.0) as usize % 3];
                 let d = (t + n * (lift * (rng.next_f32() - 0.3))).normalize();
-                let d = Vec3::from(glam::Quat::from_axis_angle(n, rng.next_f32() * 6.28) * d);
+                let d = glam::Quat::from_axis_angle(n, rng.next_f32() * std::f32::consts::TAU) * d;
                 out.rays.push(ray(p + n * size * 1e-4, d, f32::MAX, 0));
                 out.aimed.push(None);
             }
@@ -251,17 +251,17 @@ fn compare(
                 "{what}: near-surface ray {i} hit {tri} at {t}, aimed at {k} at {t_aim}"
             );
         }
-        if cpu.as_ref().map(|c| (c.triangle, c.t)) != gpu.map(|(k, t)| (k, t)) {
+        if cpu.as_ref().map(|c| (c.triangle, c.t)) != gpu {
             // Where the CPU's BVH (obvhs's own slab test, not conservative) loses a hit the
             // GPU finds, every triangle is tested: the GPU's answer must be the truth.
             let truth = brute_force(scene, o, d);
             let cpu_t = cpu.as_ref().map(|c| c.t);
-            if gpu.is_some() && truth.is_some() && truth.map(|x| x.1) != cpu_t {
-                let ((_, tt), (_, tg)) = (truth.unwrap(), gpu.unwrap());
-                if (tt - tg).abs() <= tol(tt) {
-                    tally.cpu_bvh_lost += 1;
-                    continue;
-                }
+            if let (Some((_, tt)), Some((_, tg))) = (truth, gpu)
+                && Some(tt) != cpu_t
+                && (tt - tg).abs() <= tol(tt)
+            {
+                tally.cpu_bvh_lost += 1;
+                continue;
             }
         }
         match (&cpu, gpu) {

@@ -574,11 +574,11 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
         let make = || -> Box<dyn Technique> {
             let request = BakeRequest {
                 technique: "obscurance".into(),
-                lighting: lighting.clone(),
+                lighting,
                 ..Default::default()
             };
             let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
-            let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting.clone(), 7, plan);
+            let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 7, plan);
             let params = json!({"map_size": 128, "directions_per_step": directions});
             technique::create("obscurance", inputs, &params).unwrap()
         };

@@ -354,11 +354,11 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
     let make = || -> Box<dyn Technique> {
         let request = lightmapd::engine::job::BakeRequest {
             technique: "sdf".into(),
-            lighting: lighting.clone(),
+            lighting,
             ..Default::default()
         };
         let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
-        let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting.clone(), 7, plan);
+        let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 7, plan);
         technique::create("sdf", inputs, &json!({"resolution": 48})).unwrap()
     };
     common::assert_sliced_steps_match_whole(&make);

@@ -442,10 +442,11 @@ fn running_tasks_merge_to_the_single_bake_at_the_steps_done() {
         r.stop.steps = Some(n);
         whole(&scene, &r)
     };
-    let all = [0..atlas.texels.len()];
-    let four = tasks::merge_running(&atlas, &all, std::slice::from_ref(&live0[1])).unwrap();
+    let whole = 0..atlas.texels.len();
+    let all = std::slice::from_ref(&whole);
+    let four = tasks::merge_running(&atlas, all, std::slice::from_ref(&live0[1])).unwrap();
     assert_same_bake(&at(4), &four);
-    let eight = tasks::merge_running(&atlas, &all, &[done0.clone(), live1[0].clone()]).unwrap();
+    let eight = tasks::merge_running(&atlas, all, &[done0.clone(), live1[0].clone()]).unwrap();
     assert_same_bake(&at(8), &eight);
     // The final merge takes results only, and says which is not one.
     let err = match tasks::merge(
@@ -462,7 +463,7 @@ fn running_tasks_merge_to_the_single_bake_at_the_steps_done() {
         "{err}"
     );
     // A task given twice, or halves of another texel set, are refused by name.
-    let err = tasks::merge_running(&atlas, &all, &[live0[0].clone(), live0[1].clone()])
+    let err = tasks::merge_running(&atlas, all, &[live0[0].clone(), live0[1].clone()])
         .unwrap_err()
         .to_string();
     assert!(err.contains("task 0/2 is given twice"), "{err}");
@@ -470,9 +471,13 @@ fn running_tasks_merge_to_the_single_bake_at_the_steps_done() {
     other.resolution = 24;
     let small = tasks::split(&other, TaskShape::steps(2)).unwrap();
     let (_, _, other_atlas) = bake_live(&scene, &other, small[0]);
-    let err = tasks::merge_running(&other_atlas, &[0..other_atlas.texels.len()], &[done0])
-        .unwrap_err()
-        .to_string();
+    let err = tasks::merge_running(
+        &other_atlas,
+        std::slice::from_ref(&(0..other_atlas.texels.len())),
+        &[done0],
+    )
+    .unwrap_err()
+    .to_string();
     assert!(err.contains("task 0/2 was baked on another texel set"), "{err}");
 }
 
@@ -526,7 +531,12 @@ fn running_chains_merge_with_their_bias_measured() {
     let split = tasks::split(&request, TaskShape::steps(2)).unwrap();
     let (a, _, atlas) = bake_live(&scene, &request, split[0]);
     let (b, _, _) = bake_live(&scene, &request, split[1]);
-    let m = tasks::merge_running(&atlas, &[0..atlas.texels.len()], &[a[0].clone(), b[0].clone()]).unwrap();
+    let m = tasks::merge_running(
+        &atlas,
+        std::slice::from_ref(&(0..atlas.texels.len())),
+        &[a[0].clone(), b[0].clone()],
+    )
+    .unwrap();
     assert_eq!(m.steps, 4);
     let mean: Vec<Vec3> = a[0]
         .snapshot

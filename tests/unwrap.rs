@@ -227,8 +227,8 @@ fn authored_uvs_are_kept_beside_generated_ones() {
     let squeeze = 128.0 / result.atlas.height as f32;
     let baked = &result.scene;
     for (t, lm) in baked.triangles.iter().filter(|t| t.mesh == 0).zip(&authored) {
-        for k in 0..3 {
-            assert_eq!(t.lm[k], Vec2::new(lm[k].x, lm[k].y * squeeze));
+        for (got, want) in t.lm.iter().zip(lm.iter()) {
+            assert_eq!(*got, Vec2::new(want.x, want.y * squeeze));
         }
     }
     for t in baked.triangles.iter().filter(|t| t.mesh == 1) {

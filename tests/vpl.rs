@@ -769,12 +769,12 @@ fn sliced_steps_equal_whole_ones_and_an_abandoned_step_adds_nothing() {
         let make = || -> Box<dyn Technique> {
             let request = lightmapd::engine::job::BakeRequest {
                 technique: "vpl".into(),
-                lighting: lighting.clone(),
+                lighting,
                 outputs: vec![lightmapd::engine::output::OutputLayer::Direct],
                 ..Default::default()
             };
             let plan = lightmapd::engine::job::plan_for(&scene, &request).unwrap();
-            let mut inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting.clone(), 7, plan);
+            let mut inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 7, plan);
             inputs.want_direct = true;
             technique::create("vpl", inputs, &params).unwrap()
         };

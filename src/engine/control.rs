@@ -196,9 +196,7 @@ pub fn assess_against(indices: &[usize], reference: &Estimate, estimate: &mut Es
     let (Some(se_t), Some(noise)) = (estimate.texel_error.as_ref(), estimate.error.relative) else {
         return None;
     };
-    let Some(se_p) = reference.texel_error.as_ref() else {
-        return None;
-    };
+    let se_p = reference.texel_error.as_ref()?;
     let rms_t = estimate.error.rms_luminance as f64;
     let lum = |v: Vec3| v.dot(LUMINANCE) as f64;
     let m = indices.len() as f64;

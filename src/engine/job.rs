@@ -29,8 +29,6 @@ use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateRe
 use crate::engine::technique::path::probes::{self, ProbeBaker, ProbeSet};
 use crate::engine::technique::{self, AlphaSupport, BakeInputs, EngineError, Technique};
 
-/// What to bake, independent of where the scene came from.
-
 /// The plan for `request` on `scene` (DESIGN §6): the scene's features read off, then the
 /// technique's own `plan()` through the technique table; an unknown technique is a
 /// bad-input error.

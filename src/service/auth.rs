@@ -400,7 +400,7 @@ mod tests {
         );
         for (text, says) in [
             (
-                format!("ci editor\n"),
+                "ci editor\n".to_string(),
                 "line 1: expected `NAME ROLE SECRET` (3 fields), got 2",
             ),
             (

@@ -559,7 +559,8 @@ impl Round<'_> {
                     .get()
                     .cloned()
                     .ok_or("the task's texel set is not built yet")?;
-                let r = Arc::new(vec![0..a.texels.len()]);
+                // One region: the whole grid's texels.
+                let r = Arc::new(std::iter::once(0..a.texels.len()).collect::<Vec<_>>());
                 *whole = Whole::Ready(a.clone(), r.clone());
                 Some((a, r))
             }

@@ -543,6 +543,18 @@ pub fn generated_scene(job: &str) -> Path {
     Path::from(format!("jobs/{job}/scene.glb"))
 }
 
+/// Bake task `k`'s result (`engine::tasks::Partial`, docs/scaling.md's `.lmtask`) of a
+/// split job, kept until the merge has stored the lightmap.
+pub fn task_partial(job: &str, k: u32) -> Path {
+    Path::from(format!("jobs/{job}/tasks/{k}.lmtask"))
+}
+
+/// Bake task `k`'s halves so far while it runs (a `.lmtask` marked live), which the
+/// job's running snapshots merge; replaced as it bakes on, deleted with the results.
+pub fn task_live(job: &str, k: u32) -> Path {
+    Path::from(format!("jobs/{job}/tasks/{k}.live.lmtask"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -641,16 +653,4 @@ mod tests {
         let e = Artifacts::open(&url, &overrides).await.err().expect("refused");
         assert!(e.to_string().contains("AWS_ALLOW_HTTP"), "{e}");
     }
-}
-
-/// Bake task `k`'s result (`engine::tasks::Partial`, docs/scaling.md's `.lmtask`) of a
-/// split job, kept until the merge has stored the lightmap.
-pub fn task_partial(job: &str, k: u32) -> Path {
-    Path::from(format!("jobs/{job}/tasks/{k}.lmtask"))
-}
-
-/// Bake task `k`'s halves so far while it runs (a `.lmtask` marked live), which the
-/// job's running snapshots merge; replaced as it bakes on, deleted with the results.
-pub fn task_live(job: &str, k: u32) -> Path {
-    Path::from(format!("jobs/{job}/tasks/{k}.live.lmtask"))
 }

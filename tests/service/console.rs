@@ -217,8 +217,7 @@ async fn scene_glb_and_half_float_lightmap() {
     let half = |i: usize| f32::from(exr::prelude::f16::from_le_bytes([halves[2 * i], halves[2 * i + 1]]));
     let mut lit = 0;
     for (i, px) in img.iter().enumerate() {
-        for c in 0..3 {
-            let want = px[c];
+        for (c, &want) in px.iter().enumerate().take(3) {
             let got = half(4 * i + c);
             assert!(
                 (got - want).abs() <= want.abs() * 1e-3 + 1e-6,
@@ -258,12 +257,7 @@ fn exr_rgb(bytes: &[u8]) -> Vec<[f32; 3]> {
         .unwrap();
     let layer = &image.layer_data[0];
     let chan = |n: &str| -> Vec<f32> {
-        let c = layer
-            .channel_data
-            .list
-            .iter()
-            .find(|c| c.name == Text::from(n))
-            .unwrap();
+        let c = layer.channel_data.list.iter().find(|c| c.name == *n).unwrap();
         c.sample_data.values_as_f32().collect()
     };
     let (r, g, b) = (chan("R"), chan("G"), chan("B"));
@@ -276,8 +270,7 @@ fn exr_rgb(bytes: &[u8]) -> Vec<[f32; 3]> {
 fn chromium() -> Option<PathBuf> {
     for name in ["chromium", "chromium-browser", "google-chrome"] {
         let found = std::env::var_os("PATH")
-            .map(|p| std::env::split_paths(&p).map(|d| d.join(name)).find(|f| f.is_file()))
-            .flatten();
+            .and_then(|p| std::env::split_paths(&p).map(|d| d.join(name)).find(|f| f.is_file()));
         if found.is_some() {
             return found;
         }

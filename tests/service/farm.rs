@@ -424,8 +424,12 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     let apart = relative_error(&shown, &finals);
     assert!(
         // The last one may be made after the tasks' final halves (all the steps, the
-        // final lightmap itself): never more error than the final's, but not above it.
-        apart <= 3.0 * stated && stated >= 0.99 * final_error,
+        // final lightmap itself) or a little before them. It states no less error than
+        // the final's, up to the estimate's own noise: the RMS of the halves' difference
+        // over the box's ~800 texels varies by some 2.5 % from one step count to the next
+        // (√(1/(2·800))), and one run on a loaded machine read just under 0.99 of it, so
+        // 0.9 is four of those standard deviations.
+        apart <= 3.0 * stated && stated >= 0.9 * final_error,
         "running snapshot {n} differs from the final lightmap by {apart:.4}; it states {stated:.4}, the final {final_error:.4}"
     );
     // The job's history holds that snapshot's point with the error it states, as a

@@ -273,6 +273,10 @@ pub fn generate_lightmap_uvs_with(
     generate_lightmap_uvs_paged(scene, resolution, resolution, mode, texels_per_unit, unwrapper)
 }
 
+/// A mesh's layout among its instances: the normalised linear part of the first instance,
+/// its metric for matching, and the instances with their scales.
+type InstanceLayout = (Option<DMat3>, Option<DMat3>, Vec<(usize, f32)>);
+
 /// Gives the meshes `mode` selects generated lightmap UVs, packed beside the authored
 /// ones (module doc), and records the layout in `scene.layout` for the written glTF.
 /// `resolution` is the page width W; at a fixed `texels_per_unit` the page grows (doubling
@@ -348,7 +352,7 @@ pub fn generate_lightmap_uvs_paged(
         };
         // The mesh's instances by layout: (normalised linear part of the first, its
         // metric for matching, instances with their scales).
-        let mut layouts: Vec<(Option<DMat3>, Option<DMat3>, Vec<(usize, f32)>)> = Vec::new();
+        let mut layouts: Vec<InstanceLayout> = Vec::new();
         for (k, inst) in source.instances.iter().enumerate() {
             if inst.mesh != m || inst.opt_out {
                 continue;

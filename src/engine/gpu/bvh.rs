@@ -190,7 +190,7 @@ impl BvhData {
                 missing: format!("the scene's BVH is {depth} levels deep; the GPU traversal's stack holds {BVH_STACK}"),
             });
         }
-        if slot_of.iter().any(|s| *s == u32::MAX) {
+        if slot_of.contains(&u32::MAX) {
             return Err(GpuError::Device {
                 during: "BVH flattening".into(),
                 message: "a triangle is in no BVH leaf".into(),
@@ -215,7 +215,7 @@ pub struct GpuBvh {
 
 /// An error when `bytes` exceed the device's storage-binding limit, naming `what`.
 pub fn check_binding_size(ctx: &GpuContext, what: &str, bytes: u64) -> Result<(), GpuError> {
-    let max = ctx.limits.max_storage_buffer_binding_size as u64;
+    let max = ctx.limits.max_storage_buffer_binding_size;
     if bytes > max {
         return Err(GpuError::Unsupported {
             adapter: ctx.info.name.clone(),

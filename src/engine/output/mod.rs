@@ -328,7 +328,7 @@ pub fn decode_lightmap(bytes: &[u8]) -> Result<DecodedLightmap, String> {
             .channel_data
             .list
             .iter()
-            .find(|c| c.name == Text::from(name))
+            .find(|c| c.name == *name)
             .map(|c| c.sample_data.values_as_f32().collect())
             .ok_or_else(|| format!("the lightmap EXR has no {name} channel"))
     };

@@ -117,8 +117,8 @@ fn hat(a: &[f64; 21], m: usize) -> Option<[f64; 6]> {
     for i in 0..m {
         for j in 0..=i {
             let mut s = a[packed(j, i)] + if i == j { RIDGE[i] } else { 0.0 };
-            for k in 0..j {
-                s -= l[i][k] * l[j][k];
+            for (lik, ljk) in l[i][..j].iter().zip(&l[j][..j]) {
+                s -= lik * ljk;
             }
             if i == j {
                 if s <= 0.0 {
@@ -150,12 +150,15 @@ fn hat(a: &[f64; 21], m: usize) -> Option<[f64; 6]> {
     Some(x)
 }
 
+/// One texel's fits: each candidate's value, its halves' luminance and its weight.
+type TexelFits = ([Vec3; CANDIDATES], [[f32; CANDIDATES]; 2], [f32; CANDIDATES]);
+
 /// The fits of `values` at every texel (indexed like `atlas.texels`), with the halves'
 /// luminance fitted alongside when `halves` is given. `chart` is `denoise::charts`.
 pub fn fit(atlas: &Atlas, chart: &[u32], values: &[Vec3], halves: Option<[&[Vec3]; 2]>) -> Fits {
     let (w, h) = (atlas.width as i64, atlas.height as i64);
     let reach = RADII[RADII.len() - 1];
-    let per_texel: Vec<([Vec3; CANDIDATES], [[f32; CANDIDATES]; 2], [f32; CANDIDATES])> = atlas
+    let per_texel: Vec<TexelFits> = atlas
         .texels
         .par_iter()
         .enumerate()
@@ -183,15 +186,15 @@ pub fn fit(atlas: &Atlas, chart: &[u32], values: &[Vec3], halves: Option<[&[Vec3
                     }
                     let v = values[q];
                     for (ch, val) in [v.x, v.y, v.z].into_iter().enumerate() {
-                        for r in 0..6 {
-                            b.v[ch][r] += x[r] * val as f64;
+                        for (bv, xr) in b.v[ch].iter_mut().zip(&x) {
+                            *bv += xr * val as f64;
                         }
                     }
                     if let Some(hs) = halves {
                         for (hh, half) in hs.iter().enumerate() {
                             let l = half[q].dot(LUMINANCE) as f64;
-                            for r in 0..6 {
-                                b.h[hh][r] += x[r] * l;
+                            for (bh, xr) in b.h[hh].iter_mut().zip(&x) {
+                                *bh += xr * l;
                             }
                         }
                     }

@@ -105,11 +105,8 @@ impl StepProgress {
 
     /// Records `done` of `of` parts of the current step.
     pub fn set(&self, done: u64, of: u64) {
-        let p = if of == 0 {
-            1000
-        } else {
-            (done.min(of) * 1000 / of) as u32
-        };
+        // A step of no parts is done.
+        let p = (done.min(of) * 1000).checked_div(of).map_or(1000, |p| p as u32);
         self.0.permille.store(p, std::sync::atomic::Ordering::Relaxed);
     }
 
@@ -279,6 +276,9 @@ pub fn parse_params<T: serde::de::DeserializeOwned + Default>(
     serde_json::from_value(params.clone()).map_err(|e| EngineError::BadInput(format!("params for {technique}: {e}")))
 }
 
+/// How a technique is prepared for a bake: the inputs and the job's parameter object.
+pub type Prepare = fn(BakeInputs, &Value) -> Result<Box<dyn Technique>, EngineError>;
+
 /// What a technique registers.
 #[derive(Clone, Copy)]
 pub struct TechniqueEntry {
@@ -290,7 +290,7 @@ pub struct TechniqueEntry {
     pub plan: fn(&SceneFeatures) -> Plan,
     /// Prepares it for a bake; `params` is the job's parameter object (unknown fields are
     /// rejected).
-    pub prepare: fn(BakeInputs, &Value) -> Result<Box<dyn Technique>, EngineError>,
+    pub prepare: Prepare,
     /// Every WGSL pass it compiles (validated without a device, see the tests below).
     pub shaders: &'static [PassShader],
     /// The optional output layers it writes; `validity` and `debug` come from the texel

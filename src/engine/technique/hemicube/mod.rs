@@ -460,7 +460,7 @@ impl Hemicube {
                 // Textured emitters: the factor bounds the texture (glTF multiplies them),
                 // and any positive weight keeps the estimator unbiased.
                 let w = lum(m.emissive).max(m.emissive.max_element() * 1e-3) as f64 * t.area() as f64 * sides;
-                (w > 0.0 && w.is_finite()).then(|| Emitter {
+                (w > 0.0 && w.is_finite()).then_some(Emitter {
                     triangle: i as u32,
                     weight: w,
                 })

@@ -338,7 +338,7 @@ impl<'a> ProbeBaker<'a> {
                     return [Vec3::ZERO; SH9];
                 }
                 let mut sum = [Vec3::ZERO; SH9];
-                let key = seed ^ 0x9B0B_E5;
+                let key = seed ^ 0x9B_0BE5;
                 for s in 0..spp {
                     match this.params.sampling {
                         Sampling::Sobol => {

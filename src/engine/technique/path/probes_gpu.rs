@@ -87,7 +87,7 @@ impl ProbeGpu {
         };
         // The probes' own key, as on the CPU: probe i's streams and scrambles are not the
         // lightmap texel's at pixel i of the same bake.
-        let seed = seed ^ 0x9B0B_E5;
+        let seed = seed ^ 0x9B_0BE5;
         let uniform = PathUniform {
             counts: [n as u32, params.samples_per_step, params.max_bounces, 0],
             keys: [seed as u32, (seed >> 32) as u32, 0, flags],

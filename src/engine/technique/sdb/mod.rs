@@ -742,7 +742,7 @@ impl SdbEngine {
             Bind::Read(&tris_buf),
             Bind::Read(&radiance_buf),
             Bind::Read(&emission_px_buf),
-            Bind::Read(&tables_buf),
+            Bind::Read(tables_buf),
         ];
         let illum_layout = layout_of(&ctx, "sdb illumination layout", S::VERTEX_FRAGMENT, &illum_binds);
         let illum_groups: Vec<Option<&wgpu::BindGroupLayout>> = vec![Some(&illum_layout)];

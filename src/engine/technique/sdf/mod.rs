@@ -1160,8 +1160,8 @@ impl Technique for Sdf {
                 if bounce {
                     let ambient = shared_bounce(d, &self.texel_albedo, &self.texel_area);
                     let b = ambient.sums.closure();
-                    for k in 0..n {
-                        total[k] += b * ambient.weight[k];
+                    for (t, w) in total.iter_mut().zip(&ambient.weight) {
+                        *t += b * *w;
                     }
                     bounced[h] = Some(ambient);
                 }
