@@ -11,7 +11,8 @@
 //! task that bakes one page or band of the grid (`engine::tasks`) calibrates at the same
 //! texels, with the same rays, as the single bake, so it bakes with the same k and alpha.
 //! Costs a rasterisation of the whole grid into a bit a pixel (0.22 s for 15.6 M texels,
-//! docs/scaling.md) and the candidates' validation rays.
+//! docs/scaling.md), a hash per covered pixel, and the candidates' texels and validation
+//! rays.
 
 #[allow(clippy::wildcard_imports)]
 use super::*;
