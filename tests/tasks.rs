@@ -610,7 +610,8 @@ fn vpl_pages_are_the_single_bakes_pages() {
 /// two pages of a grey ground and a red ball under a sky and a low sun (the ground
 /// bounces light onto the ball, so each page alone closes another ambient): each page
 /// task bakes what the single bake bakes there, to float rounding, which it does not
-/// without the closure; sdf's pages calibrate as the single bake does.
+/// without the closure; sdf's pages calibrate as the single bake does; the running
+/// snapshots' merge closes the ambient as the final merge does.
 #[test]
 fn sdf_and_obscurance_pages_are_the_single_bakes_pages() {
     use lightmapd::engine::scene::Sun;
@@ -690,6 +691,11 @@ fn sdf_and_obscurance_pages_are_the_single_bakes_pages() {
             .map(|p| p.header.control.as_ref().unwrap().texels.len() as u32)
             .sum();
         assert_eq!(m.error.control_texels, Some(controls), "{technique}");
+        // The running snapshots' merge (the service's, while tasks bake) closes the
+        // ambient the same way: on the finished pages it is the final merge.
+        let (atlas, ranges) = tasks::running_atlas(scene.clone(), &pages, &BakeOptions::default()).unwrap();
+        let running = tasks::merge_running(&atlas, &ranges, &pages).unwrap();
+        assert_eq!(running.total, m.total, "{technique}: the running merge");
     }
 }
 
