@@ -1252,6 +1252,52 @@ fn render_split_against_whole() {
     }
 }
 
+/// Issue 25's page splits of `sdf` and `obscurance` as a user sees them (run by hand,
+/// `--ignored`; it writes docs/scaling/rendered_living_room_{sdf,obscurance}_*.png): the
+/// living room under a sky and a low sun, each technique baked whole and as 2 regions of
+/// the grid (the merge closes their scene-wide ambient over both), drawn from one camera.
+/// Prints each split picture's mean absolute difference from its whole bake's.
+#[test]
+#[ignore]
+fn render_sdf_and_obscurance_pages_against_whole() {
+    let Some(exe) = skip_without_browser("render_sdf_and_obscurance_pages_against_whole") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (child, url) = spawn_serve(dir.path(), 1, &["--snapshot-interval-s", "30"]);
+    let _serve = Serve(child);
+    let runs = [
+        ("sdf_whole", "sdf", 1, 1),
+        ("sdf_pages", "sdf", 2, 2),
+        ("obscurance_whole", "obscurance", 1, 1),
+        ("obscurance_pages", "obscurance", 2, 2),
+    ];
+    let bodies = runs.map(|(name, technique, tasks, regions)| {
+        let mut body = json!({"technique": technique, "resolution": 256,
+            "stop": {"steps": 16}, "seed": 1,
+            "lighting": {"sky": {"radiance": [1, 1, 1]},
+                         "sun": {"direction": [0.5, -0.6, 0.3], "radiance": [2000, 1900, 1700], "angular_diameter_deg": 0.5}}});
+        if tasks > 1 {
+            body["tasks"] = json!(tasks);
+            body["regions"] = json!(regions);
+        }
+        (name, body)
+    });
+    let jobs = bake_living_room(&url, &bodies, Duration::from_secs(900));
+    let views = render_jobs(&exe, &url, &jobs);
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scaling");
+    std::fs::create_dir_all(&out).unwrap();
+    for ((name, ..), png) in runs.iter().zip(&views) {
+        std::fs::write(out.join(format!("rendered_living_room_{name}.png")), png).unwrap();
+    }
+    for (what, a, b) in [("sdf pages vs whole", 1, 0), ("obscurance pages vs whole", 3, 2)] {
+        eprintln!(
+            "{what}: mean |difference| {:.2} of 255",
+            mean_difference(&views[a], &views[b])
+        );
+    }
+}
+
 /// Issue 22's rendered before/after (run by hand, `--ignored`; it writes
 /// docs/denoise/rendered_*.png): the living room baked by `path` at 16 steps raw and
 /// denoised, and at 512 steps raw as the reference, each drawn by the console's 3D view
