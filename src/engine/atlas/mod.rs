@@ -44,6 +44,7 @@ pub mod seams;
 pub mod unwrap;
 pub mod validate;
 
+use std::borrow::Cow;
 use std::ops::Range;
 
 use glam::{Vec2, Vec3};
@@ -177,8 +178,7 @@ fn check_resolution(width: u32, height: u32) -> Result<(), AtlasError> {
     Ok(())
 }
 
-/// The texels of `claims`, the claims of the pixels from `first` on, in pixel order.
-/// The texels of `claims`, claim k on pixel `pixel_of(k)`.
+/// The texels of `claims`, claim k on pixel `pixel_of(k)`, in the claims' order.
 fn texels_of(
     scene: &Scene,
     width: u32,
@@ -389,6 +389,18 @@ pub struct Coverage {
     before: Vec<u32>,
 }
 
+/// The pixels whose bits are set in coverage word `w`, ascending.
+fn word_pixels(w: usize, bits: u64) -> impl Iterator<Item = u32> {
+    let mut b = bits;
+    std::iter::from_fn(move || {
+        (b != 0).then(|| {
+            let p = (w * 64) as u32 + b.trailing_zeros();
+            b &= b - 1;
+            p
+        })
+    })
+}
+
 impl Coverage {
     /// Valid texels (before validation) in the grid.
     pub fn texels(&self) -> usize {
@@ -431,11 +443,8 @@ impl Coverage {
             .map(|(c, words)| {
                 let mut heap = BinaryHeap::new();
                 for (w, &bits) in words.iter().enumerate() {
-                    let mut b = bits;
-                    while b != 0 {
-                        let pixel = ((c * WORDS + w) * 64) as u32 + b.trailing_zeros();
+                    for pixel in word_pixels(c * WORDS + w, bits) {
                         push(&mut heap, (key(pixel), pixel));
-                        b &= b - 1;
                     }
                 }
                 heap
@@ -451,16 +460,7 @@ impl Coverage {
 
     /// The covered pixels, ascending.
     pub fn pixels(&self) -> impl Iterator<Item = u32> + '_ {
-        self.bits.iter().enumerate().flat_map(|(w, &bits)| {
-            let mut b = bits;
-            std::iter::from_fn(move || {
-                (b != 0).then(|| {
-                    let p = (w * 64) as u32 + b.trailing_zeros();
-                    b &= b - 1;
-                    p
-                })
-            })
-        })
+        self.bits.iter().enumerate().flat_map(|(w, &bits)| word_pixels(w, bits))
     }
 
     /// The pixel of texel `k` (k < [`texels`](Self::texels)).
@@ -576,22 +576,23 @@ impl Atlas {
     /// reads the whole grid's materials ( `obscurance`'s albedo map and R_ave) takes, so a
     /// region's task reads the single bake's. A region's call costs the whole grid's
     /// rasterisation and texels (some 100 bytes a texel while it runs).
-    pub fn grid_texels(&self, scene: &Scene) -> Result<Vec<Texel>, AtlasError> {
+    pub fn grid_texels(&self, scene: &Scene) -> Result<Cow<'_, [Texel]>, AtlasError> {
         let whole = self.pixel_texel.window() == (0..(self.width * self.height) as usize);
         if whole {
+            // A whole grid that validation left whole is its own texel set: no copy.
             if self.inside_pixels.is_empty() {
-                return Ok(self.texels.clone());
+                return Ok(Cow::Borrowed(&self.texels));
             }
             let mut inside = self.inside_pixels.clone();
             inside.sort_unstable();
             let mut all = self.texels.clone();
             all.extend(Atlas::texels_at(scene, self.width, self.height, &inside)?);
             all.sort_unstable_by_key(|t| t.pixel);
-            return Ok(all);
+            return Ok(Cow::Owned(all));
         }
         let coverage = Atlas::coverage(scene, self.width, self.height)?;
         let pixels: Vec<u32> = coverage.pixels().collect();
-        Atlas::texels_at(scene, self.width, self.height, &pixels)
+        Ok(Cow::Owned(Atlas::texels_at(scene, self.width, self.height, &pixels)?))
     }
 
     /// Which pixels of the `width` x `height` grid hold a texel: the rasterisation of

@@ -661,7 +661,7 @@ impl Obscurance {
         // area; Eq. 5's emission over triangles (exact for small emitters without texels).
         let r_ave = {
             let mut sums = AmbientSums::default();
-            for t in &grid {
+            for t in grid.iter() {
                 sums.add_texel(t.size * t.size, t.albedo, Vec3::ZERO, 0.0);
             }
             sums.r_ave()
