@@ -450,6 +450,8 @@ fn the_control_check_keeps_only_a_measured_gain() {
             .iter()
             .map(|t| t.x + (rng.next_f32() - 0.5) * 12f32.sqrt() * noise)
             .collect(),
+        variance: vec![noise * noise; n],
+        rms: 1.0,
     };
     let quiet = control(0.01, &mut rng);
     let onto = checked_share(&raw, &truth, &quiet);
@@ -464,6 +466,8 @@ fn the_control_check_keeps_only_a_measured_gain() {
     let even = ControlValues {
         texels: (0..n).step_by(2).collect(),
         luminance: truth.iter().step_by(2).map(|t| t.x).collect(),
+        variance: vec![0.0; n / 2],
+        rms: 1.0,
     };
     let odd_only: Vec<Vec3> = (0..n).map(|k| if k % 2 == 1 { truth[k] } else { raw[k] }).collect();
     assert_eq!(
@@ -477,7 +481,73 @@ fn the_control_check_keeps_only_a_measured_gain() {
     let one = ControlValues {
         texels: vec![0],
         luminance: vec![truth[0].x],
+        variance: vec![0.0],
+        rms: 1.0,
     };
     assert_eq!(checked_share(&raw, &truth, &one), 0.0, "one control texel");
     assert_eq!(checked_share(&raw, &raw, &quiet), 0.0, "no move");
+}
+
+/// A biased technique's delivered map is measured at its control texels as the raw one
+/// is (`control::assess_delivered`): a map off by 0.05 everywhere reads 0.05 of the
+/// answer's RMS through path's noise, inside its 90 % interval; the denoiser's noise
+/// bound is the floor; and with nothing to measure the summary is left alone.
+#[test]
+fn the_delivered_map_is_measured_at_the_control_texels() {
+    use lightmapd::engine::accumulate::{ControlValues, ErrorSummary};
+    use lightmapd::engine::control::assess_delivered;
+    let n = 256;
+    let truth: Vec<f32> = (0..n).map(|k| 1.0 + 0.1 * (k as f32).sin()).collect();
+    let rms = (truth.iter().map(|t| t * t).sum::<f32>() / n as f32).sqrt();
+    let mut rng = lightmapd::engine::rng::Rng::new(9, 0, 0, 0);
+    let sd = 0.01f32;
+    let control = ControlValues {
+        texels: (0..n).collect(),
+        luminance: truth
+            .iter()
+            .map(|t| t + (rng.next_f32() - 0.5) * 12f32.sqrt() * sd)
+            .collect(),
+        variance: vec![sd * sd; n],
+        rms,
+    };
+    // Grey values: their luminance is the value.
+    let off: Vec<Vec3> = truth.iter().map(|t| Vec3::splat(t + 0.05)).collect();
+    let blank = ErrorSummary {
+        relative: None,
+        noise: None,
+        bias: None,
+        interval: None,
+        control_texels: None,
+        rms_luminance: 0.0,
+        raw_relative: None,
+        noise_scale: None,
+    };
+    let mut e = blank;
+    assert!(assess_delivered(&control, &off, 1e-8, &mut e));
+    let want = 0.05 / rms;
+    let got = e.relative.unwrap();
+    assert!((got / want - 1.0).abs() < 0.05, "off by 0.05: read {got}, want {want}");
+    let [lo, hi] = e.interval.unwrap();
+    assert!(lo <= want && want <= hi, "{want} outside [{lo}, {hi}]");
+    assert!((e.bias.unwrap() / got - 1.0).abs() < 1e-3, "all of it is bias: {e:?}");
+    assert_eq!(e.control_texels, Some(n as u32));
+    // The denoiser's noise bound above what the control measures is the figure.
+    assert!(assess_delivered(&control, &off, 0.1f64.powi(2), &mut e));
+    assert!((e.relative.unwrap() - 0.1 / rms).abs() < 1e-6, "{e:?}");
+    assert!((e.noise.unwrap() - 0.1 / rms).abs() < 1e-6, "{e:?}");
+    assert_eq!(e.bias, Some(0.0));
+    // The answer itself reads path's noise's residue, within the interval's reach of 0.
+    let exact: Vec<Vec3> = truth.iter().map(|t| Vec3::splat(*t)).collect();
+    assert!(assess_delivered(&control, &exact, 1e-8, &mut e));
+    assert!(e.relative.unwrap() < 0.005, "{e:?}");
+    // Nothing to measure: one control texel.
+    let one = ControlValues {
+        texels: vec![0],
+        luminance: vec![1.0],
+        variance: vec![0.0],
+        rms: 1.0,
+    };
+    let mut untouched = blank;
+    assert!(!assess_delivered(&one, &off, 1e-8, &mut untouched));
+    assert_eq!(untouched.relative, None);
 }

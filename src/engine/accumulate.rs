@@ -105,13 +105,19 @@ pub struct Estimate {
     pub control: Option<std::sync::Arc<ControlValues>>,
 }
 
-/// `path`'s luminance at the control texels, as the denoiser's check reads it.
+/// `path`'s luminance at the control texels, as the denoiser's check and the delivered
+/// map's assessment read it (`control::assess_delivered`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ControlValues {
     /// The control texels, as indices into the estimate's texels.
     pub texels: Vec<usize>,
     /// `path`'s luminance there, in the same order.
     pub luminance: Vec<f32>,
+    /// Its variance (squared standard error) there, in the same order.
+    pub variance: Vec<f32>,
+    /// The answer's RMS luminance as `path`'s values estimate it, less their variance
+    /// (what the control's relative errors are relative to).
+    pub rms: f32,
 }
 
 impl Estimate {

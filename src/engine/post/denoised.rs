@@ -63,15 +63,21 @@
 //!    included, which the halves cannot do (they share the technique's bias). The move
 //!    is kept only as far as it measurably helps (the best share of it, B / A, with B
 //!    one-sided 95 % low; 0 where no gain can be shown, including a move that touched
-//!    no control texel) and scaled down over the whole map otherwise. Without it the weights of 3 still let a filter's blur move a
-//!    bias-dominated map the way its bias already goes (`vpl` on the parallel plates:
-//!    up to 8 % worse than raw, docs/quality.md).
+//!    no control texel) and scaled down over the whole map otherwise. Without it the
+//!    weights of 3 still let a filter's blur move a bias-dominated map the way its bias
+//!    already goes (`vpl` on the parallel plates: up to 8 % worse than raw,
+//!    docs/quality.md).
 //! 5. Delivered error per texel: Σ w_c √M_c (each part's best estimate, M itself and
 //!    V): the RMS error of a convex combination is at most the weighted mean of its
 //!    parts' RMS errors, whatever their correlation (the triangle inequality, i.e.
 //!    Minkowski), so this bounds it, and more tightly than √(Σ w_c M_c) (Jensen, used
 //!    until 2026-12-06); the map's relative error is its RMS over the RMS luminance, as
-//!    for the raw estimate (`accumulate`).
+//!    for the raw estimate (`accumulate`). A biased technique's delivered map is then
+//!    measured at its control texels as its raw map is (`control::assess_delivered`),
+//!    with that bound as the floor: the halves share the technique's bias, so what the
+//!    filters do to it is seen only there (the raw bias added in quadrature, until
+//!    2026-12-06, stated 1.31 for a true 5.78 on the Cornell box after 2 `obscurance`
+//!    steps).
 //!
 //! Limits: the weights come from luminance and are used for all three channels and for
 //! the direct and directional layers too; the image denoiser's M is an upper bound (it
@@ -93,6 +99,7 @@ use super::oidn::{Mode, Oidn};
 use super::regress;
 use crate::engine::accumulate::{ControlValues, Estimate, LUMINANCE};
 use crate::engine::atlas::Atlas;
+use crate::engine::control;
 
 /// Rings of dilation before OIDN sees the image: wider than OIDN's tiles' overlap is
 /// not needed, enough that every chart border has filled texels around it.
@@ -619,15 +626,23 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
     let rms_err = (combination.texel_error.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / count).sqrt();
     out.error.raw_relative = estimate.error.relative;
     let noise = if rms > 0.0 { (rms_err / rms) as f32 } else { 0.0 };
-    // The bias the control texels measured is still there after denoising (the filter
-    // only trades noise for its own blur): added back to the denoised noise.
-    out.error.relative = Some(match estimate.error.bias {
-        Some(b) => (noise * noise + b * b).sqrt(),
-        None => noise,
-    });
-    if estimate.error.bias.is_some() {
-        out.error.noise = Some(noise);
-        out.error.interval = None;
+    // A biased technique's delivered map is measured at its control texels as the raw
+    // one is (bias, noise and what the filters did to both); its noise bound is the
+    // floor. Otherwise (an unbiased technique, or a control with nothing to measure) the
+    // noise bound, with the raw map's measured bias in quadrature where there is one.
+    let measured = estimate
+        .control
+        .as_deref()
+        .is_some_and(|c| control::assess_delivered(c, &out.total, rms_err * rms_err, &mut out.error));
+    if !measured {
+        out.error.relative = Some(match estimate.error.bias {
+            Some(b) => (noise * noise + b * b).sqrt(),
+            None => noise,
+        });
+        if estimate.error.bias.is_some() {
+            out.error.noise = Some(noise);
+            out.error.interval = None;
+        }
     }
     out.error.rms_luminance = rms as f32;
     out.texel_error = Some(combination.texel_error.clone());

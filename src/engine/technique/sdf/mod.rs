@@ -654,6 +654,7 @@ impl Sdf {
             alpha = sdf.alpha,
             volume_s = sdf.timings.volume,
             calibration_s = sdf.timings.calibration,
+            calibration = ?sdf.params.calibration,
             "sdf prepared"
         );
         Ok(sdf)
