@@ -32,6 +32,26 @@ enum Answer {
     Path { budget: f64 },
 }
 
+/// The bench's `path` reference of `scene` baked for `budget` seconds, cached under the
+/// test target's temporary directory.
+fn path_reference(
+    scene: &lightmapd::engine::scene::library::LibraryScene,
+    prepared: &bench::PreparedScene,
+    budget: f64,
+) -> bench::Reference {
+    let cfg = BenchConfig {
+        scenes: Vec::new(),
+        techniques: Vec::new(),
+        budget: Duration::ZERO,
+        steps: None,
+        reference_budget: Duration::from_secs_f64(budget),
+        out_dir: PathBuf::new(),
+        cache_dir: PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("honest-error-references"),
+        probes: false,
+    };
+    bench::reference(scene, prepared, &cfg).expect("the path reference")
+}
+
 /// (reported, true) relative error of a bake of `technique` on the library scene `name`
 /// at `resolution`, stopped by `stop`. Against a `path` reference, the reference's own
 /// noise is taken out of the measured error (independent errors add in squares).
@@ -82,17 +102,7 @@ fn measure(
                 "the cached reference is at the scene's own resolution"
             );
             let prepared = bench::prepare(&s).expect("prepares");
-            let cfg = BenchConfig {
-                scenes: Vec::new(),
-                techniques: Vec::new(),
-                budget: Duration::ZERO,
-                steps: None,
-                reference_budget: Duration::from_secs_f64(budget),
-                out_dir: PathBuf::new(),
-                cache_dir: PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("honest-error-references"),
-                probes: false,
-            };
-            let reference = bench::reference(&s, &prepared, &cfg).expect("the path reference");
+            let reference = path_reference(&s, &prepared, budget);
             // The bench's atlas is the unvalidated one (texels inside geometry kept); the
             // bake's lost those. The same pixel is the same texel.
             let by_pixel: std::collections::HashMap<u32, (Vec3, Option<Vec3>)> = prepared
@@ -187,91 +197,96 @@ fn steps_for(technique: &str) -> u64 {
     }
 }
 
-#[test]
-fn reported_error_is_within_a_factor_two_of_the_true_error() {
-    if !have_adapter() {
-        return;
-    }
+/// Bakes every biased technique on the two closed-form scenes at each of `steps(id)`
+/// with `denoise`, and lists the bakes whose reported error is not within a factor 2 of
+/// the true one (unless the truth is below the control's resolution and inside the
+/// stated interval, [`Unresolved`]); `what` names the figure in the messages.
+fn factor_two_failures(what: &str, denoise: Denoiser, steps: impl Fn(&str) -> Vec<u64>) -> Vec<String> {
     let mut failures = Vec::new();
     for e in TABLE.iter().filter(|e| !e.unbiased) {
-        for (scene, resolution) in [("closed-box-0.9", 24), ("parallel-plates", 32)] {
-            let stop = StopCriteria {
-                steps: Some(steps_for(e.id)),
-                seconds: None,
-                target_error: None,
-            };
-            let (reported, truth, unresolved) = measure(
-                e.id,
-                scene,
-                resolution,
-                stop,
-                params_for(e.id),
-                Answer::Closed,
-                Denoiser::None,
-            );
-            let ratio = reported as f64 / truth;
-            if unresolved.0 {
-                eprintln!(
-                    "{} on {scene}: true {truth:.4} below the control's resolution, inside its 90 % interval",
-                    e.id
-                );
-            } else if !(0.5..=2.0).contains(&ratio) {
-                failures.push(format!(
-                    "{} on {scene}: reported {reported:.4}, true {truth:.4}, ratio {ratio:.2} outside [0.5, 2]",
-                    e.id
-                ));
-            }
-        }
-    }
-    assert!(failures.is_empty(), "reported / true error:\n{}", failures.join("\n"));
-}
-
-/// The same for what is delivered: a biased technique's denoised lightmap is measured at
-/// its control texels (`control::assess_delivered`), so its reported error is within a
-/// factor 2 of its true one too, early in a bake where the filters move the most (16
-/// steps; `sdf` at 200, a tenth of its steps above) and at the end of the bake above.
-/// The raw map's bias added in quadrature to the filters' noise bound, which this
-/// replaced, fails here: `sdb` on the 0.9 box at 16 steps stated 0.31 % for a delivered
-/// true error of 1.02 % (ratio 0.30; 2026-12-06), and `obscurance`'s delivered Cornell
-/// box read 1.31 for a true 5.78 after 2 steps in `lightmapd bench`.
-#[test]
-fn delivered_error_is_within_a_factor_two_of_the_true_error() {
-    if !have_adapter() {
-        return;
-    }
-    let mut failures = Vec::new();
-    for e in TABLE.iter().filter(|e| !e.unbiased) {
-        let early = if e.id == "sdf" { 200 } else { 16 };
-        for steps in [early, steps_for(e.id)] {
+        for n in steps(e.id) {
             for (scene, resolution) in [("closed-box-0.9", 24), ("parallel-plates", 32)] {
                 let stop = StopCriteria {
-                    steps: Some(steps),
+                    steps: Some(n),
                     seconds: None,
                     target_error: None,
                 };
-                let (reported, truth, unresolved) = measure(
-                    e.id,
-                    scene,
-                    resolution,
-                    stop,
-                    params_for(e.id),
-                    Answer::Closed,
-                    Denoiser::Auto,
-                );
+                let (reported, truth, unresolved) =
+                    measure(e.id, scene, resolution, stop, params_for(e.id), Answer::Closed, denoise);
                 let ratio = reported as f64 / truth;
                 if unresolved.0 {
                     eprintln!(
-                        "{} on {scene}, {steps} steps, delivered: true {truth:.4} below the control's resolution, inside its 90 % interval",
+                        "{} on {scene}, {n} steps, {what}: true {truth:.4} below the control's resolution, inside its 90 % interval",
                         e.id
                     );
                 } else if !(0.5..=2.0).contains(&ratio) {
                     failures.push(format!(
-                        "{} on {scene}, {steps} steps, delivered: reported {reported:.4}, true {truth:.4}, ratio {ratio:.2} outside [0.5, 2]",
+                        "{} on {scene}, {n} steps, {what}: reported {reported:.4}, true {truth:.4}, ratio {ratio:.2} outside [0.5, 2]",
                         e.id
                     ));
                 }
             }
         }
+    }
+    failures
+}
+
+#[test]
+fn reported_error_is_within_a_factor_two_of_the_true_error() {
+    if !have_adapter() {
+        return;
+    }
+    let failures = factor_two_failures("raw", Denoiser::None, |id| vec![steps_for(id)]);
+    assert!(failures.is_empty(), "reported / true error:\n{}", failures.join("\n"));
+}
+
+/// The same for what is delivered: a biased technique's denoised lightmap is measured at
+/// its control texels (`control::assess_delivered`), so its reported error is within a
+/// factor 2 of its true one too: on the two closed forms early in a bake, where the
+/// filters move the most (4 steps; `sdf`, whose steps are cheap, 50), and at the end of
+/// the bake above; and for `obscurance` on the Cornell box at 4 steps as `lightmapd
+/// bench` bakes it (its seed, its atlas, a 10-s `path` reference), where the filters
+/// change the map's bias most. There the figure this replaced, the raw map's measured
+/// bias in quadrature with the filters' noise bound, stated 0.36 of the truth
+/// (2026-12-06). On the closed forms the two figures agree within the control's
+/// resolution. (At 16 `sdb` steps on the 0.9 box the true error, 0.1-1.3 % over seeds,
+/// sits at the control's resolution, and whether it fell inside the stated 90 % interval
+/// depended on the control's time-sliced samples: not a case this test can hold either
+/// figure to.)
+#[test]
+fn delivered_error_is_within_a_factor_two_of_the_true_error() {
+    if !have_adapter() {
+        return;
+    }
+    let early = |id: &str| if id == "sdf" { 50 } else { 4 };
+    let mut failures = factor_two_failures("delivered", Denoiser::Auto, |id| vec![early(id), steps_for(id)]);
+    let cornell = benchmark_scenes()
+        .into_iter()
+        .find(|s| s.name == "cornell-box")
+        .expect("library scene");
+    let prepared = bench::prepare(&cornell).expect("prepares");
+    let reference = path_reference(&cornell, &prepared, 10.0);
+    let samples = bench::measure(
+        &cornell,
+        &prepared,
+        &reference,
+        "obscurance",
+        Duration::from_secs(300),
+        Some(4),
+    )
+    .expect("the bench's bake");
+    let at4 = samples.iter().find(|s| s.steps == 4).expect("a snapshot at 4 steps");
+    // Less the reference's own error, in quadrature, as above.
+    let truth = (at4.denoised_error.powi(2) - reference.error.powi(2)).max(0.0).sqrt();
+    let reported = at4.denoised_estimate.expect("a delivered estimate") as f64;
+    let ratio = reported / truth;
+    eprintln!(
+        "obscurance on the Cornell box, 4 steps, bench: delivered reported {reported:.4}, true {truth:.4}, ratio {ratio:.2}"
+    );
+    if !(0.5..=2.0).contains(&ratio) {
+        failures.push(format!(
+            "obscurance on the Cornell box, 4 steps, delivered: reported {reported:.4}, true {truth:.4}, ratio {ratio:.2} outside [0.5, 2]"
+        ));
     }
     assert!(
         failures.is_empty(),
