@@ -489,13 +489,12 @@ fn the_control_check_keeps_only_a_measured_gain() {
 }
 
 /// A biased technique's delivered map is measured at its control texels as the raw one
-/// is (`control::assess_delivered`): a map off by 0.05 everywhere reads 0.05 of the
+/// is (`ControlValues::assess_delivered`): a map off by 0.05 everywhere reads 0.05 of the
 /// answer's RMS through path's noise, inside its 90 % interval; the denoiser's noise
 /// bound is the floor; and with nothing to measure the summary is left alone.
 #[test]
 fn the_delivered_map_is_measured_at_the_control_texels() {
     use lightmapd::engine::accumulate::{ControlValues, ErrorSummary};
-    use lightmapd::engine::control::assess_delivered;
     let n = 256;
     let truth: Vec<f32> = (0..n).map(|k| 1.0 + 0.1 * (k as f32).sin()).collect();
     let rms = (truth.iter().map(|t| t * t).sum::<f32>() / n as f32).sqrt();
@@ -523,7 +522,7 @@ fn the_delivered_map_is_measured_at_the_control_texels() {
         noise_scale: None,
     };
     let mut e = blank;
-    assert!(assess_delivered(&control, &off, 1e-8, &mut e));
+    assert!(control.assess_delivered(&off, 1e-8, &mut e));
     let want = 0.05 / rms;
     let got = e.relative.unwrap();
     assert!((got / want - 1.0).abs() < 0.05, "off by 0.05: read {got}, want {want}");
@@ -532,13 +531,13 @@ fn the_delivered_map_is_measured_at_the_control_texels() {
     assert!((e.bias.unwrap() / got - 1.0).abs() < 1e-3, "all of it is bias: {e:?}");
     assert_eq!(e.control_texels, Some(n as u32));
     // The denoiser's noise bound above what the control measures is the figure.
-    assert!(assess_delivered(&control, &off, 0.1f64.powi(2), &mut e));
+    assert!(control.assess_delivered(&off, 0.1f64.powi(2), &mut e));
     assert!((e.relative.unwrap() - 0.1 / rms).abs() < 1e-6, "{e:?}");
     assert!((e.noise.unwrap() - 0.1 / rms).abs() < 1e-6, "{e:?}");
     assert_eq!(e.bias, Some(0.0));
     // The answer itself reads path's noise's residue, within the interval's reach of 0.
     let exact: Vec<Vec3> = truth.iter().map(|t| Vec3::splat(*t)).collect();
-    assert!(assess_delivered(&control, &exact, 1e-8, &mut e));
+    assert!(control.assess_delivered(&exact, 1e-8, &mut e));
     assert!(e.relative.unwrap() < 0.005, "{e:?}");
     // Nothing to measure: one control texel.
     let one = ControlValues {
@@ -548,6 +547,6 @@ fn the_delivered_map_is_measured_at_the_control_texels() {
         rms: 1.0,
     };
     let mut untouched = blank;
-    assert!(!assess_delivered(&one, &off, 1e-8, &mut untouched));
+    assert!(!one.assess_delivered(&off, 1e-8, &mut untouched));
     assert_eq!(untouched.relative, None);
 }

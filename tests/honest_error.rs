@@ -241,7 +241,7 @@ fn reported_error_is_within_a_factor_two_of_the_true_error() {
 }
 
 /// The same for what is delivered: a biased technique's denoised lightmap is measured at
-/// its control texels (`control::assess_delivered`), so its reported error is within a
+/// its control texels (`ControlValues::assess_delivered`), so its reported error is within a
 /// factor 2 of its true one too: on the two closed forms early in a bake, where the
 /// filters move the most (4 steps; `sdf`, whose steps are cheap, 50), and at the end of
 /// the bake above; and for `obscurance` on the Cornell box at 4 steps as `lightmapd

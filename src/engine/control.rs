@@ -29,9 +29,10 @@
 //!   bias part is sqrt(max(mean d - c mean sT_k^2, 0)) and the noise part the calibrated
 //!   floor sqrt(c noise^2), both on the same scale, so neither part exceeds the whole.
 //!   A denoised lightmap is measured at the same texels the same way
-//!   ([`assess_delivered`]), with the denoiser's own noise bound, uncalibrated, as its
-//!   floor: what the filters did to the bias is in the figure, and the floor is
-//!   conservative for the stratified techniques.
+//!   ([`ControlValues::assess_delivered`], which lives beside the values so that the
+//!   denoiser needs nothing of this module), with the denoiser's own noise bound,
+//!   uncalibrated, as its floor: what the filters did to the bias is in the figure, and
+//!   the floor is conservative for the stratified techniques.
 //!
 //! Luminance (`accumulate::LUMINANCE`) throughout, as the noise estimate.
 //!
@@ -59,7 +60,7 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use serde::Serialize;
 
-use crate::engine::accumulate::{Estimate, LUMINANCE, Snapshot};
+use crate::engine::accumulate::{ControlValues, Estimate, LUMINANCE, Snapshot, Z90, squared_error_at};
 use crate::engine::atlas::Atlas;
 use crate::engine::error::EngineError;
 use crate::engine::gpu::scene_rays::SceneRays;
@@ -72,8 +73,6 @@ use crate::engine::technique::{self, BakeInputs, Technique};
 pub const CONTROL_TEXELS: usize = 256;
 /// The control's share of the technique's stepping time.
 pub const CONTROL_SHARE: f64 = 0.25;
-/// z of the two-sided 90 % interval.
-const Z90: f64 = 1.645;
 
 /// The bias measurement of one snapshot.
 #[derive(Clone, Copy, Debug, Serialize, PartialEq)]
@@ -245,7 +244,7 @@ pub fn assess_against(indices: &[usize], reference: &Estimate, estimate: &mut Es
     estimate.error.interval = Some(report.interval);
     estimate.error.control_texels = Some(report.texels as u32);
     estimate.error.noise_scale = Some(calibration as f32);
-    estimate.control = Some(std::sync::Arc::new(crate::engine::accumulate::ControlValues {
+    estimate.control = Some(std::sync::Arc::new(ControlValues {
         texels: indices.to_vec(),
         luminance: p_lum.iter().map(|p| *p as f32).collect(),
         variance: p_var.iter().map(|v| *v as f32).collect(),
@@ -261,56 +260,6 @@ pub fn assess_against(indices: &[usize], reference: &Estimate, estimate: &mut Es
         "control texels"
     );
     Some(report)
-}
-
-/// d_k = (map_k − P_k)² − sP_k² at the control texels `indices` (into `map`; `p` and
-/// `p_var` path's luminance and its variance there, in the same order): their mean, the
-/// map's mean squared error at the control texels, bias and noise together, and its
-/// standard error.
-fn squared_error_at(indices: &[usize], map: &[Vec3], p: &[f64], p_var: &[f64]) -> (f64, f64) {
-    let m = indices.len() as f64;
-    let d: Vec<f64> = indices
-        .iter()
-        .zip(p.iter().zip(p_var))
-        .map(|(&k, (p, v))| (map[k].dot(LUMINANCE) as f64 - p).powi(2) - v)
-        .collect();
-    let mean = d.iter().sum::<f64>() / m;
-    let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1.0).max(1.0);
-    (mean, (var / m).sqrt())
-}
-
-/// The delivered (denoised) lightmap's error measured at the control texels exactly as
-/// [`assess_against`] measures the raw one, folded into `error`: `relative` the RMS of
-/// d_k over the answer's RMS, never below `noise_ms` (the denoiser's own bound of its
-/// noise, absolute mean square, uncalibrated), `bias` what is left above that floor,
-/// `noise` the floor, and the 90 % interval. The raw map's bias and noise in quadrature,
-/// which this replaces, missed what the filters add to or take from the bias (the halves
-/// that cross-validate them share it): `obscurance` on the Cornell box stated 1.31 for a
-/// delivered true error of 5.78 after 2 steps, and 11.8 % for 14.1 % after 10 s
-/// (2026-12-06). The denoiser chose how much of its move to keep at the same texels
-/// (one share for the whole map, `post::denoised::checked_share`), which leans this
-/// figure low by about one texel's worth in `control.texels.len()`.
-/// `false` (and `error` untouched) where there is nothing to measure.
-pub fn assess_delivered(
-    control: &crate::engine::accumulate::ControlValues,
-    delivered: &[Vec3],
-    noise_ms: f64,
-    error: &mut crate::engine::accumulate::ErrorSummary,
-) -> bool {
-    let rms = control.rms as f64;
-    if control.texels.len() < 2 || rms <= 0.0 || control.variance.len() != control.texels.len() {
-        return false;
-    }
-    let p: Vec<f64> = control.luminance.iter().map(|x| *x as f64).collect();
-    let v: Vec<f64> = control.variance.iter().map(|x| *x as f64).collect();
-    let (mean, se) = squared_error_at(&control.texels, delivered, &p, &v);
-    let rel = |ms: f64| (ms.max(noise_ms).sqrt() / rms) as f32;
-    error.relative = Some(rel(mean));
-    error.noise = Some((noise_ms.sqrt() / rms) as f32);
-    error.bias = Some(((mean - noise_ms).max(0.0).sqrt() / rms) as f32);
-    error.interval = Some([rel(mean - Z90 * se), rel(mean + Z90 * se)]);
-    error.control_texels = Some(control.texels.len() as u32);
-    true
 }
 
 /// The factor the page's half-difference noise floor is scaled by: the control's 90 %

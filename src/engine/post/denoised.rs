@@ -73,7 +73,7 @@
 //!    Minkowski), so this bounds it, and more tightly than √(Σ w_c M_c) (Jensen, used
 //!    until 2026-12-06); the map's relative error is its RMS over the RMS luminance, as
 //!    for the raw estimate (`accumulate`). A biased technique's delivered map is then
-//!    measured at its control texels as its raw map is (`control::assess_delivered`),
+//!    measured at its control texels as its raw map is (`ControlValues::assess_delivered`),
 //!    with that bound as the floor: the halves share the technique's bias, so what the
 //!    filters do to it is seen only there (the raw bias added in quadrature, until
 //!    2026-12-06, stated 1.31 for a true 5.78 on the Cornell box after 2 `obscurance`
@@ -99,7 +99,6 @@ use super::oidn::{Mode, Oidn};
 use super::regress;
 use crate::engine::accumulate::{ControlValues, Estimate, LUMINANCE};
 use crate::engine::atlas::Atlas;
-use crate::engine::control;
 
 /// Rings of dilation before OIDN sees the image: wider than OIDN's tiles' overlap is
 /// not needed, enough that every chart border has filled texels around it.
@@ -633,7 +632,7 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
     let measured = estimate
         .control
         .as_deref()
-        .is_some_and(|c| control::assess_delivered(c, &out.total, rms_err * rms_err, &mut out.error));
+        .is_some_and(|c| c.assess_delivered(&out.total, rms_err * rms_err, &mut out.error));
     if !measured {
         out.error.relative = Some(match estimate.error.bias {
             Some(b) => (noise * noise + b * b).sqrt(),
