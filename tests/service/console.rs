@@ -1199,6 +1199,29 @@ fn mean_difference(a: &[u8], b: &[u8]) -> f64 {
         / n
 }
 
+/// `body` split into `tasks` tasks over `regions` regions (left whole for one task).
+fn split(mut body: Value, tasks: u32, regions: u32) -> Value {
+    if tasks > 1 {
+        body["tasks"] = json!(tasks);
+        body["regions"] = json!(regions);
+    }
+    body
+}
+
+/// Bakes each named job body on the living room, draws each in the console's 3D view
+/// from one camera, writes the pictures to docs/scaling/rendered_living_room_NAME.png
+/// and returns them in order.
+fn bake_render_and_save(exe: &Path, url: &str, bodies: &[(&str, Value)]) -> Vec<Vec<u8>> {
+    let jobs = bake_living_room(url, bodies, Duration::from_secs(900));
+    let views = render_jobs(exe, url, &jobs);
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scaling");
+    std::fs::create_dir_all(&out).unwrap();
+    for ((name, _), png) in bodies.iter().zip(&views) {
+        std::fs::write(out.join(format!("rendered_living_room_{name}.png")), png).unwrap();
+    }
+    views
+}
+
 /// Issue 25's split bakes as a user sees them (run by hand, `--ignored`; it writes
 /// docs/scaling/rendered_*.png): the living room baked whole and split into tasks on one
 /// worker, `path` (4 tasks: 2 bands of rows x 2 step ranges, the single bake's samples)
@@ -1223,22 +1246,12 @@ fn render_split_against_whole() {
         ("vpl_whole_seed2", "vpl", 16, 1, 1, 2),
     ];
     let bodies = runs.map(|(name, technique, steps, tasks, regions, seed)| {
-        let mut body = json!({"technique": technique, "resolution": 256,
+        let body = json!({"technique": technique, "resolution": 256,
             "stop": {"steps": steps}, "seed": seed,
             "lighting": {"sky": {"radiance": [1, 1, 1]}}});
-        if tasks > 1 {
-            body["tasks"] = json!(tasks);
-            body["regions"] = json!(regions);
-        }
-        (name, body)
+        (name, split(body, tasks, regions))
     });
-    let jobs = bake_living_room(&url, &bodies, Duration::from_secs(900));
-    let views = render_jobs(&exe, &url, &jobs);
-    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scaling");
-    std::fs::create_dir_all(&out).unwrap();
-    for ((name, ..), png) in runs.iter().zip(&views) {
-        std::fs::write(out.join(format!("rendered_living_room_{name}.png")), png).unwrap();
-    }
+    let views = bake_render_and_save(&exe, &url, &bodies);
     for (what, a, b) in [
         ("path split vs whole", 1, 0),
         ("path whole, seed 2 vs seed 1", 2, 0),
@@ -1273,23 +1286,13 @@ fn render_sdf_and_obscurance_pages_against_whole() {
         ("obscurance_pages", "obscurance", 2, 2),
     ];
     let bodies = runs.map(|(name, technique, tasks, regions)| {
-        let mut body = json!({"technique": technique, "resolution": 256,
+        let body = json!({"technique": technique, "resolution": 256,
             "stop": {"steps": 16}, "seed": 1,
             "lighting": {"sky": {"radiance": [1, 1, 1]},
                          "sun": {"direction": [0.5, -0.6, 0.3], "radiance": [2000, 1900, 1700], "angular_diameter_deg": 0.5}}});
-        if tasks > 1 {
-            body["tasks"] = json!(tasks);
-            body["regions"] = json!(regions);
-        }
-        (name, body)
+        (name, split(body, tasks, regions))
     });
-    let jobs = bake_living_room(&url, &bodies, Duration::from_secs(900));
-    let views = render_jobs(&exe, &url, &jobs);
-    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/scaling");
-    std::fs::create_dir_all(&out).unwrap();
-    for ((name, ..), png) in runs.iter().zip(&views) {
-        std::fs::write(out.join(format!("rendered_living_room_{name}.png")), png).unwrap();
-    }
+    let views = bake_render_and_save(&exe, &url, &bodies);
     for (what, a, b) in [("sdf pages vs whole", 1, 0), ("obscurance pages vs whole", 3, 2)] {
         eprintln!(
             "{what}: mean |difference| {:.2} of 255",
