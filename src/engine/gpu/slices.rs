@@ -214,7 +214,11 @@ impl StepSlicer {
             let per_unit = took / count as f64;
             slowest = slowest.max(per_unit);
             let seconds_each = if self.by_slowest { slowest } else { per_unit };
-            slice = ((SLICE_SECONDS / seconds_each.max(1e-9)) as u64).clamp(self.min_slice, count * 8);
+            // At most eight times the slice just timed, never below the least slice: a
+            // short last-but-one slice (count * 8 < min_slice) made `clamp` panic with
+            // min > max (seen once in CI, `tests/sdb.rs`, 2026-12-06).
+            slice = ((SLICE_SECONDS / seconds_each.max(1e-9)) as u64)
+                .clamp(self.min_slice, (count * 8).max(self.min_slice));
         }
         go_on(n, n);
         self.last_step = Some(t0.elapsed());
