@@ -491,7 +491,8 @@ fn the_control_check_keeps_only_a_measured_gain() {
 /// A biased technique's delivered map is measured at its control texels as the raw one
 /// is (`ControlValues::assess_delivered`): a map off by 0.05 everywhere reads 0.05 of the
 /// answer's RMS through path's noise, inside its 90 % interval; the denoiser's noise
-/// bound is the floor; and with nothing to measure the summary is left alone.
+/// bound is the floor where it is honest, and is scaled down to what the control
+/// measures where it over-states; and with nothing to measure the summary is left alone.
 #[test]
 fn the_delivered_map_is_measured_at_the_control_texels() {
     use lightmapd::engine::accumulate::{ControlValues, ErrorSummary};
@@ -521,8 +522,9 @@ fn the_delivered_map_is_measured_at_the_control_texels() {
         raw_relative: None,
         noise_scale: None,
     };
+    let quiet = vec![1e-4f32; n];
     let mut e = blank;
-    assert!(control.assess_delivered(&off, 1e-8, &mut e));
+    assert!(control.assess_delivered(&off, &quiet, &mut e));
     let want = 0.05 / rms;
     let got = e.relative.unwrap();
     assert!((got / want - 1.0).abs() < 0.05, "off by 0.05: read {got}, want {want}");
@@ -530,14 +532,48 @@ fn the_delivered_map_is_measured_at_the_control_texels() {
     assert!(lo <= want && want <= hi, "{want} outside [{lo}, {hi}]");
     assert!((e.bias.unwrap() / got - 1.0).abs() < 1e-3, "all of it is bias: {e:?}");
     assert_eq!(e.control_texels, Some(n as u32));
-    // The denoiser's noise bound above what the control measures is the figure.
-    assert!(control.assess_delivered(&off, 0.1f64.powi(2), &mut e));
-    assert!((e.relative.unwrap() - 0.1 / rms).abs() < 1e-6, "{e:?}");
-    assert!((e.noise.unwrap() - 0.1 / rms).abs() < 1e-6, "{e:?}");
-    assert_eq!(e.bias, Some(0.0));
+    // An honest bound is the floor: a map with noise of 0.1 per texel, whose bound says
+    // 0.1, reads 0.1 (the control's upper bound is at least the bound, so it is kept).
+    let noisy: Vec<Vec3> = truth
+        .iter()
+        .map(|t| Vec3::splat(t + (rng.next_f32() - 0.5) * 12f32.sqrt() * 0.1))
+        .collect();
+    let honest = vec![0.1f32; n];
+    assert!(control.assess_delivered(&noisy, &honest, &mut e));
+    let read = e.relative.unwrap() * rms;
+    assert!((read / 0.1 - 1.0).abs() < 0.1, "noise 0.1: read {read}");
+    assert!(
+        (e.noise.unwrap() - 0.1 / rms).abs() < 1e-6,
+        "the bound stands whole: {e:?}"
+    );
+    // A bound four times the truth (0.2 where the map is off by 0.05) is scaled down to
+    // the control's 90 % upper bound of what it measures, not kept whole (0.2 / rms).
+    let loud = vec![0.2f32; n];
+    assert!(control.assess_delivered(&off, &loud, &mut e));
+    let [_, hi] = e.interval.unwrap();
+    let got = e.relative.unwrap();
+    assert!(
+        got >= want * 0.95 && got <= hi * 1.0001,
+        "read {got}, want {want} to {hi}"
+    );
+    assert!(got < 0.06 / rms, "the over-stated bound leaks through: {e:?}");
+    // The scale is measured at the control texels, and applied to the whole map's bound:
+    // a bound twice as high away from them is twice as high in the floor.
+    let mut uneven = vec![0.2f32; 2 * n];
+    let mut wide_off = off.clone();
+    wide_off.extend(off.iter().copied());
+    uneven[n..].fill(0.4);
+    let mut f = blank;
+    assert!(control.assess_delivered(&wide_off, &uneven, &mut f));
+    let (a, b) = (e.noise.unwrap(), f.noise.unwrap());
+    let expect = ((0.2f32.powi(2) + 0.4f32.powi(2)) / 2.0).sqrt() / 0.2;
+    assert!(
+        (b / a / expect - 1.0).abs() < 1e-4,
+        "floor {b} against {a}: want x{expect}"
+    );
     // The answer itself reads path's noise's residue, within the interval's reach of 0.
     let exact: Vec<Vec3> = truth.iter().map(|t| Vec3::splat(*t)).collect();
-    assert!(control.assess_delivered(&exact, 1e-8, &mut e));
+    assert!(control.assess_delivered(&exact, &quiet, &mut e));
     assert!(e.relative.unwrap() < 0.005, "{e:?}");
     // Nothing to measure: one control texel.
     let one = ControlValues {
@@ -547,6 +583,6 @@ fn the_delivered_map_is_measured_at_the_control_texels() {
         rms: 1.0,
     };
     let mut untouched = blank;
-    assert!(!one.assess_delivered(&off, 1e-8, &mut untouched));
+    assert!(!one.assess_delivered(&off, &quiet, &mut untouched));
     assert_eq!(untouched.relative, None);
 }

@@ -123,31 +123,47 @@ pub struct ControlValues {
 impl ControlValues {
     /// The delivered (denoised) lightmap's error, measured at the control texels exactly
     /// as `control::assess_against` measures the raw one and folded into `error`:
-    /// `relative` the RMS of d_k over the answer's RMS, never below `noise_ms` (the
-    /// denoiser's own bound of its noise, absolute mean square, uncalibrated), `bias`
-    /// what is left above that floor, `noise` the floor, and the 90 % interval. The raw
-    /// map's bias and noise in quadrature, which this replaces, missed what the filters
-    /// add to or take from the bias (the halves that cross-validate them share it):
-    /// `obscurance` on the Cornell box stated 1.31 for a delivered true error of 5.78
-    /// after 2 steps, and 11.8 % for 14.1 % after 10 s (2026-12-06). The denoiser chose
-    /// how much of its move to keep at the same texels (one share for the whole map,
+    /// `relative` the RMS of d_k over the answer's RMS, never below the noise floor,
+    /// `bias` what is left above the floor at the control texels, `noise` the floor, and
+    /// the 90 % interval. The floor is the denoiser's own bound of its error per texel
+    /// (`texel_noise`, absolute, `post::denoised` step 5) over the whole map, calibrated
+    /// at the control texels as the raw map's halves are ([`noise_calibration`]): the
+    /// bound is a triangle-inequality sum of the filters' cross-validated errors, which
+    /// over-states (`vpl` on the occlusion room stated 1.26-1.51 times its true delivered
+    /// error with the bound uncalibrated, 2026-12-06), and where the control measures the
+    /// whole error below it the floor is scaled down by that share. The raw map's bias and
+    /// noise in quadrature, which this replaced, missed what the filters add to or take
+    /// from the bias (the halves that cross-validate them share it): `obscurance` on the
+    /// Cornell box stated 1.31 for a delivered true error of 5.78 after 2 steps, and
+    /// 11.8 % for 14.1 % after 10 s (2026-12-06). The denoiser chose how much of its move
+    /// to keep at the same texels (one share for the whole map,
     /// `post::denoised::checked_share`), which leans this figure low by about one texel's
     /// worth in `texels.len()`. `false` (and `error` untouched) where there is nothing to
     /// measure. It lives here, not in `engine::control`, so that the denoiser needs
     /// nothing of the control's bake machinery (the engine's modules form no cycle,
     /// `tests/architecture.rs`).
-    pub fn assess_delivered(&self, delivered: &[Vec3], noise_ms: f64, error: &mut ErrorSummary) -> bool {
+    pub fn assess_delivered(&self, delivered: &[Vec3], texel_noise: &[f32], error: &mut ErrorSummary) -> bool {
         let rms = self.rms as f64;
-        if self.texels.len() < 2 || rms <= 0.0 || self.variance.len() != self.texels.len() {
+        if self.texels.len() < 2
+            || rms <= 0.0
+            || self.variance.len() != self.texels.len()
+            || texel_noise.len() != delivered.len()
+            || delivered.is_empty()
+        {
             return false;
         }
         let p: Vec<f64> = self.luminance.iter().map(|x| *x as f64).collect();
         let v: Vec<f64> = self.variance.iter().map(|x| *x as f64).collect();
         let (mean, se) = squared_error_at(&self.texels, delivered, &p, &v);
+        let ms = |e: &mut dyn Iterator<Item = f32>, n: usize| e.map(|x| (x as f64).powi(2)).sum::<f64>() / n as f64;
+        let noise_map_ms = ms(&mut texel_noise.iter().copied(), texel_noise.len());
+        let noise_control_ms = ms(&mut self.texels.iter().map(|&k| texel_noise[k]), self.texels.len());
+        let calibration = noise_calibration(mean, se, noise_control_ms);
+        let noise_ms = noise_map_ms * calibration;
         let rel = |ms: f64| (ms.max(noise_ms).sqrt() / rms) as f32;
         error.relative = Some(rel(mean));
         error.noise = Some((noise_ms.sqrt() / rms) as f32);
-        error.bias = Some(((mean - noise_ms).max(0.0).sqrt() / rms) as f32);
+        error.bias = Some(((mean - noise_control_ms * calibration).max(0.0).sqrt() / rms) as f32);
         error.interval = Some([rel(mean - Z90 * se), rel(mean + Z90 * se)]);
         error.control_texels = Some(self.texels.len() as u32);
         true
@@ -171,6 +187,25 @@ pub(crate) fn squared_error_at(indices: &[usize], map: &[Vec3], p: &[f64], p_var
     let mean = d.iter().sum::<f64>() / m;
     let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1.0).max(1.0);
     (mean, (var / m).sqrt())
+}
+
+/// The factor a map's noise floor is scaled by: the control's 90 % upper bound of the
+/// whole squared error (`mean` of d_k with standard error `se`) over the squared noise
+/// the map's own figure states at the same texels (`noise_control_ms`), at most 1. The
+/// figure is the halves' difference for the raw map (`control::assess_against`) and the
+/// denoiser's bound for the delivered one ([`ControlValues::assess_delivered`]). An
+/// honest figure gives 1 (the whole error is at least the noise); one that over-states
+/// the noise gives the measured share. A mean pushed below zero by the subtraction of
+/// path's variance counts as zero, and the interval's half-width stays on top of it: the
+/// bound never falls below what the control can resolve. (Without that, on the H200's
+/// 2-s bench, vpl on the sphere over a plane read 0.00 % against a true 0.14 %: the
+/// mean had gone negative by more than 1.645 standard errors, and the floor to 0.)
+pub(crate) fn noise_calibration(mean: f64, se: f64, noise_control_ms: f64) -> f64 {
+    if noise_control_ms > 0.0 {
+        ((mean.max(0.0) + Z90 * se) / noise_control_ms).min(1.0)
+    } else {
+        1.0
+    }
 }
 
 impl Estimate {

@@ -60,7 +60,9 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use serde::Serialize;
 
-use crate::engine::accumulate::{ControlValues, Estimate, LUMINANCE, Snapshot, Z90, squared_error_at};
+use crate::engine::accumulate::{
+    ControlValues, Estimate, LUMINANCE, Snapshot, Z90, noise_calibration, squared_error_at,
+};
 use crate::engine::atlas::Atlas;
 use crate::engine::error::EngineError;
 use crate::engine::gpu::scene_rays::SceneRays;
@@ -262,26 +264,9 @@ pub fn assess_against(indices: &[usize], reference: &Estimate, estimate: &mut Es
     Some(report)
 }
 
-/// The factor the page's half-difference noise floor is scaled by: the control's 90 %
-/// upper bound of the whole squared error (`mean` of d_k with standard error `se`) over
-/// the squared noise the halves state at the same texels (`noise_control_ms`), at most 1.
-/// Honest halves give 1 (the whole error is at least the noise); halves that over-state
-/// the noise give the measured share. A mean pushed below zero by the subtraction of
-/// path's variance counts as zero, and the interval's half-width stays on top of it: the
-/// bound never falls below what the control can resolve. (Without that, on the H200's
-/// 2-s bench, vpl on the sphere over a plane read 0.00 % against a true 0.14 %: the
-/// mean had gone negative by more than 1.645 standard errors, and the floor to 0.)
-fn noise_calibration(mean: f64, se: f64, noise_control_ms: f64) -> f64 {
-    if noise_control_ms > 0.0 {
-        ((mean.max(0.0) + Z90 * se) / noise_control_ms).min(1.0)
-    } else {
-        1.0
-    }
-}
-
 #[cfg(test)]
 mod tests {
-    use super::{Z90, noise_calibration};
+    use crate::engine::accumulate::{Z90, noise_calibration};
 
     #[test]
     fn honest_halves_keep_the_whole_noise_floor() {

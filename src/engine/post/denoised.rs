@@ -626,13 +626,13 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
     out.error.raw_relative = estimate.error.relative;
     let noise = if rms > 0.0 { (rms_err / rms) as f32 } else { 0.0 };
     // A biased technique's delivered map is measured at its control texels as the raw
-    // one is (bias, noise and what the filters did to both); its noise bound is the
-    // floor. Otherwise (an unbiased technique, or a control with nothing to measure) the
+    // one is (bias, noise and what the filters did to both); its noise bound, calibrated
+    // there as the raw halves' is, is the floor. Otherwise (an unbiased technique, or a control with nothing to measure) the
     // noise bound, with the raw map's measured bias in quadrature where there is one.
     let measured = estimate
         .control
         .as_deref()
-        .is_some_and(|c| c.assess_delivered(&out.total, rms_err * rms_err, &mut out.error));
+        .is_some_and(|c| c.assess_delivered(&out.total, &combination.texel_error, &mut out.error));
     if !measured {
         out.error.relative = Some(match estimate.error.bias {
             Some(b) => (noise * noise + b * b).sqrt(),
