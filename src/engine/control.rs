@@ -31,8 +31,10 @@
 //!   A denoised lightmap is measured at the same texels the same way
 //!   ([`ControlValues::assess_delivered`], which lives beside the values so that the
 //!   denoiser needs nothing of this module), with the denoiser's own noise bound,
-//!   uncalibrated, as its floor: what the filters did to the bias is in the figure, and
-//!   the floor is conservative for the stratified techniques.
+//!   calibrated at the same texels by the same rule (`accumulate::noise_calibration`),
+//!   as its floor: what the filters did to the bias is in the figure, and a bound that
+//!   over-states (it sums the filters' errors by the triangle inequality) is scaled to
+//!   what the control measures.
 //!
 //! Luminance (`accumulate::LUMINANCE`) throughout, as the noise estimate.
 //!

@@ -74,10 +74,10 @@
 //!    until 2026-12-06); the map's relative error is its RMS over the RMS luminance, as
 //!    for the raw estimate (`accumulate`). A biased technique's delivered map is then
 //!    measured at its control texels as its raw map is (`ControlValues::assess_delivered`),
-//!    with that bound as the floor: the halves share the technique's bias, so what the
-//!    filters do to it is seen only there (the raw bias added in quadrature, until
-//!    2026-12-06, stated 1.31 for a true 5.78 on the Cornell box after 2 `obscurance`
-//!    steps).
+//!    with that bound, calibrated there as the raw halves' noise is, as the floor: the
+//!    halves share the technique's bias, so what the filters do to it is seen only there
+//!    (the raw bias added in quadrature, until 2026-12-06, stated 1.31 for a true 5.78 on
+//!    the Cornell box after 2 `obscurance` steps).
 //!
 //! Limits: the weights come from luminance and are used for all three channels and for
 //! the direct and directional layers too; the image denoiser's M is an upper bound (it
