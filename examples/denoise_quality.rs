@@ -8,7 +8,15 @@
 //! an empty texel), and OIDN run on each chart alone (issue 22 point 2's third way: its
 //! bounding box padded by 8 texels, every other pixel filled from that chart only),
 //! against the delivered way (the whole image, every gutter filled first, read back at
-//! valid texels). SCENE is a bench scene (default cornell-box) or a .glb path.
+//! valid texels). SCENE is a bench scene (default cornell-box) or a .glb path. With env
+//! `DIAG` set it also prints, to stderr, OIDN's cross-validated error M against its true
+//! error (interior and border texels, smoothed and one standard error high), the
+//! squared errors of the blend, OIDN alone and raw by the blend's filtered share, and
+//! the texels the blend left at least three-quarters raw (where they lose to OIDN).
+//!
+//! `… -- converged [SEEDS]`: delivered over raw true error on the two closed-form scenes
+//! at 16 and 8192 samples, over SEEDS seeds (default 6), per denoiser: what the blend's
+//! guards are for (one seed of it is `tests/denoise.rs`).
 //!
 //! `… -- cost SIZE`: OIDN's time and peak memory on a SIZE² lightmap (run one size per
 //! process so the peak is that size's); `… -- cost-denoise SIZE`: the whole denoising
@@ -274,6 +282,9 @@ fn errors(args: &[String]) {
             let na = || "n/a".to_string();
             (na(), na(), na(), na(), na(), na(), na(), na(), na())
         };
+        if std::env::var("DIAG").is_ok() {
+            diagnose(&atlas, &chart, &border, &reference, &est, target);
+        }
         println!(
             "| {target} | {} | {} | {} | {oidn_e} | {oidn_n} | {oidn_b} | {est_b} | {} | {w} | {} | {b_oidn} | {b_blend} | {tiled} | {b_tiled} |",
             pct(raw),
@@ -399,12 +410,176 @@ fn dump(args: &[String]) {
     std::fs::write(out_path, serde_json::to_vec(&j).unwrap()).unwrap();
 }
 
+/// `DIAG`: where the blend stands against OIDN alone at one snapshot (stderr): the
+/// squared errors of the blend, OIDN alone and raw by the blend's filtered share (texels
+/// with no variance apart), the texels the blend left at least three-quarters raw, and
+/// OIDN's cross-validated error M against its true error on interior and border texels.
+fn diagnose(atlas: &Atlas, chart: &[u32], border: &[bool], reference: &[Option<Vec3>], est: &Estimate, target: u64) {
+    let se = est.texel_error.clone().unwrap();
+    let (halves, hs) = est.halves.clone().unwrap();
+    let n = (hs[0] + hs[1]) as f32;
+    let hse = |h: usize| -> Vec<f32> {
+        let s = (n / hs[h] as f32).sqrt();
+        se.iter().map(|e| e * s).collect()
+    };
+    let lum = |v: &Vec3| v.dot(lightmapd::engine::accumulate::LUMINANCE);
+    let ih: Vec<Vec<f32>> = (0..2)
+        .map(|h| {
+            denoised::filter_unblended(atlas, chart, Used::Oidn, &halves[h], &hse(h))
+                .iter()
+                .map(lum)
+                .collect()
+        })
+        .collect();
+    let m = denoised::cross_validated(&se, &halves, hs, [&ih[0], &ih[1]], denoised::HalfNoise::Measured);
+    let ms = lightmapd::engine::post::denoise::smooth_with_error(atlas, chart, &m, 3);
+    let d = denoised::filter_unblended(atlas, chart, Used::Oidn, &est.total, &se);
+    let (bl, wts) = denoised::apply_with_weights(atlas, est, Used::Oidn);
+    let mut buckets = [[0.0f64; 4]; 5];
+    for k in 0..se.len() {
+        let Some(r) = reference[k] else { continue };
+        let r = lum(&r) as f64;
+        let b = if se[k] == 0.0 {
+            4
+        } else if wts.is_empty() {
+            0
+        } else {
+            ((wts[k] * 4.0) as usize).min(3)
+        };
+        buckets[b][0] += 1.0;
+        buckets[b][1] += (lum(&bl.total[k]) as f64 - r).powi(2);
+        buckets[b][2] += (lum(&d[k]) as f64 - r).powi(2);
+        buckets[b][3] += (lum(&est.total[k]) as f64 - r).powi(2);
+    }
+    {
+        let vs =
+            lightmapd::engine::post::denoise::smooth(atlas, chart, &se.iter().map(|e| e * e).collect::<Vec<f32>>(), 3);
+        let (mut c, mut v, mut vr, mut mo, mut mp, mut tr, mut to, mut nb, mut lumv) =
+            (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        for k in 0..se.len() {
+            if wts.is_empty() || wts[k] >= 0.25 || se[k] == 0.0 {
+                continue;
+            }
+            let Some(r) = reference[k] else { continue };
+            let r = lum(&r) as f64;
+            c += 1.0;
+            v += vs[k] as f64;
+            vr += (se[k] as f64).powi(2);
+            mo += ms[k].0 as f64;
+            mp += (ms[k].0 + ms[k].1) as f64;
+            tr += (lum(&est.total[k]) as f64 - r).powi(2);
+            to += (lum(&d[k]) as f64 - r).powi(2);
+            if border[k] {
+                nb += 1.0;
+            }
+            lumv += r;
+        }
+        eprintln!(
+            "  {target} low-share texels {c}: V smoothed {:.3e} own var {:.3e} | M oidn {:.3e} M+ {:.3e} | true raw {:.3e} oidn {:.3e} | border {:.2} | mean ref lum {:.3}",
+            v / c,
+            vr / c,
+            mo / c,
+            mp / c,
+            tr / c,
+            to / c,
+            nb / c,
+            lumv / c
+        );
+    }
+    for (b, x) in buckets.iter().enumerate() {
+        let which = if b < 4 {
+            format!("filtered share {:.2}-{:.2}", b as f32 / 4.0, (b + 1) as f32 / 4.0)
+        } else {
+            "no variance".to_string()
+        };
+        eprintln!(
+            "  {target} {which}: {} texels, sq err blend {:.3e} oidn {:.3e} raw {:.3e}",
+            x[0], x[1], x[2], x[3]
+        );
+    }
+    for (label, want) in [("interior", false), ("border", true)] {
+        let (mut tr, mut v, mut to, mut mm, mut msm, mut mse, mut c) = (0.0f64, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        for k in 0..se.len() {
+            if border[k] != want {
+                continue;
+            }
+            let Some(r) = reference[k] else { continue };
+            let r = lum(&r) as f64;
+            tr += (lum(&est.total[k]) as f64 - r).powi(2);
+            to += (lum(&d[k]) as f64 - r).powi(2);
+            v += (se[k] as f64).powi(2);
+            mm += m[k] as f64;
+            msm += ms[k].0 as f64;
+            mse += (ms[k].0 + ms[k].1) as f64;
+            c += 1.0;
+        }
+        eprintln!(
+            "  {target} {label} ({c}): raw true {:.3e} V {:.3e} | oidn true {:.3e} M {:.3e} M smoothed {:.3e} M+ {:.3e}",
+            tr / c,
+            v / c,
+            to / c,
+            mm / c,
+            msm / c,
+            mse / c
+        );
+    }
+}
+
+/// Delivered over raw true error on the closed-form scenes for `seeds` seeds, at 16
+/// samples (2 x 8) and 8192 (512 x 16), for each denoiser this machine has: the check
+/// behind the blend's guards (`denoised::combine_weights`), which one seed in
+/// `tests/denoise.rs` samples.
+fn converged(args: &[String]) {
+    let seeds: u64 = args.first().and_then(|s| s.parse().ok()).unwrap_or(6);
+    let mut used = vec![Used::Own];
+    if Oidn::available() {
+        used.push(Used::Oidn);
+    }
+    println!("| scene | denoiser | samples | delivered / raw: min | max | mean |");
+    println!("| --- | --- | --- | --- | --- | --- |");
+    for name in ["sphere-over-plane", "parallel-plates"] {
+        let lib = benchmark_scenes().into_iter().find(|s| s.name == name).unwrap();
+        let p = prepare(&lib).unwrap();
+        let reference: Vec<Option<Vec3>> = p
+            .atlas
+            .texels
+            .iter()
+            .map(|t| (lib.analytic.unwrap())(t.position.as_dvec3() + p.scene.origin_offset, t.geo_normal))
+            .collect();
+        for (spp, steps) in [(2u32, 8u64), (512, 16)] {
+            let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); used.len()];
+            for seed in 1..=seeds {
+                let mut tech = path_tech(&p.scene, &p.atlas, lib.lighting, seed, spp);
+                for _ in 0..steps {
+                    tech.step().unwrap();
+                }
+                let est = tech.snapshot().unwrap().estimate();
+                let raw = true_error(&est.total, &reference);
+                for (u, r) in used.iter().zip(ratios.iter_mut()) {
+                    let out = denoised::apply(&p.atlas, &est, *u);
+                    r.push(true_error(&out.total, &reference) / raw);
+                }
+            }
+            for (u, r) in used.iter().zip(&ratios) {
+                let min = r.iter().cloned().fold(f64::INFINITY, f64::min);
+                let max = r.iter().cloned().fold(0.0, f64::max);
+                let mean = r.iter().sum::<f64>() / r.len() as f64;
+                println!(
+                    "| {name} | {u:?} | {} | {min:.4} | {max:.4} | {mean:.4} |",
+                    spp as u64 * steps
+                );
+            }
+        }
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.first().map(String::as_str) {
         Some("cost") => cost(&args[1..]),
         Some("dump") => dump(&args[1..]),
         Some("cost-denoise") => cost_denoise(&args[1..]),
+        Some("converged") => converged(&args[1..]),
         Some("errors") | None => errors(args.get(1..).unwrap_or(&[])),
         Some(other) => eprintln!("unknown mode {other:?}: errors, cost, cost-denoise or dump"),
     }

@@ -35,9 +35,9 @@
 //!    bound of what it does with the whole's lower noise, a tighter one than a
 //!    filtered half's (which weighted OIDN below its due, docs/quality.md).
 //! 3. Combine ([`combine_weights`]): delivered = Σ w_c D_c, over the raw value (its
-//!    error the raw variance V, smoothed like M) and the candidates (M⁺, M plus one
-//!    standard error of its neighbourhood mean, `denoise::smooth_with_error`), with
-//!    w_c ∝ 1 / M_c², normalised. As the bake converges V → 0 while every filter's M
+//!    error the raw variance V, smoothed like M: V⁺, V plus one standard error of its
+//!    neighbourhood mean) and the candidates (M⁺, M plus one standard error of its
+//!    neighbourhood mean, `denoise::smooth_with_error`), with w_c ∝ 1 / M_c², normalised. As the bake converges V → 0 while every filter's M
 //!    keeps its bias, so the raw value takes the whole weight: the denoiser fades out
 //!    instead of blurring a converged bake; where the bake is noisy the fit that suits
 //!    the texel (small and curved near an edge, wide and flat on a plain wall) or the
@@ -47,7 +47,10 @@
 //!    estimate: one that comes out low by chance lets a filter's bias in where the
 //!    bake has converged (measured over six seeds at 8192 samples: up to 0.33 % worse
 //!    than raw with M, at most 0.04 % with M⁺), while one that comes out high only
-//!    gives up a little of the gain at low sample counts. For a biased technique V is
+//!    gives up a little of the gain at low sample counts. V is taken one standard error
+//!    high for the same reason, the other way (since 2026-12-06): a V that came out low
+//!    leaves a noisy texel raw, which cost most on chart borders, where a neighbourhood
+//!    holds fewer texels. For a biased technique V is
 //!    the halves' variance times the factor its control texels found the halves
 //!    over-state the noise by (`error.noise_scale`, `control::assess_against`; at most
 //!    1): a stratified sequence's union (`vpl`, `obscurance`) errs less than its halves
@@ -94,7 +97,7 @@ use serde::{Deserialize, Serialize};
 
 use rayon::prelude::*;
 
-use super::denoise::{charts, denoise_own, smooth, smooth_with_error};
+use super::denoise::{charts, denoise_own, smooth_with_error};
 use super::oidn::{Mode, Oidn};
 use super::regress;
 use crate::engine::accumulate::{ControlValues, Estimate, LUMINANCE};
@@ -373,7 +376,13 @@ pub fn combine_weights(atlas: &Atlas, chart: &[u32], se: &[f32], cross: &[Vec<f3
     // than its halves say: `vpl`, `obscurance`), so a filter is not trusted over a raw
     // value that is better than the halves claim.
     let own_var: Vec<f32> = se.iter().map(|e| e * e * noise_scale.clamp(0.0, 1.0)).collect();
-    let v = smooth(atlas, chart, &own_var, SMOOTH_RADIUS);
+    // V smoothed, with the standard error of its neighbourhood mean: V is an estimate
+    // too (the halves' difference, squared), and the texels where it came out low by
+    // chance are the ones the blend would leave raw.
+    let (v, v_err): (Vec<f32>, Vec<f32>) = smooth_with_error(atlas, chart, &own_var, SMOOTH_RADIUS)
+        .into_iter()
+        .map(|(m, e)| if m.is_finite() { (m, e.max(0.0)) } else { (0.0, 0.0) })
+        .unzip();
     let m: Vec<Vec<(f32, f32)>> = cross
         .iter()
         .map(|c| smooth_with_error(atlas, chart, c, SMOOTH_RADIUS))
@@ -403,7 +412,20 @@ pub fn combine_weights(atlas: &Atlas, chart: &[u32], se: &[f32], cross: &[Vec<f3
             // the unbiased one, V / (V + M); where bias dominates the filters stay out.
             // In f64 and relative to the raw value's (1): the squares of a dark texel's
             // variances leave f32's range.
+            //
+            // Every figure is taken one standard error of its neighbourhood mean high,
+            // the raw value's V as each filter's M: they are estimates, and a figure that
+            // came out low by chance wins the weight it should not have. For M that lets
+            // a filter's bias in where the bake has converged (the delivered map measured
+            // 0.2-0.3 % worse than raw at 8192 samples with M itself, 2026-12-05); for V
+            // it leaves a noisy texel raw where its halves happened to agree (on the
+            // occlusion room at 16 steps, the 317 border texels the blend left at least
+            // three-quarters raw had a true squared error 3.6 times their V; taking V one
+            // standard error high took the room from 1.90 % to 1.85 %, its borders from
+            // 3.70 % to 3.57 %, docs/quality.md). The shrink for bias keeps V itself, the
+            // side that trusts the filters less.
             let raw = v as f64;
+            let raw_high = (v + v_err[k]) as f64;
             let mut rel = [0.0f64; 1 + MAX_CANDIDATES];
             rel[0] = 1.0;
             for (c, mc) in m.iter().enumerate() {
@@ -413,14 +435,10 @@ pub fn combine_weights(atlas: &Atlas, chart: &[u32], se: &[f32], cross: &[Vec<f3
                 }
                 // The cross-validated figure is itself noisy and can fall to zero or
                 // below; no filter removes all noise, so M is kept above V / 256 (a
-                // filter averaging 256 independent texels). The weight takes M one
-                // standard error high: an M that came out low by chance would let a
-                // filter's bias in where the bake has converged (the delivered map
-                // measured 0.2-0.3 % worse than raw at 8192 samples with M itself),
-                // while one that came out high only gives up a little of the gain.
-                let safe = ((mean + mean_err.max(0.0)) as f64).max(v as f64 / 256.0);
+                // filter averaging 256 independent texels).
+                let safe = (mean as f64 + mean_err.max(0.0) as f64).max(raw / 256.0);
                 let shrink = (1.0 - safe.sqrt() * b as f64 / raw).max(0.0);
-                rel[c + 1] = (raw / safe).powi(2) * shrink;
+                rel[c + 1] = (raw_high / safe).powi(2) * shrink;
             }
             let sum: f64 = rel[..w.len()].iter().sum();
             if !sum.is_finite() {
