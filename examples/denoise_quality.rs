@@ -540,12 +540,7 @@ fn converged(args: &[String]) {
     for name in ["sphere-over-plane", "parallel-plates"] {
         let lib = benchmark_scenes().into_iter().find(|s| s.name == name).unwrap();
         let p = prepare(&lib).unwrap();
-        let reference: Vec<Option<Vec3>> = p
-            .atlas
-            .texels
-            .iter()
-            .map(|t| (lib.analytic.unwrap())(t.position.as_dvec3() + p.scene.origin_offset, t.geo_normal))
-            .collect();
+        let reference = lightmapd::bench::analytic_reference(&lib, &p).expect("a closed form");
         for (spp, steps) in [(2u32, 8u64), (512, 16)] {
             let mut ratios: Vec<Vec<f64>> = vec![Vec::new(); used.len()];
             for seed in 1..=seeds {

@@ -43,12 +43,7 @@ fn denoisers() -> Vec<Used> {
 fn errors(scene: &str, spp: u32, steps: u64, used: Used) -> (f64, f64, f32) {
     let lib = benchmark_scenes().into_iter().find(|s| s.name == scene).unwrap();
     let p = prepare(&lib).unwrap();
-    let reference: Vec<Option<Vec3>> = p
-        .atlas
-        .texels
-        .iter()
-        .map(|t| (lib.analytic.unwrap())(t.position.as_dvec3() + p.scene.origin_offset, t.geo_normal))
-        .collect();
+    let reference = lightmapd::bench::analytic_reference(&lib, &p).expect("a closed form");
     let request = BakeRequest {
         lighting: lib.lighting,
         ..Default::default()

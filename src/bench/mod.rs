@@ -160,16 +160,23 @@ fn inputs(p: &PreparedScene, lib: &LibraryScene, technique: &str, seed: u64) -> 
     ))
 }
 
-/// The reference for `lib`: its closed form, or a cached long `path` bake.
-pub fn reference(lib: &LibraryScene, p: &PreparedScene, cfg: &BenchConfig) -> Result<Reference, EngineError> {
+/// `lib`'s closed form at every texel of `p` (at the texel's sample point in the scene's
+/// own coordinates, before the import's recentring), or `None` for a scene without one.
+pub fn analytic_reference(lib: &LibraryScene, p: &PreparedScene) -> Option<Vec<Option<Vec3>>> {
+    let f = lib.analytic?;
     let offset = p.scene.origin_offset;
-    if let Some(f) = lib.analytic {
-        let values = p
-            .atlas
+    Some(
+        p.atlas
             .texels
             .iter()
             .map(|t| f(t.position.as_dvec3() + offset, t.geo_normal))
-            .collect();
+            .collect(),
+    )
+}
+
+/// The reference for `lib`: its closed form, or a cached long `path` bake.
+pub fn reference(lib: &LibraryScene, p: &PreparedScene, cfg: &BenchConfig) -> Result<Reference, EngineError> {
+    if let Some(values) = analytic_reference(lib, p) {
         return Ok(Reference {
             values,
             kind: "analytic".into(),
