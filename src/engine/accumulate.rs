@@ -155,9 +155,9 @@ impl ControlValues {
         let p: Vec<f64> = self.luminance.iter().map(|x| *x as f64).collect();
         let v: Vec<f64> = self.variance.iter().map(|x| *x as f64).collect();
         let (mean, se) = squared_error_at(&self.texels, delivered, &p, &v);
-        let ms = |e: &mut dyn Iterator<Item = f32>, n: usize| e.map(|x| (x as f64).powi(2)).sum::<f64>() / n as f64;
-        let noise_map_ms = ms(&mut texel_noise.iter().copied(), texel_noise.len());
-        let noise_control_ms = ms(&mut self.texels.iter().map(|&k| texel_noise[k]), self.texels.len());
+        let square = |k: usize| (texel_noise[k] as f64).powi(2);
+        let noise_map_ms = (0..texel_noise.len()).map(square).sum::<f64>() / texel_noise.len() as f64;
+        let noise_control_ms = self.texels.iter().map(|&k| square(k)).sum::<f64>() / self.texels.len() as f64;
         let calibration = noise_calibration(mean, se, noise_control_ms);
         let noise_ms = noise_map_ms * calibration;
         let rel = |ms: f64| (ms.max(noise_ms).sqrt() / rms) as f32;

@@ -34,32 +34,32 @@
 //!    error of the filter it chose for a half applied to the whole, still an upper
 //!    bound of what it does with the whole's lower noise, a tighter one than a
 //!    filtered half's (which weighted OIDN below its due, docs/quality.md).
-//! 3. Combine ([`combine_weights`]): delivered = Σ w_c D_c, over the raw value (its
-//!    error the raw variance V, smoothed like M: V⁺, V plus one standard error of its
+//! 3. Combine ([`combine_weights`]): delivered = Σ w_c D_c, over the raw value (its error
+//!    the raw variance V, smoothed like M: V⁺, V plus one standard error of its
 //!    neighbourhood mean) and the candidates (M⁺, M plus one standard error of its
-//!    neighbourhood mean, `denoise::smooth_with_error`), with w_c ∝ 1 / M_c², normalised. As the bake converges V → 0 while every filter's M
-//!    keeps its bias, so the raw value takes the whole weight: the denoiser fades out
-//!    instead of blurring a converged bake; where the bake is noisy the fit that suits
-//!    the texel (small and curved near an edge, wide and flat on a plain wall) or the
-//!    image denoiser takes it. Selecting one candidate by its noisy M, or blending a
-//!    single filter with the raw value, lost a third of the gain on the Cornell box
-//!    (docs/quality.md). M is taken one standard error high because it is itself an
-//!    estimate: one that comes out low by chance lets a filter's bias in where the
-//!    bake has converged (measured over six seeds at 8192 samples: up to 0.33 % worse
-//!    than raw with M, at most 0.04 % with M⁺), while one that comes out high only
-//!    gives up a little of the gain at low sample counts. V is taken one standard error
-//!    high for the same reason, the other way (since 2026-12-06): a V that came out low
-//!    leaves a noisy texel raw, which cost most on chart borders, where a neighbourhood
-//!    holds fewer texels. For a biased technique V is
-//!    the halves' variance times the factor its control texels found the halves
+//!    neighbourhood mean, `denoise::smooth_with_error`), with w_c ∝ 1 / M_c², normalised.
+//!    As the bake converges V → 0 while every filter's M keeps its bias, so the raw value
+//!    takes the whole weight: the denoiser fades out instead of blurring a converged
+//!    bake; where the bake is noisy the fit that suits the texel (small and curved near
+//!    an edge, wide and flat on a plain wall) or the image denoiser takes it. Selecting
+//!    one candidate by its noisy M, or blending a single filter with the raw value, lost
+//!    a third of the gain on the Cornell box (docs/quality.md). M is taken one standard
+//!    error high because it is itself an estimate: one that comes out low by chance lets
+//!    a filter's bias in where the bake has converged (measured over six seeds at 8192
+//!    samples: up to 0.33 % worse than raw with M, at most 0.04 % with M⁺), while one
+//!    that comes out high only gives up a little of the gain at low sample counts. V is
+//!    taken one standard error high for the same reason, the other way (since
+//!    2026-12-06): a V that came out low leaves a noisy texel raw, which cost most on
+//!    chart borders, where a neighbourhood holds fewer texels. For a biased technique V
+//!    is the halves' variance times the factor its control texels found the halves
 //!    over-state the noise by (`error.noise_scale`, `control::assess_against`; at most
 //!    1): a stratified sequence's union (`vpl`, `obscurance`) errs less than its halves
-//!    say, and an over-stated V trusted the filter over a raw value that was better.
-//!    And a biased technique's map errs by its measured bias b (`error.bias`) besides
-//!    its noise; a filter's own bias, at most √M, may add to it. For one filter the
-//!    weight best for the worst case of that sum is (V − √M⁺ b) / (V + M⁺), the
-//!    unbiased weight times 1 − √M⁺ b / V; each filter's weight here takes that factor
-//!    (not below 0; [`Leanings`]): where bias dominates the filters stay out.
+//!    say, and an over-stated V trusted the filter over a raw value that was better. And
+//!    a biased technique's map errs by its measured bias b (`error.bias`) besides its
+//!    noise; a filter's own bias, at most √M, may add to it. For one filter the weight
+//!    best for the worst case of that sum is (V − √M⁺ b) / (V + M⁺), the unbiased weight
+//!    times 1 − √M⁺ b / V; each filter's weight here takes that factor (not below 0;
+//!    [`Leanings`]): where bias dominates the filters stay out.
 //! 4. For a biased technique, check at its control texels ([`checked_share`]): `path`'s
 //!    values there are unbiased and independent of the bake, so whether the filters'
 //!    move D − R brings the map closer to the answer can be measured there, bias
@@ -643,10 +643,11 @@ pub fn apply_with_weights(atlas: &Atlas, estimate: &Estimate, used: Used) -> (Es
     let rms_err = (combination.texel_error.iter().map(|e| (*e as f64).powi(2)).sum::<f64>() / count).sqrt();
     out.error.raw_relative = estimate.error.relative;
     let noise = if rms > 0.0 { (rms_err / rms) as f32 } else { 0.0 };
-    // A biased technique's delivered map is measured at its control texels as the raw
-    // one is (bias, noise and what the filters did to both); its noise bound, calibrated
-    // there as the raw halves' is, is the floor. Otherwise (an unbiased technique, or a control with nothing to measure) the
-    // noise bound, with the raw map's measured bias in quadrature where there is one.
+    // A biased technique's delivered map is measured at its control texels as the raw one
+    // is (bias, noise and what the filters did to both); its noise bound, calibrated
+    // there as the raw halves' is, is the floor. Otherwise (an unbiased technique, or a
+    // control with nothing to measure) the noise bound, with the raw map's measured bias
+    // in quadrature where there is one.
     let measured = estimate
         .control
         .as_deref()
