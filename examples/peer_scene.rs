@@ -14,13 +14,16 @@ use lightmapd::engine::scene::library;
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let [name, out] = args.as_slice() else {
-        eprintln!("usage: peer_scene blocks-25k OUT.glb");
+        eprintln!("usage: peer_scene blocks-25k|level-256k OUT.glb");
         return ExitCode::from(2);
     };
     let glb = match name.as_str() {
         "blocks-25k" => library::procedural_blocks().to_glb(),
+        // The bench's 256k-triangle generated level (no lightmap UVs: a bake generates
+        // them at `--texels-per-unit 4.5` for its 1024² page).
+        "level-256k" => library::generated_level(400, 8),
         other => {
-            eprintln!("unknown scene {other} (known: blocks-25k)");
+            eprintln!("unknown scene {other} (known: blocks-25k, level-256k)");
             return ExitCode::from(2);
         }
     };

@@ -2,18 +2,46 @@
 //! validation: a BVH, closest-hit and occlusion queries, and the sampling helpers every
 //! CPU estimator needs.
 //!
-//! The BVH is obvhs's binary BVH (PLOC build with reinsertion); triangles are
-//! intersected with a Möller–Trumbore test written here, which also yields the
-//! barycentrics the material lookups need. Not obvhs's faster compressed wide BVH: its
-//! quantised child boxes lost 14 % of the hits closer than 1e-4 m to a ray's origin in
-//! our closed-box test (rays from 7e-5 m off a wall toward it), exactly the hits a
-//! path's next bounce off a corner needs (`docs/stability.md`).
+//! The queries traverse obvhs's compressed wide BVH (8 children a node, child boxes
+//! quantised to 8 bits, Ylitie et al. 2017); triangles are intersected with a
+//! Möller–Trumbore test written here, which also yields the barycentrics the material
+//! lookups need. obvhs's binary BVH is built too: it is the tree the GPU flattens
+//! (`engine::gpu::bvh`), and what the queries traversed before.
+//!
+//! ## Near the origin
+//! obvhs's wide traversal clips every child box to t >= 1e-4 (`EPSILON` in its
+//! `cwbvh::node`, an absolute distance): a box the ray leaves before 1e-4 is skipped.
+//! That lost 14 % of the hits of rays starting 7e-5 m off a wall toward it in our
+//! closed-box test, exactly the hits a path's next bounce off a corner needs
+//! (`docs/stability.md`), and was why this module used the binary tree. The wide tree is
+//! now built over the scene as it is and then scaled by a power of two 2^k that puts the
+//! scene's extent near 2^20: each node's corner times 2^k and its exponent byte plus k,
+//! and each query's origin and farthest distance times 2^k. Scaling by a power of two is
+//! exact in f32, so the boxes are the same boxes and a distance divides back without
+//! rounding; the 1e-4 now stands for about 1e-10 of the scene's size, far below the f32
+//! spacing of its coordinates (6e-8 of it), so no hit a path can ask for is clipped.
+//! The triangle test runs in the scene's own coordinates, so hits and their distances
+//! are bit for bit the binary tree's, except which of two triangles at exactly the same
+//! distance a query returns (a shared edge; traversal order decides). Tested:
+//! `hits_next_to_the_origin_are_found_at_every_scale` below (7e-5 and 1e-6 of the size,
+//! scales 1e-3 to 1e4, translated by 1e5: every wall found at the brute-force distance;
+//! with k = 0 it fails), and `tests/gpu_bvh.rs` against the GPU's tree.
+//!
+//! ## Speed
+//! `path`'s time a step, release build, this 2-core VM (2026-12-06, docs/peers.md), binary
+//! tree → wide tree (obvhs's `very_slow_build`: spatial splits, full reinsertion): Cornell
+//! box 64² 17.4 → 11.6 ms (1.50×), blocks-25k 128² 17.9 → 17.3 ms (1.03×), the occlusion
+//! room 256² 183 → 148 ms (1.24×), the 256k-triangle generated level at 1024² 1670 →
+//! 1444 ms (1.16×). The medium preset the binary tree uses gave 12.0, 18.2, 167 and 1599
+//! ms. The second build costs less than the steps save on the 256k-triangle level's first
+//! four steps (whole process 11.2 → 10.5 s).
 //!
 //! Alpha: a candidate hit on a MASK or BLEND triangle counts only where
 //! [`Scene::stops_ray`] says the surface is there (glTF alpha, issue 19 point 5), in both
 //! queries; opaque triangles pay one material lookup per candidate hit.
 //!
-//! Limits: single rays, no packets or SIMD streams; rays hit both faces of every
+//! Limits: single rays, no packets or ray streams (a wide node's eight boxes are tested
+//! four at a time in SSE); memory for two trees; rays hit both faces of every
 //! triangle (callers decide what a back face means), except that a closest hit prefers a
 //! front face over a coincident single-sided back face ([`BACK_FACE_TIE`]).
 
@@ -23,6 +51,8 @@ use std::time::Duration;
 use glam::{Vec3, Vec3A};
 use obvhs::bvh2::Bvh2;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
+use obvhs::cwbvh::CwBvh;
+use obvhs::cwbvh::builder::build_cwbvh_from_tris;
 use obvhs::ray::{Ray, RayHit};
 
 use crate::engine::accumulate::LUMINANCE;
@@ -36,7 +66,13 @@ pub const BACK_FACE_TIE: f32 = 1.0 + 1e-5;
 
 /// A BVH over a scene's triangles.
 pub struct Tracer {
+    /// The binary tree: built here, flattened for the GPU (`engine::gpu::bvh`).
     bvh: Bvh2,
+    /// The same tree as obvhs's compressed wide BVH, which the CPU queries traverse, its
+    /// coordinates multiplied by `scale` (module doc, "Near the origin").
+    wide: CwBvh,
+    /// A power of two, so that scaling a coordinate or a distance by it is exact.
+    scale: f32,
 }
 
 pub struct Hit {
@@ -58,10 +94,19 @@ impl Tracer {
             })
             .collect();
         let bvh = build_bvh2_from_tris(&tris, obvhs::BvhBuildParams::medium_build(), &mut Duration::default());
-        Tracer { bvh }
+        // The wide tree is built on its own (obvhs converts only a binary tree with one
+        // triangle a leaf, and the GPU's keeps up to 8), with obvhs's slowest preset
+        // (spatial splits, full reinsertion): module doc, "Speed".
+        let (wide, scale) = scaled_wide(build_cwbvh_from_tris(
+            &tris,
+            obvhs::BvhBuildParams::very_slow_build(),
+            &mut Duration::default(),
+        ));
+        Tracer { bvh, wide, scale }
     }
 
-    /// The tree itself (the GPU BVH flattens this one: `engine::gpu::bvh`).
+    /// The binary tree, which the GPU BVH flattens (`engine::gpu::bvh`); the CPU queries
+    /// traverse the wide one.
     pub fn bvh(&self) -> &Bvh2 {
         &self.bvh
     }
@@ -74,14 +119,22 @@ impl Tracer {
     /// own lightmap) the front face is the hit, not whichever the BVH visits first. A
     /// back face nearer by more than that still wins: it is a real occluder.
     pub fn trace(&self, scene: &Scene, origin: Vec3, dir: Vec3, tmax: f32) -> Option<Hit> {
-        let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
+        if self.wide.nodes.is_empty() {
+            return None;
+        }
+        let s = self.scale;
+        let mut local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
+        let ray = Ray::new(Vec3A::from(origin) * s, dir.into(), 0.0, tmax * s);
         let mut hit = RayHit::none();
-        let found = self.bvh.ray_traverse(ray, &mut hit, |r, id| {
-            let index = self.bvh.primitive_indices[id];
+        let found = self.wide.ray_traverse(ray, &mut hit, |r, id| {
+            let index = self.wide.primitive_indices[id];
             let tri = &scene.triangles[index as usize];
-            intersect(tri, r).map_or(f32::INFINITY, |(t, b)| {
+            // The traversal's ray is in scaled space; the test runs in the scene's, the
+            // farthest it may accept divided back (exact: `s` is a power of two).
+            local.tmax = r.tmax / s;
+            intersect(tri, &local).map_or(f32::INFINITY, |(t, b)| {
                 let m = scene.material(tri);
-                if m.alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
+                s * if m.alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
                     f32::INFINITY
                 } else if !m.double_sided && dir.dot(tri.cross()) > 0.0 {
                     t * BACK_FACE_TIE
@@ -93,7 +146,7 @@ impl Tracer {
         if !found {
             return None;
         }
-        let triangle = self.bvh.primitive_indices[hit.primitive_id as usize];
+        let triangle = self.wide.primitive_indices[hit.primitive_id as usize];
         let tri = &scene.triangles[triangle as usize];
         let (t, bary) = intersect(tri, &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY))?;
         Some(Hit { triangle, t, bary })
@@ -101,19 +154,52 @@ impl Tracer {
 
     /// True when nothing lies between `origin` and `origin + tmax·dir`.
     pub fn unoccluded(&self, scene: &Scene, origin: Vec3, dir: Vec3, tmax: f32) -> bool {
-        let ray = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        self.bvh.ray_traverse_miss(ray, |r, id| {
-            let index = self.bvh.primitive_indices[id];
+        if self.wide.nodes.is_empty() {
+            return true;
+        }
+        let s = self.scale;
+        let local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
+        let ray = Ray::new(Vec3A::from(origin) * s, dir.into(), 0.0, tmax * s);
+        self.wide.ray_traverse_miss(ray, |_, id| {
+            let index = self.wide.primitive_indices[id];
             let tri = &scene.triangles[index as usize];
-            intersect(tri, r).map_or(f32::INFINITY, |(t, b)| {
+            intersect(tri, &local).map_or(f32::INFINITY, |(t, b)| {
                 if scene.material(tri).alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
                     f32::INFINITY
                 } else {
-                    t
+                    s * t
                 }
             })
         })
     }
+}
+
+/// `wide` scaled by a power of two that puts the scene's extent near 2^20 (module doc,
+/// "Near the origin"), and that factor.
+fn scaled_wide(mut wide: CwBvh) -> (CwBvh, f32) {
+    if wide.nodes.is_empty() {
+        return (wide, 1.0);
+    }
+    let extent = (wide.total_aabb.max - wide.total_aabb.min)
+        .max_element()
+        .max(f32::MIN_POSITIVE);
+    // A node's exponent byte is a biased f32 exponent (obvhs: the scale of its child
+    // grid); adding k to it multiplies that grid by 2^k, as `p * 2^k` moves its corner.
+    let lowest = wide.nodes.iter().flat_map(|n| n.e).min().unwrap_or(127) as i32;
+    let highest = wide.nodes.iter().flat_map(|n| n.e).max().unwrap_or(127) as i32;
+    let k = (20 - extent.log2().round() as i32)
+        .clamp(1 - lowest, 254 - highest)
+        .clamp(-100, 100);
+    let scale = 2f32.powi(k);
+    for node in &mut wide.nodes {
+        node.p *= scale;
+        for e in &mut node.e {
+            *e = (*e as i32 + k) as u8;
+        }
+    }
+    wide.total_aabb.min *= scale;
+    wide.total_aabb.max *= scale;
+    (wide, scale)
 }
 
 /// Möller–Trumbore, both faces; returns t in (tmin, tmax) and barycentrics.
@@ -260,6 +346,62 @@ mod tests {
             .sum::<f32>()
             / 20000.0;
         assert!((m - 2.0 / 3.0).abs() < 0.01, "{m}");
+    }
+
+    /// Rays from 7e-5 and 1e-6 of the scene's size off a wall of a closed box, toward it
+    /// (a path's next bounce after a corner), at 1e-3, 1 and 1e4 scale and translated by
+    /// 1e5: the tracer finds the wall at the distance every triangle tested in turn gives,
+    /// for every ray. obvhs's wide BVH unscaled lost 14 % of the 7e-5 rays at scale 1
+    /// (module doc, "Near the origin").
+    #[test]
+    fn hits_next_to_the_origin_are_found_at_every_scale() {
+        use crate::engine::scene::import_slice;
+        use crate::engine::scene::library::closed_box;
+        let glb = closed_box(0.5).to_glb();
+        for (scale, offset) in [(1.0f32, 0.0f32), (1e-3, 0.0), (1e4, 0.0), (1.0, 1e5)] {
+            let (mut scene, _) = import_slice(&glb, None).unwrap();
+            for t in &mut scene.triangles {
+                for p in &mut t.p {
+                    *p = *p * scale + Vec3::splat(offset);
+                }
+            }
+            let tracer = Tracer::new(&scene);
+            let size = 2.0 * scale;
+            let mut rng = Rng::new(5, 0, 0, 0);
+            let (mut misses, mut wrong) = (0, 0);
+            let rays = 20000;
+            for i in 0..rays {
+                let k = (rng.next_f32() * scene.triangles.len() as f32) as usize % scene.triangles.len();
+                let tri = &scene.triangles[k];
+                let (a, b) = (0.05 + 0.45 * rng.next_f32(), 0.05 + 0.45 * rng.next_f32());
+                let p = tri.point(Vec3::new(1.0 - a - b, a, b));
+                let n = tri.geometric_normal();
+                // At least 4 ulps of the coordinates: closer, the origin rounds onto the
+                // wall (the 1e5-translated box resolves 1/128).
+                let ulps = 4.0 * p.abs().max_element() * f32::EPSILON;
+                let off = (if i % 2 == 0 { 7e-5 } else { 1e-6 } * size).max(ulps);
+                let origin = p + n * off;
+                let (u, v) = basis(n);
+                let (x, y) = (rng.next_f32() * 2.0 - 1.0, rng.next_f32() * 2.0 - 1.0);
+                let dir = (-n + (u * x + v * y) * 0.9).normalize();
+                let truth = scene
+                    .triangles
+                    .iter()
+                    .filter_map(|t| intersect(t, &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY)))
+                    .map(|(t, _)| t)
+                    .fold(f32::INFINITY, f32::min);
+                match tracer.trace(&scene, origin, dir, f32::INFINITY) {
+                    None => misses += 1,
+                    Some(hit) if hit.t != truth => wrong += 1,
+                    Some(_) => {}
+                }
+            }
+            assert_eq!(
+                (misses, wrong),
+                (0, 0),
+                "scale {scale}, offset {offset}: misses and wrong distances of {rays} rays"
+            );
+        }
     }
 
     #[test]

@@ -2,15 +2,17 @@
 //! buffers, traversed by `shaders/gpu/bvh.wgsl` (closest hit and any hit), plus the query
 //! pass the tests and the traversal benchmark use ([`QueryRunner`]).
 //!
-//! Build: on the CPU with obvhs (`engine::raytrace::Tracer`, PLOC with reinsertion and leaf
-//! collapse, up to 8 triangles a leaf). obvhs is a maintained builder whose trees trace
-//! well (PLOC is what GPU builders use too), it builds 250k triangles in a fraction of a
-//! second on all cores, and taking the CPU tracer's own tree means the GPU traverses the
-//! same topology the CPU does, so any disagreement is the traversal's, not the build's.
+//! Build: on the CPU with obvhs (`engine::raytrace::Tracer::bvh`, PLOC with reinsertion
+//! and leaf collapse, up to 8 triangles a leaf). obvhs is a maintained builder whose trees
+//! trace well (PLOC is what GPU builders use too) and it builds 250k triangles in a
+//! fraction of a second on all cores. The CPU's own queries traverse a wide tree built
+//! beside this one (`engine::raytrace`), so the GPU and CPU answers are compared as
+//! answers (hit triangle, distance), not node for node.
 //! A GPU builder would pay off only for scenes rebuilt every frame, which bakes are not.
 //!
-//! Format (why not obvhs's compressed wide BVH: its quantised child boxes dropped hits
-//! 7e-5 m from the ray origin, `engine::raytrace`): plain f32 boxes, one 32-byte node
+//! Format (not obvhs's compressed wide BVH, whose CPU traversal dropped hits 7e-5 m from
+//! the ray origin through an absolute 1e-4 clip, `engine::raytrace`; a wide format on the
+//! GPU was not tried): plain f32 boxes, one 32-byte node
 //! ([`GpuNode`]) per BVH2 node in obvhs's order (root 0, children adjacent), each box
 //! rounded outward by one ulp per face so that the shader's conservative slab test can
 //! never cull a box a ray touches. Triangles ([`GpuTri`], 48 bytes) are stored in leaf
