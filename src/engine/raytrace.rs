@@ -21,11 +21,26 @@
 //! rounding; the 1e-4 now stands for about 1e-10 of the scene's size, far below the f32
 //! spacing of its coordinates (6e-8 of it), so no hit a path can ask for is clipped.
 //! The triangle test runs in the scene's own coordinates, so hits and their distances
-//! are bit for bit the binary tree's, except which of two triangles at exactly the same
-//! distance a query returns (a shared edge; traversal order decides). Tested:
+//! are bit for bit the binary tree's, except which of two triangles at the same distance
+//! (below) a query returns (a shared edge; traversal order decides). Tested:
 //! `hits_next_to_the_origin_are_found_at_every_scale` below (7e-5 and 1e-6 of the size,
 //! scales 1e-3 to 1e4, translated by 1e5: every wall found at the brute-force distance;
 //! with k = 0 it fails), and `tests/gpu_bvh.rs` against the GPU's tree.
+//!
+//! ## Near the farthest distance
+//! The wide node test is not exact: it measures a child box's slabs from the node's
+//! corner, (p - o + q e) / d, so its rounding is a few ulps of the corner's distance
+//! (up to 1e-7 of the scene's size at the root, more for rays that graze an axis), not of
+//! the box's. A box whose entry falls within that of a query's farthest distance could be
+//! culled while it holds a hit before it: an occluder 1e-8 of the scene short of a shadow
+//! ray's end was missed on 55 of 4000 rays (1e-6 of the size off a wall, tmax 1 % past
+//! the hit; `tests/gpu_bvh.rs`). So the traversal culls against the farthest distance plus
+//! a slack of 2^-20 of the scene's extent (about 1e-6), while the triangle test keeps the
+//! exact bound: a hit is counted only before `tmax`, and in a closest-hit query each
+//! candidate's value reaches the traversal moved out by the same slack, so the boxes
+//! beyond the best hit are culled with the same margin and two candidates compare as
+//! their distances do (to the f32 rounding of the moved value, 6e-8 of the scene's size:
+//! closer than that they are a tie, which traversal order decides).
 //!
 //! ## Speed
 //! `path`'s time a step, release build, this 2-core VM (2026-12-06, docs/peers.md), binary
@@ -73,6 +88,9 @@ pub struct Tracer {
     wide: CwBvh,
     /// A power of two, so that scaling a coordinate or a distance by it is exact.
     scale: f32,
+    /// How far past a query's farthest distance the wide traversal still enters boxes, in
+    /// scaled units (module doc, "Near the farthest distance").
+    slack: f32,
 }
 
 pub struct Hit {
@@ -102,7 +120,13 @@ impl Tracer {
             obvhs::BvhBuildParams::very_slow_build(),
             &mut Duration::default(),
         ));
-        Tracer { bvh, wide, scale }
+        let slack = (wide.total_aabb.max - wide.total_aabb.min).max_element() * SLACK;
+        Tracer {
+            bvh,
+            wide,
+            scale,
+            slack,
+        }
     }
 
     /// The binary tree, which the GPU BVH flattens (`engine::gpu::bvh`); the CPU queries
@@ -122,26 +146,35 @@ impl Tracer {
         if self.wide.nodes.is_empty() {
             return None;
         }
-        let s = self.scale;
+        let (s, slack) = (self.scale, self.slack);
+        // The test runs in the scene's coordinates against the best value so far (`local`'s
+        // tmax: a distance, or a back face's distance times the tie factor); the traversal
+        // sees each value scaled and moved out by the slack, so that it culls boxes
+        // against the best value plus the slack, and compares two values as the test does.
         let mut local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        let ray = Ray::new(Vec3A::from(origin) * s, dir.into(), 0.0, tmax * s);
+        let ray = Ray::new(Vec3A::from(origin) * s, dir.into(), 0.0, tmax * s + slack);
         let mut hit = RayHit::none();
         let found = self.wide.ray_traverse(ray, &mut hit, |r, id| {
             let index = self.wide.primitive_indices[id];
             let tri = &scene.triangles[index as usize];
-            // The traversal's ray is in scaled space; the test runs in the scene's, the
-            // farthest it may accept divided back (exact: `s` is a power of two).
-            local.tmax = r.tmax / s;
-            intersect(tri, &local).map_or(f32::INFINITY, |(t, b)| {
-                let m = scene.material(tri);
-                s * if m.alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
-                    f32::INFINITY
-                } else if !m.double_sided && dir.dot(tri.cross()) > 0.0 {
-                    t * BACK_FACE_TIE
-                } else {
-                    t
-                }
-            })
+            let Some((t, b)) = intersect(tri, &local) else {
+                return f32::INFINITY;
+            };
+            let m = scene.material(tri);
+            let value = if m.alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
+                return f32::INFINITY;
+            } else if !m.double_sided && dir.dot(tri.cross()) > 0.0 {
+                t * BACK_FACE_TIE
+            } else {
+                t
+            };
+            let seen = value * s + slack;
+            // obvhs keeps the candidate exactly when this holds (`t < tmax` in its
+            // traversal); mirror it so `local` holds the value it keeps.
+            if seen < r.tmax {
+                local.tmax = value;
+            }
+            seen
         });
         if !found {
             return None;
@@ -158,8 +191,10 @@ impl Tracer {
             return true;
         }
         let s = self.scale;
+        // Any hit the exact test finds before `tmax` is below the traversal's tmax, which
+        // the slack moves out (module doc, "Near the farthest distance").
         let local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        let ray = Ray::new(Vec3A::from(origin) * s, dir.into(), 0.0, tmax * s);
+        let ray = Ray::new(Vec3A::from(origin) * s, dir.into(), 0.0, tmax * s + self.slack);
         self.wide.ray_traverse_miss(ray, |_, id| {
             let index = self.wide.primitive_indices[id];
             let tri = &scene.triangles[index as usize];
@@ -173,6 +208,9 @@ impl Tracer {
         })
     }
 }
+
+/// [`Tracer::slack`] as a share of the scene's extent: 2^-20, about 1e-6.
+const SLACK: f32 = 1.0 / (1 << 20) as f32;
 
 /// `wide` scaled by a power of two that puts the scene's extent near 2^20 (module doc,
 /// "Near the origin"), and that factor.
