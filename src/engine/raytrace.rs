@@ -152,7 +152,7 @@ impl Tracer {
         // sees each value scaled and moved out by the slack, so that it culls boxes
         // against the best value plus the slack, and compares two values as the test does.
         let mut local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        let ray = Ray::new(Vec3A::from(origin) * s, dir.into(), 0.0, tmax * s + slack);
+        let ray = Ray::new(Vec3A::from(origin) * s, traversal_dir(dir), 0.0, tmax * s + slack);
         let mut hit = RayHit::none();
         let found = self.wide.ray_traverse(ray, &mut hit, |r, id| {
             let index = self.wide.primitive_indices[id];
@@ -194,7 +194,7 @@ impl Tracer {
         // Any hit the exact test finds before `tmax` is below the traversal's tmax, which
         // the slack moves out (module doc, "Near the farthest distance").
         let local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        let ray = Ray::new(Vec3A::from(origin) * s, dir.into(), 0.0, tmax * s + self.slack);
+        let ray = Ray::new(Vec3A::from(origin) * s, traversal_dir(dir), 0.0, tmax * s + self.slack);
         self.wide.ray_traverse_miss(ray, |_, id| {
             let index = self.wide.primitive_indices[id];
             let tri = &scene.triangles[index as usize];
@@ -207,6 +207,15 @@ impl Tracer {
             })
         })
     }
+}
+
+/// `dir` with every -0.0 made +0.0, for the wide traversal. obvhs's node test takes a
+/// component's sign from `d < 0` but its inverse from `signum`, which is -1 for -0.0: the
+/// slab bounds then come out swapped and every box is culled. Straight-down sun rays built
+/// as the negated direction to the sun are exactly such rays (`tests/vpl.rs` lost the
+/// whole bounce). Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
+fn traversal_dir(dir: Vec3) -> Vec3A {
+    Vec3A::from(dir) + Vec3A::ZERO
 }
 
 /// [`Tracer::slack`] as a share of the scene's extent: 2^-20, about 1e-6.
@@ -439,6 +448,25 @@ mod tests {
                 (0, 0),
                 "scale {scale}, offset {offset}: misses and wrong distances of {rays} rays"
             );
+        }
+    }
+
+    /// Axis-aligned rays whose other components are -0.0 (a straight-down sun ray built
+    /// by negating the direction to the sun) hit what lies on them.
+    #[test]
+    fn negative_zero_directions_hit() {
+        use crate::engine::scene::import_slice;
+        use crate::engine::scene::library::closed_box;
+        let (scene, _) = import_slice(&closed_box(0.5).to_glb(), None).unwrap();
+        let tracer = Tracer::new(&scene);
+        for axis in [Vec3::X, Vec3::Y, Vec3::Z] {
+            for sign in [1.0f32, -1.0] {
+                let dir = Vec3::from_array((axis * sign).to_array().map(|c| if c == 0.0 { -0.0 } else { c }));
+                let origin = Vec3::splat(0.1);
+                let hit = tracer.trace(&scene, origin, dir, f32::INFINITY);
+                assert!(hit.is_some_and(|h| (h.t - (1.0 - 0.1 * sign)).abs() < 1e-5), "{dir:?}");
+                assert!(!tracer.unoccluded(&scene, origin, dir, 10.0), "{dir:?}");
+            }
         }
     }
 
