@@ -42,6 +42,11 @@
 //! their distances do (to the f32 rounding of the moved value, 6e-8 of the scene's size:
 //! closer than that they are a tie, which traversal order decides).
 //!
+//! ## Negative zeros
+//! obvhs's wide node test takes a direction component's sign from `d < 0` and its inverse
+//! from `signum` (-1 for -0.0), so a -0.0 component swapped the slab bounds and the ray
+//! hit nothing; the traversal's direction has +0.0 added (`traversal_dir`).
+//!
 //! ## Speed
 //! `path`'s time a step, release build, this 2-core VM (2026-12-06, docs/peers.md), binary
 //! tree → wide tree (obvhs's `very_slow_build`: spatial splits, full reinsertion): Cornell
