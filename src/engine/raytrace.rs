@@ -45,7 +45,9 @@
 //! ## Negative zeros
 //! obvhs's wide node test takes a direction component's sign from `d < 0` and its inverse
 //! from `signum` (-1 for -0.0), so a -0.0 component swapped the slab bounds and the ray
-//! hit nothing; the traversal's direction has +0.0 added (`traversal_dir`).
+//! hit nothing (straight-down sun rays built as the negated direction to the sun are such
+//! rays: `tests/vpl.rs` lost the whole bounce); the traversal's direction has +0.0 added
+//! (`Tracer::wide_ray`).
 //!
 //! ## Speed
 //! `path`'s time a step, release build, this 2-core VM (2026-12-06, docs/peers.md), binary
@@ -140,6 +142,20 @@ impl Tracer {
         &self.bvh
     }
 
+    /// The wide traversal's ray for a query: origin and farthest distance scaled, the
+    /// farthest distance moved out by the slack, and the direction's -0.0s made +0.0
+    /// (module doc, "Near the origin", "Near the farthest distance", "Negative zeros").
+    fn wide_ray(&self, origin: Vec3, dir: Vec3, tmax: f32) -> Ray {
+        // Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
+        let dir = Vec3A::from(dir) + Vec3A::ZERO;
+        Ray::new(
+            Vec3A::from(origin) * self.scale,
+            dir,
+            0.0,
+            tmax * self.scale + self.slack,
+        )
+    }
+
     /// Closest hit along `origin + t·dir`, t in (0, tmax).
     ///
     /// Ties: a hit on the back of a single-sided triangle counts [`BACK_FACE_TIE`] times
@@ -157,7 +173,7 @@ impl Tracer {
         // sees each value scaled and moved out by the slack, so that it culls boxes
         // against the best value plus the slack, and compares two values as the test does.
         let mut local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        let ray = Ray::new(Vec3A::from(origin) * s, traversal_dir(dir), 0.0, tmax * s + slack);
+        let ray = self.wide_ray(origin, dir, tmax);
         let mut hit = RayHit::none();
         let found = self.wide.ray_traverse(ray, &mut hit, |r, id| {
             let index = self.wide.primitive_indices[id];
@@ -199,7 +215,7 @@ impl Tracer {
         // Any hit the exact test finds before `tmax` is below the traversal's tmax, which
         // the slack moves out (module doc, "Near the farthest distance").
         let local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        let ray = Ray::new(Vec3A::from(origin) * s, traversal_dir(dir), 0.0, tmax * s + self.slack);
+        let ray = self.wide_ray(origin, dir, tmax);
         self.wide.ray_traverse_miss(ray, |_, id| {
             let index = self.wide.primitive_indices[id];
             let tri = &scene.triangles[index as usize];
@@ -212,15 +228,6 @@ impl Tracer {
             })
         })
     }
-}
-
-/// `dir` with every -0.0 made +0.0, for the wide traversal. obvhs's node test takes a
-/// component's sign from `d < 0` but its inverse from `signum`, which is -1 for -0.0: the
-/// slab bounds then come out swapped and every box is culled. Straight-down sun rays built
-/// as the negated direction to the sun are exactly such rays (`tests/vpl.rs` lost the
-/// whole bounce). Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
-fn traversal_dir(dir: Vec3) -> Vec3A {
-    Vec3A::from(dir) + Vec3A::ZERO
 }
 
 /// [`Tracer::slack`] as a share of the scene's extent: 2^-20, about 1e-6.
@@ -239,8 +246,10 @@ fn scaled_wide(mut wide: CwBvh) -> (CwBvh, f32) {
     // grid); adding k to it multiplies that grid by 2^k, as `p * 2^k` moves its corner.
     let lowest = wide.nodes.iter().flat_map(|n| n.e).min().unwrap_or(127) as i32;
     let highest = wide.nodes.iter().flat_map(|n| n.e).max().unwrap_or(127) as i32;
+    // Within the exponent byte's range, then within f32's (2^k finite), never a panic.
     let k = (20 - extent.log2().round() as i32)
-        .clamp(1 - lowest, 254 - highest)
+        .max(1 - lowest)
+        .min(254 - highest)
         .clamp(-100, 100);
     let scale = 2f32.powi(k);
     for node in &mut wide.nodes {
