@@ -58,22 +58,28 @@
 //! ms. The second build costs less than the steps save on the 256k-triangle level's first
 //! four steps (whole process 11.2 → 10.5 s).
 //!
-//! The traversal loops are obvhs's own (its `traverse!` macro and node test, expanded
-//! here in `traversal`) built twice: for the baseline x86-64 the binary targets, and with
-//! x86-64-v3's AVX2, FMA, BMI and LZCNT, which the queries use wherever the CPU has them
-//! (checked once per tracer; `LIGHTMAPD_NO_AVX2` set in the environment forces the
-//! baseline, for comparisons). Cycles picks its kernels by CPU the same way. Same
-//! answers bit for bit (`both_builds_of_the_traversal_answer_as_brute_force`); `path` a
-//! step, 3 runs each, the baseline → AVX2 build: blocks-25k 15.9 → 15.1 ms, the Cornell
-//! box 10.4 → 10.2 ms, the occlusion room 141 → 134 ms (2026-12-06). Building the whole
-//! binary for x86-64-v3 gained 5–10 %, and would not run on CPUs without AVX2.
+//! The traversal loop is obvhs's own (its `traverse!` macro, expanded here in
+//! `traversal`), built twice: for the baseline x86-64 the binary targets, with obvhs's
+//! node test (SSE, four children a pass); and with x86-64-v3's AVX2, FMA, BMI and LZCNT,
+//! with a node test of ours that takes all eight children in one AVX2 pass (the same
+//! arithmetic in the same order, so the same boxes are entered). The queries use the
+//! second wherever the CPU has those features (checked once per tracer;
+//! `LIGHTMAPD_NO_AVX2` set in the environment forces the baseline, for comparisons):
+//! Cycles picks its kernels by CPU the same way. Both answer every query bit for bit as
+//! testing every triangle does (`both_builds_of_the_traversal_answer_as_brute_force`;
+//! the near-origin and -0.0 tests run both). `path` a step, 3 runs each, release, this
+//! VM (2026-12-06), baseline → AVX2 loop with obvhs's node test → with the eight-wide
+//! one: blocks-25k 15.85 → 14.8 → 13.6 ms, the Cornell box 10.2 → 10.0 → 10.0 ms, the
+//! occlusion room 139.7 → 134.1 → 118.9 ms; the lightmaps are the same to the bit.
+//! Building the whole binary for x86-64-v3 instead gained 5–10 % and would not run on
+//! CPUs without AVX2.
 //!
 //! Alpha: a candidate hit on a MASK or BLEND triangle counts only where
 //! [`Scene::stops_ray`] says the surface is there (glTF alpha, issue 19 point 5), in both
 //! queries; opaque triangles pay one material lookup per candidate hit.
 //!
 //! Limits: single rays, no packets or ray streams (a wide node's eight boxes are tested
-//! four at a time in SSE); memory for two trees; rays hit both faces of every
+//! in one AVX2 pass, or four at a time in SSE without AVX2); memory for two trees; rays hit both faces of every
 //! triangle (callers decide what a back face means), except that a closest hit prefers a
 //! front face over a coincident single-sided back face ([`BACK_FACE_TIE`]).
 
@@ -253,17 +259,23 @@ impl Tracer {
 /// ([`Tracer::wide_isa`]; module doc, "Speed").
 mod traversal {
     // `traverse!` names glam's `UVec2` unqualified.
-    use glam::UVec2;
+    use glam::{UVec2, Vec3A};
     use obvhs::cwbvh::CwBvh;
+    use obvhs::cwbvh::node::{CwBvhNode, extract_byte64};
     use obvhs::ray::{Ray, RayHit};
 
-    /// Closest hit: obvhs's `CwBvh::ray_traverse`, as its source writes it.
+    /// Closest hit: obvhs's `CwBvh::ray_traverse`, as its source writes it, with the node
+    /// test `hits` (which children the ray enters, as obvhs's `CwBvhNode::intersect_ray`).
     #[inline(always)]
-    pub fn closest<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, hit: &mut RayHit, mut test: F) -> bool {
+    pub fn closest<N, F>(wide: &CwBvh, ray: Ray, hit: &mut RayHit, hits: N, mut test: F) -> bool
+    where
+        N: Fn(&CwBvhNode, &Ray, u32) -> u32,
+        F: FnMut(&Ray, usize) -> f32,
+    {
         let mut traverse_ray = ray;
         let mut state = wide.new_traversal(ray.direction);
         let mut node;
-        obvhs::traverse!(wide, node, state, node.intersect_ray(&traverse_ray, state.oct_inv4), {
+        obvhs::traverse!(wide, node, state, hits(node, &traverse_ray, state.oct_inv4), {
             let t = test(&traverse_ray, state.primitive_id as usize);
             if t < traverse_ray.tmax {
                 hit.primitive_id = state.primitive_id;
@@ -277,12 +289,16 @@ mod traversal {
     /// True when no primitive's test comes out below the ray's tmax: obvhs's
     /// `CwBvh::ray_traverse_miss`.
     #[inline(always)]
-    pub fn missed<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, mut test: F) -> bool {
+    pub fn missed<N, F>(wide: &CwBvh, ray: Ray, hits: N, mut test: F) -> bool
+    where
+        N: Fn(&CwBvhNode, &Ray, u32) -> u32,
+        F: FnMut(&Ray, usize) -> f32,
+    {
         let mut state = wide.new_traversal(ray.direction);
         let mut node;
         let mut miss = true;
         'outer: {
-            obvhs::traverse!(wide, node, state, node.intersect_ray(&ray, state.oct_inv4), {
+            obvhs::traverse!(wide, node, state, hits(node, &ray, state.oct_inv4), {
                 if test(&ray, state.primitive_id as usize) < ray.tmax {
                     miss = false;
                     break 'outer;
@@ -305,27 +321,79 @@ mod traversal {
     }
 
     /// The baseline build, a function of its own as the AVX2 one is (so the caller stays
-    /// small either way).
+    /// small either way), with obvhs's node test (SSE, four children at a time).
     #[inline(never)]
     pub fn closest_base<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, hit: &mut RayHit, test: F) -> bool {
-        closest(wide, ray, hit, test)
+        closest(wide, ray, hit, |n, r, o| n.intersect_ray(r, o), test)
     }
 
     #[inline(never)]
     pub fn missed_base<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, test: F) -> bool {
-        missed(wide, ray, test)
+        missed(wide, ray, |n, r, o| n.intersect_ray(r, o), test)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     pub fn closest_v3<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, hit: &mut RayHit, test: F) -> bool {
-        closest(wide, ray, hit, test)
+        closest(wide, ray, hit, |n, r, o| node_hits_avx2(n, r, o), test)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     pub fn missed_v3<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, test: F) -> bool {
-        missed(wide, ray, test)
+        missed(wide, ray, |n, r, o| node_hits_avx2(n, r, o), test)
+    }
+
+    /// obvhs's `EPSILON`, the nearest entry distance its node test accepts (module doc,
+    /// "Near the origin"); crate-private there, so repeated here to give the same answers.
+    #[cfg(target_arch = "x86_64")]
+    const NODE_EPSILON: f32 = 0.0001;
+
+    /// obvhs's `CwBvhNode::intersect_ray_simd` with all eight children in one AVX2 lane
+    /// set instead of two SSE passes: the quantised bounds widened from bytes by
+    /// `vpmovzxbd` and converted exactly, then the same products, sums, min/max operand
+    /// order (so NaNs, from 0 × inf on an axis-parallel ray, fall as obvhs's do), ordered
+    /// comparison and hit-mask assembly. No FMA: a fused product would round differently
+    /// from obvhs's, and the two builds answer alike.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    #[inline]
+    fn node_hits_avx2(node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
+        use std::arch::x86_64::*;
+        let adj_inv = node.compute_extent() * ray.inv_direction;
+        let adj_orig = (Vec3A::from(node.p) - ray.origin) * ray.inv_direction;
+        // SAFETY: each array is 8 bytes, the width `_mm_loadl_epi64` reads (unaligned).
+        let widen =
+            |b: &[u8; 8]| _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(unsafe { _mm_loadl_epi64(b.as_ptr().cast()) }));
+        let slab = |lo: &[u8; 8], hi: &[u8; 8], negative: bool, inv: f32, orig: f32| {
+            let (near, far) = if negative {
+                (widen(hi), widen(lo))
+            } else {
+                (widen(lo), widen(hi))
+            };
+            let (inv, orig) = (_mm256_set1_ps(inv), _mm256_set1_ps(orig));
+            (
+                _mm256_add_ps(_mm256_mul_ps(near, inv), orig),
+                _mm256_add_ps(_mm256_mul_ps(far, inv), orig),
+            )
+        };
+        let d = ray.direction;
+        let (tmin_x, tmax_x) = slab(&node.child_min_x, &node.child_max_x, d.x < 0.0, adj_inv.x, adj_orig.x);
+        let (tmin_y, tmax_y) = slab(&node.child_min_y, &node.child_max_y, d.y < 0.0, adj_inv.y, adj_orig.y);
+        let (tmin_z, tmax_z) = slab(&node.child_min_z, &node.child_max_z, d.z < 0.0, adj_inv.z, adj_orig.z);
+        let tmin = _mm256_max_ps(tmin_x, _mm256_max_ps(tmin_y, tmin_z));
+        let tmax = _mm256_min_ps(tmax_x, _mm256_min_ps(tmax_y, tmax_z));
+        let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(NODE_EPSILON));
+        let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(ray.tmax));
+        let mut entered = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OS>(tmin, tmax)) as u32;
+        let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
+        let mut hit_mask = 0u32;
+        while entered != 0 {
+            let j = entered.trailing_zeros() as usize;
+            entered &= entered - 1;
+            hit_mask |= extract_byte64(child_bits8, j) << extract_byte64(bit_index8, j);
+        }
+        hit_mask
     }
 }
 
@@ -550,43 +618,57 @@ mod tests {
                     *p = *p * scale + Vec3::splat(offset);
                 }
             }
-            let tracer = Tracer::new(&scene);
+            let mut tracer = Tracer::new(&scene);
             let size = 2.0 * scale;
-            let mut rng = Rng::new(5, 0, 0, 0);
-            let (mut misses, mut wrong) = (0, 0);
-            let rays = 20000;
-            for i in 0..rays {
-                let k = (rng.next_f32() * scene.triangles.len() as f32) as usize % scene.triangles.len();
-                let tri = &scene.triangles[k];
-                let (a, b) = (0.05 + 0.45 * rng.next_f32(), 0.05 + 0.45 * rng.next_f32());
-                let p = tri.point(Vec3::new(1.0 - a - b, a, b));
-                let n = tri.geometric_normal();
-                // At least 4 ulps of the coordinates: closer, the origin rounds onto the
-                // wall (the 1e5-translated box resolves 1/128).
-                let ulps = 4.0 * p.abs().max_element() * f32::EPSILON;
-                let off = (if i % 2 == 0 { 7e-5 } else { 1e-6 } * size).max(ulps);
-                let origin = p + n * off;
-                let (u, v) = basis(n);
-                let (x, y) = (rng.next_f32() * 2.0 - 1.0, rng.next_f32() * 2.0 - 1.0);
-                let dir = (-n + (u * x + v * y) * 0.9).normalize();
-                let truth = scene
-                    .triangles
-                    .iter()
-                    .filter_map(|t| intersect(t, &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY)))
-                    .map(|(t, _)| t)
-                    .fold(f32::INFINITY, f32::min);
-                match tracer.trace(&scene, origin, dir, f32::INFINITY) {
-                    None => misses += 1,
-                    Some(hit) if hit.t != truth => wrong += 1,
-                    Some(_) => {}
+            for v3 in builds() {
+                tracer.v3 = v3;
+                let mut rng = Rng::new(5, 0, 0, 0);
+                let (mut misses, mut wrong) = (0, 0);
+                let rays = 20000;
+                for i in 0..rays {
+                    let k = (rng.next_f32() * scene.triangles.len() as f32) as usize % scene.triangles.len();
+                    let tri = &scene.triangles[k];
+                    let (a, b) = (0.05 + 0.45 * rng.next_f32(), 0.05 + 0.45 * rng.next_f32());
+                    let p = tri.point(Vec3::new(1.0 - a - b, a, b));
+                    let n = tri.geometric_normal();
+                    // At least 4 ulps of the coordinates: closer, the origin rounds onto the
+                    // wall (the 1e5-translated box resolves 1/128).
+                    let ulps = 4.0 * p.abs().max_element() * f32::EPSILON;
+                    let off = (if i % 2 == 0 { 7e-5 } else { 1e-6 } * size).max(ulps);
+                    let origin = p + n * off;
+                    let (u, v) = basis(n);
+                    let (x, y) = (rng.next_f32() * 2.0 - 1.0, rng.next_f32() * 2.0 - 1.0);
+                    let dir = (-n + (u * x + v * y) * 0.9).normalize();
+                    let truth = scene
+                        .triangles
+                        .iter()
+                        .filter_map(|t| intersect(t, &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY)))
+                        .map(|(t, _)| t)
+                        .fold(f32::INFINITY, f32::min);
+                    match tracer.trace(&scene, origin, dir, f32::INFINITY) {
+                        None => misses += 1,
+                        Some(hit) if hit.t != truth => wrong += 1,
+                        Some(_) => {}
+                    }
                 }
+                assert_eq!(
+                    (misses, wrong),
+                    (0, 0),
+                    "scale {scale}, offset {offset}, AVX2 build {v3}: misses and wrong distances of {rays} rays"
+                );
             }
-            assert_eq!(
-                (misses, wrong),
-                (0, 0),
-                "scale {scale}, offset {offset}: misses and wrong distances of {rays} rays"
-            );
         }
+    }
+
+    /// The traversal builds this CPU runs: the baseline, and the AVX2 one where it has
+    /// AVX2 (said on stderr where not).
+    fn builds() -> Vec<bool> {
+        #[cfg(target_arch = "x86_64")]
+        if traversal::v3_available() {
+            return vec![false, true];
+        }
+        eprintln!("this CPU has no AVX2: only the baseline traversal is checked");
+        vec![false]
     }
 
     /// Axis-aligned rays whose other components are -0.0 (a straight-down sun ray built
@@ -602,15 +684,7 @@ mod tests {
         use crate::engine::scene::library::sphere_over_plane;
         let (scene, _) = import_slice(&sphere_over_plane().to_glb(), None).unwrap();
         let mut tracer = Tracer::new(&scene);
-        #[cfg(target_arch = "x86_64")]
-        let builds: Vec<bool> = if traversal::v3_available() {
-            vec![false, true]
-        } else {
-            eprintln!("this CPU has no AVX2: only the baseline traversal is checked");
-            vec![false]
-        };
-        #[cfg(not(target_arch = "x86_64"))]
-        let builds = vec![false];
+        let builds = builds();
         let (lo, hi) = scene
             .triangles
             .iter()
@@ -670,14 +744,21 @@ mod tests {
         use crate::engine::scene::import_slice;
         use crate::engine::scene::library::closed_box;
         let (scene, _) = import_slice(&closed_box(0.5).to_glb(), None).unwrap();
-        let tracer = Tracer::new(&scene);
-        for axis in [Vec3::X, Vec3::Y, Vec3::Z] {
+        let mut tracer = Tracer::new(&scene);
+        for (v3, axis) in builds()
+            .into_iter()
+            .flat_map(|b| [(b, Vec3::X), (b, Vec3::Y), (b, Vec3::Z)])
+        {
+            tracer.v3 = v3;
             for sign in [1.0f32, -1.0] {
                 let dir = Vec3::from_array((axis * sign).to_array().map(|c| if c == 0.0 { -0.0 } else { c }));
                 let origin = Vec3::splat(0.1);
                 let hit = tracer.trace(&scene, origin, dir, f32::INFINITY);
-                assert!(hit.is_some_and(|h| (h.t - (1.0 - 0.1 * sign)).abs() < 1e-5), "{dir:?}");
-                assert!(!tracer.unoccluded(&scene, origin, dir, 10.0), "{dir:?}");
+                assert!(
+                    hit.is_some_and(|h| (h.t - (1.0 - 0.1 * sign)).abs() < 1e-5),
+                    "{dir:?} {v3}"
+                );
+                assert!(!tracer.unoccluded(&scene, origin, dir, 10.0), "{dir:?} {v3}");
             }
         }
     }
