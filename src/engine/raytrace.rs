@@ -79,9 +79,10 @@
 //! queries; opaque triangles pay one material lookup per candidate hit.
 //!
 //! Limits: single rays, no packets or ray streams (a wide node's eight boxes are tested
-//! in one AVX2 pass, or four at a time in SSE without AVX2); memory for two trees; rays hit both faces of every
-//! triangle (callers decide what a back face means), except that a closest hit prefers a
-//! front face over a coincident single-sided back face ([`BACK_FACE_TIE`]).
+//! in one AVX2 pass, or four at a time in SSE without AVX2); memory for two trees; rays
+//! hit both faces of every triangle (callers decide what a back face means), except that
+//! a closest hit prefers a front face over a coincident single-sided back face
+//! ([`BACK_FACE_TIE`]).
 
 use std::f32::consts::PI;
 use std::time::Duration;
