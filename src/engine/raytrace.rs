@@ -115,6 +115,9 @@ pub struct Tracer {
     /// How far past a query's farthest distance the wide traversal still enters boxes, in
     /// scaled units (module doc, "Near the farthest distance").
     slack: f32,
+    /// Each triangle's unit geometric normal (`Triangle::geometric_normal`), which the
+    /// estimators need at every hit.
+    normals: Vec<Vec3>,
     /// Whether the traversal's AVX2 build runs (`traversal::v3_available`).
     v3: bool,
 }
@@ -156,8 +159,15 @@ impl Tracer {
             wide,
             scale,
             slack,
+            normals: scene.triangles.iter().map(Triangle::geometric_normal).collect(),
             v3,
         }
+    }
+
+    /// Triangle `index`'s unit geometric normal, following its winding.
+    #[inline]
+    pub fn geometric_normal(&self, index: u32) -> Vec3 {
+        self.normals[index as usize]
     }
 
     /// The binary tree, which the GPU BVH flattens (`engine::gpu::bvh`); the CPU queries
@@ -528,6 +538,10 @@ pub struct EmitterTable {
     pub(crate) emitter_cdf: Vec<f32>,
     /// Selection probability of each scene triangle as an emitter (0 for non-emitters).
     pub(crate) emitter_pick: Vec<f32>,
+    /// `emitter_pick` over the triangle's area: the density over the surface with which
+    /// next-event estimation picks a point of it (the value the estimators computed at
+    /// every vertex, kept).
+    pub(crate) pick_density: Vec<f32>,
 }
 
 impl EmitterTable {
@@ -563,10 +577,16 @@ impl EmitterTable {
         if let Some(last) = emitter_cdf.last_mut() {
             *last = 1.0;
         }
+        let pick_density = emitter_pick
+            .iter()
+            .zip(&scene.triangles)
+            .map(|(pick, t)| pick / t.area())
+            .collect();
         EmitterTable {
             emitters,
             emitter_cdf,
             emitter_pick,
+            pick_density,
         }
     }
 }

@@ -524,7 +524,7 @@ impl PathContext<'_> {
             };
             let tri = &self.scene.triangles[hit.triangle as usize];
             let material = self.scene.material(tri);
-            let geo = tri.geometric_normal();
+            let geo = self.tracer.geometric_normal(hit.triangle);
             let front = dir.dot(geo) < 0.0;
             if !front && !material.double_sided {
                 break; // back of a single-sided surface: black and opaque
@@ -533,10 +533,10 @@ impl PathContext<'_> {
             let emission = self.scene.emission(tri, hit.bary);
             if emission != Vec3::ZERO {
                 // Density with which next-event estimation would have picked this point.
-                let pick = self.emitters.emitter_pick[hit.triangle as usize];
+                let density = self.emitters.pick_density[hit.triangle as usize];
                 let cos_l = dir.dot(geo).abs();
                 let pdf_light = if cos_l > 0.0 {
-                    pick / tri.area() * hit.t * hit.t / cos_l
+                    density * hit.t * hit.t / cos_l
                 } else {
                     f32::INFINITY
                 };
@@ -646,7 +646,7 @@ impl PathContext<'_> {
             let dist = dist2.sqrt();
             if dist > 0.0 {
                 let d = to / dist;
-                let geo = tri.geometric_normal();
+                let geo = self.tracer.geometric_normal(ti);
                 let cos_l = -d.dot(geo);
                 let two_sided = self.scene.material(tri).double_sided;
                 let cos_l = if two_sided { cos_l.abs() } else { cos_l };
@@ -654,7 +654,7 @@ impl PathContext<'_> {
                     let emission = self.scene.emission(tri, bary);
                     // Stop short of the emitter itself so it does not occlude its own sample.
                     if emission != Vec3::ZERO && self.tracer.unoccluded(self.scene, x, d, dist * (1.0 - 1e-4)) {
-                        let pdf_light = self.emitters.emitter_pick[ti as usize] / tri.area() * dist2 / cos_l;
+                        let pdf_light = self.emitters.pick_density[ti as usize] * dist2 / cos_l;
                         let cos = d.dot(n);
                         let w = power_heuristic(pdf_light, cos * FRAC_1_PI);
                         let c = emission * cos * FRAC_1_PI / pdf_light * w;
