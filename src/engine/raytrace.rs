@@ -264,10 +264,10 @@ impl Tracer {
     }
 }
 
-/// The traversal loops, written once ([`obvhs::traverse!`], obvhs's own loop with its
-/// node test) and built twice: for the baseline x86-64 the binary targets, and with
-/// AVX2, FMA, BMI and LZCNT for the CPUs that have them, chosen at run time
-/// ([`Tracer::wide_isa`]; module doc, "Speed").
+/// The traversal loops, written once ([`obvhs::traverse!`], obvhs's own loop, with the
+/// node test as a parameter) and built twice: for the baseline x86-64 the binary targets
+/// with obvhs's node test, and with AVX2, FMA, BMI and LZCNT and an eight-wide node test
+/// for the CPUs that have them, chosen at run time (`Tracer::v3`; module doc, "Speed").
 mod traversal {
     // `traverse!` names glam's `UVec2` unqualified.
     use glam::{UVec2, Vec3A};
@@ -319,8 +319,8 @@ mod traversal {
         miss
     }
 
-    /// The features of the second build: x86-64-v3's that the loops and the triangle test
-    /// use.
+    /// Whether the CPU has the features of the second build (x86-64-v3's that it
+    /// enables).
     #[cfg(target_arch = "x86_64")]
     pub fn v3_available() -> bool {
         std::arch::is_x86_feature_detected!("avx2")
@@ -580,7 +580,7 @@ impl EmitterTable {
         let pick_density = emitter_pick
             .iter()
             .zip(&scene.triangles)
-            .map(|(pick, t)| pick / t.area())
+            .map(|(&pick, t)| if pick > 0.0 { pick / t.area() } else { 0.0 })
             .collect();
         EmitterTable {
             emitters,
@@ -692,8 +692,6 @@ mod tests {
         vec![false]
     }
 
-    /// Axis-aligned rays whose other components are -0.0 (a straight-down sun ray built
-    /// by negating the direction to the sun) hit what lies on them.
     /// The traversal's two builds (baseline and AVX2, `traversal`) answer every query as
     /// testing every triangle in turn does, and as each other do, bit for bit: the same
     /// triangle, the same distance, the same occlusion. Rays from anywhere in the sphere
@@ -760,6 +758,8 @@ mod tests {
         );
     }
 
+    /// Axis-aligned rays whose other components are -0.0 (a straight-down sun ray built
+    /// by negating the direction to the sun) hit what lies on them, in both builds.
     #[test]
     fn negative_zero_directions_hit() {
         use crate::engine::scene::import_slice;

@@ -386,7 +386,7 @@ impl<'a> ProbeBaker<'a> {
             Some(hit) => {
                 let tri = &scene.triangles[hit.triangle as usize];
                 let material = scene.material(tri);
-                let geo = tri.geometric_normal();
+                let geo = self.tracer.geometric_normal(hit.triangle);
                 let front = w.dot(geo) < 0.0;
                 if front || material.double_sided {
                     let side = if front { 1.0 } else { -1.0 };
@@ -402,14 +402,9 @@ impl<'a> ProbeBaker<'a> {
                     let weight = if emitted == Vec3::ZERO {
                         1.0
                     } else {
-                        let pick = self
-                            .emitters
-                            .emitter_pick
-                            .get(hit.triangle as usize)
-                            .copied()
-                            .unwrap_or(0.0);
+                        let density = self.emitters.pick_density[hit.triangle as usize];
                         let cos_l = w.dot(geo).abs();
-                        let pdf_light = pick / tri.area() * hit.t * hit.t / cos_l.max(f32::MIN_POSITIVE);
+                        let pdf_light = density * hit.t * hit.t / cos_l.max(f32::MIN_POSITIVE);
                         power_heuristic(1.0 / four_pi, pdf_light)
                     };
                     add(emitted * weight + reflected, w, four_pi);
@@ -468,7 +463,7 @@ impl<'a> ProbeBaker<'a> {
             let dist = dist2.sqrt();
             if dist > 0.0 {
                 let d = to / dist;
-                let cos_l = -d.dot(tri.geometric_normal());
+                let cos_l = -d.dot(self.tracer.geometric_normal(ti));
                 let cos_l = if scene.material(tri).double_sided {
                     cos_l.abs()
                 } else {
@@ -477,7 +472,7 @@ impl<'a> ProbeBaker<'a> {
                 let emitted = scene.emission(tri, bary);
                 // Stop short of the emitter so it does not occlude its own sample.
                 if cos_l > 0.0 && emitted != Vec3::ZERO && self.tracer.unoccluded(scene, x, d, dist * (1.0 - 1e-4)) {
-                    let pdf_light = table.emitter_pick[ti as usize] / tri.area() * dist2 / cos_l;
+                    let pdf_light = table.pick_density[ti as usize] * dist2 / cos_l;
                     add(emitted, d, power_heuristic(pdf_light, 1.0 / four_pi) / pdf_light);
                 }
             }
@@ -546,7 +541,7 @@ fn inside_geometry(scene: &Scene, tracer: &Tracer, x: Vec3) -> bool {
             let w = uniform_sphere((i as f32 + 0.5) / side as f32, (j as f32 + 0.5) / side as f32);
             if let Some(hit) = tracer.trace(scene, x, w, f32::INFINITY) {
                 let tri = &scene.triangles[hit.triangle as usize];
-                if w.dot(tri.geometric_normal()) > 0.0 && !scene.material(tri).double_sided {
+                if w.dot(tracer.geometric_normal(hit.triangle)) > 0.0 && !scene.material(tri).double_sided {
                     backs += 1;
                 }
             }
