@@ -122,6 +122,13 @@ fn nibbles() -> &'static Nibbles {
     })
 }
 
+/// Point `index` of the sequence scrambled by `seed`, as [`point_4d`] takes it: shuffled
+/// and bit-reversed, `sobol_burley::sample_4d`'s first stage, as the crate writes it.
+fn shuffled_rev_index(index: u32, seed: u32) -> u32 {
+    use sobol_burley::parts::{hash, owen_scramble_rev};
+    owen_scramble_rev(index.reverse_bits(), hash(seed ^ 0x79c68e4a))
+}
+
 /// The 4-D point of dimension set `set` at the already shuffled, reversed index, Owen
 /// scrambled with `seed`: `sobol_burley::sample_4d`'s last three stages, as the crate
 /// writes them (`lib.rs`), on the table's unscrambled point.
@@ -169,9 +176,8 @@ impl Sobol {
         let key = splitmix64(seed ^ splitmix64(texel ^ splitmix64(half ^ splitmix64(block ^ 0x5AB0_1C0D))));
         let index = (point % SEQUENCE_POINTS as u64) as u32;
         let scramble = (key >> 32) as u32 ^ key as u32;
-        use sobol_burley::parts::{hash, owen_scramble_rev};
         Sobol {
-            shuffled_rev_index: owen_scramble_rev(index.reverse_bits(), hash(scramble ^ 0x79c68e4a)),
+            shuffled_rev_index: shuffled_rev_index(index, scramble),
             scramble,
             tables: nibbles(),
             cached: None,
@@ -282,9 +288,8 @@ mod tests {
         let step_of = |point: u64| 2 * (point / spp as u64);
         let at = |point: u64| Sobol::new(9, step_of(point), 0, 0, spp).direction(0);
         assert_ne!(at(0), at(SEQUENCE_POINTS as u64));
-        let first = Sobol::new(9, step_of(SEQUENCE_POINTS as u64), 0, 0, spp);
+        let mut first = Sobol::new(9, step_of(SEQUENCE_POINTS as u64), 0, 0, spp);
         let scramble = first.scramble;
-        let mut first = first;
         assert_eq!(
             first.direction(0),
             {
@@ -308,10 +313,7 @@ mod tests {
                 _ => (rng.next_f32() * SEQUENCE_POINTS as f32) as u32 % SEQUENCE_POINTS,
             };
             let seed = (rng.next_f32() * u32::MAX as f32) as u32 ^ i;
-            let shuffled = sobol_burley::parts::owen_scramble_rev(
-                index.reverse_bits(),
-                sobol_burley::parts::hash(seed ^ 0x79c68e4a),
-            );
+            let shuffled = shuffled_rev_index(index, seed);
             for set in 0..2 * SOBOL_VERTICES {
                 let ours = point_4d(tables, shuffled, set, seed);
                 let crates = sobol_burley::sample_4d(index, set, seed);
