@@ -134,7 +134,7 @@ impl PathGpu {
         let uniform = PathUniform {
             counts: [n as u32, params.samples_per_step, params.max_bounces, 0],
             keys: [seed as u32, (seed >> 32) as u32, 0, flags],
-            f: [params.rr_threshold, inputs.atlas.surface_offset, 1.0, 0.0],
+            f: [params.threshold(), inputs.atlas.surface_offset, 1.0, 0.0],
             slice: [0, n as u32, 0, 0],
         };
         let spec = PassSpec {

@@ -11,16 +11,26 @@
 //!   tiny bright emitters nor large dim ones are noisy;
 //! - Russian roulette on the path's throughput rather than on each surface's albedo:
 //!   a path continues with certainty while its largest throughput component is at least
-//!   τ = `rr_threshold` (default 0.05); below τ it survives with probability
-//!   throughput/τ and is rescaled back to τ. Unbiased either way, but the textbook rule
-//!   (survive with the albedo at every bounce) makes the *number* of bounces random, and
-//!   in a closed bright room that is nearly all the variance: with ρ = 0.999 a path's
-//!   value has a relative standard deviation of √ρ ≈ 1. Here the first ln τ / ln ρ
-//!   bounces (3000 for ρ = 0.999) are deterministic and only the last 5 % of the energy
-//!   is left to chance: about 20 times less noise per path for ρ ≥ 0.9, at a few times
-//!   the path length in closed rooms and no extra cost in open scenes. A hard cap of
+//!   τ = `rr_threshold`; below τ it survives with probability throughput/τ and is
+//!   rescaled back to τ. Unbiased either way, but the textbook rule (survive with the
+//!   albedo at every bounce) makes the *number* of bounces random, and in a closed bright
+//!   room that is nearly all the variance: with ρ = 0.999 a path's value has a relative
+//!   standard deviation of √ρ ≈ 1. Here the first ln τ / ln ρ bounces (3000 for
+//!   ρ = 0.999 and τ = 0.05) are deterministic and only the last τ of the energy is left
+//!   to chance: about 20 times less noise per path for ρ ≥ 0.9 at τ = 0.05. A hard cap of
 //!   `max_bounces` (default 65536) only bounds run time for albedo 1 in a closed room;
 //!   its bias is ρ^65536.
+//! - τ itself trades path length against that noise, and the best trade depends on the
+//!   scene ([`auto_rr_threshold`]): where light bounces little (open scenes, ordinary
+//!   rooms) the tail a roulette randomises is small against a path's own noise, so a
+//!   high τ saves bounces for little variance; in a stiff closed room a path's value is
+//!   nearly all bounced light and τ must stay low. By default (`rr_threshold` unset) τ is
+//!   chosen from the scene's feedback gain g, the mean albedo a diffuse ray from the
+//!   scene's surface finds (4096 rays, [`feedback_gain`]): τ = 0.5 (1 - g), clamped to
+//!   [0.05, 0.3]. Measured (docs/performance.md, "Russian roulette's threshold"), work
+//!   to equal error against τ = 0.05: the occlusion room 25 % less, the ρ = 0.5 box 27 %,
+//!   the Cornell box 13 %, blocks-25k 3 %, the closed ρ = 0.9 box unchanged (τ = 0.05
+//!   there; a fixed τ = 0.3 would cost it 4x).
 //!
 //! The sky has no light sampling: for uniform radiance cosine sampling is already ideal.
 //!
@@ -82,7 +92,7 @@ pub(crate) mod sampler;
 use super::api::{
     AlphaSupport, BakeInputs, EngineError, LightSource, TaskSplit, Technique, TechniqueEntry, parse_params,
 };
-use crate::engine::accumulate::{HalfAccumulator, Snapshot};
+use crate::engine::accumulate::{HalfAccumulator, LUMINANCE, Snapshot};
 pub use crate::engine::gpu::hardware_adapter_present;
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
@@ -100,8 +110,10 @@ pub struct PathParams {
     pub samples_per_step: u32,
     /// Hard cap on path length (1 to 65536); Russian roulette ends paths long before.
     pub max_bounces: u32,
-    /// Throughput below which Russian roulette starts (0 < τ ≤ 1).
-    pub rr_threshold: f32,
+    /// Throughput below which Russian roulette starts (0 < τ ≤ 1); unset (the default):
+    /// chosen from the scene's feedback gain ([`auto_rr_threshold`]). `params()` reports
+    /// the value used.
+    pub rr_threshold: Option<f32>,
     /// Where to trace: `auto`, `cpu` or `gpu` (module doc).
     pub device: Device,
     /// Sample placement, on the CPU and the GPU: `sobol` (default) or `independent`
@@ -125,7 +137,7 @@ impl Default for PathParams {
         PathParams {
             samples_per_step: 4,
             max_bounces: 65536,
-            rr_threshold: 0.05,
+            rr_threshold: None,
             device: Device::Auto,
             sampling: Sampling::Sobol,
         }
@@ -140,10 +152,11 @@ impl PathParams {
                 self.samples_per_step
             )));
         }
-        if !(self.rr_threshold > 0.0 && self.rr_threshold <= 1.0) {
+        if let Some(t) = self.rr_threshold
+            && !(t > 0.0 && t <= 1.0)
+        {
             return Err(EngineError::BadInput(format!(
-                "params.rr_threshold must be in (0, 1], got {}",
-                self.rr_threshold
+                "params.rr_threshold must be in (0, 1], got {t}"
             )));
         }
         if !(1..=65536).contains(&self.max_bounces) {
@@ -154,6 +167,115 @@ impl PathParams {
         }
         Ok(())
     }
+
+    /// τ as the bake uses it: the job's, or the scene's choice once
+    /// [`PathParams::choose_rr_threshold`] has filled it in.
+    pub(crate) fn threshold(&self) -> f32 {
+        self.rr_threshold.unwrap_or(RR_THRESHOLD_STIFF)
+    }
+
+    /// Fills in τ from the scene when the job left it unset ([`auto_rr_threshold`]),
+    /// before anything reads it, so the CPU, the GPU and `params()` see one value.
+    pub(crate) fn choose_rr_threshold(&mut self, scene: &Scene, tracer: &Tracer) {
+        if self.rr_threshold.is_none() {
+            let g = feedback_gain(scene, tracer);
+            let tau = auto_rr_threshold(g);
+            tracing::debug!(
+                gain = g,
+                rr_threshold = tau,
+                "path: Russian roulette threshold from the scene"
+            );
+            self.rr_threshold = Some(tau);
+        }
+    }
+}
+
+/// τ for the stiffest rooms, and the lowest the automatic choice takes: the value every
+/// bake used before τ was chosen per scene (docs/stability.md, "Noise in stiff rooms").
+pub const RR_THRESHOLD_STIFF: f32 = 0.05;
+/// The highest τ the automatic choice takes: beyond it the roulette's noise outgrows the
+/// bounces it saves even in open scenes (work to equal error against τ = 0.05: the
+/// Cornell box 21 % less at 0.3, 10 % less at 0.5, 42 % more at 1; blocks-25k 10 % less
+/// at 0.3, 3 % more at 0.5, 43 % more at 1).
+pub const RR_THRESHOLD_OPEN: f32 = 0.3;
+/// Rays [`feedback_gain`] casts: g to about ±0.008 (its standard error at g = 0.5), far
+/// finer than the threshold's sensitivity, in well under a millisecond a thousand
+/// triangles.
+pub const GAIN_RAYS: u32 = 4096;
+
+/// The automatic Russian-roulette threshold for a scene of feedback gain `g` (module
+/// doc): τ = 0.5 (1 - g) in [0.05, 0.3]. Past τ a path's remaining light is about
+/// τ / (1 - g) of a bounce's, so a path keeps with certainty the bounces until what is
+/// left is about half a bounce's light. Calibrated on five scenes (docs/performance.md):
+/// the best fixed τ was 0.05 for the ρ = 0.9 box (g = 0.9), 0.2-0.3 for the ρ = 0.5 box,
+/// the Cornell box and the occlusion room, and 0.3 for blocks-25k.
+pub fn auto_rr_threshold(g: f32) -> f32 {
+    (0.5 * (1.0 - g)).clamp(RR_THRESHOLD_STIFF, RR_THRESHOLD_OPEN)
+}
+
+/// The scene's feedback gain g: the mean luminance of the albedo that a cosine-distributed
+/// ray from a uniformly chosen point of the scene's surface finds, counting 0 where it
+/// leaves the scene or meets the back of a single-sided surface (which reflects nothing
+/// here, as in the estimator). A closed box of albedo ρ has g = ρ; an open scene's g is
+/// its surfaces' albedo times the fraction of their hemisphere that sees other surfaces.
+/// Points are drawn by area over every triangle (the front side; either side of a
+/// double-sided one), from a fixed stream: g is a property of the scene, the same for
+/// every seed and in every task of a split bake (`engine::tasks`), so every task uses
+/// the single bake's τ, and a job's light probes the lightmap's. 0 for a scene without
+/// area.
+pub fn feedback_gain(scene: &Scene, tracer: &Tracer) -> f32 {
+    let mut cdf = Vec::with_capacity(scene.triangles.len());
+    let mut total = 0.0f64;
+    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+    for t in &scene.triangles {
+        total += f64::from(t.area());
+        cdf.push(total);
+        for p in t.p {
+            (lo, hi) = (lo.min(p), hi.max(p));
+        }
+    }
+    // The ray's offset off the surface: relative to the scene (as the probes' is), not
+    // the atlas's, so that a bake and its probes measure the same g.
+    let eps = ((hi - lo).length() * 1e-5).max(1e-6);
+    if !(total > 0.0) {
+        return 0.0;
+    }
+    // A key of its own: these numbers are no texel's or step's.
+    const GAIN_KEY: u64 = 0x6A1_F33D;
+    let sum: f64 = (0..GAIN_RAYS)
+        .into_par_iter()
+        .map(|i| {
+            let mut rng = Rng::new(GAIN_KEY, 0, 0, u64::from(i));
+            let u = f64::from(rng.next_f32()) * total;
+            let k = cdf.partition_point(|c| *c <= u).min(cdf.len() - 1);
+            let tri = &scene.triangles[k];
+            let ng = tracer.geometric_normal(k as u32);
+            let side = if scene.material(tri).double_sided && rng.next_f32() < 0.5 {
+                -1.0
+            } else {
+                1.0
+            };
+            let (mut b1, mut b2) = (rng.next_f32(), rng.next_f32());
+            if b1 + b2 > 1.0 {
+                b1 = 1.0 - b1;
+                b2 = 1.0 - b2;
+            }
+            let n = ng * side;
+            let x = tri.point(Vec3::new(1.0 - b1 - b2, b1, b2)) + n * eps;
+            let dir = cosine_sample(n, rng.next_f32(), rng.next_f32());
+            let Some(hit) = tracer.trace(scene, x, dir, f32::INFINITY) else {
+                return 0.0;
+            };
+            let htri = &scene.triangles[hit.triangle as usize];
+            let front = dir.dot(tracer.geometric_normal(hit.triangle)) < 0.0;
+            if !front && !scene.material(htri).double_sided {
+                return 0.0;
+            }
+            let a = scene.albedo(htri, hit.bary);
+            f64::from(a.dot(LUMINANCE))
+        })
+        .sum();
+    (sum / f64::from(GAIN_RAYS)) as f32
 }
 
 /// `path`'s GPU pass, WGSL in `shaders/path/` (the CPU route needs none).
@@ -266,6 +388,7 @@ impl PathTracer {
         params.validate()?;
         let tracer = inputs.rays.tracer();
         let emitters = inputs.rays.emitters();
+        params.choose_rr_threshold(&inputs.scene, &tracer);
         let gpu = match gpu::resolve(params.device)? {
             Some(ctx) => Some(PathGpu::new(ctx, &inputs, &params)?),
             None => None,
@@ -315,7 +438,7 @@ impl Technique for PathTracer {
             emitters: &self.emitters,
             lighting: &self.inputs.lighting,
             max_bounces: self.params.max_bounces,
-            rr_threshold: self.params.rr_threshold,
+            rr_threshold: self.params.threshold(),
             eps: self.inputs.atlas.surface_offset,
         };
         let seed = self.inputs.seed;
@@ -665,5 +788,57 @@ impl PathContext<'_> {
             }
         }
         (sum, moment)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::scene::build::{MaterialDesc, SceneBuilder};
+    use crate::engine::scene::import_slice;
+    use crate::engine::scene::library::{closed_box, sky_plane};
+
+    fn gain_of(b: &SceneBuilder) -> f32 {
+        let (scene, _) = import_slice(&b.to_glb(), None).unwrap();
+        feedback_gain(&scene, &Tracer::new(&scene))
+    }
+
+    /// Every ray from a closed box's walls finds a wall: g is the walls' albedo; nothing
+    /// above a lone plane: g = 0.
+    #[test]
+    fn the_gain_of_a_closed_box_is_its_albedo_and_of_a_plane_zero() {
+        for rho in [0.5f32, 0.9] {
+            let g = gain_of(&closed_box(rho));
+            assert!((g - rho).abs() < 1e-5, "closed box of albedo {rho}: g = {g}");
+        }
+        assert_eq!(gain_of(&sky_plane()), 0.0);
+    }
+
+    /// A cube without its top, walls of albedo 0.6: a face sees each adjacent face with
+    /// form factor 0.20004 and the opposite one with 0.19982, so the floor sends
+    /// 4 x 0.20004 of its rays to walls and each wall 3 x 0.20004 + 0.19982; over the five
+    /// equal faces g = 0.6 x 0.79995 = 0.47997. 4096 rays: standard error 0.0038.
+    #[test]
+    fn the_gain_of_an_open_cube_is_its_form_factor_sum() {
+        let mut b = SceneBuilder::new();
+        let m = b.material(MaterialDesc::diffuse("wall", [0.6; 3]));
+        // `closed_box`'s faces (centre -n, facing n) but the top (centre +y).
+        for n in [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::Z, Vec3::NEG_Z] {
+            b.square(&format!("face {n}"), -n, 2.0, n, m);
+        }
+        let g = gain_of(&b);
+        let expected = 0.6 * (4.0 * 0.20004 + 4.0 * (3.0 * 0.20004 + 0.19982)) / 5.0;
+        assert!(
+            (g - expected).abs() < 0.016,
+            "open cube: g = {g}, form factors give {expected}"
+        );
+    }
+
+    /// τ from g: the stiff end, the open end and the line between.
+    #[test]
+    fn the_automatic_threshold_follows_the_gain() {
+        assert_eq!(auto_rr_threshold(0.95), RR_THRESHOLD_STIFF);
+        assert_eq!(auto_rr_threshold(0.0), RR_THRESHOLD_OPEN);
+        assert!((auto_rr_threshold(0.5) - 0.25).abs() < 1e-6);
     }
 }

@@ -274,7 +274,7 @@ impl<'a> ProbeBaker<'a> {
         (tracer, emitters): (Arc<Tracer>, Arc<EmitterTable>),
         lighting: Lighting,
         positions: Vec<Vec3>,
-        params: PathParams,
+        mut params: PathParams,
         seed: u64,
     ) -> Result<Self, EngineError> {
         params.validate()?;
@@ -283,6 +283,7 @@ impl<'a> ProbeBaker<'a> {
         }
         // Relative to the scene, far below any feature.
         let eps = bounds(scene).map_or(1e-4, |(lo, hi)| ((hi - lo).length() * 1e-5).max(1e-6));
+        params.choose_rr_threshold(scene, &tracer);
         let valid: Vec<bool> = positions
             .par_iter()
             .map(|p| !inside_geometry(scene, &tracer, *p))
@@ -325,7 +326,7 @@ impl<'a> ProbeBaker<'a> {
             emitters: &self.emitters,
             lighting: &self.lighting,
             max_bounces: self.params.max_bounces,
-            rr_threshold: self.params.rr_threshold,
+            rr_threshold: self.params.threshold(),
             eps: self.eps,
         };
         let spp = self.params.samples_per_step;

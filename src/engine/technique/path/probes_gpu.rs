@@ -91,7 +91,7 @@ impl ProbeGpu {
         let uniform = PathUniform {
             counts: [n as u32, params.samples_per_step, params.max_bounces, 0],
             keys: [seed as u32, (seed >> 32) as u32, 0, flags],
-            f: [params.rr_threshold, eps, 1.0, 0.0],
+            f: [params.threshold(), eps, 1.0, 0.0],
             slice: [0, 0, 0, 0],
         };
         let vectors = sobol_vectors();
