@@ -204,9 +204,10 @@ pub const RR_THRESHOLD_OPEN: f32 = 0.3;
 pub const GAIN_RAYS: u32 = 4096;
 
 /// The automatic Russian-roulette threshold for a scene of feedback gain `g` (module
-/// doc): τ = 0.5 (1 - g) in [0.05, 0.3]. Past τ a path's remaining light is about
-/// τ / (1 - g) of a bounce's, so a path keeps with certainty the bounces until what is
-/// left is about half a bounce's light. Calibrated on five scenes (docs/performance.md):
+/// doc): τ = 0.5 (1 - g) in [0.05, 0.3]. What a path at throughput τ has still to
+/// gather is about τ / (1 - g) times what one vertex gathers at throughput 1 (a geometric
+/// series of gain g), so this rule leaves to chance about half of one vertex's light
+/// whatever the scene. Calibrated on five scenes (docs/performance.md):
 /// the best fixed τ was 0.05 for the ρ = 0.9 box (g = 0.9), 0.2-0.3 for the ρ = 0.5 box,
 /// the Cornell box and the occlusion room, and 0.3 for blocks-25k.
 pub fn auto_rr_threshold(g: f32) -> f32 {
