@@ -384,3 +384,42 @@ fn sobol_on(device: &str) {
     eprintln!("{device}: sobol's error is {gain:.2}x smaller than independent sampling's at 128 samples");
     assert!(gain >= 1.5, "{device}: sobol gains only {gain:.2}x");
 }
+
+/// The Russian-roulette threshold a bake uses is the one it reports (`params()`, hence the
+/// EXR header and the job): chosen from the scene's feedback gain when the job leaves it
+/// unset (0.05 in the stiff ρ = 0.9 box, 0.3 over an open plane, the rule's value in the
+/// Cornell box), and the job's own when it sets one.
+#[test]
+fn the_roulette_threshold_used_is_the_one_reported() {
+    use lightmapd::engine::atlas::Atlas;
+    use lightmapd::engine::raytrace::Tracer;
+    use lightmapd::engine::scene::library::{closed_box, sky_plane};
+    use lightmapd::engine::technique::path::{auto_rr_threshold, feedback_gain};
+    use lightmapd::engine::technique::{self, BakeInputs};
+    use std::sync::Arc;
+    let cornell = lightmapd::engine::scene::build::cornell_box();
+    for (name, builder, expected) in [
+        ("closed box 0.9", closed_box(0.9), Some(0.05f32)),
+        ("sky plane", sky_plane(), Some(0.3)),
+        ("Cornell box", cornell, None),
+    ] {
+        let scene = Arc::new(import(&builder));
+        let atlas = Arc::new(Atlas::build(&scene, 16, 16).expect("atlas"));
+        let expected = expected.unwrap_or_else(|| auto_rr_threshold(feedback_gain(&scene, &Tracer::new(&scene))));
+        for (params, want) in [(json!({}), expected), (json!({"rr_threshold": 0.125}), 0.125)] {
+            let request = lightmapd::engine::job::BakeRequest {
+                technique: "path".into(),
+                lighting: upper_sky(1.0),
+                ..Default::default()
+            };
+            let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
+            let inputs = BakeInputs::new(scene.clone(), atlas.clone(), upper_sky(1.0), 1, plan);
+            let tech = technique::create("path", inputs, &params).expect("path prepares");
+            let got = tech.params()["rr_threshold"].as_f64().expect("a number");
+            assert!(
+                (got - f64::from(want)).abs() < 1e-6,
+                "{name}, params {params}: rr_threshold {got}, expected {want}"
+            );
+        }
+    }
+}
