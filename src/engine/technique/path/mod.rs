@@ -230,17 +230,12 @@ pub fn auto_rr_threshold(g: f32) -> f32 {
 pub fn feedback_gain(scene: &Scene, tracer: &Tracer) -> f32 {
     let mut cdf = Vec::with_capacity(scene.triangles.len());
     let mut total = 0.0f64;
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
     for t in &scene.triangles {
         total += f64::from(t.area());
         cdf.push(total);
-        for p in t.p {
-            (lo, hi) = (lo.min(p), hi.max(p));
-        }
     }
-    // The ray's offset off the surface: relative to the scene (as the probes' is), not
-    // the atlas's, so that a bake and its probes measure the same g.
-    let eps = ((hi - lo).length() * 1e-5).max(1e-6);
+    // The probes' offset, not the atlas's, so that a bake and its probes measure one g.
+    let eps = probe_placement::scene_ray_offset(scene);
     if !(total > 0.0) {
         return 0.0;
     }

@@ -129,6 +129,12 @@ pub(super) fn bounds(scene: &Scene) -> Option<(Vec3, Vec3)> {
     Some(points.fold((first, first), |(lo, hi), p| (lo.min(p), hi.max(p))))
 }
 
+/// How far a ray starts off a surface when no atlas gives the offset (light probes, the
+/// feedback gain): relative to the scene's size, far below any feature.
+pub(super) fn scene_ray_offset(scene: &Scene) -> f32 {
+    bounds(scene).map_or(1e-4, |(lo, hi)| ((hi - lo).length() * 1e-5).max(1e-6))
+}
+
 /// True when the triangle `p` and the box [lo, hi] share a point: the triangle clipped
 /// by the box's six planes is not empty.
 fn triangle_meets_box(p: [Vec3; 3], lo: Vec3, hi: Vec3) -> bool {

@@ -69,7 +69,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::probe_placement::bounds;
+use super::probe_placement::scene_ray_offset;
 pub use super::probe_placement::{MAX_SUBDIVIDE, adaptive_positions, grid_positions};
 use super::probes_gpu::ProbeGpu;
 use super::sampler::{Deeper, PathSampler, Sobol};
@@ -281,8 +281,7 @@ impl<'a> ProbeBaker<'a> {
         if let Some(k) = positions.iter().position(|p| !p.is_finite()) {
             return Err(EngineError::BadInput(format!("probes.positions[{k}] is not finite")));
         }
-        // Relative to the scene, far below any feature.
-        let eps = bounds(scene).map_or(1e-4, |(lo, hi)| ((hi - lo).length() * 1e-5).max(1e-6));
+        let eps = scene_ray_offset(scene);
         params.choose_rr_threshold(scene, &tracer);
         let valid: Vec<bool> = positions
             .par_iter()
