@@ -489,10 +489,16 @@ struct BakeArgs {
     /// With --task: the N tasks are R regions of the grid (its pages when R is at most the
     /// page count, else bands of rows with equal texel counts), each baked as N / R step
     /// ranges (`path`) or chains (`vpl`, `sdf`, `obscurance`); task K bakes region
-    /// K / (N / R). `sdb` and `hemicube` do not split by regions (each step moves light
-    /// over the whole grid).
-    #[arg(long, requires = "task", value_parser = clap::value_parser!(u32).range(1..))]
+    /// K / (N / R). `sdb` and `hemicube` do not split tasks by regions (each step moves
+    /// light over the whole grid); with --rounds, `hemicube` bakes regions in rounds.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     regions: Option<u32>,
+    /// Bake in this many rounds, the grid cut into --regions regions, each region baked
+    /// with the others' light held at what the round before estimated (block Jacobi,
+    /// `hemicube` only; docs/scaling.md, "Pages in rounds"). One process, one region
+    /// after another; --steps is every region's, over all rounds.
+    #[arg(long, conflicts_with = "task", requires = "regions", value_parser = clap::value_parser!(u32).range(1..=64))]
+    rounds: Option<u32>,
 }
 
 fn parse_task(s: &str) -> Result<(u32, u32), String> {
@@ -1128,6 +1134,11 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             pages_over.set(Some(atlas.pages.len()));
         }
     };
+    if args.regions.is_some() && args.task.is_none() && args.rounds.is_none() {
+        return Err(bad_input(
+            "--regions cuts the grid for --task or --rounds; give one of them",
+        ));
+    }
     if let Some((k, n)) = args.task {
         return bake_task(
             &args,
@@ -1175,6 +1186,36 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             })?;
         }
         result
+    } else if let Some(rounds) = args.rounds {
+        let shape = lightmapd::engine::rounds::RoundsShape {
+            regions: args.regions.unwrap_or(1),
+            rounds,
+        };
+        if let Some(n) = stop.steps {
+            bar.set_length(n * u64::from(shape.regions));
+        }
+        let baked = lightmapd::engine::rounds::bake_in_rounds(
+            Arc::new(scene),
+            &request,
+            shape,
+            &job::BakeOptions::default(),
+            &mut observer,
+            &mut on_atlas,
+        );
+        if let Some(n) = pages_over.get() {
+            bar.finish_and_clear();
+            return Err(several_pages(&args.output, n));
+        }
+        let baked = baked.map_err(engine_failure)?;
+        for (k, r) in baked.rounds.iter().enumerate() {
+            eprintln!(
+                "round {k}: {} steps a region in {:.2} s, the held light moved {:.2} % of its RMS",
+                r.steps,
+                r.seconds,
+                r.change * 100.0
+            );
+        }
+        baked.result
     } else {
         // How far the step in progress is, shown beside the step count while a long step
         // runs (`bake::StepProgress`; CPU `path` reports it).

@@ -18,6 +18,7 @@ pub mod post;
 pub mod raytrace;
 pub mod reference;
 pub mod rng;
+pub mod rounds;
 pub mod scene;
 pub mod shadowmask;
 pub mod tasks;

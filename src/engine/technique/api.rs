@@ -165,6 +165,22 @@ pub fn go_on_until(
     }
 }
 
+/// One page of a bake in rounds (`engine::rounds`, block Jacobi over the grid's regions):
+/// the texels that receive light in this bake, and the light every texel is held at for
+/// what the others send. Given to [`Technique::hold_boundary`] before the first step.
+pub struct Boundary<'a> {
+    /// The receivers: a range of the atlas's texels (a region, `Atlas::regions`). Only
+    /// they gather, and only their halves mean anything.
+    pub receivers: std::ops::Range<usize>,
+    /// Per texel of the atlas, irradiance / π (the lightmap's quantity): what the rounds
+    /// before estimated. Texels outside the receivers send light from it all bake long;
+    /// the receivers start from it.
+    pub held: &'a [glam::Vec3],
+    /// The receivers' own halves after the rounds before (none in the first round), in
+    /// receiver order: the accumulators go on from them, as one bake's would.
+    pub resume: Option<&'a Snapshot>,
+}
+
 pub trait Technique: Send {
     fn id(&self) -> &'static str;
     /// The parameters in effect, defaults filled in (written into the EXR header).
@@ -208,6 +224,17 @@ pub trait Technique: Send {
     /// Where to report how far each step is ([`StepProgress`]), set once before the
     /// first step; the default reports nothing (the watcher sees 0 until the step ends).
     fn set_step_progress(&mut self, _progress: StepProgress) {}
+    /// Makes this bake one page of a bake in rounds (`engine::rounds`): light is received
+    /// only at `boundary.receivers`, the other texels send what `boundary.held` says, and
+    /// the receivers' accumulators go on from `boundary.resume`. Called once, before the
+    /// first step. The default refuses: only techniques whose step reads the whole grid's
+    /// light from a state they can hold (`hemicube`) bake in rounds.
+    fn hold_boundary(&mut self, _boundary: &Boundary<'_>) -> Result<(), EngineError> {
+        Err(EngineError::BadInput(format!(
+            "rounds: technique {} is not baked in rounds (only hemicube is, so far)",
+            self.id()
+        )))
+    }
     /// Makes this bake's first step the job's step `first` (a task of a split bake,
     /// `engine::tasks`): the random streams are keyed by the global step, so the task
     /// draws exactly the samples a whole bake would at those steps. Called once, before
@@ -312,6 +339,9 @@ pub struct TechniqueEntry {
     pub alpha: AlphaSupport,
     /// How its bakes split into tasks.
     pub tasks: TaskSplit,
+    /// It bakes a region of the grid with the rest held (`engine::rounds`,
+    /// [`Technique::hold_boundary`]).
+    pub rounds: bool,
     /// Its parameter object with every default filled in (what `params: {}` means):
     /// the names, types and defaults the service's bake form is built from.
     pub default_params: fn() -> Value,

@@ -20,5 +20,5 @@ pub mod sdb;
 pub mod sdf;
 pub mod vpl;
 
-pub use api::{AlphaSupport, BakeInputs, EngineError, Technique, gpu_error, parse_params};
+pub use api::{AlphaSupport, BakeInputs, Boundary, EngineError, Technique, gpu_error, parse_params};
 pub use table::{LightSource, TABLE, TECHNIQUES, TechniqueEntry, check_lights, check_request, create, entry, plan};

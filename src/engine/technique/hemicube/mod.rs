@@ -168,7 +168,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::api::{
-    AlphaSupport, BakeInputs, EngineError, LightSource, StepProgress, TaskSplit, Technique, TechniqueEntry,
+    AlphaSupport, BakeInputs, Boundary, EngineError, LightSource, StepProgress, TaskSplit, Technique, TechniqueEntry,
     go_on_until, gpu_error, parse_params,
 };
 use crate::engine::accumulate::{LUMINANCE, Snapshot};
@@ -394,6 +394,8 @@ pub struct Hemicube {
     cpu_light_buf: wgpu::Buffer,
     near_buf: wgpu::Buffer,
     pyramid_buf: wgpu::Buffer,
+    /// Two steps' irradiance (the one a step writes, the one before it that it reads).
+    irr_buf: wgpu::Buffer,
     acc_buf: wgpu::Buffer,
     direct_acc_buf: wgpu::Buffer,
     vertex_buf: wgpu::Buffer,
@@ -414,6 +416,9 @@ pub struct Hemicube {
     slicer: StepSlicer,
     /// The depth maps' slices (whole maps) in a sliced step.
     map_slicer: StepSlicer,
+    /// The texels that receive light: all of them, or one page's in a bake in rounds
+    /// (`Technique::hold_boundary`; the others keep the irradiance they were given).
+    receivers: std::ops::Range<usize>,
 }
 
 /// Texels per chunk of the CPU rays of a watched step (a check of the deadline between
@@ -586,7 +591,8 @@ impl Hemicube {
         let pixel_texel_buf = ctx.buffer_init("hemicube pixel to texel", whole, U::STORAGE);
         let pieces_buf = ctx.buffer_init("hemicube texel cells", &pieces, U::STORAGE);
         let texel_bytes = 2 * n_texels as u64 * 16;
-        let irr_buf = ctx.buffer_zeroed("hemicube irradiance (two steps)", texel_bytes, U::STORAGE);
+        // COPY_DST: a page of a bake in rounds starts from held irradiance (`hold_boundary`).
+        let irr_buf = ctx.buffer_zeroed("hemicube irradiance (two steps)", texel_bytes, U::STORAGE | U::COPY_DST);
         let dirs_buf = ctx.buffer_zeroed(
             "hemicube incoming directions (two steps)",
             if glossy { texel_bytes } else { 16 },
@@ -768,6 +774,7 @@ impl Hemicube {
             cpu_light_buf,
             near_buf,
             pyramid_buf,
+            irr_buf,
             acc_buf,
             direct_acc_buf,
             vertex_buf,
@@ -784,6 +791,7 @@ impl Hemicube {
             progress: None,
             slicer: StepSlicer::new("hemicube transfer"),
             map_slicer: StepSlicer::per_unit("hemicube depth maps"),
+            receivers: 0..n_texels as usize,
         })
     }
 
@@ -840,9 +848,10 @@ impl Hemicube {
             .collect()
     }
 
-    /// Per texel, one-sample irradiance estimates of the sky, the sun, punctual lights and
-    /// the emission of the near field (first N entries: rgb), their luminance-weighted
-    /// direction sums (next N), and the near-field gather of reflected light.
+    /// Per receiver, one-sample irradiance estimates of the sky, the sun, punctual lights
+    /// and the emission of the near field (first R entries: rgb), their luminance-weighted
+    /// direction sums (next R), and the near-field gather of reflected light; R the
+    /// receivers (every texel but in a bake in rounds).
     ///
     /// With `go_on` (a watched step), texels go in chunks of [`CPU_LIGHT_CHUNK`] and
     /// `go_on(done, of)` is asked between two; None when it says stop (nothing is kept:
@@ -859,7 +868,8 @@ impl Hemicube {
         let scene = &self.scene;
         let lighting = &self.lighting;
         let seed = self.seed;
-        let texels = &self.atlas.texels;
+        let receivers = self.receivers.clone();
+        let texels = &self.atlas.texels[receivers.clone()];
         let n = texels.len();
         let chunk = if go_on.is_some() { CPU_LIGHT_CHUNK } else { n.max(1) };
         let mut go_on = go_on;
@@ -873,7 +883,7 @@ impl Hemicube {
             }
             let end = (first + chunk).min(n);
             per.par_extend(texels[first..end].par_iter().enumerate().map(|(i, t)| {
-                let k = first + i;
+                let k = receivers.start + first + i;
                 let mut rng = Rng::new(seed, 0xC9_11_6E, step, k as u64);
                 let (x, n, ng) = (t.position, t.normal, t.geo_normal);
                 let front = |d: Vec3| d.dot(n) > 0.0 && d.dot(ng) > 0.0;
@@ -1040,8 +1050,13 @@ impl Hemicube {
                 tracing::debug!("hemicube: the deadline passed or a stop was asked mid-step; the step is undone");
                 return Ok(());
             };
-            q.write_buffer(&self.cpu_light_buf, 0, bytemuck::cast_slice(&light));
-            q.write_buffer(&self.near_buf, 0, bytemuck::cast_slice(&near));
+            // The receivers' slots of the two N-texel halves (sums, then directions).
+            let (first, r) = (self.receivers.start as u64, near.len());
+            let n = self.n_texels as u64;
+            q.write_buffer(&self.cpu_light_buf, first * 16, bytemuck::cast_slice(&light[..r]));
+            q.write_buffer(&self.cpu_light_buf, (n + first) * 16, bytemuck::cast_slice(&light[r..]));
+            let near_size = std::mem::size_of::<GpuNear>() as u64;
+            q.write_buffer(&self.near_buf, first * near_size, bytemuck::cast_slice(&near));
         }
         // Kept only once the step is done (a stopped step leaves them).
         let i = (self.half_steps[parity] + 1) as f64;
@@ -1059,7 +1074,8 @@ impl Hemicube {
                 self.params.grazing_tolerance,
                 share_texel as f32,
             ],
-            slice: [0, self.n_texels, 0, 0],
+            // The receivers only: the other texels keep what they hold (a bake in rounds).
+            slice: [self.receivers.start as u32, self.receivers.len() as u32, 0, 0],
         };
         q.write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&gp));
         let shooters = k_emit + k_texel;
@@ -1148,8 +1164,9 @@ impl Hemicube {
                 Aside::half(&self.acc_buf, parity),
                 Aside::half(&self.direct_acc_buf, parity),
             ];
+            let first_receiver = self.receivers.start as u64;
             let mut submit = |first: u64, count: u64| {
-                gp.slice = [first as u32, count as u32, 0, 0];
+                gp.slice = [(first_receiver + first) as u32, count as u32, 0, 0];
                 q.write_buffer(&self.params_buf, 0, bytemuck::bytes_of(&gp));
                 Ok(self.ctx.submit_compute(
                     "hemicube transfer",
@@ -1161,14 +1178,20 @@ impl Hemicube {
             let mut last_third = |done: u64, of: u64| go_on(2 * of + done, 3 * of);
             let done = self
                 .slicer
-                .run(&self.ctx, self.n_texels as u64, &aside, &mut submit, &mut last_third)
+                .run(
+                    &self.ctx,
+                    self.receivers.len() as u64,
+                    &aside,
+                    &mut submit,
+                    &mut last_third,
+                )
                 .map_err(gpu_error)?;
             if done == Sliced::Abandoned {
                 tracing::debug!("hemicube: the deadline passed or a stop was asked mid-step; the step is undone");
                 return Ok(());
             }
         } else {
-            transfer(&mut encoder, gpu::dispatch_size_64(self.n_texels));
+            transfer(&mut encoder, gpu::dispatch_size_64(self.receivers.len() as u32));
             q.submit([encoder.finish()]);
             self.slicer.returned_whole();
         }
@@ -1208,6 +1231,67 @@ impl Technique for Hemicube {
 
     fn steps_done(&self) -> u64 {
         self.steps_done
+    }
+
+    /// A page of a bake in rounds (module doc, "Rounds"): both irradiance halves of every
+    /// texel are set to π times the held value, so the pyramid draws shooters from the
+    /// whole grid's held light and the near-field gather reads it where it lands; the
+    /// transfer and the CPU rays then run over the receivers only, which start from the
+    /// held value too and from their own halves after the rounds before.
+    fn hold_boundary(&mut self, boundary: &Boundary<'_>) -> Result<(), EngineError> {
+        let n = self.n_texels as usize;
+        let r = boundary.receivers.clone();
+        if self.steps_done > 0 {
+            return Err(EngineError::Internal(
+                "hemicube: a boundary is held from the first step on".into(),
+            ));
+        }
+        if boundary.held.len() != n || r.start > r.end || r.end > n {
+            return Err(EngineError::Internal(format!(
+                "hemicube: a boundary of {} held texels and receivers {r:?} for {n} texels",
+                boundary.held.len()
+            )));
+        }
+        let q = &self.ctx.queue;
+        let held: Vec<[f32; 4]> = boundary.held.iter().map(|v| v4(*v * PI, 0.0)).collect();
+        for h in 0..2u64 {
+            q.write_buffer(&self.irr_buf, h * n as u64 * 16, bytemuck::cast_slice(&held));
+        }
+        if let Some(resume) = boundary.resume {
+            let halves = [&resume.even, &resume.odd];
+            if halves.iter().any(|h| h.total.len() != r.len()) {
+                return Err(EngineError::Internal(format!(
+                    "hemicube: resumed halves of {} texels for {} receivers",
+                    resume.even.total.len(),
+                    r.len()
+                )));
+            }
+            let direct = self.flags & HC_DIRECT != 0;
+            for (h, half) in halves.iter().enumerate() {
+                let at = (h * n + r.start) as u64 * 16;
+                let means: Vec<[f32; 4]> = half.total.iter().map(|v| v4(*v, 0.0)).collect();
+                q.write_buffer(&self.acc_buf, at, bytemuck::cast_slice(&means));
+                match (&half.direct, direct) {
+                    (Some(d), true) => {
+                        let means: Vec<[f32; 4]> = d.iter().map(|v| v4(*v, 0.0)).collect();
+                        q.write_buffer(&self.direct_acc_buf, at, bytemuck::cast_slice(&means));
+                    }
+                    (None, false) => {}
+                    _ => {
+                        return Err(EngineError::Internal(
+                            "hemicube: resumed halves with another direct layer".into(),
+                        ));
+                    }
+                }
+                // The running means' weights are i^ramp for i = 1..steps: the next step
+                // of the half blends in as it would have in one bake.
+                self.half_steps[h] = half.steps;
+                self.half_weight[h] = (1..=half.steps).map(|i| (i as f64).powf(self.params.ramp as f64)).sum();
+            }
+            self.steps_done = resume.even.steps + resume.odd.steps;
+        }
+        self.receivers = r;
+        self.ctx.take_error("hemicube boundary").map_err(gpu_error)
     }
 
     fn snapshot(&mut self) -> Result<Snapshot, EngineError> {
@@ -1262,6 +1346,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| parse_params::<HemicubeParams>("hemicube", p)?.validate(),
     unbiased: false,
     alpha: AlphaSupport::Everywhere,
+    rounds: true,
     tasks: TaskSplit::Chains(
         "each step is one iteration of the random transport operator applied to the radiosity the steps before it left, over every texel: a range of steps cannot start without the steps before it, and a region's light depends on every other region's",
     ),

@@ -516,6 +516,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| ObscuranceParams::from_json(p).map(|_| ()),
     unbiased: false,
     alpha: AlphaSupport::Everywhere,
+    rounds: false,
     tasks: TaskSplit::ChainsAndRegions(
         "its halves are running ratios over a stratified direction sequence rotated once per bake, so a range of steps is not a part of one bake; a texel's obscurance comes from the scene's layers along the bake's directions, the maps of the whole grid's materials and R_ave (built from the grid's texels before validation, whichever region the task holds), and I_A from one scene-wide closure that the merge closes over every region, so a region's texels (pages or tiles) are the single bake's",
     ),

@@ -305,6 +305,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| parse_params::<PathParams>("path", p)?.validate(),
     unbiased: true,
     alpha: AlphaSupport::Everywhere,
+    rounds: false,
     tasks: TaskSplit::StepsAndRegions,
 };
 

@@ -1632,6 +1632,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
         tested: "its illumination and shadow maps, point and spot lights and small emitters (GPU shadow rays)",
         opaque: "the k x k map lookup (neighbourhood, default 5 pixels), which takes the nearest sample among k x k map pixels, closes cut-outs and BLEND coverage finer than k pixels: measured on a canopy, 8 % of the light through its cut-outs arrives at k = 5, about half at k = 1; it",
     },
+    rounds: false,
     tasks: TaskSplit::Chains(
         "each step gathers the reflected light of the running estimate all earlier steps built, over every texel: a range of steps cannot start without the steps before it, and a region's light depends on every other region's",
     ),

@@ -1245,6 +1245,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
         tested: "the sun, directional, point and spot lights and emitters (the shared direct-light pass's GPU rays)",
         opaque: "the signed distance field that gathers the sky and the bounce holds occupancy, not coverage (its k and alpha, fitted to alpha-tested CPU rays, absorb cut-outs only on average over the scene); it",
     },
+    rounds: false,
     tasks: TaskSplit::ChainsAndRegions(
         "its sky jitter is stratified along each texel's steps and its halves are running means of the shared direct light, so a range of steps is not a part of one bake; a texel's sky and direct light come from the scene, the seed and its pixel, its calibration from texels drawn over the whole grid by pixel, and its bounce from one scene-wide ambient that the merge closes over every region, so a region's texels (pages or tiles) are the single bake's",
     ),

@@ -1042,6 +1042,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     check_params: |p| parse_params::<VplParams>("vpl", p)?.validate(),
     unbiased: false,
     alpha: AlphaSupport::Everywhere,
+    rounds: false,
     tasks: TaskSplit::ChainsAndRegions(
         "its lights are drawn from a stratified sequence advanced step by step, so a range of steps is not a part of one bake; every texel gathers from the scene's lights alone, so a region's texels (pages or tiles) are the single bake's",
     ),
