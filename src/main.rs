@@ -495,10 +495,19 @@ struct BakeArgs {
     regions: Option<u32>,
     /// Bake in this many rounds, the grid cut into --regions regions, each region baked
     /// with the others' light held at what the round before estimated (block Jacobi,
-    /// `hemicube` only; docs/scaling.md, "Pages in rounds"). One process, one region
-    /// after another; --steps is every region's, over all rounds.
-    #[arg(long, conflicts_with = "task", requires = "regions", value_parser = clap::value_parser!(u32).range(1..=64))]
+    /// `hemicube` only; docs/scaling.md, "Pages in rounds"); --steps is every region's,
+    /// over all rounds. Alone: every round in this process, one region after another.
+    /// With --task K/R and --round: one region's task of one round, written for
+    /// `lightmapd merge` (the last round's) and for the next round's --previous.
+    #[arg(long, requires = "regions", value_parser = clap::value_parser!(u32).range(1..=64))]
     rounds: Option<u32>,
+    /// With --rounds and --task: the round (0-based) this task bakes.
+    #[arg(long, requires = "rounds", requires = "task")]
+    round: Option<u32>,
+    /// With --round above 0: every region's task result of the round before (the light
+    /// this task holds, and its own region's accumulators).
+    #[arg(long, num_args = 1.., requires = "round")]
+    previous: Vec<PathBuf>,
 }
 
 fn parse_task(s: &str) -> Result<(u32, u32), String> {
@@ -1186,7 +1195,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
             })?;
         }
         result
-    } else if let Some(rounds) = args.rounds {
+    } else if let (Some(rounds), None) = (args.rounds, args.task) {
         let shape = lightmapd::engine::rounds::RoundsShape {
             regions: args.regions.unwrap_or(1),
             rounds,
@@ -1382,23 +1391,61 @@ fn bake_task(
     if let Some((_, flag)) = elsewhere.iter().find(|(given, _)| *given) {
         return Err(bad_input(format!("--task: {flag} is not for a task of a split bake")));
     }
-    let shape = tasks::TaskShape {
-        tasks: n,
-        regions: args.regions.unwrap_or(1),
+    let (task, partial) = if let Some(rounds) = args.rounds {
+        let regions = args.regions.unwrap_or(1);
+        if n != regions {
+            return Err(bad_input(format!(
+                "--rounds: --task K/N takes N = --regions ({regions}), one task a region each round; got N = {n}"
+            )));
+        }
+        let Some(round) = args.round else {
+            return Err(bad_input(
+                "--task with --rounds needs --round (the round this task bakes)",
+            ));
+        };
+        let all = tasks::split_rounds(request, regions, rounds).map_err(engine_failure)?;
+        let task = all
+            .get(round as usize)
+            .map(|r| r[k as usize])
+            .ok_or_else(|| bad_input(format!("--round {round}: the bake has rounds 0..{rounds}")))?;
+        let mut previous = Vec::with_capacity(args.previous.len());
+        for p in &args.previous {
+            let bytes = std::fs::read(p).map_err(|e| bad_input(format!("{}: {e}", p.display())))?;
+            let what = p.display().to_string();
+            previous.push(tasks::Partial::decode(&bytes, &what).map_err(|e| bad_input(e.to_string()))?);
+        }
+        bar.set_length(task.steps);
+        let partial = lightmapd::engine::rounds::bake_round_task(
+            scene,
+            request,
+            task,
+            &previous,
+            &job::BakeOptions::default(),
+            observer,
+            on_atlas,
+        )
+        .map_err(engine_failure)?;
+        (task, partial)
+    } else {
+        let shape = tasks::TaskShape {
+            tasks: n,
+            regions: args.regions.unwrap_or(1),
+        };
+        let tasks = tasks::split(request, shape).map_err(engine_failure)?;
+        let task = tasks[k as usize];
+        bar.set_length(task.steps);
+        let partial = tasks::bake_task(
+            scene,
+            request,
+            task,
+            &job::BakeOptions::default(),
+            observer,
+            on_atlas,
+            &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
+        )
+        .map_err(engine_failure)?;
+        (task, partial)
     };
-    let tasks = tasks::split(request, shape).map_err(engine_failure)?;
-    let task = tasks[k as usize];
-    bar.set_length(task.steps);
-    let partial = tasks::bake_task(
-        scene,
-        request,
-        task,
-        &job::BakeOptions::default(),
-        observer,
-        on_atlas,
-        &mut |plan| tracing::info!(plan = %plan.summary_line(), "plan"),
-    )
-    .map_err(engine_failure)?;
     bar.finish_and_clear();
     let bytes = partial.encode().map_err(engine_failure)?;
     write_atomically(&args.output, &bytes).map_err(|e| Failure {
@@ -1406,11 +1453,14 @@ fn bake_task(
         message: format!("cannot write {}: {e}", args.output.display()),
     })?;
     let h = &partial.header;
-    let region = if task.regions > 1 {
+    let mut region = if task.regions > 1 {
         format!(", region {}/{} ({} texels)", task.region, task.regions, h.texels)
     } else {
         String::new()
     };
+    if task.rounds > 0 {
+        region += &format!(", round {}/{}", task.round, task.rounds);
+    }
     eprintln!(
         "baked task {k}/{n} of {}{region}: steps {}..{} ({} steps in {:.2} s, stopped by {:?}) -> {}",
         args.scene.display(),

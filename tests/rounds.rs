@@ -220,6 +220,24 @@ fn what_is_not_baked_in_rounds_is_refused() {
     assert!(e.contains("at least twice the rounds"), "{e}");
 }
 
+/// Every channel of an EXR's first layer, by name.
+fn channels(path: &std::path::Path) -> Vec<(String, Vec<f32>)> {
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_file(path)
+        .expect("an EXR");
+    image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
+        .collect()
+}
+
 fn bin() -> std::process::Command {
     std::process::Command::new(env!("CARGO_BIN_EXE_lightmapd"))
 }
@@ -229,7 +247,9 @@ fn cornell() -> std::path::PathBuf {
 }
 
 /// The command line: `bake --rounds R --regions P` bakes in rounds and writes the EXR a
-/// single bake writes (its header's step count the job's); what it cannot do is refused
+/// single bake writes; the same bake as separate processes (`--task K/P --round r
+/// --previous ...` for each region of each round, then `merge` of the last round's
+/// results) writes the same lightmap, channel for channel; what cannot be done is refused
 /// before baking with exit code 2, naming the option.
 #[test]
 fn the_command_line_bakes_in_rounds() {
@@ -253,25 +273,114 @@ fn the_command_line_bakes_in_rounds() {
     assert!(ok.status.success(), "{stderr}");
     assert!(stderr.contains("round 1: 6 steps a region"), "{stderr}");
     assert!(stderr.contains("with hemicube: 8 steps"), "{stderr}");
-    let image = exr::prelude::read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_file(&out)
-        .expect("the EXR");
-    let layer = &image.layer_data[0];
-    assert_eq!(layer.size.0, 24);
-    let rgb: Vec<f32> = layer
-        .channel_data
-        .list
+    let whole = channels(&out);
+    let rgb: Vec<f32> = whole
         .iter()
-        .filter(|c| ["R", "G", "B"].contains(&c.name.to_string().as_str()))
-        .flat_map(|c| c.sample_data.values_as_f32())
+        .filter(|(name, _)| ["R", "G", "B"].contains(&name.as_str()))
+        .flat_map(|(_, v)| v.iter().copied())
         .collect();
     assert_eq!(rgb.len(), 3 * 24 * 24);
     assert!(rgb.iter().all(|v| v.is_finite()) && rgb.iter().any(|v| *v > 0.0));
+
+    // The same bake as four processes (two regions, two rounds) and a merge.
+    let task = |round: u32, region: u32, previous: &[std::path::PathBuf]| {
+        let part = dir.join(format!("r{round}-{region}.lmtask"));
+        let mut cmd = bin();
+        cmd.arg("bake")
+            .arg(cornell())
+            .arg("-o")
+            .arg(&part)
+            .args([
+                "--resolution",
+                "24",
+                "--steps",
+                "8",
+                "--no-denoise",
+                "--technique",
+                "hemicube",
+            ])
+            .args(["--rounds", "2", "--regions", "2", "--task", &format!("{region}/2")])
+            .args(["--round", &round.to_string()]);
+        if !previous.is_empty() {
+            cmd.arg("--previous").args(previous);
+        }
+        let r = cmd.output().unwrap();
+        let stderr = String::from_utf8_lossy(&r.stderr);
+        assert!(r.status.success(), "round {round} region {region}: {stderr}");
+        assert!(stderr.contains(&format!("round {round}/2")), "{stderr}");
+        part
+    };
+    let first: Vec<_> = (0..2).map(|k| task(0, k, &[])).collect();
+    let last: Vec<_> = (0..2).map(|k| task(1, k, &first)).collect();
+    let merged = dir.join("merged.exr");
+    let m = bin()
+        .arg("merge")
+        .arg("--scene")
+        .arg(cornell())
+        .args([&last[1], &last[0]])
+        .arg("-o")
+        .arg(&merged)
+        .output()
+        .unwrap();
+    assert!(m.status.success(), "{}", String::from_utf8_lossy(&m.stderr));
+    let split = channels(&merged);
+    assert_eq!(
+        split.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>(),
+        whole.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>()
+    );
+    for ((name, a), (_, b)) in whole.iter().zip(&split) {
+        assert_eq!(a, b, "channel {name}: the processes' lightmap is not the one process's");
+    }
+    // The first round's results are not a bake's end: the merge names it.
+    let m = bin()
+        .arg("merge")
+        .arg("--scene")
+        .arg(cornell())
+        .args(&first)
+        .arg("-o")
+        .arg(dir.join("never.exr"))
+        .output()
+        .unwrap();
+    assert_eq!(m.status.code(), Some(2));
+    assert!(
+        String::from_utf8_lossy(&m.stderr).contains("merged from its last round's results"),
+        "{}",
+        String::from_utf8_lossy(&m.stderr)
+    );
+    // A round's task without every region's result of the round before.
+    let part = dir.join("never.lmtask");
+    let r = bin()
+        .arg("bake")
+        .arg(cornell())
+        .arg("-o")
+        .arg(&part)
+        .args([
+            "--resolution",
+            "24",
+            "--steps",
+            "8",
+            "--no-denoise",
+            "--technique",
+            "hemicube",
+        ])
+        .args([
+            "--rounds",
+            "2",
+            "--regions",
+            "2",
+            "--task",
+            "0/2",
+            "--round",
+            "1",
+            "--previous",
+        ])
+        .arg(&first[1])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(2), "{stderr}");
+    assert!(stderr.contains("regions 0 are missing"), "{stderr}");
+    assert!(!part.exists());
     for (extra, says) in [
         (
             &["--technique", "sdf", "--rounds", "2", "--regions", "2"][..],

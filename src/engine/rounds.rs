@@ -1,6 +1,6 @@
 //! A bake in rounds: a technique whose every step reads the whole grid's light baked one
 //! region (page or band of rows) at a time, the regions exchanging their light between
-//! rounds (issue 25 point 1; docs/scaling.md, "Pages for `sdb` and `hemicube`").
+//! rounds (issue 25 point 1; docs/scaling.md, "Pages in rounds").
 //!
 //! # Why
 //! `hemicube` draws its shooters from every texel's irradiance of the step before, so no
@@ -10,62 +10,73 @@
 //! workers.
 //!
 //! # How: block Jacobi over the regions
-//! The radiosity system B = E + K B, with K cut into region blocks. Round r's bake of
-//! region p receives light at p's texels only ([`Boundary`]): every other texel sends the
-//! light the merge of round r - 1 estimated (held fixed all round; zero in round 0, so the
-//! first round is each region lit by the emitters, the sky and its own bounces), and p's
-//! texels start from that estimate and from their own halves after round r - 1, which
-//! their accumulators go on from. All regions of a round read the same held estimate
-//! (Jacobi, not Gauss-Seidel), so a round's regions may bake at once. After the round the
-//! regions' halves are placed side by side (each region's texels are a run of the grid's)
-//! and their mean is the next round's held estimate.
+//! The radiosity system B = E + K B, with K cut into region blocks. A bake in rounds is
+//! R rounds of P tasks (`tasks::split_rounds`), task p of round r baking region p
+//! ([`bake_round_task`]): its texels receive light ([`Boundary`]); every other texel sends
+//! the light round r - 1 estimated for it (held fixed all round; zero in round 0, so the
+//! first round is each region lit by the emitters, the sky and its own bounces); its
+//! texels start from that estimate and their accumulators go on from the region's halves
+//! after round r - 1. A task reads every region's result of round r - 1 (the held light)
+//! and writes its own (`tasks::Partial` with `held`): its halves and the estimate made by
+//! its round's own steps, which is the next round's held light (the running mean would
+//! still carry the earlier rounds' lag). All regions of a round read the same held light
+//! (Jacobi, not Gauss-Seidel), so a round's tasks may bake at once, on separate machines;
+//! the last round's results merge as a split bake's regions do (`tasks::merge`, their
+//! texels side by side). [`bake_in_rounds`] runs every task in this process, one after
+//! another, through the same functions, so its lightmap is the processes' lightmap.
 //!
-//! The held estimate's error shrinks each round by the part of the light that crosses
+//! The held light's error shrinks each round by the part of the light that crosses
 //! regions: about ρ f / (1 - ρ (1 - f)) for albedo ρ and a share f of a region's light that
 //! comes from other regions (1/3 for half a closed box at ρ = 0.5). What the early rounds
 //! leave in the accumulators is a transient of the same kind as a single bake's first
-//! bounces, and the ramp weights (step i of a half weighs i^ramp) make its share small.
-//! Neither is noise, so the halves' difference cannot see it; the control texels do: they
-//! are picked over the whole grid with the job's seed and traced by `path` as in a single
-//! bake, and the merged estimate is assessed against them (`control::assess_against`), so
-//! the error reported states what the rounds left as well as the noise.
+//! bounces; the rounds' doubling step shares (`tasks::round_steps`) and the ramp weights
+//! (step i of a half weighs i^ramp) keep its share small. Neither is noise, so the
+//! halves' difference cannot see it; the control texels do: the last round's task of each
+//! region picks them from its texels with the job's seed and traces them by `path` for a
+//! fifth of its time, and the merge assesses the merged lightmap against the regions'
+//! references joined (`control::assess_against`), so the error reported states what the
+//! rounds left as well as the noise.
 //!
 //! Every region's bake uses the job's seed: its shooters and emitter samples are then the
 //! ones a single bake would draw at that step (given the same light), and its CPU rays
 //! are keyed by the texel's place in the whole grid.
 //!
 //! # Limits
-//! - Only `hemicube` holds a boundary so far ([`Technique::hold_boundary`]); `sdb`, whose
+//! - Only `hemicube` holds a boundary so far (`Technique::hold_boundary`); `sdb`, whose
 //!   resolve reads every pixel's running estimate, is the next (docs/scaling.md).
-//! - The driver here runs the rounds in one process, one region after another: it is the
-//!   engine's half of the split. The farm's half (a round's tasks claimable when the round
-//!   before is merged, in both queue backends) is not built; every region's bake still
-//!   prepares the whole grid's buffers, so the memory bound a farm would get from pages
-//!   is not had here either.
+//! - The service's queue does not bake rounds yet (round r's tasks claimable once round
+//!   r - 1's are done, in both backends): the command line does (`bake --rounds R
+//!   --regions P --task K/P --round r --previous ...`, then `merge`), as do render-farm
+//!   managers that run it.
+//! - Every task prepares the whole grid (texel set, validation, the technique's per-texel
+//!   buffers: the held light must be readable at every texel), so a region's task
+//!   bounds the work of its gather, not its memory; its hemicubes render the whole scene.
 //! - The held light of a glossy texel outside the receivers has no incoming direction:
 //!   its lobe reflects light arriving along its normal (`hemicube`'s select pass falls
 //!   back to it), a bias the control texels state like any other.
-//! - Step count: `stop.steps` is every region's, dealt out over the rounds (the first
-//!   rounds one more when it does not divide); `stop.seconds` and `stop.target_error` are
-//!   refused, as rules about the whole bake that no round sees alone.
+//! - Step count: `stop.steps` is every region's, dealt out over the rounds
+//!   (`tasks::round_steps`); `stop.seconds` and `stop.target_error` are refused, as rules
+//!   about the whole bake that no round sees alone; a cancelled bake in rounds delivers
+//!   nothing.
 
 use std::ops::Range;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use glam::Vec3;
 
 use crate::engine::accumulate::{HalfEstimate, LUMINANCE, Snapshot};
 use crate::engine::atlas::Atlas;
 use crate::engine::bake::{BakeEvent, BakeObserver, StopReason};
-use crate::engine::control::{self, ControlTexels};
+use crate::engine::control::ControlTexels;
 use crate::engine::job::{self, BakeOptions, BakeRequest, BakeResult};
-use crate::engine::output::OutputLayer;
 use crate::engine::scene::Scene;
+use crate::engine::tasks::{self, ControlHalves, PARTIAL_FORMAT, Partial, PartialHeader, TaskRange};
 use crate::engine::technique::{self, Boundary, EngineError};
 
 /// How a bake in rounds is cut: `regions` regions of the grid (whole pages when there are
-/// at most as many as pages, else bands of rows: `Atlas::regions`), `rounds` rounds.
+/// at most as many as pages, else bands of rows, cut as a split bake's regions are:
+/// `job::prepare_regions`), `rounds` rounds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RoundsShape {
     pub regions: u32,
@@ -77,8 +88,8 @@ pub struct RoundsShape {
 pub struct RoundReport {
     /// Steps every region baked in this round.
     pub steps: u64,
-    /// How far the held estimate moved: the RMS luminance of the change over the RMS
-    /// luminance of the new estimate. It falls by the cross-region share of the light
+    /// How far the held light moved: the RMS luminance of the change over the RMS
+    /// luminance of the new held light. It falls by the cross-region share of the light
     /// each round, down to the noise of the round's steps.
     pub change: f64,
     pub seconds: f64,
@@ -92,31 +103,214 @@ pub struct RoundsResult {
     pub rounds: Vec<RoundReport>,
 }
 
-/// Upper bound on rounds: each repeats every region's preparation.
-pub const MAX_ROUNDS: u32 = 64;
+/// Bakes one task of a bake in rounds (one region in one round, `tasks::split_rounds`):
+/// the whole grid prepared as the single bake's, the region's texels receiving, every
+/// texel's light held at round r-1's estimate (the `held` of every task of `previous`,
+/// which are all round r-1's results, one a region; none in round 0), the region's
+/// accumulators resumed from its own result there. Its result holds the region's halves
+/// and its round's own estimate (the next round's held light); in the last round, when
+/// the technique is biased, the region's control texels too (picked from its texels with
+/// the job's seed), which the merge joins as it joins regions'. `observer` sees the task's
+/// steps; when it breaks, the result is marked cancelled (a merge refuses it).
+pub fn bake_round_task(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    task: TaskRange,
+    previous: &[Partial],
+    options: &BakeOptions,
+    observer: &mut dyn BakeObserver,
+    on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+) -> Result<Partial, EngineError> {
+    let bad = |m: String| Err(EngineError::BadInput(m));
+    let rounds = tasks::split_rounds(request, task.regions, task.rounds)?;
+    if rounds.get(task.round as usize).and_then(|r| r.get(task.index as usize)) != Some(&task) {
+        return bad(format!(
+            "rounds: task {}/{} of round {} is not one of this request's tasks",
+            task.index, task.count, task.round
+        ));
+    }
+    let previous = check_previous(request, task, previous)?;
+    let started = Instant::now();
+    let regions = job::RegionsOf {
+        count: task.regions,
+        keep: None,
+        validated: None,
+    };
+    let prepared = job::prepare_regions(scene, request, options, Some(regions), on_atlas, &mut |_| {})?;
+    let atlas = prepared.atlas.clone();
+    let range = region_texels(&prepared, task.region)?;
+    let held: Vec<Vec3> = match &previous {
+        Some(p) => p.iter().flat_map(|x| x.held.iter().flatten().copied()).collect(),
+        None => vec![Vec3::ZERO; atlas.texels.len()],
+    };
+    if held.len() != atlas.texels.len() {
+        return bad(format!(
+            "rounds: the round before holds light for {} texels, this scene has {}: results of another scene or version",
+            held.len(),
+            atlas.texels.len()
+        ));
+    }
+    let own = previous.as_ref().map(|p| &p[task.region as usize]);
+    if let Some(own) = own
+        && own.header.fingerprint != tasks::texels_fingerprint(&atlas, range.clone())
+    {
+        return bad(format!(
+            "rounds: region {}'s result of the round before was baked on another texel set: another scene or version",
+            task.region
+        ));
+    }
+    let mut tech = technique::create(&request.technique, prepared.inputs(request), &request.params)?;
+    tech.hold_boundary(&Boundary {
+        receivers: range.clone(),
+        held: &held,
+        resume: own.map(|p| &p.snapshot),
+    })?;
+    let stop = request.stop;
+    let mut stopped_by = StopReason::Steps;
+    for k in 1..=task.steps {
+        tech.step()?;
+        let go_on = observer.event(BakeEvent::Progress {
+            steps: k,
+            elapsed: started.elapsed(),
+            stop: &stop,
+        });
+        if go_on.is_break() {
+            stopped_by = StopReason::Cancelled;
+            break;
+        }
+    }
+    let snapshot = narrow(&tech.snapshot()?, range.clone());
+    let params = tech.params();
+    // Step i of a half weighs i^ramp in the technique's running means.
+    let ramp = params.get("ramp").and_then(serde_json::Value::as_f64).unwrap_or(0.0);
+    let fresh = this_round(own.map(|p| &p.snapshot), &snapshot, ramp);
+    let technique_time = started.elapsed();
+    // The last round measures the region's bias at its own control texels, as a region
+    // task of a split bake does; the merge joins them.
+    let control = if prepared.control && task.round + 1 == task.rounds && !range.is_empty() {
+        let mut c = ControlTexels::new(
+            &prepared.rays,
+            &atlas.region(range.clone()),
+            request.lighting,
+            request.seed,
+            request.seed,
+        )?;
+        c.keep_up(technique_time)?;
+        let reference = c.reference()?;
+        Some(ControlHalves::of(c.indices(), &reference))
+    } else {
+        None
+    };
+    let header = PartialHeader {
+        format: PARTIAL_FORMAT,
+        request: request.clone(),
+        task,
+        params,
+        width: atlas.width,
+        height: atlas.height,
+        texels: range.len() as u64,
+        fingerprint: tasks::texels_fingerprint(&atlas, range.clone()),
+        half_steps: [snapshot.even.steps, snapshot.odd.steps],
+        direct: snapshot.even.direct.is_some(),
+        moments: false,
+        ao: false,
+        ambient: None,
+        control,
+        seconds: started.elapsed().as_secs_f64(),
+        stopped_by,
+        live: false,
+        held: true,
+    };
+    tracing::info!(
+        technique = %request.technique,
+        region = task.region,
+        regions = task.regions,
+        round = task.round,
+        rounds = task.rounds,
+        steps = task.steps,
+        seconds = header.seconds,
+        "round task baked"
+    );
+    Ok(Partial {
+        header,
+        pixels: atlas.texels[range].iter().map(|t| t.pixel).collect(),
+        snapshot,
+        ao: None,
+        ambient: None,
+        held: Some(fresh),
+    })
+}
 
-/// The steps of each of `rounds` rounds out of `total`: each round twice the one before
-/// (rounded down, at least one step; the last takes what is left), so the last round
-/// bakes about half the steps. Why not even shares: the accumulators go on over the
-/// rounds, and a step of round r carries what the held estimate still lacked then (a
-/// page alone in round 0 reads 0.62 of the closed box's 1). With the ramp weights the
-/// first rounds' share of the mean is about the square of their share of the steps, so
-/// short early rounds leave little of it: on the closed box of albedo 0.5 in four rounds,
-/// even shares read 0.898, doubling ones 0.97 (docs/scaling.md).
-pub fn round_steps(total: u64, rounds: u32) -> Vec<u64> {
-    let r = rounds.max(1);
-    let parts = (1u64 << r) - 1;
-    let mut steps: Vec<u64> = (0..r - 1).map(|i| (total * (1u64 << i) / parts).max(1)).collect();
-    let before: u64 = steps.iter().sum();
-    steps.push(total.saturating_sub(before).max(1));
-    steps
+/// The results of the round before `task`'s, in region order, or none in round 0; refused,
+/// naming the result, when they are not every region's result of that round of this
+/// request.
+fn check_previous<'a>(
+    request: &BakeRequest,
+    task: TaskRange,
+    previous: &'a [Partial],
+) -> Result<Option<Vec<&'a Partial>>, EngineError> {
+    let bad = |m: String| Err(EngineError::BadInput(m));
+    if task.round == 0 {
+        if !previous.is_empty() {
+            return bad("rounds: round 0 reads no results of a round before it".into());
+        }
+        return Ok(None);
+    }
+    let mut by_region: Vec<Option<&Partial>> = vec![None; task.regions as usize];
+    for (k, p) in previous.iter().enumerate() {
+        let h = &p.header;
+        let name = format!(
+            "result {k} of the round before (region {}, round {})",
+            h.task.region, h.task.round
+        );
+        if h.request != *request || (h.task.regions, h.task.rounds) != (task.regions, task.rounds) {
+            return bad(format!(
+                "rounds: {name} is of another request or another cut into rounds"
+            ));
+        }
+        if h.task.round + 1 != task.round {
+            return bad(format!("rounds: {name} is not of round {}", task.round - 1));
+        }
+        if h.live || h.stopped_by == StopReason::Cancelled || p.held.is_none() {
+            return bad(format!("rounds: {name} is not a finished round task's result"));
+        }
+        let slot = &mut by_region[h.task.region as usize];
+        if slot.is_some() {
+            return bad(format!("rounds: {name}: region {} is given twice", h.task.region));
+        }
+        *slot = Some(p);
+    }
+    let missing: Vec<String> = (0..by_region.len())
+        .filter(|&r| by_region[r].is_none())
+        .map(|r| r.to_string())
+        .collect();
+    if !missing.is_empty() {
+        return bad(format!(
+            "rounds: round {} needs every region's result of round {}; regions {} are missing",
+            task.round,
+            task.round - 1,
+            missing.join(", ")
+        ));
+    }
+    Ok(Some(by_region.into_iter().flatten().collect()))
+}
+
+/// Region `region`'s texels in the prepared grid: cut before validation, as the merge
+/// cuts them (`tasks::merge`).
+fn region_texels(prepared: &job::Prepared, region: u32) -> Result<Range<usize>, EngineError> {
+    let pixels = prepared
+        .region_pixels
+        .get(region as usize)
+        .ok_or_else(|| EngineError::BadInput(format!("rounds: the grid has no region {region}")))?;
+    Ok(prepared.atlas.texels_in(pixels.clone()))
 }
 
 /// Bakes `request` on `scene` as `shape.regions` regions over `shape.rounds` rounds (module
-/// doc), one region after another in this process, and delivers the merged estimate as a
-/// single bake does. `observer` sees the steps of every region summed (`regions` times
-/// `stop.steps` in all); when it breaks, the bake stops after the region's steps under
-/// way and delivers the rounds merged so far (cancelled), or, in the first round, fails.
+/// doc): every round's region tasks ([`bake_round_task`]) one after another in this
+/// process, each round reading the round before's results, then the last round's
+/// merged as a split bake's regions are (`tasks::merge`). `observer` sees the steps of
+/// every task summed (`regions` times `stop.steps` in all); when it breaks, the bake
+/// fails: a bake in rounds delivers nothing before its last round.
 pub fn bake_in_rounds(
     scene: Arc<Scene>,
     request: &BakeRequest,
@@ -125,129 +319,76 @@ pub fn bake_in_rounds(
     observer: &mut dyn BakeObserver,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
 ) -> Result<RoundsResult, EngineError> {
-    let bad = |m: String| Err(EngineError::BadInput(m));
-    if !(1..=MAX_ROUNDS).contains(&shape.rounds) {
-        return bad(format!("rounds must be in 1..={MAX_ROUNDS}, got {}", shape.rounds));
-    }
-    if shape.regions == 0 {
-        return bad("rounds: regions must be at least 1".into());
-    }
-    if request.stop.seconds.is_some() || request.stop.target_error.is_some() {
-        return bad(
-            "rounds: stop.seconds and stop.target_error are rules about the whole bake, which no round sees alone; \
-             give stop.steps (every region's steps, over all rounds)"
-                .into(),
-        );
-    }
-    let Some(total) = request.stop.steps else {
-        return bad("rounds: a bake in rounds needs stop.steps, every region's steps over all rounds".into());
-    };
-    if total < 2 * u64::from(shape.rounds) {
-        return bad(format!(
-            "rounds: stop.steps ({total}) must be at least twice the rounds ({}): each round bakes a step of each half",
-            shape.rounds
-        ));
-    }
-    if !technique::entry(&request.technique)?.rounds {
-        return bad(format!(
-            "rounds: technique {} is not baked in rounds (only hemicube is, so far)",
-            request.technique
-        ));
-    }
-    if request.outputs.contains(&OutputLayer::Shadowmask) {
-        return bad("rounds: the shadowmask layer is not baked in rounds yet; bake it as one task".into());
-    }
-    let started = Instant::now();
-    let prepared = job::prepare(scene, request, options, on_atlas, &mut |_| {})?;
-    let atlas = prepared.atlas.clone();
-    let regions = atlas.regions(shape.regions).map_err(EngineError::BadInput)?;
-    let n = atlas.texels.len();
-    let mut held = vec![Vec3::ZERO; n];
-    let mut own: Vec<Option<Snapshot>> = vec![None; regions.len()];
-    // Each region's estimate from its last round's steps alone: the next round's held light.
-    let mut fresh: Vec<Vec<Vec3>> = vec![Vec::new(); regions.len()];
-    let mut reports = Vec::with_capacity(shape.rounds as usize);
-    let mut technique_time = Duration::ZERO;
-    let mut merged = Snapshot::default();
-    let mut stopped_by = StopReason::Steps;
-    // The parameters in effect (the same in every region's bake), for the EXR header.
-    let mut params = serde_json::Value::Null;
+    let rounds = tasks::split_rounds(request, shape.regions, shape.rounds)?;
+    let mut previous: Vec<Partial> = Vec::new();
+    let mut held_before: Vec<Vec3> = Vec::new();
+    let mut reports = Vec::with_capacity(rounds.len());
     let mut done = 0u64;
-    let stop = request.stop;
-    'rounds: for (round, steps) in round_steps(total, shape.rounds).into_iter().enumerate() {
-        let round_started = Instant::now();
-        for (p, range) in regions.iter().enumerate() {
-            let mut tech = technique::create(&request.technique, prepared.inputs(request), &request.params)?;
-            tech.hold_boundary(&Boundary {
-                receivers: range.clone(),
-                held: &held,
-                resume: own[p].as_ref(),
-            })?;
-            for _ in 0..steps {
-                tech.step()?;
-                done += 1;
+    for round in rounds {
+        let started = Instant::now();
+        let mut results = Vec::with_capacity(round.len());
+        for task in &round {
+            let mut cancelled = false;
+            let mut relay = |e: BakeEvent<'_>| {
+                let e = match e {
+                    BakeEvent::Progress { steps, elapsed, stop } => BakeEvent::Progress {
+                        steps: done + steps,
+                        elapsed,
+                        stop,
+                    },
+                    other => other,
+                };
+                let flow = observer.event(e);
+                cancelled |= flow.is_break();
+                flow
+            };
+            let p = bake_round_task(scene.clone(), request, *task, &previous, options, &mut relay, on_atlas)?;
+            if cancelled {
+                return Err(EngineError::BadInput(
+                    "rounds: the bake was cancelled; a bake in rounds delivers nothing before its last round".into(),
+                ));
             }
-            let go_on = observer.event(BakeEvent::Progress {
-                steps: done,
-                elapsed: started.elapsed(),
-                stop: &stop,
-            });
-            let after = narrow(&tech.snapshot()?, range.clone());
-            // Step i of a half weighs i^ramp in the technique's running means.
-            params = tech.params();
-            let ramp = params.get("ramp").and_then(serde_json::Value::as_f64).unwrap_or(0.0);
-            fresh[p] = this_round(own[p].as_ref(), &after, ramp);
-            // Cancelled: the regions keep the halves of their last whole round.
-            if go_on.is_break() {
-                if round == 0 {
-                    return bad("rounds: the bake was cancelled before its first round ended".into());
-                }
-                stopped_by = StopReason::Cancelled;
-                break 'rounds;
-            }
-            own[p] = Some(after);
+            done += task.steps;
+            results.push(p);
         }
-        merged = join(own.iter().flatten());
-        let this: Vec<Vec3> = fresh.concat();
-        let change = relative_rms(&this, &held);
-        held = this;
-        let seconds = round_started.elapsed().as_secs_f64();
-        technique_time += round_started.elapsed();
+        let held: Vec<Vec3> = results.iter().flat_map(|p| p.held.iter().flatten().copied()).collect();
+        let change = if held_before.is_empty() {
+            1.0
+        } else {
+            relative_rms(&held, &held_before)
+        };
+        let seconds = started.elapsed().as_secs_f64();
         tracing::info!(
             technique = %request.technique,
-            round,
+            round = round[0].round,
             rounds = shape.rounds,
-            regions = regions.len(),
-            steps,
+            regions = shape.regions,
+            steps = round[0].steps,
             change,
             seconds,
             "round baked"
         );
-        reports.push(RoundReport { steps, change, seconds });
+        reports.push(RoundReport {
+            steps: round[0].steps,
+            change,
+            seconds,
+        });
+        held_before = held;
+        previous = results;
     }
-    let mut estimate = merged.estimate();
-    if prepared.control && n > 0 {
-        // The single bake's control texels (picked and traced with the job's seed), given
-        // the rounds' time as the technique's: they see the merged lightmap as a single
-        // bake's are seen.
-        let mut c = ControlTexels::new(&prepared.rays, &atlas, request.lighting, request.seed, request.seed)?;
-        c.keep_up(technique_time)?;
-        let reference = c.reference()?.estimate();
-        control::assess_against(c.indices(), &reference, &mut estimate);
-    }
-    let result = prepared.deliver(request, &estimate, &params, started.elapsed(), stopped_by, observer)?;
+    let result = tasks::merge(scene, &previous, options, &mut |_| {})?;
     Ok(RoundsResult {
         result,
         rounds: reports,
     })
 }
 
-/// The estimate a region's last round made by its own steps: per half, the running
-/// means' sums (weight i^`ramp` for step i) after the round less those before it, over
-/// the round's weights; the halves combined by their steps in the round. The held light
-/// of the next round, rather than the running mean, which still carries the earlier
-/// rounds' lag (on the closed box of albedo 0.5 in 6 rounds of 96 steps the running mean
-/// as the held light left the answer 2.2 % short, the round's own steps 1.1 %).
+/// The estimate a region's round made by its own steps: per half, the running means'
+/// sums (weight i^`ramp` for step i) after the round less those before it, over the
+/// round's weights; the halves combined by their steps in the round. The held light of
+/// the next round, rather than the running mean, which still carries the earlier rounds'
+/// lag (on the closed box of albedo 0.5 in 6 rounds of 96 steps the running mean as the
+/// held light left the answer 2.2 % short, the round's own steps 1.1 %).
 fn this_round(before: Option<&Snapshot>, after: &Snapshot, ramp: f64) -> Vec<Vec3> {
     let weight = |n: u64| -> f64 { (1..=n).map(|i| (i as f64).powf(ramp)).sum() };
     let mut sum = vec![Vec3::ZERO; after.even.total.len()];
@@ -285,28 +426,6 @@ fn narrow(s: &Snapshot, range: Range<usize>) -> Snapshot {
     }
 }
 
-/// Regions' halves side by side, in order. Every region bakes the same steps, so the
-/// halves' step counts agree.
-fn join<'a>(regions: impl Iterator<Item = &'a Snapshot> + Clone) -> Snapshot {
-    let half = |pick: fn(&Snapshot) -> &HalfEstimate| {
-        let halves: Vec<&HalfEstimate> = regions.clone().map(pick).collect();
-        HalfEstimate {
-            steps: halves.iter().map(|h| h.steps).min().unwrap_or(0),
-            total: halves.iter().flat_map(|h| h.total.iter().copied()).collect(),
-            direct: halves
-                .iter()
-                .map(|h| h.direct.as_deref())
-                .collect::<Option<Vec<_>>>()
-                .map(|parts| parts.concat()),
-            moments: None,
-        }
-    };
-    Snapshot {
-        even: half(|s| &s.even),
-        odd: half(|s| &s.odd),
-    }
-}
-
 /// RMS luminance of `a - b` over the RMS luminance of `a` (0 for a black `a`).
 fn relative_rms(a: &[Vec3], b: &[Vec3]) -> f64 {
     let lum = |v: Vec3| f64::from(v.dot(LUMINANCE));
@@ -318,6 +437,7 @@ fn relative_rms(a: &[Vec3], b: &[Vec3]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::tasks::round_steps;
 
     #[test]
     fn steps_are_dealt_over_the_rounds() {
@@ -333,7 +453,37 @@ mod tests {
     }
 
     #[test]
-    fn regions_join_in_order_and_narrow_back() {
+    fn a_rounds_own_estimate_is_its_steps_alone() {
+        let half = |v: f32, steps| HalfEstimate {
+            steps,
+            total: vec![Vec3::splat(v)],
+            direct: None,
+            moments: None,
+        };
+        // Ramp 1: steps 1..=2 of a half at 1.0, then steps 3..=4 at 4.0: the running mean
+        // is (1 + 2 + 4 * 3 + 4 * 4) / 10 = 3.1; the round's own steps read 4.0.
+        let before = Snapshot {
+            even: half(1.0, 2),
+            odd: half(1.0, 2),
+        };
+        let after = Snapshot {
+            even: half(3.1, 4),
+            odd: half(3.1, 4),
+        };
+        let own = this_round(Some(&before), &after, 1.0);
+        assert!((own[0].x - 4.0).abs() < 1e-5, "{own:?}");
+        // The first round: the running mean itself.
+        assert_eq!(this_round(None, &after, 1.0), vec![Vec3::splat(3.1)]);
+        // Plain means (ramp 0): (2 * 1 + 2 * x) / 4 = 2.5 gives x = 4.
+        let plain = Snapshot {
+            even: half(2.5, 4),
+            odd: half(2.5, 4),
+        };
+        assert!((this_round(Some(&before), &plain, 0.0)[0].x - 4.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn a_snapshot_narrows_to_a_region() {
         let half = |v: &[f32], steps| HalfEstimate {
             steps,
             total: v.iter().map(|&x| Vec3::splat(x)).collect(),
@@ -344,14 +494,12 @@ mod tests {
             even: half(&[1.0, 2.0, 3.0, 4.0, 5.0], 3),
             odd: half(&[6.0, 7.0, 8.0, 9.0, 10.0], 2),
         };
-        let parts = [narrow(&whole, 0..2), narrow(&whole, 2..5)];
-        assert_eq!(parts[1].even.total, whole.even.total[2..5].to_vec());
-        let joined = join(parts.iter());
-        assert_eq!(joined.even.total, whole.even.total);
-        assert_eq!(joined.odd.total, whole.odd.total);
-        assert_eq!((joined.even.steps, joined.odd.steps), (3, 2));
-        assert!((relative_rms(&joined.even.total, &whole.even.total)).abs() < 1e-12);
+        let part = narrow(&whole, 2..5);
+        assert_eq!(part.even.total, whole.even.total[2..5].to_vec());
+        assert_eq!(part.odd.total, whole.odd.total[2..5].to_vec());
+        assert_eq!((part.even.steps, part.odd.steps), (3, 2));
         let zero = vec![Vec3::ZERO; 5];
         assert!((relative_rms(&whole.even.total, &zero) - 1.0).abs() < 1e-12);
+        assert!(relative_rms(&whole.even.total, &whole.even.total).abs() < 1e-12);
     }
 }

@@ -63,6 +63,8 @@
 //!     constants and the parameters the job reports are the chains'.
 //!   - Each chain repeats the whole-scene work once (the scene's maps, fields, rays'
 //!     structures): chains pay off when steps dominate, which is the long bake.
+//!   - `hemicube` also bakes regions in rounds, the other regions' light held
+//!     (`engine::rounds`), in one process so far: a round's tasks are not queued yet.
 //!
 //! A split bake's stop rule is `stop.steps`, the job's total; `stop.seconds` bounds
 //! each task on its own (a task that runs out of time delivers fewer steps, and the
@@ -164,6 +166,17 @@ pub struct TaskRange {
     /// with the seed [`chain_seed`]`(job's seed, index)`; `first_step` is then 0.
     #[serde(default)]
     pub chain: bool,
+    /// A bake in rounds (`engine::rounds`, [`split_rounds`]): this task is region
+    /// `region` in round `round` of `rounds`, its steps the round's share; 0 rounds: not
+    /// a bake in rounds.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub round: u32,
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub rounds: u32,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 impl TaskRange {
@@ -222,6 +235,8 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
             first_step: 0,
             steps,
             chain: false,
+            round: 0,
+            rounds: 0,
         }]);
     }
     let chains = match entry.tasks {
@@ -274,6 +289,8 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
                     first_step: 0,
                     steps: total / n + u64::from(c < total % n),
                     chain: true,
+                    round: 0,
+                    rounds: 0,
                 }
             })
             .collect());
@@ -300,7 +317,89 @@ pub fn split(request: &BakeRequest, shape: TaskShape) -> Result<Vec<TaskRange>, 
                 first_step,
                 steps,
                 chain: false,
+                round: 0,
+                rounds: 0,
             }
+        })
+        .collect())
+}
+
+/// Upper bound on the rounds of a bake in rounds: each repeats every region's preparation.
+pub const MAX_ROUNDS: u32 = 64;
+
+/// The steps of each of `rounds` rounds out of `total`: each round twice the one before
+/// (rounded down, at least one step; the last takes what is left), so the last round
+/// bakes about half the steps. Why not even shares: a region's accumulators go on over
+/// the rounds, and a step of round r carries what the held light still lacked then (a
+/// page alone in round 0 reads 0.62 of the closed box's 1). With the ramp weights the
+/// first rounds' share of the mean is about the square of their share of the steps, so
+/// short early rounds leave little of it: on the closed box of albedo 0.5 in four rounds,
+/// even shares read 0.898, doubling ones 0.949 (docs/scaling.md).
+pub fn round_steps(total: u64, rounds: u32) -> Vec<u64> {
+    let r = rounds.clamp(1, MAX_ROUNDS);
+    let parts = (1u64 << r) - 1;
+    let mut steps: Vec<u64> = (0..r - 1).map(|i| (total * (1u64 << i) / parts).max(1)).collect();
+    let before: u64 = steps.iter().sum();
+    steps.push(total.saturating_sub(before).max(1));
+    steps
+}
+
+/// The tasks of a bake in rounds (`engine::rounds`): per round, one task a region, task
+/// k of a round baking region k over the round's share of `stop.steps` (every region's
+/// steps over all rounds), or why it cannot be. Round r's tasks read every round r-1
+/// task's result (the held light), so a round is baked once the round before is.
+pub fn split_rounds(request: &BakeRequest, regions: u32, rounds: u32) -> Result<Vec<Vec<TaskRange>>, EngineError> {
+    let bad = |m: String| Err(EngineError::BadInput(m));
+    if !(1..=MAX_ROUNDS).contains(&rounds) {
+        return bad(format!("rounds must be in 1..={MAX_ROUNDS}, got {rounds}"));
+    }
+    if !(1..=MAX_TASKS).contains(&regions) {
+        return bad(format!("rounds: regions must be in 1..={MAX_TASKS}, got {regions}"));
+    }
+    if !technique::entry(&request.technique)?.rounds {
+        return bad(format!(
+            "rounds: technique {} is not baked in rounds (only hemicube is, so far)",
+            request.technique
+        ));
+    }
+    if request.stop.seconds.is_some() || request.stop.target_error.is_some() {
+        return bad(
+            "rounds: stop.seconds and stop.target_error are rules about the whole bake, which no round sees alone; \
+             give stop.steps (every region's steps, over all rounds)"
+                .into(),
+        );
+    }
+    let Some(total) = request.stop.steps else {
+        return bad("rounds: a bake in rounds needs stop.steps, every region's steps over all rounds".into());
+    };
+    if total < 2 * u64::from(rounds) {
+        return bad(format!(
+            "rounds: stop.steps ({total}) must be at least twice the rounds ({rounds}): each round bakes a step of each half"
+        ));
+    }
+    if request.outputs.contains(&OutputLayer::Shadowmask) {
+        return bad("rounds: the shadowmask layer is not baked in rounds yet; bake it as one task".into());
+    }
+    let mut first_step = 0;
+    Ok(round_steps(total, rounds)
+        .into_iter()
+        .enumerate()
+        .map(|(round, steps)| {
+            let tasks = (0..regions)
+                .map(|region| TaskRange {
+                    index: region,
+                    count: regions,
+                    region,
+                    regions,
+                    first_step,
+                    steps,
+                    chain: false,
+                    round: round as u32,
+                    rounds,
+                })
+                .collect();
+            first_step += steps;
+            tasks
         })
         .collect())
 }
@@ -319,6 +418,9 @@ pub struct Partial {
     /// the task's texels (also in the header) and each texel's weight, which the merge
     /// closes over every region ([`close_ambient`]).
     pub ambient: Option<[AmbientHalf; 2]>,
+    /// A bake in rounds: the task's estimate from its round's own steps, per texel (the
+    /// held light of the next round, `engine::rounds`).
+    pub held: Option<Vec<Vec3>>,
 }
 
 /// A chain's control texels (`engine::control`) and its path reference's halves at them:
@@ -337,7 +439,7 @@ pub struct ControlHalves {
 }
 
 impl ControlHalves {
-    fn of(indices: &[usize], reference: &Snapshot) -> ControlHalves {
+    pub(crate) fn of(indices: &[usize], reference: &Snapshot) -> ControlHalves {
         let flat = |v: &[Vec3]| v.iter().map(|x| x.to_array()).collect();
         ControlHalves {
             texels: indices.iter().map(|&k| k as u32).collect(),
@@ -393,6 +495,9 @@ pub struct PartialHeader {
     /// a result the merge takes.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub live: bool,
+    /// Whether the round's own estimate (`Partial::held`) follows the ambient weights.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub held: bool,
 }
 
 impl PartialHeader {
@@ -427,7 +532,7 @@ pub fn fingerprint(atlas: &Atlas) -> String {
 }
 
 /// The fingerprint of the texels `range` of `atlas` (a region's).
-fn texels_fingerprint(atlas: &Atlas, range: std::ops::Range<usize>) -> String {
+pub(crate) fn texels_fingerprint(atlas: &Atlas, range: std::ops::Range<usize>) -> String {
     let mut h = Sha256::new();
     h.update(atlas.width.to_le_bytes());
     h.update(atlas.height.to_le_bytes());
@@ -531,6 +636,7 @@ pub fn bake_task_live(
         seconds: 0.0,
         stopped_by: StopReason::Steps,
         live: false,
+        held: false,
     };
     if let Some(LiveTask { every, mut sink }) = live {
         let template = PartialHeader {
@@ -551,6 +657,7 @@ pub fn bake_task_live(
                     pixels: pixels.clone(),
                     ao: h.ao,
                     ambient: h.ambient,
+                    held: None,
                 });
             }),
         ));
@@ -585,6 +692,7 @@ pub fn bake_task_live(
         pixels,
         ao,
         ambient,
+        held: None,
     })
 }
 
@@ -636,6 +744,16 @@ impl Partial {
                 }
             }
         }
+        if self.header.held != self.held.is_some() || self.held.as_ref().is_some_and(|h| h.len() != n) {
+            return Err(EngineError::Internal(
+                "a task's held light and its header disagree".into(),
+            ));
+        }
+        for v in self.held.iter().flatten() {
+            for c in v.to_array() {
+                out.extend_from_slice(&c.to_le_bytes());
+            }
+        }
         Ok(out)
     }
 
@@ -661,7 +779,11 @@ impl Partial {
         let per_texel = 1 + usize::from(header.direct) + 3 * usize::from(header.moments);
         let want = n
             .checked_mul(
-                per_texel * 2 * 12 + 4 + 4 * usize::from(header.ao) + 2 * 12 * usize::from(header.ambient.is_some()),
+                per_texel * 2 * 12
+                    + 4
+                    + 4 * usize::from(header.ao)
+                    + 2 * 12 * usize::from(header.ambient.is_some())
+                    + 12 * usize::from(header.held),
             )
             .ok_or_else(|| bad("texel count too large".into()))?;
         let data = &bytes[16 + len..];
@@ -728,6 +850,19 @@ impl Partial {
                 }
             })
         });
+        let after_ambient = after_ao + 2 * 12 * n * usize::from(header.ambient.is_some());
+        let held = header.held.then(|| {
+            words(&data[after_ambient..after_ambient + 12 * n])
+                .chunks_exact(3)
+                .map(|c| {
+                    Vec3::new(
+                        f32::from_le_bytes(c[0]),
+                        f32::from_le_bytes(c[1]),
+                        f32::from_le_bytes(c[2]),
+                    )
+                })
+                .collect()
+        });
         if let Some(c) = &header.control
             && (c.even.len() != c.texels.len()
                 || c.odd.len() != c.texels.len()
@@ -741,6 +876,7 @@ impl Partial {
             pixels,
             ao,
             ambient,
+            held,
         })
     }
 }
@@ -954,7 +1090,19 @@ pub fn check_partials<'a>(
         return bad("merge: no task results given".into());
     };
     let h0 = &first.header;
-    let tasks = split(&h0.request, h0.task.shape())?;
+    let tasks = if h0.task.rounds > 0 {
+        // A bake in rounds is merged from its last round's tasks.
+        let mut rounds = split_rounds(&h0.request, h0.task.regions, h0.task.rounds)?;
+        if h0.task.round + 1 != h0.task.rounds {
+            return bad(format!(
+                "merge: task result 0 is of round {} of {}; a bake in rounds is merged from its last round's results",
+                h0.task.round, h0.task.rounds
+            ));
+        }
+        rounds.pop().unwrap_or_default()
+    } else {
+        split(&h0.request, h0.task.shape())?
+    };
     let mut by_index: Vec<Option<&Partial>> = vec![None; tasks.len()];
     // Each region's fingerprint, when the atlas is given.
     let prints: Option<Vec<(String, u64)>> = atlas.map(|(a, ranges)| {
@@ -980,7 +1128,7 @@ pub fn check_partials<'a>(
         }
         if tasks.get(h.task.index as usize) != Some(&h.task) {
             return bad(format!(
-                "{name}: its region and step range are not ones the request splits into"
+                "{name}: its region, step range or round are not ones the request splits into"
             ));
         }
         if h.live {
@@ -1414,6 +1562,7 @@ mod tests {
             seconds: 0.5,
             stopped_by: StopReason::Steps,
             live: false,
+            held: false,
         };
         let p = Partial {
             header,
@@ -1424,6 +1573,7 @@ mod tests {
             pixels: vec![1, 5, 9],
             ao: Some(vec![0.25, 0.5, 1.0]),
             ambient: None,
+            held: None,
         };
         // With a scene-wide ambient: sums in the header, weights after the ao layer.
         let mut p = p;
@@ -1468,6 +1618,22 @@ mod tests {
             short.contains("t.lmtask:") && short.contains("expected for 3 texels"),
             "{short}"
         );
+        // A round task's held light (engine::rounds) follows the ambient weights.
+        let mut round = p.clone();
+        round.held = Some(vec![Vec3::new(0.5, 0.25, 0.125), Vec3::ONE, Vec3::new(2.0, 0.0, 1.0)]);
+        round.header.held = true;
+        let back = Partial::decode(&round.encode().unwrap(), "t").unwrap();
+        assert_eq!(back.held, round.held);
+        assert_eq!(back.ambient, round.ambient);
+        assert_eq!(back.header, round.header);
+        round.header.held = false;
+        assert!(
+            round
+                .encode()
+                .unwrap_err()
+                .to_string()
+                .contains("held light and its header disagree")
+        );
         let junk = Partial::decode(b"not a task result", "x").unwrap_err().to_string();
         assert!(junk.contains("no LMDTASK1 magic"), "{junk}");
         // A control texel past the task's texels.
@@ -1508,6 +1674,7 @@ mod tests {
                     seconds: 0.0,
                     stopped_by: StopReason::Steps,
                     live: false,
+                    held: false,
                 },
                 snapshot: Snapshot {
                     even: half(steps, v, 2),
@@ -1516,6 +1683,7 @@ mod tests {
                 pixels: vec![0, 1],
                 ao: Some(vec![v, 0.0]),
                 ambient: None,
+                held: None,
             }
         };
         let (a, b) = (part(3, 1.0, 0), part(1, 5.0, 0));
@@ -1586,11 +1754,13 @@ mod tests {
                     seconds: 0.0,
                     stopped_by: StopReason::Steps,
                     live: false,
+                    held: false,
                 },
                 snapshot,
                 pixels: vec![0],
                 ao: None,
                 ambient: Some([ambient.clone(), ambient]),
+                held: None,
             }
         };
         // Region 0: chains 0 and 1 (tasks 0, 1); region 1: tasks 2, 3.

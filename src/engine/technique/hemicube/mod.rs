@@ -115,6 +115,20 @@
 //! anything reads it). The pyramid and the shooters'
 //! selection run whole: they grow with the lightmap's pixels, in a few passes.
 //!
+//! ## Rounds: one region of the grid with the rest held (issue 25)
+//! A bake in rounds (`engine::rounds`, block Jacobi over the grid's regions) gives each
+//! region's bake a boundary (`Technique::hold_boundary`): both irradiance halves of every
+//! texel are set to π times the held light the round before estimated, so the pyramid
+//! draws shooters over the whole grid and the near-field gather reads the held light where
+//! it lands; the transfer runs over the receivers' texel range only (the transfer's
+//! `slice`, as a sliced step's), and so do the CPU rays; the texels outside it are never
+//! written, so they keep the held light all bake. The receivers start from the held light
+//! too (I_{m-1} is the merged estimate rather than the last iterate: the expected transfer
+//! is the same operator applied to a less noisy field) and their accumulators from their
+//! halves after the round before, with the weights i^ramp those halves had. The held
+//! light of a glossy texel has no incoming direction: its lobe is drawn about its normal
+//! (the select pass's fallback for a texel with none).
+//!
 //! # Departures from the seed
 //! - Emitters shoot from their triangles (exact area and emission, CPU-sampled) rather than
 //!   from their texels, so a 1 cm² lamp is as exact as a large one; the pyramid holds
