@@ -7,7 +7,6 @@ mod common;
 
 use std::sync::Arc;
 
-use exr::prelude::{ReadChannels, ReadLayers};
 use glam::Vec3;
 use lightmapd::engine::accumulate::LUMINANCE;
 use lightmapd::engine::bake::{BakeEvent, StopCriteria};
@@ -176,66 +175,34 @@ fn what_is_not_baked_in_rounds_is_refused() {
     let _gpu = common::gpu_serial();
     let scene = two_pages(closed_box(0.5), &[3, 4, 5]);
     let shape = RoundsShape { regions: 2, rounds: 2 };
-    let mut ignore = |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(());
+    let refused = |request: &BakeRequest| {
+        bake_in_rounds(
+            scene.clone(),
+            request,
+            shape,
+            &BakeOptions::default(),
+            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+            &mut |_| {},
+        )
+        .err()
+        .expect("refused")
+        .to_string()
+    };
     let mut sdf = request(16, 8);
     sdf.technique = "sdf".into();
     sdf.params = serde_json::Value::Null;
-    let e = bake_in_rounds(
-        scene.clone(),
-        &sdf,
-        shape,
-        &BakeOptions::default(),
-        &mut ignore,
-        &mut |_| {},
-    )
-    .err()
-    .expect("refused")
-    .to_string();
+    let e = refused(&sdf);
     assert!(e.contains("technique sdf is not baked in rounds"), "{e}");
     let mut timed = request(16, 8);
     timed.stop.seconds = Some(3.0);
-    let e = bake_in_rounds(
-        scene.clone(),
-        &timed,
-        shape,
-        &BakeOptions::default(),
-        &mut ignore,
-        &mut |_| {},
-    )
-    .err()
-    .expect("refused")
-    .to_string();
+    let e = refused(&timed);
     assert!(e.contains("stop.seconds"), "{e}");
-    let e = bake_in_rounds(
-        scene,
-        &request(16, 3),
-        shape,
-        &BakeOptions::default(),
-        &mut ignore,
-        &mut |_| {},
-    )
-    .err()
-    .expect("refused")
-    .to_string();
+    let e = refused(&request(16, 3));
     assert!(e.contains("at least twice the rounds"), "{e}");
 }
 
-/// Every channel of an EXR's first layer, by name.
 fn channels(path: &std::path::Path) -> Vec<(String, Vec<f32>)> {
-    let image = exr::prelude::read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_file(path)
-        .expect("an EXR");
-    image.layer_data[0]
-        .channel_data
-        .list
-        .iter()
-        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
-        .collect()
+    common::exr_channels(path)
 }
 
 fn bin() -> std::process::Command {

@@ -12,7 +12,6 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
 
-use exr::prelude::{ReadChannels, ReadLayers};
 use glam::Vec3;
 use lightmapd::engine::accumulate::{Estimate, LUMINANCE};
 use lightmapd::engine::bake::{BakeEvent, StopCriteria};
@@ -833,20 +832,7 @@ const BAKE: &[&str] = &[
 ];
 
 fn channels(path: &Path) -> Vec<(String, Vec<f32>)> {
-    let image = exr::prelude::read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_file(path)
-        .unwrap();
-    image.layer_data[0]
-        .channel_data
-        .list
-        .iter()
-        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
-        .collect()
+    common::exr_channels(path)
 }
 
 /// Three `bake --task K/3` processes at once, then `merge`: the EXR of a single

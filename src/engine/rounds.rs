@@ -121,24 +121,56 @@ pub fn bake_round_task(
     observer: &mut dyn BakeObserver,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
 ) -> Result<Partial, EngineError> {
-    let bad = |m: String| Err(EngineError::BadInput(m));
+    check_task(request, task)?;
+    let started = Instant::now();
+    let prepared = prepare(scene, request, task.regions, options, on_atlas)?;
+    bake_prepared(&prepared, request, task, previous, observer, started)
+}
+
+/// Refused unless `task` is one of `request`'s round tasks.
+fn check_task(request: &BakeRequest, task: TaskRange) -> Result<(), EngineError> {
     let rounds = tasks::split_rounds(request, task.regions, task.rounds)?;
     if rounds.get(task.round as usize).and_then(|r| r.get(task.index as usize)) != Some(&task) {
-        return bad(format!(
+        return Err(EngineError::BadInput(format!(
             "rounds: task {}/{} of round {} is not one of this request's tasks",
             task.index, task.count, task.round
-        ));
+        )));
     }
-    let previous = check_previous(request, task, previous)?;
-    let started = Instant::now();
+    Ok(())
+}
+
+/// The whole grid as the single bake's, cut into `regions` regions as a split bake's
+/// merge cuts them (before validation): what every task of a bake in rounds starts from.
+/// Deterministic, so tasks on different machines prepare the same.
+fn prepare(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    regions: u32,
+    options: &BakeOptions,
+    on_atlas: &mut dyn FnMut(&Arc<Atlas>),
+) -> Result<job::Prepared, EngineError> {
     let regions = job::RegionsOf {
-        count: task.regions,
+        count: regions,
         keep: None,
         validated: None,
     };
-    let prepared = job::prepare_regions(scene, request, options, Some(regions), on_atlas, &mut |_| {})?;
+    job::prepare_regions(scene, request, options, Some(regions), on_atlas, &mut |_| {})
+}
+
+/// [`bake_round_task`] on a grid already prepared ([`prepare`]); its time counts from
+/// `started`.
+fn bake_prepared(
+    prepared: &job::Prepared,
+    request: &BakeRequest,
+    task: TaskRange,
+    previous: &[Partial],
+    observer: &mut dyn BakeObserver,
+    started: Instant,
+) -> Result<Partial, EngineError> {
+    let bad = |m: String| Err(EngineError::BadInput(m));
+    let previous = check_previous(request, task, previous)?;
     let atlas = prepared.atlas.clone();
-    let range = region_texels(&prepared, task.region)?;
+    let range = region_texels(prepared, task.region)?;
     let held: Vec<Vec3> = match &previous {
         Some(p) => p.iter().flat_map(|x| x.held.iter().flatten().copied()).collect(),
         None => vec![Vec3::ZERO; atlas.texels.len()],
@@ -320,6 +352,9 @@ pub fn bake_in_rounds(
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
 ) -> Result<RoundsResult, EngineError> {
     let rounds = tasks::split_rounds(request, shape.regions, shape.rounds)?;
+    // One preparation for every task: a task on its own machine prepares the same grid
+    // (`prepare` is deterministic), so the lightmap is the processes' lightmap.
+    let prepared = prepare(scene.clone(), request, shape.regions, options, on_atlas)?;
     let mut previous: Vec<Partial> = Vec::new();
     let mut held_before: Vec<Vec3> = Vec::new();
     let mut reports = Vec::with_capacity(rounds.len());
@@ -342,7 +377,8 @@ pub fn bake_in_rounds(
                 cancelled |= flow.is_break();
                 flow
             };
-            let p = bake_round_task(scene.clone(), request, *task, &previous, options, &mut relay, on_atlas)?;
+            check_task(request, *task)?;
+            let p = bake_prepared(&prepared, request, *task, &previous, &mut relay, Instant::now())?;
             if cancelled {
                 return Err(EngineError::BadInput(
                     "rounds: the bake was cancelled; a bake in rounds delivers nothing before its last round".into(),

@@ -821,6 +821,18 @@ impl Partial {
         let [even, odd] = std::mem::take(&mut halves);
         let words =
             |bytes: &[u8]| -> Vec<[u8; 4]> { bytes.chunks_exact(4).map(|c| c.try_into().expect("4 bytes")).collect() };
+        let vec3s = |bytes: &[u8]| -> Vec<Vec3> {
+            words(bytes)
+                .chunks_exact(3)
+                .map(|c| {
+                    Vec3::new(
+                        f32::from_le_bytes(c[0]),
+                        f32::from_le_bytes(c[1]),
+                        f32::from_le_bytes(c[2]),
+                    )
+                })
+                .collect()
+        };
         let pixels = words(&data[at..at + 4 * n])
             .into_iter()
             .map(u32::from_le_bytes)
@@ -833,36 +845,13 @@ impl Partial {
                 .collect()
         });
         let ambient = header.ambient.map(|sums| {
-            [0usize, 1].map(|h| {
-                let part = &data[after_ao + h * 12 * n..after_ao + (h + 1) * 12 * n];
-                AmbientHalf {
-                    sums: sums[h],
-                    weight: words(part)
-                        .chunks_exact(3)
-                        .map(|c| {
-                            Vec3::new(
-                                f32::from_le_bytes(c[0]),
-                                f32::from_le_bytes(c[1]),
-                                f32::from_le_bytes(c[2]),
-                            )
-                        })
-                        .collect(),
-                }
+            [0usize, 1].map(|h| AmbientHalf {
+                sums: sums[h],
+                weight: vec3s(&data[after_ao + h * 12 * n..after_ao + (h + 1) * 12 * n]),
             })
         });
         let after_ambient = after_ao + 2 * 12 * n * usize::from(header.ambient.is_some());
-        let held = header.held.then(|| {
-            words(&data[after_ambient..after_ambient + 12 * n])
-                .chunks_exact(3)
-                .map(|c| {
-                    Vec3::new(
-                        f32::from_le_bytes(c[0]),
-                        f32::from_le_bytes(c[1]),
-                        f32::from_le_bytes(c[2]),
-                    )
-                })
-                .collect()
-        });
+        let held = header.held.then(|| vec3s(&data[after_ambient..after_ambient + 12 * n]));
         if let Some(c) = &header.control
             && (c.even.len() != c.texels.len()
                 || c.odd.len() != c.texels.len()

@@ -262,3 +262,22 @@ pub fn assert_stopped_step_adds_nothing(
         "after a step stopped at {permille} permille a half is not as it was"
     );
 }
+
+/// Every channel of an EXR's first layer, by name, as f32.
+pub fn exr_channels(path: &std::path::Path) -> Vec<(String, Vec<f32>)> {
+    use exr::prelude::{ReadChannels, ReadLayers};
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_file(path)
+        .unwrap_or_else(|e| panic!("{}: not a readable EXR: {e}", path.display()));
+    image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .map(|c| (c.name.to_string(), c.sample_data.values_as_f32().collect()))
+        .collect()
+}
