@@ -275,13 +275,12 @@ fn the_command_line_bakes_in_rounds() {
     assert!(rgb.iter().all(|v| v.is_finite()) && rgb.iter().any(|v| *v > 0.0));
 
     // The same bake as four processes (two regions, two rounds) and a merge.
-    let task = |round: u32, region: u32, previous: &[std::path::PathBuf]| {
-        let part = dir.join(format!("r{round}-{region}.lmtask"));
+    let round_task = |part: &std::path::Path, round: u32, region: u32, previous: &[std::path::PathBuf]| {
         let mut cmd = bin();
         cmd.arg("bake")
             .arg(cornell())
             .arg("-o")
-            .arg(&part)
+            .arg(part)
             .args([
                 "--resolution",
                 "24",
@@ -296,7 +295,11 @@ fn the_command_line_bakes_in_rounds() {
         if !previous.is_empty() {
             cmd.arg("--previous").args(previous);
         }
-        let r = cmd.output().unwrap();
+        cmd.output().unwrap()
+    };
+    let task = |round: u32, region: u32, previous: &[std::path::PathBuf]| {
+        let part = dir.join(format!("r{round}-{region}.lmtask"));
+        let r = round_task(&part, round, region, previous);
         let stderr = String::from_utf8_lossy(&r.stderr);
         assert!(r.status.success(), "round {round} region {region}: {stderr}");
         assert!(stderr.contains(&format!("round {round}/2")), "{stderr}");
@@ -341,34 +344,7 @@ fn the_command_line_bakes_in_rounds() {
     );
     // A round's task without every region's result of the round before.
     let part = dir.join("never.lmtask");
-    let r = bin()
-        .arg("bake")
-        .arg(cornell())
-        .arg("-o")
-        .arg(&part)
-        .args([
-            "--resolution",
-            "24",
-            "--steps",
-            "8",
-            "--no-denoise",
-            "--technique",
-            "hemicube",
-        ])
-        .args([
-            "--rounds",
-            "2",
-            "--regions",
-            "2",
-            "--task",
-            "0/2",
-            "--round",
-            "1",
-            "--previous",
-        ])
-        .arg(&first[1])
-        .output()
-        .unwrap();
+    let r = round_task(&part, 1, 0, &first[1..]);
     let stderr = String::from_utf8_lossy(&r.stderr);
     assert_eq!(r.status.code(), Some(2), "{stderr}");
     assert!(stderr.contains("regions 0 are missing"), "{stderr}");

@@ -183,8 +183,9 @@ fn bake_prepared(
         ));
     }
     let own = previous.as_ref().map(|p| &p[task.region as usize]);
+    let fingerprint = tasks::texels_fingerprint(&atlas, range.clone());
     if let Some(own) = own
-        && own.header.fingerprint != tasks::texels_fingerprint(&atlas, range.clone())
+        && own.header.fingerprint != fingerprint
     {
         return bad(format!(
             "rounds: region {}'s result of the round before was baked on another texel set: another scene or version",
@@ -241,7 +242,7 @@ fn bake_prepared(
         width: atlas.width,
         height: atlas.height,
         texels: range.len() as u64,
-        fingerprint: tasks::texels_fingerprint(&atlas, range.clone()),
+        fingerprint,
         half_steps: [snapshot.even.steps, snapshot.odd.steps],
         direct: snapshot.even.direct.is_some(),
         moments: false,
