@@ -60,6 +60,7 @@ use crate::engine::atlas::Atlas;
 use crate::engine::bake::{BakeEvent, StepProgress, StopReason};
 use crate::engine::job::{self, BakeOptions, BakeRequest};
 use crate::engine::plan::Plan;
+use crate::engine::rounds;
 use crate::engine::scene::Scene;
 use crate::engine::tasks::{self, Partial};
 use crate::engine::technique::EngineError;
@@ -167,16 +168,31 @@ fn failed(e: EngineError) -> End {
 /// Bakes one task and stores its result.
 async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord, flag: &Arc<StopFlag>) -> End {
     let lessee = Lessee::Task(&job.id, task.index);
-    let request = job.spec.to_request();
-    let shape = tasks::TaskShape {
-        tasks: task.count,
-        regions: job.spec.regions.unwrap_or(1),
-    };
-    let range = match tasks::split(&request, shape) {
-        Ok(r) => r[task.index as usize],
+    let request = job.spec.task_request();
+    let range = match job.spec.task_ranges().map(|r| r.get(task.index as usize).copied()) {
+        Ok(Some(r)) => r,
+        Ok(None) => {
+            return failed(EngineError::BadInput(format!(
+                "the job has no bake task {}",
+                task.index
+            )));
+        }
         Err(e) => return failed(e),
     };
-    let files = match load_patiently(state, lessee, worker, flag, || load_scene(state, job)).await {
+    // A task of round r > 0 reads every region's result of round r-1 (the held light).
+    let before = if range.rounds > 0 && range.round > 0 {
+        let per_round = range.regions;
+        (range.round - 1) * per_round..range.round * per_round
+    } else {
+        0..0
+    };
+    let load = || async {
+        Ok::<_, LoadError>((
+            load_scene(state, job).await?,
+            load_partials(state, job, before.clone()).await?,
+        ))
+    };
+    let (files, previous) = match load_patiently(state, lessee, worker, flag, load).await {
         Ok(f) => f,
         Err(None) => return End::Lost,
         Err(Some(reason)) => return End::Finish(TaskOutcome::Failed { reason, retry: true }),
@@ -207,6 +223,11 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
             let _e = span.enter();
             let (scene, _) = import_files(&files, &limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
             drop(files);
+            let previous = previous
+                .iter()
+                .zip(before)
+                .map(|(b, k)| Partial::decode(b, &format!("task {k}'s result")))
+                .collect::<Result<Vec<_>, _>>()?;
             let options = BakeOptions {
                 // Snapshots are not stored; they only refresh the task's error estimate.
                 snapshot_interval: Duration::from_secs(1),
@@ -251,18 +272,25 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
                     }),
                 }
             };
-            let partial = tasks::bake_task_live(
-                scene,
-                &request,
-                range,
-                &options,
-                &mut observer,
-                &mut |a| {
-                    let _ = live.atlas.set(a.clone());
-                },
-                &mut |_| {},
-                Some(sink),
-            )?;
+            let partial = if range.rounds > 0 {
+                // A round task's halves are not handed on while it runs: the job's
+                // snapshots wait for its merge (docs/scaling.md, "Pages in rounds").
+                drop(sink);
+                rounds::bake_round_task(scene, &request, range, &previous, &options, &mut observer, &mut |_| {})?
+            } else {
+                tasks::bake_task_live(
+                    scene,
+                    &request,
+                    range,
+                    &options,
+                    &mut observer,
+                    &mut |a| {
+                        let _ = live.atlas.set(a.clone());
+                    },
+                    &mut |_| {},
+                    Some(sink),
+                )?
+            };
             // Encoded here, off the runtime: a full page's result is hundreds of MB.
             let error = partial.snapshot.estimate().error.relative;
             let bytes = partial.encode()?;
@@ -644,10 +672,10 @@ fn task_regions(job: &JobRecord) -> u32 {
     job.spec.regions.unwrap_or(1)
 }
 
-/// Every bake task's stored result, in task order.
-async fn load_partials(state: &AppState, job: &JobRecord, count: u32) -> Result<Vec<Bytes>, LoadError> {
-    let mut out = Vec::with_capacity(count as usize);
-    for k in 0..count {
+/// The stored results of bake tasks `indices`, in task order.
+async fn load_partials(state: &AppState, job: &JobRecord, indices: Range<u32>) -> Result<Vec<Bytes>, LoadError> {
+    let mut out = Vec::with_capacity(indices.len());
+    for k in indices {
         match state.artifacts.get(&store::task_partial(&job.id, k)).await {
             Ok(Some(b)) => out.push(b),
             // Marked succeeded only after it was stored: a missing one was deleted.
@@ -666,10 +694,17 @@ async fn load_partials(state: &AppState, job: &JobRecord, count: u32) -> Result<
 /// Merges every task's result into the job's lightmap and stores it.
 async fn merge(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord, flag: &Arc<StopFlag>) -> End {
     let lessee = Lessee::Task(&job.id, task.index);
+    // Every bake task's result, or in rounds the last round's (each region's halves
+    // there carry its earlier rounds).
+    let merged = if job.spec.in_rounds() {
+        task.count - task_regions(job)..task.count
+    } else {
+        0..task.count
+    };
     let load = || async {
         Ok::<_, LoadError>((
             load_scene(state, job).await?,
-            load_partials(state, job, task.count).await?,
+            load_partials(state, job, merged.clone()).await?,
         ))
     };
     let (files, parts) = match load_patiently(state, lessee, worker, flag, load).await {
@@ -686,7 +721,7 @@ async fn merge(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecor
         let partials = parts
             .iter()
             .enumerate()
-            .map(|(k, b)| Partial::decode(b, &format!("task {k}'s result")))
+            .map(|(k, b)| Partial::decode(b, &format!("task {}'s result", merged.start as usize + k)))
             .collect::<Result<Vec<_>, _>>()?;
         drop(parts);
         let (scene, _) = import_files(&files, &limits).map_err(|e| EngineError::BadInput(e.to_string()))?;

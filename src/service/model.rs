@@ -117,6 +117,16 @@ pub struct JobSpec {
     /// regions) + s.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub regions: Option<u32>,
+    /// With `regions` of 2 or more: the regions are baked in this many rounds (block
+    /// Jacobi, `engine::rounds`, docs/scaling.md "Pages in rounds"), for techniques whose
+    /// light in one region depends on every other's (`hemicube`). Each round has one bake
+    /// task a region (`tasks`, when given, must equal `regions`), baking its share of
+    /// `stop.steps` (doubling shares: the last round about half) with every other
+    /// region's light held at the round before's estimate; round r's tasks are queued
+    /// once every task of round r-1 has succeeded, and the merge reads the last round's.
+    /// Bake task r × regions + p is region p's task of round r. Absent or 1: no rounds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rounds: Option<u32>,
     /// What a worker must have to take the job or its tasks; the job's `waiting_for` says
     /// when no live worker has it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -391,13 +401,15 @@ impl JobSpec {
                 ),
             ));
         }
-        if self.regions.is_some_and(|r| r > 1) && self.tasks.is_none_or(|n| n < 2) {
+        if self.rounds.is_some_and(|r| r > 1) {
+            self.validate_rounds()?;
+        } else if self.regions.is_some_and(|r| r > 1) && self.tasks.is_none_or(|n| n < 2) {
             return Err(Problem::invalid_field(
                 "regions",
                 "regions splits a job's tasks: give tasks too (a multiple of regions)",
             ));
         }
-        if let Some(n) = self.tasks {
+        if let Some(n) = self.tasks.filter(|_| self.rounds.is_none_or(|r| r < 2)) {
             let shape = crate::engine::tasks::TaskShape {
                 tasks: n,
                 regions: self.regions.unwrap_or(1),
@@ -430,14 +442,115 @@ impl JobSpec {
         Ok(())
     }
 
-    /// How the job is split into tasks, when it is (`tasks` of 2 or more).
+    /// A job in rounds: at least two regions, one task a region, and a request the engine
+    /// splits into rounds (`tasks::split_rounds` names why not: a technique not baked in
+    /// rounds, a stop rule about the whole bake, too few steps).
+    fn validate_rounds(&self) -> Result<(), Problem> {
+        let regions = self.regions.unwrap_or(1);
+        if regions < 2 {
+            return Err(Problem::invalid_field(
+                "rounds",
+                "rounds bake a job's regions in turn: give regions too (2 or more)",
+            ));
+        }
+        if self.tasks.is_some_and(|n| n != regions) {
+            return Err(Problem::invalid_field(
+                "tasks",
+                format!(
+                    "a job in rounds has one task a region in each round: give tasks equal to regions ({regions}) or leave it out, got {}",
+                    self.tasks.unwrap_or(0)
+                ),
+            ));
+        }
+        if self.reference.is_some() {
+            return Err(Problem::invalid_field(
+                "reference",
+                "a job split into tasks has no reference curve (its history is the merge's one point); submit it with tasks absent or 1",
+            ));
+        }
+        let rounds = self.rounds.unwrap_or(1);
+        if u64::from(regions) * u64::from(rounds) > u64::from(crate::engine::tasks::MAX_TASKS) {
+            return Err(Problem::invalid_field(
+                "rounds",
+                format!(
+                    "regions x rounds must be at most {} bake tasks, got {regions} x {rounds}",
+                    crate::engine::tasks::MAX_TASKS
+                ),
+            ));
+        }
+        crate::engine::tasks::split_rounds(&self.to_request(), regions, rounds)
+            .map_err(|e| Problem::invalid_field("rounds", e.to_string()))?;
+        Ok(())
+    }
+
+    /// How the job is split into tasks, when it is (`tasks` of 2 or more) and not in
+    /// rounds ([`JobSpec::task_ranges`] covers both).
     pub fn task_shape(&self) -> Option<crate::engine::tasks::TaskShape> {
+        if self.in_rounds() {
+            return None;
+        }
         self.tasks
             .filter(|n| *n > 1)
             .map(|tasks| crate::engine::tasks::TaskShape {
                 tasks,
                 regions: self.regions.unwrap_or(1),
             })
+    }
+
+    /// Whether the job's regions are baked in rounds (`rounds` of 2 or more).
+    pub fn in_rounds(&self) -> bool {
+        self.rounds.is_some_and(|r| r > 1)
+    }
+
+    /// The job's bake tasks in the queue (the merge is one more), or 0 when one worker
+    /// bakes it whole: `tasks`, or in rounds `regions` × `rounds`.
+    pub fn bake_tasks(&self) -> u32 {
+        if self.in_rounds() {
+            self.regions.unwrap_or(1) * self.rounds.unwrap_or(1)
+        } else {
+            self.tasks.filter(|n| *n > 1).unwrap_or(0)
+        }
+    }
+
+    /// The bake tasks queued when the job is submitted: all of them, or in rounds round
+    /// 0's (the others wait for the round before, `queue::round_after`).
+    pub fn first_queued(&self) -> u32 {
+        if self.in_rounds() {
+            self.regions.unwrap_or(1)
+        } else {
+            self.bake_tasks()
+        }
+    }
+
+    /// The request a bake task of this job bakes: [`JobSpec::to_request`], except that a
+    /// job in rounds drops `stop.seconds`. A submitted `stop.seconds` is refused for a job
+    /// in rounds (no round sees the whole bake's time); the one left is the server's
+    /// `--max-job-seconds` that [`JobSpec::parse`] fills in, and rounds are bounded by
+    /// `stop.steps` (at most `--max-job-steps`) instead.
+    pub fn task_request(&self) -> BakeRequest {
+        let mut request = self.to_request();
+        if self.in_rounds() {
+            request.stop.seconds = None;
+        }
+        request
+    }
+
+    /// Every bake task's range, in queue order (index k is bake task k): the engine's
+    /// split, or in rounds its rounds one after another (task r × regions + p is region
+    /// p of round r).
+    pub fn task_ranges(&self) -> Result<Vec<crate::engine::tasks::TaskRange>, crate::engine::technique::EngineError> {
+        if self.in_rounds() {
+            let rounds = crate::engine::tasks::split_rounds(
+                &self.task_request(),
+                self.regions.unwrap_or(1),
+                self.rounds.unwrap_or(1),
+            )?;
+            return Ok(rounds.into_iter().flatten().collect());
+        }
+        match self.task_shape() {
+            Some(shape) => crate::engine::tasks::split(&self.to_request(), shape),
+            None => Ok(Vec::new()),
+        }
     }
 
     /// The engine's request for this job.
@@ -829,6 +942,9 @@ pub struct TasksView {
     pub count: u32,
     /// Regions of the grid the bake tasks are cut into (1: each bakes the whole grid).
     pub regions: u32,
+    /// Rounds the regions are baked in (`JobSpec::rounds`); absent when not in rounds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rounds: Option<u32>,
     pub list: Vec<TaskView>,
     /// Workers that take no more of this job's tasks, with their failed attempts.
     pub blocklisted: Vec<BlocklistEntry>,
@@ -847,6 +963,10 @@ pub struct TaskView {
     pub kind: String,
     /// A bake task's region of the grid (`TasksView.regions`).
     pub region: Option<u32>,
+    /// A bake task's round (0-based; `TasksView.rounds`), when the job is in rounds: it
+    /// is `waiting` until every task of the round before has succeeded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub round: Option<u32>,
     /// A bake task's steps of the job, `[first, end)`; a chain's start at 0.
     pub step_range: Option<[u64; 2]>,
     /// The seed of a bake task that is an independent chain (every technique but

@@ -652,20 +652,20 @@ pub async fn describe_job(state: &AppState, j: &JobRecord) -> JobView {
         let now = state.db_now();
         // What each bake task covers, from the engine's split of the job (a split the
         // submission already accepted; on a failure the tasks are shown without it).
-        let ranges = j
-            .spec
-            .task_shape()
-            .and_then(|shape| crate::engine::tasks::split(&j.spec.to_request(), shape).ok())
-            .unwrap_or_default();
+        let ranges = j.spec.task_ranges().unwrap_or_default();
         view.tasks = Some(TasksView {
             count: j.tasks,
             regions: j.spec.regions.unwrap_or(1).max(1),
+            rounds: j.spec.in_rounds().then(|| j.spec.rounds.unwrap_or(1)),
             list: tasks
                 .into_iter()
                 .map(|t| TaskView {
                     index: t.index,
                     region: (!t.is_merge())
                         .then(|| ranges.get(t.index as usize).map(|r| r.region))
+                        .flatten(),
+                    round: (!t.is_merge())
+                        .then(|| ranges.get(t.index as usize).filter(|r| r.rounds > 0).map(|r| r.round))
                         .flatten(),
                     step_range: (!t.is_merge())
                         .then(|| {

@@ -470,11 +470,11 @@ function showTasks(j) {
   if (!j.tasks) return;
   const t = j.tasks;
   const done = t.list.filter(x => x.kind === 'bake' && x.status === 'succeeded').length;
-  $('job-tasks-summary').textContent = `${done} of ${t.count} baked` + (t.regions > 1 ? ` · ${t.regions} regions of the grid` : '');
+  $('job-tasks-summary').textContent = `${done} of ${t.count} baked` + (t.regions > 1 ? ` · ${t.regions} regions of the grid` : '') + (t.rounds ? ` in ${t.rounds} rounds` : '');
   const cell = v => `<td>${v}</td>`;
   $('job-task-rows').innerHTML = t.list.map(x => `<tr data-task="${x.index}">` + [
     x.kind === 'merge' ? 'merge' : String(x.index),
-    x.region == null ? '' : String(x.region),
+    x.region == null ? '' : String(x.region) + (x.round == null ? '' : ` · round ${x.round}`),
     x.step_range ? `${x.step_range[0]}–${x.step_range[1]}` : '',
     `<span class="badge ${x.status}">${x.status}</span>`,
     String(x.attempts),

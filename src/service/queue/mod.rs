@@ -31,6 +31,13 @@
 //! against its worker in `task_failures`, and a worker with [`BLOCKLIST_AFTER`] of them
 //! takes no more of that job's tasks.
 //!
+//! Rounds (`JobSpec::rounds`, `engine::rounds`): a job of R rounds of P regions stores R P
+//! bake task rows, task r P + p being region p's of round r, and the merge (index R P).
+//! Round 0's are queued, the later rounds' `waiting`; the success that completes round r
+//! queues round r+1's ([`round_after`], in the transaction that records it, under the
+//! job's lock, as the last bake task's success queues the merge). A retried task stays a
+//! task of its round, and the merge reads the last round's results.
+//!
 //! Capabilities: every worker registers what it has ([`Capabilities`]) and refreshes its
 //! `last_seen`; claims pass the claimer's capabilities and skip jobs whose `requires` it
 //! does not meet; the API reads the live workers to say what a job nobody takes is
@@ -275,14 +282,45 @@ pub(crate) fn task_failed(index: i64, count: i64, attempts: i64, worker: &str, r
 /// average down: their error is the step-weighted *mean* `Σ (s_k/S) e_k`, an upper bound
 /// of the merged error (the triangle inequality: the noise parts would add in
 /// quadrature, the bias parts linearly), never an understatement.
+///
+/// A job in rounds (`JobSpec::rounds`): a region's steps are its tasks' over every round,
+/// and its error the latest of its tasks that has baked steps (each round's task resumes
+/// the region's accumulators, so its own estimate covers the rounds before it).
 pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks: &[(u64, Option<f32>)]) -> Value {
     let chains = crate::engine::technique::entry(&spec.technique).is_ok_and(|e| {
         use crate::engine::technique::api::TaskSplit;
         matches!(e.tasks, TaskSplit::Chains(_) | TaskSplit::ChainsAndRegions(_))
     });
     let regions = spec.regions.unwrap_or(1).max(1) as usize;
+    let parts: Vec<(u64, Option<f64>)> = if spec.in_rounds() {
+        (0..regions)
+            .map(|p| {
+                let own: Vec<&(u64, Option<f32>)> = tasks.iter().skip(p).step_by(regions).collect();
+                let steps = own.iter().map(|t| t.0).sum();
+                let latest = own.iter().rev().find(|t| t.0 > 0);
+                (steps, latest.and_then(|t| t.1).map(f64::from))
+            })
+            .collect()
+    } else {
+        split_parts(tasks, regions, chains)
+    };
+    let n = parts.len().max(1) as u64;
+    let steps = parts.iter().map(|p| p.0).sum::<u64>() / n;
+    let error = parts
+        .iter()
+        .map(|p| p.1)
+        .collect::<Option<Vec<f64>>>()
+        .filter(|e| !e.is_empty())
+        .map(|e| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt() as f32);
+    let elapsed = started_at.map_or(0.0, |t| (now - t).max(0) as f64 / 1000.0);
+    serde_json::to_value(crate::service::model::Progress::new(steps, elapsed, error, &spec.stop)).unwrap_or(Value::Null)
+}
+
+/// Each region's (steps, error) of a split job: its `tasks / regions` consecutive tasks'
+/// steps added up, their errors combined as [`merged_progress`] says.
+fn split_parts(tasks: &[(u64, Option<f32>)], regions: usize, chains: bool) -> Vec<(u64, Option<f64>)> {
     let per_region = tasks.len().div_ceil(regions).max(1);
-    let parts: Vec<(u64, Option<f64>)> = tasks
+    tasks
         .chunks(per_region)
         .map(|group| {
             let steps: u64 = group.iter().map(|t| t.0).sum();
@@ -297,17 +335,24 @@ pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks:
             });
             (steps, error)
         })
-        .collect();
-    let n = parts.len().max(1) as u64;
-    let steps = parts.iter().map(|p| p.0).sum::<u64>() / n;
-    let error = parts
-        .iter()
-        .map(|p| p.1)
-        .collect::<Option<Vec<f64>>>()
-        .filter(|e| !e.is_empty())
-        .map(|e| (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt() as f32);
-    let elapsed = started_at.map_or(0.0, |t| (now - t).max(0) as f64 / 1000.0);
-    serde_json::to_value(crate::service::model::Progress::new(steps, elapsed, error, &spec.stop)).unwrap_or(Value::Null)
+        .collect()
+}
+
+/// The bake tasks of a job in rounds that `index`'s success may queue: the next round's,
+/// as `[first of index's round, first of the next, end of the next]`, to be queued once
+/// every task in the first range has succeeded (in the same transaction that marks
+/// `index`, under the job's lock, so exactly one success queues them). `None` for the
+/// last round and for jobs not in rounds, whose merge waits for every bake task instead.
+pub fn round_after(spec: &JobSpec, index: u32) -> Option<[u32; 3]> {
+    if !spec.in_rounds() {
+        return None;
+    }
+    let per_round = spec.regions.unwrap_or(1).max(1);
+    let round = index / per_round;
+    (round + 1 < spec.rounds.unwrap_or(1)).then(|| {
+        let first = round * per_round;
+        [first, first + per_round, first + 2 * per_round]
+    })
 }
 
 /// The most points a split job's running history keeps (as a single bake's worker).

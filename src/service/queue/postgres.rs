@@ -76,8 +76,8 @@ use tokio::task::JoinHandle;
 use super::{
     BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
     Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
-    TaskStatus, TokenRecord, WorkerRecord, history_then, lease_given_up, merged_progress, running_history, task_failed,
-    with_snapshot_point,
+    TaskStatus, TokenRecord, WorkerRecord, history_then, lease_given_up, merged_progress, round_after, running_history,
+    task_failed, with_snapshot_point,
 };
 use crate::service::model::{JobSpec, JobStatus};
 use crate::service::{Hub, shutting_down};
@@ -291,6 +291,15 @@ async fn try_lock_job(c: &mut PgConnection, job: &str) -> QueueResult<bool> {
         .bind(job)
         .fetch_one(&mut *c)
         .await
+}
+
+/// A job's spec, as submitted.
+async fn job_spec(c: &mut PgConnection, job: &str) -> QueueResult<JobSpec> {
+    let spec: Value = sqlx::query_scalar("SELECT spec FROM jobs WHERE id = $1")
+        .bind(job)
+        .fetch_one(&mut *c)
+        .await?;
+    serde_json::from_value(spec).map_err(|e| sqlx::Error::Decode(Box::new(e)))
 }
 
 /// Writes a split job's merged progress from its bake tasks' rows.
@@ -647,7 +656,8 @@ impl Queue for PostgresQueue {
         if queued >= clamp_i64(max_queued) {
             return Ok(Enqueued::QueueFull(queued as u64));
         }
-        let tasks = spec.tasks.filter(|n| *n > 1).unwrap_or(0);
+        let tasks = spec.bake_tasks();
+        let first_queued = spec.first_queued();
         let requires = spec.requires.unwrap_or_default();
         let row = sqlx::query(
             "INSERT INTO jobs (id, scene_id, spec, status, priority, created_at, updated_at, client, tasks,
@@ -668,15 +678,17 @@ impl Queue for PostgresQueue {
         .fetch_one(&mut *tx)
         .await?;
         if tasks > 0 {
-            // Bake tasks 0..n queued, the merge (index n) waiting for them.
+            // Bake tasks 0..n queued (in rounds, round 0's; the later rounds wait for the
+            // round before), the merge (index n) waiting for them.
             sqlx::query(
                 "INSERT INTO tasks (job_id, idx, count, status, updated_at)
-                 SELECT $1, i, $2, CASE WHEN i < $2 THEN 'queued' ELSE 'waiting' END, $3
+                 SELECT $1, i, $2, CASE WHEN i < $4 THEN 'queued' ELSE 'waiting' END, $3
                  FROM generate_series(0, $2) AS i",
             )
             .bind(id)
             .bind(tasks as i32)
             .bind(now)
+            .bind(first_queued as i32)
             .execute(&mut *tx)
             .await?;
         }
@@ -1045,6 +1057,22 @@ impl Queue for PostgresQueue {
                     .bind(b.error)
                     .execute(&mut *tx)
                     .await?;
+                // The last task of a round in queues the next round's.
+                if let Some([first, next, end]) = round_after(&job_spec(&mut tx, job).await?, index) {
+                    sqlx::query(
+                        "UPDATE tasks SET status = 'queued', updated_at = $2
+                         WHERE job_id = $1 AND idx >= $4 AND idx < $5 AND status = 'waiting'
+                           AND NOT EXISTS (SELECT 1 FROM tasks WHERE job_id = $1 AND idx >= $3 AND idx < $4
+                                             AND status <> 'succeeded')",
+                    )
+                    .bind(job)
+                    .bind(now)
+                    .bind(first as i32)
+                    .bind(next as i32)
+                    .bind(end as i32)
+                    .execute(&mut *tx)
+                    .await?;
+                }
                 // The last bake task in queues the merge.
                 sqlx::query(
                     "UPDATE tasks SET status = 'queued', updated_at = $2

@@ -26,8 +26,8 @@ use sqlx::sqlite::{
 use super::{
     BLOCKLIST_AFTER, Cancellation, Capabilities, Enqueued, JobDeletion, JobRecord, JobUpdate, Lease, MAX_ATTEMPTS,
     Outcome, Queue, QueueResult, Recovered, Role, SceneDeletion, SceneRecord, TaskBeat, TaskOutcome, TaskRecord,
-    TaskStatus, TokenRecord, WorkerRecord, history_then, lease_given_up, merged_progress, running_history, task_failed,
-    with_snapshot_point,
+    TaskStatus, TokenRecord, WorkerRecord, history_then, lease_given_up, merged_progress, round_after, running_history,
+    task_failed, with_snapshot_point,
 };
 use crate::service::model::{JobSpec, JobStatus};
 
@@ -148,6 +148,15 @@ fn task_from_row(row: &SqliteRow) -> QueueResult<TaskRecord> {
 /// writer lock first, so a read followed by a write can never fail to upgrade.
 async fn write_tx(pool: &SqlitePool) -> QueueResult<sqlx::Transaction<'static, sqlx::Sqlite>> {
     pool.begin_with("BEGIN IMMEDIATE").await
+}
+
+/// A job's spec, as submitted.
+async fn job_spec(c: &mut SqliteConnection, job: &str) -> QueueResult<JobSpec> {
+    let spec: String = sqlx::query_scalar("SELECT spec FROM jobs WHERE id = ?")
+        .bind(job)
+        .fetch_one(&mut *c)
+        .await?;
+    serde_json::from_str(&spec).map_err(|e| sqlx::Error::Decode(Box::new(e)))
 }
 
 /// Writes a split job's merged progress from its bake tasks' rows.
@@ -439,7 +448,8 @@ impl Queue for SqliteQueue {
         // One statement: the scene check, the client's queue length and the insert
         // cannot be split by a DELETE or by the same client's other submissions. The
         // tasks of a split job go in the same transaction.
-        let tasks = spec.tasks.filter(|n| *n > 1).unwrap_or(0);
+        let tasks = spec.bake_tasks();
+        let first_queued = spec.first_queued();
         let requires = spec.requires.unwrap_or_default();
         let mut tx = write_tx(&self.pool).await?;
         let row = sqlx::query(
@@ -464,15 +474,17 @@ impl Queue for SqliteQueue {
         .fetch_optional(&mut *tx)
         .await?;
         if row.is_some() && tasks > 0 {
-            // Bake tasks 0..n queued, the merge (index n) waiting for them.
+            // Bake tasks 0..n queued (in rounds, round 0's; the later rounds wait for the
+            // round before), the merge (index n) waiting for them.
             sqlx::query(
                 "WITH RECURSIVE k(i) AS (SELECT 0 UNION ALL SELECT i + 1 FROM k WHERE i < ?2)
                  INSERT INTO tasks (job_id, idx, count, status, updated_at)
-                 SELECT ?1, i, ?2, CASE WHEN i < ?2 THEN 'queued' ELSE 'waiting' END, ?3 FROM k",
+                 SELECT ?1, i, ?2, CASE WHEN i < ?4 THEN 'queued' ELSE 'waiting' END, ?3 FROM k",
             )
             .bind(id)
             .bind(i64::from(tasks))
             .bind(now)
+            .bind(i64::from(first_queued))
             .execute(&mut *tx)
             .await?;
         }
@@ -820,6 +832,22 @@ impl Queue for SqliteQueue {
                     .bind(b.error.map(f64::from))
                     .execute(&mut *tx)
                     .await?;
+                // The last task of a round in queues the next round's.
+                if let Some([first, next, end]) = round_after(&job_spec(&mut tx, job).await?, index) {
+                    sqlx::query(
+                        "UPDATE tasks SET status = 'queued', updated_at = ?2
+                         WHERE job_id = ?1 AND idx >= ?4 AND idx < ?5 AND status = 'waiting'
+                           AND NOT EXISTS (SELECT 1 FROM tasks WHERE job_id = ?1 AND idx >= ?3 AND idx < ?4
+                                             AND status <> 'succeeded')",
+                    )
+                    .bind(job)
+                    .bind(now)
+                    .bind(i64::from(first))
+                    .bind(i64::from(next))
+                    .bind(i64::from(end))
+                    .execute(&mut *tx)
+                    .await?;
+                }
                 // The last bake task in queues the merge.
                 sqlx::query(
                     "UPDATE tasks SET status = 'queued', updated_at = ?2

@@ -115,6 +115,7 @@ on_both_stores!(
     claims_meet_the_jobs_requirements,
     tasks_and_whole_jobs_share_one_priority_order,
     a_split_jobs_tasks_take_turns_at_its_snapshots,
+    a_job_in_rounds_queues_each_round_once_the_one_before_has_succeeded,
 );
 
 fn split_spec(tasks: u32, steps: u64, extra: &str) -> JobSpec {
@@ -1161,4 +1162,128 @@ async fn tasks_and_whole_jobs_share_one_priority_order(f: &Fixture) {
     assert!(q.claim_task("w", &cpu, lease, 16).await.unwrap().is_none());
     assert!(q.claim("w", &cpu, lease, 16).await.unwrap().is_none());
     assert_eq!(q.claim("g", &gpu(), lease, 17).await.unwrap().unwrap().id, "gpu-only");
+}
+
+/// A job of 3 rounds of 2 regions (issue 25 point 1): 6 bake tasks, task r 2 + p being
+/// region p's of round r, and the merge. Round 0's are queued, the rest wait; a round is
+/// queued by the success that completes the round before (not by a failed attempt, which
+/// is retried within its round), the merge by the last round's; the job's progress counts
+/// each region's steps over its rounds, with the error of its latest round.
+async fn a_job_in_rounds_queues_each_round_once_the_one_before_has_succeeded(f: &Fixture) {
+    let q = &*f.queue;
+    let lease = Duration::from_secs(30);
+    let none = Capabilities::default();
+    with_scene(q).await;
+    let spec =
+        JobSpec::parse(br#"{"scene": "s", "technique": "hemicube", "regions": 2, "rounds": 3, "stop": {"steps": 14}}"#)
+            .unwrap();
+    assert_eq!((spec.bake_tasks(), spec.first_queued()), (6, 2));
+    enqueue_ok(q, "j", &spec, 10).await;
+    let states = || async {
+        q.tasks("j")
+            .await
+            .unwrap()
+            .iter()
+            .map(|t| (t.index, t.count, t.status))
+            .collect::<Vec<_>>()
+    };
+    use TaskStatus::{Queued, Running, Succeeded, Waiting};
+    assert_eq!(
+        states().await,
+        vec![
+            (0, 6, Queued),
+            (1, 6, Queued),
+            (2, 6, Waiting),
+            (3, 6, Waiting),
+            (4, 6, Waiting),
+            (5, 6, Waiting),
+            (6, 6, Waiting)
+        ]
+    );
+    let beat = |steps, error| TaskBeat {
+        steps,
+        seconds: 1.0,
+        error: Some(error),
+    };
+    let claim = |w: &'static str, at| {
+        let none = none.clone();
+        async move { q.claim_task(w, &none, lease, at).await.unwrap().map(|(t, _)| t.index) }
+    };
+    assert_eq!(claim("w1", 20).await, Some(0));
+    assert_eq!(claim("w2", 20).await, Some(1));
+    // Round 1 waits for all of round 0.
+    assert_eq!(claim("w3", 21).await, None);
+    assert!(
+        q.finish_task("j", 0, "w1", &TaskOutcome::Baked(beat(2, 0.3)), 30)
+            .await
+            .unwrap()
+    );
+    assert_eq!(claim("w3", 31).await, None);
+    // A failed attempt is retried as a task of its round; round 1 still waits.
+    let failed = TaskOutcome::Failed {
+        reason: "device lost".into(),
+        retry: true,
+    };
+    assert!(q.finish_task("j", 1, "w2", &failed, 40).await.unwrap());
+    assert_eq!(states().await[1..4], [(1, 6, Queued), (2, 6, Waiting), (3, 6, Waiting)]);
+    assert_eq!(claim("w3", 41).await, Some(1));
+    assert!(
+        q.finish_task("j", 1, "w3", &TaskOutcome::Baked(beat(2, 0.1)), 50)
+            .await
+            .unwrap()
+    );
+    let p = q.job("j").await.unwrap().unwrap().progress.unwrap();
+    assert_eq!(p["steps"], 2);
+    let want = ((0.09f64 + 0.01) / 2.0).sqrt();
+    assert!((p["error"].as_f64().unwrap() - want).abs() < 1e-6, "{p}");
+    // Round 1 is queued, round 2 and the merge still wait.
+    assert_eq!(
+        states().await[2..],
+        [
+            (2, 6, Queued),
+            (3, 6, Queued),
+            (4, 6, Waiting),
+            (5, 6, Waiting),
+            (6, 6, Waiting)
+        ]
+    );
+    assert_eq!(claim("w1", 51).await, Some(2));
+    assert_eq!(claim("w2", 51).await, Some(3));
+    assert!(
+        q.finish_task("j", 2, "w1", &TaskOutcome::Baked(beat(4, 0.05)), 60)
+            .await
+            .unwrap()
+    );
+    // Region 0: 2 + 4 steps at its latest round's 0.05; region 1: 2 steps at 0.1 so far.
+    let p = q.job("j").await.unwrap().unwrap().progress.unwrap();
+    assert_eq!(p["steps"], 4);
+    let want = ((0.0025f64 + 0.01) / 2.0).sqrt();
+    assert!((p["error"].as_f64().unwrap() - want).abs() < 1e-6, "{p}");
+    assert!((p["fraction"].as_f64().unwrap() - 4.0 / 14.0).abs() < 1e-9, "{p}");
+    assert_eq!(claim("w3", 61).await, None);
+    assert!(
+        q.finish_task("j", 3, "w2", &TaskOutcome::Baked(beat(4, 0.04)), 70)
+            .await
+            .unwrap()
+    );
+    assert_eq!(claim("w1", 71).await, Some(4));
+    assert_eq!(claim("w2", 71).await, Some(5));
+    assert_eq!(states().await[4..], [(4, 6, Running), (5, 6, Running), (6, 6, Waiting)]);
+    assert!(
+        q.finish_task("j", 4, "w1", &TaskOutcome::Baked(beat(8, 0.02)), 80)
+            .await
+            .unwrap()
+    );
+    assert_eq!(claim("w3", 81).await, None);
+    assert!(
+        q.finish_task("j", 5, "w2", &TaskOutcome::Baked(beat(8, 0.02)), 90)
+            .await
+            .unwrap()
+    );
+    let p = q.job("j").await.unwrap().unwrap().progress.unwrap();
+    assert_eq!(p["steps"], 14);
+    assert!((p["error"].as_f64().unwrap() - 0.02).abs() < 1e-6, "{p}");
+    // The merge is queued once the last round has succeeded.
+    assert_eq!(claim("w3", 91).await, Some(6));
+    assert!(states().await[..6].iter().all(|t| t.2 == Succeeded));
 }

@@ -1362,7 +1362,7 @@ pub const ENTRY: TechniqueEntry = TechniqueEntry {
     alpha: AlphaSupport::Everywhere,
     rounds: true,
     tasks: TaskSplit::Chains(
-        "each step is one iteration of the random transport operator applied to the radiosity the steps before it left, over every texel: a range of steps cannot start without the steps before it, and a region's light depends on every other region's; its regions are baked in rounds, the others' light held (bake --rounds, docs/scaling.md), on the command line, not yet on the queue",
+        "each step is one iteration of the random transport operator applied to the radiosity the steps before it left, over every texel: a range of steps cannot start without the steps before it, and a region's light depends on every other region's; its regions are baked in rounds instead, the others' light held (a job's rounds, bake --rounds, docs/scaling.md)",
     ),
 };
 
