@@ -891,7 +891,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "samples": 4}).to_string(),
             "samples",
-            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `max_page_size`, `reference`, `tasks`, `regions`, `requires`".into(),
+            "unknown field `samples`, expected one of `scene`, `technique`, `resolution`, `lighting`, `stop`, `params`, `outputs`, `shadowmask_lights`, `probes`, `priority`, `seed`, `denoise`, `lightmap_uvs`, `texels_per_unit`, `max_page_size`, `reference`, `tasks`, `regions`, `rounds`, `requires`".into(),
         ),
         // A split job (issue 25): the engine's own split names why it cannot be.
         (
@@ -918,6 +918,38 @@ async fn every_error_status_has_its_problem_body() {
             json!({"scene": scene, "regions": 2, "stop": {"steps": 60}}).to_string(),
             "regions",
             "regions splits a job's tasks: give tasks too (a multiple of regions)".into(),
+        ),
+        // A job in rounds (issue 25 point 1): regions, one task a region, a technique
+        // baked in rounds, a stop rule a round can keep.
+        (
+            json!({"scene": scene, "technique": "hemicube", "rounds": 3, "stop": {"steps": 60}}).to_string(),
+            "rounds",
+            "rounds bake a job's regions in turn: give regions too (2 or more)".into(),
+        ),
+        (
+            json!({"scene": scene, "technique": "hemicube", "tasks": 4, "regions": 2, "rounds": 3, "stop": {"steps": 60}}).to_string(),
+            "tasks",
+            "a job in rounds has one task a region in each round: give tasks equal to regions (2) or leave it out, got 4".into(),
+        ),
+        (
+            json!({"scene": scene, "technique": "path", "regions": 2, "rounds": 3, "stop": {"steps": 60}}).to_string(),
+            "rounds",
+            "rounds: technique path is not baked in rounds (only hemicube is, so far)".into(),
+        ),
+        (
+            json!({"scene": scene, "technique": "hemicube", "regions": 2, "rounds": 3, "stop": {"steps": 60, "seconds": 10}}).to_string(),
+            "rounds",
+            "rounds: stop.seconds and stop.target_error are rules about the whole bake, which no round sees alone; give stop.steps (every region's steps, over all rounds)".into(),
+        ),
+        (
+            json!({"scene": scene, "technique": "hemicube", "regions": 2, "rounds": 3, "stop": {"steps": 5}}).to_string(),
+            "rounds",
+            "rounds: stop.steps (5) must be at least twice the rounds (3): each round bakes a step of each half".into(),
+        ),
+        (
+            json!({"scene": scene, "technique": "hemicube", "regions": 32, "rounds": 64, "stop": {"steps": 600}}).to_string(),
+            "rounds",
+            "regions x rounds must be at most 1024 bake tasks, got 32 x 64".into(),
         ),
         (
             json!({"scene": scene, "tasks": 0, "stop": {"steps": 6}}).to_string(),

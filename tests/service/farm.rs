@@ -32,6 +32,12 @@
 //!   own seed, shown as the task's `chain_seed`): its lightmap is within three times the
 //!   stated errors of the single-process bake's, its error carries the bias measured
 //!   at the chains' merged control texels, and it stored snapshots while it ran;
+//! - then a `hemicube` job on the Cornell box's page as 2 bands of rows in 3 rounds
+//!   (`regions: 2, rounds: 3`): round r's tasks wait for round r-1's and read their
+//!   results from the store, the merge reads the last round's; its lightmap equals the
+//!   one-process bake in rounds' (`rounds::bake_in_rounds`), its stated error is within
+//!   25 % of that bake's (the control texels' reference is timed), and every
+//!   round's results are deleted after the merge;
 //! - the surviving processes exit 0 on SIGTERM.
 //!
 //! `cancelling_a_split_job_stops_its_tasks_within_seconds`: one worker process bakes a
@@ -497,6 +503,77 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     );
     eprintln!(
         "farm: 8 vpl steps as 2 chains on 2 workers: merged vs single {chains_vs_single:.4} (stated {merged_error:.4} and {single_error:.4})"
+    );
+
+    // Rounds: a `hemicube` job on the Cornell box's page as 2 bands of rows in 3 rounds,
+    // on the two workers. Round r's tasks wait for round r-1's and read their results
+    // from the store; the merge reads the last round's. Same request, same seed: the
+    // lightmap is the one-process bake in rounds' (`rounds::bake_in_rounds`), texel for
+    // texel.
+    let in_rounds = json!({
+        "scene": cornell, "technique": "hemicube", "resolution": 24, "seed": 5,
+        "stop": {"steps": 14}, "regions": 2, "rounds": 3, "denoise": "none",
+    });
+    let rounds_id = submit(&http, &farm.url, in_rounds.clone()).await;
+    let rounds_url = format!("{}/v1/jobs/{rounds_id}", farm.url);
+    let job = until_ended(&http, &rounds_url, Duration::from_secs(180), "the job in rounds").await;
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let tasks = &job["tasks"];
+    assert_eq!((tasks["count"].clone(), tasks["rounds"].clone()), (json!(6), json!(3)));
+    let list = tasks["list"].as_array().unwrap();
+    let shape: Vec<(Value, Value, Value, Value)> = list
+        .iter()
+        .map(|t| (t["kind"].clone(), t["region"].clone(), t["round"].clone(), t["step_range"].clone()))
+        .collect();
+    let bake_task = |region: u64, round: u64, range: [u64; 2]| (json!("bake"), json!(region), json!(round), json!(range));
+    assert_eq!(
+        shape,
+        [
+            bake_task(0, 0, [0, 2]),
+            bake_task(1, 0, [0, 2]),
+            bake_task(0, 1, [2, 6]),
+            bake_task(1, 1, [2, 6]),
+            bake_task(0, 2, [6, 14]),
+            bake_task(1, 2, [6, 14]),
+            (json!("merge"), Value::Null, Value::Null, Value::Null),
+        ]
+    );
+    assert_eq!(job["progress"]["steps"], 14, "{job:#}");
+    let r = http.get(format!("{rounds_url}/lightmap.exr")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let merged = ReferenceLightmap::from_pages(&[r.bytes().await.unwrap()]).unwrap();
+    let request = JobSpec::parse(in_rounds.to_string().as_bytes()).unwrap().task_request();
+    let box_scene = Arc::new(scene::import_slice(&cornell_glb(), None).unwrap().0);
+    let one_process = lightmapd::engine::rounds::bake_in_rounds(
+        box_scene,
+        &request,
+        lightmapd::engine::rounds::RoundsShape { regions: 2, rounds: 3 },
+        &BakeOptions::default(),
+        &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+        &mut |_| {},
+    )
+    .unwrap()
+    .result;
+    let one_values = delivered(&one_process);
+    let apart = relative_error(&one_values, &merged.per_texel(&one_process.atlas).unwrap());
+    assert!(
+        apart < 1e-6,
+        "the job in rounds and the one-process bake in rounds differ by {apart:.2e} (relative RMS)"
+    );
+    // The stated error includes the bias measured at control texels, whose `path`
+    // reference bakes for as long as the technique took (`ControlTexels::keep_up`): a
+    // matter of timing, so alike, not equal.
+    let stated = job["summary"]["error"]["relative"].as_f64().unwrap();
+    let stated_one = f64::from(one_process.summary.error.relative.unwrap());
+    assert!(
+        (stated - stated_one).abs() < 0.25 * stated_one,
+        "the job in rounds states {stated:.4}, the one-process bake {stated_one:.4}"
+    );
+    for k in 0..6 {
+        until_deleted(&artifacts, &store::task_partial(&rounds_id, k)).await;
+    }
+    eprintln!(
+        "farm: hemicube, 2 bands x 3 rounds on 2 workers: merged vs one process {apart:.1e}; stated {stated:.4} and {stated_one:.4}"
     );
     farm.stop().await;
 }
