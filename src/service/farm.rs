@@ -18,6 +18,14 @@
 //! denoiser, EXR pages, preview, probes), stores the final artifacts like a whole job's,
 //! and only then marks the job `succeeded`; the task results are deleted after that.
 //!
+//! A job in rounds (`JobSpec::rounds`, `engine::rounds`): bake task r P + p bakes region
+//! p in round r (`rounds::bake_round_task`), reading every region's result of round r-1
+//! from the store (`tasks/<k>.lmtask`, the held light and its own accumulators); the
+//! queue queues a round once the round before has succeeded, and the merge reads the last
+//! round's results. Rounds before the last state no error and no round task makes
+//! running snapshots: a round's halves cannot see what the rounds still lack, which only
+//! the last round's control texels measure.
+//!
 //! Endings of an attempt: cancelled (the job's cancel flag, read back by every
 //! heartbeat) → the task `cancelled`, and the last task to stop ends the job; shutdown
 //! → handed back, the attempt not counted; a lost lease → nothing written; an engine
@@ -274,7 +282,8 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
             };
             let partial = if range.rounds > 0 {
                 // A round task's halves are not handed on while it runs: the job's
-                // snapshots wait for its merge (docs/scaling.md, "Pages in rounds").
+                // snapshots wait for its merge, as a round's estimate states no error
+                // (below; docs/scaling.md, "Pages in rounds").
                 drop(sink);
                 rounds::bake_round_task(scene, &request, range, &previous, &options, &mut observer, &mut |_| {})?
             } else {
@@ -292,7 +301,15 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
                 )?
             };
             // Encoded here, off the runtime: a full page's result is hundreds of MB.
-            let error = partial.snapshot.estimate().error.relative;
+            // A round before the last states no error: its halves' difference cannot see
+            // the light the held regions still lack (the rounds' lag), which only the
+            // last round's control texels measure (`engine::rounds`), so the job's error
+            // stays unknown until then rather than understated.
+            let error = if range.rounds > 0 && range.round + 1 < range.rounds {
+                None
+            } else {
+                partial.snapshot.estimate().error.relative
+            };
             let bytes = partial.encode()?;
             Ok::<_, EngineError>((partial.header, error, bytes))
         })

@@ -34,7 +34,8 @@
 //!   at the chains' merged control texels, and it stored snapshots while it ran;
 //! - then a `hemicube` job on the Cornell box's page as 2 bands of rows in 3 rounds
 //!   (`regions: 2, rounds: 3`): round r's tasks wait for round r-1's and read their
-//!   results from the store, the merge reads the last round's; its lightmap equals the
+//!   results from the store, the merge reads the last round's, and only the last
+//!   round's tasks state an error; its lightmap equals the
 //!   one-process bake in rounds' (`rounds::bake_in_rounds`), its stated error is within
 //!   25 % of that bake's (the control texels' reference is timed), and every
 //!   round's results are deleted after the merge;
@@ -523,9 +524,17 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     let list = tasks["list"].as_array().unwrap();
     let shape: Vec<(Value, Value, Value, Value)> = list
         .iter()
-        .map(|t| (t["kind"].clone(), t["region"].clone(), t["round"].clone(), t["step_range"].clone()))
+        .map(|t| {
+            (
+                t["kind"].clone(),
+                t["region"].clone(),
+                t["round"].clone(),
+                t["step_range"].clone(),
+            )
+        })
         .collect();
-    let bake_task = |region: u64, round: u64, range: [u64; 2]| (json!("bake"), json!(region), json!(round), json!(range));
+    let bake_task =
+        |region: u64, round: u64, range: [u64; 2]| (json!("bake"), json!(region), json!(round), json!(range));
     assert_eq!(
         shape,
         [
@@ -539,6 +548,10 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         ]
     );
     assert_eq!(job["progress"]["steps"], 14, "{job:#}");
+    // Rounds before the last state no error (the rounds' lag is measured only at the last
+    // round's control texels); the last round's tasks state their halves'.
+    let stated: Vec<bool> = list[..6].iter().map(|t| t["error"].is_number()).collect();
+    assert_eq!(stated, [false, false, false, false, true, true], "{job:#}");
     let r = http.get(format!("{rounds_url}/lightmap.exr")).send().await.unwrap();
     assert_eq!(r.status(), 200);
     let merged = ReferenceLightmap::from_pages(&[r.bytes().await.unwrap()]).unwrap();

@@ -284,8 +284,10 @@ pub(crate) fn task_failed(index: i64, count: i64, attempts: i64, worker: &str, r
 /// quadrature, the bias parts linearly), never an understatement.
 ///
 /// A job in rounds (`JobSpec::rounds`): a region's steps are its tasks' over every round,
-/// and its error the latest of its tasks that has baked steps (each round's task resumes
-/// the region's accumulators, so its own estimate covers the rounds before it).
+/// and its error that of its latest task that has baked steps (each round's task resumes
+/// the region's accumulators, so its own estimate covers the rounds before it). Workers
+/// state no error for a round before the last (`service::farm`), so the job's error is
+/// unknown until every region's last round has one.
 pub fn merged_progress(spec: &JobSpec, started_at: Option<i64>, now: i64, tasks: &[(u64, Option<f32>)]) -> Value {
     let chains = crate::engine::technique::entry(&spec.technique).is_ok_and(|e| {
         use crate::engine::technique::api::TaskSplit;
