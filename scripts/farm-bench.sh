@@ -9,6 +9,11 @@
 # 128² (12 355 texels), one job of 600 steps split into 12 tasks, no denoiser. Prints
 # the time from submission to `succeeded`, the per-task bake times and attempts, and the
 # merge's share, as the API reports them. BIN defaults to target/release/lightmapd.
+#
+# SCENE (a .glb) and JOB (the job body without its scene, JSON) replace the scene and the
+# job, e.g. a `hemicube` job in rounds:
+#   JOB='{"technique":"hemicube","resolution":128,"stop":{"steps":128},"regions":2,"rounds":4,"denoise":"none","seed":1}' \
+#     bash scripts/farm-bench.sh target/debug/lightmapd 1 2
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${1:-target/release/lightmapd}
@@ -16,6 +21,8 @@ shift || true
 COUNTS=("${@:-1 2 3}")
 [ -x "$BIN" ] || { echo "no $BIN: cargo build --release first" >&2; exit 2; }
 PORT=18731
+SCENE=${SCENE:-scenes/cornell-box.glb}
+JOB=${JOB:-'{"technique":"path","resolution":128,"stop":{"steps":600},"tasks":12,"denoise":"none","seed":1}'}
 pids=()
 # Whatever happens, no server or worker outlives the script (a later run would talk to it).
 trap 'kill "${pids[@]}" 2> /dev/null || true' EXIT
@@ -30,11 +37,11 @@ for n in ${COUNTS[@]}; do
         "$BIN" worker --database-url "$db" --store "$dir/store" > "$dir/worker-$_.log" 2>&1 &
         pids+=($!)
     done
-    scene=$(curl -sf -H 'content-type: model/gltf-binary' --data-binary @scenes/cornell-box.glb "http://127.0.0.1:$PORT/v1/scenes" | jq -r .id)
+    scene=$(curl -sf -H 'content-type: model/gltf-binary' --data-binary "@$SCENE" "http://127.0.0.1:$PORT/v1/scenes" | jq -r .id)
     sleep 1 # the workers start (adapter probe) before the clock does
     start=$(date +%s.%N)
-    job=$(curl -sf -H 'content-type: application/json' -d "{\"scene\":\"$scene\",\"technique\":\"path\",\"resolution\":128,\"stop\":{\"steps\":600},\"tasks\":12,\"denoise\":\"none\",\"seed\":1}" \
-        "http://127.0.0.1:$PORT/v1/jobs" | jq -r .id)
+    body=$(echo "$JOB" | jq -c --arg scene "$scene" '. + {scene: $scene}')
+    job=$(curl -sf -H 'content-type: application/json' -d "$body" "http://127.0.0.1:$PORT/v1/jobs" | jq -r .id)
     while :; do
         s=$(curl -sf "http://127.0.0.1:$PORT/v1/jobs/$job" | jq -r .status)
         [ "$s" = queued ] || [ "$s" = running ] || break
@@ -43,7 +50,7 @@ for n in ${COUNTS[@]}; do
     end=$(date +%s.%N)
     view=$(curl -sf "http://127.0.0.1:$PORT/v1/jobs/$job")
     echo "workers $n: $s in $(echo "$end - $start" | bc) s; summary: $(echo "$view" | jq -c '{steps: .summary.steps, machine_seconds: .summary.seconds, error: .summary.error.relative}')"
-    echo "$view" | jq -r '.tasks.list[] | "  task \(.index) \(.kind) \(.status) attempts \(.attempts) steps \(.steps) seconds \(.seconds) wall_s \(.wall_s) worker \(.worker)"'
+    echo "$view" | jq -r '.tasks.list[] | "  task \(.index) \(.kind) round \(.round) region \(.region) \(.status) attempts \(.attempts) steps \(.steps) seconds \(.seconds) wall_s \(.wall_s) worker \(.worker)"'
     (cd "$dir/store/jobs/$job" && find . -type f -printf "  stored: %P %s B\n") || true
     kill "${pids[@]}" 2> /dev/null || true
     wait 2> /dev/null || true
