@@ -75,8 +75,8 @@ use crate::engine::technique::EngineError;
 use crate::service::model::{HistoryPoint, Progress};
 use crate::service::queue::{JobRecord, Lease, TaskBeat, TaskOutcome, TaskRecord};
 use crate::service::worker::{
-    Lessee, LoadError, SnapshotFiles, TICK, import_files, load_patiently, load_scene, store_final, store_snapshot,
-    thin_snapshots, while_holding,
+    Lessee, LoadError, SceneFiles, SnapshotFiles, TICK, import_files, load_patiently, load_scene, store_final,
+    store_snapshot, thin_snapshots, while_holding,
 };
 use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
 
@@ -205,6 +205,21 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
         Err(None) => return End::Lost,
         Err(Some(reason)) => return End::Finish(TaskOutcome::Failed { reason, retry: true }),
     };
+    // Region 0's task of each round after the first shows the round before as the job's
+    // next snapshot, beside its own bake.
+    let round_shot = (range.rounds > 0 && range.round > 0 && range.region == 0).then(|| {
+        tokio::spawn(
+            round_snapshot(
+                state.clone(),
+                worker.to_string(),
+                job.clone(),
+                task.clone(),
+                files.clone(),
+                previous.clone(),
+            )
+            .instrument(tracing::Span::current()),
+        )
+    });
     let beat = Arc::new(Mutex::new(TaskBeat::default()));
     let step = StepProgress::default();
     // The job's snapshots while it runs: this task's halves so far go to the store and,
@@ -361,8 +376,14 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
     // meanwhile), unless the task is stopping.
     if flag.get() == StopSignal::None {
         let _ = while_holding(state, lessee, worker, flag, snapshots).await;
+        if let Some(shot) = round_shot {
+            let _ = while_holding(state, lessee, worker, flag, shot).await;
+        }
     } else {
         snapshots.abort();
+        if let Some(shot) = round_shot {
+            shot.abort();
+        }
     }
     let (header, error, bytes) = match (flag.get(), result) {
         (StopSignal::LeaseLost, _) => return End::Lost,
@@ -547,30 +568,7 @@ impl Round<'_> {
                 return;
             }
         };
-        let (steps, error) = (files.steps, files.error);
-        if let Err(e) = store_snapshot(state, &job.id, n, files).await {
-            tracing::warn!(snapshot = n, error = %e, "cannot store the job's running snapshot");
-            let _ = state.queue.release_task_snapshot(&job.id, n).await;
-            return;
-        }
-        // On the running history's clock: wall time since the job started, when stored.
-        if let Some(t) = job.started_at {
-            point.seconds = (state.db_now() - t).max(0) as f64 / 1000.0;
-        }
-        let point = serde_json::to_value(point).unwrap_or(Value::Null);
-        match state.queue.task_snapshot_stored(&job.id, n, &point).await {
-            Ok(true) => {
-                let seconds = began.elapsed().as_secs_f64();
-                tracing::info!(snapshot = n, steps, error, seconds, "running snapshot stored");
-                thin_snapshots(state, &job.id, n).await;
-                state.hub.job_changed(&job.id);
-            }
-            // The job ended meanwhile: its final lightmap is what it keeps.
-            Ok(false) | Err(_) => {
-                let _ = state.artifacts.delete(&store::snapshot_exr(&job.id, n)).await;
-                let _ = state.artifacts.delete(&store::snapshot_png(&job.id, n)).await;
-            }
-        }
+        store_claimed(state, job, n, files, &mut point, began).await;
     }
 
     /// The job's snapshot from every task's halves so far, this task's `own` among
@@ -634,36 +632,8 @@ impl Round<'_> {
                     (a, Arc::new(r), true)
                 }
             };
-            let estimate = tasks::merge_running(&atlas, &regions, &parts).map_err(|e| (e, false))?;
-            let delivered = job::finish(&atlas, &estimate, &request);
-            let exr = job::delivered_exr(
-                &atlas,
-                &delivered,
-                &request,
-                &request.params,
-                Duration::from_secs_f64(elapsed),
-            )
-            .map_err(|e| (e, false))?;
-            let png = job::preview_png(&atlas, &delivered).map_err(|e| (e, false))?;
-            let files = SnapshotFiles {
-                exr,
-                png,
-                steps: estimate.steps,
-                error: delivered.error.relative,
-            };
-            // The history's point for this snapshot, as a single bake's: the delivered
-            // error, with the raw one beside it (`seconds` is set when it is stored).
-            let e = &delivered.error;
-            let point = HistoryPoint {
-                seconds: elapsed,
-                steps: estimate.steps,
-                error: e.relative,
-                raw_error: e.raw_relative.or(e.relative),
-                noise: e.noise,
-                bias: e.bias,
-                true_error: None,
-            };
-            Ok::<_, (EngineError, bool)>(((files, point), built.then_some((atlas, regions))))
+            let made = snapshot_files(&atlas, &regions, &parts, &request, elapsed, true).map_err(|e| (e, false))?;
+            Ok::<_, (EngineError, bool)>((made, built.then_some((atlas, regions))))
         });
         match made.await {
             Ok(Ok((files, built))) => {
@@ -680,6 +650,155 @@ impl Round<'_> {
                 Err(e.to_string())
             }
             Err(e) => Err(format!("the snapshot thread panicked: {e}")),
+        }
+    }
+}
+
+/// A running snapshot's files and history point from task halves `parts` on the whole
+/// texel set (`atlas`, each region's range `regions`): merged (`tasks::merge_running`),
+/// denoised and encoded as a whole job's snapshot. `stated` false leaves its error out
+/// (the EXR header, the files and the point say nothing rather than the halves' noise).
+fn snapshot_files(
+    atlas: &Atlas,
+    regions: &[Range<usize>],
+    parts: &[Partial],
+    request: &BakeRequest,
+    elapsed: f64,
+    stated: bool,
+) -> Result<(SnapshotFiles, HistoryPoint), EngineError> {
+    let estimate = tasks::merge_running(atlas, regions, parts)?;
+    let mut delivered = job::finish(atlas, &estimate, request);
+    if !stated {
+        let e = &mut delivered.error;
+        (e.relative, e.noise, e.bias, e.interval, e.raw_relative) = (None, None, None, None, None);
+    }
+    let exr = job::delivered_exr(
+        atlas,
+        &delivered,
+        request,
+        &request.params,
+        Duration::from_secs_f64(elapsed),
+    )?;
+    let png = job::preview_png(atlas, &delivered)?;
+    let files = SnapshotFiles {
+        exr,
+        png,
+        steps: estimate.steps,
+        error: delivered.error.relative,
+    };
+    // The history's point for this snapshot, as a single bake's: the delivered error,
+    // with the raw one beside it (`seconds` is set when it is stored).
+    let e = &delivered.error;
+    let point = HistoryPoint {
+        seconds: elapsed,
+        steps: estimate.steps,
+        error: e.relative,
+        raw_error: e.raw_relative.or(e.relative),
+        noise: e.noise,
+        bias: e.bias,
+        true_error: None,
+    };
+    Ok((files, point))
+}
+
+/// Stores the job's claimed snapshot `n` and records it with its history point, or hands
+/// the number back when it cannot be stored; a job that ended meanwhile keeps its final
+/// lightmap, and the snapshot's files go.
+async fn store_claimed(
+    state: &AppState,
+    job: &JobRecord,
+    n: u32,
+    files: SnapshotFiles,
+    point: &mut HistoryPoint,
+    began: Instant,
+) {
+    let (steps, error) = (files.steps, files.error);
+    if let Err(e) = store_snapshot(state, &job.id, n, files).await {
+        tracing::warn!(snapshot = n, error = %e, "cannot store the job's running snapshot");
+        let _ = state.queue.release_task_snapshot(&job.id, n).await;
+        return;
+    }
+    // On the running history's clock: wall time since the job started, when stored.
+    if let Some(t) = job.started_at {
+        point.seconds = (state.db_now() - t).max(0) as f64 / 1000.0;
+    }
+    let point = serde_json::to_value(&*point).unwrap_or(Value::Null);
+    match state.queue.task_snapshot_stored(&job.id, n, &point).await {
+        Ok(true) => {
+            let seconds = began.elapsed().as_secs_f64();
+            tracing::info!(snapshot = n, steps, error, seconds, "running snapshot stored");
+            thin_snapshots(state, &job.id, n).await;
+            state.hub.job_changed(&job.id);
+        }
+        // The job ended meanwhile: its final lightmap is what it keeps.
+        Ok(false) | Err(_) => {
+            let _ = state.artifacts.delete(&store::snapshot_exr(&job.id, n)).await;
+            let _ = state.artifacts.delete(&store::snapshot_png(&job.id, n)).await;
+        }
+    }
+}
+
+/// A job in rounds' snapshot of the round before `task`'s (round r-1's results, every
+/// region's, `previous`), made by region 0's task of round r when the queue gives it the
+/// job's next snapshot ([`Queue::claim_task_snapshot`](crate::service::queue::Queue::claim_task_snapshot)):
+/// the results merged on the whole texel set (`tasks::running_atlas`, the merge's
+/// preparation, within this worker's memory limit), denoised and stored as a running
+/// snapshot. It states **no error**: a round's halves cannot see the light the rounds
+/// still lack (module doc), so its EXR header, its files and its history point say
+/// nothing rather than understate. Runs beside the task's bake; a failure costs only the
+/// snapshot.
+async fn round_snapshot(
+    state: AppState,
+    worker: String,
+    job: JobRecord,
+    task: TaskRecord,
+    files: SceneFiles,
+    previous: Vec<Bytes>,
+) {
+    let claim = state.queue.claim_task_snapshot(
+        &job.id,
+        task.index,
+        &worker,
+        state.config.snapshot_interval,
+        state.db_now(),
+    );
+    let n = match claim.await {
+        Ok(Some(n)) => n,
+        Ok(None) => return,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot claim the job's next snapshot");
+            return;
+        }
+    };
+    let began = Instant::now();
+    let elapsed = job
+        .started_at
+        .map_or(0.0, |t| (state.db_now() - t).max(0) as f64 / 1000.0);
+    let (limits, request) = (state.config.limits.clone(), job.spec.task_request());
+    let made = tokio::task::spawn_blocking(move || {
+        let parts = previous
+            .iter()
+            .map(|b| Partial::decode(b, "a result of the round before"))
+            .collect::<Result<Vec<_>, _>>()?;
+        drop(previous);
+        let (scene, _) = import_files(&files, &limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
+        let options = BakeOptions {
+            max_memory_bytes: Some(limits.max_job_memory_bytes),
+            ..Default::default()
+        };
+        let (atlas, regions) = tasks::running_atlas(Arc::new(scene), &parts, &options)?;
+        snapshot_files(&atlas, &regions, &parts, &request, elapsed, false)
+    })
+    .await;
+    match made {
+        Ok(Ok((files, mut point))) => store_claimed(&state, &job, n, files, &mut point, began).await,
+        Ok(Err(e)) => {
+            tracing::info!(snapshot = n, why = %e, "no snapshot of the round before");
+            let _ = state.queue.release_task_snapshot(&job.id, n).await;
+        }
+        Err(e) => {
+            tracing::warn!(snapshot = n, error = %e, "the round snapshot's thread panicked");
+            let _ = state.queue.release_task_snapshot(&job.id, n).await;
         }
     }
 }

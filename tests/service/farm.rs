@@ -35,7 +35,8 @@
 //! - then a `hemicube` job on the Cornell box's page as 2 bands of rows in 3 rounds
 //!   (`regions: 2, rounds: 3`): round r's tasks wait for round r-1's and read their
 //!   results from the store, the merge reads the last round's, and only the last
-//!   round's tasks state an error; its lightmap equals the
+//!   round's tasks state an error; the round before is shown as a snapshot stating no
+//!   error; its lightmap equals the
 //!   one-process bake in rounds' (`rounds::bake_in_rounds`), its stated error is within
 //!   25 % of that bake's (the control texels' reference is timed), and every
 //!   round's results are deleted after the merge;
@@ -552,6 +553,16 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
     // round's control texels); the last round's tasks state their halves'.
     let stated: Vec<bool> = list[..6].iter().map(|t| t["error"].is_number()).collect();
     assert_eq!(stated, [false, false, false, false, true, true], "{job:#}");
+    // Round 1's first task showed round 0 as the job's first snapshot, stating no error;
+    // the history's points before the merge's state none either.
+    assert!(job["snapshots"].as_u64().unwrap() >= 1, "{job:#}");
+    let history = job["history"].as_array().unwrap();
+    let (last, running) = history.split_last().unwrap();
+    assert!(last["error"].is_number(), "{job:#}");
+    assert!(
+        !running.is_empty() && running.iter().all(|p| p["error"].is_null()),
+        "{job:#}"
+    );
     let r = http.get(format!("{rounds_url}/lightmap.exr")).send().await.unwrap();
     assert_eq!(r.status(), 200);
     let merged = ReferenceLightmap::from_pages(&[r.bytes().await.unwrap()]).unwrap();
@@ -586,7 +597,8 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         until_deleted(&artifacts, &store::task_partial(&rounds_id, k)).await;
     }
     eprintln!(
-        "farm: hemicube, 2 bands x 3 rounds on 2 workers: merged vs one process {apart:.1e}; stated {stated:.4} and {stated_one:.4}"
+        "farm: hemicube, 2 bands x 3 rounds on 2 workers: merged vs one process {apart:.1e}; stated {stated:.4} and {stated_one:.4}; {} snapshots",
+        job["snapshots"]
     );
     farm.stop().await;
 }
