@@ -558,7 +558,7 @@ impl Round<'_> {
                 return;
             }
         };
-        let (files, mut point) = match self.snapshot(own, whole).await {
+        let (files, point) = match self.snapshot(own, whole).await {
             Ok(f) => f,
             Err(e) => {
                 tracing::info!(snapshot = n, why = %e, "no running snapshot this time");
@@ -568,7 +568,7 @@ impl Round<'_> {
                 return;
             }
         };
-        store_claimed(state, job, n, files, &mut point, began).await;
+        store_claimed(state, job, n, files, point, began).await;
     }
 
     /// The job's snapshot from every task's halves so far, this task's `own` among
@@ -709,7 +709,7 @@ async fn store_claimed(
     job: &JobRecord,
     n: u32,
     files: SnapshotFiles,
-    point: &mut HistoryPoint,
+    mut point: HistoryPoint,
     began: Instant,
 ) {
     let (steps, error) = (files.steps, files.error);
@@ -722,7 +722,7 @@ async fn store_claimed(
     if let Some(t) = job.started_at {
         point.seconds = (state.db_now() - t).max(0) as f64 / 1000.0;
     }
-    let point = serde_json::to_value(&*point).unwrap_or(Value::Null);
+    let point = serde_json::to_value(point).unwrap_or(Value::Null);
     match state.queue.task_snapshot_stored(&job.id, n, &point).await {
         Ok(true) => {
             let seconds = began.elapsed().as_secs_f64();
@@ -791,7 +791,7 @@ async fn round_snapshot(
     })
     .await;
     match made {
-        Ok(Ok((files, mut point))) => store_claimed(&state, &job, n, files, &mut point, began).await,
+        Ok(Ok((files, point))) => store_claimed(&state, &job, n, files, point, began).await,
         Ok(Err(e)) => {
             tracing::info!(snapshot = n, why = %e, "no snapshot of the round before");
             let _ = state.queue.release_task_snapshot(&job.id, n).await;
