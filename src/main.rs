@@ -295,6 +295,22 @@ struct SubmitArgs {
     /// Higher runs first.
     #[arg(long)]
     priority: Option<i32>,
+    /// Split the job into this many tasks that several workers bake at once (the job's
+    /// `tasks`; docs/scaling.md).
+    #[arg(long)]
+    tasks: Option<u32>,
+    /// With --tasks or --rounds: cut the lightmap grid into this many regions (whole
+    /// pages, or bands of rows; the job's `regions`).
+    #[arg(long)]
+    regions: Option<u32>,
+    /// Bake the --regions in this many rounds, each region with the others' light held
+    /// (`hemicube`; the job's `rounds`).
+    #[arg(long)]
+    rounds: Option<u32>,
+    /// What a worker must have to take the job: gpu (a hardware adapter), oidn (comma
+    /// separated; the job's `requires`).
+    #[arg(long, value_delimiter = ',')]
+    requires: Vec<String>,
     /// Bearer token for a server run with --auth (default: $LIGHTMAPD_TOKEN, which keeps
     /// it out of the process list).
     #[arg(long)]
@@ -926,6 +942,29 @@ fn submit(args: SubmitArgs) -> Result<(), Failure> {
     }
     if let Some(v) = args.priority {
         job.insert("priority".into(), v.into());
+    }
+    for (field, v) in [
+        ("tasks", args.tasks),
+        ("regions", args.regions),
+        ("rounds", args.rounds),
+    ] {
+        if let Some(v) = v {
+            job.insert(field.into(), v.into());
+        }
+    }
+    if !args.requires.is_empty() {
+        let mut requires = serde_json::Map::new();
+        for r in &args.requires {
+            match r.as_str() {
+                "gpu" | "oidn" => requires.insert(r.clone(), true.into()),
+                other => {
+                    return Err(bad_input(format!(
+                        "--requires: unknown capability {other:?}; one of gpu, oidn"
+                    )));
+                }
+            };
+        }
+        job.insert("requires".into(), requires.into());
     }
     let request = service::client::Submit {
         server: args.server,

@@ -267,15 +267,26 @@ async fn happy_path_upload_bake_follow_download() {
     assert_eq!(dash.status(), 200);
     assert!(dash.text().await.unwrap().contains("/v1/jobs"));
 
-    // The command-line client against the same server: upload (same scene), submit,
-    // wait, download.
+    // The command-line client against the same server: upload (same scene), submit a
+    // job split into two tasks, wait, download.
     let out = s._dir.path().join("submitted.exr");
     let url = s.url.clone();
     let output = tokio::task::spawn_blocking(move || {
         Command::new(env!("CARGO_BIN_EXE_lightmapd"))
             .arg("submit")
             .arg(bundled())
-            .args(["--server", &url, "--resolution", "16", "--steps", "4", "--wait", "-o"])
+            .args([
+                "--server",
+                &url,
+                "--resolution",
+                "16",
+                "--steps",
+                "4",
+                "--tasks",
+                "2",
+                "--wait",
+                "-o",
+            ])
             .arg(&out)
             .output()
             .unwrap()
@@ -287,6 +298,8 @@ async fn happy_path_upload_bake_follow_download() {
     assert!(stderr.contains("succeeded: 4 steps"), "{stderr}");
     let printed: Value = serde_json::from_slice(&output.stdout).unwrap();
     assert_eq!(printed["status"], "succeeded");
+    assert_eq!(printed["spec"]["tasks"], 2);
+    assert_eq!(printed["tasks"]["count"], 2);
     assert_eq!(printed["scene"], scene_id.as_str());
     assert!(is_exr(&std::fs::read(s._dir.path().join("submitted.exr")).unwrap()));
 
@@ -311,6 +324,44 @@ async fn happy_path_upload_bake_follow_download() {
             TECHNIQUES.join(", ")
         )
     );
+    // --regions, --rounds and --requires reach the server as the job's fields; an unknown
+    // capability is refused before anything is sent.
+    for (args, last) in [
+        (
+            vec![
+                "--technique",
+                "path",
+                "--regions",
+                "2",
+                "--rounds",
+                "3",
+                "--steps",
+                "60",
+                "--requires",
+                "oidn",
+            ],
+            "error: submit: 422 rounds: technique path is not baked in rounds (only hemicube is, so far) (rounds)",
+        ),
+        (
+            vec!["--requires", "gpu,tpu"],
+            "error: --requires: unknown capability \"tpu\"; one of gpu, oidn",
+        ),
+    ] {
+        let url = s.url.clone();
+        let output = tokio::task::spawn_blocking(move || {
+            Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+                .arg("submit")
+                .arg(bundled())
+                .args(["--server", &url])
+                .args(args)
+                .output()
+                .unwrap()
+        })
+        .await
+        .unwrap();
+        assert_eq!(output.status.code(), Some(2));
+        assert_eq!(String::from_utf8_lossy(&output.stderr).lines().last().unwrap(), last);
+    }
 
     // The scene is free again: it can be deleted, and is gone.
     let del = h
