@@ -47,7 +47,7 @@ use sha2::{Digest, Sha256};
 use utoipa::OpenApi;
 
 use crate::service::auth::{self, Caller};
-use crate::service::console::{DenoiserInfo, TechniqueInfo, TechniqueList};
+use crate::service::console::{DenoiserInfo, SplitInfo, TechniqueInfo, TechniqueList};
 use crate::service::model::{
     BlocklistEntry, Health, JobCreated, JobList, JobSpec, JobStatus, JobView, ProbeProgress, Progress, SceneView,
     TaskView, TasksView, rfc3339,
@@ -107,6 +107,7 @@ pub const RETRY_AFTER_S: u64 = 10;
         SceneList,
         TechniqueList,
         TechniqueInfo,
+        SplitInfo,
         DenoiserInfo
     ))
 )]

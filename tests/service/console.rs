@@ -75,6 +75,14 @@ async fn techniques_are_the_engines() {
         .iter()
         .find(|x| x["id"] == "hemicube")
         .unwrap();
+    // What a job may split into: path into step ranges of regions, hemicube into chains,
+    // or regions in rounds.
+    assert_eq!(path["split"], json!({"tasks": "steps_and_regions", "rounds": false}));
+    assert_eq!(
+        (&hemicube["split"]["tasks"], &hemicube["split"]["rounds"]),
+        (&json!("chains"), &json!(true))
+    );
+    assert!(hemicube["split"]["why"].as_str().unwrap().contains("rounds"));
     assert_eq!(
         hemicube["params"],
         serde_json::to_value(lightmapd::engine::technique::hemicube::HemicubeParams::default()).unwrap()

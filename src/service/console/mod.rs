@@ -77,6 +77,22 @@ pub struct TechniqueInfo {
     pub left_out: Vec<PlanItem>,
     /// What its live error estimate measures.
     pub error_estimate: String,
+    /// How a job of it may be split across workers (issue 25, docs/scaling.md).
+    pub split: SplitInfo,
+}
+
+/// How a technique's jobs split into tasks: what `tasks`, `regions` and `rounds` may ask.
+#[derive(Clone, Debug, Serialize, ToSchema)]
+pub struct SplitInfo {
+    /// `steps_and_regions` (step ranges of regions of the grid, merged exactly),
+    /// `chains` (independent chains of the whole grid, each with its own seed) or
+    /// `chains_and_regions` (chains within regions).
+    pub tasks: String,
+    /// Whether its regions can be baked in rounds (`regions` with `rounds`).
+    pub rounds: bool,
+    /// Why not step ranges or regions, for the techniques that split into chains.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub why: Option<String>,
 }
 
 /// One choice of the job field `denoise`.
@@ -174,6 +190,7 @@ pub fn techniques(limits: &Limits) -> TechniqueList {
                 passes: plan.passes,
                 left_out: plan.left_out,
                 error_estimate: plan.error_estimate,
+                split: split_info(row),
             }
         })
         .collect();
@@ -192,6 +209,21 @@ pub fn techniques(limits: &Limits) -> TechniqueList {
             "max_job_seconds": limits.max_job_seconds,
             "max_job_steps": limits.max_job_steps,
         }),
+    }
+}
+
+/// A technique table row's task split, for [`TechniqueInfo::split`].
+fn split_info(row: Option<&technique::TechniqueEntry>) -> SplitInfo {
+    use technique::api::TaskSplit;
+    let (tasks, why) = match row.map(|r| r.tasks) {
+        Some(TaskSplit::StepsAndRegions) | None => ("steps_and_regions", None),
+        Some(TaskSplit::Chains(why)) => ("chains", Some(why.to_string())),
+        Some(TaskSplit::ChainsAndRegions(why)) => ("chains_and_regions", Some(why.to_string())),
+    };
+    SplitInfo {
+        tasks: tasks.into(),
+        rounds: row.is_some_and(|r| r.rounds),
+        why,
     }
 }
 
