@@ -304,7 +304,7 @@ struct SubmitArgs {
     #[arg(long)]
     regions: Option<u32>,
     /// Bake the --regions in this many rounds, each region with the others' light held
-    /// (`hemicube`; the job's `rounds`).
+    /// (`hemicube`, `sdb`; the job's `rounds`).
     #[arg(long)]
     rounds: Option<u32>,
     /// What a worker must have to take the job: gpu (a hardware adapter), oidn (comma
@@ -506,12 +506,12 @@ struct BakeArgs {
     /// page count, else bands of rows with equal texel counts), each baked as N / R step
     /// ranges (`path`) or chains (`vpl`, `sdf`, `obscurance`); task K bakes region
     /// K / (N / R). `sdb` and `hemicube` do not split tasks by regions (each step moves
-    /// light over the whole grid); with --rounds, `hemicube` bakes regions in rounds.
+    /// light over the whole grid); with --rounds, `hemicube` and `sdb` bake regions in rounds.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     regions: Option<u32>,
     /// Bake in this many rounds, the grid cut into --regions regions, each region baked
     /// with the others' light held at what the round before estimated (block Jacobi,
-    /// `hemicube` only; docs/scaling.md, "Pages in rounds"); --steps is every region's,
+    /// `hemicube` and `sdb`; docs/scaling.md, "Pages in rounds"); --steps is every region's,
     /// over all rounds. Alone: every round in this process, one region after another.
     /// With --task K/R and --round: one region's task of one round, written for
     /// `lightmapd merge` (the last round's) and for the next round's --previous.

@@ -1,4 +1,4 @@
-//! A bake in rounds (`engine::rounds`, issue 25 point 1): `hemicube` baked one page at a
+//! A bake in rounds (`engine::rounds`, issue 25 point 1): `hemicube` and `sdb` baked one page at a
 //! time, the pages exchanging their light between rounds (block Jacobi), against a closed
 //! form and against the single bake, with the error it reports checked against its true
 //! error. GPU (lavapipe in CI).
@@ -53,18 +53,38 @@ fn rms_difference(a: &[Vec3], b: &[Vec3]) -> f64 {
     (d / r).sqrt()
 }
 
+/// `hemicube`'s request (`request`) for `sdb`, with a quarter of its default map's
+/// raster (lavapipe's cost per direction).
+fn sdb(mut r: BakeRequest) -> BakeRequest {
+    r.technique = "sdb".into();
+    r.params = serde_json::json!({"map_size": 256});
+    r
+}
+
 /// The closed box of albedo 0.5 (answer 1 everywhere), three faces on a page of their own:
 /// half of every texel's light comes from the other page. One round is each page alone
 /// with its own bounces (the light the other page would send is missing: about 2/3 of the
 /// answer); rounds bring it in; the error the bake reports (bias measured at the control
-/// texels, and noise) states the true error within a factor of 2 in both cases.
+/// texels, and noise) states the true error within a factor of 2 in both cases. For
+/// `hemicube` and `sdb` alike (measured 2026-12-07, `sdb`: one round 0.622, six 0.988;
+/// its single bake 0.9999, its ambient-mode correction exact in a box of one albedo).
 #[test]
 fn pages_of_a_closed_box_converge_to_the_closed_form() {
     let _gpu = common::gpu_serial();
+    for technique in ["hemicube", "sdb"] {
+        closed_box_in_rounds(technique);
+    }
+}
+
+fn closed_box_in_rounds(technique: &str) {
     let scene = two_pages(closed_box(0.5), &[3, 4, 5]);
     let mut reports = Vec::new();
     for rounds in [1, 6] {
-        let request = request(24, 96);
+        let request = if technique == "sdb" {
+            sdb(request(24, 96))
+        } else {
+            request(24, 96)
+        };
         let r = bake_in_rounds(
             scene.clone(),
             &request,
@@ -77,7 +97,11 @@ fn pages_of_a_closed_box_converge_to_the_closed_form() {
         assert_eq!(r.result.atlas.pages.len(), 2, "two pages");
         assert_eq!(r.rounds.len(), rounds as usize);
         assert_eq!(r.rounds.iter().map(|x| x.steps).sum::<u64>(), 96);
-        assert_eq!(r.result.estimate.steps, 96);
+        // sdb's ambient-mode correction drops its first step (the bootstrap) at its second,
+        // in round 0 (later rounds resume, with no bootstrap): when round 0 has two steps.
+        let first_round = lightmapd::engine::tasks::round_steps(96, rounds)[0];
+        let kept = if technique == "sdb" && first_round >= 2 { 95 } else { 96 };
+        assert_eq!(r.result.estimate.steps, kept, "{technique}");
         let truth = rms_difference(
             &r.result.estimate.total,
             &vec![Vec3::ONE; r.result.estimate.total.len()],
@@ -86,30 +110,39 @@ fn pages_of_a_closed_box_converge_to_the_closed_form() {
         let mean = r.result.estimate.total.iter().map(|v| lum(*v)).sum::<f64>() / r.result.estimate.total.len() as f64;
         let changes: Vec<f64> = r.rounds.iter().map(|x| x.change).collect();
         eprintln!(
-            "{rounds} rounds: mean {mean:.4}, true error {truth:.4}, stated {stated:.4} (bias {:?}), changes {changes:.4?}",
+            "{technique}, {rounds} rounds: mean {mean:.4}, true error {truth:.4}, stated {stated:.4} (bias {:?}), changes {changes:.4?}",
             r.result.estimate.error.bias
         );
         assert!(
             (0.5..=2.0).contains(&(stated / truth)),
-            "{rounds} rounds: stated {stated:.4} against a true {truth:.4}"
+            "{technique}, {rounds} rounds: stated {stated:.4} against a true {truth:.4}"
         );
         reports.push((mean, truth, changes));
     }
     let (alone, rounds) = (&reports[0], &reports[1]);
     // Alone, a page misses the light of the other's faces: B = (1 - ρ) / (1 - ρ f_own)
     // with f_own the share of a face's view on its own page, about 2/3 of the answer.
-    assert!((0.55..0.8).contains(&alone.0), "one round: mean {}", alone.0);
+    assert!(
+        (0.55..0.8).contains(&alone.0),
+        "{technique}, one round: mean {}",
+        alone.0
+    );
     // Measured 0.989 (a single bake of the same steps 0.996, the rounds' lag the rest).
-    assert!((rounds.0 - 1.0).abs() < 0.03, "six rounds: mean {}", rounds.0);
+    assert!(
+        (rounds.0 - 1.0).abs() < 0.03,
+        "{technique}, six rounds: mean {}",
+        rounds.0
+    );
     assert!(
         rounds.1 < alone.1 / 5.0,
-        "rounds {} against alone {}",
+        "{technique}: rounds {} against alone {}",
         rounds.1,
         alone.1
     );
-    // The held estimate settles (measured: 0.55 after the first exchange, 0.12 in the last).
+    // The held estimate settles (hemicube measured 0.55 after the first exchange, 0.12 in
+    // the last).
     let c = &rounds.2;
-    assert!(c[5] < c[1] / 2.0, "changes {c:?}");
+    assert!(c[5] < c[1] / 2.0, "{technique}: changes {c:?}");
 }
 
 /// Two pages of a sphere over a grey plane under the sky (the ball's generated page, the
@@ -176,21 +209,23 @@ fn pages_in_rounds_match_the_single_bake() {
 fn one_region_in_one_round_is_the_single_bake() {
     let _gpu = common::gpu_serial();
     let scene = two_pages(closed_box(0.5), &[3, 4, 5]);
-    let request = request(16, 6);
-    let single = job::bake_unobserved(scene.clone(), &request).unwrap();
-    let r = bake_in_rounds(
-        scene,
-        &request,
-        RoundsShape { regions: 1, rounds: 1 },
-        &BakeOptions::default(),
-        &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
-        &mut |_| {},
-    )
-    .unwrap();
-    let (a, b) = (&r.result.estimate, &single.estimate);
-    assert_eq!(a.steps, b.steps);
-    assert_eq!(a.total, b.total, "one region in one round is not the single bake");
-    assert_eq!(a.halves, b.halves);
+    for request in [request(16, 6), sdb(request(16, 6))] {
+        let single = job::bake_unobserved(scene.clone(), &request).unwrap();
+        let r = bake_in_rounds(
+            scene.clone(),
+            &request,
+            RoundsShape { regions: 1, rounds: 1 },
+            &BakeOptions::default(),
+            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+            &mut |_| {},
+        )
+        .unwrap();
+        let (a, b) = (&r.result.estimate, &single.estimate);
+        let t = &request.technique;
+        assert_eq!(a.steps, b.steps, "{t}");
+        assert_eq!(a.total, b.total, "{t}: one region in one round is not the single bake");
+        assert_eq!(a.halves, b.halves, "{t}");
+    }
 }
 
 /// Techniques that do not hold a boundary are refused by name, as are stop rules no
@@ -224,6 +259,11 @@ fn what_is_not_baked_in_rounds_is_refused() {
     assert!(e.contains("stop.seconds"), "{e}");
     let e = refused(&request(16, 3));
     assert!(e.contains("at least twice the rounds"), "{e}");
+    // sdb's leaky blend forgets on purpose: a round cannot resume it.
+    let mut leaky = sdb(request(16, 8));
+    leaky.params = serde_json::json!({"map_size": 64, "mode": "leaky"});
+    let e = refused(&leaky);
+    assert!(e.contains("sdb in leaky mode is not baked in rounds"), "{e}");
 }
 
 fn channels(path: &std::path::Path) -> Vec<(String, Vec<f32>)> {

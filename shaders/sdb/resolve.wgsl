@@ -36,6 +36,11 @@ struct ResolveParams {
     dims: vec4<u32>,
     // rgb: g / (1 - g) per channel (0 switches the correction off); w: unused.
     ambient: vec4<f32>,
+    // x .. y: the receiving texels, where the correction is measured and added (every
+    // texel, 0 .. N, but in a round of a bake in rounds: the others hold the light the
+    // round before estimated, which the correction must neither average nor amplify);
+    // z, w: unused.
+    receivers: vec4<u32>,
 }
 
 @group(0) @binding(0) var<uniform> params: ResolveParams;
@@ -95,7 +100,8 @@ fn resolve(
     }
     // An overshooting correction must not turn into negative light.
     let x = estimate(src);
-    let e = max(x + x * ambient[0].rgb, vec3<f32>(0.0));
+    let receives = src >= params.receivers.x && src < params.receivers.y;
+    let e = select(x, max(x + x * ambient[0].rgb, vec3<f32>(0.0)), receives);
     radiance[pixel] = vec4<f32>(shade[src].albedo.rgb * e, 1.0);
     // Every pixel that copies texel src writes the same value.
     fed[src] = vec4<f32>(e, 0.0);
@@ -115,7 +121,7 @@ fn ambient_mode(@builtin(local_invocation_index) lid: u32) {
     let n = params.dims.z;
     var sum_r = vec4<f32>(0.0);
     var sum_x = vec4<f32>(0.0);
-    for (var i = lid; i < n; i += AMBIENT_THREADS) {
+    for (var i = params.receivers.x + lid; i < min(params.receivers.y, n); i += AMBIENT_THREADS) {
         let area = shade[i].albedo.a;
         let x = estimate(i);
         sum_r += vec4<f32>((x - fed_mean(i)) * area, area);

@@ -3,9 +3,10 @@
 //! rounds (issue 25 point 1; docs/scaling.md, "Pages in rounds").
 //!
 //! # Why
-//! `hemicube` draws its shooters from every texel's irradiance of the step before, so no
-//! region of its grid stands alone, and its split bakes were independent chains of the
-//! whole grid: every worker holds the whole level. Rounds bound what a region's bake
+//! `hemicube` draws its shooters from every texel's irradiance of the step before, and
+//! `sdb`'s resolve turns every lightmap pixel's running estimate into the radiance its
+//! illumination maps show, so no region of their grids stands alone, and their split
+//! bakes were independent chains of the whole grid: every worker holds the whole level. Rounds bound what a region's bake
 //! gathers to its own texels, which is what lets pages of a large level go to different
 //! workers.
 //!
@@ -42,12 +43,14 @@
 //! are keyed by the texel's place in the whole grid.
 //!
 //! # Limits
-//! - Only `hemicube` holds a boundary so far (`Technique::hold_boundary`); `sdb`, whose
-//!   resolve reads every pixel's running estimate, is the next (docs/scaling.md).
-//! - The service's queue does not bake rounds yet (round r's tasks claimable once round
-//!   r - 1's are done, in both backends): the command line does (`bake --rounds R
-//!   --regions P --task K/P --round r --previous ...`, then `merge`), as do render-farm
-//!   managers that run it.
+//! - `hemicube` and `sdb` hold a boundary (`Technique::hold_boundary`; `sdb` in its
+//!   `average` mode only, and its gather still runs over every texel, the held ones'
+//!   share wasted); the other techniques split into regions without rounds or not at all
+//!   (docs/scaling.md, "What a task is, per technique").
+//! - The service's queue bakes rounds (`JobSpec::rounds`: round r's tasks queued once
+//!   round r - 1's have succeeded, in both backends, `service::farm`), as does the command
+//!   line (`bake --rounds R --regions P --task K/P --round r --previous ...`, then
+//!   `merge`), and any render-farm manager that runs it.
 //! - Every task prepares the whole grid (texel set, validation, the technique's per-texel
 //!   buffers: the held light must be readable at every texel), so a region's task
 //!   bounds the work of its gather, not its memory; its hemicubes render the whole scene.

@@ -358,8 +358,14 @@ pub fn split_rounds(request: &BakeRequest, regions: u32, rounds: u32) -> Result<
     }
     if !technique::entry(&request.technique)?.rounds {
         return bad(format!(
-            "rounds: technique {} is not baked in rounds (only hemicube is, so far)",
-            request.technique
+            "rounds: technique {} is not baked in rounds (only {} are, so far)",
+            request.technique,
+            technique::TABLE
+                .iter()
+                .filter(|e| e.rounds)
+                .map(|e| e.id)
+                .collect::<Vec<_>>()
+                .join(" and ")
         ));
     }
     if request.stop.seconds.is_some() || request.stop.target_error.is_some() {

@@ -340,7 +340,7 @@ async fn happy_path_upload_bake_follow_download() {
                 "--requires",
                 "oidn",
             ],
-            "error: submit: 422 rounds: technique path is not baked in rounds (only hemicube is, so far) (rounds)",
+            "error: submit: 422 rounds: technique path is not baked in rounds (only sdb and hemicube are, so far) (rounds)",
         ),
         (
             vec!["--requires", "gpu,tpu"],
@@ -963,7 +963,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "technique": "sdb", "tasks": 4, "regions": 2, "stop": {"steps": 60}}).to_string(),
             "regions",
-            "regions: sdb bakes are split into independent chains of the whole grid, not into regions (each step gathers the reflected light of the running estimate all earlier steps built, over every texel: a range of steps cannot start without the steps before it, and a region's light depends on every other region's); give regions 1".into(),
+            "regions: sdb bakes are split into independent chains of the whole grid, not into regions (each step gathers the reflected light of the running estimate all earlier steps built, over every texel: a range of steps cannot start without the steps before it, and a region's light depends on every other region's; its regions are baked in rounds instead, the others' light held (a job's rounds, bake --rounds, docs/scaling.md)); give regions 1".into(),
         ),
         (
             json!({"scene": scene, "regions": 2, "stop": {"steps": 60}}).to_string(),
@@ -985,7 +985,7 @@ async fn every_error_status_has_its_problem_body() {
         (
             json!({"scene": scene, "technique": "path", "regions": 2, "rounds": 3, "stop": {"steps": 60}}).to_string(),
             "rounds",
-            "rounds: technique path is not baked in rounds (only hemicube is, so far)".into(),
+            "rounds: technique path is not baked in rounds (only sdb and hemicube are, so far)".into(),
         ),
         (
             json!({"scene": scene, "technique": "hemicube", "regions": 2, "rounds": 3, "stop": {"steps": 60, "seconds": 10}}).to_string(),

@@ -228,10 +228,11 @@ pub trait Technique: Send {
     /// only at `boundary.receivers`, the other texels send what `boundary.held` says, and
     /// the receivers' accumulators go on from `boundary.resume`. Called once, before the
     /// first step. The default refuses: only techniques whose step reads the whole grid's
-    /// light from a state they can hold (`hemicube`) bake in rounds.
+    /// light from a state they can hold (`hemicube`, `sdb`; the table's `rounds`) bake in
+    /// rounds.
     fn hold_boundary(&mut self, _boundary: &Boundary<'_>) -> Result<(), EngineError> {
         Err(EngineError::BadInput(format!(
-            "rounds: technique {} is not baked in rounds (only hemicube is, so far)",
+            "rounds: technique {} is not baked in rounds",
             self.id()
         )))
     }
