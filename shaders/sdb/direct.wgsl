@@ -15,7 +15,7 @@
 struct DirectParams {
     irradiance: vec4<f32>,  // rgb: E/pi on a surface facing the light, unshadowed; w: the direction's blend b (see sdb/gather.wgsl)
     bias: vec4<f32>,        // x: receiver offset along the geometric normal (map pixels); y: unused; z: decay: 1 - b for the direction's first light, 1 for the others (they add to the same blend); w: unused
-    misc: vec4<u32>,        // x: parity, y: texel count N; z, w: unused
+    misc: vec4<u32>,        // x: parity, y: texel count N, z: first receiving texel, w: how many (sdb/gather.wgsl's `texels`)
 }
 
 @group(0) @binding(0) var<storage, read> views: array<ShadowView>;  // one: the light's map
@@ -30,11 +30,12 @@ fn direct(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = invocation_index(wid, nwg, lid);
+    let k = invocation_index(wid, nwg, lid);
     let n_texels = params.misc.y;
-    if i >= n_texels {
+    if k >= params.misc.w {
         return;
     }
+    let i = params.misc.z + k;
     let n = texels[i].normal.xyz;
     let v = views[0];
     let d = v.fwd.xyz;
@@ -60,7 +61,7 @@ fn direct(
 // and weight = 1 - prod(1 - b) over the step's directions, the step's share of the mean.
 struct EmitterAddParams {
     mix: vec4<f32>,   // x: decay, y: weight; z, w: unused
-    misc: vec4<u32>,  // x: parity, y: texel count N; z, w: unused
+    misc: vec4<u32>,  // x: parity, y: texel count N, z: first receiving texel, w: how many
 }
 
 // 2 N: the even half's texels, then the odd half's; rgb E/pi (w: the pass's hit fraction).
@@ -73,11 +74,12 @@ fn emitter_add(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = invocation_index(wid, nwg, lid);
+    let k = invocation_index(wid, nwg, lid);
     let n_texels = emitter_params.misc.y;
-    if i >= n_texels {
+    if k >= emitter_params.misc.w {
         return;
     }
+    let i = emitter_params.misc.z + k;
     let slot = emitter_params.misc.x * n_texels + i;
     let m = emitter_params.mix;
     sun_acc[slot] = vec4<f32>(sun_acc[slot].rgb * m.x + emitter_samples[slot].rgb * m.y, 0.0);

@@ -30,6 +30,9 @@ struct GatherParams {
     env: vec4<f32>,   // rgb: environment radiance arriving along -d (seen looking along +d); w: blend b
     eps: vec4<f32>,   // x: normal-plane epsilon, y: along-d epsilon (normalised scene units); z, w: unused
     misc: vec4<u32>,  // x: neighbourhood radius r (k = 2r+1), y: depth layers, z: parity (0 even, 1 odd), w: texel count N
+    // x: the first receiving texel, y: how many (every texel, 0 and N, but in a round of a
+    // bake in rounds: its region, the other texels holding their light); z, w: unused.
+    texels: vec4<u32>,
 }
 
 @group(0) @binding(0) var<uniform> view: View;
@@ -117,11 +120,12 @@ fn gather(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = invocation_index(wid, nwg, lid);
+    let k = invocation_index(wid, nwg, lid);
     let n_texels = params.misc.w;
-    if i >= n_texels {
+    if k >= params.texels.y {
         return;
     }
+    let i = params.texels.x + k;
     let g = gather_texel(i);
     blend_into(params.misc.z * n_texels + i, i, g.contribution, g.weight);
 }
@@ -132,11 +136,12 @@ fn gather_direct(
     @builtin(num_workgroups) nwg: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let i = invocation_index(wid, nwg, lid);
+    let k = invocation_index(wid, nwg, lid);
     let n_texels = params.misc.w;
-    if i >= n_texels {
+    if k >= params.texels.y {
         return;
     }
+    let i = params.texels.x + k;
     let g = gather_texel(i);
     let slot = params.misc.z * n_texels + i;
     blend_into(slot, i, g.contribution, g.weight);

@@ -93,9 +93,9 @@
 //! A bake in rounds bakes one region of the grid at a time with every other texel's light
 //! held at the round before's estimate ([`SdbEngine::hold_boundary`]). Held texels keep
 //! (held, 1) in both halves' gathered accumulators, so the resolve feeds their held light
-//! to the illumination maps, and are put back after each step (device buffer copies):
-//! the gather and the light passes still run over every texel, the held ones' share
-//! wasted, since they have no texel range. A resumed receiver's half is (mean, 1), a
+//! to the illumination maps; the gather and the light passes run over the receivers only
+//! (a texel range in their parameters), so the maps, which render the whole scene, are
+//! what a region's task repeats of a single bake. A resumed receiver's half is (mean, 1), a
 //! direction's average weight, with the host's weights set to its directions so far; the
 //! ambient-mode correction is measured over the receivers and added to them only, and a
 //! resumed round drops no bootstrap step. `leaky` mode is refused (its blend forgets on
@@ -364,6 +364,7 @@ struct GpuGatherParams {
     env: [f32; 4],
     eps: [f32; 4],
     misc: [u32; 4],
+    texels: [u32; 4],
 }
 
 #[repr(C)]
@@ -1263,6 +1264,7 @@ impl SdbEngine {
                     parity,
                     self.n_texels,
                 ],
+                texels: [self.receivers.start, self.receivers.len() as u32, 0, 0],
             };
             self.ctx
                 .queue
@@ -1304,7 +1306,7 @@ impl SdbEngine {
                     let direct = GpuDirectParams {
                         irradiance: [e.x, e.y, e.z, blend],
                         bias: [SHADOW_OFFSET_PIXELS, 0.0, if li == 0 { 1.0 - blend } else { 1.0 }, 0.0],
-                        misc: [parity, self.n_texels, 0, 0],
+                        misc: [parity, self.n_texels, self.receivers.start, self.receivers.len() as u32],
                     };
                     self.ctx.queue.write_buffer(&sun.views_buf, 0, bytemuck::bytes_of(&map));
                     self.ctx
@@ -1425,7 +1427,7 @@ impl SdbEngine {
             let old = if self.lights.is_empty() { decay } else { 1.0 };
             let params = GpuEmitterAddParams {
                 mix: [old as f32, (1.0 - decay) as f32, 0.0, 0.0],
-                misc: [parity, self.n_texels, 0, 0],
+                misc: [parity, self.n_texels, self.receivers.start, self.receivers.len() as u32],
             };
             self.ctx
                 .queue
@@ -1442,7 +1444,9 @@ impl SdbEngine {
             );
             self.ctx.queue.submit([encoder.finish()]);
         }
-        self.put_back_held();
+        if bootstrap {
+            self.put_back_held();
+        }
         self.half_steps[parity as usize] += 1;
         self.steps_done += 1;
         self.ctx.take_error("sdb step")
@@ -1456,9 +1460,10 @@ impl SdbEngine {
     }
 
     /// In a round of a bake in rounds: the texels outside the receivers get back the
-    /// accumulators they began the round with (the step's gathers and lights wrote every
-    /// texel), so they go on sending the held light. Buffer copies on the device; the
-    /// light accumulators are zero there.
+    /// accumulators they began the round with, after the bootstrap step cleared every
+    /// accumulator (the gather and the light passes write the receivers only), so they
+    /// go on sending the held light. Buffer copies on the device; the light accumulators
+    /// are zero there.
     fn put_back_held(&self) {
         let Some(held) = &self.held else {
             return;
@@ -1489,11 +1494,10 @@ impl SdbEngine {
     /// of a bake in rounds, `engine::rounds`). How:
     /// - a held texel's gathered accumulators are (held, 1) in both halves, so the
     ///   resolve's ratio reads `held`, and its fed accumulators (held, 0), so the
-    ///   ambient-mode residual there is 0; they are put back after every step
-    ///   ([`SdbEngine::put_back_held`]), and its light accumulators kept at zero. The
-    ///   gather, the sun's and the small lights' passes still run over every texel (they
-    ///   have no texel range): the held texels' share of their work is wasted, P - 1 of P
-    ///   of the gather in a bake of P regions.
+    ///   ambient-mode residual there is 0; its light accumulators are zero. The gather,
+    ///   the sun's and the small lights' passes run over the receivers only (their
+    ///   `texels` range), so nothing else writes them but the bootstrap step's clear, after
+    ///   which they are put back ([`SdbEngine::put_back_held`]).
     /// - a resumed receiver's half is (mean, 1): the half's mean with the weight one
     ///   direction has on average (4 max(<d, n>, 0) over the sphere: 1), so a new
     ///   direction's blend, with the host's weights set to sum i^ramp over the half's
@@ -1594,6 +1598,7 @@ impl SdbEngine {
             fed_acc: copy("sdb held fed estimate accumulators (even, odd)", &fed),
         });
         self.receivers = r.start as u32..r.end as u32;
+        self.texel_dispatch = gpu::dispatch_size_64(self.receivers.len() as u32);
         self.ctx.take_error("sdb boundary").map_err(|e| e.to_string())
     }
 
