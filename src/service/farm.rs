@@ -543,20 +543,8 @@ impl Round<'_> {
         if matches!(whole, Whole::Refused) {
             return;
         }
-        let claim = state.queue.claim_task_snapshot(
-            &job.id,
-            task.index,
-            self.worker,
-            state.config.snapshot_interval,
-            state.db_now(),
-        );
-        let n = match claim.await {
-            Ok(Some(n)) => n,
-            Ok(None) => return,
-            Err(e) => {
-                tracing::warn!(error = %e, "cannot claim the job's next snapshot");
-                return;
-            }
+        let Some(n) = claim_snapshot(state, job, task, self.worker).await else {
+            return;
         };
         let (files, point) = match self.snapshot(own, whole).await {
             Ok(f) => f,
@@ -701,6 +689,24 @@ fn snapshot_files(
     Ok((files, point))
 }
 
+/// The job's next snapshot number when it is `task`'s turn to make it
+/// ([`Queue::claim_task_snapshot`](crate::service::queue::Queue::claim_task_snapshot)),
+/// else `None` (a database error is logged, and costs only this snapshot).
+async fn claim_snapshot(state: &AppState, job: &JobRecord, task: &TaskRecord, worker: &str) -> Option<u32> {
+    let claim = state.queue.claim_task_snapshot(
+        &job.id,
+        task.index,
+        worker,
+        state.config.snapshot_interval,
+        state.db_now(),
+    );
+    claim
+        .await
+        .inspect_err(|e| tracing::warn!(error = %e, "cannot claim the job's next snapshot"))
+        .ok()
+        .flatten()
+}
+
 /// Stores the job's claimed snapshot `n` and records it with its history point, or hands
 /// the number back when it cannot be stored; a job that ended meanwhile keeps its final
 /// lightmap, and the snapshot's files go.
@@ -755,20 +761,8 @@ async fn round_snapshot(
     files: SceneFiles,
     previous: Vec<Bytes>,
 ) {
-    let claim = state.queue.claim_task_snapshot(
-        &job.id,
-        task.index,
-        &worker,
-        state.config.snapshot_interval,
-        state.db_now(),
-    );
-    let n = match claim.await {
-        Ok(Some(n)) => n,
-        Ok(None) => return,
-        Err(e) => {
-            tracing::warn!(error = %e, "cannot claim the job's next snapshot");
-            return;
-        }
+    let Some(n) = claim_snapshot(&state, &job, &task, &worker).await else {
+        return;
     };
     let began = Instant::now();
     let elapsed = job

@@ -164,6 +164,22 @@ async fn until_ended(http: &reqwest::Client, url: &str, limit: Duration, what: &
     }
 }
 
+/// Submits `body` to the API at `url` and waits, at most `limit_s` seconds, for the job to
+/// succeed: its id, its URL and its final document.
+async fn succeeded(
+    http: &reqwest::Client,
+    url: &str,
+    body: Value,
+    limit_s: u64,
+    what: &str,
+) -> (String, String, Value) {
+    let id = submit(http, url, body).await;
+    let job_url = format!("{url}/v1/jobs/{id}");
+    let job = until_ended(http, &job_url, Duration::from_secs(limit_s), what).await;
+    assert_eq!(job["status"], "succeeded", "{job:#}");
+    (id, job_url, job)
+}
+
 /// Waits for `key` to be deleted: a merged job's task results go right *after* the job
 /// is marked succeeded (its lightmap is stored first), so a poll that saw the end can
 /// still see them for a moment; ten seconds is far beyond that moment.
@@ -351,10 +367,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         "scene": cornell, "technique": "path", "resolution": 32, "seed": 5,
         "stop": {"steps": 40}, "tasks": 3, "regions": 3, "denoise": "none",
     });
-    let tiled = submit(&http, &farm.url, tiles.clone()).await;
-    let tiled_url = format!("{}/v1/jobs/{tiled}", farm.url);
-    let job = until_ended(&http, &tiled_url, Duration::from_secs(120), "the tiled job").await;
-    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let (_, tiled_url, job) = succeeded(&http, &farm.url, tiles.clone(), 120, "the tiled job").await;
     let regions: Vec<u64> = job["tasks"]["list"].as_array().unwrap()[..3]
         .iter()
         .map(|t| t["region"].as_u64().unwrap())
@@ -467,10 +480,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         "lighting": {"sky": {"radiance": [1, 1, 1]}},
         "stop": {"steps": 8}, "tasks": 2, "denoise": "none",
     });
-    let chain_id = submit(&http, &farm.url, chained.clone()).await;
-    let chain_url = format!("{}/v1/jobs/{chain_id}", farm.url);
-    let job = until_ended(&http, &chain_url, Duration::from_secs(180), "the chained job").await;
-    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let (_, chain_url, job) = succeeded(&http, &farm.url, chained.clone(), 180, "the chained job").await;
     let list = job["tasks"]["list"].as_array().unwrap();
     let chains: Vec<(Value, Value)> = list[..2]
         .iter()
@@ -516,10 +526,7 @@ async fn three_workers_bake_one_job_and_survive_a_sigkill() {
         "scene": cornell, "technique": "hemicube", "resolution": 24, "seed": 5,
         "stop": {"steps": 14}, "regions": 2, "rounds": 3, "denoise": "none",
     });
-    let rounds_id = submit(&http, &farm.url, in_rounds.clone()).await;
-    let rounds_url = format!("{}/v1/jobs/{rounds_id}", farm.url);
-    let job = until_ended(&http, &rounds_url, Duration::from_secs(180), "the job in rounds").await;
-    assert_eq!(job["status"], "succeeded", "{job:#}");
+    let (rounds_id, rounds_url, job) = succeeded(&http, &farm.url, in_rounds.clone(), 180, "the job in rounds").await;
     let tasks = &job["tasks"];
     assert_eq!((tasks["count"].clone(), tasks["rounds"].clone()), (json!(6), json!(3)));
     let list = tasks["list"].as_array().unwrap();

@@ -1209,15 +1209,17 @@ async fn a_job_in_rounds_queues_each_round_once_the_one_before_has_succeeded(f: 
         let none = none.clone();
         async move { q.claim_task(w, &none, lease, at).await.unwrap().map(|(t, _)| t.index) }
     };
+    // Task k, running on worker w, baked `steps` with its own `error`.
+    let baked = |k: u32, w: &'static str, steps: u64, error: f32, at: i64| async move {
+        let outcome = TaskOutcome::Baked(beat(steps, error));
+        assert!(q.finish_task("j", k, w, &outcome, at).await.unwrap(), "task {k} on {w}");
+    };
+    let progress = || async { q.job("j").await.unwrap().unwrap().progress.unwrap() };
     assert_eq!(claim("w1", 20).await, Some(0));
     assert_eq!(claim("w2", 20).await, Some(1));
     // Round 1 waits for all of round 0.
     assert_eq!(claim("w3", 21).await, None);
-    assert!(
-        q.finish_task("j", 0, "w1", &TaskOutcome::Baked(beat(2, 0.3)), 30)
-            .await
-            .unwrap()
-    );
+    baked(0, "w1", 2, 0.3, 30).await;
     assert_eq!(claim("w3", 31).await, None);
     // A failed attempt is retried as a task of its round; round 1 still waits.
     let failed = TaskOutcome::Failed {
@@ -1227,12 +1229,8 @@ async fn a_job_in_rounds_queues_each_round_once_the_one_before_has_succeeded(f: 
     assert!(q.finish_task("j", 1, "w2", &failed, 40).await.unwrap());
     assert_eq!(states().await[1..4], [(1, 6, Queued), (2, 6, Waiting), (3, 6, Waiting)]);
     assert_eq!(claim("w3", 41).await, Some(1));
-    assert!(
-        q.finish_task("j", 1, "w3", &TaskOutcome::Baked(beat(2, 0.1)), 50)
-            .await
-            .unwrap()
-    );
-    let p = q.job("j").await.unwrap().unwrap().progress.unwrap();
+    baked(1, "w3", 2, 0.1, 50).await;
+    let p = progress().await;
     assert_eq!(p["steps"], 2);
     let want = ((0.09f64 + 0.01) / 2.0).sqrt();
     assert!((p["error"].as_f64().unwrap() - want).abs() < 1e-6, "{p}");
@@ -1249,38 +1247,22 @@ async fn a_job_in_rounds_queues_each_round_once_the_one_before_has_succeeded(f: 
     );
     assert_eq!(claim("w1", 51).await, Some(2));
     assert_eq!(claim("w2", 51).await, Some(3));
-    assert!(
-        q.finish_task("j", 2, "w1", &TaskOutcome::Baked(beat(4, 0.05)), 60)
-            .await
-            .unwrap()
-    );
+    baked(2, "w1", 4, 0.05, 60).await;
     // Region 0: 2 + 4 steps at its latest round's 0.05; region 1: 2 steps at 0.1 so far.
-    let p = q.job("j").await.unwrap().unwrap().progress.unwrap();
+    let p = progress().await;
     assert_eq!(p["steps"], 4);
     let want = ((0.0025f64 + 0.01) / 2.0).sqrt();
     assert!((p["error"].as_f64().unwrap() - want).abs() < 1e-6, "{p}");
     assert!((p["fraction"].as_f64().unwrap() - 4.0 / 14.0).abs() < 1e-9, "{p}");
     assert_eq!(claim("w3", 61).await, None);
-    assert!(
-        q.finish_task("j", 3, "w2", &TaskOutcome::Baked(beat(4, 0.04)), 70)
-            .await
-            .unwrap()
-    );
+    baked(3, "w2", 4, 0.04, 70).await;
     assert_eq!(claim("w1", 71).await, Some(4));
     assert_eq!(claim("w2", 71).await, Some(5));
     assert_eq!(states().await[4..], [(4, 6, Running), (5, 6, Running), (6, 6, Waiting)]);
-    assert!(
-        q.finish_task("j", 4, "w1", &TaskOutcome::Baked(beat(8, 0.02)), 80)
-            .await
-            .unwrap()
-    );
+    baked(4, "w1", 8, 0.02, 80).await;
     assert_eq!(claim("w3", 81).await, None);
-    assert!(
-        q.finish_task("j", 5, "w2", &TaskOutcome::Baked(beat(8, 0.02)), 90)
-            .await
-            .unwrap()
-    );
-    let p = q.job("j").await.unwrap().unwrap().progress.unwrap();
+    baked(5, "w2", 8, 0.02, 90).await;
+    let p = progress().await;
     assert_eq!(p["steps"], 14);
     assert!((p["error"].as_f64().unwrap() - 0.02).abs() < 1e-6, "{p}");
     // The merge is queued once the last round has succeeded.
