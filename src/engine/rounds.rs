@@ -51,9 +51,11 @@
 //!   round r - 1's have succeeded, in both backends, `service::farm`), as does the command
 //!   line (`bake --rounds R --regions P --task K/P --round r --previous ...`, then
 //!   `merge`), and any render-farm manager that runs it.
-//! - Every task prepares the whole grid (texel set, validation, the technique's per-texel
-//!   buffers: the held light must be readable at every texel), so a region's task
-//!   bounds the work of its gather, not its memory; its hemicubes render the whole scene.
+//! - Every task prepares the whole grid (texel set, the technique's per-texel buffers:
+//!   the held light must be readable at every texel), so a region's task bounds the work
+//!   of its gather, not its memory; its hemicubes render the whole scene. Validation is
+//!   traced in round 0 only (every task of it, over the whole grid); later rounds take
+//!   the texels the round before kept, as the merge does.
 //! - The held light of a glossy texel outside the receivers has no incoming direction:
 //!   its lobe reflects light arriving along its normal (`hemicube`'s select pass falls
 //!   back to it), a bias the control texels state like any other.
@@ -126,7 +128,13 @@ pub fn bake_round_task(
 ) -> Result<Partial, EngineError> {
     check_task(request, task)?;
     let started = Instant::now();
-    let prepared = prepare(scene, request, task.regions, options, on_atlas)?;
+    // After round 0 the grid's validation is known: every region's result of the round
+    // before lists the texels it kept (the merge takes them the same way), so the task
+    // builds the texel set without tracing validation's rays again (most of a large
+    // level's preparation).
+    let kept: Option<Vec<u32>> =
+        check_previous(request, task, previous)?.map(|p| p.iter().flat_map(|x| x.pixels.iter().copied()).collect());
+    let prepared = prepare(scene, request, task.regions, options, kept.as_deref(), on_atlas)?;
     bake_prepared(&prepared, request, task, previous, observer, started)
 }
 
@@ -144,18 +152,26 @@ fn check_task(request: &BakeRequest, task: TaskRange) -> Result<(), EngineError>
 
 /// The whole grid as the single bake's, cut into `regions` regions as a split bake's
 /// merge cuts them (before validation): what every task of a bake in rounds starts from.
-/// Deterministic, so tasks on different machines prepare the same.
+/// Deterministic, so tasks on different machines prepare the same. `kept`: the pixels of
+/// the texels validation kept, in pixel order, when a round before has told them (then
+/// nothing is traced, as in the merge, and the texel set is the same).
 fn prepare(
     scene: Arc<Scene>,
     request: &BakeRequest,
     regions: u32,
     options: &BakeOptions,
+    kept: Option<&[u32]>,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
 ) -> Result<job::Prepared, EngineError> {
+    if kept.is_some_and(|k| k.windows(2).any(|w| w[0] >= w[1])) {
+        return Err(EngineError::BadInput(
+            "rounds: the round before's texels are not in pixel order: a damaged or foreign result".into(),
+        ));
+    }
     let regions = job::RegionsOf {
         count: regions,
         keep: None,
-        validated: None,
+        validated: kept,
     };
     job::prepare_regions(scene, request, options, Some(regions), on_atlas, &mut |_| {})
 }
@@ -358,7 +374,7 @@ pub fn bake_in_rounds(
     let rounds = tasks::split_rounds(request, shape.regions, shape.rounds)?;
     // One preparation for every task: a task on its own machine prepares the same grid
     // (`prepare` is deterministic), so the lightmap is the processes' lightmap.
-    let prepared = prepare(scene.clone(), request, shape.regions, options, on_atlas)?;
+    let prepared = prepare(scene.clone(), request, shape.regions, options, None, on_atlas)?;
     let mut previous: Vec<Partial> = Vec::new();
     let mut held_before: Vec<Vec3> = Vec::new();
     let mut reports = Vec::with_capacity(rounds.len());
