@@ -1497,15 +1497,20 @@ fn bake_task(
     } else {
         String::new()
     };
-    if task.rounds > 0 {
+    // A round task's halves go on from the rounds before it: its own steps are the
+    // round's.
+    let baked = if task.rounds > 0 {
         region += &format!(", round {}/{}", task.round, task.rounds);
-    }
+        task.steps
+    } else {
+        h.half_steps[0] + h.half_steps[1]
+    };
     eprintln!(
         "baked task {k}/{n} of {}{region}: steps {}..{} ({} steps in {:.2} s, stopped by {:?}) -> {}",
         args.scene.display(),
         task.first_step,
-        task.first_step + h.half_steps[0] + h.half_steps[1],
-        h.half_steps[0] + h.half_steps[1],
+        task.first_step + baked,
+        baked,
         h.seconds,
         h.stopped_by,
         args.output.display()

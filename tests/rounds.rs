@@ -343,6 +343,9 @@ fn the_command_line_bakes_in_rounds() {
         let stderr = String::from_utf8_lossy(&r.stderr);
         assert!(r.status.success(), "round {round} region {region}: {stderr}");
         assert!(stderr.contains(&format!("round {round}/2")), "{stderr}");
+        // 8 steps in two rounds: 2 then 6 (doubling shares).
+        let steps = if round == 0 { "steps 0..2 (2 steps" } else { "steps 2..8 (6 steps" };
+        assert!(stderr.contains(steps), "{stderr}");
         part
     };
     let first: Vec<_> = (0..2).map(|k| task(0, k, &[])).collect();
