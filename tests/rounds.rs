@@ -344,7 +344,11 @@ fn the_command_line_bakes_in_rounds() {
         assert!(r.status.success(), "round {round} region {region}: {stderr}");
         assert!(stderr.contains(&format!("round {round}/2")), "{stderr}");
         // 8 steps in two rounds: 2 then 6 (doubling shares).
-        let steps = if round == 0 { "steps 0..2 (2 steps" } else { "steps 2..8 (6 steps" };
+        let steps = if round == 0 {
+            "steps 0..2 (2 steps"
+        } else {
+            "steps 2..8 (6 steps"
+        };
         assert!(stderr.contains(steps), "{stderr}");
         part
     };
