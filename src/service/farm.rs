@@ -22,9 +22,9 @@
 //! p in round r (`rounds::bake_round_task`), reading every region's result of round r-1
 //! from the store (`tasks/<k>.lmtask`, the held light and its own accumulators); the
 //! queue queues a round once the round before has succeeded, and the merge reads the last
-//! round's results. Rounds before the last state no error and no round task makes
-//! running snapshots: a round's halves cannot see what the rounds still lack, which only
-//! the last round's control texels measure.
+//! round's results. Rounds before the last state no error: a round's halves cannot see
+//! what the rounds still lack, which only the last round's control texels measure. The
+//! job's snapshots are its finished rounds, each stating no error ([`round_snapshot`]).
 //!
 //! Endings of an attempt: cancelled (the job's cancel flag, read back by every
 //! heartbeat) → the task `cancelled`, and the last task to stop ends the job; shutdown
@@ -75,8 +75,8 @@ use crate::engine::technique::EngineError;
 use crate::service::model::{HistoryPoint, Progress};
 use crate::service::queue::{JobRecord, Lease, TaskBeat, TaskOutcome, TaskRecord};
 use crate::service::worker::{
-    Lessee, LoadError, SceneFiles, SnapshotFiles, TICK, import_files, load_patiently, load_scene, store_final,
-    store_snapshot, thin_snapshots, while_holding,
+    Lessee, LoadError, SnapshotFiles, TICK, import_files, load_patiently, load_scene, store_final, store_snapshot,
+    thin_snapshots, while_holding,
 };
 use crate::service::{AppState, StopFlag, StopSignal, shutting_down, store};
 
@@ -206,20 +206,15 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
         Err(Some(reason)) => return End::Finish(TaskOutcome::Failed { reason, retry: true }),
     };
     // Region 0's task of each round after the first shows the round before as the job's
-    // next snapshot, beside its own bake.
-    let round_shot = (range.rounds > 0 && range.round > 0 && range.region == 0).then(|| {
-        tokio::spawn(
-            round_snapshot(
-                state.clone(),
-                worker.to_string(),
-                job.clone(),
-                task.clone(),
-                files.clone(),
-                previous.clone(),
-            )
-            .instrument(tracing::Span::current()),
-        )
-    });
+    // next snapshot, beside its own bake, on the whole texel set and the results the bake
+    // thread has prepared and decoded anyway (handed over once the grid is prepared).
+    let (mut shot_tx, round_shot) = if range.rounds > 0 && range.round > 0 && range.region == 0 {
+        let (tx, rx) = tokio::sync::oneshot::channel::<RoundBefore>();
+        let shot = round_snapshot(state.clone(), worker.to_string(), job.clone(), task.clone(), rx);
+        (Some(tx), Some(tokio::spawn(shot.instrument(tracing::Span::current()))))
+    } else {
+        (None, None)
+    };
     let beat = Arc::new(Mutex::new(TaskBeat::default()));
     let step = StepProgress::default();
     // The job's snapshots while it runs: this task's halves so far go to the store and,
@@ -246,11 +241,13 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
             let _e = span.enter();
             let (scene, _) = import_files(&files, &limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
             drop(files);
-            let previous = previous
-                .iter()
-                .zip(before)
-                .map(|(b, k)| Partial::decode(b, &format!("task {k}'s result")))
-                .collect::<Result<Vec<_>, _>>()?;
+            let previous: Arc<Vec<Partial>> = Arc::new(
+                previous
+                    .iter()
+                    .zip(before)
+                    .map(|(b, k)| Partial::decode(b, &format!("task {k}'s result")))
+                    .collect::<Result<_, _>>()?,
+            );
             let options = BakeOptions {
                 // Snapshots are not stored; they only refresh the task's error estimate.
                 snapshot_interval: Duration::from_secs(1),
@@ -296,11 +293,26 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
                 }
             };
             let partial = if range.rounds > 0 {
-                // A round task's halves are not handed on while it runs: the job's
-                // snapshots wait for its merge, as a round's estimate states no error
-                // (below; docs/scaling.md, "Pages in rounds").
+                // A round task's halves are not handed on while it runs (a round's estimate
+                // states no error, below): the job's snapshots are the finished rounds.
                 drop(sink);
-                rounds::bake_round_task(scene, &request, range, &previous, &options, &mut observer, &mut |_| {})?
+                let mut on_atlas = |a: &Arc<Atlas>| {
+                    if let Some(tx) = shot_tx.take() {
+                        let _ = tx.send(RoundBefore {
+                            atlas: a.clone(),
+                            results: previous.clone(),
+                        });
+                    }
+                };
+                rounds::bake_round_task(
+                    scene,
+                    &request,
+                    range,
+                    &previous,
+                    &options,
+                    &mut observer,
+                    &mut on_atlas,
+                )?
             } else {
                 tasks::bake_task_live(
                     scene,
@@ -744,23 +756,32 @@ async fn store_claimed(
     }
 }
 
+/// What a round task's bake thread hands its round snapshot: the whole texel set it
+/// prepared and every region's result of the round before, decoded.
+struct RoundBefore {
+    atlas: Arc<Atlas>,
+    results: Arc<Vec<Partial>>,
+}
+
 /// A job in rounds' snapshot of the round before `task`'s (round r-1's results, every
-/// region's, `previous`), made by region 0's task of round r when the queue gives it the
-/// job's next snapshot ([`Queue::claim_task_snapshot`](crate::service::queue::Queue::claim_task_snapshot)):
-/// the results merged on the whole texel set (`tasks::running_atlas`, the merge's
-/// preparation, within this worker's memory limit), denoised and stored as a running
-/// snapshot. It states **no error**: a round's halves cannot see the light the rounds
-/// still lack (module doc), so its EXR header, its files and its history point say
-/// nothing rather than understate. Runs beside the task's bake; a failure costs only the
-/// snapshot.
+/// region's), made by region 0's task of round r when the queue gives it the job's next
+/// snapshot ([`Queue::claim_task_snapshot`](crate::service::queue::Queue::claim_task_snapshot)):
+/// the results merged on the whole texel set the task's bake prepared (`before`, sent once
+/// it is), denoised and stored as a running snapshot. It states **no error**: a round's
+/// halves cannot see the light the rounds still lack (module doc), so its EXR header, its
+/// files and its history point say nothing rather than understate. Runs beside the task's
+/// bake; a failure costs only the snapshot.
 async fn round_snapshot(
     state: AppState,
     worker: String,
     job: JobRecord,
     task: TaskRecord,
-    files: SceneFiles,
-    previous: Vec<Bytes>,
+    before: tokio::sync::oneshot::Receiver<RoundBefore>,
 ) {
+    // The bake thread drops the sender without sending when it fails before its grid.
+    let Ok(RoundBefore { atlas, results }) = before.await else {
+        return;
+    };
     let Some(n) = claim_snapshot(&state, &job, &task, &worker).await else {
         return;
     };
@@ -768,20 +789,20 @@ async fn round_snapshot(
     let elapsed = job
         .started_at
         .map_or(0.0, |t| (state.db_now() - t).max(0) as f64 / 1000.0);
-    let (limits, request) = (state.config.limits.clone(), job.spec.task_request());
+    let request = job.spec.task_request();
     let made = tokio::task::spawn_blocking(move || {
-        let parts = previous
+        // The grid holds the regions' texels one after another, in region order (the
+        // merge checks each region's fingerprint against its range).
+        let mut at = 0;
+        let regions: Vec<Range<usize>> = results
             .iter()
-            .map(|b| Partial::decode(b, "a result of the round before"))
-            .collect::<Result<Vec<_>, _>>()?;
-        drop(previous);
-        let (scene, _) = import_files(&files, &limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
-        let options = BakeOptions {
-            max_memory_bytes: Some(limits.max_job_memory_bytes),
-            ..Default::default()
-        };
-        let (atlas, regions) = tasks::running_atlas(Arc::new(scene), &parts, &options)?;
-        snapshot_files(&atlas, &regions, &parts, &request, elapsed, false)
+            .map(|p| {
+                let r = at..at + p.header.texels as usize;
+                at = r.end;
+                r
+            })
+            .collect();
+        snapshot_files(&atlas, &regions, &results, &request, elapsed, false)
     })
     .await;
     match made {

@@ -800,9 +800,7 @@ pub(crate) async fn store_final(
         .await
 }
 
-/// A scene's stored files, ready for import on the bake thread (cheap to clone: shared
-/// bytes).
-#[derive(Clone)]
+/// A scene's stored files, ready for import on the bake thread.
 pub enum SceneFiles {
     Glb(Bytes),
     /// The main .gltf's name and every file.
