@@ -98,8 +98,9 @@
 //! what a region's task repeats of a single bake. A resumed receiver's half is (mean, 1), a
 //! direction's average weight, with the host's weights set to its directions so far; the
 //! ambient-mode correction is measured over the receivers and added to them only, and a
-//! resumed round drops no bootstrap step. `leaky` mode is refused (its blend forgets on
-//! purpose). The round's own estimate, the next round's held light
+//! round that starts from light (resumed, or held) drops no bootstrap step. `leaky` mode
+//! is refused (its blend forgets on purpose). The round's own estimate, the next round's
+//! held light
 //! (`rounds::this_round`), weighs steps by i^ramp where this technique weighs directions
 //! (two a step with the ambient mode's pairs): within a few percent of the same shares
 //! (0.857 against 0.872 of the weight in a round of 4 steps after 2), so a little of the
@@ -464,17 +465,9 @@ pub struct SdbEngine {
     /// The texels that gather light (all of them, but in a round of a bake in rounds:
     /// its region, [`SdbEngine::hold_boundary`]).
     receivers: std::ops::Range<u32>,
-    /// In a round of a bake in rounds: every texel's accumulators as the round began,
-    /// the other texels' put back after each step (they hold their light).
-    held: Option<HeldState>,
-    /// The receivers' accumulators went on from a round before: no bootstrap step.
-    resumed: bool,
-}
-
-/// The accumulators a round of a bake in rounds began with ([`SdbEngine::hold_boundary`]).
-struct HeldState {
-    acc: wgpu::Buffer,
-    fed_acc: wgpu::Buffer,
+    /// The bake starts from light already estimated (a round's resumed receivers, or
+    /// held light): no bootstrap step, whose clear would also wipe the held texels.
+    starts_lit: bool,
 }
 
 /// What a step changes on the host, kept to undo a stopped step.
@@ -961,8 +954,7 @@ impl SdbEngine {
             progress: None,
             slicer: StepSlicer::per_unit("sdb directions"),
             receivers: 0..n_texels,
-            held: None,
-            resumed: false,
+            starts_lit: false,
             directions: Directions::new(params.directions, input.seed),
             rng: SplitMix64::new(input.seed ^ 0x0A11_CE5E_ED00_0001),
             ctx,
@@ -1444,9 +1436,6 @@ impl SdbEngine {
             );
             self.ctx.queue.submit([encoder.finish()]);
         }
-        if bootstrap {
-            self.put_back_held();
-        }
         self.half_steps[parity as usize] += 1;
         self.steps_done += 1;
         self.ctx.take_error("sdb step")
@@ -1456,37 +1445,7 @@ impl SdbEngine {
     /// step 1 with the ambient-mode correction, unless the accumulators went on from a
     /// round before (their estimate already has the light's shape).
     fn bootstraps(&self) -> bool {
-        self.ambient_factor.is_some() && self.steps_done == 1 && !self.resumed
-    }
-
-    /// In a round of a bake in rounds: the texels outside the receivers get back the
-    /// accumulators they began the round with, after the bootstrap step cleared every
-    /// accumulator (the gather and the light passes write the receivers only), so they
-    /// go on sending the held light. Buffer copies on the device; the light accumulators
-    /// are zero there.
-    fn put_back_held(&self) {
-        let Some(held) = &self.held else {
-            return;
-        };
-        let n = u64::from(self.n_texels);
-        let (lo, hi) = (u64::from(self.receivers.start), u64::from(self.receivers.end));
-        let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("sdb held texels put back"),
-        });
-        for h in 0..2 {
-            for (from, to) in [(0, lo), (hi, n)] {
-                if to <= from {
-                    continue;
-                }
-                let (at, size) = ((h * n + from) * 16, (to - from) * 16);
-                encoder.copy_buffer_to_buffer(&held.acc, at, &self.acc_buf, at, size);
-                encoder.copy_buffer_to_buffer(&held.fed_acc, at, &self.fed_acc_buf, at, size);
-                if let Some(sun) = &self.sun_acc_buf {
-                    encoder.clear_buffer(sun, at, Some(size));
-                }
-            }
-        }
-        self.ctx.queue.submit([encoder.finish()]);
+        self.ambient_factor.is_some() && self.steps_done == 1 && !self.starts_lit
     }
 
     /// Holds every texel outside `receivers` at `held` (E/pi) for the bake's steps and
@@ -1496,8 +1455,9 @@ impl SdbEngine {
     ///   resolve's ratio reads `held`, and its fed accumulators (held, 0), so the
     ///   ambient-mode residual there is 0; its light accumulators are zero. The gather,
     ///   the sun's and the small lights' passes run over the receivers only (their
-    ///   `texels` range), so nothing else writes them but the bootstrap step's clear, after
-    ///   which they are put back ([`SdbEngine::put_back_held`]).
+    ///   `texels` range), so nothing writes them; the bootstrap step, whose clear would,
+    ///   is skipped when any held light is not zero (in round 0 it all is: cleared, a
+    ///   held texel still reads 0).
     /// - a resumed receiver's half is (mean, 1): the half's mean with the weight one
     ///   direction has on average (4 max(<d, n>, 0) over the sphere: 1), so a new
     ///   direction's blend, with the host's weights set to sum i^ramp over the half's
@@ -1573,30 +1533,15 @@ impl SdbEngine {
                     .map(|i| (i as f64).powf(f64::from(self.params.ramp)))
                     .sum();
             }
-            self.resumed = true;
         }
+        self.starts_lit = resume.is_some() || held.iter().any(|v| *v != Vec3::ZERO);
         let q = &self.ctx.queue;
         q.write_buffer(&self.acc_buf, 0, bytemuck::cast_slice(&acc));
         q.write_buffer(&self.fed_acc_buf, 0, bytemuck::cast_slice(&fed));
         if let (Some(b), Some(d)) = (&self.direct_acc_buf, &direct) {
             q.write_buffer(b, 0, bytemuck::cast_slice(d));
         }
-        if let Some(b) = &self.sun_acc_buf {
-            q.write_buffer(b, 0, bytemuck::cast_slice(&vec![zero; 2 * n]));
-        }
-        let copy = |label: &str, data: &[[f32; 4]]| {
-            let b = self.ctx.buffer_zeroed(
-                label,
-                data.len() as u64 * 16,
-                wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
-            );
-            q.write_buffer(&b, 0, bytemuck::cast_slice(data));
-            b
-        };
-        self.held = Some(HeldState {
-            acc: copy("sdb held accumulators (even, odd)", &acc),
-            fed_acc: copy("sdb held fed estimate accumulators (even, odd)", &fed),
-        });
+        // The light accumulators stay as created, zero: no step has run.
         self.receivers = r.start as u32..r.end as u32;
         self.texel_dispatch = gpu::dispatch_size_64(self.receivers.len() as u32);
         self.ctx.take_error("sdb boundary").map_err(|e| e.to_string())
