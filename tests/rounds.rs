@@ -9,13 +9,15 @@ use std::sync::Arc;
 
 use glam::Vec3;
 use lightmapd::engine::accumulate::LUMINANCE;
+use lightmapd::engine::atlas::{Atlas, validate};
 use lightmapd::engine::bake::{BakeEvent, StopCriteria};
 use lightmapd::engine::job::{self, BakeOptions, BakeRequest};
 use lightmapd::engine::post::denoised::Denoiser;
-use lightmapd::engine::rounds::{RoundsShape, bake_in_rounds};
-use lightmapd::engine::scene::build::{remove_lightmap_uvs, write_glb};
+use lightmapd::engine::rounds::{RoundsShape, bake_in_rounds, bake_round_task};
+use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder, remove_lightmap_uvs, write_glb};
 use lightmapd::engine::scene::library::{closed_box, sphere_over_plane};
 use lightmapd::engine::scene::{self, Hemisphere, Scene, Sky};
+use lightmapd::engine::tasks;
 
 /// `builder`'s scene with the lightmap UVs of meshes `generated` removed: those meshes get
 /// a generated page, the others keep the authored one (two pages).
@@ -226,6 +228,116 @@ fn one_region_in_one_round_is_the_single_bake() {
         assert_eq!(a.total, b.total, "{t}: one region in one round is not the single bake");
         assert_eq!(a.halves, b.halves, "{t}");
     }
+}
+
+/// Round 0's tasks validate their own regions only (`job::RegionsOf::trace`): on a floor
+/// whose texels under a box lie inside geometry, the texels a task drops all lie in its
+/// region, every other texel stays as rasterised, and together the tasks drop what the
+/// whole grid's validation drops; round 1 builds the whole grid's validated texel set
+/// from what they kept, tracing nothing. Baked task by task, as separate processes bake
+/// them, the merge is the one-process bake in rounds' lightmap bit for bit.
+#[test]
+fn round_zero_validates_each_region_once() {
+    let _gpu = common::gpu_serial();
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("floor", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.block("box", Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0), 0.0, m);
+    let scene = Arc::new(scene::import_slice(&b.to_glb(), None).unwrap().0);
+    let mut request = request(32, 4);
+    request.lighting.sky = Some(Sky {
+        radiance: Vec3::ONE,
+        hemisphere: Hemisphere::Upper,
+    });
+    let rasterised = Atlas::build(&scene, 32, 32).unwrap();
+    let regions = rasterised.region_pixels(2).unwrap();
+    let mut whole = rasterised.clone();
+    validate::validate(&scene, &mut whole);
+    let mut inside = whole.inside_pixels.clone();
+    inside.sort_unstable();
+    eprintln!(
+        "{} texels, {} inside geometry, regions {regions:?}",
+        rasterised.texels.len(),
+        inside.len()
+    );
+    assert!(
+        inside.len() > 10,
+        "the box's footprint lies inside geometry: {}",
+        inside.len()
+    );
+    let pixels_in =
+        |a: &Atlas, r: std::ops::Range<u32>| -> Vec<u32> { a.texels[a.texels_in(r)].iter().map(|t| t.pixel).collect() };
+    let mut previous = Vec::new();
+    let mut dropped = Vec::new();
+    for round in tasks::split_rounds(&request, 2, 2).unwrap() {
+        let mut results = Vec::new();
+        for task in round {
+            let mut seen = None;
+            let p = bake_round_task(
+                scene.clone(),
+                &request,
+                task,
+                &previous,
+                &BakeOptions::default(),
+                &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+                &mut |a| seen = Some(a.clone()),
+            )
+            .unwrap();
+            let atlas = seen.expect("the task's texel set");
+            let (k, own) = (task.region as usize, &regions[task.region as usize]);
+            assert_eq!(
+                p.pixels,
+                pixels_in(&whole, own.clone()),
+                "round {}, region {k}",
+                task.round
+            );
+            let other = &regions[1 - k];
+            // The box's footprint lies in region 0 (measured): region 1's task keeps
+            // its texels inside geometry, untraced.
+            if task.round == 0 {
+                assert!(
+                    atlas.inside_pixels.iter().all(|x| own.contains(x)),
+                    "region {k} dropped texels of another region"
+                );
+                assert_eq!(
+                    pixels_in(&atlas, other.clone()),
+                    pixels_in(&rasterised, other.clone()),
+                    "region {k}"
+                );
+                dropped.extend(atlas.inside_pixels.iter().copied());
+            } else {
+                assert_eq!(
+                    pixels_in(&atlas, other.clone()),
+                    pixels_in(&whole, other.clone()),
+                    "round 1, region {k}"
+                );
+            }
+            results.push(p);
+        }
+        previous = results;
+    }
+    let footprint = |r: &std::ops::Range<u32>| inside.iter().filter(|x| r.contains(x)).count();
+    assert!(footprint(&regions[0]) > 10, "the cut moved: {regions:?}");
+    dropped.sort_unstable();
+    assert_eq!(
+        dropped, inside,
+        "round 0's tasks together drop what the whole grid's validation drops"
+    );
+    let merged = tasks::merge(scene.clone(), &previous, &BakeOptions::default(), &mut |_| {}).unwrap();
+    let one = bake_in_rounds(
+        scene,
+        &request,
+        RoundsShape { regions: 2, rounds: 2 },
+        &BakeOptions::default(),
+        &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(
+        merged.estimate.total, one.result.estimate.total,
+        "the tasks' bake is the one-process bake"
+    );
+    assert_eq!(merged.atlas.texels.len(), whole.texels.len());
 }
 
 /// Techniques that do not hold a boundary are refused by name, as are stop rules no

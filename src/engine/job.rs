@@ -378,6 +378,12 @@ pub(crate) struct RegionsOf<'a> {
     /// in pixel order. Given, the merge takes the tasks' decisions instead of tracing
     /// validation's rays again (for a large level most of its preparation).
     pub validated: Option<&'a [u32]>,
+    /// Round 0 of a bake in rounds (`engine::rounds`), with `keep` `None`: the whole grid
+    /// is built but only region `trace`'s texels are validated (traced); the others stay
+    /// as rasterised. Their light is held at zero in that round, so a texel inside
+    /// geometry among them sends what a dropped one sends (nothing), and the round's
+    /// region tasks together trace the grid's validation once instead of once each.
+    pub trace: Option<u32>,
 }
 
 pub(crate) fn prepare(
@@ -503,6 +509,7 @@ pub(crate) fn prepare_regions(
         |m: String| EngineError::BadInput(format!("tasks: {m}; ask for fewer regions or a higher resolution"));
     let mut region_pixels = Vec::new();
     let mut validated = None;
+    let mut traced: Option<u32> = None;
     let mut atlas = match regions {
         // A region's task: the cut from the grid's coverage (a bit a pixel), then only
         // the region's rows rasterised and only its texels built, so a page task's
@@ -511,6 +518,7 @@ pub(crate) fn prepare_regions(
             count,
             keep: Some(k),
             validated: kept,
+            ..
         }) if count > 1 => {
             validated = kept;
             let coverage = Atlas::coverage(&scene, width, height).map_err(atlas_error)?;
@@ -530,9 +538,13 @@ pub(crate) fn prepare_regions(
             atlas
         }
         Some(RegionsOf {
-            count, validated: kept, ..
+            count,
+            validated: kept,
+            trace,
+            ..
         }) => {
             validated = kept;
+            traced = trace;
             let atlas = Atlas::build(&scene, width, height).map_err(atlas_error)?;
             region_pixels = atlas.region_pixels(count).map_err(region_error)?;
             atlas
@@ -542,25 +554,41 @@ pub(crate) fn prepare_regions(
     let rays = SceneRays::new(scene.clone());
     // On a hardware GPU its rays go through the BVH query pass (issue 20 point 3: 56.6 s of a
     // 15.6 M-texel level's 60.5 s preparation was the CPU's tracing); elsewhere the CPU's.
+    // The texels validation traces: all of them, or one region's in round 0 of a bake in
+    // rounds (the others read as outside geometry: kept).
+    let traced = match traced {
+        Some(k) => {
+            let pixels = region_pixels
+                .get(k as usize)
+                .cloned()
+                .ok_or_else(|| EngineError::Internal(format!("region {k} of {} traced", region_pixels.len())))?;
+            atlas.texels_in(pixels)
+        }
+        None => 0..atlas.texels.len(),
+    };
     let fractions = match validated {
         // A texel the tasks kept has no back-face hit to speak of, any other was inside.
-        Some(kept) => Some(
-            atlas
-                .texels
-                .iter()
-                .map(|t| if kept.binary_search(&t.pixel).is_ok() { 0.0 } else { 1.0 })
-                .collect(),
-        ),
-        None => crate::engine::gpu::hardware_context("texel validation").and_then(|ctx| {
-            crate::engine::gpu::validate::backface_fractions(&ctx, &rays, &atlas.texels)
-                .inspect_err(|e| tracing::warn!(error = %e, "texel validation on the GPU failed; tracing on the CPU"))
-                .ok()
-        }),
+        Some(kept) => atlas
+            .texels
+            .iter()
+            .map(|t| if kept.binary_search(&t.pixel).is_ok() { 0.0 } else { 1.0 })
+            .collect(),
+        None => {
+            let texels = &atlas.texels[traced.clone()];
+            let gpu = crate::engine::gpu::hardware_context("texel validation").and_then(|ctx| {
+                crate::engine::gpu::validate::backface_fractions(&ctx, &rays, texels)
+                    .inspect_err(
+                        |e| tracing::warn!(error = %e, "texel validation on the GPU failed; tracing on the CPU"),
+                    )
+                    .ok()
+            });
+            let some = gpu.unwrap_or_else(|| validate::backface_fractions(&scene, &rays.tracer(), texels));
+            let mut all = vec![0.0; atlas.texels.len()];
+            all[traced].copy_from_slice(&some);
+            all
+        }
     };
-    let validation = match fractions {
-        Some(f) => validate::validate_from(&scene, &mut atlas, &f),
-        None => validate::validate_with(&scene, &rays.tracer(), &mut atlas),
-    };
+    let validation = validate::validate_from(&scene, &mut atlas, &fractions);
     let atlas = Arc::new(atlas);
     on_atlas(&atlas);
     Ok(Prepared {

@@ -54,8 +54,11 @@
 //! - Every task prepares the whole grid (texel set, the technique's per-texel buffers:
 //!   the held light must be readable at every texel), so a region's task bounds the work
 //!   of its gather, not its memory; its hemicubes render the whole scene. Validation is
-//!   traced in round 0 only (every task of it, over the whole grid); later rounds take
-//!   the texels the round before kept, as the merge does.
+//!   traced in round 0 only, each task over its own region (the others' light is held at
+//!   zero there, so their texels inside geometry send nothing either way); later rounds
+//!   take the texels the round before kept, as the merge does. In one process
+//!   ([`bake_in_rounds`]) round 0 therefore builds the grid's texel set once a region
+//!   (what its tasks do on their machines), validation still traced once in all.
 //! - The held light of a glossy texel outside the receivers has no incoming direction:
 //!   its lobe reflects light arriving along its normal (`hemicube`'s select pass falls
 //!   back to it), a bias the control texels state like any other.
@@ -134,7 +137,7 @@ pub fn bake_round_task(
     // level's preparation).
     let kept: Option<Vec<u32>> =
         check_previous(request, task, previous)?.map(|p| p.iter().flat_map(|x| x.pixels.iter().copied()).collect());
-    let prepared = prepare(scene, request, task.regions, options, kept.as_deref(), on_atlas)?;
+    let prepared = prepare(scene, request, task, options, kept.as_deref(), on_atlas)?;
     bake_prepared(&prepared, request, task, previous, observer, started)
 }
 
@@ -150,15 +153,20 @@ fn check_task(request: &BakeRequest, task: TaskRange) -> Result<(), EngineError>
     Ok(())
 }
 
-/// The whole grid as the single bake's, cut into `regions` regions as a split bake's
+/// The whole grid as the single bake's, cut into `task.regions` regions as a split bake's
 /// merge cuts them (before validation): what every task of a bake in rounds starts from.
 /// Deterministic, so tasks on different machines prepare the same. `kept`: the pixels of
 /// the texels validation kept, in pixel order, when a round before has told them (then
-/// nothing is traced, as in the merge, and the texel set is the same).
+/// nothing is traced, as in the merge, and the texel set is the same). In round 0 only
+/// the task's own region is validated (`job::RegionsOf::trace`): every other texel's
+/// light is held at zero then, so whether it lies inside geometry changes nothing, and
+/// the round's tasks trace the grid's validation once between them, each its own share
+/// (validation's rays are keyed by the texel's pixel, so each region keeps the texels
+/// the whole grid's validation keeps there, which round 1 then reads as `kept`).
 fn prepare(
     scene: Arc<Scene>,
     request: &BakeRequest,
-    regions: u32,
+    task: TaskRange,
     options: &BakeOptions,
     kept: Option<&[u32]>,
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
@@ -169,9 +177,10 @@ fn prepare(
         ));
     }
     let regions = job::RegionsOf {
-        count: regions,
+        count: task.regions,
         keep: None,
         validated: kept,
+        trace: (task.round == 0 && kept.is_none()).then_some(task.region),
     };
     job::prepare_regions(scene, request, options, Some(regions), on_atlas, &mut |_| {})
 }
@@ -372,9 +381,12 @@ pub fn bake_in_rounds(
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
 ) -> Result<RoundsResult, EngineError> {
     let rounds = tasks::split_rounds(request, shape.regions, shape.rounds)?;
-    // One preparation for every task: a task on its own machine prepares the same grid
-    // (`prepare` is deterministic), so the lightmap is the processes' lightmap.
-    let prepared = prepare(scene.clone(), request, shape.regions, options, None, on_atlas)?;
+    // The grid prepared as each task on its own machine prepares it (`prepare` is
+    // deterministic), so the lightmap is the processes' lightmap: in round 0 once a task
+    // (each validates its own region), from round 1 on once for all, from the texels
+    // round 0 kept. `on_atlas` sees the first.
+    let mut on_atlas = Some(on_atlas);
+    let mut prepared: Option<(u32, job::Prepared)> = None;
     let mut previous: Vec<Partial> = Vec::new();
     let mut held_before: Vec<Vec3> = Vec::new();
     let mut reports = Vec::with_capacity(rounds.len());
@@ -398,7 +410,23 @@ pub fn bake_in_rounds(
                 flow
             };
             check_task(request, *task)?;
-            let p = bake_prepared(&prepared, request, *task, &previous, &mut relay, Instant::now())?;
+            // Round 0's preparations are each their task's; the one after is every later round's.
+            if task.round <= 1 && prepared.as_ref().is_none_or(|(round, _)| *round == 0) {
+                let kept: Option<Vec<u32>> =
+                    (task.round > 0).then(|| previous.iter().flat_map(|x| x.pixels.iter().copied()).collect());
+                let see = on_atlas.take();
+                let grid = prepare(
+                    scene.clone(),
+                    request,
+                    *task,
+                    options,
+                    kept.as_deref(),
+                    see.unwrap_or(&mut |_| {}),
+                )?;
+                prepared = Some((task.round, grid));
+            }
+            let (_, prepared) = prepared.as_ref().expect("prepared above");
+            let p = bake_prepared(prepared, request, *task, &previous, &mut relay, Instant::now())?;
             if cancelled {
                 return Err(EngineError::BadInput(
                     "rounds: the bake was cancelled; a bake in rounds delivers nothing before its last round".into(),

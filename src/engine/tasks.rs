@@ -605,6 +605,7 @@ pub fn bake_task_live(
         count: task.regions,
         keep: Some(task.region),
         validated: None,
+        trace: None,
     });
     let prepared = job::prepare_regions(scene, &own, options, regions, on_atlas, on_plan)?;
     let pixels: Vec<u32> = prepared.atlas.texels.iter().map(|t| t.pixel).collect();
@@ -1241,6 +1242,7 @@ fn prepare_whole(
         count: by_region.len().max(1) as u32,
         keep: None,
         validated: Some(&kept),
+        trace: None,
     };
     let prepared = job::prepare_regions(scene, request, options, Some(regions), &mut |_| {}, on_plan)?;
     // Each region's texels in the validated whole (one region: all of them).
