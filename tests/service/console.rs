@@ -1444,7 +1444,7 @@ fn the_3d_view_cuts_away_what_alpha_cuts_away() {
 /// A split job's tasks and a waiting job's reason in the console (issue 25): a `path`
 /// job of the Cornell box as 2 regions × 2 step ranges, baked by the server's one
 /// worker, shows its 4 bake tasks and the merge with their regions, step ranges and
-/// states; a job requiring a hardware GPU (this machine has none) shows what it waits for.
+/// states; a `hemicube` job as 2 regions in 2 rounds shows each task's round; a job requiring a hardware GPU (this machine has none) shows what it waits for.
 #[test]
 fn the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for() {
     let _cpu = crate::CPU_HEAVY.blocking_lock();
@@ -1456,7 +1456,7 @@ fn the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for() {
     let _serve = Serve(child);
     let rt = tokio::runtime::Runtime::new().unwrap();
     let http = reqwest::Client::new();
-    let (split, waiting) = rt.block_on(async {
+    let (split, rounds, waiting) = rt.block_on(async {
         let scene = service_common::upload_cornell(&http, &url).await;
         let submit = |body: Value| {
             let (http, url) = (http.clone(), url.clone());
@@ -1470,10 +1470,15 @@ fn the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for() {
             "tasks": 4, "regions": 2, "params": {"samples_per_step": 2}}))
         .await;
         wait_succeeded(&http, &url, &split, Duration::from_secs(120)).await;
+        let rounds = submit(json!({"scene": scene, "technique": "hemicube", "resolution": 24,
+            "stop": {"steps": 8}, "regions": 2, "rounds": 2, "denoise": "none",
+            "params": {"shooters_per_step": 16, "depth_map_size": 64}}))
+        .await;
+        wait_succeeded(&http, &url, &rounds, Duration::from_secs(120)).await;
         let waiting = submit(json!({"scene": scene, "resolution": 24, "stop": {"steps": 8},
             "requires": {"gpu": true}}))
         .await;
-        (split, waiting)
+        (split, rounds, waiting)
     });
     let mut b = Browser::start(&exe);
     b.call("Page.navigate", json!({"url": format!("{url}/#job={split}")}));
@@ -1500,6 +1505,31 @@ fn the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for() {
     let (shots, _keep) = shots_dir();
     std::fs::write(shots.join("10-split-job-tasks.png"), b.screenshot(Some("#job-tasks"))).unwrap();
     assert_eq!(b.eval("document.getElementById('job-waiting').hidden"), true);
+
+    // A job in rounds: each bake task names its region and round; round 0's 2 steps of
+    // the 8 (`tasks::round_steps`), then round 1's 6.
+    b.call("Page.navigate", json!({"url": format!("{url}/?rounds#job={rounds}")}));
+    b.wait(
+        "the rounds job's task table",
+        "document.querySelectorAll('#job-task-rows tr[data-task]').length === 5 && !document.getElementById('job-tasks').hidden",
+        Duration::from_secs(30),
+    );
+    let summary = b.eval("document.getElementById('job-tasks-summary').textContent");
+    assert_eq!(summary, "4 of 4 baked · 2 regions of the grid in 2 rounds");
+    let rows = b.eval(
+        "[...document.querySelectorAll('#job-task-rows tr[data-task]')].map(r => [...r.cells].slice(0, 4).map(c => c.textContent).join('|'))",
+    );
+    assert_eq!(
+        rows,
+        json!([
+            "0|0 · round 0|0–2|succeeded",
+            "1|1 · round 0|0–2|succeeded",
+            "2|0 · round 1|2–8|succeeded",
+            "3|1 · round 1|2–8|succeeded",
+            "merge|||succeeded"
+        ])
+    );
+    std::fs::write(shots.join("11-rounds-job-tasks.png"), b.screenshot(Some("#job-tasks"))).unwrap();
 
     b.call("Page.navigate", json!({"url": format!("{url}/?waiting#job={waiting}")}));
     let text = b.wait(
