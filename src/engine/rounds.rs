@@ -44,9 +44,11 @@
 //!
 //! # Limits
 //! - `hemicube` and `sdb` hold a boundary (`Technique::hold_boundary`; `sdb` in its
-//!   `average` mode only, and its gather still runs over every texel, the held ones'
-//!   share wasted); the other techniques split into regions without rounds or not at all
-//!   (docs/scaling.md, "What a task is, per technique").
+//!   `average` mode only). Their per-texel passes run over the receivers, but what
+//!   renders the whole scene (`hemicube`'s hemicubes, `sdb`'s illumination maps) every
+//!   region's task renders again, so P regions cost P times that share of a step; the
+//!   other techniques split into regions without rounds or not at all (docs/scaling.md,
+//!   "What a task is, per technique").
 //! - The service's queue bakes rounds (`JobSpec::rounds`: round r's tasks queued once
 //!   round r - 1's have succeeded, in both backends, `service::farm`), as does the command
 //!   line (`bake --rounds R --regions P --task K/P --round r --previous ...`, then
