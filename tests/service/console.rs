@@ -1441,6 +1441,24 @@ fn the_3d_view_cuts_away_what_alpha_cuts_away() {
     );
 }
 
+/// The job page at `page` once its task table shows `rows` rows: the table's summary line
+/// and each row's first four cells (task, region, steps of the job, state) joined by `|`.
+fn task_table(b: &mut Browser, page: &str, rows: usize) -> (Value, Value) {
+    b.call("Page.navigate", json!({ "url": page }));
+    b.wait(
+        "the job's task table",
+        &format!(
+            "document.querySelectorAll('#job-task-rows tr[data-task]').length === {rows} && !document.getElementById('job-tasks').hidden"
+        ),
+        Duration::from_secs(30),
+    );
+    let summary = b.eval("document.getElementById('job-tasks-summary').textContent");
+    let cells = b.eval(
+        "[...document.querySelectorAll('#job-task-rows tr[data-task]')].map(r => [...r.cells].slice(0, 4).map(c => c.textContent).join('|'))",
+    );
+    (summary, cells)
+}
+
 /// A split job's tasks and a waiting job's reason in the console (issue 25): a `path`
 /// job of the Cornell box as 2 regions × 2 step ranges, baked by the server's one
 /// worker, shows its 4 bake tasks and the merge with their regions, step ranges and
@@ -1481,17 +1499,8 @@ fn the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for() {
         (split, rounds, waiting)
     });
     let mut b = Browser::start(&exe);
-    b.call("Page.navigate", json!({"url": format!("{url}/#job={split}")}));
-    b.wait(
-        "the split job's task table",
-        "document.querySelectorAll('#job-task-rows tr[data-task]').length === 5 && !document.getElementById('job-tasks').hidden",
-        Duration::from_secs(30),
-    );
-    let summary = b.eval("document.getElementById('job-tasks-summary').textContent");
+    let (summary, rows) = task_table(&mut b, &format!("{url}/#job={split}"), 5);
     assert_eq!(summary, "4 of 4 baked · 2 regions of the grid");
-    let rows = b.eval(
-        "[...document.querySelectorAll('#job-task-rows tr[data-task]')].map(r => [...r.cells].slice(0, 4).map(c => c.textContent).join('|'))",
-    );
     assert_eq!(
         rows,
         json!([
@@ -1508,17 +1517,8 @@ fn the_console_shows_a_split_jobs_tasks_and_what_a_job_waits_for() {
 
     // A job in rounds: each bake task names its region and round; round 0's 2 steps of
     // the 8 (`tasks::round_steps`), then round 1's 6.
-    b.call("Page.navigate", json!({"url": format!("{url}/?rounds#job={rounds}")}));
-    b.wait(
-        "the rounds job's task table",
-        "document.querySelectorAll('#job-task-rows tr[data-task]').length === 5 && !document.getElementById('job-tasks').hidden",
-        Duration::from_secs(30),
-    );
-    let summary = b.eval("document.getElementById('job-tasks-summary').textContent");
+    let (summary, rows) = task_table(&mut b, &format!("{url}/?rounds#job={rounds}"), 5);
     assert_eq!(summary, "4 of 4 baked · 2 regions of the grid in 2 rounds");
-    let rows = b.eval(
-        "[...document.querySelectorAll('#job-task-rows tr[data-task]')].map(r => [...r.cells].slice(0, 4).map(c => c.textContent).join('|'))",
-    );
     assert_eq!(
         rows,
         json!([
