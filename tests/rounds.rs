@@ -234,8 +234,8 @@ fn one_region_in_one_round_is_the_single_bake() {
 /// whose texels under a box lie inside geometry, the texels a task drops all lie in its
 /// region, every other texel stays as rasterised, and together the tasks drop what the
 /// whole grid's validation drops; round 1 builds the whole grid's validated texel set
-/// from what they kept, tracing nothing. Baked task by task, as separate processes bake
-/// them, the merge is the one-process bake in rounds' lightmap bit for bit.
+/// from what they kept. Baked task by task, as separate processes bake them, the merge
+/// is the one-process bake in rounds' lightmap bit for bit, for `hemicube` and `sdb`.
 #[test]
 fn round_zero_validates_each_region_once() {
     let _gpu = common::gpu_serial();
@@ -267,77 +267,127 @@ fn round_zero_validates_each_region_once() {
     );
     let pixels_in =
         |a: &Atlas, r: std::ops::Range<u32>| -> Vec<u32> { a.texels[a.texels_in(r)].iter().map(|t| t.pixel).collect() };
-    let mut previous = Vec::new();
-    let mut dropped = Vec::new();
-    for round in tasks::split_rounds(&request, 2, 2).unwrap() {
-        let mut results = Vec::new();
-        for task in round {
-            let mut seen = None;
-            let p = bake_round_task(
-                scene.clone(),
-                &request,
-                task,
-                &previous,
-                &BakeOptions::default(),
-                &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
-                &mut |a| seen = Some(a.clone()),
-            )
-            .unwrap();
-            let atlas = seen.expect("the task's texel set");
-            let (k, own) = (task.region as usize, &regions[task.region as usize]);
-            assert_eq!(
-                p.pixels,
-                pixels_in(&whole, own.clone()),
-                "round {}, region {k}",
-                task.round
-            );
-            let other = &regions[1 - k];
-            // The box's footprint lies in region 0 (measured): region 1's task keeps
-            // its texels inside geometry, untraced.
-            if task.round == 0 {
-                assert!(
-                    atlas.inside_pixels.iter().all(|x| own.contains(x)),
-                    "region {k} dropped texels of another region"
-                );
+    for request in [request.clone(), sdb(request)] {
+        let mut previous = Vec::new();
+        let mut dropped = Vec::new();
+        for round in tasks::split_rounds(&request, 2, 2).unwrap() {
+            let mut results = Vec::new();
+            for task in round {
+                let mut seen = None;
+                let p = bake_round_task(
+                    scene.clone(),
+                    &request,
+                    task,
+                    &previous,
+                    &BakeOptions::default(),
+                    &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+                    &mut |a| seen = Some(a.clone()),
+                )
+                .unwrap();
+                let atlas = seen.expect("the task's texel set");
+                let (k, own) = (task.region as usize, &regions[task.region as usize]);
                 assert_eq!(
-                    pixels_in(&atlas, other.clone()),
-                    pixels_in(&rasterised, other.clone()),
-                    "region {k}"
+                    p.pixels,
+                    pixels_in(&whole, own.clone()),
+                    "round {}, region {k}",
+                    task.round
                 );
-                dropped.extend(atlas.inside_pixels.iter().copied());
-            } else {
-                assert_eq!(
-                    pixels_in(&atlas, other.clone()),
-                    pixels_in(&whole, other.clone()),
-                    "round 1, region {k}"
-                );
+                let other = &regions[1 - k];
+                // The box's footprint lies in region 0 (asserted below): region 1's
+                // task keeps those texels inside geometry, untraced.
+                if task.round == 0 {
+                    assert!(
+                        atlas.inside_pixels.iter().all(|x| own.contains(x)),
+                        "region {k} dropped texels of another region"
+                    );
+                    assert_eq!(
+                        pixels_in(&atlas, other.clone()),
+                        pixels_in(&rasterised, other.clone()),
+                        "region {k}"
+                    );
+                    dropped.extend(atlas.inside_pixels.iter().copied());
+                } else {
+                    assert_eq!(
+                        pixels_in(&atlas, other.clone()),
+                        pixels_in(&whole, other.clone()),
+                        "round 1, region {k}"
+                    );
+                }
+                results.push(p);
             }
-            results.push(p);
+            previous = results;
         }
-        previous = results;
+        let footprint = |r: &std::ops::Range<u32>| inside.iter().filter(|x| r.contains(x)).count();
+        assert!(footprint(&regions[0]) > 10, "the cut moved: {regions:?}");
+        dropped.sort_unstable();
+        assert_eq!(
+            dropped, inside,
+            "round 0's tasks together drop what the whole grid's validation drops"
+        );
+        let merged = tasks::merge(scene.clone(), &previous, &BakeOptions::default(), &mut |_| {}).unwrap();
+        let one = bake_in_rounds(
+            scene.clone(),
+            &request,
+            RoundsShape { regions: 2, rounds: 2 },
+            &BakeOptions::default(),
+            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+            &mut |_| {},
+        )
+        .unwrap();
+        assert_eq!(
+            merged.estimate.total, one.result.estimate.total,
+            "{}: the tasks' bake is the one-process bake",
+            request.technique
+        );
+        assert_eq!(merged.atlas.texels.len(), whole.texels.len());
     }
-    let footprint = |r: &std::ops::Range<u32>| inside.iter().filter(|x| r.contains(x)).count();
-    assert!(footprint(&regions[0]) > 10, "the cut moved: {regions:?}");
-    dropped.sort_unstable();
-    assert_eq!(
-        dropped, inside,
-        "round 0's tasks together drop what the whole grid's validation drops"
-    );
-    let merged = tasks::merge(scene.clone(), &previous, &BakeOptions::default(), &mut |_| {}).unwrap();
-    let one = bake_in_rounds(
-        scene,
-        &request,
-        RoundsShape { regions: 2, rounds: 2 },
-        &BakeOptions::default(),
-        &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
-        &mut |_| {},
-    )
-    .unwrap();
-    assert_eq!(
-        merged.estimate.total, one.result.estimate.total,
-        "the tasks' bake is the one-process bake"
-    );
-    assert_eq!(merged.atlas.texels.len(), whole.texels.len());
+}
+
+/// A region whose every texel lies inside geometry keeps them in round 0, as a split
+/// bake's region task keeps them (validation never empties a texel set), though the whole
+/// grid's validation drops them: a square inside a block, on a page of its own.
+#[test]
+fn a_region_all_inside_geometry_keeps_its_texels_in_round_zero() {
+    let _gpu = common::gpu_serial();
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("inner", Vec3::Y * 0.5, 1.0, Vec3::Y, m);
+    b.block("block", Vec3::ZERO, Vec3::ONE, 0.0, m);
+    let scene = two_pages(b, &[0]);
+    let mut request = request(16, 4);
+    request.lighting.sky = Some(Sky {
+        radiance: Vec3::ONE,
+        hemisphere: Hemisphere::Upper,
+    });
+    let single = job::bake_unobserved(scene.clone(), &request).unwrap();
+    let whole = &single.atlas;
+    let rasterised = Atlas::build(&single.scene, whole.width, whole.height).unwrap();
+    let regions = rasterised.region_pixels(2).unwrap();
+    let pixels_in = |a: &Atlas, r: &std::ops::Range<u32>| -> Vec<u32> {
+        a.texels[a.texels_in(r.clone())].iter().map(|t| t.pixel).collect()
+    };
+    let emptied: Vec<usize> = (0..2).filter(|&k| pixels_in(whole, &regions[k]).is_empty()).collect();
+    assert_eq!(emptied.len(), 1, "the whole grid's validation drops the square's page");
+    for task in &tasks::split_rounds(&request, 2, 2).unwrap()[0] {
+        let own = &regions[task.region as usize];
+        let p = bake_round_task(
+            scene.clone(),
+            &request,
+            *task,
+            &[],
+            &BakeOptions::default(),
+            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+            &mut |_| {},
+        )
+        .unwrap();
+        let want = if emptied[0] == task.region as usize {
+            pixels_in(&rasterised, own)
+        } else {
+            pixels_in(whole, own)
+        };
+        assert!(!want.is_empty());
+        assert_eq!(p.pixels, want, "region {}", task.region);
+    }
 }
 
 /// Techniques that do not hold a boundary are refused by name, as are stop rules no

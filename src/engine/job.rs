@@ -380,9 +380,10 @@ pub(crate) struct RegionsOf<'a> {
     pub validated: Option<&'a [u32]>,
     /// Round 0 of a bake in rounds (`engine::rounds`), with `keep` `None`: the whole grid
     /// is built but only region `trace`'s texels are validated (traced); the others stay
-    /// as rasterised. Their light is held at zero in that round, so a texel inside
-    /// geometry among them sends what a dropped one sends (nothing), and the round's
-    /// region tasks together trace the grid's validation once instead of once each.
+    /// as rasterised, so the round's region tasks together trace the grid's validation
+    /// once instead of once each. A region whose every texel is inside geometry keeps
+    /// them, as a split bake's region task does. What the untested texels change in the
+    /// round's bake is in `engine::rounds`' limits.
     pub trace: Option<u32>,
 }
 
@@ -584,7 +585,14 @@ pub(crate) fn prepare_regions(
             });
             let some = gpu.unwrap_or_else(|| validate::backface_fractions(&scene, &rays.tracer(), texels));
             let mut all = vec![0.0; atlas.texels.len()];
-            all[traced].copy_from_slice(&some);
+            // One region traced: it keeps its texels when every one of them is inside
+            // geometry (validation never empties a texel set), as a split bake's region
+            // task does; the untraced texels around it would otherwise keep the set from
+            // being empty and the region would lose them all.
+            let whole = traced.len() == atlas.texels.len();
+            if whole || some.iter().any(|f| *f <= validate::BACKFACE_TOLERANCE) {
+                all[traced].copy_from_slice(&some);
+            }
             all
         }
     };

@@ -40,7 +40,7 @@
 //!
 //! Every region's bake uses the job's seed: its shooters and emitter samples are then the
 //! ones a single bake would draw at that step (given the same light), and its CPU rays
-//! are keyed by the texel's place in the whole grid.
+//! are keyed by the texel's pixel.
 //!
 //! # Limits
 //! - `hemicube` and `sdb` hold a boundary (`Technique::hold_boundary`; `sdb` in its
@@ -55,12 +55,23 @@
 //!   `merge`), and any render-farm manager that runs it.
 //! - Every task prepares the whole grid (texel set, the technique's per-texel buffers:
 //!   the held light must be readable at every texel), so a region's task bounds the work
-//!   of its gather, not its memory; its hemicubes render the whole scene. Validation is
-//!   traced in round 0 only, each task over its own region (the others' light is held at
-//!   zero there, so their texels inside geometry send nothing either way); later rounds
-//!   take the texels the round before kept, as the merge does. In one process
-//!   ([`bake_in_rounds`]) round 0 therefore builds the grid's texel set once a region
-//!   (what its tasks do on their machines), validation still traced once in all.
+//!   of its gather, not its memory; its hemicubes render the whole scene.
+//! - Validation is traced in round 0 only, each task over its own region (so the round
+//!   traces the grid once, not once a task); later rounds take the texels the round
+//!   before kept, as the merge does. In round 0 the other regions' texels are untested,
+//!   and where some lie inside geometry the round bakes a little differently from one on
+//!   the validated grid: `sdb`'s ambient gain is measured over a set that includes them
+//!   (their rays meet back faces: a lower gain, a smaller correction), its maps read
+//!   their pixels as held light (zero) where a dropped texel's pixel is filled from a
+//!   neighbour, and `hemicube`'s receivers next to them do not take over their surface
+//!   (smaller cells; `atlas::cells`) nor do merged shooters (`shooter_level` above 0)
+//!   leave them out. All of it is round 0's, the iteration's starting point, whose held
+//!   light (zero) is far from the answer anyway: the rounds after start from its estimate
+//!   as from any other, and the control texels state what is left (measured in
+//!   docs/scaling.md, "Round 0 validates its own region"). In one process
+//!   ([`bake_in_rounds`]) round 0 builds the grid's texel set once a region, as its tasks
+//!   do on their machines, so that its lightmap is theirs; validation is still traced
+//!   once in all.
 //! - The held light of a glossy texel outside the receivers has no incoming direction:
 //!   its lobe reflects light arriving along its normal (`hemicube`'s select pass falls
 //!   back to it), a bias the control texels state like any other.
@@ -160,11 +171,11 @@ fn check_task(request: &BakeRequest, task: TaskRange) -> Result<(), EngineError>
 /// Deterministic, so tasks on different machines prepare the same. `kept`: the pixels of
 /// the texels validation kept, in pixel order, when a round before has told them (then
 /// nothing is traced, as in the merge, and the texel set is the same). In round 0 only
-/// the task's own region is validated (`job::RegionsOf::trace`): every other texel's
-/// light is held at zero then, so whether it lies inside geometry changes nothing, and
-/// the round's tasks trace the grid's validation once between them, each its own share
-/// (validation's rays are keyed by the texel's pixel, so each region keeps the texels
-/// the whole grid's validation keeps there, which round 1 then reads as `kept`).
+/// the task's own region is validated (`job::RegionsOf::trace`), so the round's tasks
+/// trace the grid's validation once between them, each its own share (validation's rays
+/// are keyed by the texel's pixel, so each region keeps the texels the whole grid's
+/// validation keeps there, which round 1 then reads as `kept`); what the other regions'
+/// untested texels change in round 0 is in the module doc's limits.
 fn prepare(
     scene: Arc<Scene>,
     request: &BakeRequest,
@@ -386,7 +397,9 @@ pub fn bake_in_rounds(
     // The grid prepared as each task on its own machine prepares it (`prepare` is
     // deterministic), so the lightmap is the processes' lightmap: in round 0 once a task
     // (each validates its own region), from round 1 on once for all, from the texels
-    // round 0 kept. `on_atlas` sees the first.
+    // round 0 kept. `on_atlas` sees the grid the last round bakes on (with one round,
+    // region 0's).
+    let seen_in = shape.rounds.min(2) - 1;
     let mut on_atlas = Some(on_atlas);
     let mut prepared: Option<(u32, job::Prepared)> = None;
     let mut previous: Vec<Partial> = Vec::new();
@@ -416,7 +429,9 @@ pub fn bake_in_rounds(
             if task.round <= 1 && prepared.as_ref().is_none_or(|(round, _)| *round == 0) {
                 let kept: Option<Vec<u32>> =
                     (task.round > 0).then(|| previous.iter().flat_map(|x| x.pixels.iter().copied()).collect());
-                let see = on_atlas.take();
+                let see = if task.round == seen_in { on_atlas.take() } else { None };
+                // One whole grid at a time: the one before is let go first.
+                drop(prepared.take());
                 let grid = prepare(
                     scene.clone(),
                     request,

@@ -169,8 +169,9 @@
 //! Randomness: GPU PCG hash (`shaders/gpu/common.wgsl`) of the step's CPU-drawn hash and the
 //! shooter's index for the pyramid descent, and three more chained PCG draws for the
 //! point of the cell; CPU `engine::rng` streams keyed by (seed, step, index) for emitter
-//! samples, the direct light and the near-field gather, so a bake is reproducible from its
-//! seed. Precision: f32 everywhere; geometry in normalised scene space (p - centre) / radius
+//! samples and by (seed, step, the texel's pixel) for the direct light and the near-field
+//! gather, so a bake is reproducible from its seed and a texel's rays do not depend on
+//! which other texels its set holds (a region's round-0 set in `engine::rounds`). Precision: f32 everywhere; geometry in normalised scene space (p - centre) / radius
 //! and areas divided by radius², so scaled and translated scenes bake the same.
 
 use std::f32::consts::PI;
@@ -896,9 +897,11 @@ impl Hemicube {
                 return None;
             }
             let end = (first + chunk).min(n);
-            per.par_extend(texels[first..end].par_iter().enumerate().map(|(i, t)| {
-                let k = receivers.start + first + i;
-                let mut rng = Rng::new(seed, 0xC9_11_6E, step, k as u64);
+            per.par_extend(texels[first..end].par_iter().map(|t| {
+                // Keyed by the texel's pixel, not its index: a texel draws the same
+                // stream whichever texels the set around it holds (a region's bake in
+                // rounds, whose round 0 keeps other regions' texels untested).
+                let mut rng = Rng::new(seed, 0xC9_11_6E, step, u64::from(t.pixel));
                 let (x, n, ng) = (t.position, t.normal, t.geo_normal);
                 let front = |d: Vec3| d.dot(n) > 0.0 && d.dot(ng) > 0.0;
                 let (mut sum, mut dir) = (Vec3::ZERO, Vec3::ZERO);
@@ -957,7 +960,7 @@ impl Hemicube {
                         }
                     }
                 }
-                let near = self.near_field(tracer, k, t, step, &mut add);
+                let near = self.near_field(tracer, t, step, &mut add);
                 (sum, dir, near)
             }));
         }
@@ -969,7 +972,7 @@ impl Hemicube {
         Some((light, per.into_iter().map(|(_, _, n)| n).collect()))
     }
 
-    /// The near-field gather at texel `k` (module doc, "Unbiased transfer"): one cosine ray to
+    /// The near-field gather at texel `t` (its stream keyed by its pixel; module doc, "Unbiased transfer"): one cosine ray to
     /// the near radius r. A hit at distance t with cosines cos_x, cos_y takes the MIS
     /// weight w = max(0, 1 - t^2 / (cos_x cos_y r^2)), the part of G = cos_x cos_y / (π t^2)
     /// above c = 1 / (π r^2); the shooters keep min(1, c / G) of the same pair. Emission
@@ -978,7 +981,6 @@ impl Hemicube {
     fn near_field(
         &self,
         tracer: &Tracer,
-        k: usize,
         t: &crate::engine::atlas::Texel,
         step: u64,
         add: &mut impl FnMut(Vec3, Vec3),
@@ -988,7 +990,7 @@ impl Hemicube {
             return GpuNear::NONE;
         }
         let scene = &self.scene;
-        let mut rng = Rng::new(self.seed, 0x4EA2_F1E1, step, k as u64);
+        let mut rng = Rng::new(self.seed, 0x4EA2_F1E1, step, u64::from(t.pixel));
         let (x, n, ng) = (t.position, t.normal, t.geo_normal);
         let d = cosine_sample(n, rng.next_f32(), rng.next_f32());
         let cos_x = d.dot(n);
