@@ -61,7 +61,7 @@ pub fn find_seams(scene: &Scene, width: u32, height: u32) -> Vec<SeamSample> {
     // reproducible from its seed (the living room's lightmap differed between two runs by
     // up to 7e-6 at 887 seam texels).
     let mut edges: Vec<(EdgeKey, Vec<EdgeSide>)> = edges.into_iter().collect();
-    edges.sort_unstable_by(|a, b| a.0.cmp(&b.0));
+    edges.sort_unstable_by_key(|e| e.0);
     let size = Vec2::new(width as f32, height as f32);
     let mut samples = Vec::new();
     for (_, uvs) in &edges {
