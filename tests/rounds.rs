@@ -43,6 +43,22 @@ fn request(resolution: u32, steps: u64) -> BakeRequest {
     }
 }
 
+/// [`bake_in_rounds`] with the default options, unobserved.
+fn in_rounds(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+    shape: RoundsShape,
+) -> Result<lightmapd::engine::rounds::RoundsResult, lightmapd::engine::technique::EngineError> {
+    bake_in_rounds(
+        scene,
+        request,
+        shape,
+        &BakeOptions::default(),
+        &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+        &mut |_| {},
+    )
+}
+
 fn lum(v: Vec3) -> f64 {
     v.dot(LUMINANCE) as f64
 }
@@ -87,15 +103,7 @@ fn closed_box_in_rounds(technique: &str) {
         } else {
             request(24, 96)
         };
-        let r = bake_in_rounds(
-            scene.clone(),
-            &request,
-            RoundsShape { regions: 2, rounds },
-            &BakeOptions::default(),
-            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
-            &mut |_| {},
-        )
-        .unwrap();
+        let r = in_rounds(scene.clone(), &request, RoundsShape { regions: 2, rounds }).unwrap();
         assert_eq!(r.result.atlas.pages.len(), 2, "two pages");
         assert_eq!(r.rounds.len(), rounds as usize);
         assert_eq!(r.rounds.iter().map(|x| x.steps).sum::<u64>(), 96);
@@ -168,15 +176,7 @@ fn pages_in_rounds_match_the_single_bake() {
     let ew = single.estimate.error.relative.unwrap() as f64;
     let mut differences = Vec::new();
     for rounds in [1, 3] {
-        let r = bake_in_rounds(
-            scene.clone(),
-            &request,
-            RoundsShape { regions: 2, rounds },
-            &BakeOptions::default(),
-            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
-            &mut |_| {},
-        )
-        .unwrap();
+        let r = in_rounds(scene.clone(), &request, RoundsShape { regions: 2, rounds }).unwrap();
         let e = &r.result.estimate;
         assert_eq!(r.result.atlas.pages.len(), 2);
         assert_eq!(e.total.len(), single.estimate.total.len());
@@ -213,15 +213,7 @@ fn one_region_in_one_round_is_the_single_bake() {
     let scene = two_pages(closed_box(0.5), &[3, 4, 5]);
     for request in [request(16, 6), sdb(request(16, 6))] {
         let single = job::bake_unobserved(scene.clone(), &request).unwrap();
-        let r = bake_in_rounds(
-            scene.clone(),
-            &request,
-            RoundsShape { regions: 1, rounds: 1 },
-            &BakeOptions::default(),
-            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
-            &mut |_| {},
-        )
-        .unwrap();
+        let r = in_rounds(scene.clone(), &request, RoundsShape { regions: 1, rounds: 1 }).unwrap();
         let (a, b) = (&r.result.estimate, &single.estimate);
         let t = &request.technique;
         assert_eq!(a.steps, b.steps, "{t}");
@@ -325,15 +317,7 @@ fn round_zero_validates_each_region_once() {
             "round 0's tasks together drop what the whole grid's validation drops"
         );
         let merged = tasks::merge(scene.clone(), &previous, &BakeOptions::default(), &mut |_| {}).unwrap();
-        let one = bake_in_rounds(
-            scene.clone(),
-            &request,
-            RoundsShape { regions: 2, rounds: 2 },
-            &BakeOptions::default(),
-            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
-            &mut |_| {},
-        )
-        .unwrap();
+        let one = in_rounds(scene.clone(), &request, RoundsShape { regions: 2, rounds: 2 }).unwrap();
         assert_eq!(
             merged.estimate.total, one.result.estimate.total,
             "{}: the tasks' bake is the one-process bake",
@@ -398,17 +382,10 @@ fn what_is_not_baked_in_rounds_is_refused() {
     let scene = two_pages(closed_box(0.5), &[3, 4, 5]);
     let shape = RoundsShape { regions: 2, rounds: 2 };
     let refused = |request: &BakeRequest| {
-        bake_in_rounds(
-            scene.clone(),
-            request,
-            shape,
-            &BakeOptions::default(),
-            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
-            &mut |_| {},
-        )
-        .err()
-        .expect("refused")
-        .to_string()
+        in_rounds(scene.clone(), request, shape)
+            .err()
+            .expect("refused")
+            .to_string()
     };
     let mut sdf = request(16, 8);
     sdf.technique = "sdf".into();
