@@ -510,7 +510,7 @@ pub(crate) fn prepare_regions(
         |m: String| EngineError::BadInput(format!("tasks: {m}; ask for fewer regions or a higher resolution"));
     let mut region_pixels = Vec::new();
     let mut validated = None;
-    let mut traced: Option<u32> = None;
+    let mut trace_region: Option<u32> = None;
     let mut atlas = match regions {
         // A region's task: the cut from the grid's coverage (a bit a pixel), then only
         // the region's rows rasterised and only its texels built, so a page task's
@@ -545,7 +545,7 @@ pub(crate) fn prepare_regions(
             ..
         }) => {
             validated = kept;
-            traced = trace;
+            trace_region = trace;
             let atlas = Atlas::build(&scene, width, height).map_err(atlas_error)?;
             region_pixels = atlas.region_pixels(count).map_err(region_error)?;
             atlas
@@ -553,11 +553,9 @@ pub(crate) fn prepare_regions(
         None => Atlas::build(&scene, width, height).map_err(atlas_error)?,
     };
     let rays = SceneRays::new(scene.clone());
-    // On a hardware GPU its rays go through the BVH query pass (issue 20 point 3: 56.6 s of a
-    // 15.6 M-texel level's 60.5 s preparation was the CPU's tracing); elsewhere the CPU's.
     // The texels validation traces: all of them, or one region's in round 0 of a bake in
     // rounds (the others read as outside geometry: kept).
-    let traced = match traced {
+    let traced = match trace_region {
         Some(k) => {
             let pixels = region_pixels
                 .get(k as usize)
@@ -576,6 +574,9 @@ pub(crate) fn prepare_regions(
             .collect(),
         None => {
             let texels = &atlas.texels[traced.clone()];
+            // On a hardware GPU its rays go through the BVH query pass (issue 20 point 3:
+            // 56.6 s of a 15.6 M-texel level's 60.5 s preparation was the CPU's tracing);
+            // elsewhere the CPU's.
             let gpu = crate::engine::gpu::hardware_context("texel validation").and_then(|ctx| {
                 crate::engine::gpu::validate::backface_fractions(&ctx, &rays, texels)
                     .inspect_err(

@@ -171,7 +171,8 @@
 //! point of the cell; CPU `engine::rng` streams keyed by (seed, step, index) for emitter
 //! samples and by (seed, step, the texel's pixel) for the direct light and the near-field
 //! gather, so a bake is reproducible from its seed and a texel's rays do not depend on
-//! which other texels its set holds (a region's round-0 set in `engine::rounds`). Precision: f32 everywhere; geometry in normalised scene space (p - centre) / radius
+//! which other texels its set holds (a region's round-0 set in `engine::rounds`).
+//! Precision: f32 everywhere; geometry in normalised scene space (p - centre) / radius
 //! and areas divided by radius², so scaled and translated scenes bake the same.
 
 use std::f32::consts::PI;
@@ -972,12 +973,13 @@ impl Hemicube {
         Some((light, per.into_iter().map(|(_, _, n)| n).collect()))
     }
 
-    /// The near-field gather at texel `t` (its stream keyed by its pixel; module doc, "Unbiased transfer"): one cosine ray to
-    /// the near radius r. A hit at distance t with cosines cos_x, cos_y takes the MIS
-    /// weight w = max(0, 1 - t^2 / (cos_x cos_y r^2)), the part of G = cos_x cos_y / (π t^2)
-    /// above c = 1 / (π r^2); the shooters keep min(1, c / G) of the same pair. Emission
-    /// found there is added through `add` (π Le w, direct light); reflected light is left
-    /// to the GPU, which knows the hit texel's irradiance: the returned gain is w k_d.
+    /// The near-field gather at texel `t`, its stream keyed by the texel's pixel
+    /// (module doc, "Unbiased transfer"): one cosine ray to the near radius r. A hit at
+    /// distance t with cosines cos_x, cos_y takes the MIS weight w = max(0, 1 - t^2 /
+    /// (cos_x cos_y r^2)), the part of G = cos_x cos_y / (π t^2) above c = 1 / (π r^2);
+    /// the shooters keep min(1, c / G) of the same pair. Emission found there is added
+    /// through `add` (π Le w, direct light); reflected light is left to the GPU, which
+    /// knows the hit texel's irradiance: the returned gain is w k_d.
     fn near_field(
         &self,
         tracer: &Tracer,
