@@ -52,6 +52,8 @@ for n in ${COUNTS[@]}; do
     echo "workers $n: $s in $(echo "$end - $start" | bc) s; summary: $(echo "$view" | jq -c '{steps: .summary.steps, machine_seconds: .summary.seconds, error: .summary.error.relative}')"
     echo "$view" | jq -r '.tasks.list[] | "  task \(.index) \(.kind) round \(.round) region \(.region) \(.status) attempts \(.attempts) steps \(.steps) seconds \(.seconds) wall_s \(.wall_s) worker \(.worker)"'
     (cd "$dir/store/jobs/$job" && find . -type f -printf "  stored: %P %s B\n") || true
+    # A round task's read of the round before (jobs in rounds): results, whole ones, bytes.
+    grep -h "round before read" "$dir"/worker-*.log | sed 's/^/  /' || true
     kill "${pids[@]}" 2> /dev/null || true
     wait 2> /dev/null || true
     rm -rf "$dir"

@@ -579,6 +579,42 @@ struct Failure {
 }
 
 /// An engine error as the process's failure: exit code 2 for bad input, else 1.
+/// One `--previous` file of a round task: read whole when it is the task's own region's
+/// (the halves it resumes) or not a round result (whose error `decode` names); else only
+/// its header, pixels and held light, seeking past its halves (`Partial::decode_held`: 16
+/// bytes a texel of the 40).
+fn read_round_before(path: &std::path::Path, region: u32) -> Result<tasks::Partial, Failure> {
+    use std::io::{Read, Seek, SeekFrom};
+    let what = path.display().to_string();
+    let io = |e: std::io::Error| bad_input(format!("{what}: {e}"));
+    let bad = |e: lightmapd::engine::technique::EngineError| bad_input(e.to_string());
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    let size = file.metadata().map_err(io)?.len();
+    let mut start = vec![0u8; tasks::PartialLayout::LEAD.min(size as usize)];
+    file.read_exact(&mut start).map_err(io)?;
+    let len = tasks::PartialLayout::header_len(&start, &what).map_err(bad)?;
+    if len > size - start.len() as u64 {
+        return Err(bad_input(format!(
+            "{what}: header of {len} bytes runs past the end of the file"
+        )));
+    }
+    start.resize(start.len() + len as usize, 0);
+    file.read_exact(&mut start[tasks::PartialLayout::LEAD..]).map_err(io)?;
+    let layout = tasks::PartialLayout::parse(&start, &what).map_err(bad)?;
+    if layout.header.task.region == region || !layout.header.held || layout.file_len() != size {
+        let bytes = std::fs::read(path).map_err(io)?;
+        return tasks::Partial::decode(&bytes, &what).map_err(bad);
+    }
+    let mut read = |r: &std::ops::Range<u64>| -> Result<Vec<u8>, Failure> {
+        let mut b = vec![0u8; (r.end - r.start) as usize];
+        file.seek(SeekFrom::Start(r.start)).map_err(io)?;
+        file.read_exact(&mut b).map_err(io)?;
+        Ok(b)
+    };
+    let (pixels, held) = (read(&layout.pixels)?, read(&layout.held)?);
+    tasks::Partial::decode_held(layout, &pixels, &held, &what).map_err(bad)
+}
+
 fn engine_failure(e: lightmapd::engine::technique::EngineError) -> Failure {
     Failure {
         code: if e.is_bad_input() { 2 } else { 1 },
@@ -1449,9 +1485,7 @@ fn bake_task(
             .ok_or_else(|| bad_input(format!("--round {round}: the bake has rounds 0..{rounds}")))?;
         let mut previous = Vec::with_capacity(args.previous.len());
         for p in &args.previous {
-            let bytes = std::fs::read(p).map_err(|e| bad_input(format!("{}: {e}", p.display())))?;
-            let what = p.display().to_string();
-            previous.push(tasks::Partial::decode(&bytes, &what).map_err(|e| bad_input(e.to_string()))?);
+            previous.push(read_round_before(p, task.region)?);
         }
         bar.set_length(task.steps);
         let partial = lightmapd::engine::rounds::bake_round_task(

@@ -374,6 +374,107 @@ fn a_region_all_inside_geometry_keeps_its_texels_in_round_zero() {
     }
 }
 
+/// A round task reads the other regions' results of the round before without their
+/// halves (`Partial::decode_held`: their pixels and held light, 16 bytes a texel of a round
+/// result's 40) and bakes exactly what it bakes from them whole; its own region's result it
+/// must read whole (it resumes its halves), and a merge refuses a result read so.
+#[test]
+fn a_round_task_reads_the_other_regions_held_light_alone() {
+    let _gpu = common::gpu_serial();
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("floor", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.block("box", Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0), 0.0, m);
+    let scene = Arc::new(scene::import_slice(&b.to_glb(), None).unwrap().0);
+    let mut request = request(32, 4);
+    request.lighting.sky = Some(Sky {
+        radiance: Vec3::ONE,
+        hemisphere: Hemisphere::Upper,
+    });
+    let rounds = tasks::split_rounds(&request, 2, 2).unwrap();
+    let bake = |task: tasks::TaskRange, previous: &[tasks::Partial]| {
+        bake_round_task(
+            scene.clone(),
+            &request,
+            task,
+            previous,
+            &BakeOptions::default(),
+            &mut |_: BakeEvent<'_>| std::ops::ControlFlow::Continue(()),
+            &mut |_| {},
+        )
+    };
+    let files: Vec<Vec<u8>> = rounds[0]
+        .iter()
+        .map(|t| bake(*t, &[]).unwrap().encode().unwrap())
+        .collect();
+    let whole: Vec<tasks::Partial> = files
+        .iter()
+        .map(|f| tasks::Partial::decode(f, "whole").unwrap())
+        .collect();
+    let held_alone = |f: &[u8]| {
+        let layout = tasks::PartialLayout::parse(f, "held").unwrap();
+        assert_eq!(layout.file_len(), f.len() as u64);
+        let n = layout.texels() as u64;
+        assert!(n > 100, "{n} texels");
+        // A round result: its halves (24 bytes a texel), then pixels and held light side
+        // by side (16), which is all the other regions' tasks read.
+        assert_eq!(layout.halves.end - layout.halves.start, 24 * n);
+        assert_eq!(layout.pixels.end, layout.held.start);
+        assert_eq!(layout.held.end - layout.pixels.start, 16 * n);
+        let at = |r: &std::ops::Range<u64>| &f[r.start as usize..r.end as usize];
+        let (pixels, held) = (at(&layout.pixels).to_vec(), at(&layout.held).to_vec());
+        // Short reads are named, not read past.
+        let short = tasks::Partial::decode_held(layout.clone(), &pixels[4..], &held, "short").unwrap_err();
+        assert!(short.to_string().contains("bytes of pixels"), "{short}");
+        tasks::Partial::decode_held(layout, &pixels, &held, "held").unwrap()
+    };
+    let mut last = Vec::new();
+    for task in &rounds[1] {
+        let own = task.region as usize;
+        let from_whole = bake(*task, &whole).unwrap();
+        let previous: Vec<tasks::Partial> = (0..2)
+            .map(|k| {
+                if k == own {
+                    whole[k].clone()
+                } else {
+                    held_alone(&files[k])
+                }
+            })
+            .collect();
+        assert!(!previous[1 - own].has_halves() && previous[own].has_halves());
+        assert_eq!(previous[1 - own].held, whole[1 - own].held);
+        assert_eq!(previous[1 - own].pixels, whole[1 - own].pixels);
+        let from_held = bake(*task, &previous).unwrap();
+        assert_eq!(
+            from_held.snapshot.even.total, from_whole.snapshot.even.total,
+            "region {own}"
+        );
+        assert_eq!(
+            from_held.snapshot.odd.total, from_whole.snapshot.odd.total,
+            "region {own}"
+        );
+        assert_eq!(from_held.held, from_whole.held, "region {own}");
+        assert_eq!(from_held.pixels, from_whole.pixels, "region {own}");
+        // Its own region's result without its halves cannot be resumed.
+        let blind: Vec<tasks::Partial> = files.iter().map(|f| held_alone(f)).collect();
+        let e = bake(*task, &blind).expect_err("refused");
+        assert!(
+            e.to_string().contains(&format!(
+                "region {own}'s own result of the round before was read without its halves"
+            )),
+            "{e}"
+        );
+        last.push(from_whole);
+    }
+    // A merge refuses a result read without its halves; read whole, it merges.
+    tasks::merge(scene.clone(), &last, &BakeOptions::default(), &mut |_| {}).unwrap();
+    last[1] = held_alone(&last[1].encode().unwrap());
+    let e = tasks::merge(scene.clone(), &last, &BakeOptions::default(), &mut |_| {})
+        .err()
+        .expect("refused");
+    assert!(e.to_string().contains("was read without its halves"), "{e}");
+}
+
 /// Techniques that do not hold a boundary are refused by name, as are stop rules no
 /// round sees alone.
 #[test]

@@ -17,8 +17,11 @@
 //! the light round r - 1 estimated for it (held fixed all round; zero in round 0, so the
 //! first round is each region lit by the emitters, the sky and its own bounces); its
 //! texels start from that estimate and their accumulators go on from the region's halves
-//! after round r - 1. A task reads every region's result of round r - 1 (the held light)
-//! and writes its own (`tasks::Partial` with `held`): its halves and the estimate made by
+//! after round r - 1. A task reads every region's result of round r - 1: its own region's
+//! whole (the halves it resumes), the others' pixels and held light alone (16 bytes a
+//! texel of a result's 40: `tasks::PartialLayout`, `Partial::decode_held`; the queue's
+//! workers fetch those parts with ranged reads, the command line seeks to them), and
+//! writes its own (`tasks::Partial` with `held`): its halves and the estimate made by
 //! its round's own steps, which is the next round's held light (the running mean would
 //! still carry the earlier rounds' lag). All regions of a round read the same held light
 //! (Jacobi, not Gauss-Seidel), so a round's tasks may bake at once, on separate machines;
@@ -223,7 +226,13 @@ fn bake_prepared(
             atlas.texels.len()
         ));
     }
-    let own = previous.as_ref().map(|p| &p[task.region as usize]);
+    let own = previous.as_ref().map(|p| p[task.region as usize]);
+    if own.is_some_and(|p| !p.has_halves()) {
+        return bad(format!(
+            "rounds: region {}'s own result of the round before was read without its halves; this task resumes them, so it reads them whole",
+            task.region
+        ));
+    }
     let fingerprint = tasks::texels_fingerprint(&atlas, range.clone());
     if let Some(own) = own
         && own.header.fingerprint != fingerprint

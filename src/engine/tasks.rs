@@ -63,8 +63,9 @@
 //!     constants and the parameters the job reports are the chains'.
 //!   - Each chain repeats the whole-scene work once (the scene's maps, fields, rays'
 //!     structures): chains pay off when steps dominate, which is the long bake.
-//!   - `hemicube` also bakes regions in rounds, the other regions' light held
-//!     (`engine::rounds`), in one process so far: a round's tasks are not queued yet.
+//!   - `hemicube` and `sdb` also bake regions in rounds, the other regions' light held
+//!     (`engine::rounds`; [`split_rounds`]), in one process, on the command line or on
+//!     the queue.
 //!
 //! A split bake's stop rule is `stop.steps`, the job's total; `stop.seconds` bounds
 //! each task on its own (a task that runs out of time delivers fewer steps, and the
@@ -100,6 +101,7 @@
 //! a window of its own pixels); a chain's task is a whole bake; the merge builds the
 //! whole texel set.
 
+use std::ops::Range;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -767,50 +769,22 @@ impl Partial {
     /// Reads a partial; `what` names it in errors (a file name, a task).
     pub fn decode(bytes: &[u8], what: &str) -> Result<Partial, EngineError> {
         let bad = |m: String| EngineError::BadInput(format!("{what}: {m}"));
-        if bytes.len() < 16 || &bytes[..8] != MAGIC {
-            return Err(bad("not a lightmapd task result (no LMDTASK1 magic)".into()));
-        }
-        let len = u64::from_le_bytes(bytes[8..16].try_into().expect("8 bytes")) as usize;
-        let body = bytes
-            .get(16..16usize.saturating_add(len))
-            .ok_or_else(|| bad(format!("header of {len} bytes runs past the end of the file")))?;
-        let header: PartialHeader =
-            serde_json::from_slice(body).map_err(|e| bad(format!("header is not valid: {e}")))?;
-        if header.format != PARTIAL_FORMAT {
+        let layout = PartialLayout::parse(bytes, what)?;
+        let n = layout.texels();
+        let want = layout.file_len() - layout.halves.start;
+        let got = bytes.len() as u64 - layout.halves.start;
+        if got != want {
             return Err(bad(format!(
-                "format {} (this lightmapd reads {PARTIAL_FORMAT})",
-                header.format
+                "{got} bytes of accumulators, {want} expected for {n} texels"
             )));
         }
-        let n = usize::try_from(header.texels).map_err(|_| bad("texel count too large".into()))?;
-        let per_texel = 1 + usize::from(header.direct) + 3 * usize::from(header.moments);
-        let want = n
-            .checked_mul(
-                per_texel * 2 * 12
-                    + 4
-                    + 4 * usize::from(header.ao)
-                    + 2 * 12 * usize::from(header.ambient.is_some())
-                    + 12 * usize::from(header.held),
-            )
-            .ok_or_else(|| bad("texel count too large".into()))?;
-        let data = &bytes[16 + len..];
-        if data.len() != want {
-            return Err(bad(format!(
-                "{} bytes of accumulators, {want} expected for {n} texels",
-                data.len()
-            )));
-        }
-        let mut at = 0usize;
+        let at = |r: &Range<u64>| &bytes[r.start as usize..r.end as usize];
+        let header = &layout.header;
+        let mut data = at(&layout.halves);
         let mut take = |count: usize| -> Vec<Vec3> {
-            let v = data[at..at + count * 12]
-                .chunks_exact(12)
-                .map(|c| {
-                    let f = |k: usize| f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().expect("4 bytes"));
-                    Vec3::new(f(0), f(1), f(2))
-                })
-                .collect();
-            at += count * 12;
-            v
+            let (now, rest) = data.split_at(count * 12);
+            data = rest;
+            vec3s(now)
         };
         let mut halves = [0usize, 1].map(|h| {
             let total = take(n);
@@ -826,39 +800,146 @@ impl Partial {
             }
         });
         let [even, odd] = std::mem::take(&mut halves);
-        let words =
-            |bytes: &[u8]| -> Vec<[u8; 4]> { bytes.chunks_exact(4).map(|c| c.try_into().expect("4 bytes")).collect() };
-        let vec3s = |bytes: &[u8]| -> Vec<Vec3> {
-            words(bytes)
-                .chunks_exact(3)
-                .map(|c| {
-                    Vec3::new(
-                        f32::from_le_bytes(c[0]),
-                        f32::from_le_bytes(c[1]),
-                        f32::from_le_bytes(c[2]),
-                    )
-                })
-                .collect()
-        };
-        let pixels = words(&data[at..at + 4 * n])
-            .into_iter()
-            .map(u32::from_le_bytes)
-            .collect();
-        let after_ao = at + 4 * n + 4 * n * usize::from(header.ao);
-        let ao = header.ao.then(|| {
-            words(&data[at + 4 * n..after_ao])
-                .into_iter()
-                .map(f32::from_le_bytes)
-                .collect()
-        });
+        let ao = header
+            .ao
+            .then(|| words(at(&layout.ao)).map(f32::from_le_bytes).collect());
         let ambient = header.ambient.map(|sums| {
-            [0usize, 1].map(|h| AmbientHalf {
-                sums: sums[h],
-                weight: vec3s(&data[after_ao + h * 12 * n..after_ao + (h + 1) * 12 * n]),
-            })
+            let (even, odd) = at(&layout.ambient).split_at(12 * n);
+            [(even, sums[0]), (odd, sums[1])].map(|(w, sums)| AmbientHalf { sums, weight: vec3s(w) })
         });
-        let after_ambient = after_ao + 2 * 12 * n * usize::from(header.ambient.is_some());
-        let held = header.held.then(|| vec3s(&data[after_ambient..after_ambient + 12 * n]));
+        let held = header.held.then(|| vec3s(at(&layout.held)));
+        let pixels = words(at(&layout.pixels)).map(u32::from_le_bytes).collect();
+        Ok(Partial {
+            snapshot: Snapshot { even, odd },
+            pixels,
+            ao,
+            ambient,
+            held,
+            header: layout.header,
+        })
+    }
+
+    /// A round task's result read without its halves (`engine::rounds`: a round task
+    /// needs the other regions' held light and pixels, 16 bytes a texel, not their
+    /// accumulators, 24 bytes more): `layout` from the file's start
+    /// ([`PartialLayout::parse`]), `pixels` and `held` the file's bytes at
+    /// `layout.pixels` and `layout.held`. The halves keep their step counts and hold no
+    /// texels ([`Partial::has_halves`] is false), and the `ao` and `ambient` layers are
+    /// not read; a merge refuses such a result, and a round task refuses it as its own
+    /// region's.
+    pub fn decode_held(layout: PartialLayout, pixels: &[u8], held: &[u8], what: &str) -> Result<Partial, EngineError> {
+        let bad = |m: String| EngineError::BadInput(format!("{what}: {m}"));
+        if !layout.header.held {
+            return Err(bad(
+                "not a round task's result: it holds no light for the next round".into()
+            ));
+        }
+        for (name, bytes, range) in [("pixels", pixels, &layout.pixels), ("held light", held, &layout.held)] {
+            if bytes.len() as u64 != range.end - range.start {
+                return Err(bad(format!(
+                    "{} bytes of {name}, {} expected for {} texels",
+                    bytes.len(),
+                    range.end - range.start,
+                    layout.texels()
+                )));
+            }
+        }
+        let header = layout.header;
+        let empty = |steps: u64| HalfEstimate {
+            steps,
+            total: Vec::new(),
+            direct: None,
+            moments: None,
+        };
+        Ok(Partial {
+            snapshot: Snapshot {
+                even: empty(header.half_steps[0]),
+                odd: empty(header.half_steps[1]),
+            },
+            pixels: words(pixels).map(u32::from_le_bytes).collect(),
+            ao: None,
+            ambient: None,
+            held: Some(vec3s(held)),
+            header,
+        })
+    }
+
+    /// Whether the halves were read: false for a result read with
+    /// [`Partial::decode_held`] (of a region with texels).
+    pub fn has_halves(&self) -> bool {
+        let n = self.header.texels as usize;
+        self.snapshot.even.total.len() == n && self.snapshot.odd.total.len() == n
+    }
+}
+
+/// Little-endian 4-byte words.
+fn words(bytes: &[u8]) -> impl Iterator<Item = [u8; 4]> + '_ {
+    bytes.chunks_exact(4).map(|c| c.try_into().expect("4 bytes"))
+}
+
+/// Little-endian f32 triples.
+fn vec3s(bytes: &[u8]) -> Vec<Vec3> {
+    bytes
+        .chunks_exact(12)
+        .map(|c| {
+            let f = |k: usize| f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().expect("4 bytes"));
+            Vec3::new(f(0), f(1), f(2))
+        })
+        .collect()
+}
+
+/// Where the parts of a task result file lie (docs/scaling.md, "The task result file"),
+/// as byte ranges of the file, from its header: what lets a reader fetch only the parts
+/// it needs (a round task fetches the other regions' `pixels` and `held`, not their
+/// halves: `service::farm`, and the command line's `--previous`).
+#[derive(Clone, Debug)]
+pub struct PartialLayout {
+    pub header: PartialHeader,
+    /// Both halves' layers: the even half's, then the odd half's.
+    pub halves: Range<u64>,
+    pub pixels: Range<u64>,
+    /// Empty when the result has no `ao` layer.
+    pub ao: Range<u64>,
+    /// Both halves' ambient weights; empty without an ambient.
+    pub ambient: Range<u64>,
+    /// Empty unless the result is a round task's.
+    pub held: Range<u64>,
+}
+
+impl PartialLayout {
+    /// The bytes before the header: the magic and the header's length.
+    pub const LEAD: usize = 16;
+
+    /// The header's length in bytes, from the file's first [`Self::LEAD`] bytes.
+    pub fn header_len(lead: &[u8], what: &str) -> Result<u64, EngineError> {
+        if lead.len() < Self::LEAD || &lead[..8] != MAGIC {
+            return Err(EngineError::BadInput(format!(
+                "{what}: not a lightmapd task result (no LMDTASK1 magic)"
+            )));
+        }
+        Ok(u64::from_le_bytes(lead[8..16].try_into().expect("8 bytes")))
+    }
+
+    /// The layout, from the file's first [`Self::LEAD`] + [`Self::header_len`] bytes or
+    /// more (the rest is not read); refused, naming `what`, when the header is not one
+    /// this lightmapd reads or its sizes overflow.
+    pub fn parse(start: &[u8], what: &str) -> Result<PartialLayout, EngineError> {
+        let bad = |m: String| EngineError::BadInput(format!("{what}: {m}"));
+        let len = Self::header_len(start, what)?;
+        let end = (Self::LEAD as u64)
+            .checked_add(len)
+            .filter(|&e| e <= start.len() as u64);
+        let Some(end) = end else {
+            return Err(bad(format!("header of {len} bytes runs past the end of the file")));
+        };
+        let header: PartialHeader = serde_json::from_slice(&start[Self::LEAD..end as usize])
+            .map_err(|e| bad(format!("header is not valid: {e}")))?;
+        if header.format != PARTIAL_FORMAT {
+            return Err(bad(format!(
+                "format {} (this lightmapd reads {PARTIAL_FORMAT})",
+                header.format
+            )));
+        }
         if let Some(c) = &header.control
             && (c.even.len() != c.texels.len()
                 || c.odd.len() != c.texels.len()
@@ -866,14 +947,44 @@ impl Partial {
         {
             return Err(bad("its control texels do not fit its texels".into()));
         }
-        Ok(Partial {
+        let n = header.texels;
+        let per_texel = 1 + u64::from(header.direct) + 3 * u64::from(header.moments);
+        let sizes = [
+            n.checked_mul(2 * 12 * per_texel),
+            n.checked_mul(4),
+            n.checked_mul(4 * u64::from(header.ao)),
+            n.checked_mul(2 * 12 * u64::from(header.ambient.is_some())),
+            n.checked_mul(12 * u64::from(header.held)),
+        ];
+        let mut at = end;
+        let mut ranges = [0, 1, 2, 3, 4].map(|_| 0..0);
+        for (range, size) in ranges.iter_mut().zip(sizes) {
+            let next = size
+                .and_then(|s| at.checked_add(s))
+                .filter(|&e| usize::try_from(e).is_ok())
+                .ok_or_else(|| bad("texel count too large".into()))?;
+            *range = at..next;
+            at = next;
+        }
+        let [halves, pixels, ao, ambient, held] = ranges;
+        Ok(PartialLayout {
             header,
-            snapshot: Snapshot { even, odd },
+            halves,
             pixels,
             ao,
             ambient,
             held,
         })
+    }
+
+    /// The file's length in bytes.
+    pub fn file_len(&self) -> u64 {
+        self.held.end
+    }
+
+    /// The texels the result holds.
+    pub fn texels(&self) -> usize {
+        self.header.texels as usize
     }
 }
 
@@ -1134,6 +1245,11 @@ pub fn check_partials<'a>(
         }
         if h.stopped_by == StopReason::Cancelled {
             return bad(format!("{name} was cancelled; bake it again"));
+        }
+        if !p.has_halves() {
+            return bad(format!(
+                "{name} was read without its halves (a round task's view of it): read it whole to merge it"
+            ));
         }
         if (h.direct, h.moments, h.ao, h.ambient.is_some(), &h.params)
             != (h0.direct, h0.moments, h0.ao, h0.ambient.is_some(), &h0.params)

@@ -194,10 +194,14 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
     } else {
         0..0
     };
+    // Its own region's result whole (the halves it resumes), the others' pixels and held
+    // light only (region 0's round snapshot reads their halves itself, below, once the
+    // queue has given it the snapshot).
+    let whole = |k: u32| k % range.regions.max(1) == range.region;
     let load = || async {
         Ok::<_, LoadError>((
             load_scene(state, job).await?,
-            load_partials(state, job, before.clone()).await?,
+            load_round_before(state, job, before.clone(), whole).await?,
         ))
     };
     let (files, previous) = match load_patiently(state, lessee, worker, flag, load).await {
@@ -206,11 +210,18 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
         Err(Some(reason)) => return End::Finish(TaskOutcome::Failed { reason, retry: true }),
     };
     // Region 0's task of each round after the first shows the round before as the job's
-    // next snapshot, beside its own bake, on the whole texel set and the results the bake
-    // thread has prepared and decoded anyway (handed over once the grid is prepared).
+    // next snapshot, beside its own bake, on the whole texel set the bake thread has
+    // prepared anyway (handed over once the grid is prepared).
     let (mut shot_tx, round_shot) = if range.rounds > 0 && range.round > 0 && range.region == 0 {
-        let (tx, rx) = tokio::sync::oneshot::channel::<RoundBefore>();
-        let shot = round_snapshot(state.clone(), worker.to_string(), job.clone(), task.clone(), rx);
+        let (tx, rx) = tokio::sync::oneshot::channel::<Arc<Atlas>>();
+        let shot = round_snapshot(
+            state.clone(),
+            worker.to_string(),
+            job.clone(),
+            task.clone(),
+            before.clone(),
+            rx,
+        );
         (Some(tx), Some(tokio::spawn(shot.instrument(tracing::Span::current()))))
     } else {
         (None, None)
@@ -241,13 +252,11 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
             let _e = span.enter();
             let (scene, _) = import_files(&files, &limits).map_err(|e| EngineError::BadInput(e.to_string()))?;
             drop(files);
-            let previous: Arc<Vec<Partial>> = Arc::new(
-                previous
-                    .iter()
-                    .zip(before)
-                    .map(|(b, k)| Partial::decode(b, &format!("task {k}'s result")))
-                    .collect::<Result<_, _>>()?,
-            );
+            let previous: Vec<Partial> = previous
+                .into_iter()
+                .zip(before)
+                .map(|(b, k)| b.decode(&format!("task {k}'s result")))
+                .collect::<Result<_, _>>()?;
             let options = BakeOptions {
                 // Snapshots are not stored; they only refresh the task's error estimate.
                 snapshot_interval: Duration::from_secs(1),
@@ -298,10 +307,7 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
                 drop(sink);
                 let mut on_atlas = |a: &Arc<Atlas>| {
                     if let Some(tx) = shot_tx.take() {
-                        let _ = tx.send(RoundBefore {
-                            atlas: a.clone(),
-                            results: previous.clone(),
-                        });
+                        let _ = tx.send(a.clone());
                     }
                 };
                 rounds::bake_round_task(
@@ -756,18 +762,12 @@ async fn store_claimed(
     }
 }
 
-/// What a round task's bake thread hands its round snapshot: the whole texel set it
-/// prepared and every region's result of the round before, decoded.
-struct RoundBefore {
-    atlas: Arc<Atlas>,
-    results: Arc<Vec<Partial>>,
-}
-
 /// A job in rounds' snapshot of the round before `task`'s (round r-1's results, every
 /// region's), made by region 0's task of round r when the queue gives it the job's next
 /// snapshot ([`Queue::claim_task_snapshot`](crate::service::queue::Queue::claim_task_snapshot)):
-/// the results merged on the whole texel set the task's bake prepared (`before`, sent once
-/// it is), denoised and stored as a running snapshot. It states **no error**: a round's
+/// the results (tasks `results`, read whole here once the snapshot is claimed: the bake
+/// reads only its own region's halves) merged on the whole texel set the task's bake
+/// prepared (`atlas`, sent once it is), denoised and stored as a running snapshot. It states **no error**: a round's
 /// halves cannot see the light the rounds still lack (module doc), so its EXR header, its
 /// files and its history point say nothing rather than understate. Runs beside the task's
 /// bake; a failure costs only the snapshot.
@@ -776,14 +776,23 @@ async fn round_snapshot(
     worker: String,
     job: JobRecord,
     task: TaskRecord,
-    before: tokio::sync::oneshot::Receiver<RoundBefore>,
+    results: Range<u32>,
+    atlas: tokio::sync::oneshot::Receiver<Arc<Atlas>>,
 ) {
     // The bake thread drops the sender without sending when it fails before its grid.
-    let Ok(RoundBefore { atlas, results }) = before.await else {
+    let Ok(atlas) = atlas.await else {
         return;
     };
     let Some(n) = claim_snapshot(&state, &job, &task, &worker).await else {
         return;
+    };
+    let bytes = match load_partials(&state, &job, results.clone()).await {
+        Ok(b) => b,
+        Err(LoadError::Permanent(e) | LoadError::Transient(e)) => {
+            tracing::info!(snapshot = n, why = %e, "no snapshot of the round before");
+            let _ = state.queue.release_task_snapshot(&job.id, n).await;
+            return;
+        }
     };
     let began = Instant::now();
     let elapsed = job
@@ -791,6 +800,12 @@ async fn round_snapshot(
         .map_or(0.0, |t| (state.db_now() - t).max(0) as f64 / 1000.0);
     let request = job.spec.task_request();
     let made = tokio::task::spawn_blocking(move || {
+        let results: Vec<Partial> = bytes
+            .iter()
+            .zip(results)
+            .map(|(b, k)| Partial::decode(b, &format!("task {k}'s result")))
+            .collect::<Result<_, _>>()?;
+        drop(bytes);
         // The grid holds the regions' texels one after another, in region order (the
         // merge checks each region's fingerprint against its range).
         let mut at = 0;
@@ -839,6 +854,113 @@ async fn load_partials(state: &AppState, job: &JobRecord, indices: Range<u32>) -
             Err(e) => return Err(LoadError::Transient(format!("cannot read task {k}'s result: {e}"))),
         }
     }
+    Ok(out)
+}
+
+/// One region's result of the round before, as a round task fetched it.
+enum Fetched {
+    Whole(Bytes),
+    /// The layout, pixels and held light (`Partial::decode_held`): 16 bytes a texel of
+    /// the 40 a whole round result holds.
+    Held {
+        layout: Box<tasks::PartialLayout>,
+        pixels: Bytes,
+        held: Bytes,
+    },
+}
+
+impl Fetched {
+    fn decode(self, what: &str) -> Result<Partial, EngineError> {
+        match self {
+            Fetched::Whole(b) => Partial::decode(&b, what),
+            Fetched::Held { layout, pixels, held } => Partial::decode_held(*layout, &pixels, &held, what),
+        }
+    }
+
+    /// The bytes fetched, the header's included.
+    fn len(&self) -> u64 {
+        match self {
+            Fetched::Whole(b) => b.len() as u64,
+            Fetched::Held { layout, pixels, held } => layout.halves.start + (pixels.len() + held.len()) as u64,
+        }
+    }
+}
+
+/// The results `indices` of the round before a round task's: whole where `whole(k)`
+/// holds, else their layout, pixels and held light alone, in three ranged reads (the
+/// first 16 bytes, which give the header's length and the object's size; the header; the
+/// two parts, which object_store joins into one request as they lie side by side in a
+/// round result). The object's size is checked against its header before a byte of the
+/// parts is used.
+async fn load_round_before(
+    state: &AppState,
+    job: &JobRecord,
+    indices: Range<u32>,
+    whole: impl Fn(u32) -> bool,
+) -> Result<Vec<Fetched>, LoadError> {
+    let mut out = Vec::with_capacity(indices.len());
+    for k in indices.clone() {
+        if whole(k) {
+            let mut b = load_partials(state, job, k..k + 1).await?;
+            out.push(Fetched::Whole(b.remove(0)));
+            continue;
+        }
+        let key = store::task_partial(&job.id, k);
+        let what = format!("task {k}'s result (jobs/{}/tasks/{k}.lmtask)", job.id);
+        let transient = |e: object_store::Error| LoadError::Transient(format!("cannot read {what}: {e}"));
+        let permanent = |e: EngineError| LoadError::Permanent(e.to_string());
+        let lead = tasks::PartialLayout::LEAD as u64;
+        // Marked succeeded only after it was stored: a missing one was deleted.
+        let Some((first, size)) = state.artifacts.get_range(&key, 0..lead).await.map_err(transient)? else {
+            return Err(LoadError::Permanent(format!("{what} is no longer stored")));
+        };
+        let len = tasks::PartialLayout::header_len(&first, &what).map_err(permanent)?;
+        if lead.saturating_add(len) > size {
+            return Err(LoadError::Permanent(format!(
+                "{what}: header of {len} bytes runs past the end of the file"
+            )));
+        }
+        // An empty header is refused by `parse` below, naming the file.
+        let header = match len {
+            0 => Bytes::new(),
+            _ => match state
+                .artifacts
+                .get_range(&key, lead..lead + len)
+                .await
+                .map_err(transient)?
+            {
+                Some((b, _)) => b,
+                None => return Err(LoadError::Permanent(format!("{what} is no longer stored"))),
+            },
+        };
+        let start = [first, header].concat();
+        let layout = tasks::PartialLayout::parse(&start, &what).map_err(permanent)?;
+        if layout.file_len() != size {
+            return Err(LoadError::Permanent(format!(
+                "{what}: {size} bytes, its header describes {}",
+                layout.file_len()
+            )));
+        }
+        let [pixels, held]: [Bytes; 2] = state
+            .artifacts
+            .get_ranges(&key, &[layout.pixels.clone(), layout.held.clone()])
+            .await
+            .map_err(transient)?
+            .try_into()
+            .map_err(|_| LoadError::Transient(format!("cannot read {what}: a ranged read came back short")))?;
+        out.push(Fetched::Held {
+            layout: Box::new(layout),
+            pixels,
+            held,
+        });
+    }
+    let read: u64 = out.iter().map(Fetched::len).sum();
+    tracing::info!(
+        results = indices.len(),
+        whole = out.iter().filter(|f| matches!(f, Fetched::Whole(_))).count(),
+        bytes = read,
+        "round before read"
+    );
     Ok(out)
 }
 

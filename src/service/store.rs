@@ -368,6 +368,45 @@ impl Artifacts {
         }
     }
 
+    /// Bytes `range` of the object and the object's whole size, or `None` when there is
+    /// none. `range` must not be empty (object_store refuses an empty range).
+    pub async fn get_range(
+        &self,
+        key: &Path,
+        range: std::ops::Range<u64>,
+    ) -> Result<Option<(Bytes, u64)>, object_store::Error> {
+        let options = object_store::GetOptions::new().with_range(Some(range));
+        match self.store.get_opts(key, options).await {
+            Ok(r) => {
+                let size = r.meta.size;
+                Ok(Some((r.bytes().await?, size)))
+            }
+            Err(object_store::Error::NotFound { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Bytes `ranges` of the object, each whole (object_store joins near ones into one
+    /// request); empty ranges read nothing.
+    pub async fn get_ranges(
+        &self,
+        key: &Path,
+        ranges: &[std::ops::Range<u64>],
+    ) -> Result<Vec<Bytes>, object_store::Error> {
+        let asked: Vec<std::ops::Range<u64>> = ranges.iter().filter(|r| !r.is_empty()).cloned().collect();
+        let mut got = self.store.get_ranges(key, &asked).await?.into_iter();
+        Ok(ranges
+            .iter()
+            .map(|r| {
+                if r.is_empty() {
+                    Bytes::new()
+                } else {
+                    got.next().unwrap_or_default()
+                }
+            })
+            .collect())
+    }
+
     /// The object as a stream of chunks, with its size, or `None` when there is none:
     /// downloads are sent as they are read, never held whole (issue 24).
     pub async fn get_stream(
