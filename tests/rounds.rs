@@ -71,6 +71,23 @@ fn rms_difference(a: &[Vec3], b: &[Vec3]) -> f64 {
     (d / r).sqrt()
 }
 
+/// A grey box on a grey floor under an upper-hemisphere sky of 1 (one page, cut into two
+/// bands of rows by two regions), and `hemicube`'s request at 32², 4 steps: the box's
+/// footprint lies inside geometry, in region 0.
+fn box_on_a_floor() -> (Arc<Scene>, BakeRequest) {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("floor", Vec3::ZERO, 4.0, Vec3::Y, m);
+    b.block("box", Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0), 0.0, m);
+    let scene = Arc::new(scene::import_slice(&b.to_glb(), None).unwrap().0);
+    let mut request = request(32, 4);
+    request.lighting.sky = Some(Sky {
+        radiance: Vec3::ONE,
+        hemisphere: Hemisphere::Upper,
+    });
+    (scene, request)
+}
+
 /// `hemicube`'s request (`request`) for `sdb`, with a quarter of its default map's
 /// raster (lavapipe's cost per direction).
 fn sdb(mut r: BakeRequest) -> BakeRequest {
@@ -231,16 +248,7 @@ fn one_region_in_one_round_is_the_single_bake() {
 #[test]
 fn round_zero_validates_each_region_once() {
     let _gpu = common::gpu_serial();
-    let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
-    b.square("floor", Vec3::ZERO, 4.0, Vec3::Y, m);
-    b.block("box", Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0), 0.0, m);
-    let scene = Arc::new(scene::import_slice(&b.to_glb(), None).unwrap().0);
-    let mut request = request(32, 4);
-    request.lighting.sky = Some(Sky {
-        radiance: Vec3::ONE,
-        hemisphere: Hemisphere::Upper,
-    });
+    let (scene, request) = box_on_a_floor();
     let rasterised = Atlas::build(&scene, 32, 32).unwrap();
     let regions = rasterised.region_pixels(2).unwrap();
     let mut whole = rasterised.clone();
@@ -381,16 +389,7 @@ fn a_region_all_inside_geometry_keeps_its_texels_in_round_zero() {
 #[test]
 fn a_round_task_reads_the_other_regions_held_light_alone() {
     let _gpu = common::gpu_serial();
-    let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
-    b.square("floor", Vec3::ZERO, 4.0, Vec3::Y, m);
-    b.block("box", Vec3::ZERO, Vec3::new(1.0, 0.5, 1.0), 0.0, m);
-    let scene = Arc::new(scene::import_slice(&b.to_glb(), None).unwrap().0);
-    let mut request = request(32, 4);
-    request.lighting.sky = Some(Sky {
-        radiance: Vec3::ONE,
-        hemisphere: Hemisphere::Upper,
-    });
+    let (scene, request) = box_on_a_floor();
     let rounds = tasks::split_rounds(&request, 2, 2).unwrap();
     let bake = |task: tasks::TaskRange, previous: &[tasks::Partial]| {
         bake_round_task(
