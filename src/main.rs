@@ -578,18 +578,26 @@ struct Failure {
     message: String,
 }
 
-/// An engine error as the process's failure: exit code 2 for bad input, else 1.
 /// One `--previous` file of a round task: read whole when it is the task's own region's
-/// (the halves it resumes) or not a round result (whose error `decode` names); else only
-/// its header, pixels and held light, seeking past its halves (`Partial::decode_held`: 16
-/// bytes a texel of the 40).
+/// (the halves it resumes), not a round result or not the size its header describes
+/// (whose errors `decode` names), or not a plain file (a pipe cannot seek); else only its
+/// header, pixels and held light, seeking past its halves (`Partial::decode_held`: 16
+/// bytes a texel of a round result's 40, or 64 with the `direct` layer).
 fn read_round_before(path: &std::path::Path, region: u32) -> Result<tasks::Partial, Failure> {
     use std::io::{Read, Seek, SeekFrom};
     let what = path.display().to_string();
     let io = |e: std::io::Error| bad_input(format!("{what}: {e}"));
     let bad = |e: lightmapd::engine::technique::EngineError| bad_input(e.to_string());
+    let whole = || -> Result<tasks::Partial, Failure> {
+        let bytes = std::fs::read(path).map_err(io)?;
+        tasks::Partial::decode(&bytes, &what).map_err(bad)
+    };
     let mut file = std::fs::File::open(path).map_err(io)?;
-    let size = file.metadata().map_err(io)?.len();
+    let meta = file.metadata().map_err(io)?;
+    if !meta.is_file() {
+        return whole();
+    }
+    let size = meta.len();
     let mut start = vec![0u8; tasks::PartialLayout::LEAD.min(size as usize)];
     file.read_exact(&mut start).map_err(io)?;
     let len = tasks::PartialLayout::header_len(&start, &what).map_err(bad)?;
@@ -602,8 +610,7 @@ fn read_round_before(path: &std::path::Path, region: u32) -> Result<tasks::Parti
     file.read_exact(&mut start[tasks::PartialLayout::LEAD..]).map_err(io)?;
     let layout = tasks::PartialLayout::parse(&start, &what).map_err(bad)?;
     if layout.header.task.region == region || !layout.header.held || layout.file_len() != size {
-        let bytes = std::fs::read(path).map_err(io)?;
-        return tasks::Partial::decode(&bytes, &what).map_err(bad);
+        return whole();
     }
     let mut read = |r: &std::ops::Range<u64>| -> Result<Vec<u8>, Failure> {
         let mut b = vec![0u8; (r.end - r.start) as usize];
@@ -615,6 +622,7 @@ fn read_round_before(path: &std::path::Path, region: u32) -> Result<tasks::Parti
     tasks::Partial::decode_held(layout, &pixels, &held, &what).map_err(bad)
 }
 
+/// An engine error as the process's failure: exit code 2 for bad input, else 1.
 fn engine_failure(e: lightmapd::engine::technique::EngineError) -> Failure {
     Failure {
         code: if e.is_bad_input() { 2 } else { 1 },

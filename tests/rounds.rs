@@ -593,6 +593,53 @@ fn the_command_line_bakes_in_rounds() {
     };
     let first: Vec<_> = (0..2).map(|k| task(0, k, &[])).collect();
     let last: Vec<_> = (0..2).map(|k| task(1, k, &first)).collect();
+    // A pipe cannot seek: the other region's result given on one is read whole, and the
+    // task bakes what it baked from the file.
+    {
+        use std::io::Write;
+        let part = dir.join("piped.lmtask");
+        let mut cmd = bin();
+        cmd.arg("bake")
+            .arg(cornell())
+            .arg("-o")
+            .arg(&part)
+            .args([
+                "--resolution",
+                "24",
+                "--steps",
+                "8",
+                "--no-denoise",
+                "--technique",
+                "hemicube",
+            ])
+            .args([
+                "--rounds",
+                "2",
+                "--regions",
+                "2",
+                "--task",
+                "0/2",
+                "--round",
+                "1",
+                "--previous",
+            ])
+            .arg(&first[0])
+            .arg("/dev/stdin")
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped());
+        let mut child = cmd.spawn().unwrap();
+        let bytes = std::fs::read(&first[1]).unwrap();
+        let mut stdin = child.stdin.take().unwrap();
+        let feed = std::thread::spawn(move || stdin.write_all(&bytes));
+        let out = child.wait_with_output().unwrap();
+        feed.join().unwrap().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let read = |p: &std::path::Path| tasks::Partial::decode(&std::fs::read(p).unwrap(), "task").unwrap();
+        let (piped, filed) = (read(&part), read(&last[0]));
+        assert_eq!(piped.snapshot.even.total, filed.snapshot.even.total);
+        assert_eq!(piped.held, filed.held);
+    }
     let merged = dir.join("merged.exr");
     let m = bin()
         .arg("merge")

@@ -821,12 +821,13 @@ impl Partial {
 
     /// A round task's result read without its halves (`engine::rounds`: a round task
     /// needs the other regions' held light and pixels, 16 bytes a texel, not their
-    /// accumulators, 24 bytes more): `layout` from the file's start
-    /// ([`PartialLayout::parse`]), `pixels` and `held` the file's bytes at
-    /// `layout.pixels` and `layout.held`. The halves keep their step counts and hold no
-    /// texels ([`Partial::has_halves`] is false), and the `ao` and `ambient` layers are
-    /// not read; a merge refuses such a result, and a round task refuses it as its own
-    /// region's.
+    /// accumulators, 24 bytes more, or 48 with the `direct` layer): `layout` from the
+    /// file's start ([`PartialLayout::parse`]), `pixels` and `held` the file's bytes at
+    /// `layout.pixels` and `layout.held`. The halves keep their step counts and the
+    /// header's layers, with no texels in them ([`Partial::has_halves`] is false but for
+    /// a region of no texels, which then reads as a whole result does); a round result
+    /// has no `ao` or `ambient` layer. [`merge`] refuses such a result, and a round task
+    /// refuses it as its own region's.
     pub fn decode_held(layout: PartialLayout, pixels: &[u8], held: &[u8], what: &str) -> Result<Partial, EngineError> {
         let bad = |m: String| EngineError::BadInput(format!("{what}: {m}"));
         if !layout.header.held {
@@ -834,12 +835,15 @@ impl Partial {
                 "not a round task's result: it holds no light for the next round".into()
             ));
         }
+        if layout.header.ao || layout.header.ambient.is_some() {
+            return Err(bad("a round task's result has no ao or ambient layer".into()));
+        }
         for (name, bytes, range) in [("pixels", pixels, &layout.pixels), ("held light", held, &layout.held)] {
-            if bytes.len() as u64 != range.end - range.start {
+            let want = range.end.saturating_sub(range.start);
+            if bytes.len() as u64 != want {
                 return Err(bad(format!(
-                    "{} bytes of {name}, {} expected for {} texels",
+                    "{} bytes of {name}, {want} expected for {} texels",
                     bytes.len(),
-                    range.end - range.start,
                     layout.texels()
                 )));
             }
@@ -848,8 +852,8 @@ impl Partial {
         let empty = |steps: u64| HalfEstimate {
             steps,
             total: Vec::new(),
-            direct: None,
-            moments: None,
+            direct: header.direct.then(Vec::new),
+            moments: header.moments.then(Vec::new),
         };
         Ok(Partial {
             snapshot: Snapshot {

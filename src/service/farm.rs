@@ -195,8 +195,8 @@ async fn bake(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecord
         0..0
     };
     // Its own region's result whole (the halves it resumes), the others' pixels and held
-    // light only (region 0's round snapshot reads their halves itself, below, once the
-    // queue has given it the snapshot).
+    // light only (region 0's round snapshot reads every result whole itself, below, once
+    // the queue has given it the snapshot).
     let whole = |k: u32| k % range.regions.max(1) == range.region;
     let load = || async {
         Ok::<_, LoadError>((
@@ -861,7 +861,7 @@ async fn load_partials(state: &AppState, job: &JobRecord, indices: Range<u32>) -
 enum Fetched {
     Whole(Bytes),
     /// The layout, pixels and held light (`Partial::decode_held`): 16 bytes a texel of
-    /// the 40 a whole round result holds.
+    /// the 40 a whole round result holds (64 with the `direct` layer).
     Held {
         layout: Box<tasks::PartialLayout>,
         pixels: Bytes,
@@ -887,11 +887,11 @@ impl Fetched {
 }
 
 /// The results `indices` of the round before a round task's: whole where `whole(k)`
-/// holds, else their layout, pixels and held light alone, in three ranged reads (the
-/// first 16 bytes, which give the header's length and the object's size; the header; the
-/// two parts, which object_store joins into one request as they lie side by side in a
-/// round result). The object's size is checked against its header before a byte of the
-/// parts is used.
+/// holds, else their layout, pixels and held light alone ([`held_parts`]). A result whose
+/// parts cannot be read so (missing, damaged, a short read, a store error) is read whole
+/// instead, so that what goes wrong is classified as for any result: a missing or
+/// unreadable object by [`load_partials`], a damaged one by its decode in the bake thread
+/// (bad input: the job fails, as before the parts were read apart).
 async fn load_round_before(
     state: &AppState,
     job: &JobRecord,
@@ -900,59 +900,18 @@ async fn load_round_before(
 ) -> Result<Vec<Fetched>, LoadError> {
     let mut out = Vec::with_capacity(indices.len());
     for k in indices.clone() {
-        if whole(k) {
-            let mut b = load_partials(state, job, k..k + 1).await?;
-            out.push(Fetched::Whole(b.remove(0)));
-            continue;
+        if !whole(k) {
+            let key = store::task_partial(&job.id, k);
+            match held_parts(state, &key).await {
+                Ok(parts) => {
+                    out.push(parts);
+                    continue;
+                }
+                Err(why) => tracing::info!(task = k, why, "reading the result whole"),
+            }
         }
-        let key = store::task_partial(&job.id, k);
-        let what = format!("task {k}'s result (jobs/{}/tasks/{k}.lmtask)", job.id);
-        let transient = |e: object_store::Error| LoadError::Transient(format!("cannot read {what}: {e}"));
-        let permanent = |e: EngineError| LoadError::Permanent(e.to_string());
-        let lead = tasks::PartialLayout::LEAD as u64;
-        // Marked succeeded only after it was stored: a missing one was deleted.
-        let Some((first, size)) = state.artifacts.get_range(&key, 0..lead).await.map_err(transient)? else {
-            return Err(LoadError::Permanent(format!("{what} is no longer stored")));
-        };
-        let len = tasks::PartialLayout::header_len(&first, &what).map_err(permanent)?;
-        if lead.saturating_add(len) > size {
-            return Err(LoadError::Permanent(format!(
-                "{what}: header of {len} bytes runs past the end of the file"
-            )));
-        }
-        // An empty header is refused by `parse` below, naming the file.
-        let header = match len {
-            0 => Bytes::new(),
-            _ => match state
-                .artifacts
-                .get_range(&key, lead..lead + len)
-                .await
-                .map_err(transient)?
-            {
-                Some((b, _)) => b,
-                None => return Err(LoadError::Permanent(format!("{what} is no longer stored"))),
-            },
-        };
-        let start = [first, header].concat();
-        let layout = tasks::PartialLayout::parse(&start, &what).map_err(permanent)?;
-        if layout.file_len() != size {
-            return Err(LoadError::Permanent(format!(
-                "{what}: {size} bytes, its header describes {}",
-                layout.file_len()
-            )));
-        }
-        let [pixels, held]: [Bytes; 2] = state
-            .artifacts
-            .get_ranges(&key, &[layout.pixels.clone(), layout.held.clone()])
-            .await
-            .map_err(transient)?
-            .try_into()
-            .map_err(|_| LoadError::Transient(format!("cannot read {what}: a ranged read came back short")))?;
-        out.push(Fetched::Held {
-            layout: Box::new(layout),
-            pixels,
-            held,
-        });
+        let mut b = load_partials(state, job, k..k + 1).await?;
+        out.push(Fetched::Whole(b.remove(0)));
     }
     let read: u64 = out.iter().map(Fetched::len).sum();
     tracing::info!(
@@ -962,6 +921,45 @@ async fn load_round_before(
         "round before read"
     );
     Ok(out)
+}
+
+/// One round result's layout, pixels and held light, in three ranged reads: the first
+/// 16 bytes (which give the header's length, and the object's size), the header, then
+/// the two parts (side by side in a round result, so object_store joins them into one
+/// request). The object's size and every part's length are checked against the header;
+/// any trouble is returned as a reason, for the caller to read the result whole.
+async fn held_parts(state: &AppState, key: &object_store::path::Path) -> Result<Fetched, String> {
+    let store = |e: object_store::Error| e.to_string();
+    let lead = tasks::PartialLayout::LEAD as u64;
+    let Some((first, size)) = state.artifacts.get_range(key, 0..lead).await.map_err(store)? else {
+        return Err("not stored".into());
+    };
+    let len = tasks::PartialLayout::header_len(&first, "").map_err(|e| e.to_string())?;
+    if len == 0 || lead.saturating_add(len) > size {
+        return Err(format!("a header of {len} bytes in {size}"));
+    }
+    let Some((header, _)) = state.artifacts.get_range(key, lead..lead + len).await.map_err(store)? else {
+        return Err("not stored".into());
+    };
+    let layout = tasks::PartialLayout::parse(&[first, header].concat(), "").map_err(|e| e.to_string())?;
+    if layout.file_len() != size || !layout.header.held {
+        return Err(format!(
+            "{size} bytes where the header describes {}, held light {}",
+            layout.file_len(),
+            layout.header.held
+        ));
+    }
+    let wanted = [layout.pixels.clone(), layout.held.clone()];
+    let got = state.artifacts.get_ranges(key, &wanted).await.map_err(store)?;
+    if got.len() != 2 || got.iter().zip(&wanted).any(|(b, r)| b.len() as u64 != r.end - r.start) {
+        return Err("a ranged read came back short".into());
+    }
+    let [pixels, held]: [Bytes; 2] = got.try_into().map_err(|_| "two parts".to_string())?;
+    Ok(Fetched::Held {
+        layout: Box::new(layout),
+        pixels,
+        held,
+    })
 }
 
 /// Merges every task's result into the job's lightmap and stores it.

@@ -386,15 +386,23 @@ impl Artifacts {
         }
     }
 
-    /// Bytes `ranges` of the object, each whole (object_store joins near ones into one
-    /// request); empty ranges read nothing.
+    /// Bytes `ranges` of the object, one piece a range in order (object_store joins near
+    /// ones into one request); empty ranges read nothing. A piece is shorter than its range
+    /// only where the object is; the caller checks.
     pub async fn get_ranges(
         &self,
         key: &Path,
         ranges: &[std::ops::Range<u64>],
     ) -> Result<Vec<Bytes>, object_store::Error> {
         let asked: Vec<std::ops::Range<u64>> = ranges.iter().filter(|r| !r.is_empty()).cloned().collect();
-        let mut got = self.store.get_ranges(key, &asked).await?.into_iter();
+        let got = self.store.get_ranges(key, &asked).await?;
+        if got.len() != asked.len() {
+            return Err(object_store::Error::Generic {
+                store: "artifacts",
+                source: format!("{} pieces for {} ranges of {key}", got.len(), asked.len()).into(),
+            });
+        }
+        let mut got = got.into_iter();
         Ok(ranges
             .iter()
             .map(|r| {
