@@ -190,6 +190,75 @@ fn no_lightmap_uvs_is_reported_not_refused() {
     );
 }
 
+/// A level of many meshes without lightmap UVs gets one warning that names the first eight
+/// and counts the rest, not one name a mesh.
+#[test]
+fn many_meshes_without_lightmap_uvs_are_counted_not_listed() {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    for k in 0..20 {
+        b.square(
+            &format!("tile {k}"),
+            Vec3::new(k as f32 * 2.0, 0.0, 0.0),
+            1.0,
+            Vec3::Y,
+            m,
+        );
+    }
+    let (mut json, bin) = b.to_gltf();
+    remove_lightmap_uvs(&mut json, None);
+    let (_, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    let warning = report
+        .warnings
+        .iter()
+        .find(|w| w.contains("TEXCOORD_1"))
+        .expect("a warning about the missing lightmap UVs");
+    assert!(
+        warning.starts_with("20 primitives (mesh 0 \"tile 0\", primitive 0; mesh 1 \"tile 1\", primitive 0; "),
+        "{warning}"
+    );
+    assert!(
+        warning
+            .contains("mesh 7 \"tile 7\", primitive 0; and 12 more) has no TEXCOORD_1: lightmap UVs will be generated"),
+        "{warning}"
+    );
+    assert!(!warning.contains("tile 8"), "{warning}");
+}
+
+/// Many instanced meshes with authored lightmap UVs: one warning, the first eight named
+/// with their node counts, the rest counted.
+#[test]
+fn many_shared_authored_meshes_make_one_warning() {
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    for k in 0..10 {
+        b.square(
+            &format!("prop {k}"),
+            Vec3::new(k as f32 * 2.0, 0.0, 0.0),
+            1.0,
+            Vec3::Y,
+            m,
+        );
+    }
+    let (mut doc, bin) = b.to_gltf();
+    let nodes = doc["nodes"].as_array_mut().unwrap();
+    let placed = nodes.len();
+    for k in 0..10 {
+        nodes.push(json!({"mesh": k, "translation": [k as f32 * 2.0, 0.0, 5.0]}));
+    }
+    doc["scenes"][0]["nodes"] = json!((0..placed + 10).collect::<Vec<_>>());
+    let (_, report) = import_slice(&write_glb(&doc, &bin), None).unwrap();
+    let shared: Vec<&String> = report.warnings.iter().filter(|w| w.contains("share texels")).collect();
+    assert_eq!(shared.len(), 1, "{:?}", report.warnings);
+    assert!(
+        shared[0].starts_with(
+            "10 meshes with authored TEXCOORD_1 are placed by several nodes (mesh 0 \"prop 0\" by 2; mesh 1 \"prop 1\" by 2; "
+        ) && shared[0].contains("mesh 7 \"prop 7\" by 2; and 2 more): unless their extras.lightmap.scale_offset differ"),
+        "{}",
+        shared[0]
+    );
+}
+
 #[test]
 fn no_triangles() {
     let (mut json, bin) = quad_scene().to_gltf();

@@ -199,9 +199,17 @@ pub fn import_slice_limited(
     } = ctx;
 
     if !missing_lightmap_uvs.is_empty() {
-        report.warnings.push(format!(
-            "{} has no TEXCOORD_1: lightmap UVs will be generated for the meshes without them, authored ones are kept (bake --write-gltf saves them)",
+        let which = if missing_lightmap_uvs.len() > LISTED {
+            format!(
+                "{} primitives ({})",
+                missing_lightmap_uvs.len(),
+                listed(&missing_lightmap_uvs, "; ")
+            )
+        } else {
             missing_lightmap_uvs.join("; ")
+        };
+        report.warnings.push(format!(
+            "{which} has no TEXCOORD_1: lightmap UVs will be generated for the meshes without them, authored ones are kept (bake --write-gltf saves them)"
         ));
     }
     shared_authored_warning(&instances, &local_meshes, &gltf, &mut report.warnings);
@@ -388,6 +396,21 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
         ));
     }
     Ok(gltf)
+}
+
+/// How many items a warning names before it counts the rest ([`listed`]).
+const LISTED: usize = 8;
+
+/// `items` joined by `sep`, the first [`LISTED`] of them and then a count of the rest: a
+/// level of thousands of meshes or materials would otherwise make one warning of
+/// thousands of names (a generated 256k-triangle level's, 2001 meshes without lightmap
+/// UVs, was 100 kB on one line).
+fn listed(items: &[String], sep: &str) -> String {
+    let mut out = items.iter().take(LISTED).cloned().collect::<Vec<_>>().join(sep);
+    if items.len() > LISTED {
+        out.push_str(&format!("{sep}and {} more", items.len() - LISTED));
+    }
+    out
 }
 
 fn resolve_uri(uri: &str, base_dir: Option<&Path>, what: &str) -> Result<Vec<u8>, String> {
@@ -704,7 +727,7 @@ fn bound_albedo(materials: &mut [Material], report: &mut ImportReport) {
     if !bounded.is_empty() {
         report.warnings.push(format!(
             "albedo bounded for bounced light (so paths in closed rooms end): {}",
-            bounded.join(", ")
+            listed(&bounded, ", ")
         ));
     }
 }
@@ -857,18 +880,37 @@ fn shared_authored_warning(
     for i in instances.iter().filter(|i| !i.opt_out) {
         *users.entry(i.mesh).or_default() += 1;
     }
-    for (mesh, n) in users {
-        if n > 1 && meshes[mesh].as_ref().is_some_and(LocalMesh::authored) {
+    let shared: Vec<(usize, String, usize)> = users
+        .into_iter()
+        .filter(|&(mesh, n)| n > 1 && meshes[mesh].as_ref().is_some_and(LocalMesh::authored))
+        .map(|(mesh, n)| {
             let name = gltf
                 .meshes()
                 .nth(mesh)
                 .and_then(|m| m.name().map(str::to_string))
                 .unwrap_or_default();
-            warnings.push(format!(
-                "mesh {mesh} \"{name}\" has authored TEXCOORD_1 and is placed by {n} nodes: unless their extras.lightmap.scale_offset differ, they share texels (lightmap_uvs: repack-instances gives each its own rectangle and keeps these UVs; regenerate-all replaces them)"
-            ));
+            (mesh, name, n)
+        })
+        .collect();
+    // One warning for them all: a level instances hundreds of props.
+    let which = match shared.as_slice() {
+        [] => return,
+        [(mesh, name, n)] => format!("mesh {mesh} \"{name}\" has authored TEXCOORD_1 and is placed by {n} nodes"),
+        _ => {
+            let each: Vec<String> = shared
+                .iter()
+                .map(|(mesh, name, n)| format!("mesh {mesh} \"{name}\" by {n}"))
+                .collect();
+            format!(
+                "{} meshes with authored TEXCOORD_1 are placed by several nodes ({})",
+                shared.len(),
+                listed(&each, "; ")
+            )
         }
-    }
+    };
+    warnings.push(format!(
+        "{which}: unless their extras.lightmap.scale_offset differ, they share texels (lightmap_uvs: repack-instances gives each its own rectangle and keeps these UVs; regenerate-all replaces them)"
+    ));
 }
 
 /// Names what the document uses that the bake does not read.
