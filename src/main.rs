@@ -622,6 +622,23 @@ fn read_round_before(path: &std::path::Path, region: u32) -> Result<tasks::Parti
     tasks::Partial::decode_held(layout, &pixels, &held, &what).map_err(bad)
 }
 
+/// On a machine without a display session (no `XDG_RUNTIME_DIR`: a server, a container, CI)
+/// Mesa's Vulkan device-select layer prints "error: XDG_RUNTIME_DIR is invalid or not set
+/// in the environment" up to four times a bake while it looks for a display to order the
+/// GPUs by; nothing is wrong, but it reads as a failure. lightmapd picks its adapter itself
+/// (`LIGHTMAPD_ADAPTER`, `engine::gpu`), so there the layer is switched off
+/// (`NODEVICE_SELECT=1`, Mesa's own switch) unless the user has set it or chosen a device
+/// through it (`MESA_VK_DEVICE_SELECT`). Called first thing in `main`, before any thread
+/// exists.
+fn quiet_device_select() {
+    let unset = |name: &str| std::env::var_os(name).is_none();
+    if unset("XDG_RUNTIME_DIR") && unset("NODEVICE_SELECT") && unset("MESA_VK_DEVICE_SELECT") {
+        // SAFETY: no other thread exists yet (this runs first in `main`), so nothing reads
+        // the environment while it is written.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
+    }
+}
+
 /// An engine error as the process's failure: exit code 2 for bad input, else 1.
 fn engine_failure(e: lightmapd::engine::technique::EngineError) -> Failure {
     Failure {
@@ -643,6 +660,7 @@ fn bad_input(message: impl Into<String>) -> Failure {
 }
 
 fn main() -> ExitCode {
+    quiet_device_select();
     lightmapd::service::install_crypto_provider();
     let cli = match Cli::try_parse() {
         Ok(cli) => cli,

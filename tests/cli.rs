@@ -33,6 +33,30 @@ fn bundled_scene_is_what_the_generator_writes() {
     );
 }
 
+/// On a machine without a display session (a server, CI) a GPU bake's stderr holds
+/// lightmapd's own lines only: Mesa's device-select layer, which prints "error:
+/// XDG_RUNTIME_DIR is invalid or not set" there, is switched off (`quiet_device_select`).
+#[test]
+fn a_gpu_bake_without_a_display_prints_no_display_errors() {
+    let out = tmp("quiet.exr");
+    let output = bin()
+        .arg("bake")
+        .arg(bundled())
+        .arg("-o")
+        .arg(&out)
+        .args(["--resolution", "16", "--steps", "2", "--technique", "hemicube"])
+        .env_remove("XDG_RUNTIME_DIR")
+        .env_remove("NODEVICE_SELECT")
+        .env_remove("MESA_VK_DEVICE_SELECT")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stderr.contains("with hemicube: 2 steps"), "{stderr}");
+    assert!(!stderr.contains("XDG_RUNTIME_DIR"), "{stderr}");
+    assert!(!stderr.lines().any(|l| l.starts_with("error")), "{stderr}");
+}
+
 #[test]
 fn bake_writes_a_readable_exr_with_layers_and_metadata() {
     let out = tmp("cornell.exr");
