@@ -218,8 +218,9 @@ fn many_meshes_without_lightmap_uvs_are_counted_not_listed() {
         "{warning}"
     );
     assert!(
-        warning
-            .contains("mesh 7 \"tile 7\", primitive 0; and 12 more) has no TEXCOORD_1: lightmap UVs will be generated"),
+        warning.contains(
+            "mesh 7 \"tile 7\", primitive 0; and 12 more) have no TEXCOORD_1: lightmap UVs will be generated"
+        ),
         "{warning}"
     );
     assert!(!warning.contains("tile 8"), "{warning}");

@@ -201,15 +201,15 @@ pub fn import_slice_limited(
     if !missing_lightmap_uvs.is_empty() {
         let which = if missing_lightmap_uvs.len() > LISTED {
             format!(
-                "{} primitives ({})",
+                "{} primitives ({}) have",
                 missing_lightmap_uvs.len(),
                 listed(&missing_lightmap_uvs, "; ")
             )
         } else {
-            missing_lightmap_uvs.join("; ")
+            format!("{} has", missing_lightmap_uvs.join("; "))
         };
         report.warnings.push(format!(
-            "{which} has no TEXCOORD_1: lightmap UVs will be generated for the meshes without them, authored ones are kept (bake --write-gltf saves them)"
+            "{which} no TEXCOORD_1: lightmap UVs will be generated for the meshes without them, authored ones are kept (bake --write-gltf saves them)"
         ));
     }
     shared_authored_warning(&instances, &local_meshes, &gltf, &mut report.warnings);
