@@ -1654,6 +1654,91 @@ mod tests {
         assert_eq!(m.odd.moments.as_ref().unwrap()[1][2], Vec3::splat(-3.0));
     }
 
+    /// A round result read in parts (`PartialLayout`, `decode_held`): the ranges follow the
+    /// kept layers (120 bytes a texel of halves with `direct` and `moments`), the pixels and
+    /// the held light lie side by side, and what is read apart is what `decode` reads.
+    #[test]
+    fn a_round_result_is_read_in_parts() {
+        let request = request("hemicube", Some(8));
+        let task = split_rounds(&request, 2, 2).unwrap()[1][1];
+        let header = PartialHeader {
+            format: PARTIAL_FORMAT,
+            request,
+            task,
+            params: serde_json::json!({}),
+            width: 4,
+            height: 4,
+            texels: 3,
+            fingerprint: "cd".repeat(32),
+            half_steps: [3, 3],
+            direct: true,
+            moments: true,
+            ao: false,
+            ambient: None,
+            control: None,
+            seconds: 0.25,
+            stopped_by: StopReason::Steps,
+            live: false,
+            held: true,
+        };
+        let p = Partial {
+            header,
+            snapshot: Snapshot {
+                even: half(3, 1.5, 3),
+                odd: half(3, 0.5, 3),
+            },
+            pixels: vec![2, 7, 11],
+            ao: None,
+            ambient: None,
+            held: Some(vec![Vec3::ONE, Vec3::new(0.5, 0.25, 0.0), Vec3::splat(2.0)]),
+        };
+        let bytes = p.encode().unwrap();
+        let layout = PartialLayout::parse(&bytes, "r").unwrap();
+        assert_eq!(layout.file_len(), bytes.len() as u64);
+        assert_eq!(layout.halves.end - layout.halves.start, 3 * 120);
+        assert_eq!(
+            (layout.pixels.start, layout.pixels.end),
+            (layout.halves.end, layout.halves.end + 12)
+        );
+        assert!(layout.ao.is_empty() && layout.ambient.is_empty());
+        assert_eq!(
+            (layout.held.start, layout.held.end),
+            (layout.pixels.end, layout.pixels.end + 36)
+        );
+        let at = |r: &Range<u64>| &bytes[r.start as usize..r.end as usize];
+        let held = Partial::decode_held(layout.clone(), at(&layout.pixels), at(&layout.held), "r").unwrap();
+        assert_eq!(
+            (held.pixels.clone(), held.held.clone()),
+            (p.pixels.clone(), p.held.clone())
+        );
+        assert_eq!(held.header, p.header);
+        assert!(!held.has_halves() && p.has_halves());
+        // The halves' steps and layers as the header says, with no texels in them.
+        assert_eq!((held.snapshot.even.steps, held.snapshot.odd.steps), (3, 3));
+        assert_eq!(held.snapshot.even.direct, Some(vec![]));
+        assert_eq!(held.snapshot.odd.moments, Some(vec![]));
+        // The header alone is enough for the layout; a result that is not a round's, or
+        // has an `ao` layer, is not read in parts.
+        let lead = PartialLayout::LEAD;
+        let len = PartialLayout::header_len(&bytes[..lead], "r").unwrap() as usize;
+        assert_eq!(
+            PartialLayout::parse(&bytes[..lead + len], "r").unwrap().held,
+            layout.held
+        );
+        let short = PartialLayout::parse(&bytes[..lead + len - 1], "r")
+            .unwrap_err()
+            .to_string();
+        assert!(short.contains("runs past the end"), "{short}");
+        let mut other = layout.clone();
+        other.header.held = false;
+        let e = Partial::decode_held(other, &[], &[], "r").unwrap_err().to_string();
+        assert!(e.contains("not a round task's result"), "{e}");
+        let mut with_ao = layout;
+        with_ao.header.ao = true;
+        let e = Partial::decode_held(with_ao, &[], &[], "r").unwrap_err().to_string();
+        assert!(e.contains("no ao or ambient layer"), "{e}");
+    }
+
     #[test]
     fn a_partial_survives_its_file_and_a_damaged_one_is_refused() {
         let header = PartialHeader {

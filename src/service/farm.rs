@@ -902,7 +902,7 @@ async fn load_round_before(
     for k in indices.clone() {
         if !whole(k) {
             let key = store::task_partial(&job.id, k);
-            match held_parts(state, &key).await {
+            match held_parts(&state.artifacts, &key).await {
                 Ok(parts) => {
                     out.push(parts);
                     continue;
@@ -928,17 +928,17 @@ async fn load_round_before(
 /// the two parts (side by side in a round result, so object_store joins them into one
 /// request). The object's size and every part's length are checked against the header;
 /// any trouble is returned as a reason, for the caller to read the result whole.
-async fn held_parts(state: &AppState, key: &object_store::path::Path) -> Result<Fetched, String> {
+async fn held_parts(artifacts: &store::Artifacts, key: &object_store::path::Path) -> Result<Fetched, String> {
     let store = |e: object_store::Error| e.to_string();
     let lead = tasks::PartialLayout::LEAD as u64;
-    let Some((first, size)) = state.artifacts.get_range(key, 0..lead).await.map_err(store)? else {
+    let Some((first, size)) = artifacts.get_range(key, 0..lead).await.map_err(store)? else {
         return Err("not stored".into());
     };
     let len = tasks::PartialLayout::header_len(&first, "").map_err(|e| e.to_string())?;
     if len == 0 || lead.saturating_add(len) > size {
         return Err(format!("a header of {len} bytes in {size}"));
     }
-    let Some((header, _)) = state.artifacts.get_range(key, lead..lead + len).await.map_err(store)? else {
+    let Some((header, _)) = artifacts.get_range(key, lead..lead + len).await.map_err(store)? else {
         return Err("not stored".into());
     };
     let layout = tasks::PartialLayout::parse(&[first, header].concat(), "").map_err(|e| e.to_string())?;
@@ -950,7 +950,7 @@ async fn held_parts(state: &AppState, key: &object_store::path::Path) -> Result<
         ));
     }
     let wanted = [layout.pixels.clone(), layout.held.clone()];
-    let got = state.artifacts.get_ranges(key, &wanted).await.map_err(store)?;
+    let got = artifacts.get_ranges(key, &wanted).await.map_err(store)?;
     if got.len() != 2 || got.iter().zip(&wanted).any(|(b, r)| b.len() as u64 != r.end - r.start) {
         return Err("a ranged read came back short".into());
     }
@@ -1057,4 +1057,118 @@ async fn merge(state: &AppState, worker: &str, task: &TaskRecord, job: &JobRecor
         history: serde_json::to_value(history).unwrap_or(Value::Null),
         plan,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::accumulate::{HalfEstimate, Snapshot};
+    use glam::Vec3;
+
+    /// A round result of 3 texels, encoded.
+    fn round_result() -> Vec<u8> {
+        let request = BakeRequest {
+            technique: "hemicube".into(),
+            stop: crate::engine::bake::StopCriteria {
+                steps: Some(8),
+                seconds: None,
+                target_error: None,
+            },
+            ..BakeRequest::default()
+        };
+        let task = tasks::split_rounds(&request, 2, 2).unwrap()[1][0];
+        let half = |v: f32| HalfEstimate {
+            steps: 3,
+            total: vec![Vec3::splat(v); 3],
+            direct: None,
+            moments: None,
+        };
+        let p = Partial {
+            header: tasks::PartialHeader {
+                format: tasks::PARTIAL_FORMAT,
+                request,
+                task,
+                params: json!({}),
+                width: 4,
+                height: 4,
+                texels: 3,
+                fingerprint: "ef".repeat(32),
+                half_steps: [3, 3],
+                direct: false,
+                moments: false,
+                ao: false,
+                ambient: None,
+                control: None,
+                seconds: 0.5,
+                stopped_by: StopReason::Steps,
+                live: false,
+                held: true,
+            },
+            snapshot: Snapshot {
+                even: half(1.0),
+                odd: half(0.5),
+            },
+            pixels: vec![1, 4, 9],
+            ao: None,
+            ambient: None,
+            held: Some(vec![Vec3::ONE, Vec3::splat(0.5), Vec3::ZERO]),
+        };
+        p.encode().unwrap()
+    }
+
+    /// What a round task fetches of another region's result: its layout, pixels and held
+    /// light, in ranged reads, 16 bytes a texel and the header; a missing, truncated or
+    /// lengthened result, or one that is not a round's, is refused with a reason (and the
+    /// caller, `load_round_before`, reads it whole, to be classified as any result is).
+    #[tokio::test]
+    async fn a_round_result_is_fetched_in_parts_or_refused() {
+        let dir = std::env::temp_dir().join(format!("lightmapd-held-parts-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let artifacts = store::Artifacts::local(&dir).unwrap();
+        let bytes = round_result();
+        let key = store::task_partial("job", 1);
+        artifacts.put(&key, Bytes::from(bytes.clone())).await.unwrap();
+        let Ok(Fetched::Held { layout, pixels, held }) = held_parts(&artifacts, &key).await else {
+            panic!("a round result is fetched in parts");
+        };
+        assert_eq!((pixels.len(), held.len()), (12, 36));
+        let fetched = Fetched::Held {
+            layout: layout.clone(),
+            pixels,
+            held,
+        };
+        assert_eq!(fetched.len(), layout.halves.start + 3 * 16);
+        let whole = Partial::decode(&bytes, "whole").unwrap();
+        let part = fetched.decode("part").unwrap();
+        assert!(!part.has_halves());
+        assert_eq!((part.pixels, part.held), (whole.pixels, whole.held));
+
+        let refused = |b: Vec<u8>| {
+            let (artifacts, key) = (&artifacts, key.clone());
+            async move {
+                artifacts.put(&key, Bytes::from(b)).await.unwrap();
+                held_parts(artifacts, &key).await.err().expect("refused")
+            }
+        };
+        let why = refused(bytes[..bytes.len() - 1].to_vec()).await;
+        assert!(why.contains("where the header describes"), "{why}");
+        let why = refused([bytes.clone(), vec![0]].concat()).await;
+        assert!(why.contains("where the header describes"), "{why}");
+        let why = refused(b"not a result".to_vec()).await;
+        assert!(why.contains("no LMDTASK1 magic"), "{why}");
+        // An empty object: the store refuses the range itself.
+        let why = refused(Vec::new()).await;
+        assert!(why.contains("range"), "{why}");
+        let mut plain = Partial::decode(&bytes, "whole").unwrap();
+        plain.header.held = false;
+        plain.held = None;
+        let why = refused(plain.encode().unwrap()).await;
+        assert!(why.contains("held light false"), "{why}");
+        let why = held_parts(&artifacts, &store::task_partial("job", 2))
+            .await
+            .err()
+            .expect("refused");
+        assert_eq!(why, "not stored");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
