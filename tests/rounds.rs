@@ -554,7 +554,7 @@ fn the_command_line_bakes_in_rounds() {
     assert!(rgb.iter().all(|v| v.is_finite()) && rgb.iter().any(|v| *v > 0.0));
 
     // The same bake as four processes (two regions, two rounds) and a merge.
-    let round_task = |part: &std::path::Path, round: u32, region: u32, previous: &[std::path::PathBuf]| {
+    let round_command = |part: &std::path::Path, round: u32, region: u32| {
         let mut cmd = bin();
         cmd.arg("bake")
             .arg(cornell())
@@ -571,6 +571,10 @@ fn the_command_line_bakes_in_rounds() {
             ])
             .args(["--rounds", "2", "--regions", "2", "--task", &format!("{region}/2")])
             .args(["--round", &round.to_string()]);
+        cmd
+    };
+    let round_task = |part: &std::path::Path, round: u32, region: u32, previous: &[std::path::PathBuf]| {
+        let mut cmd = round_command(part, round, region);
         if !previous.is_empty() {
             cmd.arg("--previous").args(previous);
         }
@@ -598,31 +602,8 @@ fn the_command_line_bakes_in_rounds() {
     {
         use std::io::Write;
         let part = dir.join("piped.lmtask");
-        let mut cmd = bin();
-        cmd.arg("bake")
-            .arg(cornell())
-            .arg("-o")
-            .arg(&part)
-            .args([
-                "--resolution",
-                "24",
-                "--steps",
-                "8",
-                "--no-denoise",
-                "--technique",
-                "hemicube",
-            ])
-            .args([
-                "--rounds",
-                "2",
-                "--regions",
-                "2",
-                "--task",
-                "0/2",
-                "--round",
-                "1",
-                "--previous",
-            ])
+        let mut cmd = round_command(&part, 1, 0);
+        cmd.arg("--previous")
             .arg(&first[0])
             .arg("/dev/stdin")
             .stdin(std::process::Stdio::piped())
