@@ -631,7 +631,8 @@ fn read_round_before(path: &std::path::Path, region: u32) -> Result<tasks::Parti
 /// through it (`MESA_VK_DEVICE_SELECT`). Called first thing in `main`, before any thread
 /// exists.
 fn quiet_device_select() {
-    let unset = |name: &str| std::env::var_os(name).is_none();
+    // Empty counts as unset, as it does for Mesa.
+    let unset = |name: &str| std::env::var_os(name).is_none_or(|v| v.is_empty());
     if unset("XDG_RUNTIME_DIR") && unset("NODEVICE_SELECT") && unset("MESA_VK_DEVICE_SELECT") {
         // SAFETY: no other thread exists yet (this runs first in `main`), so nothing reads
         // the environment while it is written.

@@ -357,7 +357,7 @@ fn scene_without_lightmap_uvs_bakes_and_writes_them() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{stderr}");
     assert!(
-        stderr.contains("has no TEXCOORD_1: lightmap UVs will be generated"),
+        stderr.contains("no TEXCOORD_1: lightmap UVs will be generated"),
         "{stderr}"
     );
     assert!(stderr.contains("generated lightmap UVs: "), "{stderr}");

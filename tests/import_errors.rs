@@ -226,6 +226,48 @@ fn many_meshes_without_lightmap_uvs_are_counted_not_listed() {
     assert!(!warning.contains("tile 8"), "{warning}");
 }
 
+/// A few meshes without lightmap UVs are all named ("have"); many materials bounded are
+/// counted past the eighth.
+#[test]
+fn short_lists_are_named_and_long_ones_counted() {
+    let mut b = SceneBuilder::new();
+    for k in 0..10 {
+        let m = b.material(MaterialDesc::diffuse(&format!("white {k}"), [1.0; 3]));
+        b.square(
+            &format!("tile {k}"),
+            Vec3::new(k as f32 * 2.0, 0.0, 0.0),
+            1.0,
+            Vec3::Y,
+            m,
+        );
+    }
+    let (mut json, bin) = b.to_gltf();
+    remove_lightmap_uvs(&mut json, Some(&[2, 5]));
+    let (_, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    let find = |what: &str| {
+        report
+            .warnings
+            .iter()
+            .find(|w| w.contains(what))
+            .unwrap_or_else(|| panic!("no warning about {what}: {:?}", report.warnings))
+            .clone()
+    };
+    assert!(
+        find("TEXCOORD_1").starts_with(
+            "mesh 2 \"tile 2\", primitive 0; mesh 5 \"tile 5\", primitive 0 have no TEXCOORD_1: lightmap UVs"
+        ),
+        "{:?}",
+        report.warnings
+    );
+    let albedo = find("albedo bounded");
+    assert!(albedo.contains("white 0 to "), "{albedo}");
+    assert!(
+        albedo.contains("white 7 to ") && albedo.ends_with(", and 2 more"),
+        "{albedo}"
+    );
+    assert!(!albedo.contains("white 8"), "{albedo}");
+}
+
 /// Many instanced meshes with authored lightmap UVs: one warning, the first eight named
 /// with their node counts, the rest counted.
 #[test]

@@ -727,7 +727,7 @@ pub fn check_against_scene(report: &Value, spec: &JobSpec) -> Result<(), Problem
     {
         return Err(Problem::invalid_field(
             "lightmap_uvs",
-            "lightmap_uvs is keep, and the scene has meshes without TEXCOORD_1 (its report lists them): use generate-missing",
+            "lightmap_uvs is keep, and the scene has meshes without TEXCOORD_1 (its report's warnings name them): use generate-missing",
         ));
     }
     // Probes need somewhere to go: a grid, positions, or the scene's probe nodes.

@@ -1561,7 +1561,7 @@ async fn scene_without_lightmap_uvs_gets_them_generated_and_returned() {
         (
             json!({"lightmap_uvs": "keep"}),
             "lightmap_uvs",
-            "lightmap_uvs is keep, and the scene has meshes without TEXCOORD_1 (its report lists them): use generate-missing",
+            "lightmap_uvs is keep, and the scene has meshes without TEXCOORD_1 (its report's warnings name them): use generate-missing",
         ),
         (
             json!({"lightmap_uvs": "sometimes"}),

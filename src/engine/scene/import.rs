@@ -199,14 +199,10 @@ pub fn import_slice_limited(
     } = ctx;
 
     if !missing_lightmap_uvs.is_empty() {
-        let which = if missing_lightmap_uvs.len() > LISTED {
-            format!(
-                "{} primitives ({}) have",
-                missing_lightmap_uvs.len(),
-                listed(&missing_lightmap_uvs, "; ")
-            )
-        } else {
-            format!("{} has", missing_lightmap_uvs.join("; "))
+        let which = match missing_lightmap_uvs.len() {
+            1 => format!("{} has", missing_lightmap_uvs[0]),
+            n if n <= LISTED => format!("{} have", missing_lightmap_uvs.join("; ")),
+            n => format!("{n} primitives ({}) have", listed(&missing_lightmap_uvs, "; ")),
         };
         report.warnings.push(format!(
             "{which} no TEXCOORD_1: lightmap UVs will be generated for the meshes without them, authored ones are kept (bake --write-gltf saves them)"
@@ -1249,9 +1245,9 @@ impl Flatten<'_> {
                     None => [flat; 3],
                 };
                 let lm = [uv1[a], uv1[b], uv1[c]];
-                if (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0
-                    && !self.missing_lightmap_uvs.contains(&at.to_string())
-                {
+                // A primitive without TEXCOORD_1 holds zero placeholders, counted apart (its
+                // UVs are generated), not as zero-area triangles.
+                if authored && (lm[1] - lm[0]).perp_dot(lm[2] - lm[0]) == 0.0 {
                     self.report.zero_uv_area_triangles += 1;
                 }
                 let mut uv = uv0.as_ref().map(|u| [u[a], u[b], u[c]]).unwrap_or([Vec2::ZERO; 3]);
