@@ -86,6 +86,39 @@ fn two_squares_without_uvs(names: [&str; 2], a: f32, b: f32) -> Vec<u8> {
     write_glb(&json, &bin)
 }
 
+/// Ten meshes scaled down to fit their pages make one warning, naming eight with the
+/// density each got and counting the rest; two make one warning each (above).
+#[test]
+fn many_meshes_scaled_down_make_one_warning() {
+    let mut builder = SceneBuilder::new();
+    let m = builder.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    for k in 0..10 {
+        builder.square(
+            &format!("slab {k}"),
+            Vec3::new(10.0 * k as f32, 0.0, 0.0),
+            4.0,
+            Vec3::Y,
+            m,
+        );
+    }
+    let (mut json, bin) = builder.to_gltf();
+    remove_lightmap_uvs(&mut json, None);
+    let (mut scene, _) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    let r = generate_lightmap_uvs_with(&mut scene, 256, LightmapUvs::GenerateMissing, Some(100.0), &UvUnwrap).unwrap();
+    let scaled: Vec<&String> = r.warnings.iter().filter(|w| w.contains("scaled down")).collect();
+    assert_eq!(scaled.len(), 1, "{:?}", r.warnings);
+    let w = scaled[0];
+    assert!(
+        w.starts_with("10 meshes' charts were scaled down to fit a 256x") && w.contains("(mesh 0 \"slab 0\" at "),
+        "{w}"
+    );
+    assert!(
+        w.contains(" texels/m instead of 100.00; ") && w.contains("; and 2 more) (raise max_page_size"),
+        "{w}"
+    );
+    assert!(!w.contains("slab 8"), "{w}");
+}
+
 #[test]
 fn texels_per_unit_sets_the_density_and_adds_pages() {
     let glb = two_squares_without_uvs(["a", "b"], 4.0, 4.0);

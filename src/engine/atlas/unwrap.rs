@@ -57,7 +57,7 @@ use std::collections::HashMap;
 use glam::{DMat3, Vec2};
 use serde::{Deserialize, Serialize};
 
-use crate::engine::scene::{GeneratedMesh, GeneratedPrimitive, LightmapLayout, MeshCopy, PageRows, Scene};
+use crate::engine::scene::{GeneratedMesh, GeneratedPrimitive, LightmapLayout, MeshCopy, PageRows, Scene, warn_each};
 
 /// Padding around each chart, in texels.
 pub const PADDING: u32 = 3;
@@ -341,6 +341,7 @@ pub fn generate_lightmap_uvs_paged(
     // of its own, unwrapped in the stretched shape, and a copy of the mesh in the written
     // glTF (`MeshCopy`).
     let mut warnings = Vec::new();
+    let mut stretched: Vec<(String, String)> = Vec::new();
     // Per UnwrapMesh: the glTF mesh, and which of its copies (None: the mesh itself).
     let mut order: Vec<(usize, Option<usize>)> = Vec::new();
     let mut inputs: Vec<UnwrapMesh> = Vec::new();
@@ -384,10 +385,13 @@ pub fn generate_lightmap_uvs_paged(
                 Some(l) => l.2.push((k, scale)),
                 None => {
                     if shape.is_some() {
-                        warnings.push(format!(
-                            "node {} scales {} {ratio:.1}x more along one axis than another: it gets a lightmap layout of its own (a copy of the mesh in the written glTF)",
-                            inst.node,
-                            mesh_name(m)
+                        stretched.push((
+                            format!("node {} ({}) {ratio:.1}x", inst.node, mesh_name(m)),
+                            format!(
+                                "node {} scales {} {ratio:.1}x more along one axis than another: it gets a lightmap layout of its own (a copy of the mesh in the written glTF)",
+                                inst.node,
+                                mesh_name(m)
+                            ),
                         ));
                     }
                     layouts.push((shape, metric, vec![(k, scale)]));
@@ -434,6 +438,11 @@ pub fn generate_lightmap_uvs_paged(
             inputs.push(input);
         }
     }
+    warn_each(&mut warnings, stretched, |n, names| {
+        format!(
+            "{n} nodes scale their meshes more along one axis than another ({names}): each gets a lightmap layout of its own (a copy of the mesh in the written glTF)"
+        )
+    });
 
     // Authored pages (an input written by a multi-page bake names several) first, each
     // W × W, in their own order.
@@ -493,14 +502,22 @@ pub fn generate_lightmap_uvs_paged(
         };
         repack_density = density as f32;
         let (n, at, shrunk) = super::repack::place(&items, density, w);
-        for k in shrunk {
-            let inst = &source.instances[items[k].instance];
-            warnings.push(format!(
-                "node {} ({}): its rectangle was scaled down to fit a {w}x{w} page (raise max_page_size, or lower texels_per_unit or its extras.lightmap_scale)",
-                inst.node,
-                mesh_label(scene, inst.mesh)
-            ));
-        }
+        let shrunk = shrunk
+            .into_iter()
+            .map(|k| {
+                let inst = &source.instances[items[k].instance];
+                let name = format!("node {} ({})", inst.node, mesh_label(scene, inst.mesh));
+                let own = format!(
+                    "{name}: its rectangle was scaled down to fit a {w}x{w} page (raise max_page_size, or lower texels_per_unit or its extras.lightmap_scale)"
+                );
+                (name, own)
+            })
+            .collect();
+        warn_each(&mut warnings, shrunk, |n, names| {
+            format!(
+                "{n} nodes' rectangles were scaled down to fit a {w}x{w} page ({names}) (raise max_page_size, or lower texels_per_unit or their extras.lightmap_scale)"
+            )
+        });
         (n, at)
     };
     let height = authored_rows + pages * stride + repacked_pages * w;
@@ -672,12 +689,21 @@ pub fn generate_lightmap_uvs_paged(
                 sparse.push((inst.mesh, achieved, target));
             }
         }
-        for (m, achieved, target) in sparse {
-            warnings.push(format!(
-                "{}: its charts were scaled down to fit a {w}x{page_h} page, {achieved:.2} texels/m instead of {target:.2} (raise max_page_size, or lower texels_per_unit or its extras.lightmap_scale)",
-                mesh_label(scene, m)
-            ));
-        }
+        let sparse = sparse
+            .into_iter()
+            .map(|(m, achieved, target)| {
+                let name = mesh_label(scene, m);
+                let own = format!(
+                    "{name}: its charts were scaled down to fit a {w}x{page_h} page, {achieved:.2} texels/m instead of {target:.2} (raise max_page_size, or lower texels_per_unit or its extras.lightmap_scale)"
+                );
+                (format!("{name} at {achieved:.2} texels/m instead of {target:.2}"), own)
+            })
+            .collect();
+        warn_each(&mut warnings, sparse, |n, names| {
+            format!(
+                "{n} meshes' charts were scaled down to fit a {w}x{page_h} page ({names}) (raise max_page_size, or lower texels_per_unit or their extras.lightmap_scale)"
+            )
+        });
     }
 
     let report = UnwrapReport {

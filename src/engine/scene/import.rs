@@ -43,8 +43,8 @@ use serde::Serialize;
 
 use super::error::{ImportError, PrimitiveRef};
 use super::{
-    AlphaMode, Bounds, Instance, LightKind, LocalMesh, LocalPrimitive, Material, MeshInfo, PunctualLight, Scene,
-    SourceDocument, Texture, TextureRef, TriSource, Triangle, Wrap,
+    AlphaMode, Bounds, Instance, LISTED, LightKind, LocalMesh, LocalPrimitive, Material, MeshInfo, PunctualLight,
+    Scene, SourceDocument, Texture, TextureRef, TriSource, Triangle, Wrap, listed,
 };
 
 /// What import found, for the CLI summary and the service's scene report.
@@ -392,21 +392,6 @@ fn parse(bytes: &[u8]) -> Result<gltf::Gltf, ImportError> {
         ));
     }
     Ok(gltf)
-}
-
-/// How many items a warning names before it counts the rest ([`listed`]).
-const LISTED: usize = 8;
-
-/// `items` joined by `sep`, the first [`LISTED`] of them and then a count of the rest: a
-/// level of thousands of meshes or materials would otherwise make one warning of
-/// thousands of names (a generated 256k-triangle level's, 2001 meshes without lightmap
-/// UVs, was 100 kB on one line).
-fn listed(items: &[String], sep: &str) -> String {
-    let mut out = items.iter().take(LISTED).cloned().collect::<Vec<_>>().join(sep);
-    if items.len() > LISTED {
-        out.push_str(&format!("{sep}and {} more", items.len() - LISTED));
-    }
-    out
 }
 
 fn resolve_uri(uri: &str, base_dir: Option<&Path>, what: &str) -> Result<Vec<u8>, String> {

@@ -49,6 +49,37 @@ pub use error::ImportError;
 /// stiff test scenes (ρ = 0.99, 0.999) as they are.
 pub const ALBEDO_BOUND: f32 = 0.999;
 
+/// How many items a warning names before it counts the rest ([`listed`]).
+pub(crate) const LISTED: usize = 8;
+
+/// `items` joined by `sep`, the first [`LISTED`] of them and then a count of the rest: a
+/// level of thousands of meshes or materials would otherwise make one warning of
+/// thousands of names (a generated 256k-triangle level's, 2001 meshes without lightmap
+/// UVs, was 100 kB on one line).
+pub(crate) fn listed(items: &[String], sep: &str) -> String {
+    let mut out = items.iter().take(LISTED).cloned().collect::<Vec<_>>().join(sep);
+    if items.len() > LISTED {
+        out.push_str(&format!("{sep}and {} more", items.len() - LISTED));
+    }
+    out
+}
+
+/// Warnings of one kind, one an item (`(name, its own warning)`): each its own while
+/// there are at most [`LISTED`], else one warning, `many(count, names listed)`, so that a
+/// level of thousands of nodes makes one line, not thousands.
+pub(crate) fn warn_each(
+    warnings: &mut Vec<String>,
+    items: Vec<(String, String)>,
+    many: impl FnOnce(usize, String) -> String,
+) {
+    if items.len() <= LISTED {
+        warnings.extend(items.into_iter().map(|(_, own)| own));
+    } else {
+        let names: Vec<String> = items.iter().map(|(name, _)| name.clone()).collect();
+        warnings.push(many(items.len(), listed(&names, "; ")));
+    }
+}
+
 /// Albedo of glTF's default material (primitives without a material), for bounced light:
 /// glTF says white (1), which makes a mostly closed level bounce without end (issue 19:
 /// one 4-sample step of a 181k-texel level took 144 s); 0.8 is Blender's default base
