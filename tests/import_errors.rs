@@ -190,22 +190,24 @@ fn no_lightmap_uvs_is_reported_not_refused() {
     );
 }
 
+/// `n` unit squares in a row, mesh k named "{name} k": all of one grey material, or with
+/// `own`, each of a material of its own named as its mesh, of albedo `own`.
+fn row_of_squares(n: usize, name: &str, own: Option<[f32; 3]>) -> (Value, Vec<u8>) {
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    for k in 0..n {
+        let label = format!("{name} {k}");
+        let m = own.map_or(grey, |albedo| b.material(MaterialDesc::diffuse(&label, albedo)));
+        b.square(&label, Vec3::new(k as f32 * 2.0, 0.0, 0.0), 1.0, Vec3::Y, m);
+    }
+    b.to_gltf()
+}
+
 /// A level of many meshes without lightmap UVs gets one warning that names the first eight
 /// and counts the rest, not one name a mesh.
 #[test]
 fn many_meshes_without_lightmap_uvs_are_counted_not_listed() {
-    let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
-    for k in 0..20 {
-        b.square(
-            &format!("tile {k}"),
-            Vec3::new(k as f32 * 2.0, 0.0, 0.0),
-            1.0,
-            Vec3::Y,
-            m,
-        );
-    }
-    let (mut json, bin) = b.to_gltf();
+    let (mut json, bin) = row_of_squares(20, "tile", None);
     remove_lightmap_uvs(&mut json, None);
     let (_, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
     let warning = report
@@ -230,18 +232,7 @@ fn many_meshes_without_lightmap_uvs_are_counted_not_listed() {
 /// counted past the eighth.
 #[test]
 fn short_lists_are_named_and_long_ones_counted() {
-    let mut b = SceneBuilder::new();
-    for k in 0..10 {
-        let m = b.material(MaterialDesc::diffuse(&format!("white {k}"), [1.0; 3]));
-        b.square(
-            &format!("tile {k}"),
-            Vec3::new(k as f32 * 2.0, 0.0, 0.0),
-            1.0,
-            Vec3::Y,
-            m,
-        );
-    }
-    let (mut json, bin) = b.to_gltf();
+    let (mut json, bin) = row_of_squares(10, "white", Some([1.0; 3]));
     remove_lightmap_uvs(&mut json, Some(&[2, 5]));
     let (_, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
     let find = |what: &str| {
@@ -254,7 +245,7 @@ fn short_lists_are_named_and_long_ones_counted() {
     };
     assert!(
         find("TEXCOORD_1").starts_with(
-            "mesh 2 \"tile 2\", primitive 0; mesh 5 \"tile 5\", primitive 0 have no TEXCOORD_1: lightmap UVs"
+            "mesh 2 \"white 2\", primitive 0; mesh 5 \"white 5\", primitive 0 have no TEXCOORD_1: lightmap UVs"
         ),
         "{:?}",
         report.warnings
@@ -272,18 +263,7 @@ fn short_lists_are_named_and_long_ones_counted() {
 /// with their node counts, the rest counted.
 #[test]
 fn many_shared_authored_meshes_make_one_warning() {
-    let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
-    for k in 0..10 {
-        b.square(
-            &format!("prop {k}"),
-            Vec3::new(k as f32 * 2.0, 0.0, 0.0),
-            1.0,
-            Vec3::Y,
-            m,
-        );
-    }
-    let (mut doc, bin) = b.to_gltf();
+    let (mut doc, bin) = row_of_squares(10, "prop", None);
     let nodes = doc["nodes"].as_array_mut().unwrap();
     let placed = nodes.len();
     for k in 0..10 {
