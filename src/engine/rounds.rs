@@ -21,9 +21,9 @@
 //! whole (the halves it resumes), the others' pixels and held light alone (16 bytes a
 //! texel of a result's 40, or 64 with the `direct` layer: `tasks::PartialLayout`,
 //! `Partial::decode_held`; the queue's workers fetch those parts with ranged reads, the
-//! command line seeks to them), and writes its own (`tasks::Partial` with `held`): its halves and the estimate made by
-//! its round's own steps, which is the next round's held light (the running mean would
-//! still carry the earlier rounds' lag). All regions of a round read the same held light
+//! command line seeks to them), and writes its own (`tasks::Partial` with `held`): its
+//! halves and the estimate made by its round's own steps, which is the next round's held
+//! light (the running mean would still carry the earlier rounds' lag). All regions of a round read the same held light
 //! (Jacobi, not Gauss-Seidel), so a round's tasks may bake at once, on separate machines;
 //! the last round's results merge as a split bake's regions do (`tasks::merge`, their
 //! texels side by side). [`bake_in_rounds`] runs every task in this process, one after
