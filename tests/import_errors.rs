@@ -259,6 +259,53 @@ fn short_lists_are_named_and_long_ones_counted() {
     assert!(!albedo.contains("white 8"), "{albedo}");
 }
 
+/// Malformed fields repeated on every node, mesh or primitive of a level (an exporter's
+/// mistake) make one warning a kind that names the first eight items and counts the rest;
+/// two items of a kind keep a line each, and every bad value is still replaced.
+#[test]
+fn malformed_items_make_one_warning_a_kind() {
+    let (mut json, bin) = row_of_squares(10, "tile", None);
+    for k in 0..10 {
+        json["nodes"][k]["extras"] = json!({"lightmap_scale": -1, "lightmap": {"page": "one"}});
+        json["meshes"][k]["extras"] = json!({"lightmap_scale": 0});
+        let triangles = json["meshes"][k]["primitives"][0].clone();
+        let mut lines = triangles.clone();
+        lines["mode"] = json!(1);
+        json["meshes"][k]["primitives"] = json!([triangles, lines]);
+    }
+    json["nodes"][3]["extras"]["lightmap"]["scale_offset"] = json!([0, 1, 0, 0]);
+    json["nodes"][4]["extras"]["lightmap"]["scale_offset"] = json!([1, 1]);
+    let (scene, report) = import_slice(&write_glb(&json, &bin), None).unwrap();
+    let eight = |each: &dyn Fn(usize) -> String| (0..8).map(each).collect::<Vec<_>>().join("; ") + "; and 2 more";
+    assert_eq!(
+        report.warnings,
+        [
+            format!(
+                "10 meshes' extras.lightmap_scale are not numbers in (0, 1000]; using 1 ({})",
+                eight(&|k| format!("mesh {k} \"tile {k}\" (0)"))
+            ),
+            format!(
+                "10 nodes' extras.lightmap_scale are not numbers in (0, 1000]; using 1 ({})",
+                eight(&|k| format!("node {k} \"tile {k}\" (-1)"))
+            ),
+            format!(
+                "10 nodes' extras.lightmap.page are not page numbers below 256; page 0 used ({})",
+                eight(&|k| format!("node {k} \"tile {k}\" (\"one\")"))
+            ),
+            format!(
+                "10 primitives are not TRIANGLES and are skipped ({})",
+                eight(&|k| format!("mesh {k} \"tile {k}\", primitive 1 (Lines)"))
+            ),
+            "node 3 \"tile 3\": extras.lightmap.scale_offset is not four finite numbers with positive scales; ignored"
+                .to_string(),
+            "node 4 \"tile 4\": extras.lightmap.scale_offset is not four finite numbers with positive scales; ignored"
+                .to_string(),
+        ]
+    );
+    assert!(scene.meshes.iter().all(|m| m.lightmap_scale == 1.0));
+    assert_eq!(scene.triangles.len(), 20, "the lines are skipped, the squares kept");
+}
+
 /// Many instanced meshes with authored lightmap UVs: one warning, the first eight named
 /// with their node counts, the rest counted.
 #[test]

@@ -27,7 +27,11 @@
 //! `extras.lightmap_scale`, `extras.lightmap: false` and `extras.lightmap.scale_offset`
 //! are read; what the bake does not read (extensions by name, skins, animations, alpha
 //! modes, normal textures, morph targets) is listed in one warning; albedo is bounded
-//! (`scene::ALBEDO_BOUND`) and the report says so.
+//! (`scene::ALBEDO_BOUND`) and the report says so. A warning about one malformed item (a
+//! bad `extras` field, an unread `texCoord` override, a non-triangle primitive, an index
+//! count not a multiple of 3) is written one an item up to eight items of its kind, then
+//! as one line that names eight and counts the rest: an exporter's mistake repeated on
+//! every node of a level is one line, not thousands.
 //!
 //! Limits: sparse accessors, morph targets and skins are not read (sparse position or UV
 //! accessors are an error; the others are listed in the report).
@@ -44,7 +48,7 @@ use serde::Serialize;
 use super::error::{ImportError, PrimitiveRef};
 use super::{
     AlphaMode, Bounds, Instance, LISTED, LightKind, LocalMesh, LocalPrimitive, Material, MeshInfo, PunctualLight,
-    Scene, SourceDocument, Texture, TextureRef, TriSource, Triangle, Wrap, listed,
+    Scene, SourceDocument, Texture, TextureRef, TriSource, Triangle, Wrap, listed, warn_each,
 };
 
 /// What import found, for the CLI summary and the service's scene report.
@@ -135,7 +139,8 @@ pub fn import_slice_limited(
     let textures = load_textures(&gltf, &buffers, base_dir, limits.max_texture_side)?;
     report.texture_texels = textures.iter().map(|t| u64::from(t.width) * u64::from(t.height)).sum();
     let mut materials = load_materials(&gltf)?;
-    let uv_transforms = texture_transforms(&json, materials.len(), &mut report.warnings);
+    let mut items = ItemWarnings::default();
+    let uv_transforms = texture_transforms(&json, materials.len(), &mut items);
 
     for ext in gltf.extensions_required() {
         if !matches!(
@@ -151,7 +156,6 @@ pub fn import_slice_limited(
         }
     }
 
-    let mut scale_warnings = Vec::new();
     let mut ctx = Flatten {
         buffers: &buffers,
         triangles: Vec::new(),
@@ -162,7 +166,7 @@ pub fn import_slice_limited(
             .map(|m| MeshInfo {
                 name: m.name().unwrap_or("").to_string(),
                 index: m.index(),
-                lightmap_scale: lightmap_scale(m.extras(), m.index(), &mut scale_warnings),
+                lightmap_scale: lightmap_scale(&m, &mut items),
             })
             .collect(),
         report: &mut report,
@@ -173,6 +177,7 @@ pub fn import_slice_limited(
         local_meshes: vec![None; gltf.meshes().len()],
         uv_transforms,
         instances: Vec::new(),
+        items,
     };
     let roots: Vec<gltf::Node> = match gltf.default_scene().or_else(|| gltf.scenes().next()) {
         Some(s) => s.nodes().collect(),
@@ -182,7 +187,6 @@ pub fn import_slice_limited(
             gltf.nodes().filter(|n| !children.contains(&n.index())).collect()
         }
     };
-    ctx.report.warnings.append(&mut scale_warnings);
     let mut seen_nodes = HashSet::new();
     for node in roots {
         ctx.visit(&node, DMat4::IDENTITY, &mut seen_nodes)?;
@@ -195,8 +199,10 @@ pub fn import_slice_limited(
         missing_lightmap_uvs,
         local_meshes,
         instances,
+        items,
         ..
     } = ctx;
+    items.write(&mut report.warnings);
 
     if !missing_lightmap_uvs.is_empty() {
         let which = match missing_lightmap_uvs.len() {
@@ -302,8 +308,8 @@ pub fn import_slice_limited(
 }
 
 /// A mesh's `extras.lightmap_scale`, if it is a positive finite number (else 1, warned).
-fn lightmap_scale(extras: &gltf::json::Extras, mesh: usize, warnings: &mut Vec<String>) -> f32 {
-    let Some(raw) = extras else { return 1.0 };
+fn lightmap_scale(mesh: &gltf::Mesh, items: &mut ItemWarnings) -> f32 {
+    let Some(raw) = mesh.extras() else { return 1.0 };
     let Ok(value) = serde_json::from_str::<serde_json::Value>(raw.get()) else {
         return 1.0;
     };
@@ -312,9 +318,15 @@ fn lightmap_scale(extras: &gltf::json::Extras, mesh: usize, warnings: &mut Vec<S
         Some(v) => match v.as_f64() {
             Some(s) if s.is_finite() && s > 0.0 && s <= 1e3 => s as f32,
             _ => {
-                warnings.push(format!(
-                    "mesh {mesh}: extras.lightmap_scale {v} is not a number in (0, 1000]; using 1"
-                ));
+                let name = match mesh.name() {
+                    Some(n) => format!("mesh {} \"{n}\"", mesh.index()),
+                    None => format!("mesh {}", mesh.index()),
+                };
+                items.push(
+                    ItemKind::MeshScale,
+                    format!("{name} ({v})"),
+                    format!("{name}: extras.lightmap_scale {v} is not a number in (0, 1000]; using 1"),
+                );
                 1.0
             }
         },
@@ -670,6 +682,73 @@ struct Flatten<'a> {
     /// Per material, the base colour texture's `KHR_texture_transform` as
     /// `[a, b, c, d, ox, oy]`: uv' = (a·u + c·v + ox, b·u + d·v + oy).
     uv_transforms: Vec<Option<[f32; 6]>>,
+    /// Malformed items, written one line a kind once the walk is done.
+    items: ItemWarnings,
+}
+
+/// What a warning about one malformed item is about.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ItemKind {
+    MeshScale,
+    NodeScale,
+    ScaleOffset,
+    Page,
+    TexCoord,
+    Mode,
+    Indices,
+}
+
+impl ItemKind {
+    /// The one warning for `n` items of this kind, `names` listed by [`listed`].
+    fn many(self, n: usize, names: String) -> String {
+        match self {
+            ItemKind::MeshScale => {
+                format!("{n} meshes' extras.lightmap_scale are not numbers in (0, 1000]; using 1 ({names})")
+            }
+            ItemKind::NodeScale => {
+                format!("{n} nodes' extras.lightmap_scale are not numbers in (0, 1000]; using 1 ({names})")
+            }
+            ItemKind::ScaleOffset => format!(
+                "{n} nodes' extras.lightmap.scale_offset are not four finite numbers with positive scales; ignored ({names})"
+            ),
+            ItemKind::Page => format!(
+                "{n} nodes' extras.lightmap.page are not page numbers below {MAX_AUTHORED_PAGES}; page 0 used ({names})"
+            ),
+            ItemKind::TexCoord => format!(
+                "{n} materials' KHR_texture_transform.texCoord is not read; their textures' own TEXCOORD_n are used ({names})"
+            ),
+            ItemKind::Mode => format!("{n} primitives are not TRIANGLES and are skipped ({names})"),
+            ItemKind::Indices => {
+                format!("{n} primitives' index counts are not multiples of 3; their last indices are ignored ({names})")
+            }
+        }
+    }
+}
+
+/// Warnings about one malformed item each (a mesh's or node's extras, a material's
+/// texture transform, a primitive's mode or index count), kept by kind and written by
+/// [`warn_each`] once the import has seen them all: a level whose exporter gets one field
+/// wrong on every node says so in one line, not one line a node.
+#[derive(Debug, Default)]
+struct ItemWarnings {
+    /// Per kind, in the order kinds first appear: each item's name (with its value
+    /// where it has one) and its own warning.
+    kinds: Vec<(ItemKind, Vec<(String, String)>)>,
+}
+
+impl ItemWarnings {
+    fn push(&mut self, kind: ItemKind, name: String, own: String) {
+        match self.kinds.iter_mut().find(|(k, _)| *k == kind) {
+            Some((_, items)) => items.push((name, own)),
+            None => self.kinds.push((kind, vec![(name, own)])),
+        }
+    }
+
+    fn write(self, warnings: &mut Vec<String>) {
+        for (kind, items) in self.kinds {
+            warn_each(warnings, items, |n, names| kind.many(n, names));
+        }
+    }
 }
 
 /// Names the alpha-tested materials in the report.
@@ -715,7 +794,7 @@ fn bound_albedo(materials: &mut [Material], report: &mut ImportReport) {
 
 /// Base colour `KHR_texture_transform` per material, read from the document's JSON
 /// (the `gltf` crate's feature for it is not enabled). Its `texCoord` override is not read.
-fn texture_transforms(json: &serde_json::Value, n: usize, warnings: &mut Vec<String>) -> Vec<Option<[f32; 6]>> {
+fn texture_transforms(json: &serde_json::Value, n: usize, items: &mut ItemWarnings) -> Vec<Option<[f32; 6]>> {
     let mut out = vec![None; n];
     let Some(materials) = json.get("materials").and_then(|v| v.as_array()) else {
         return out;
@@ -743,12 +822,13 @@ fn texture_transforms(json: &serde_json::Value, n: usize, warnings: &mut Vec<Str
             .and_then(|v| v.as_u64())
             .is_some_and(|set| set != base_set)
         {
-            warnings.push(format!(
-                "material {i}: KHR_texture_transform.texCoord is not read (TEXCOORD_{} of the texture is used)",
-                m["pbrMetallicRoughness"]["baseColorTexture"]["texCoord"]
-                    .as_u64()
-                    .unwrap_or(0)
-            ));
+            items.push(
+                ItemKind::TexCoord,
+                format!("material {i}"),
+                format!(
+                    "material {i}: KHR_texture_transform.texCoord is not read (TEXCOORD_{base_set} of the texture is used)"
+                ),
+            );
         }
         // The extension's matrix: translation · rotation · scale, rotation's columns
         // (cos r, sin r) and (-sin r, cos r).
@@ -777,7 +857,7 @@ struct NodeLightmap {
     page: u32,
 }
 
-fn node_lightmap(node: &gltf::Node, warnings: &mut Vec<String>) -> NodeLightmap {
+fn node_lightmap(node: &gltf::Node, items: &mut ItemWarnings) -> NodeLightmap {
     let mut out = NodeLightmap {
         scale: 1.0,
         opt_out: false,
@@ -792,9 +872,11 @@ fn node_lightmap(node: &gltf::Node, warnings: &mut Vec<String>) -> NodeLightmap 
     if let Some(v) = value.get("lightmap_scale") {
         match v.as_f64() {
             Some(s) if s.is_finite() && s > 0.0 && s <= 1e3 => out.scale = s as f32,
-            _ => warnings.push(format!(
-                "{name}: extras.lightmap_scale {v} is not a number in (0, 1000]; using 1"
-            )),
+            _ => items.push(
+                ItemKind::NodeScale,
+                format!("{name} ({v})"),
+                format!("{name}: extras.lightmap_scale {v} is not a number in (0, 1000]; using 1"),
+            ),
         }
     }
     match value.get("lightmap") {
@@ -811,17 +893,23 @@ fn node_lightmap(node: &gltf::Node, warnings: &mut Vec<String>) -> NodeLightmap 
                     out.scale_offset = [so[0], so[1], so[2], so[3]]
                 }
                 None => {}
-                Some(_) => warnings.push(format!(
-                    "{name}: extras.lightmap.scale_offset is not four finite numbers with positive scales; ignored"
-                )),
+                Some(_) => items.push(
+                    ItemKind::ScaleOffset,
+                    name.clone(),
+                    format!(
+                        "{name}: extras.lightmap.scale_offset is not four finite numbers with positive scales; ignored"
+                    ),
+                ),
             }
             match o.get("page") {
                 None => {}
                 Some(v) => match v.as_u64() {
                     Some(p) if p < MAX_AUTHORED_PAGES => out.page = p as u32,
-                    _ => warnings.push(format!(
-                        "{name}: extras.lightmap.page {v} is not a page number below {MAX_AUTHORED_PAGES}; page 0 used"
-                    )),
+                    _ => items.push(
+                        ItemKind::Page,
+                        format!("{name} ({v})"),
+                        format!("{name}: extras.lightmap.page {v} is not a page number below {MAX_AUTHORED_PAGES}; page 0 used"),
+                    ),
                 },
             }
         }
@@ -963,7 +1051,7 @@ impl Flatten<'_> {
             )));
         }
         if let Some(mesh) = node.mesh() {
-            let lm = node_lightmap(node, &mut self.report.warnings);
+            let lm = node_lightmap(node, &mut self.items);
             let mesh_scale = self.meshes.get(mesh.index()).map_or(1.0, |m| m.lightmap_scale);
             let start = self.triangles.len();
             self.mesh(&mesh, &world, lm.scale_offset)?;
@@ -1080,9 +1168,11 @@ impl Flatten<'_> {
             }
             if prim.mode() != Mode::Triangles {
                 if first_visit {
-                    self.report
-                        .warnings
-                        .push(format!("{at}: mode {:?} is not TRIANGLES and is skipped", prim.mode()));
+                    self.items.push(
+                        ItemKind::Mode,
+                        format!("{at} ({:?})", prim.mode()),
+                        format!("{at}: mode {:?} is not TRIANGLES and is skipped", prim.mode()),
+                    );
                 }
                 continue;
             }
@@ -1184,10 +1274,14 @@ impl Flatten<'_> {
                 None => (0..n as u32).collect(),
             };
             if !indices.len().is_multiple_of(3) && first_visit {
-                self.report.warnings.push(format!(
-                    "{at}: {} indices is not a multiple of 3; the last ones are ignored",
-                    indices.len()
-                ));
+                self.items.push(
+                    ItemKind::Indices,
+                    format!("{at} ({})", indices.len()),
+                    format!(
+                        "{at}: {} indices is not a multiple of 3; the last ones are ignored",
+                        indices.len()
+                    ),
+                );
             }
             if first_visit && let Some(local) = self.local_meshes[mesh.index()].as_mut() {
                 local.primitives[prim.index()] = Some(LocalPrimitive {
