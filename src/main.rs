@@ -1194,6 +1194,13 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         eprintln!("warning: {w}");
     }
     tracing::info!(triangles = report.triangles, lights = report.lights, "scene imported");
+    // Before the bake, not only in the plan line after it: a level exported without its
+    // lights bakes an exactly black lightmap, which a user should not wait for to learn.
+    if !lightmapd::engine::plan::SceneFeatures::of(&scene, &request.lighting, &request.outputs).has_light() {
+        eprintln!(
+            "warning: the scene has no emissive surface or punctual light and the bake no --sky or --sun: the lightmap will be exactly zero (give --sky R,G,B for a uniform sky)"
+        );
+    }
 
     let bar = if std::io::stderr().is_terminal() {
         ProgressBar::new(0)

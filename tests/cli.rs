@@ -57,6 +57,62 @@ fn a_gpu_bake_without_a_display_prints_no_display_errors() {
     assert!(!stderr.lines().any(|l| l.starts_with("error")), "{stderr}");
 }
 
+/// A scene without light of its own (the bundled occlusion room has none), baked without
+/// a sky or sun, is warned about before the bake, and its lightmap is exactly zero; with
+/// `--sky` there is no warning and the lightmap is lit.
+#[test]
+fn a_bake_with_no_light_at_all_is_warned_about_before_it_starts() {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/occlusion_room.glb");
+    let warning = "warning: the scene has no emissive surface or punctual light and the bake no --sky or --sun: \
+                   the lightmap will be exactly zero (give --sky R,G,B for a uniform sky)";
+    let bake = |name: &str, extra: &[&str]| -> (String, f32) {
+        let out = tmp(name);
+        let output = bin()
+            .arg("bake")
+            .arg(&scene)
+            .arg("-o")
+            .arg(&out)
+            .args([
+                "--technique",
+                "path",
+                "--resolution",
+                "64",
+                "--steps",
+                "1",
+                "--no-denoise",
+            ])
+            .args(extra)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+        assert!(output.status.success(), "{stderr}");
+        let image = exr::prelude::read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .all_layers()
+            .all_attributes()
+            .from_file(out.join("lightmap-0.exr"))
+            .unwrap();
+        let peak = image.layer_data[0]
+            .channel_data
+            .list
+            .iter()
+            .flat_map(|c| c.sample_data.values_as_f32())
+            .fold(0.0f32, f32::max);
+        (stderr, peak)
+    };
+    let (dark, peak) = bake("dark", &[]);
+    let lines: Vec<&str> = dark.lines().collect();
+    let warned = lines.iter().position(|l| *l == warning);
+    let baked = lines.iter().position(|l| l.starts_with("baked "));
+    assert!(warned.is_some() && warned < baked, "{dark}");
+    assert_eq!(peak, 0.0);
+    let (lit, peak) = bake("lit", &["--sky", "1,1,1"]);
+    assert!(!lit.contains("no emissive surface"), "{lit}");
+    assert!(peak > 0.1, "{peak}");
+}
+
 #[test]
 fn bake_writes_a_readable_exr_with_layers_and_metadata() {
     let out = tmp("cornell.exr");

@@ -29,6 +29,12 @@ use crate::engine::technique::obscurance::{Obscurance, ObscuranceState, UpdateRe
 use crate::engine::technique::path::probes::{self, ProbeBaker, ProbeSet};
 use crate::engine::technique::{self, AlphaSupport, BakeInputs, EngineError, Technique};
 
+/// The plan's word for a bake with nothing that emits: no emissive surface, punctual
+/// light or sun in the scene, no sky in the job. Not refused (an `ao` layer needs no
+/// light, and an exact zero is a correct answer), but the command line warns before the
+/// bake, since a level exported without its lights is the usual cause.
+pub const NO_LIGHT: &str = "the scene and job have no light at all: the lightmap is exactly zero";
+
 /// The plan for `request` on `scene` (DESIGN §6): the scene's features read off, then the
 /// technique's own `plan()` through the technique table; an unknown technique is a
 /// bad-input error.
@@ -46,6 +52,9 @@ pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineErro
     )
     .map_err(EngineError::BadInput)?;
     let mut plan = technique::plan(&request.technique, &features)?;
+    if !features.has_light() {
+        plan.leave_out("light", NO_LIGHT);
+    }
     if features.alpha_materials > 0 {
         let n = features.alpha_materials;
         match technique::entry(&request.technique)?.alpha {

@@ -1428,12 +1428,6 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     } else {
         p.leave_out(SH_LAYER, "not asked for in outputs");
     }
-    if !f.has_light() {
-        p.leave_out(
-            "light",
-            "the scene and job have no light at all: the lightmap is exactly zero",
-        );
-    }
     p.error_estimate = "noise only, and low: consecutive steps are correlated through the light they reflect, so \
                         the halves share the light level's noise, and the iteration's start-up transient is a bias \
                         (docs/hemicube.md)"

@@ -584,12 +584,6 @@ pub fn plan(f: &SceneFeatures) -> Plan {
         "multi-bounce transport",
         "by design: indirect light is R(Q) I_A with one scene-wide I_A (Eq. 1), not a radiosity solution",
     );
-    if !f.has_light() {
-        p.leave_out(
-            "light",
-            "the scene and job have no light at all: the lightmap is exactly zero",
-        );
-    }
     p.error_estimate = "noise only: the obscurance model's bias (one scene-wide ambient term) is not in it".into();
     p
 }

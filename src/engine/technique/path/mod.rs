@@ -345,12 +345,6 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     } else {
         p.leave_out("glossy data", "every material is a fully rough dielectric");
     }
-    if !f.has_light() {
-        p.leave_out(
-            "light",
-            "the scene and job have no light at all: the lightmap is exactly zero",
-        );
-    }
     p
 }
 

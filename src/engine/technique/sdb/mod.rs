@@ -1860,12 +1860,6 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     } else {
         p.leave_out("glossy data", "every material is a fully rough dielectric");
     }
-    if !f.has_light() {
-        p.leave_out(
-            "light",
-            "the scene and job have no light at all: the lightmap is exactly zero",
-        );
-    }
     p.error_estimate = "noise only: the bias of the k x k neighbourhood lookup, the overdraw and the \
                         bounce feedback's slow convergence in stiff rooms is not in it (docs/sdb.md)"
         .into();

@@ -1311,12 +1311,6 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     if f.glossy_materials > 0 {
         p.leave_out("glossy transport", "sdf computes diffuse sky light only");
     }
-    if !f.has_light() {
-        p.leave_out(
-            "light",
-            "the scene and job have no light at all: the lightmap is exactly zero",
-        );
-    }
     p.error_estimate = "noise only (the jitter and the shared direct light's samples): sdf is a calibrated approximation and its bounce a one-ambient model, and that bias (see params().calibration and docs/sdf.md) is not in the half-difference estimate".into();
     p
 }

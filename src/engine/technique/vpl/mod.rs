@@ -1116,12 +1116,6 @@ pub fn plan(f: &SceneFeatures) -> Plan {
     } else {
         p.leave_out("glossy data", "every material is a fully rough dielectric");
     }
-    if !light {
-        p.leave_out(
-            "light",
-            "the scene and job have no light at all: the lightmap is exactly zero",
-        );
-    }
     p.error_estimate = "noise only: the clamp's bias and the shadow maps' bias are not in it (docs/vpl.md)".into();
     p
 }
