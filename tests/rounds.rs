@@ -236,6 +236,10 @@ fn one_region_in_one_round_is_the_single_bake() {
         assert_eq!(a.steps, b.steps, "{t}");
         assert_eq!(a.total, b.total, "{t}: one region in one round is not the single bake");
         assert_eq!(a.halves, b.halves, "{t}");
+        // Its UVs were generated once for the round's task and the merge, and the
+        // summary says so as the single bake's does.
+        assert!(single.summary.generated_uvs.is_some(), "{t}");
+        assert_eq!(r.result.summary.generated_uvs, single.summary.generated_uvs, "{t}");
     }
 }
 

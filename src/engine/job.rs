@@ -451,41 +451,7 @@ pub(crate) fn prepare_regions(
         );
     }
     on_plan(&plan);
-    let regenerate = matches!(
-        request.lightmap_uvs,
-        LightmapUvs::RegenerateAll | LightmapUvs::RepackInstances
-    ) && scene.source.is_some();
-    // Authored UVs on several pages (a file a multi-page bake wrote) are stacked into
-    // one grid by the same layout step, with nothing to unwrap.
-    let stack_pages = scene.authored_pages() > 1;
-    let (scene, unwrap) = if (scene.needs_lightmap_uvs || regenerate || stack_pages) && scene.layout.is_none() {
-        let mut generated = (*scene).clone();
-        let started = std::time::Instant::now();
-        let report = unwrap::generate_lightmap_uvs_paged(
-            &mut generated,
-            request.resolution,
-            request.max_page_size(),
-            request.lightmap_uvs,
-            request.texels_per_unit,
-            &unwrap::UvUnwrap,
-        )
-        .map_err(|e| EngineError::BadInput(format!("generating lightmap UVs: {e}")))?;
-        tracing::info!(
-            charts = report.charts,
-            width = report.width,
-            height = report.height,
-            generated_meshes = report.generated_meshes,
-            kept_meshes = report.kept_meshes,
-            seconds = started.elapsed().as_secs_f64(),
-            "lightmap UVs generated"
-        );
-        for w in &report.warnings {
-            tracing::warn!("{w}");
-        }
-        (Arc::new(generated), Some(report))
-    } else {
-        (scene, None)
-    };
+    let (scene, unwrap) = lightmap_uvs(scene, request)?;
     // The grid: one W x W page, or several one under another (`atlas::unwrap`).
     let (width, height) = scene
         .layout
@@ -620,6 +586,52 @@ pub(crate) fn prepare_regions(
         control,
         region_pixels,
     })
+}
+
+/// The scene as `request` bakes it: with its lightmap UVs generated (a layout of one
+/// page or several) where it has meshes without them, the request regenerates or
+/// repacks them, or its authored UVs lie on several pages; as it is otherwise, or when
+/// it has its layout already (the report is then `None`). Deterministic, so every task
+/// of a split bake generates the same UVs; [`crate::engine::rounds::bake_in_rounds`]
+/// generates them once for all its tasks.
+pub(crate) fn lightmap_uvs(
+    scene: Arc<Scene>,
+    request: &BakeRequest,
+) -> Result<(Arc<Scene>, Option<UnwrapReport>), EngineError> {
+    let regenerate = matches!(
+        request.lightmap_uvs,
+        LightmapUvs::RegenerateAll | LightmapUvs::RepackInstances
+    ) && scene.source.is_some();
+    // Authored UVs on several pages (a file a multi-page bake wrote) are stacked into
+    // one grid by the same layout step, with nothing to unwrap.
+    let stack_pages = scene.authored_pages() > 1;
+    if !((scene.needs_lightmap_uvs || regenerate || stack_pages) && scene.layout.is_none()) {
+        return Ok((scene, None));
+    }
+    let mut generated = (*scene).clone();
+    let started = std::time::Instant::now();
+    let report = unwrap::generate_lightmap_uvs_paged(
+        &mut generated,
+        request.resolution,
+        request.max_page_size(),
+        request.lightmap_uvs,
+        request.texels_per_unit,
+        &unwrap::UvUnwrap,
+    )
+    .map_err(|e| EngineError::BadInput(format!("generating lightmap UVs: {e}")))?;
+    tracing::info!(
+        charts = report.charts,
+        width = report.width,
+        height = report.height,
+        generated_meshes = report.generated_meshes,
+        kept_meshes = report.kept_meshes,
+        seconds = started.elapsed().as_secs_f64(),
+        "lightmap UVs generated"
+    );
+    for w in &report.warnings {
+        tracing::warn!("{w}");
+    }
+    Ok((Arc::new(generated), Some(report)))
 }
 
 impl Prepared {

@@ -74,7 +74,8 @@
 //!   docs/scaling.md, "Round 0 validates its own region"). In one process
 //!   ([`bake_in_rounds`]) round 0 builds the grid's texel set once a region, as its tasks
 //!   do on their machines, so that its lightmap is theirs; validation is still traced
-//!   once in all.
+//!   once in all, and generated lightmap UVs are generated once for every task and the
+//!   merge (the same UVs each task's machine generates).
 //! - The held light of a glossy texel outside the receivers has no incoming direction:
 //!   its lobe reflects light arriving along its normal (`hemicube`'s select pass falls
 //!   back to it), a bias the control texels state like any other.
@@ -403,6 +404,10 @@ pub fn bake_in_rounds(
     on_atlas: &mut dyn FnMut(&Arc<Atlas>),
 ) -> Result<RoundsResult, EngineError> {
     let rounds = tasks::split_rounds(request, shape.regions, shape.rounds)?;
+    // Lightmap UVs generated once for every task and the merge: the same UVs each task
+    // generates on its own machine (the unwrap is deterministic), a second a prepare on
+    // the occlusion room.
+    let (scene, generated_uvs) = job::lightmap_uvs(scene, request)?;
     // The grid prepared as each task on its own machine prepares it (`prepare` is
     // deterministic), so the lightmap is the processes' lightmap: in round 0 once a task
     // (each validates its own region), from round 1 on once for all, from the texels
@@ -486,7 +491,8 @@ pub fn bake_in_rounds(
         held_before = held;
         previous = results;
     }
-    let result = tasks::merge(scene, &previous, options, &mut |_| {})?;
+    let mut result = tasks::merge(scene, &previous, options, &mut |_| {})?;
+    result.summary.generated_uvs = generated_uvs;
     Ok(RoundsResult {
         result,
         rounds: reports,
