@@ -71,6 +71,73 @@ fn kenney_instances_each_get_their_own_texels() {
     );
 }
 
+/// Many small charts in many instances fill a small page with padding, and the automatic
+/// density collapses: the Kenney level at 256² is warned about, the grass named first;
+/// opting the grass out, as the warning advises, gives the level several times the
+/// density; the living room at 256² (23 % covered) is not warned about.
+#[test]
+fn a_page_filled_with_padding_is_warned_about() {
+    let padding = |r: &lightmapd::engine::atlas::unwrap::UnwrapReport| -> Vec<String> {
+        r.warnings
+            .iter()
+            .filter(|w| w.contains("the rest is padding"))
+            .cloned()
+            .collect()
+    };
+    let mut kenney = level("kenney_fps_level.glb");
+    let r = generate_lightmap_uvs(&mut kenney, 256, &UvUnwrap).unwrap();
+    let warned = padding(&r);
+    assert_eq!(warned.len(), 1, "{:?}", r.warnings);
+    assert!(
+        warned[0].starts_with(&format!(
+            "the generated charts cover 1 % of their 256x256 page at {:.2} texels/m: the rest is padding (3 texels around each of 221 charts",
+            r.texels_per_metre
+        )),
+        "{}",
+        warned[0]
+    );
+    assert!(
+        warned[0].contains(
+            "the meshes taking the most page for their surface: mesh 5 \"grass-small\" (5 instances: 21 % of the page for 0.2 % of the surface), mesh 4 \"grass\" (10 instances:"
+        ),
+        "{}",
+        warned[0]
+    );
+    assert!(warned[0].ends_with("opt such detail meshes out with extras.lightmap: false (they still cast shadows)"));
+
+    let bytes =
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party/kenney_fps_level.glb")).unwrap();
+    let glb = gltf::binary::Glb::from_slice(&bytes).unwrap();
+    let mut doc: serde_json::Value = serde_json::from_slice(&glb.json).unwrap();
+    let grass: Vec<usize> = (0..doc["meshes"].as_array().unwrap().len())
+        .filter(|&m| {
+            doc["meshes"][m]["name"]
+                .as_str()
+                .is_some_and(|n| n.starts_with("grass"))
+        })
+        .collect();
+    for node in doc["nodes"].as_array_mut().unwrap() {
+        if node["mesh"].as_u64().is_some_and(|m| grass.contains(&(m as usize))) {
+            node["extras"] = json!({"lightmap": false});
+        }
+    }
+    let mut opted = import_slice(&write_glb(&doc, glb.bin.as_deref().unwrap()), None)
+        .unwrap()
+        .0;
+    let o = generate_lightmap_uvs(&mut opted, 256, &UvUnwrap).unwrap();
+    assert!(
+        o.texels_per_metre > 2.5 * r.texels_per_metre,
+        "grass opted out: {} texels/m against {}",
+        o.texels_per_metre,
+        r.texels_per_metre
+    );
+
+    let mut room = level("living_room.glb");
+    let r = generate_lightmap_uvs(&mut room, 256, &UvUnwrap).unwrap();
+    assert!(r.utilisation > 0.2, "{}", r.utilisation);
+    assert!(padding(&r).is_empty(), "{:?}", r.warnings);
+}
+
 /// A texel density in texels per metre: a 4 m square at 8 texels/m spans 32 texels
 /// (padding aside); a density too high for one page gives several pages stacked in one
 /// taller page instead of an error.

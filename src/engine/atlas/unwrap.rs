@@ -706,6 +706,10 @@ pub fn generate_lightmap_uvs_paged(
         });
     }
 
+    if let Some(u) = unwrapped.as_ref().filter(|_| texels_per_unit.is_none()) {
+        padding_bound(scene, &source.instances, &generate, &layout, u, (wf, hf), &mut warnings);
+    }
+
     let report = UnwrapReport {
         charts: unwrapped.as_ref().map_or(0, |u| u.charts),
         utilisation: utilisation(
@@ -914,6 +918,95 @@ fn unwrap_fitting(
         }
     }
     first
+}
+
+/// Below this share of the generated pages covered by triangles, at the automatic
+/// density, [`padding_bound`] warns. The bundled levels at 256² cover 23 % (the living
+/// room) and 40 % (the occlusion room); the Kenney level 1 % (at 512², 33 %).
+const LOW_FILL: f64 = 0.10;
+
+/// At the automatic density, warns when the generated charts cover less than [`LOW_FILL`]
+/// of their pages, naming the meshes whose instances take the most page beyond their
+/// share of the surface. Why: the
+/// packer's padding is [`PADDING`] texels around every chart whatever the density, and a
+/// mesh's layout is placed once per instance, so a level of many small charts in many
+/// instances (grass tufts, props) fills a small page with padding, and the density that
+/// fits it collapses: the Kenney level at 256² bakes 1,005 texels at 1.0 texels/m, at 512²
+/// 88,285 at 9.8. Nothing is wrong with such a bake, but it is not what a level designer
+/// wants, and what to change is not obvious from the texel count alone. The advice is a
+/// larger page or opting the detail out (its grass and grass-small out: 8,148 texels at
+/// 3.0 texels/m on the same 256² page), not `extras.lightmap_scale`: its padding does not
+/// shrink with its charts (the grass at 0.1: 292 texels at 0.57 texels/m).
+fn padding_bound(
+    scene: &Scene,
+    instances: &[crate::engine::scene::Instance],
+    generate: &[bool],
+    layout: &LightmapLayout,
+    u: &Unwrapped,
+    (wf, hf): (f32, f32),
+    warnings: &mut Vec<String>,
+) {
+    let page = f64::from(u.width) * f64::from(u.width.max(u.page_height)) * f64::from(u.pages.max(1));
+    // Per mesh: instances, texels of their rectangles, world area of their triangles.
+    let mut per_mesh: Vec<(usize, u32, f64, f64)> = Vec::new();
+    let (mut covered, mut surface) = (0.0f64, 0.0f64);
+    for (k, inst) in instances.iter().enumerate() {
+        let Some(so) = layout.scale_offset[k].filter(|_| !inst.opt_out && generate[inst.mesh]) else {
+            continue;
+        };
+        let (mut world, mut uv) = (0.0f64, 0.0f64);
+        for t in &scene.triangles[inst.triangles.clone()] {
+            world += 0.5 * f64::from((t.p[1] - t.p[0]).cross(t.p[2] - t.p[0]).length());
+            uv += 0.5 * f64::from((t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs());
+        }
+        covered += uv * f64::from(wf) * f64::from(hf);
+        surface += world;
+        let rect = f64::from(so[0] * wf) * f64::from(so[1] * hf);
+        match per_mesh.iter_mut().find(|m| m.0 == inst.mesh) {
+            Some(m) => {
+                m.1 += 1;
+                m.2 += rect;
+                m.3 += world;
+            }
+            None => per_mesh.push((inst.mesh, 1, rect, world)),
+        }
+    }
+    let fill = covered / page;
+    if !(page > 0.0 && surface > 0.0) || fill >= LOW_FILL {
+        return;
+    }
+    // Page share beyond surface share: what a mesh's padding costs the rest.
+    let excess = |m: &(usize, u32, f64, f64)| m.2 / page - m.3 / surface;
+    per_mesh.sort_by(|a, b| excess(b).total_cmp(&excess(a)));
+    let most: Vec<String> = per_mesh
+        .iter()
+        .filter(|m| excess(m) > 0.0)
+        .take(3)
+        .map(|&(m, n, rect, world)| {
+            let of = if n == 1 {
+                "1 instance".to_string()
+            } else {
+                format!("{n} instances")
+            };
+            format!(
+                "{} ({of}: {:.0} % of the page for {:.1} % of the surface)",
+                mesh_label(scene, m),
+                100.0 * rect / page,
+                100.0 * world / surface
+            )
+        })
+        .collect();
+    let pages = match u.pages {
+        0 | 1 => format!("{}x{} page", u.width, u.width.max(u.page_height)),
+        n => format!("{n} pages of {}x{}", u.width, u.width.max(u.page_height)),
+    };
+    warnings.push(format!(
+        "the generated charts cover {:.0} % of their {pages} at {:.2} texels/m: the rest is padding ({PADDING} texels around each of {} charts, once for each instance of its mesh), which keeps the density low; the meshes taking the most page for their surface: {}. Raise the resolution (the density grows faster than the page), or opt such detail meshes out with extras.lightmap: false (they still cast shadows)",
+        100.0 * fill,
+        u.texels_per_metre,
+        u.charts,
+        most.join(", ")
+    ));
 }
 
 /// Below this fraction of the asked density, a mesh's charts count as scaled down. Area
