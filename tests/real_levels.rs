@@ -44,9 +44,22 @@ fn texels_per_instance(scene: &Scene, atlas: &Atlas) -> Vec<usize> {
 }
 
 /// The FPS kit level: 7 meshes placed by 39 nodes. Each node gets its own rectangle, so
-/// every instance owns texels and none overlaps another.
+/// every instance owns texels and none overlaps another. Its 7 materials are all named
+/// "colormap": the albedo warning tells them apart by index.
 #[test]
 fn kenney_instances_each_get_their_own_texels() {
+    let bytes =
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party/kenney_fps_level.glb")).unwrap();
+    let (_, report) = import_slice(&bytes, None).unwrap();
+    let albedo: Vec<&String> = report.warnings.iter().filter(|w| w.starts_with("albedo")).collect();
+    let each: Vec<String> = (0..7).map(|k| format!("colormap (material {k}) to 0.999")).collect();
+    assert_eq!(
+        albedo,
+        [&format!(
+            "albedo bounded for bounced light (so paths in closed rooms end): {}",
+            each.join(", ")
+        )]
+    );
     let mut scene = level("kenney_fps_level.glb");
     let source = scene.source.clone().unwrap();
     assert_eq!(source.instances.len(), 39);

@@ -780,11 +780,21 @@ fn bound_albedo(materials: &mut [Material], report: &mut ImportReport) {
             m.base_color = rgb.min(Vec3::splat(bound)).extend(m.base_color.w);
             // glTF's default material is always in the list; only named when used.
             if k != default || report.default_material_used {
-                bounded.push(format!("{} to {bound}", m.name));
+                bounded.push((k, m.name.clone(), bound));
             }
         }
     }
     if !bounded.is_empty() {
+        // Materials that share a name (an exporter's one "colormap" on every mesh) are
+        // told apart by their index.
+        let shared = |name: &str| materials.iter().filter(|m| m.name == name).count() > 1;
+        let bounded: Vec<String> = bounded
+            .into_iter()
+            .map(|(k, name, bound)| match shared(&name) {
+                true => format!("{name} (material {k}) to {bound}"),
+                false => format!("{name} to {bound}"),
+            })
+            .collect();
         report.warnings.push(format!(
             "albedo bounded for bounced light (so paths in closed rooms end): {}",
             listed(&bounded, ", ")
