@@ -25,6 +25,14 @@
 //!
 //! Readback ([`GpuContext::read_buffer`]) blocks on the device and is meant for
 //! snapshots only, never once per step.
+//!
+//! Old lavapipe: Mesa 22.3.6's lavapipe (Debian bookworm's) keeps a quarter to three
+//! quarters of a megabyte for every step of `obscurance`, `sdb` and `hemicube` (heaptrack:
+//! 32 KiB blocks allocated on the driver's queue thread and never freed; skipping
+//! obscurance's gather dispatch, and nothing else, stops it), so their long bakes on it
+//! grow without bound; Mesa 25.0.7's (bookworm-backports) does not, and runs their steps
+//! three to five times faster (docs/deploy.md, "Machines without a GPU"). The context
+//! warns when it gets a lavapipe older than Mesa 23 ([`old_lavapipe`]).
 
 pub mod bvh;
 pub mod direct_light;
@@ -153,6 +161,19 @@ fn device_type_rank(t: wgpu::DeviceType) -> u32 {
         wgpu::DeviceType::Cpu => 3,
         wgpu::DeviceType::Other => 4,
     }
+}
+
+/// The Mesa version of a lavapipe adapter whose memory grows with every step (module
+/// doc, "Old lavapipe"): Mesa 22 and older, from `driver_info` ("Mesa 22.3.6 (LLVM
+/// 15.0.6)"). Measured on 22.3.6 (grows) and 25.0.7 (does not); the versions between are
+/// not, so only those before 23 are named.
+pub fn old_lavapipe(info: &wgpu::AdapterInfo) -> Option<String> {
+    if is_hardware(info.device_type) || !info.driver.to_ascii_lowercase().contains("llvmpipe") {
+        return None;
+    }
+    let version = info.driver_info.strip_prefix("Mesa ")?.split_whitespace().next()?;
+    let major: u32 = version.split('.').next()?.parse().ok()?;
+    (major < 23).then(|| version.to_string())
 }
 
 fn is_hardware(t: wgpu::DeviceType) -> bool {
@@ -374,6 +395,12 @@ impl GpuContext {
                 "no hardware GPU adapter{}: using a software (CPU) adapter; bakes will be much slower",
                 if *pref == AdapterPreference::Auto { "" } else { " (forced by LIGHTMAPD_ADAPTER)" }
             );
+            if let Some(version) = old_lavapipe(&info) {
+                tracing::warn!(
+                    mesa = %version,
+                    "this lavapipe (Mesa {version}) keeps 0.25 to 0.75 MB for every step of obscurance, sdb and hemicube, so their long bakes grow without bound; Mesa 25 (Debian: bookworm-backports) does not, and is faster (docs/deploy.md)"
+                );
+            }
         }
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
@@ -654,6 +681,29 @@ mod tests {
             name: name.into(),
             ..wgpu::AdapterInfo::new(t, wgpu::Backend::Vulkan)
         }
+    }
+
+    /// Mesa 22's lavapipe is named by its version; Mesa 25's, a hardware adapter, another
+    /// CPU driver or an unreadable version are not.
+    #[test]
+    fn an_old_lavapipe_is_recognised() {
+        use wgpu::DeviceType::*;
+        let with = |t: wgpu::DeviceType, driver: &str, driver_info: &str| wgpu::AdapterInfo {
+            driver: driver.into(),
+            driver_info: driver_info.into(),
+            ..info("llvmpipe (LLVM 15.0.6, 256 bits)", t)
+        };
+        assert_eq!(
+            old_lavapipe(&with(Cpu, "llvmpipe", "Mesa 22.3.6 (LLVM 15.0.6)")).as_deref(),
+            Some("22.3.6")
+        );
+        assert_eq!(
+            old_lavapipe(&with(Cpu, "llvmpipe", "Mesa 25.0.7-2~bpo12+1 (LLVM 15.0.6)")),
+            None
+        );
+        assert_eq!(old_lavapipe(&with(DiscreteGpu, "llvmpipe", "Mesa 22.3.6")), None);
+        assert_eq!(old_lavapipe(&with(Cpu, "SwiftShader driver", "Mesa 22.3.6")), None);
+        assert_eq!(old_lavapipe(&with(Cpu, "llvmpipe", "unknown")), None);
     }
 
     #[test]
