@@ -304,10 +304,11 @@ fn device_auto_and_bad_device() {
 }
 
 /// The stiffest furnace, albedo 0.999 (paths of thousands of bounces): on a hardware
-/// adapter it reads 1 like the CPU; on lavapipe, whose llvmpipe ends an invocation's
-/// loops after 65535 iterations in all (about 1300 bounces of this kernel), the cut paths
-/// are detected and the bake is refused with that reason instead of reading dark (it read
-/// 0.73, 0.37 and 0.18 with 1, 2 and 4 samples a step before the check existed).
+/// adapter it reads 1 like the CPU; on Mesa 22's lavapipe, whose llvmpipe ends an
+/// invocation's loops after 65535 iterations in all (about 1300 bounces of this kernel),
+/// the cut paths are detected and the bake is refused with that reason instead of reading
+/// dark (it read 0.73, 0.37 and 0.18 with 1, 2 and 4 samples a step before the check
+/// existed); Mesa 25's lavapipe has no such budget and reads 1, as a hardware adapter.
 #[test]
 fn gpu_paths_cut_by_the_adapters_loop_budget_are_refused() {
     if !have_gpu() {
@@ -331,8 +332,9 @@ fn gpu_paths_cut_by_the_adapters_loop_budget_are_refused() {
             assert!(msg.contains("cut short by the adapter's loop budget"), "{msg}");
             assert!(msg.contains("\"device\": \"cpu\""), "{msg}");
         }
-        (true, Ok((_, est))) => panic!("lavapipe cuts these paths; the bake must be refused: {:?}", est.error),
-        (false, Ok((atlas, est))) => {
+        // Delivered, so nothing was cut: it must read 1 (a cut path that escaped the
+        // check would read dark and fail here).
+        (_, Ok((atlas, est))) => {
             assert_unbiased(&atlas, &est, |_| true, |_| Vec3::ONE, 0.0, "GPU closed box rho=0.999");
         }
         (false, Err(e)) => panic!("a hardware adapter has no loop budget: {e}"),
