@@ -7,6 +7,8 @@ use std::process::Command;
 
 use exr::prelude::{ReadChannels, ReadLayers};
 
+mod common;
+
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_lightmapd"))
 }
@@ -86,19 +88,9 @@ fn a_bake_with_no_light_at_all_is_warned_about_before_it_starts() {
             .unwrap();
         let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
         assert!(output.status.success(), "{stderr}");
-        let image = exr::prelude::read()
-            .no_deep_data()
-            .largest_resolution_level()
-            .all_channels()
-            .all_layers()
-            .all_attributes()
-            .from_file(out.join("lightmap-0.exr"))
-            .unwrap();
-        let peak = image.layer_data[0]
-            .channel_data
-            .list
+        let peak = common::exr_channels(&out.join("lightmap-0.exr"))
             .iter()
-            .flat_map(|c| c.sample_data.values_as_f32())
+            .flat_map(|(_, v)| v.iter().copied())
             .fold(0.0f32, f32::max);
         (stderr, peak)
     };
