@@ -675,11 +675,7 @@ pub fn generate_lightmap_uvs_paged(
     if let Some(u) = &unwrapped {
         let mut sparse: Vec<(usize, f64, f64)> = Vec::new();
         for inst in source.instances.iter().filter(|i| !i.opt_out && generate[i.mesh]) {
-            let (mut world, mut uv) = (0.0f64, 0.0f64);
-            for t in &scene.triangles[inst.triangles.clone()] {
-                world += 0.5 * f64::from((t.p[1] - t.p[0]).cross(t.p[2] - t.p[0]).length());
-                uv += 0.5 * f64::from((t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs());
-            }
+            let (world, uv) = areas(&scene.triangles[inst.triangles.clone()]);
             let target = f64::from(u.texels_per_metre) * f64::from(inst.lightmap_scale);
             if world <= 0.0 || sparse.iter().any(|s| s.0 == inst.mesh) {
                 continue;
@@ -920,6 +916,16 @@ fn unwrap_fitting(
     first
 }
 
+/// World area and lightmap UV area of `triangles`.
+fn areas(triangles: &[crate::engine::scene::Triangle]) -> (f64, f64) {
+    triangles.iter().fold((0.0, 0.0), |(world, uv), t| {
+        (
+            world + 0.5 * f64::from((t.p[1] - t.p[0]).cross(t.p[2] - t.p[0]).length()),
+            uv + 0.5 * f64::from((t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs()),
+        )
+    })
+}
+
 /// Below this share of the generated pages covered by triangles, at the automatic
 /// density, [`padding_bound`] warns. The bundled levels at 256² cover 23 % (the living
 /// room) and 40 % (the occlusion room); the Kenney level 1 % (at 512², 33 %).
@@ -927,11 +933,10 @@ const LOW_FILL: f64 = 0.10;
 
 /// At the automatic density, warns when the generated charts cover less than [`LOW_FILL`]
 /// of their pages, naming the meshes whose instances take the most page beyond their
-/// share of the surface. Why: the
-/// packer's padding is [`PADDING`] texels around every chart whatever the density, and a
-/// mesh's layout is placed once per instance, so a level of many small charts in many
-/// instances (grass tufts, props) fills a small page with padding, and the density that
-/// fits it collapses: the Kenney level at 256² bakes 1,005 texels at 1.0 texels/m, at 512²
+/// share of the surface. Why: the packer's padding is [`PADDING`] texels around every
+/// chart whatever the density, and a mesh's layout is placed once per instance, so a
+/// level of many small charts in many instances (grass tufts, props) fills a small page
+/// with padding, and the density that fits it collapses: the Kenney level at 256² bakes 1,005 texels at 1.0 texels/m, at 512²
 /// 88,285 at 9.8. Nothing is wrong with such a bake, but it is not what a level designer
 /// wants, and what to change is not obvious from the texel count alone. The advice is a
 /// larger page or opting the detail out (its grass and grass-small out: 8,148 texels at
@@ -954,11 +959,7 @@ fn padding_bound(
         let Some(so) = layout.scale_offset[k].filter(|_| !inst.opt_out && generate[inst.mesh]) else {
             continue;
         };
-        let (mut world, mut uv) = (0.0f64, 0.0f64);
-        for t in &scene.triangles[inst.triangles.clone()] {
-            world += 0.5 * f64::from((t.p[1] - t.p[0]).cross(t.p[2] - t.p[0]).length());
-            uv += 0.5 * f64::from((t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs());
-        }
+        let (world, uv) = areas(&scene.triangles[inst.triangles.clone()]);
         covered += uv * f64::from(wf) * f64::from(hf);
         surface += world;
         let rect = f64::from(so[0] * wf) * f64::from(so[1] * hf);
@@ -1028,9 +1029,7 @@ fn mesh_label(scene: &Scene, m: usize) -> String {
 fn utilisation(scene: &Scene, instances: &[crate::engine::scene::Instance], generate: &[bool]) -> f32 {
     let mut area = 0.0f64;
     for inst in instances.iter().filter(|i| !i.opt_out && generate[i.mesh]) {
-        for t in &scene.triangles[inst.triangles.clone()] {
-            area += 0.5 * f64::from((t.lm[1] - t.lm[0]).perp_dot(t.lm[2] - t.lm[0]).abs());
-        }
+        area += areas(&scene.triangles[inst.triangles.clone()]).1;
     }
     area as f32
 }
