@@ -172,6 +172,9 @@ pub async fn submit(s: Submit) -> Result<JobView, ClientError> {
     .await?;
     let created: Value = resp.json().await.map_err(|e| fail(1, format!("submit: {e}")))?;
     let job_id = created["id"].as_str().unwrap_or_default().to_string();
+    for w in created["warnings"].as_array().into_iter().flatten() {
+        eprintln!("warning: {}", w.as_str().unwrap_or_default());
+    }
     eprintln!("job {job_id} queued (scene {scene_id})");
 
     if !(s.wait || s.output.is_some()) {

@@ -695,19 +695,16 @@ pub fn check_reference(spec: &JobSpec, id: &str, reference: Option<(&JobSpec, Jo
     }
 }
 
-/// The job against its stored scene (read off the scene's import report), at submit: the
-/// scene's and the job's light against the technique's table row (light the technique
-/// does not transport is refused, naming `lighting.sun`, or `technique` for the scene's
-/// own lights), `lightmap_uvs: keep` against a scene with meshes without UVs, and probes
-/// that have nowhere to go. The bake checks the scene itself again before it starts.
-pub fn check_against_scene(report: &Value, spec: &JobSpec) -> Result<(), Problem> {
+/// The light a job will bake with, read off its scene's import report: the scene's
+/// emitters and punctual lights and the job's sky and sun. The flag says whether the
+/// report counts the punctual lights: one stored before it counted directional lights
+/// reads as having none, and leaves them to the bake's own check.
+fn light_features(report: &Value, spec: &JobSpec) -> (crate::engine::plan::SceneFeatures, bool) {
     let count = |k: &str| report.get(k).and_then(Value::as_u64).map(|n| n as usize);
     let lighting = spec.to_request().lighting;
-    // A report stored before it counted directional lights: the scene's punctual lights
-    // are left to the bake's own check.
-    let (punctual_lights, directional_lights) = match count("directional_lights") {
-        Some(d) => (count("lights").unwrap_or(0), d),
-        None => (0, 0),
+    let (punctual_lights, directional_lights, counted) = match count("directional_lights") {
+        Some(d) => (count("lights").unwrap_or(0), d, true),
+        None => (0, 0, false),
     };
     let features = crate::engine::plan::SceneFeatures {
         punctual_lights,
@@ -717,6 +714,34 @@ pub fn check_against_scene(report: &Value, spec: &JobSpec) -> Result<(), Problem
         sun: lighting.sun.is_some_and(|s| s.radiance != glam::Vec3::ZERO),
         ..Default::default()
     };
+    (features, counted)
+}
+
+/// What the submitter is told with a job that is accepted (`JobCreated::warnings`): today
+/// a bake with no light at all, which is not refused (an exact zero is a correct answer,
+/// and an `ao` layer needs no light) but is almost always a level exported without its
+/// lights or a job without its sky, which a user should learn at submit rather than from
+/// a black lightmap.
+pub fn job_warnings(report: &Value, spec: &JobSpec) -> Vec<String> {
+    let (features, counted) = light_features(report, spec);
+    let mut warnings = Vec::new();
+    if counted && !features.has_light() {
+        warnings.push(
+            "the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky)"
+                .to_string(),
+        );
+    }
+    warnings
+}
+
+/// The job against its stored scene (read off the scene's import report), at submit: the
+/// scene's and the job's light against the technique's table row (light the technique
+/// does not transport is refused, naming `lighting.sun`, or `technique` for the scene's
+/// own lights), `lightmap_uvs: keep` against a scene with meshes without UVs, and probes
+/// that have nowhere to go. The bake checks the scene itself again before it starts.
+pub fn check_against_scene(report: &Value, spec: &JobSpec) -> Result<(), Problem> {
+    let lighting = spec.to_request().lighting;
+    let (features, _) = light_features(report, spec);
     technique::check_lights(&spec.technique, &features).map_err(|e| {
         let m = e.to_string();
         Problem::invalid_field(leading_field(&m), m)
@@ -1003,6 +1028,10 @@ pub struct JobList {
 pub struct JobCreated {
     pub id: String,
     pub status: JobStatus,
+    /// What the job will bake that is accepted but probably not meant (today: no light at
+    /// all, so an exactly zero lightmap). Absent when there is nothing to say.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// `POST /v1/scenes`, `GET /v1/scenes/{id}`.

@@ -547,6 +547,7 @@ async fn create_job(
         _ => return Err(no_scene()),
     };
     crate::service::model::check_against_scene(&scene.report, &spec)?;
+    let warnings = crate::service::model::job_warnings(&scene.report, &spec);
     if let Some(id) = &spec.reference {
         let record = state.queue.job(id).await?.filter(|j| caller.owns(j.client.as_deref()));
         crate::service::model::check_reference(&spec, id, record.as_ref().map(|j| (&j.spec, j.status)))?;
@@ -583,12 +584,13 @@ async fn create_job(
         }
     };
     state.hub.work.notify_one();
-    tracing::info!(job = %id, technique = %spec.technique, scene = %spec.scene, "job queued");
+    tracing::info!(job = %id, technique = %spec.technique, scene = %spec.scene, warnings = warnings.len(), "job queued");
     let mut resp = (
         StatusCode::ACCEPTED,
         axum::Json(JobCreated {
             id: job.id.clone(),
             status: job.status,
+            warnings,
         }),
     )
         .into_response();

@@ -1080,6 +1080,81 @@ async fn every_error_status_has_its_problem_body() {
     s.running.shutdown().await;
 }
 
+/// A job with no light at all is accepted (an exact zero is a correct answer) but its
+/// submitter is told at submit, in the 202's `warnings`, not only by the black lightmap;
+/// a job that brings its own sky, or a scene with an emitter, gets no warning.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_with_no_light_is_warned_about_at_submit() {
+    use lightmapd::engine::scene::build::{MaterialDesc, SceneBuilder};
+    let s = start(1, |_| {}).await;
+    let mut b = SceneBuilder::new();
+    let grey = b.material(MaterialDesc::diffuse("grey", [0.5, 0.5, 0.5]));
+    b.square("floor", glam::Vec3::ZERO, 2.0, glam::Vec3::Y, grey);
+    let r = s
+        .http
+        .post(format!("{}/v1/scenes", s.url))
+        .body(b.to_glb())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let dark = r.json::<Value>().await.unwrap()["id"].as_str().unwrap().to_string();
+    let lit = s.upload().await;
+    let created = |body: Value| {
+        let s = &s;
+        async move {
+            let r = s
+                .http
+                .post(format!("{}/v1/jobs", s.url))
+                .json(&body)
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 202);
+            r.json::<Value>().await.unwrap()
+        }
+    };
+    let job = created(json!({"scene": dark, "resolution": 16, "stop": {"steps": 4}})).await;
+    assert_eq!(
+        job["warnings"],
+        json!([
+            "the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky)"
+        ]),
+        "{job:#}"
+    );
+    // The warning does not hold the job back: it bakes, to exactly zero.
+    let id = job["id"].as_str().unwrap().to_string();
+    let done = s.wait_job(&id, "succeeded", |j| j["status"] == "succeeded").await;
+    assert!(
+        done["plan"]["left_out"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|l| l["name"] == "light"),
+        "{done:#}"
+    );
+    let exr = s
+        .http
+        .get(format!("{}/v1/jobs/{id}/lightmap.exr", s.url))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(exr.status(), 200);
+    let rgb = crate::service_common::exr_rgb(&exr.bytes().await.unwrap());
+    assert!(
+        !rgb.is_empty() && rgb.iter().all(|t| *t == [0.0; 3]),
+        "a lightmap with no light is not zero"
+    );
+
+    for body in [
+        json!({"scene": dark, "resolution": 16, "stop": {"steps": 4}, "lighting": {"sky": {"radiance": [1, 1, 1]}}}),
+        json!({"scene": lit, "resolution": 16, "stop": {"steps": 4}}),
+    ] {
+        let job = created(body.clone()).await;
+        assert!(job.get("warnings").is_none(), "{body}: {job:#}");
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cancel_stops_a_running_bake_and_a_queued_job() {
     let s = start(1, |_| {}).await;

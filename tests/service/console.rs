@@ -23,7 +23,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
-use service_common::{Server, bin, cornell_glb, spawn_serve, test_config};
+use service_common::{Server, bin, cornell_glb, exr_rgb, spawn_serve, test_config};
 use tungstenite::stream::MaybeTlsStream;
 use tungstenite::{Message, WebSocket};
 
@@ -250,26 +250,6 @@ async fn scene_glb_and_half_float_lightmap() {
         .await
         .unwrap();
     assert_eq!(none.status(), 404);
-}
-
-/// An EXR's default `R`, `G`, `B` channels, texel by texel.
-fn exr_rgb(bytes: &[u8]) -> Vec<[f32; 3]> {
-    use exr::prelude::*;
-    let image: Image<Layers<AnyChannels<FlatSamples>>> = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_buffered(std::io::Cursor::new(bytes))
-        .unwrap();
-    let layer = &image.layer_data[0];
-    let chan = |n: &str| -> Vec<f32> {
-        let c = layer.channel_data.list.iter().find(|c| c.name == *n).unwrap();
-        c.sample_data.values_as_f32().collect()
-    };
-    let (r, g, b) = (chan("R"), chan("G"), chan("B"));
-    (0..r.len()).map(|i| [r[i], g[i], b[i]]).collect()
 }
 
 // ---------------------------------------------------------------------------------------

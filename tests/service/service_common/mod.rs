@@ -361,3 +361,23 @@ pub async fn get_json(http: &reqwest::Client, url: &str) -> serde_json::Value {
     assert!(r.status().is_success(), "GET {url}: {}", r.status());
     r.json().await.unwrap()
 }
+
+/// An EXR's default `R`, `G`, `B` channels, texel by texel.
+pub fn exr_rgb(bytes: &[u8]) -> Vec<[f32; 3]> {
+    use exr::prelude::*;
+    let image: Image<Layers<AnyChannels<FlatSamples>>> = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .unwrap();
+    let layer = &image.layer_data[0];
+    let chan = |n: &str| -> Vec<f32> {
+        let c = layer.channel_data.list.iter().find(|c| c.name == *n).unwrap();
+        c.sample_data.values_as_f32().collect()
+    };
+    let (r, g, b) = (chan("R"), chan("G"), chan("B"));
+    (0..r.len()).map(|i| [r[i], g[i], b[i]]).collect()
+}
