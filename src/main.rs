@@ -5,6 +5,8 @@
 //! codes: 0 success, 2 bad input (unreadable scene, bad option, a 4xx answer), 1 anything
 //! else.
 
+mod log_format;
+
 use std::io::IsTerminal;
 use std::ops::ControlFlow;
 use std::path::PathBuf;
@@ -685,14 +687,18 @@ fn main() -> ExitCode {
         Command::Serve(_) | Command::Worker(_) => "info",
         _ => "warn",
     };
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| default_filter.into()),
-        )
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| default_filter.into());
+    // Colour codes only for a person; log files and journald get plain text.
+    let ansi = std::io::stderr().is_terminal();
+    let logs = tracing_subscriber::fmt()
+        .with_env_filter(filter)
         .with_writer(std::io::stderr)
-        // Colour codes only for a person; log files and journald get plain text.
-        .with_ansi(std::io::stderr().is_terminal())
-        .init();
+        .with_ansi(ansi);
+    if matches!(cli.command, Command::Serve(_) | Command::Worker(_)) {
+        logs.init();
+    } else {
+        logs.event_format(log_format::CommandLine::new(ansi)).init();
+    }
     let result = match cli.command {
         Command::Serve(args) => serve(args),
         Command::Worker(args) => worker(args),

@@ -105,6 +105,40 @@ fn a_bake_with_no_light_at_all_is_warned_about_before_it_starts() {
     assert!(peak > 0.1, "{peak}");
 }
 
+/// The engine's warnings read as the command's own do (`warning: …`), not as log lines
+/// with a timestamp and a module path: here the bundled Kenney level, whose generated
+/// UVs are mostly padding at the default resolution (docs/quality.md), on a software
+/// adapter where the GPU techniques would warn about it too.
+#[test]
+fn engine_warnings_read_as_the_commands_own() {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/third-party/kenney_fps_level.glb");
+    let out = tmp("kenney");
+    let output = bin()
+        .arg("bake")
+        .arg(&scene)
+        .arg("-o")
+        .arg(&out)
+        .args(["--technique", "path", "--steps", "1", "--sky", "1,1,1", "--no-denoise"])
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    let padding: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.contains("the generated charts cover"))
+        .collect();
+    assert_eq!(padding.len(), 1, "{stderr}");
+    assert!(
+        padding[0].starts_with("warning: the generated charts cover 1 % of their 256x256 page"),
+        "{stderr}"
+    );
+    assert!(
+        !stderr.contains(" WARN ") && !stderr.contains("lightmapd::engine"),
+        "{stderr}"
+    );
+}
+
 #[test]
 fn bake_writes_a_readable_exr_with_layers_and_metadata() {
     let out = tmp("cornell.exr");
