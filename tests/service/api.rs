@@ -1090,10 +1090,11 @@ async fn a_job_with_no_light_is_warned_about_at_submit() {
     let mut b = SceneBuilder::new();
     let grey = b.material(MaterialDesc::diffuse("grey", [0.5, 0.5, 0.5]));
     b.square("floor", glam::Vec3::ZERO, 2.0, glam::Vec3::Y, grey);
+    let glb = b.to_glb();
     let r = s
         .http
         .post(format!("{}/v1/scenes", s.url))
-        .body(b.to_glb())
+        .body(glb.clone())
         .send()
         .await
         .unwrap();
@@ -1153,6 +1154,25 @@ async fn a_job_with_no_light_is_warned_about_at_submit() {
         let job = created(body.clone()).await;
         assert!(job.get("warnings").is_none(), "{body}: {job:#}");
     }
+
+    // The command-line client prints the warning as the bake command does.
+    let file = s._dir.path().join("dark.glb");
+    std::fs::write(&file, &glb).unwrap();
+    let url = s.url.clone();
+    let output = tokio::task::spawn_blocking(move || {
+        Command::new(env!("CARGO_BIN_EXE_lightmapd"))
+            .arg("submit")
+            .arg(&file)
+            .args(["--server", &url, "--resolution", "16", "--steps", "4"])
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{stderr}");
+    let warning = "warning: the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky)";
+    assert!(stderr.lines().any(|l| l == warning), "{stderr}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
