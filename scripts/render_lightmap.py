@@ -4,7 +4,10 @@
 # on white surfaces. The camera looks along the scene's +Y (glTF -Z) at its bounds.
 # Used to look at bakes in rounds against single bakes (docs/scaling.md).
 #
-#   blender -b -P scripts/render_lightmap.py -- SCENE.glb LIGHTMAP.exr OUT.png
+#   blender -b -P scripts/render_lightmap.py -- SCENE.glb LIGHTMAP.exr OUT.png [EYE AT]
+#
+# EYE and AT (optional, glTF coordinates, "x,y,z"): a camera at EYE looking at AT, for
+# looking at a room from inside (the default camera frames the scene from outside).
 #
 # Limits: one page (every mesh samples the same EXR); no tone mapping beyond Blender's
 # "Standard" view; Blender's glTF importer of Debian bookworm (3.4) needs numpy's old
@@ -13,7 +16,12 @@ import numpy as _np
 if not hasattr(_np, "bool"): _np.bool = bool
 import bpy, sys, math, mathutils
 argv = sys.argv[sys.argv.index("--")+1:]
-glb, exr, out = argv
+glb, exr, out = argv[:3]
+# glTF is +Y up, Blender +Z up: the importer maps (x, y, z) to (x, -z, y).
+def from_gltf(text):
+    x, y, z = (float(v) for v in text.split(","))
+    return mathutils.Vector((x, -z, y))
+view = (from_gltf(argv[3]), from_gltf(argv[4])) if len(argv) >= 5 else None
 bpy.ops.wm.read_factory_settings(use_empty=True)
 bpy.ops.import_scene.gltf(filepath=glb)
 img = bpy.data.images.load(exr)
@@ -48,6 +56,11 @@ cam.location = ctr + mathutils.Vector((0, -0.0, 0)) + mathutils.Vector((0,0,0))
 cam.location = mathutils.Vector((ctr.x, mins.y - 1.6*size, ctr.z))
 cam.rotation_euler = (math.radians(90), 0, 0)
 cam.data.lens = 35
+if view is not None:
+    eye, at = view
+    cam.location = eye
+    cam.rotation_euler = (at - eye).to_track_quat('-Z', 'Y').to_euler()
+    cam.data.lens = 18
 sc = bpy.context.scene; sc.camera = cam
 sc.render.engine = 'CYCLES'; sc.cycles.samples = 8; sc.cycles.device = 'CPU'; sc.cycles.use_denoising = False
 sc.view_settings.view_transform = 'Standard'
