@@ -11,8 +11,16 @@
 //! service (`serve`, `worker`) keeps the log layout throughout.
 //!
 //! The event's fields follow its message as `key=value`, as `fmt` writes them.
+//!
+//! While a bake draws its progress bar on a terminal, each log line is written with the
+//! bar lifted ([`Stderr`], indicatif's `suspend`): a warning written beside a bar that
+//! redraws itself four times a second otherwise lands in the middle of the bar's line.
 
 use std::fmt;
+use std::io::Write;
+use std::sync::Mutex;
+
+use indicatif::ProgressBar;
 
 use tracing::{Event, Level, Subscriber};
 use tracing_subscriber::fmt::format::{Format, Writer};
@@ -46,5 +54,38 @@ where
         write!(writer, "{prefix}: ")?;
         ctx.field_format().format_fields(writer.by_ref(), event)?;
         writeln!(writer)
+    }
+}
+
+/// The progress bar on the terminal now, if any (`show_above`).
+static BAR: Mutex<Option<ProgressBar>> = Mutex::new(None);
+
+/// Log lines go above `bar` until it is finished (a hidden bar changes nothing).
+pub fn show_above(bar: &ProgressBar) {
+    if let Ok(mut b) = BAR.lock() {
+        *b = Some(bar.clone());
+    }
+}
+
+/// stderr, with the registered progress bar lifted around each write (the `fmt` layer
+/// writes a whole event in one call).
+pub struct Stderr;
+
+impl Write for Stderr {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let bar = BAR
+            .lock()
+            .ok()
+            .and_then(|b| b.clone())
+            .filter(|b| !b.is_hidden() && !b.is_finished());
+        match bar {
+            Some(bar) => bar.suspend(|| std::io::stderr().write_all(buf))?,
+            None => std::io::stderr().write_all(buf)?,
+        }
+        Ok(buf.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        std::io::stderr().flush()
     }
 }

@@ -692,7 +692,7 @@ fn main() -> ExitCode {
     let ansi = std::io::stderr().is_terminal();
     let logs = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr)
+        .with_writer(|| log_format::Stderr)
         .with_ansi(ansi);
     if matches!(cli.command, Command::Serve(_) | Command::Worker(_)) {
         logs.init();
@@ -1217,6 +1217,7 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         ProgressStyle::with_template("{spinner} {elapsed_precise} [{wide_bar}] step {pos}{prefix} {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
+    log_format::show_above(&bar);
     if let Some(n) = stop.steps {
         bar.set_length(n);
     }
