@@ -255,7 +255,7 @@ struct SubmitArgs {
     sky: Option<Vec3>,
     #[arg(long, value_enum, default_value = "upper")]
     sky_hemisphere: HemisphereArg,
-    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance).
+    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance, per steradian: a 0.53° disc is 6.7e-5 sr, so an irradiance E needs a radiance of E / 6.7e-5).
     #[arg(long, value_parser = parse_sun)]
     sun: Option<Sun>,
     #[arg(long)]
@@ -410,7 +410,7 @@ struct BakeArgs {
     sky: Option<Vec3>,
     #[arg(long, value_enum, default_value = "upper")]
     sky_hemisphere: HemisphereArg,
-    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance).
+    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance, per steradian: a 0.53° disc is 6.7e-5 sr, so an irradiance E needs a radiance of E / 6.7e-5).
     #[arg(long, value_parser = parse_sun)]
     sun: Option<Sun>,
     /// Stop after this many steps.
@@ -1206,6 +1206,10 @@ fn bake(args: BakeArgs) -> Result<(), Failure> {
         eprintln!(
             "warning: the scene has no emissive surface or punctual light and the bake no --sky or --sun: the lightmap will be exactly zero (give --sky R,G,B for a uniform sky)"
         );
+    }
+
+    if let Some(w) = request.lighting.faint_sun() {
+        eprintln!("warning: {w}");
     }
 
     let bar = if std::io::stderr().is_terminal() {

@@ -139,6 +139,38 @@ fn engine_warnings_read_as_the_commands_own() {
     );
 }
 
+/// A sun whose radiance was given as if it were an irradiance (40 for a 0.53° disc: 2.7e-3
+/// W/m²) is warned about before the bake; one of radiance 1e5 beside the same sky is not.
+#[test]
+fn a_sun_too_faint_for_its_sky_is_warned_about() {
+    let bake = |sun: &str| -> String {
+        let output = bin()
+            .arg("bake")
+            .arg(bundled())
+            .arg("-o")
+            .arg(tmp(&format!("sun-{sun}.exr")))
+            .args(["--resolution", "16", "--steps", "1", "--no-denoise", "--sky", "1,1,1"])
+            .arg(format!("--sun=0,-1,0,0.53,{sun},{sun},{sun}"))
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+        assert!(output.status.success(), "{stderr}");
+        stderr
+    };
+    let faint = bake("40");
+    let line = faint.lines().find(|l| l.contains("the sun gives")).unwrap_or_default();
+    assert!(
+        line.starts_with("warning: the sun gives 2.688e-3 W/m² (its radiance 4.000e1 per steradian"),
+        "{faint}"
+    );
+    assert!(
+        line.ends_with("for an irradiance E give a radiance of E / 6.72e-5"),
+        "{line}"
+    );
+    let bright = bake("100000");
+    assert!(!bright.contains("the sun gives"), "{bright}");
+}
+
 #[test]
 fn bake_writes_a_readable_exr_with_layers_and_metadata() {
     let out = tmp("cornell.exr");

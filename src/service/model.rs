@@ -717,11 +717,11 @@ fn light_features(report: &Value, spec: &JobSpec) -> (crate::engine::plan::Scene
     (features, counted)
 }
 
-/// What the submitter is told with a job that is accepted (`JobCreated::warnings`): today
-/// a bake with no light at all, which is not refused (an exact zero is a correct answer,
-/// and an `ao` layer needs no light) but is almost always a level exported without its
-/// lights or a job without its sky, which a user should learn at submit rather than from
-/// a black lightmap.
+/// What the submitter is told with a job that is accepted (`JobCreated::warnings`): a bake
+/// with no light at all, which is not refused (an exact zero is a correct answer, and an
+/// `ao` layer needs no light) but is almost always a level exported without its lights or
+/// a job without its sky, which a user should learn at submit rather than from a black
+/// lightmap; and a sun too faint to matter beside the sky (`Lighting::faint_sun`).
 pub fn job_warnings(report: &Value, spec: &JobSpec) -> Vec<String> {
     let (features, counted) = light_features(report, spec);
     let mut warnings = Vec::new();
@@ -731,6 +731,7 @@ pub fn job_warnings(report: &Value, spec: &JobSpec) -> Vec<String> {
                 .to_string(),
         );
     }
+    warnings.extend(spec.to_request().lighting.faint_sun());
     warnings
 }
 

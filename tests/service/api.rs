@@ -1150,10 +1150,29 @@ async fn a_job_with_no_light_is_warned_about_at_submit() {
     for body in [
         json!({"scene": dark, "resolution": 16, "stop": {"steps": 4}, "lighting": {"sky": {"radiance": [1, 1, 1]}}}),
         json!({"scene": lit, "resolution": 16, "stop": {"steps": 4}}),
+        // A sun of radiance 1e5: 6.7 W/m² from its 6.7e-5 sr, twice the sky's π.
+        json!({"scene": dark, "resolution": 16, "stop": {"steps": 4}, "lighting": {
+            "sky": {"radiance": [1, 1, 1]},
+            "sun": {"direction": [0, -1, 0], "angular_diameter_deg": 0.53, "radiance": [1e5, 1e5, 1e5]}}}),
     ] {
         let job = created(body.clone()).await;
         assert!(job.get("warnings").is_none(), "{body}: {job:#}");
     }
+    // A sun given as if its radiance were an irradiance (40): 2.7e-3 W/m², 0.09 % of the
+    // sky's, is warned about; the job is still accepted.
+    let job = created(
+        json!({"scene": dark, "resolution": 16, "stop": {"steps": 4}, "lighting": {
+        "sky": {"radiance": [1, 1, 1]},
+        "sun": {"direction": [0, -1, 0], "angular_diameter_deg": 0.53, "radiance": [40, 40, 40]}}}),
+    )
+    .await;
+    let warnings = job["warnings"].as_array().unwrap();
+    assert_eq!(warnings.len(), 1, "{job:#}");
+    let w = warnings[0].as_str().unwrap();
+    assert!(
+        w.starts_with("the sun gives 2.688e-3 W/m² (its radiance 4.000e1 per steradian times its disc's 6.72e-5 sr), 0.09 % of the sky's 3.142 on a surface facing up"),
+        "{w}"
+    );
 
     // The command-line client prints the warning as the bake command does.
     let file = s._dir.path().join("dark.glb");

@@ -713,6 +713,11 @@ impl Sun {
     }
 }
 
+/// Below this share of the sky's irradiance a sun is warned about ([`Lighting::faint_sun`]):
+/// a clear day's sun gives five to ten times the sky's, a low evening sun still tens of
+/// per cent of it.
+pub const FAINT_SUN: f32 = 0.01;
+
 /// The light a job adds to the scene's own emitters and punctual lights.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Lighting {
@@ -728,6 +733,27 @@ impl Lighting {
             Some(s) if s.hemisphere == Hemisphere::Full || w.y > 0.0 => s.radiance,
             _ => Vec3::ZERO,
         }
+    }
+
+    /// A sun too faint to matter beside the sky: its irradiance on a surface facing it
+    /// (radiance times the disc's solid angle) below [`FAINT_SUN`] of the sky's on a
+    /// surface facing up (π times the sky's radiance), by their channels' means. Not an
+    /// error (an evening sun may be faint), but the usual cause is a sun given as an
+    /// irradiance where DESIGN's convention is radiance: a 0.53° disc is 6.7e-5 sr, so a
+    /// radiance of 40 gives 0.003 W/m², nothing under any sky.
+    pub fn faint_sun(&self) -> Option<String> {
+        let (sun, sky) = (self.sun?, self.sky?);
+        let mean = |v: Vec3| v.element_sum() / 3.0;
+        let omega = sun.solid_angle();
+        let from_sun = mean(sun.radiance) * omega;
+        let from_sky = mean(sky.radiance) * std::f32::consts::PI;
+        (from_sun > 0.0 && from_sun < FAINT_SUN * from_sky).then(|| {
+            format!(
+                "the sun gives {from_sun:.3e} W/m² (its radiance {:.3e} per steradian times its disc's {omega:.2e} sr), {:.2} % of the sky's {from_sky:.3} on a surface facing up: the sun's radiance is per steradian; for an irradiance E give a radiance of E / {omega:.2e}",
+                mean(sun.radiance),
+                100.0 * from_sun / from_sky
+            )
+        })
     }
 
     /// Checks ranges; the message names the field.
