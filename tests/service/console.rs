@@ -774,16 +774,34 @@ fn the_console_bakes_in_a_real_browser() {
     );
     std::fs::write(shots.join("4b-reference.png"), b.screenshot(Some("#job"))).unwrap();
 
-    // 4. A second job, cancelled from its page.
+    // 4. A second job, cancelled from its page. It has a sky and a sun whose radiance was
+    // typed as if it were an irradiance (about 19 for a 0.53° disc: 1.3e-3 W/m²): the server
+    // accepts it with a warning, which the form shows.
     b.eval("document.getElementById('f-reference').value = ''");
     b.fill("#f-steps", "5000");
     b.fill("#f-seconds", "600");
+    b.click("#f-sky-on");
+    b.click("#f-sun-on");
+    assert_eq!(b.eval("document.getElementById('f-sun').value"), "90000, 85500, 76500");
+    b.fill("#f-sun", "20, 19, 17");
     b.click("#submit");
     let first = b.eval("window.lightmapdConsole.job.id");
     b.wait(
         "the second job's page",
         &format!("window.lightmapdConsole.job && window.lightmapdConsole.job.id !== {first} && !document.getElementById('cancel').disabled"),
         Duration::from_secs(10),
+    );
+    let warned = b.wait(
+        "the faint sun's warning",
+        "document.getElementById('form-warning').textContent",
+        Duration::from_secs(10),
+    );
+    assert!(
+        warned
+            .as_str()
+            .unwrap()
+            .starts_with("Queued, but the sun gives 1.254e-3 W/m²"),
+        "{warned}"
     );
     b.click("#cancel");
     b.wait(
@@ -792,6 +810,8 @@ fn the_console_bakes_in_a_real_browser() {
         Duration::from_secs(30),
     );
     std::fs::write(shots.join("6-cancelled.png"), b.screenshot(None)).unwrap();
+    b.click("#f-sky-on");
+    b.click("#f-sun-on");
 
     // 5. A job with light probes (issue 26), submitted through the API: its page draws the
     // valid probes as spheres in the 3D view. The 0.7 m grid is split once where geometry

@@ -299,6 +299,7 @@ function clearFieldErrors() {
   for (const el of document.querySelectorAll('#bake-form .field-error')) el.remove();
   for (const el of document.querySelectorAll('#bake-form [aria-invalid]')) el.removeAttribute('aria-invalid');
   $('form-error').textContent = '';
+  $('form-warning').textContent = '';
 }
 
 // Shows a 422 by the field it names: the form element whose data-field is the field, or the
@@ -334,6 +335,8 @@ $('bake-form').addEventListener('submit', async e => {
   btn.disabled = true;
   try {
     const r = await json('/v1/jobs', {method: 'POST', headers: {'Content-Type': 'application/json'}, body: JSON.stringify(buildBody())});
+    // Accepted, with what the server thinks was probably not meant (no light, a faint sun).
+    $('form-warning').textContent = (r.warnings || []).map(w => `Queued, but ${w}.`).join(' ');
     await refreshJobs();
     openJob(r.id);
   } catch (err) {
