@@ -84,6 +84,18 @@ fn what_the_scene_and_job_have_is_planned() {
     ] {
         assert!(ran.contains(&item), "{item} should run: {ran:?}");
     }
+    // This sun gives 0.79 W/m² against the sky's π: a quarter, not warned about.
+    assert!(p.warnings.is_empty(), "{:?}", p.warnings);
+    // A hundred times fainter, 0.25 %: the plan keeps the warning for the job's record.
+    let mut faint = request.clone();
+    faint.lighting.sun.as_mut().unwrap().radiance = Vec3::splat(100.0);
+    let p = plan_for(&faint, true);
+    assert_eq!(p.warnings.len(), 1, "{:?}", p.warnings);
+    assert!(
+        p.warnings[0].starts_with("the sun gives 7.854e-3 W/m²"),
+        "{}",
+        p.warnings[0]
+    );
 }
 
 #[test]

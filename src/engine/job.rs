@@ -55,6 +55,7 @@ pub fn plan_for(scene: &Scene, request: &BakeRequest) -> Result<Plan, EngineErro
     if !features.has_light() {
         plan.leave_out("light", NO_LIGHT);
     }
+    plan.warnings.extend(request.lighting.faint_sun());
     if features.alpha_materials > 0 {
         let n = features.alpha_materials;
         match technique::entry(&request.technique)?.alpha {

@@ -38,6 +38,11 @@ pub struct Plan {
     /// What the live error estimate measures for this technique (DESIGN §4): all of the
     /// error for an unbiased technique, only the noise for a biased one.
     pub error_estimate: String,
+    /// What the job asks for that bakes but was probably not meant (a sun too faint to
+    /// matter beside its sky: `scene::Lighting::faint_sun`), kept with the job so an API
+    /// user who missed the submit answer's `warnings` still finds it.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 impl Plan {

@@ -1173,6 +1173,10 @@ async fn a_job_with_no_light_is_warned_about_at_submit() {
         w.starts_with("the sun gives 2.688e-3 W/m² (its radiance 4.000e1 per steradian times its disc's 6.72e-5 sr), 0.09 % of the sky's 3.142 on a surface facing up"),
         "{w}"
     );
+    // The job's plan keeps it, for a caller who did not read the 202.
+    let id = job["id"].as_str().unwrap().to_string();
+    let planned = s.wait_job(&id, "planned", |j| j["plan"].is_object()).await;
+    assert_eq!(planned["plan"]["warnings"], json!([w]), "{planned:#}");
 
     // The command-line client prints the warning as the bake command does.
     let file = s._dir.path().join("dark.glb");

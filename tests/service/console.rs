@@ -803,6 +803,16 @@ fn the_console_bakes_in_a_real_browser() {
             .starts_with("Queued, but the sun gives 1.254e-3 W/m²"),
         "{warned}"
     );
+    // And the job's plan, once a worker has made it, lists it first.
+    let planned = b.wait(
+        "the faint sun in the plan",
+        "document.querySelector('#job-plan li.warn')?.textContent",
+        Duration::from_secs(10),
+    );
+    assert!(
+        planned.as_str().unwrap().starts_with("the sun gives 1.254e-3 W/m²"),
+        "{planned}"
+    );
     b.click("#cancel");
     b.wait(
         "the cancellation",

@@ -546,9 +546,10 @@ function showPlan(j) {
   if (!plan) { $('job-plan').innerHTML = '<p class="hint">The plan is made when a worker starts the job.</p>'; }
   else {
     const items = (list, cls) => (list || []).map(i => `<li class="${cls}"><b>${esc(i.name)}</b>: ${esc(i.why)}</li>`).join('');
-    const extra = Object.entries(plan).filter(([k]) => !['passes', 'left_out', 'technique', 'error_estimate', 'validation'].includes(k))
+    const extra = Object.entries(plan).filter(([k]) => !['passes', 'left_out', 'technique', 'error_estimate', 'validation', 'warnings'].includes(k))
       .map(([k, v]) => `<li>${esc(k)}: <span class="mono">${esc(typeof v === 'object' ? JSON.stringify(v) : v)}</span></li>`).join('');
-    $('job-plan').innerHTML = `<ul class="plan">${items(plan.passes, 'ran')}${items(plan.left_out, 'left')}${extra}</ul>` +
+    const warned = (plan.warnings || []).map(w => `<li class="warn">${esc(w)}</li>`).join('');
+    $('job-plan').innerHTML = `<ul class="plan">${warned}${items(plan.passes, 'ran')}${items(plan.left_out, 'left')}${extra}</ul>` +
       (plan.error_estimate ? `<p class="hint">Error estimate: ${esc(plan.error_estimate)}</p>` : '');
   }
   const v = j.summary?.validation || j.summary?.texel_validation || j.plan?.validation || j.plan?.texels;
