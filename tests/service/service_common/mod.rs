@@ -207,6 +207,11 @@ pub fn store_dir(dir: &Path) -> PathBuf {
 /// Decodes every channel of every layer of an EXR: a truncated or half-written file
 /// fails here.
 pub fn exr_is_whole(bytes: &[u8]) -> Result<(), String> {
+    read_exr(bytes).map(|_| ()).map_err(|e| e.to_string())
+}
+
+/// Every layer and channel of an EXR in memory.
+fn read_exr(bytes: &[u8]) -> exr::error::Result<exr::prelude::FlatImage> {
     use exr::prelude::*;
     read()
         .no_deep_data()
@@ -215,8 +220,6 @@ pub fn exr_is_whole(bytes: &[u8]) -> Result<(), String> {
         .all_layers()
         .all_attributes()
         .from_buffered(std::io::Cursor::new(bytes))
-        .map(|_: Image<Layers<AnyChannels<FlatSamples>>>| ())
-        .map_err(|e| e.to_string())
 }
 
 /// An S3-protocol server for tests (`scripts/setup.sh test` starts moto's server mode on
@@ -364,15 +367,7 @@ pub async fn get_json(http: &reqwest::Client, url: &str) -> serde_json::Value {
 
 /// An EXR's default `R`, `G`, `B` channels, texel by texel.
 pub fn exr_rgb(bytes: &[u8]) -> Vec<[f32; 3]> {
-    use exr::prelude::*;
-    let image: Image<Layers<AnyChannels<FlatSamples>>> = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_buffered(std::io::Cursor::new(bytes))
-        .unwrap();
+    let image = read_exr(bytes).unwrap();
     let layer = &image.layer_data[0];
     let chan = |n: &str| -> Vec<f32> {
         let c = layer.channel_data.list.iter().find(|c| c.name == *n).unwrap();
