@@ -74,6 +74,16 @@
 //! Building the whole binary for x86-64-v3 instead gained 5–10 % and would not run on
 //! CPUs without AVX2.
 //!
+//! Tried and not kept (2026-12-07, this VM, release, 3 alternating runs each): the
+//! triangles copied for the queries into the wide tree's leaf order, 48 bytes each
+//! (first corner, two edges, the index and the material's alpha and sidedness flags),
+//! instead of reading the 128-byte scene triangles and their materials. `path`'s time
+//! moved from 0.89 to 0.88 s (blocks-25k 128², 64 steps), 2.12 to 2.06 s (the Cornell
+//! box 64², 256 steps) and 1.58 to 1.55 s (the occlusion room 256², 16 steps), within
+//! the runs' spread: the first touch of a hit triangle's data still misses the cache, in
+//! the shading after the query instead of in its test (`perf` showed the miss move), and
+//! the node tests are most of the traversal.
+//!
 //! Alpha: a candidate hit on a MASK or BLEND triangle counts only where
 //! [`Scene::stops_ray`] says the surface is there (glTF alpha, issue 19 point 5), in both
 //! queries; opaque triangles pay one material lookup per candidate hit.
