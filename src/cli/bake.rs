@@ -10,16 +10,15 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use clap::ValueEnum;
-use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use lightmapd::engine::bake::{BakeEvent, StopCriteria};
 use lightmapd::engine::job::{self, BakeRequest};
 use lightmapd::engine::output::{OutputLayer, write_atomically};
-use lightmapd::engine::scene::{self, Hemisphere, Lighting, Sky, Sun};
+use lightmapd::engine::scene;
 use lightmapd::engine::tasks;
 use lightmapd::engine::technique::obscurance::{ObscuranceState, UpdateReach};
 
-use super::{Failure, HemisphereArg, bad_input, engine_failure, error_text, log_format, parse_sun, parse_vec3};
+use super::{Failure, LightingArgs, bad_input, engine_failure, error_text, log_format};
 
 #[derive(clap::Args)]
 pub(crate) struct BakeArgs {
@@ -36,14 +35,8 @@ pub(crate) struct BakeArgs {
     /// Lightmap width and height in texels.
     #[arg(long, default_value_t = 256)]
     resolution: u32,
-    /// Uniform sky radiance R,G,B.
-    #[arg(long, value_parser = parse_vec3)]
-    sky: Option<Vec3>,
-    #[arg(long, value_enum, default_value = "upper")]
-    sky_hemisphere: HemisphereArg,
-    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance, per steradian: a 0.53° disc is 6.7e-5 sr, so an irradiance E needs a radiance of E / 6.7e-5).
-    #[arg(long, value_parser = parse_sun)]
-    sun: Option<Sun>,
+    #[command(flatten)]
+    lighting: LightingArgs,
     /// Stop after this many steps.
     #[arg(long)]
     steps: Option<u64>,
@@ -216,16 +209,7 @@ fn request(args: &BakeArgs) -> Result<BakeRequest, Failure> {
     Ok(BakeRequest {
         technique: args.technique.clone(),
         resolution: args.resolution,
-        lighting: Lighting {
-            sky: args.sky.map(|radiance| Sky {
-                radiance,
-                hemisphere: match args.sky_hemisphere {
-                    HemisphereArg::Upper => Hemisphere::Upper,
-                    HemisphereArg::Full => Hemisphere::Full,
-                },
-            }),
-            sun: args.sun,
-        },
+        lighting: args.lighting.lighting(),
         stop,
         params,
         outputs: args.outputs.clone(),

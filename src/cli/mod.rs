@@ -1,7 +1,7 @@
 //! What the commands share: the failure a command returns and the exit code it earns,
 //! the async runtime of the commands that talk to a service, the Mesa device-select
-//! switch, and the parsers of the options that `bake` and `submit` both take (the sky and
-//! the sun).
+//! switch, and the lighting options that `bake` and `submit` both take (the sky and the
+//! sun, [`LightingArgs`]).
 
 pub mod bake;
 pub mod bench;
@@ -12,7 +12,7 @@ pub mod token;
 
 use clap::ValueEnum;
 use glam::Vec3;
-use lightmapd::engine::scene::Sun;
+use lightmapd::engine::scene::{Hemisphere, Lighting, Sky, Sun};
 
 /// A failure and the exit code it earns.
 pub(crate) struct Failure {
@@ -68,8 +68,37 @@ pub(crate) fn quiet_device_select() {
     }
 }
 
+/// The lighting options `bake` and `submit` both take, flattened into each.
+#[derive(clap::Args)]
+pub(crate) struct LightingArgs {
+    /// Uniform sky radiance R,G,B.
+    #[arg(long, value_parser = parse_vec3)]
+    sky: Option<Vec3>,
+    #[arg(long, value_enum, default_value = "upper")]
+    sky_hemisphere: HemisphereArg,
+    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance, per steradian: a 0.53° disc is 6.7e-5 sr, so an irradiance E needs a radiance of E / 6.7e-5).
+    #[arg(long, value_parser = parse_sun)]
+    sun: Option<Sun>,
+}
+
+impl LightingArgs {
+    /// The job's lighting: the sky over the hemisphere given, and the sun.
+    pub(crate) fn lighting(&self) -> Lighting {
+        Lighting {
+            sky: self.sky.map(|radiance| Sky {
+                radiance,
+                hemisphere: match self.sky_hemisphere {
+                    HemisphereArg::Upper => Hemisphere::Upper,
+                    HemisphereArg::Full => Hemisphere::Full,
+                },
+            }),
+            sun: self.sun,
+        }
+    }
+}
+
 #[derive(Clone, Copy, ValueEnum)]
-pub(crate) enum HemisphereArg {
+enum HemisphereArg {
     Upper,
     Full,
 }
@@ -84,11 +113,11 @@ fn parse_floats(s: &str, n: usize, what: &str) -> Result<Vec<f32>, String> {
     }
 }
 
-pub(crate) fn parse_vec3(s: &str) -> Result<Vec3, String> {
+fn parse_vec3(s: &str) -> Result<Vec3, String> {
     parse_floats(s, 3, "R,G,B").map(|v| Vec3::new(v[0], v[1], v[2]))
 }
 
-pub(crate) fn parse_sun(s: &str) -> Result<Sun, String> {
+fn parse_sun(s: &str) -> Result<Sun, String> {
     let v = parse_floats(s, 7, "DX,DY,DZ,DIAMETER_DEG,R,G,B")?;
     let direction = Vec3::new(v[0], v[1], v[2]);
     if direction.length() < 1e-6 {

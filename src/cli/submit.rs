@@ -4,11 +4,10 @@
 
 use std::path::PathBuf;
 
-use glam::Vec3;
-use lightmapd::engine::scene::Sun;
+use lightmapd::engine::scene::{Hemisphere, Lighting};
 use lightmapd::service;
 
-use super::{Failure, HemisphereArg, bad_input, parse_sun, parse_vec3, runtime};
+use super::{Failure, LightingArgs, bad_input, runtime};
 
 #[derive(clap::Args)]
 pub(crate) struct SubmitArgs {
@@ -27,14 +26,8 @@ pub(crate) struct SubmitArgs {
     technique: Option<String>,
     #[arg(long)]
     resolution: Option<u32>,
-    /// Uniform sky radiance R,G,B.
-    #[arg(long, value_parser = parse_vec3)]
-    sky: Option<Vec3>,
-    #[arg(long, value_enum, default_value = "upper")]
-    sky_hemisphere: HemisphereArg,
-    /// Sun: DX,DY,DZ (from the sun toward the scene),DIAMETER_DEG,R,G,B (radiance, per steradian: a 0.53° disc is 6.7e-5 sr, so an irradiance E needs a radiance of E / 6.7e-5).
-    #[arg(long, value_parser = parse_sun)]
-    sun: Option<Sun>,
+    #[command(flatten)]
+    lighting: LightingArgs,
     #[arg(long)]
     steps: Option<u64>,
     #[arg(long)]
@@ -109,17 +102,18 @@ pub(crate) fn submit(args: SubmitArgs) -> Result<(), Failure> {
         job.insert("resolution".into(), r.into());
     }
     let mut lighting = serde_json::Map::new();
-    if let Some(sky) = args.sky {
-        let hemisphere = match args.sky_hemisphere {
-            HemisphereArg::Upper => "upper",
-            HemisphereArg::Full => "full",
+    let Lighting { sky, sun } = args.lighting.lighting();
+    if let Some(sky) = sky {
+        let hemisphere = match sky.hemisphere {
+            Hemisphere::Upper => "upper",
+            Hemisphere::Full => "full",
         };
         lighting.insert(
             "sky".into(),
-            serde_json::json!({"radiance": sky.to_array(), "hemisphere": hemisphere}),
+            serde_json::json!({"radiance": sky.radiance.to_array(), "hemisphere": hemisphere}),
         );
     }
-    if let Some(sun) = args.sun {
+    if let Some(sun) = sun {
         lighting.insert(
             "sun".into(),
             serde_json::json!({
