@@ -2,17 +2,16 @@
 //! maps and layers, the direct light and the emitters' samples, the texels and the
 //! passes built, with the device's limits checked first.
 
-use crate::engine::ambient::{AmbientSums, MIN_ABSORPTION};
-use crate::engine::gpu::map_scene::MapTexel;
 use bytemuck::Zeroable;
 use glam::Vec3;
 
 use super::super::api::{BakeInputs, EngineError, gpu_error};
+use crate::engine::ambient::{AmbientSums, MIN_ABSORPTION};
 use crate::engine::gpu::direct_light::DirectLight;
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
-use crate::engine::gpu::map_scene::MapScene;
+use crate::engine::gpu::map_scene::{MapScene, MapTexel};
 use crate::engine::gpu::scene_lights::LightSources;
 use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowView, map_triangle_planes};
 use crate::engine::gpu::slices::StepSlicer;

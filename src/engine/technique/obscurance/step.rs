@@ -3,10 +3,10 @@
 //! ambient, the direct light, in slices a deadline can stop between; and the halves read
 //! back.
 
-use crate::engine::ambient::AmbientSums;
 use glam::Vec3;
 
 use super::super::api::{EngineError, go_on_until, gpu_error};
+use crate::engine::ambient::AmbientSums;
 use crate::engine::gpu::direct_light::DirectHalf;
 use crate::engine::gpu::directions::sample_cone;
 use crate::engine::gpu::shadow::{ShadowDraw, ShadowView};

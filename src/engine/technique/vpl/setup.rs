@@ -8,7 +8,6 @@ use bytemuck::Zeroable;
 use glam::Vec3;
 
 use super::super::api::{BakeInputs, EngineError, gpu_error, parse_params};
-use super::rsm::RsmTracer;
 use crate::engine::atlas::SURFACE_OFFSET;
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
 use crate::engine::gpu::frame::SceneFrame;
@@ -20,7 +19,7 @@ use crate::engine::gpu::tracer::GpuTracer;
 use crate::engine::gpu::{self, RayDevice};
 use crate::engine::scene::LightKind;
 
-use super::rsm;
+use super::rsm::{self, RsmTracer};
 use super::{Emitter, GpuGatherParams, GpuLight, Primary, Vpl, VplParams, lum, pack, shaders};
 
 impl Vpl {
