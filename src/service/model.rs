@@ -727,7 +727,7 @@ pub fn job_warnings(report: &Value, spec: &JobSpec) -> Vec<String> {
     let mut warnings = Vec::new();
     if counted && !features.has_light() {
         warnings.push(
-            "the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky)"
+            "the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky; `lightmapd submit` takes it as --sky R,G,B)"
                 .to_string(),
         );
     }

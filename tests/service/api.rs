@@ -1119,7 +1119,7 @@ async fn a_job_with_no_light_is_warned_about_at_submit() {
     assert_eq!(
         job["warnings"],
         json!([
-            "the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky)"
+            "the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky; `lightmapd submit` takes it as --sky R,G,B)"
         ]),
         "{job:#}"
     );
@@ -1194,7 +1194,7 @@ async fn a_job_with_no_light_is_warned_about_at_submit() {
     .unwrap();
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(output.status.success(), "{stderr}");
-    let warning = "warning: the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky)";
+    let warning = "warning: the scene has no emissive surface or punctual light and the job no lighting.sky or lighting.sun: the lightmap will be exactly zero (give lighting.sky for a uniform sky; `lightmapd submit` takes it as --sky R,G,B)";
     assert!(stderr.lines().any(|l| l == warning), "{stderr}");
 }
 
