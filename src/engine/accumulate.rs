@@ -127,7 +127,7 @@ impl ControlValues {
     /// `bias` what is left above the floor at the control texels, `noise` the floor, and
     /// the 90 % interval. The floor is the denoiser's own bound of its error per texel
     /// (`texel_noise`, absolute, `post::denoised` step 5) over the whole map, calibrated
-    /// at the control texels as the raw map's halves are ([`noise_calibration`]): the
+    /// at the control texels as the raw map's halves are (`noise_calibration`): the
     /// bound is a triangle-inequality sum of the filters' cross-validated errors, which
     /// over-states (`vpl` on the occlusion room stated 1.26-1.51 times its true delivered
     /// error with the bound uncalibrated, 2026-12-06), and where the control measures the

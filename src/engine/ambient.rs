@@ -118,7 +118,7 @@ pub struct AmbientHalf {
 impl AmbientHalf {
     /// Moves `total` (this half's lightmap over the same texels) from the B its own sums
     /// give to the B of `whole` (the sums over every texel of the bake): adds
-    /// (B_whole - B_own) weight[k] at each texel.
+    /// (B_whole - B_own) `weight[k]` at each texel.
     pub fn rebase(&self, whole: &AmbientSums, total: &mut [Vec3]) {
         let delta = whole.closure() - self.sums.closure();
         if delta == Vec3::ZERO {

@@ -1,7 +1,7 @@
 //! Workers' side of a job split into tasks (issue 25; docs/scaling.md): bake one task,
 //! or merge them all.
 //!
-//! How: a worker that claims a bake task ([`Queue::claim_task`]) loads the job's scene,
+//! How: a worker that claims a bake task ([`Queue::claim_task`](crate::service::queue::Queue::claim_task)) loads the job's scene,
 //! bakes the task's range of the job's steps of its region of the grid (the job's
 //! `regions`) on a blocking thread (`engine::tasks::bake_task`: every random stream keyed
 //! by the job's step numbers and the texels' pixels, so the task draws exactly the
@@ -24,7 +24,7 @@
 //! queue queues a round once the round before has succeeded, and the merge reads the last
 //! round's results. Rounds before the last state no error: a round's halves cannot see
 //! what the rounds still lack, which only the last round's control texels measure. The
-//! job's snapshots are its finished rounds, each stating no error ([`round_snapshot`]).
+//! job's snapshots are its finished rounds, each stating no error (`round_snapshot`).
 //!
 //! Endings of an attempt: cancelled (the job's cancel flag, read back by every
 //! heartbeat) → the task `cancelled`, and the last task to stop ends the job; shutdown

@@ -5,7 +5,7 @@
 //!
 //! How: [`receive_glb`] streams a `.glb` body into `spool/<random>/scene.glb`, hashing it
 //! as it goes; [`receive_gltf`] streams each multipart part into its own file of the same
-//! folder (the part names are checked to be plain file names first). [`Spooled::content_id`]
+//! folder (the part names are checked to be plain file names first). [`Spooled::content_digest`]
 //! then hashes exactly what the in-memory upload hashed before (SHA-256 of the bytes for a
 //! `.glb`; for a `.gltf` every file's name length, name, size and bytes in name order), so a
 //! scene uploaded before this change keeps its id. The folder is removed when the

@@ -1,6 +1,6 @@
 //! Workers: claim a job, run the bake on a blocking thread, report back, finish.
 //!
-//! How: each worker is an async task that loops over [`Queue::claim`]. A claimed job's
+//! How: each worker is an async task that loops over [`Queue::claim`](crate::service::queue::Queue::claim). A claimed job's
 //! bake runs under `spawn_blocking` (the engine is CPU- or GPU-bound and must never
 //! stall the runtime's threads) with an observer that only touches shared memory: the
 //! latest progress, the history of (seconds, steps, error) points, and, every
@@ -21,7 +21,7 @@
 //!
 //! Leases (issue 24): the lease is renewed for as long as the job is ours, not only while
 //! the bake runs: storing the final EXR, preview and scene, and recording the end, run
-//! under [`while_holding`], which keeps renewing it, so a slow upload never lets the lease
+//! under `while_holding`, which keeps renewing it, so a slow upload never lets the lease
 //! lapse and the job run twice. Every lease time is on the database's clock
 //! ([`AppState::db_now`]).
 //!

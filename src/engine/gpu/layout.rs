@@ -84,7 +84,7 @@ pub enum Bind<'a> {
     Read(&'a wgpu::Buffer),
     /// A read-write storage buffer.
     Write(&'a wgpu::Buffer),
-    /// A 2D-array float texture read with `textureLoad` (see [`texture_entry`]).
+    /// A 2D-array float texture read with `textureLoad` (see `texture_entry`).
     Texture(&'a wgpu::TextureView),
     /// A plain 2D float texture read with `textureLoad`.
     Texture2d(&'a wgpu::TextureView),

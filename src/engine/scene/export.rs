@@ -18,7 +18,7 @@
 //! split for that layout, and its node points at the copy.
 //!
 //! The accessors a split primitive used before, and the buffer views only they used,
-//! are removed once nothing else refers to them ([`prune_orphans`]: other primitives,
+//! are removed once nothing else refers to them (`prune_orphans`: other primitives,
 //! morph targets, skins, animations and `EXT_mesh_gpu_instancing` may share them), and
 //! every reference renumbered, so the written file has no unused object the input did not
 //! have. Their bytes stay in the binary chunk (nothing points at them; re-packing it

@@ -173,7 +173,7 @@ fn job_view(j: &JobRecord) -> JobView {
     }
 }
 
-/// [`job_view`] with what only one job's page shows: a split job's tasks and
+/// `job_view` with what only one job's page shows: a split job's tasks and
 /// blocklist, and what a job nobody takes is waiting for (issue 25). A database error
 /// here leaves those parts out rather than failing the request.
 pub async fn describe_job(state: &AppState, j: &JobRecord) -> JobView {

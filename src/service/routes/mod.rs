@@ -12,12 +12,12 @@
 //! sends becomes a filesystem path.
 //!
 //! Every error leaves as problem+json: handlers return [`Problem`], and
-//! [`problem_bodies`] rewrites the plain-text answers axum and tower-http produce on
+//! `problem_bodies` rewrites the plain-text answers axum and tower-http produce on
 //! their own (a malformed path or query, a body over the limit, a timeout).
 //!
 //! Large bodies (uploads of unknown length or over 16 MiB, downloads over 16 MiB) take
 //! one of `--max-large-bodies` permits for as long as they run
-//! ([`large_body_permit`]); past it, 503 with `Retry-After`.
+//! (`large_body_permit`); past it, 503 with `Retry-After`.
 
 mod downloads;
 mod jobs;

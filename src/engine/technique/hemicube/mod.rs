@@ -105,7 +105,7 @@
 //! The parts of a step that grow with the level are the CPU's rays (three or four a
 //! texel) and the transfer (one invocation a texel). In a bake with a time limit or a
 //! watcher that may cancel, a step that may be long runs the CPU rays in chunks of
-//! [`CPU_LIGHT_CHUNK`] texels, the shooters' depth maps in slices of whole maps (each the
+//! `CPU_LIGHT_CHUNK` texels, the shooters' depth maps in slices of whole maps (each the
 //! whole scene drawn: they grow with the triangles, 8 s a step for a 1M-triangle level on
 //! lavapipe) and the transfer in slices of about 50 ms (`gpu::slices`), checking between
 //! two. Stopped among the rays or the maps it has written nothing that counts; stopped

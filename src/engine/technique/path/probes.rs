@@ -41,7 +41,7 @@
 //! - Random numbers as the texels' (`params.sampling`, `path/sampler.rs`): by default an
 //!   Owen-scrambled Sobol sequence per probe and half; the probe's own direction, sun and
 //!   emitter samples take vertex 0's two sets in the texel path's layout, and the path
-//!   from a hit goes on from vertex 1's ([`Deeper`]). The halves stay independent
+//!   from a hit goes on from vertex 1's (`sampler::Deeper`). The halves stay independent
 //!   (their own scrambles), so the error estimate holds. Under an upper sky the sky is
 //!   seen where y = r sin 2πu2 > 0, one stratified coordinate: an unoccluded probe's L0 is
 //!   then exact and so is its estimate (0). Measured (`probe_bench`, docs/probes.md), true
