@@ -81,7 +81,7 @@ fn main() {
             let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 1, plan);
             for k in [3u32, 5] {
                 let params = SdbParams {
-                    map_size: 512,
+                    map_size: Some(512),
                     neighbourhood: k,
                     ..SdbParams::default()
                 };

@@ -159,7 +159,7 @@ fn run(engine: &mut SdbEngine, steps: u32) -> Vec<Vec3> {
 
 fn params(map: u32, k: u32) -> SdbParams {
     SdbParams {
-        map_size: map,
+        map_size: Some(map),
         neighbourhood: k,
         ..SdbParams::default()
     }
@@ -438,6 +438,80 @@ fn imported_closed_cube_furnace() {
     eprintln!("imported furnace: mean {mean:.4} (expected 2), worst texel deviation {worst:.4}");
     assert!((mean - 2.0).abs() < 0.04, "mean {mean}");
     assert!(worst < 0.2, "worst texel deviation {worst}");
+}
+
+/// Unset, `map_size` is chosen at prepare and reported in the job's parameters: the
+/// smallest multiple of 256 (from 512) whose pixel over the scene's diagonal is at most
+/// half the median texel side; a room keeps 512, and a size the job gives is kept.
+#[test]
+fn the_map_size_is_chosen_from_the_scene_and_its_texels() {
+    use lightmapd::engine::atlas::Atlas;
+    use lightmapd::engine::technique::{self, BakeInputs};
+    let _gpu = common::gpu_serial();
+    if !have_adapter() {
+        return;
+    }
+    // Two 1 m squares 12 m apart: a 12 m scene with texels of a few centimetres.
+    let mut far = SceneBuilder::new();
+    let m = far.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    far.square("near", Vec3::ZERO, 1.0, Vec3::Y, m);
+    far.square("far", Vec3::new(12.0, 0.0, 0.0), 1.0, Vec3::Y, m);
+    let mut room = SceneBuilder::new();
+    let m = room.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    room.square("floor", Vec3::ZERO, 1.0, Vec3::Y, m);
+    for (name, builder, params, auto) in [
+        ("two squares", &far, json!({}), true),
+        ("two squares, map_size 256", &far, json!({"map_size": 256}), false),
+        ("one square", &room, json!({}), true),
+    ] {
+        let scene = Arc::new(import(builder));
+        let atlas = Arc::new(Atlas::build(&scene, 64, 64).expect("atlas"));
+        let request = lightmapd::engine::job::BakeRequest {
+            technique: "sdb".into(),
+            lighting: upper_sky(1.0),
+            ..Default::default()
+        };
+        let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
+        let inputs = BakeInputs::new(scene.clone(), atlas.clone(), upper_sky(1.0), 1, plan);
+        let tech = technique::create("sdb", inputs, &params).expect("sdb prepares");
+        let n = tech.params()["map_size"]
+            .as_u64()
+            .expect("map_size reported as a number") as f32;
+        if !auto {
+            assert_eq!(n, 256.0, "{name}");
+            continue;
+        }
+        let mut sizes: Vec<f32> = atlas.texels.iter().map(|t| t.size).collect();
+        sizes.sort_by(f32::total_cmp);
+        let texel = sizes[sizes.len() / 2];
+        let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+        for p in scene
+            .triangles
+            .iter()
+            .flat_map(|t| t.p)
+            .chain(atlas.texels.iter().map(|t| t.position))
+        {
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+        let diagonal = (hi - lo).length();
+        assert!(
+            diagonal / n <= texel / 2.0 * 1.0001,
+            "{name}: {n} pixels over {diagonal} m, texel {texel} m"
+        );
+        if n > 512.0 {
+            assert!(
+                diagonal / (n - 256.0) > texel / 2.0,
+                "{name}: {n} is not the smallest size"
+            );
+        }
+        let want_large = name == "two squares";
+        assert_eq!(
+            n > 512.0,
+            want_large,
+            "{name}: {n} pixels over {diagonal} m, texel {texel} m"
+        );
+    }
 }
 
 #[test]

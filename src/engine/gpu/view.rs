@@ -7,11 +7,74 @@
 //! Used by `sdb` (illumination and shadow maps) and `obscurance` (depth layers, shadow
 //! maps). Precision: f32 in the normalised scene frame ([`crate::engine::gpu::frame`]), so
 //! the map's pixel size is relative to the scene and scale-invariant.
+//!
+//! Map size ([`auto_map_size`]): a map's pixel is the scene's span over its size, so a
+//! fixed size that is fine for a room is coarse for a level: at 512 pixels the Kenney
+//! level's 91 m diagonal makes 18 cm pixels against its 10 cm lightmap texels, and a
+//! technique that reads a neighbourhood of map pixels sees geometry that far to the
+//! side of a texel's ray (docs/sdb.md, "The map's size on a level"). The automatic size
+//! gives a pixel of at most half the lightmap's median texel, between 512 and 4096.
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
+use crate::engine::atlas::Atlas;
+use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::map_scene::{MapTexel, MapTriangle};
+use crate::engine::scene::Scene;
+
+/// The smallest map [`auto_map_size`] chooses: the size every map-based technique had
+/// before it, enough for a room (the seed's 512).
+pub const AUTO_MAP_SIZE_MIN: u32 = 512;
+/// The largest map [`auto_map_size`] chooses: 4096² RGBA32F is 256 MiB a layer, which
+/// every GPU this service targets holds beside the scene; a larger map must be asked for.
+pub const AUTO_MAP_SIZE_MAX: u32 = 4096;
+/// Map pixels across one lightmap texel that [`auto_map_size`] aims for: two, so a
+/// 5 x 5 neighbourhood reaches about a texel to the side of the texel's ray.
+pub const AUTO_MAP_PIXELS_PER_TEXEL: f32 = 2.0;
+
+/// The map size for `scene` and `atlas`: the pixel at most half the atlas's median texel
+/// side over the diagonal of the bounds every view covers (triangles and texel points,
+/// as `SceneFrame::of_points`), rounded up to a multiple of 256 and held within
+/// [`AUTO_MAP_SIZE_MIN`] ..= [`AUTO_MAP_SIZE_MAX`] and the device's `max_dimension`. The
+/// median, so a few dense meshes (a `lightmap_scale` of 4 on a prop) do not set a
+/// whole level's cost. The same for a region's texels only if that region has the grid's
+/// texel sizes; the techniques that use it bake whole grids (`sdb`'s chains and rounds).
+pub fn auto_map_size(scene: &Scene, atlas: &Atlas, max_dimension: u32) -> u32 {
+    let frame = SceneFrame::of_points(
+        scene
+            .triangles
+            .iter()
+            .flat_map(|t| t.p)
+            .chain(atlas.texels.iter().map(|t| t.position)),
+    );
+    let mut sizes: Vec<f32> = atlas
+        .texels
+        .iter()
+        .map(|t| t.size)
+        .filter(|s| s.is_finite() && *s > 0.0)
+        .collect();
+    let median = if sizes.is_empty() {
+        0.0
+    } else {
+        let mid = sizes.len() / 2;
+        *sizes.select_nth_unstable_by(mid, f32::total_cmp).1
+    };
+    map_size_for(2.0 * frame.radius, median, max_dimension)
+}
+
+/// [`auto_map_size`]'s rule for a scene diagonal and a texel side (both in metres).
+pub fn map_size_for(diagonal: f32, texel: f32, max_dimension: u32) -> u32 {
+    let cap = AUTO_MAP_SIZE_MAX.min(max_dimension);
+    let wanted = AUTO_MAP_PIXELS_PER_TEXEL * diagonal / texel;
+    let n = if wanted.is_finite() && wanted > 0.0 {
+        // Below 2^31 after the cap; the float-to-int cast saturates anyway.
+        (wanted.ceil().min(cap as f32) as u32).next_multiple_of(256)
+    } else {
+        0
+    };
+    n.max(AUTO_MAP_SIZE_MIN).min(cap)
+}
 
 /// One corner of a triangle as the map passes rasterise it: normalised position, lightmap
 /// UV, the triangle's index (for per-triangle data), and the alpha test's inputs (the UV
@@ -218,5 +281,25 @@ pub fn make_view(d: Vec3, corners: &[Vec3; 8], map_size: u32, jitter: (f32, f32)
         dir: [d.x, d.y, d.z, t0],
         extent: [s, range, n, 0.0],
         params: [seed, mode, 0, 0],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A room keeps the seed's 512; the Kenney level (91 m diagonal, 10.2 cm texels)
+    /// gets pixels of half a texel; a larger level stops at the cap, a smaller device at
+    /// its own limit; a grid without texels keeps the smallest size.
+    #[test]
+    fn the_automatic_map_size_follows_the_texel() {
+        assert_eq!(map_size_for(1.0, 0.02, 16384), AUTO_MAP_SIZE_MIN);
+        let n = map_size_for(91.0, 0.102, 16384);
+        assert_eq!(n, 1792);
+        assert!(91.0 / n as f32 <= 0.102 / AUTO_MAP_PIXELS_PER_TEXEL);
+        assert_eq!(map_size_for(400.0, 0.05, 16384), AUTO_MAP_SIZE_MAX);
+        assert_eq!(map_size_for(400.0, 0.05, 2048), 2048);
+        assert_eq!(map_size_for(91.0, 0.0, 16384), AUTO_MAP_SIZE_MIN);
+        assert_eq!(map_size_for(f32::NAN, 0.1, 16384), AUTO_MAP_SIZE_MIN);
     }
 }

@@ -39,7 +39,7 @@ pub fn sdb_input(
         inputs.want_direct,
     );
     let (mut input, mut notes) = (SdbInput::from_map(map), Vec::new());
-    let small = small_emitter_triangles(&inputs.scene, params.map_size);
+    let small = small_emitter_triangles(&inputs.scene, params.map_pixels());
     let mut sources = LightSources::NONE;
     if !small.is_empty() {
         notes.push(format!(

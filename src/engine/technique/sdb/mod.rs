@@ -113,7 +113,11 @@
 //!   with probability (1 - 1/K)^(k^2) (seed section 6, Figure 7): light leaks through
 //!   occluders toward farther surfaces or the sky. Exact for K = 1.
 //! - Lateral resolution: samples come from pixel centres up to (k/2 + 1/2) pixels away
-//!   from the texel's ray, blurring contact shadows over about k pixels of the map.
+//!   from the texel's ray, blurring contact shadows over about k pixels of the map and
+//!   taking light from geometry that far to the side. Hence `map_size`, unset, is chosen
+//!   per scene (`gpu::view::auto_map_size`: a pixel of at most half a texel, 512 to
+//!   4096): a fixed 512 made 18 cm pixels on a 91 m level of 10 cm texels, and its
+//!   grass tinted the ground green (docs/sdb.md, "The map's size on a level").
 //! - Feedback transient (average mode): early directions see an incomplete bounce
 //!   estimate; without the ambient-mode correction the bias decays like
 //!   n^-(1 + ramp)(1 - albedo) in the number of directions n. The correction removes the
@@ -152,6 +156,7 @@ use crate::engine::gpu::scene_rays::GpuTables;
 use crate::engine::gpu::shadow::ShadowAtlas;
 use crate::engine::gpu::slices::StepSlicer;
 pub use crate::engine::gpu::view::cullable_triangles;
+use crate::engine::gpu::view::{AUTO_MAP_SIZE_MIN, auto_map_size};
 use crate::engine::gpu::{self, GpuContext};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
@@ -176,8 +181,11 @@ pub enum AccumulationMode {
 #[serde(deny_unknown_fields, default)]
 pub struct SdbParams {
     /// Illumination-map size in pixels (square). Range 64..=8192 (and the device's
-    /// maximum texture size); default 512, as in the seed.
-    pub map_size: u32,
+    /// maximum texture size). Unset (the default), the bake chooses it from the scene's
+    /// size and the lightmap's texel density (`gpu::view::auto_map_size`: a map pixel of
+    /// at most half a texel, 512 to 4096; 512 for a room, as in the seed) and reports
+    /// the size it chose in the job's parameters.
+    pub map_size: Option<u32>,
     /// Neighbourhood k (k x k samples): 1, 3 or 5; default 5. The seed found 3 x 3
     /// enough for most of its scenes, but on the bundled Cornell box (open room, light
     /// 5 mm under the ceiling, overdraw 4 to 5 along vertical rays counting the black
@@ -210,7 +218,7 @@ pub struct SdbParams {
 impl Default for SdbParams {
     fn default() -> Self {
         SdbParams {
-            map_size: 512,
+            map_size: None,
             neighbourhood: 5,
             directions_per_step: 1,
             directions: DirectionSequence::Stratified,
@@ -247,8 +255,10 @@ impl SdbParams {
 
     pub fn validate(&self) -> Result<(), ParamError> {
         let err = |name, message: String| Err(ParamError { name, message });
-        if !(64..=8192).contains(&self.map_size) {
-            return err("map_size", format!("{} is outside 64..=8192", self.map_size));
+        if let Some(n) = self.map_size
+            && !(64..=8192).contains(&n)
+        {
+            return err("map_size", format!("{n} is outside 64..=8192"));
         }
         if ![1, 3, 5].contains(&self.neighbourhood) {
             return err("neighbourhood", format!("{} is not 1, 3 or 5", self.neighbourhood));
@@ -269,6 +279,13 @@ impl SdbParams {
             return err("ramp", format!("{} is outside 0..=4", self.ramp));
         }
         Ok(())
+    }
+
+    /// The illumination map's size: `map_size`, which `Sdb::prepare` sets when the job
+    /// leaves it unset; an engine built directly from unset parameters takes the smallest
+    /// automatic size.
+    pub fn map_pixels(&self) -> u32 {
+        self.map_size.unwrap_or(AUTO_MAP_SIZE_MIN)
     }
 
     pub fn to_json(&self) -> serde_json::Value {
@@ -526,10 +543,18 @@ pub struct Sdb {
 
 impl Sdb {
     pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
-        let params: SdbParams = parse_params("sdb", params)?;
+        let mut params: SdbParams = parse_params("sdb", params)?;
         params.validate().map_err(|e| EngineError::BadInput(e.to_string()))?;
         // One device per process, shared by every sdb bake (`gpu::shared`).
         let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
+        if params.map_size.is_none() {
+            let n = auto_map_size(&inputs.scene, &inputs.atlas, ctx.limits.max_texture_dimension_2d);
+            tracing::info!(
+                map_size = n,
+                "sdb: illumination map size chosen from the scene's size and texel density"
+            );
+            params.map_size = Some(n);
+        }
         let (mut input, notes) = sdb_input(&ctx, &inputs, &params).map_err(gpu_error)?;
         for n in &notes {
             tracing::warn!("{n}");

@@ -30,12 +30,13 @@ impl SdbEngine {
     /// Upload the scene and build the passes. Only the passes the input needs are
     /// created: no shadow maps or direct pass without directional lights.
     pub fn new(ctx: Arc<GpuContext>, input: SdbInput, params: SdbParams) -> Result<Self, GpuError> {
-        if params.map_size > ctx.limits.max_texture_dimension_2d {
+        if params.map_pixels() > ctx.limits.max_texture_dimension_2d {
             return Err(GpuError::Unsupported {
                 adapter: ctx.info.name.clone(),
                 missing: format!(
                     "illumination map {0}x{0} exceeds max texture size {1}",
-                    params.map_size, ctx.limits.max_texture_dimension_2d
+                    params.map_pixels(),
+                    ctx.limits.max_texture_dimension_2d
                 ),
             });
         }
@@ -168,8 +169,8 @@ impl SdbEngine {
             ctx.buffer_init("sdb emission per lightmap pixel", &px, U::STORAGE)
         };
         let extent = wgpu::Extent3d {
-            width: params.map_size,
-            height: params.map_size,
+            width: params.map_pixels(),
+            height: params.map_pixels(),
             depth_or_array_layers: 1,
         };
         let layers = params.depth_layers;
@@ -393,7 +394,7 @@ impl SdbEngine {
         let sun_maps = match &sun_acc_buf {
             Some(sun_acc) if !input.lights.is_empty() => {
                 let module = ctx.shader(&shaders::SDB_DIRECT)?;
-                let n = params.map_size;
+                let n = params.map_pixels();
                 let views_buf = ctx.buffer_zeroed(
                     "sdb sun map view",
                     std::mem::size_of::<ShadowView>() as u64,

@@ -233,7 +233,14 @@ impl SdbEngine {
             *decay *= 1.0 - blend as f64;
             let seed = (self.rng.next_u64() >> 32) as u32 ^ dir_index as u32;
             let jitter = self.jitter();
-            let view = make_view(d, &self.corners, self.params.map_size, jitter, seed, DEPTH_STOCHASTIC);
+            let view = make_view(
+                d,
+                &self.corners,
+                self.params.map_pixels(),
+                jitter,
+                seed,
+                DEPTH_STOCHASTIC,
+            );
             let env = self.environment.as_ref().map_or(Vec3::ZERO, |e| e(d));
             let gather = GpuGatherParams {
                 env: [env.x, env.y, env.z, blend],
@@ -280,7 +287,7 @@ impl SdbEngine {
                     let ld = sample_cone(light.direction, light.cone_half_angle, &mut self.rng);
                     // `jitter()`'s draws, with the maps borrowed.
                     let jitter = (self.rng.next_f64() as f32, self.rng.next_f64() as f32);
-                    let view = make_view(ld, &self.corners, self.params.map_size, jitter, 0, DEPTH_NEAREST);
+                    let view = make_view(ld, &self.corners, self.params.map_pixels(), jitter, 0, DEPTH_NEAREST);
                     let map = ShadowView::ortho_of(&view, [0, 0]);
                     let e = light.irradiance_over_pi;
                     let direct = GpuDirectParams {
@@ -295,7 +302,7 @@ impl SdbEngine {
                     let mut encoder = self.ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
                         label: Some("sdb direct light"),
                     });
-                    let n = self.params.map_size;
+                    let n = self.params.map_pixels();
                     let draw = ShadowDraw {
                         view: 0,
                         tile: [0, 0, n],
