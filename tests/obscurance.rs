@@ -95,6 +95,42 @@ fn deviation(rows: &[(f64, f64, f64)]) -> (f64, f64) {
     (dev, se)
 }
 
+/// Unset, `map_size` is chosen at prepare (`gpu::view::auto_map_size`) and reported: for
+/// two 1 m squares 12 m apart at 64², larger than 512; a task baking one region of the
+/// grid (here three texels of one square) chooses the single bake's size,
+/// as its frame and grid are the whole scene's; a size the job gives is kept.
+#[test]
+fn the_map_size_is_chosen_from_the_scene_and_is_the_same_for_a_region() {
+    if !have_adapter() {
+        return;
+    }
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("near", Vec3::ZERO, 1.0, Vec3::Y, m);
+    b.square("far", Vec3::new(12.0, 0.0, 0.0), 1.0, Vec3::Y, m);
+    let scene = Arc::new(import(&b));
+    let atlas = Arc::new(Atlas::build(&scene, 64, 64).expect("atlas"));
+    // A region of the grid's first three texels: the start of one chart's first row.
+    let half = Arc::new(atlas.region(0..3));
+    let map_size = |atlas: &Arc<Atlas>, params: Value| {
+        let tech = Obscurance::prepare(inputs(scene.clone(), atlas.clone(), upper_sky(1.0), 1), &params)
+            .expect("obscurance prepares");
+        tech.params()["map_size"]
+            .as_u64()
+            .expect("map_size reported as a number")
+    };
+    let whole = map_size(&atlas, json!({}));
+    let texel = atlas.texels[0].size;
+    assert!(whole > 512, "{whole} pixels for texels of {texel} m over 12 m");
+    // The region's own texels lie on one square (512 would do over their span).
+    let (lo, hi) = half.texels.iter().fold((f32::MAX, f32::MIN), |(lo, hi), t| {
+        (lo.min(t.position.x), hi.max(t.position.x))
+    });
+    assert!(hi - lo < 2.0, "the region spans x {lo} .. {hi}");
+    assert_eq!(map_size(&half, json!({})), whole, "a region's task");
+    assert_eq!(map_size(&atlas, json!({"map_size": 256})), 256);
+}
+
 #[test]
 fn open_plane_has_obscurance_one_and_sees_the_sky() {
     if !have_adapter() {

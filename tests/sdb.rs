@@ -441,8 +441,8 @@ fn imported_closed_cube_furnace() {
 }
 
 /// Unset, `map_size` is chosen at prepare and reported in the job's parameters: the
-/// smallest multiple of 256 (from 512) whose pixel over the scene's diagonal is at most
-/// half the median texel side; a room keeps 512, and a size the job gives is kept.
+/// smallest multiple of 256 (from 512) whose pixel over the triangles' diagonal is at
+/// most half the median texel side; a room keeps 512, and a size the job gives is kept.
 #[test]
 fn the_map_size_is_chosen_from_the_scene_and_its_texels() {
     use lightmapd::engine::atlas::Atlas;
@@ -485,12 +485,7 @@ fn the_map_size_is_chosen_from_the_scene_and_its_texels() {
         sizes.sort_by(f32::total_cmp);
         let texel = sizes[sizes.len() / 2];
         let (mut lo, mut hi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
-        for p in scene
-            .triangles
-            .iter()
-            .flat_map(|t| t.p)
-            .chain(atlas.texels.iter().map(|t| t.position))
-        {
+        for p in scene.triangles.iter().flat_map(|t| t.p) {
             lo = lo.min(p);
             hi = hi.max(p);
         }

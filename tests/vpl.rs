@@ -117,6 +117,59 @@ fn check_wall(
     }
 }
 
+/// Unset, `shadow_map_size` is chosen at prepare and echoed: for two 1 m squares 12 m
+/// apart at 64² under a sun, larger than 512 and a pixel of at most half the texel over
+/// the scene's diagonal; a task baking one region of the grid (three texels of one
+/// square) chooses the single bake's size; a size the job gives is kept.
+#[test]
+fn the_shadow_map_size_is_chosen_from_the_scene_and_is_the_same_for_a_region() {
+    use lightmapd::engine::technique::{self, BakeInputs};
+    use std::sync::Arc;
+    if !have_adapter() {
+        return;
+    }
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("near", Vec3::ZERO, 1.0, Vec3::Y, m);
+    b.square("far", Vec3::new(12.0, 0.0, 0.0), 1.0, Vec3::Y, m);
+    let scene = Arc::new(import(&b));
+    let atlas = Arc::new(Atlas::build(&scene, 64, 64).expect("atlas"));
+    let lighting = Lighting {
+        sun: Some(Sun {
+            direction: Vec3::new(-0.3, -1.0, -0.2),
+            angular_diameter: 0.53f32.to_radians(),
+            radiance: Vec3::splat(1000.0),
+        }),
+        ..Default::default()
+    };
+    let size_of = |atlas: &Arc<Atlas>, params: serde_json::Value| {
+        let request = lightmapd::engine::job::BakeRequest {
+            technique: "vpl".into(),
+            lighting,
+            ..Default::default()
+        };
+        let plan = lightmapd::engine::job::plan_for(&scene, &request).expect("plan");
+        let inputs = BakeInputs::new(scene.clone(), atlas.clone(), lighting, 1, plan);
+        let tech = technique::create("vpl", inputs, &params).expect("vpl prepares");
+        tech.params()["shadow_map_size"]
+            .as_u64()
+            .expect("shadow_map_size echoed as a number")
+    };
+    let whole = size_of(&atlas, json!({}));
+    let texel = atlas.texels[0].size;
+    let diagonal = radius(&scene) * 2.0;
+    assert!(whole > 512, "{whole} pixels for texels of {texel} m over {diagonal} m");
+    assert!(
+        diagonal / whole as f64 <= texel as f64 / 2.0 * 1.01,
+        "{whole} pixels over {diagonal} m, texel {texel} m"
+    );
+    let region = Arc::new(atlas.region(0..3));
+    let xs: Vec<f32> = region.texels.iter().map(|t| t.position.x).collect();
+    assert!(xs.iter().all(|x| (x - xs[0]).abs() < 2.0), "the region spans {xs:?}");
+    assert_eq!(size_of(&region, json!({})), whole, "a region's task");
+    assert_eq!(size_of(&atlas, json!({"shadow_map_size": 256})), 256);
+}
+
 #[test]
 fn sun_lights_a_floor_exactly_and_its_bounce_matches_the_form_factor() {
     // Sun straight down (a 0.01 degree disc, so the vertical wall gets no direct light),

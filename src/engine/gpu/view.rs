@@ -13,15 +13,13 @@
 //! level's 91 m diagonal makes 18 cm pixels against its 10 cm lightmap texels, and a
 //! technique that reads a neighbourhood of map pixels sees geometry that far to the
 //! side of a texel's ray (docs/sdb.md, "The map's size on a level"). The automatic size
-//! gives a pixel of at most half the lightmap's median texel, between 512 and 4096.
+//! gives a pixel of at most half the lightmap's median texel, between 512 and 4096;
+//! `sdb` and `obscurance` take it when a job leaves `map_size` unset.
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
 
-use crate::engine::atlas::Atlas;
-use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::map_scene::{MapTexel, MapTriangle};
-use crate::engine::scene::Scene;
 
 /// The smallest map [`auto_map_size`] chooses: the size every map-based technique had
 /// before it, enough for a room (the seed's 512).
@@ -33,34 +31,23 @@ pub const AUTO_MAP_SIZE_MAX: u32 = 4096;
 /// 5 x 5 neighbourhood reaches about a texel to the side of the texel's ray.
 pub const AUTO_MAP_PIXELS_PER_TEXEL: f32 = 2.0;
 
-/// The map size for `scene` and `atlas`: the pixel at most half the atlas's median texel
-/// side over the diagonal of the bounds every view covers (triangles and texel points,
-/// as `SceneFrame::of_points`), rounded up to a multiple of 256 and held within
-/// [`AUTO_MAP_SIZE_MIN`] ..= [`AUTO_MAP_SIZE_MAX`] and the device's `max_dimension`. The
-/// median, so a few dense meshes (a `lightmap_scale` of 4 on a prop) do not set a
-/// whole level's cost. The same for a region's texels only if that region has the grid's
-/// texel sizes; the techniques that use it bake whole grids (`sdb`'s chains and rounds).
-pub fn auto_map_size(scene: &Scene, atlas: &Atlas, max_dimension: u32) -> u32 {
-    let frame = SceneFrame::of_points(
-        scene
-            .triangles
-            .iter()
-            .flat_map(|t| t.p)
-            .chain(atlas.texels.iter().map(|t| t.position)),
-    );
-    let mut sizes: Vec<f32> = atlas
-        .texels
-        .iter()
-        .map(|t| t.size)
-        .filter(|s| s.is_finite() && *s > 0.0)
-        .collect();
+/// The map size for a scene of diagonal `diagonal` whose lightmap texels have the sides
+/// `texel_sizes` (metres): the pixel at most half the median texel side over the
+/// diagonal, rounded up to a multiple of 256 and held within [`AUTO_MAP_SIZE_MIN`] ..=
+/// [`AUTO_MAP_SIZE_MAX`] and the device's `max_dimension` ([`map_size_for`]). The median,
+/// so that a few dense meshes (a `lightmap_scale` of 4 on a prop) do not set a whole
+/// level's cost. A caller passes the whole grid's texels and the triangles' bounds, so
+/// that a task baking one region of the grid (`engine::tasks`) chooses the single bake's
+/// size.
+pub fn auto_map_size(diagonal: f32, texel_sizes: impl IntoIterator<Item = f32>, max_dimension: u32) -> u32 {
+    let mut sizes: Vec<f32> = texel_sizes.into_iter().filter(|s| s.is_finite() && *s > 0.0).collect();
     let median = if sizes.is_empty() {
         0.0
     } else {
         let mid = sizes.len() / 2;
         *sizes.select_nth_unstable_by(mid, f32::total_cmp).1
     };
-    map_size_for(2.0 * frame.radius, median, max_dimension)
+    map_size_for(diagonal, median, max_dimension)
 }
 
 /// [`auto_map_size`]'s rule for a scene diagonal and a texel side (both in metres).
@@ -301,5 +288,9 @@ mod tests {
         assert_eq!(map_size_for(400.0, 0.05, 2048), 2048);
         assert_eq!(map_size_for(91.0, 0.0, 16384), AUTO_MAP_SIZE_MIN);
         assert_eq!(map_size_for(f32::NAN, 0.1, 16384), AUTO_MAP_SIZE_MIN);
+        // The median texel: a few dense ones (and degenerate ones) do not move it.
+        let sizes = [0.102f32, 0.102, 0.102, 0.01, 0.0, f32::NAN, 0.2];
+        assert_eq!(auto_map_size(91.0, sizes, 16384), 1792);
+        assert_eq!(auto_map_size(91.0, [], 16384), AUTO_MAP_SIZE_MIN);
     }
 }

@@ -62,6 +62,12 @@
 //! Bounds: the node pool is capped by the device's storage-binding size; lists are walked
 //! to their end (no fixed k).
 //!
+//! Map size: unset, chosen per scene (`gpu::view::auto_map_size`: a pixel of at most half
+//! the grid's median texel over the triangles' diagonal, 512 to 4096), then lowered while
+//! the node pool it needs would pass the device's cap. A fixed 512 made 18 cm pixels on a
+//! 91 m level of 10 cm texels, which blurred its sun shadows and put the gathered layer up
+//! to 9 cm beside the texel's ray (docs/obscurance.md, "The map's size on a level").
+//!
 //! # Departures from the seed
 //! - A per-pixel fragment list in one pass instead of depth peeling (above), and a
 //!   texel-driven gather (each texel looks up its own pixel) instead of point streams
@@ -92,7 +98,8 @@
 //! # Split bakes (`engine::tasks`, issue 25)
 //! A task may bake one region of the grid (pages or bands of rows) and get the single
 //! bake's texels there: the layers, directions and map jitter come from the scene and the
-//! seed, the frame from the triangles alone, the shared direct light's streams are keyed
+//! seed, the frame from the triangles alone, the map's size from the frame and the grid's
+//! texels, the shared direct light's streams are keyed
 //! by pixel, and the two things made of the whole grid are built alike in every task: the
 //! albedo and emission maps the gather reads at the surfaces it sees, and R_ave, from the
 //! grid's texels *before validation* (`Atlas::grid_texels`; a texel validation drops lies
@@ -152,7 +159,7 @@ use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
 use crate::engine::gpu::map_scene::{DirectionalLight, Environment};
 use crate::engine::gpu::shadow::ShadowAtlas;
 use crate::engine::gpu::slices::StepSlicer;
-use crate::engine::gpu::view::{DEPTH_NEAREST, make_view};
+use crate::engine::gpu::view::{AUTO_MAP_SIZE_MIN, DEPTH_NEAREST, make_view};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
 use crate::engine::scene::Lighting;
@@ -258,8 +265,11 @@ pub struct ObscuranceParams {
     pub dmax: Option<f32>,
     /// rho: `sqrt` (default, the seed), `linear`, `step` or `exp`.
     pub falloff: Falloff,
-    /// Map size in pixels (square) per direction: 64..=4096, default 512 (as `sdb`).
-    pub map_size: u32,
+    /// Map size in pixels (square) per direction: 64..=4096. Unset (the default), chosen
+    /// per scene as `sdb`'s (`gpu::view::auto_map_size`: a map pixel of at most half the
+    /// median texel, 512 to 4096, and no larger than the device's fragment pool holds at
+    /// the scene's area); `params()` reports the size used.
+    pub map_size: Option<u32>,
     /// Directions per step: 1..=256, default 1.
     pub directions_per_step: u32,
     /// `stratified` (default) or `random`.
@@ -281,7 +291,7 @@ impl Default for ObscuranceParams {
         ObscuranceParams {
             dmax: None,
             falloff: Falloff::Sqrt,
-            map_size: 512,
+            map_size: None,
             directions_per_step: 1,
             directions: DirectionSequence::Stratified,
             background: Background::None,
@@ -299,6 +309,12 @@ impl ObscuranceParams {
         Ok(p)
     }
 
+    /// The map's size: `map_size`, which `Obscurance::prepare` sets when the job leaves
+    /// it unset.
+    pub fn map_pixels(&self) -> u32 {
+        self.map_size.unwrap_or(AUTO_MAP_SIZE_MIN)
+    }
+
     pub fn validate(&self) -> Result<(), EngineError> {
         let bad = |m: String| Err(EngineError::BadInput(format!("obscurance parameter {m}")));
         if let Some(d) = self.dmax
@@ -306,8 +322,10 @@ impl ObscuranceParams {
         {
             return bad(format!("dmax: {d} is not a positive finite distance"));
         }
-        if !(64..=4096).contains(&self.map_size) {
-            return bad(format!("map_size: {} is outside 64..=4096", self.map_size));
+        if let Some(n) = self.map_size
+            && !(64..=4096).contains(&n)
+        {
+            return bad(format!("map_size: {n} is outside 64..=4096"));
         }
         if !(1..=MAX_SAMPLES_PER_STEP).contains(&self.light_samples) {
             return bad(format!(

@@ -17,7 +17,8 @@ use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowView, map_tri
 use crate::engine::gpu::slices::StepSlicer;
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::view::{
-    GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, fill_map,
+    AUTO_MAP_SIZE_MIN, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, auto_map_size,
+    fill_map,
 };
 use crate::engine::gpu::{self, GpuError};
 
@@ -50,10 +51,12 @@ impl Obscurance {
         let scene = &inputs.scene;
         let atlas = &inputs.atlas;
         let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
-        if params.map_size > ctx.limits.max_texture_dimension_2d {
+        if let Some(n) = params.map_size
+            && n > ctx.limits.max_texture_dimension_2d
+        {
             return Err(EngineError::BadInput(format!(
-                "obscurance parameter map_size: {} exceeds the device's max texture size {}",
-                params.map_size, ctx.limits.max_texture_dimension_2d
+                "obscurance parameter map_size: {n} exceeds the device's max texture size {}",
+                ctx.limits.max_texture_dimension_2d
             )));
         }
         if ctx.limits.max_storage_buffers_per_shader_stage < 8 {
@@ -85,6 +88,50 @@ impl Obscurance {
         let grid = atlas
             .grid_texels(scene)
             .map_err(|e| EngineError::Internal(format!("obscurance: the grid's texels: {e}")))?;
+
+        // Node pool: fragments along d <= sum of projected areas / pixel area <= sum of
+        // areas / smallest pixel area over directions, plus one per triangle (a triangle
+        // smaller than a pixel may still cover one centre) and a margin. The nodes a map
+        // of n pixels wants, and its smallest pixel (normalised units).
+        let norm_area: f64 = scene
+            .triangles
+            .iter()
+            .map(|t| (t.area() / (scale * scale)) as f64)
+            .sum();
+        let pool_for = |n: u32| {
+            let mut probe = Directions::new(DirectionSequence::Stratified, 7);
+            let min_pixel = (0..256)
+                .map(|_| pixel_size(probe.next_direction(), &corners, n))
+                .fold(f32::MAX, f32::min)
+                * 0.95;
+            let wanted =
+                norm_area / (min_pixel as f64 * min_pixel as f64) * 1.05 + input.triangles.len() as f64 + 4096.0;
+            (wanted, min_pixel)
+        };
+        let max_nodes = (ctx
+            .limits
+            .max_storage_buffer_binding_size
+            .min(ctx.limits.max_buffer_size)
+            / 16) as f64;
+        // Unset, the map's size follows the scene and its texels (over the grid's texels
+        // and the triangles' bounds, so a region's task chooses the single bake's), then
+        // steps down while its pool would not fit the device.
+        if params.map_size.is_none() {
+            let mut n = auto_map_size(
+                (hi - lo).length(),
+                grid.iter().map(|t| t.size),
+                ctx.limits.max_texture_dimension_2d,
+            );
+            while n > AUTO_MAP_SIZE_MIN && pool_for(n).0 > max_nodes {
+                n = (n - 256).max(AUTO_MAP_SIZE_MIN);
+            }
+            tracing::info!(
+                map_size = n,
+                "obscurance: map size chosen from the scene's size and texel density"
+            );
+            params.map_size = Some(n);
+        }
+        let map_size = params.map_pixels();
         // Scene averages: R_ave over those texels (texture-aware), weighted by texel
         // area; Eq. 5's emission over triangles (exact for small emitters without texels).
         let r_ave = {
@@ -125,9 +172,8 @@ impl Obscurance {
             });
         }
         drop(grid);
-        let mut norm_area = 0.0f64;
         // Which emitters the shared module samples (`params.emitters`).
-        let world_pixel = (hi - lo).length() / params.map_size as f32;
+        let world_pixel = (hi - lo).length() / map_size as f32;
         let sampled: Vec<bool> = scene
             .triangles
             .iter()
@@ -139,7 +185,6 @@ impl Obscurance {
             .collect();
         for (i, (t, st)) in input.triangles.iter().zip(&scene.triangles).enumerate() {
             vertices.extend(GpuVertex::corners(i as u32, t, norm));
-            norm_area += (st.area() / (scale * scale)) as f64;
             let m = scene.material(st);
             let mut flags = 0;
             if t.double_sided {
@@ -164,20 +209,7 @@ impl Obscurance {
             .map(|t| GpuTexelGeom::new(&frame, t.position, t.normal, t.geo_normal))
             .collect();
 
-        // Node pool: fragments along d <= sum of projected areas / pixel area <= sum of
-        // areas / smallest pixel area over directions, plus one per triangle (a triangle
-        // smaller than a pixel may still cover one centre) and a margin.
-        let mut probe = Directions::new(DirectionSequence::Stratified, 7);
-        let min_pixel = (0..256)
-            .map(|_| pixel_size(probe.next_direction(), &corners, params.map_size))
-            .fold(f32::MAX, f32::min)
-            * 0.95;
-        let wanted = norm_area / (min_pixel as f64 * min_pixel as f64) * 1.05 + input.triangles.len() as f64 + 4096.0;
-        let max_nodes = (ctx
-            .limits
-            .max_storage_buffer_binding_size
-            .min(ctx.limits.max_buffer_size)
-            / 16) as f64;
+        let (wanted, min_pixel) = pool_for(map_size);
         let node_capacity = wanted.min(max_nodes) as u32;
         if wanted > max_nodes {
             tracing::warn!(
@@ -203,12 +235,12 @@ impl Obscurance {
                 "obscurance: {small_emitters} emissive triangle(s) are smaller than a map pixel \
                  ({:.3e} m^2 at map_size {}): their direct light is found only by rays that happen to hit \
                  them and is mostly missed (raise map_size, or bake with `path`)",
-                pixel_area_world, params.map_size
+                pixel_area_world, map_size
             );
             tracing::warn!("{note}");
             notes.push(note);
         }
-        let n = params.map_size;
+        let n = map_size;
         let storage_need = (2 * pix as u64 + 2 * input.triangles.len() as u64).max(4 * n_texels as u64) * 16;
         ctx.check_storage(&format!("obscurance: a {width}x{height} lightmap"), storage_need)
             .map_err(gpu_error)?;

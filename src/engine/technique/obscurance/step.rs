@@ -38,7 +38,7 @@ impl Obscurance {
     /// sequence) so the step adds nothing and the next is the one it would have been.
     pub(super) fn step_gpu(&mut self) -> Result<(), GpuError> {
         let parity = (self.steps_done % 2) as usize;
-        let n = self.params.map_size;
+        let n = self.params.map_pixels();
         let count = self.texels_to_process();
         let dispatch = gpu::dispatch_size_64(count);
         let mut flags = 0;

@@ -151,6 +151,7 @@ use crate::engine::accumulate::{HalfEstimate, Snapshot};
 pub use crate::engine::gpu::directions::{
     DirectionSequence, Directions, SplitMix64, random_rotation, square_to_sphere,
 };
+use crate::engine::gpu::frame::SceneFrame;
 pub use crate::engine::gpu::map_scene::{DirectionalLight, Environment, MapScene, MapTexel, MapTriangle};
 use crate::engine::gpu::scene_rays::GpuTables;
 use crate::engine::gpu::shadow::ShadowAtlas;
@@ -548,7 +549,14 @@ impl Sdb {
         // One device per process, shared by every sdb bake (`gpu::shared`).
         let ctx = gpu::shared(&gpu::Requirements::default()).map_err(|e| EngineError::Gpu(e.to_string()))?;
         if params.map_size.is_none() {
-            let n = auto_map_size(&inputs.scene, &inputs.atlas, ctx.limits.max_texture_dimension_2d);
+            // The triangles' bounds and the grid's texels: what every chain of a split
+            // bake and every round has alike.
+            let frame = SceneFrame::of_points(inputs.scene.triangles.iter().flat_map(|t| t.p));
+            let n = auto_map_size(
+                2.0 * frame.radius,
+                inputs.atlas.texels.iter().map(|t| t.size),
+                ctx.limits.max_texture_dimension_2d,
+            );
             tracing::info!(
                 map_size = n,
                 "sdb: illumination map size chosen from the scene's size and texel density"

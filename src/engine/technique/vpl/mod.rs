@@ -38,7 +38,10 @@
 //!    distant light (`shadow_map_size`^2), six cube faces per point or spot light
 //!    ((`shadow_map_size`/2)^2 each), five faces per VPL (`vpl_map_size`^2; the face
 //!    behind its surface gets no light), all tiles of one Rgba32Float atlas holding the
-//!    *plane* (normal, offset) of the nearest surface per pixel.
+//!    *plane* (normal, offset) of the nearest surface per pixel. `shadow_map_size` unset
+//!    is chosen per scene (`gpu::view::auto_map_size`, then lowered to fit the device and
+//!    [`AUTO_ATLAS_BYTES`]): a fixed 512 made 18 cm pixels on a 91 m level of 10 cm
+//!    texels and blurred its sun's shadows (docs/vpl.md, "The map's size on a level").
 //! 7. *Gather* (`shaders/vpl/gather.wgsl`): every texel sums every light of the step with
 //!    its shadow-map visibility (2x2 PCF): VPLs as hemispherical emitters,
 //!    Phi cos cos / (pi^2 max(d^2, clamp^2)); point and spot lights and distant lights
@@ -119,6 +122,7 @@ use crate::engine::gpu::directions::{Directions, SplitMix64};
 use crate::engine::gpu::halves::read_halves;
 use crate::engine::gpu::shadow::{self, ShadowAtlas, ShadowAtlasLayout, ShadowView};
 use crate::engine::gpu::slices::StepSlicer;
+use crate::engine::gpu::view::AUTO_MAP_SIZE_MIN;
 use crate::engine::gpu::{GpuContext, RayDevice};
 use crate::engine::output::OutputLayer;
 use crate::engine::plan::{DIRECT_LAYER, Plan, SH_LAYER, SceneFeatures};
@@ -152,8 +156,11 @@ pub struct VplParams {
     /// Shadow maps for the VPLs (default true); false gathers VPLs unoccluded (the seed).
     pub visibility: bool,
     /// Shadow map side for distant lights (each cube face of a point or spot light has
-    /// half of it). Range 16..=8192; default 512.
-    pub shadow_map_size: u32,
+    /// half of it). Range 16..=8192. Unset (the default), chosen per scene as `sdb`'s
+    /// map (`gpu::view::auto_map_size`: a pixel of at most half the grid's median texel,
+    /// from 512), then lowered while the shadow atlas would not fit the device or
+    /// [`AUTO_ATLAS_BYTES`]; the bake's echoed parameters give the size used.
+    pub shadow_map_size: Option<u32>,
     /// Side of each of a VPL's five cube-face shadow maps. Range 4..=1024; default 64.
     pub vpl_map_size: u32,
     /// Sky directions per step (each a distant light with its own RSM and shadow map).
@@ -174,7 +181,7 @@ impl Default for VplParams {
             clamp: 0.02,
             max_depth: 100_000,
             visibility: true,
-            shadow_map_size: 512,
+            shadow_map_size: None,
             vpl_map_size: 64,
             sky_directions: 4,
             rays: RayDevice::Auto,
@@ -182,7 +189,18 @@ impl Default for VplParams {
     }
 }
 
+/// The most memory an automatically sized shadow atlas may take (its plane and depth
+/// textures, 20 bytes a pixel): 512 MiB, the sun's and four sky directions' maps at
+/// about 2300² each beside the VPLs' faces.
+pub const AUTO_ATLAS_BYTES: u64 = 512 << 20;
+
 impl VplParams {
+    /// The distant lights' shadow map side: `shadow_map_size`, which `Vpl::prepare` sets
+    /// when the job leaves it unset.
+    pub fn shadow_map_pixels(&self) -> u32 {
+        self.shadow_map_size.unwrap_or(AUTO_MAP_SIZE_MIN)
+    }
+
     pub fn validate(&self) -> Result<(), EngineError> {
         let err = |name: &str, msg: String| Err(EngineError::BadInput(format!("vpl parameter {name}: {msg}")));
         let range = |name: &str, v: u32, lo: u32, hi: u32| {
@@ -195,7 +213,9 @@ impl VplParams {
         range("rsm_size", self.rsm_size, 4, 1024)?;
         range("vpls_per_step", self.vpls_per_step, 1, 1024)?;
         range("max_depth", self.max_depth, 1, 1_000_000)?;
-        range("shadow_map_size", self.shadow_map_size, 16, 8192)?;
+        if let Some(n) = self.shadow_map_size {
+            range("shadow_map_size", n, 16, 8192)?;
+        }
         range("vpl_map_size", self.vpl_map_size, 4, 1024)?;
         range("sky_directions", self.sky_directions, 1, 64)?;
         if !(0.0..=0.5).contains(&self.clamp) {

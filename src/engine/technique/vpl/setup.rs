@@ -12,15 +12,16 @@ use crate::engine::atlas::SURFACE_OFFSET;
 use crate::engine::gpu::directions::{DirectionSequence, Directions, SplitMix64};
 use crate::engine::gpu::frame::SceneFrame;
 use crate::engine::gpu::layout::{Bind, compute_pipeline, group_of, layout_of};
-use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowView, shadow_vertices};
+use crate::engine::gpu::shadow::{self, AtlasVertices, ShadowAtlas, ShadowView, shadow_vertices};
 use crate::engine::gpu::slices::StepSlicer;
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::tracer::GpuTracer;
+use crate::engine::gpu::view::{AUTO_MAP_SIZE_MIN, auto_map_size};
 use crate::engine::gpu::{self, RayDevice};
 use crate::engine::scene::LightKind;
 
 use super::rsm::{self, RsmTracer};
-use super::{Emitter, GpuGatherParams, GpuLight, Primary, Vpl, VplParams, lum, pack, shaders};
+use super::{AUTO_ATLAS_BYTES, Emitter, GpuGatherParams, GpuLight, Primary, Vpl, VplParams, lum, pack, shaders};
 
 impl Vpl {
     pub fn prepare(inputs: BakeInputs, params: &serde_json::Value) -> Result<Self, EngineError> {
@@ -58,23 +59,50 @@ impl Vpl {
             primaries.extend((0..params.sky_directions).map(|_| Primary::Sky));
         }
         // Shadow views: a map per distant light, six faces per punctual light, five per VPL.
-        let mut sizes = Vec::new();
-        let mut primary_views = Vec::new();
-        for p in &primaries {
-            primary_views.push(sizes.len() as u32);
-            match p {
-                Primary::Punctual(_) => sizes.extend([(params.shadow_map_size / 2).max(1); 6]),
-                _ => sizes.push(params.shadow_map_size),
+        let views_of = |shadow_map_size: u32| {
+            let mut sizes = Vec::new();
+            let mut primary_views = Vec::new();
+            for p in &primaries {
+                primary_views.push(sizes.len() as u32);
+                match p {
+                    Primary::Punctual(_) => sizes.extend([(shadow_map_size / 2).max(1); 6]),
+                    _ => sizes.push(shadow_map_size),
+                }
             }
+            let vpl_views = sizes.len() as u32;
+            if params.visibility {
+                sizes.extend(std::iter::repeat_n(
+                    params.vpl_map_size,
+                    5 * params.vpls_per_step as usize,
+                ));
+            }
+            (sizes, primary_views, vpl_views)
+        };
+        let max_dim = ctx.limits.max_texture_dimension_2d;
+        // Unset, the distant lights' maps follow the scene and its texels (the grid's
+        // texels, so a page's task chooses the single bake's size), then step down while
+        // the atlas would not fit the device or the memory bound.
+        if params.shadow_map_size.is_none() {
+            let texel_sizes: Vec<f32> = match atlas.grid_texels(&scene) {
+                Ok(grid) => grid.iter().map(|t| t.size).collect(),
+                Err(_) => atlas.texels.iter().map(|t| t.size).collect(),
+            };
+            let mut n = auto_map_size(2.0 * frame.radius, texel_sizes, max_dim);
+            let fits = |n: u32| {
+                shadow::pack(&views_of(n).0, max_dim)
+                    .is_ok_and(|l| l.width as u64 * l.height as u64 * 20 <= AUTO_ATLAS_BYTES)
+            };
+            while n > AUTO_MAP_SIZE_MIN && !fits(n) {
+                n = (n - 256).max(AUTO_MAP_SIZE_MIN);
+            }
+            tracing::info!(
+                shadow_map_size = n,
+                "vpl: distant lights' shadow map size chosen from the scene's size and texel density"
+            );
+            params.shadow_map_size = Some(n);
         }
-        let vpl_views = sizes.len() as u32;
-        if params.visibility {
-            sizes.extend(std::iter::repeat_n(
-                params.vpl_map_size,
-                5 * params.vpls_per_step as usize,
-            ));
-        }
-        let layout = pack(&sizes, ctx.limits.max_texture_dimension_2d)?;
+        let (sizes, primary_views, vpl_views) = views_of(params.shadow_map_pixels());
+        let layout = pack(&sizes, max_dim)?;
 
         let emitters: Vec<Emitter> = scene
             .triangles
