@@ -50,6 +50,18 @@ pub fn auto_map_size(diagonal: f32, texel_sizes: impl IntoIterator<Item = f32>, 
     map_size_for(diagonal, median, max_dimension)
 }
 
+/// An automatic size `n` lowered until `fits` holds: `n`, else the first of n - 256,
+/// n - 512, ... that fits, never below [`AUTO_MAP_SIZE_MIN`] (which is taken when
+/// nothing above it fits: an explicit size is the job's to lower further). For what else
+/// bounds a map besides the texture limit: `obscurance`'s fragment pool, `vpl`'s atlas.
+pub fn largest_fitting(n: u32, fits: impl Fn(u32) -> bool) -> u32 {
+    let mut n = n;
+    while n > AUTO_MAP_SIZE_MIN && !fits(n) {
+        n = n.saturating_sub(256).max(AUTO_MAP_SIZE_MIN);
+    }
+    n
+}
+
 /// [`auto_map_size`]'s rule for a scene diagonal and a texel side (both in metres).
 pub fn map_size_for(diagonal: f32, texel: f32, max_dimension: u32) -> u32 {
     let cap = AUTO_MAP_SIZE_MAX.min(max_dimension);
@@ -292,5 +304,16 @@ mod tests {
         let sizes = [0.102f32, 0.102, 0.102, 0.01, 0.0, f32::NAN, 0.2];
         assert_eq!(auto_map_size(91.0, sizes, 16384), 1792);
         assert_eq!(auto_map_size(91.0, [], 16384), AUTO_MAP_SIZE_MIN);
+    }
+
+    /// Lowered by 256 until it fits, never below the smallest automatic size, from a
+    /// size that is not a multiple of 256 (a device's odd limit) too.
+    #[test]
+    fn an_automatic_size_is_lowered_until_it_fits() {
+        assert_eq!(largest_fitting(1792, |_| true), 1792);
+        assert_eq!(largest_fitting(1792, |n| n <= 1000), 768);
+        assert_eq!(largest_fitting(1792, |_| false), AUTO_MAP_SIZE_MIN);
+        assert_eq!(largest_fitting(600, |_| false), AUTO_MAP_SIZE_MIN);
+        assert_eq!(largest_fitting(512, |_| false), 512);
     }
 }

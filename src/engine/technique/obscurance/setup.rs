@@ -17,8 +17,8 @@ use crate::engine::gpu::shadow::{AtlasVertices, ShadowAtlas, ShadowView, map_tri
 use crate::engine::gpu::slices::StepSlicer;
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::view::{
-    AUTO_MAP_SIZE_MIN, GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, auto_map_size,
-    fill_map,
+    GpuDims, GpuVertex, GpuView, NO_TEXEL, TRI_DOUBLE_SIDED, TRI_TEXTURED_EMISSION, auto_map_size, fill_map,
+    largest_fitting,
 };
 use crate::engine::gpu::{self, GpuError};
 
@@ -117,14 +117,14 @@ impl Obscurance {
         // and the triangles' bounds, so a region's task chooses the single bake's), then
         // steps down while its pool would not fit the device.
         if params.map_size.is_none() {
-            let mut n = auto_map_size(
-                (hi - lo).length(),
-                grid.iter().map(|t| t.size),
-                ctx.limits.max_texture_dimension_2d,
+            let n = largest_fitting(
+                auto_map_size(
+                    (hi - lo).length(),
+                    grid.iter().map(|t| t.size),
+                    ctx.limits.max_texture_dimension_2d,
+                ),
+                |n| pool_for(n).0 <= max_nodes,
             );
-            while n > AUTO_MAP_SIZE_MIN && pool_for(n).0 > max_nodes {
-                n = (n - 256).max(AUTO_MAP_SIZE_MIN);
-            }
             tracing::info!(
                 map_size = n,
                 "obscurance: map size chosen from the scene's size and texel density"

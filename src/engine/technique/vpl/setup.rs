@@ -16,7 +16,7 @@ use crate::engine::gpu::shadow::{self, AtlasVertices, ShadowAtlas, ShadowView, s
 use crate::engine::gpu::slices::StepSlicer;
 use crate::engine::gpu::texels::GpuTexelGeom;
 use crate::engine::gpu::tracer::GpuTracer;
-use crate::engine::gpu::view::{AUTO_MAP_SIZE_MIN, auto_map_size};
+use crate::engine::gpu::view::{auto_map_size, largest_fitting};
 use crate::engine::gpu::{self, RayDevice};
 use crate::engine::scene::LightKind;
 
@@ -87,14 +87,10 @@ impl Vpl {
                 Ok(grid) => grid.iter().map(|t| t.size).collect(),
                 Err(_) => atlas.texels.iter().map(|t| t.size).collect(),
             };
-            let mut n = auto_map_size(2.0 * frame.radius, texel_sizes, max_dim);
-            let fits = |n: u32| {
+            let n = largest_fitting(auto_map_size(2.0 * frame.radius, texel_sizes, max_dim), |n| {
                 shadow::pack(&views_of(n).0, max_dim)
                     .is_ok_and(|l| l.width as u64 * l.height as u64 * 20 <= AUTO_ATLAS_BYTES)
-            };
-            while n > AUTO_MAP_SIZE_MIN && !fits(n) {
-                n = (n - 256).max(AUTO_MAP_SIZE_MIN);
-            }
+            });
             tracing::info!(
                 shadow_map_size = n,
                 "vpl: distant lights' shadow map size chosen from the scene's size and texel density"
