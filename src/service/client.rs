@@ -336,11 +336,14 @@ async fn follow(http: &reqwest::Client, server: &str, id: &str, retry_for: Durat
         let resp = match http.get(format!("{server}/v1/jobs/{id}/events")).send().await {
             Ok(r) if is_busy(r.status()) && std::time::Instant::now() + retry_after(&r) <= give_up => {
                 let wait = retry_after(&r);
-                eprintln!(
-                    "events: the server is busy ({}); trying again in {} s",
-                    r.status().as_u16(),
-                    wait.as_secs()
-                );
+                // Above the bar, not through it (a hidden bar just prints).
+                bar.suspend(|| {
+                    eprintln!(
+                        "events: the server is busy ({}); trying again in {} s",
+                        r.status().as_u16(),
+                        wait.as_secs()
+                    )
+                });
                 tokio::time::sleep(wait).await;
                 continue;
             }

@@ -14,7 +14,8 @@
 //! technique that reads a neighbourhood of map pixels sees geometry that far to the
 //! side of a texel's ray (docs/sdb.md, "The map's size on a level"). The automatic size
 //! gives a pixel of at most half the lightmap's median texel, between 512 and 4096;
-//! `sdb` and `obscurance` take it when a job leaves `map_size` unset.
+//! `sdb` and `obscurance` take it when a job leaves `map_size` unset, `vpl` for its
+//! distant lights' shadow maps when `shadow_map_size` is unset.
 
 use bytemuck::{Pod, Zeroable};
 use glam::Vec3;
