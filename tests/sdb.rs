@@ -452,10 +452,7 @@ fn the_map_size_is_chosen_from_the_scene_and_its_texels() {
         return;
     }
     // Two 1 m squares 12 m apart: a 12 m scene with texels of a few centimetres.
-    let mut far = SceneBuilder::new();
-    let m = far.material(MaterialDesc::diffuse("grey", [0.5; 3]));
-    far.square("near", Vec3::ZERO, 1.0, Vec3::Y, m);
-    far.square("far", Vec3::new(12.0, 0.0, 0.0), 1.0, Vec3::Y, m);
+    let far = common::two_squares(12.0);
     let mut room = SceneBuilder::new();
     let m = room.material(MaterialDesc::diffuse("grey", [0.5; 3]));
     room.square("floor", Vec3::ZERO, 1.0, Vec3::Y, m);

@@ -128,11 +128,7 @@ fn the_shadow_map_size_is_chosen_from_the_scene_and_is_the_same_for_a_region() {
     if !have_adapter() {
         return;
     }
-    let mut b = SceneBuilder::new();
-    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
-    b.square("near", Vec3::ZERO, 1.0, Vec3::Y, m);
-    b.square("far", Vec3::new(12.0, 0.0, 0.0), 1.0, Vec3::Y, m);
-    let scene = Arc::new(import(&b));
+    let scene = Arc::new(import(&common::two_squares(12.0)));
     let atlas = Arc::new(Atlas::build(&scene, 64, 64).expect("atlas"));
     let lighting = Lighting {
         sun: Some(Sun {

@@ -12,6 +12,17 @@ use lightmapd::engine::scene::build::SceneBuilder;
 use lightmapd::engine::scene::{Lighting, Scene, import_slice};
 use lightmapd::engine::technique::{self, BakeInputs};
 
+/// Two 1 m grey squares facing up, `apart` metres apart along x: a scene many texels
+/// wide, whose scene-wide maps the techniques size from it (`gpu::view::auto_map_size`).
+pub fn two_squares(apart: f32) -> SceneBuilder {
+    use lightmapd::engine::scene::build::MaterialDesc;
+    let mut b = SceneBuilder::new();
+    let m = b.material(MaterialDesc::diffuse("grey", [0.5; 3]));
+    b.square("near", Vec3::ZERO, 1.0, Vec3::Y, m);
+    b.square("far", Vec3::new(apart, 0.0, 0.0), 1.0, Vec3::Y, m);
+    b
+}
+
 pub fn import(builder: &SceneBuilder) -> Scene {
     import_slice(&builder.to_glb(), None).expect("test scene imports").0
 }
