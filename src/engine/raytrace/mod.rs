@@ -2,96 +2,76 @@
 //! validation: a BVH, closest-hit and occlusion queries, and the sampling helpers every
 //! CPU estimator needs.
 //!
-//! The queries traverse obvhs's compressed wide BVH (8 children a node, child boxes
-//! quantised to 8 bits, Ylitie et al. 2017); triangles are intersected with a
-//! Möller–Trumbore test written here, which also yields the barycentrics the material
-//! lookups need. obvhs's binary BVH is built too: it is the tree the GPU flattens
-//! (`engine::gpu::bvh`), and what the queries traversed before.
+//! The queries traverse obvhs's wide BVH (8 children a node, built with spatial splits and
+//! reinsertion, SAH-collapsed from a binary tree: Ylitie et al. 2017), decoded from its
+//! compressed nodes into `f32` child boxes in eight-lane rows, with the leaves' triangles
+//! copied out in leaf order (`bvh8`: why, the slab test's rounding, the traversal).
+//! Triangles are intersected with a Möller–Trumbore test written here, which also yields
+//! the barycentrics the material lookups need. obvhs's binary BVH is built too: it is the
+//! tree the GPU flattens (`engine::gpu::bvh`).
 //!
 //! ## Near the origin
-//! obvhs's wide traversal clips every child box to t >= 1e-4 (`EPSILON` in its
-//! `cwbvh::node`, an absolute distance): a box the ray leaves before 1e-4 is skipped.
-//! That lost 14 % of the hits of rays starting 7e-5 m off a wall toward it in our
-//! closed-box test, exactly the hits a path's next bounce off a corner needs
-//! (`docs/stability.md`), and was why this module used the binary tree. The wide tree is
-//! now built over the scene as it is and then scaled by a power of two 2^k that puts the
-//! scene's extent near 2^20: each node's corner times 2^k and its exponent byte plus k,
-//! and each query's origin and farthest distance times 2^k. Scaling by a power of two is
-//! exact in f32, so the boxes are the same boxes and a distance divides back without
-//! rounding; the 1e-4 now stands for about 1e-10 of the scene's size, far below the f32
-//! spacing of its coordinates (6e-8 of it), so no hit a path can ask for is clipped.
-//! The triangle test runs in the scene's own coordinates, so hits and their distances
-//! are bit for bit the binary tree's, except which of two triangles at the same distance
-//! (below) a query returns (a shared edge; traversal order decides). Tested:
-//! `hits_next_to_the_origin_are_found_at_every_scale` below (7e-5 and 1e-6 of the size,
-//! scales 1e-3 to 1e4, translated by 1e5: every wall found at the brute-force distance;
-//! with k = 0 it fails), and `tests/gpu_bvh.rs` against the GPU's tree.
+//! Nothing is clipped near a ray's origin: the node test starts at t = 0, and the triangle
+//! test counts any t > 0. (obvhs's own wide traversal clips every child box to an
+//! absolute t >= 1e-4. That lost 14 % of the hits of rays starting 7e-5 m off a wall
+//! toward it in our closed-box test, exactly the hits a path's next bounce off a corner
+//! needs, `docs/stability.md`; until 2026-12-07 the tree was scaled by a power of two to
+//! make that 1e-4 negligible.) Tested: `hits_next_to_the_origin_are_found_at_every_scale`
+//! below (7e-5 and 1e-6 of the size, scales 1e-3 to 1e4, translated by 1e5: every wall
+//! found at the brute-force distance), and `tests/gpu_bvh.rs` against the GPU's tree.
 //!
 //! ## Near the farthest distance
-//! The wide node test is not exact: it measures a child box's slabs from the node's
-//! corner, (p - o + q e) / d, so its rounding is a few ulps of the corner's distance
-//! (up to 1e-7 of the scene's size at the root, more for rays that graze an axis), not of
-//! the box's. A box whose entry falls within that of a query's farthest distance could be
-//! culled while it holds a hit before it: an occluder 1e-8 of the scene short of a shadow
-//! ray's end was missed on 55 of 4000 rays (1e-6 of the size off a wall, tmax 1 % past
-//! the hit; `tests/gpu_bvh.rs`). So the traversal culls against the farthest distance plus
-//! a slack of 2^-20 of the scene's extent (about 1e-6), while the triangle test keeps the
-//! exact bound: a hit is counted only before `tmax`, and in a closest-hit query each
-//! candidate's value reaches the traversal moved out by the same slack, so the boxes
-//! beyond the best hit are culled with the same margin and two candidates compare as
-//! their distances do (to the f32 rounding of the moved value, 6e-8 of the scene's size:
-//! closer than that they are a tie, which traversal order decides).
+//! The node test's distances are rounded (two roundings each), so a box whose entry lies
+//! within that of a query's farthest distance could be culled while it holds a hit before
+//! it (an occluder 1e-8 of the scene short of a shadow ray's end, `tests/gpu_bvh.rs`). The
+//! node test moves every far distance, the query's farthest one included, out by a factor
+//! 1 + 2^-20, more than the rounding of both ends (`bvh8`, "The slab test and its
+//! rounding"), while the triangle test keeps the exact bound: a hit is counted only
+//! before `tmax`, and in a closest-hit query each candidate is tested against the best
+//! value so far, so two candidates compare as their distances do (closer than the f32
+//! rounding of a distance they are a tie, which traversal order decides).
 //!
 //! ## Negative zeros
-//! obvhs's wide node test takes a direction component's sign from `d < 0` and its inverse
-//! from `signum` (-1 for -0.0), so a -0.0 component swapped the slab bounds and the ray
-//! hit nothing (straight-down sun rays built as the negated direction to the sun are such
-//! rays: `tests/vpl.rs` lost the whole bounce); the traversal's direction has +0.0 added
-//! (`Tracer::wide_ray`).
+//! A direction component of -0.0 has the inverse -∞, which would pick the wrong plane of
+//! the slab as the near one and miss everything (straight-down sun rays built as the
+//! negated direction to the sun are such rays: `tests/vpl.rs` lost the whole bounce with
+//! obvhs's test); the node test's direction has +0.0 added first (`bvh8::RayData`).
 //!
 //! ## Speed
-//! `path`'s time a step, release build, this 2-core VM (2026-12-06, docs/peers.md), binary
-//! tree → wide tree (obvhs's `very_slow_build`: spatial splits, full reinsertion): Cornell
-//! box 64² 17.4 → 11.6 ms (1.50×), blocks-25k 128² 17.9 → 17.3 ms (1.03×), the occlusion
-//! room 256² 183 → 148 ms (1.24×), the 256k-triangle generated level at 1024² 1670 →
-//! 1444 ms (1.16×). The medium preset the binary tree uses gave 12.0, 18.2, 167 and 1599
-//! ms. The second build costs less than the steps save on the 256k-triangle level's first
-//! four steps (whole process 11.2 → 10.5 s).
+//! The traversal is built twice and picked at run time: for the baseline x86-64 the
+//! binary targets, with a scalar node test; and with x86-64-v3's AVX2, FMA, BMI and LZCNT,
+//! with a node test that takes the eight children in one AVX2 pass (the same operations
+//! in the same order, so the same children are entered). The queries use the second
+//! wherever the CPU has those features (checked once per tracer; `LIGHTMAPD_NO_AVX2` set
+//! in the environment forces the baseline, for comparisons): Cycles picks its kernels by
+//! CPU the same way. Both answer every query as testing every triangle does
+//! (`both_builds_of_the_traversal_answer_as_brute_force`; the near-origin and -0.0 tests
+//! run both). When a candidate becomes the closest hit, its scene triangle and normal are
+//! prefetched: the caller shades from them next, and the traversal usually runs on long
+//! enough to hide the miss.
 //!
-//! The traversal loop is obvhs's own (its `traverse!` macro, expanded here in
-//! `traversal`), built twice: for the baseline x86-64 the binary targets, with obvhs's
-//! node test (SSE, four children a pass); and with x86-64-v3's AVX2, FMA, BMI and LZCNT,
-//! with a node test of ours that takes all eight children in one AVX2 pass (the same
-//! arithmetic in the same order, so the same boxes are entered). The queries use the
-//! second wherever the CPU has those features (checked once per tracer;
-//! `LIGHTMAPD_NO_AVX2` set in the environment forces the baseline, for comparisons):
-//! Cycles picks its kernels by CPU the same way. Both answer every query bit for bit as
-//! testing every triangle does (`both_builds_of_the_traversal_answer_as_brute_force`;
-//! the near-origin and -0.0 tests run both). `path` a step, 3 runs each, release, this
-//! VM (2026-12-06), baseline → AVX2 loop with obvhs's node test → with the eight-wide
-//! one: blocks-25k 15.85 → 14.8 → 13.6 ms, the Cornell box 10.2 → 10.0 → 10.0 ms, the
-//! occlusion room 139.7 → 134.1 → 118.9 ms; the lightmaps are the same to the bit.
-//! Building the whole binary for x86-64-v3 instead gained 5–10 % and would not run on
-//! CPUs without AVX2.
-//!
-//! Tried and not kept (2026-12-07, this VM, release, 3 alternating runs each): the
-//! triangles copied for the queries into the wide tree's leaf order, 48 bytes each
-//! (first corner, two edges, the index and the material's alpha and sidedness flags),
-//! instead of reading the 128-byte scene triangles and their materials. `path`'s time
-//! moved from 0.89 to 0.88 s (blocks-25k 128², 64 steps), 2.12 to 2.06 s (the Cornell
-//! box 64², 256 steps) and 1.58 to 1.55 s (the occlusion room 256², 16 steps), within
-//! the runs' spread: the first touch of a hit triangle's data still misses the cache, in
-//! the shading after the query instead of in its test (`perf` showed the miss move), and
-//! the node tests are most of the traversal.
+//! `path`'s time a step, release build, this 2-core VM (an `Intel(R) Xeon(R) Processor`),
+//! 2026-12-07, 3 alternating runs each (docs/performance.md, docs/peers.md): obvhs's
+//! compressed nodes with our AVX2 node test → the `f32` tree, blocks-25k 128² 19.3 →
+//! 14.3 ms (1.35×), the Cornell box 64² 9.8 → 7.8 ms (1.25×), the occlusion room 256²
+//! 148 → 104 ms (1.42×), with the lightmaps the same but for near-ties (blocks-25k: 3 of
+//! 49,152 values; the other two bit for bit). Before (2026-12-06,
+//! another VM): binary tree → compressed wide tree 17.4 → 11.6 ms (Cornell box), 17.9 →
+//! 17.3 ms (blocks-25k), 183 → 148 ms (the occlusion room at 256²), 1670 → 1444 ms (the
+//! 256k-triangle generated level at 1024²); the eight-wide AVX2 node test on the
+//! compressed nodes took blocks-25k from 15.85 to 13.6 ms and the occlusion room from
+//! 139.7 to 118.9 ms. Building the whole binary for x86-64-v3 instead gained 5–10 % then
+//! and would not run on CPUs without AVX2.
 //!
 //! Alpha: a candidate hit on a MASK or BLEND triangle counts only where
 //! [`Scene::stops_ray`] says the surface is there (glTF alpha, issue 19 point 5), in both
-//! queries; opaque triangles pay one material lookup per candidate hit.
+//! queries; the leaf records carry the material's flags, so opaque triangles need no
+//! material lookup.
 //!
-//! Limits: single rays, no packets or ray streams (a wide node's eight boxes are tested
-//! in one AVX2 pass, or four at a time in SSE without AVX2); memory for two trees; rays
-//! hit both faces of every triangle (callers decide what a back face means), except that
-//! a closest hit prefers a front face over a coincident single-sided back face
+//! Limits: single rays, no packets or ray streams; memory for two trees (the binary one
+//! for the GPU, 256 bytes a wide node and 44 a leaf triangle for the CPU); rays hit both
+//! faces of every triangle (callers decide what a back face means), except that a
+//! closest hit prefers a front face over a coincident single-sided back face
 //! ([`BACK_FACE_TIE`]).
 
 use std::f32::consts::PI;
@@ -100,12 +80,14 @@ use std::time::Duration;
 use glam::{Vec3, Vec3A};
 use obvhs::bvh2::Bvh2;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
-use obvhs::cwbvh::CwBvh;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
-use obvhs::ray::{Ray, RayHit};
+use obvhs::ray::Ray;
 
 use crate::engine::accumulate::LUMINANCE;
-use crate::engine::scene::{AlphaMode, Scene, Triangle};
+use crate::engine::scene::{Scene, Triangle};
+
+mod bvh8;
+use bvh8::{Bvh8, RayData};
 
 /// How much farther a back-face hit on a single-sided triangle counts in a closest-hit
 /// query ([`Tracer::trace`]; the GPU's `bvh_closest` uses the same factor): 1e-5
@@ -117,14 +99,9 @@ pub const BACK_FACE_TIE: f32 = 1.0 + 1e-5;
 pub struct Tracer {
     /// The binary tree: built here, flattened for the GPU (`engine::gpu::bvh`).
     bvh: Bvh2,
-    /// The same tree as obvhs's compressed wide BVH, which the CPU queries traverse, its
-    /// coordinates multiplied by `scale` (module doc, "Near the origin").
-    wide: CwBvh,
-    /// A power of two, so that scaling a coordinate or a distance by it is exact.
-    scale: f32,
-    /// How far past a query's farthest distance the wide traversal still enters boxes, in
-    /// scaled units (module doc, "Near the farthest distance").
-    slack: f32,
+    /// obvhs's wide BVH with `f32` child boxes and the leaves' triangles in leaf order,
+    /// which the CPU queries traverse ([`bvh8`]).
+    wide: Bvh8,
     /// Each triangle's unit geometric normal (`Triangle::geometric_normal`), which the
     /// estimators need at every hit.
     normals: Vec<Vec3>,
@@ -154,21 +131,18 @@ impl Tracer {
         // The wide tree is built on its own (obvhs converts only a binary tree with one
         // triangle a leaf, and the GPU's keeps up to 8), with obvhs's slowest preset
         // (spatial splits, full reinsertion): module doc, "Speed".
-        let (wide, scale) = scaled_wide(build_cwbvh_from_tris(
+        let wide = build_cwbvh_from_tris(
             &tris,
             obvhs::BvhBuildParams::very_slow_build(),
             &mut Duration::default(),
-        ));
-        let slack = (wide.total_aabb.max - wide.total_aabb.min).max_element() * SLACK;
+        );
         #[cfg(target_arch = "x86_64")]
         let v3 = traversal::v3_available() && std::env::var_os("LIGHTMAPD_NO_AVX2").is_none();
         #[cfg(not(target_arch = "x86_64"))]
         let v3 = false;
         Tracer {
             bvh,
-            wide,
-            scale,
-            slack,
+            wide: Bvh8::new(&wide, scene),
             normals: scene.triangles.iter().map(Triangle::geometric_normal).collect(),
             v3,
         }
@@ -186,20 +160,6 @@ impl Tracer {
         &self.bvh
     }
 
-    /// The wide traversal's ray for a query: origin and farthest distance scaled, the
-    /// farthest distance moved out by the slack, and the direction's -0.0s made +0.0
-    /// (module doc, "Near the origin", "Near the farthest distance", "Negative zeros").
-    fn wide_ray(&self, origin: Vec3, dir: Vec3, tmax: f32) -> Ray {
-        // Adding +0.0 turns -0.0 into +0.0 and leaves every other value as it is.
-        let dir = Vec3A::from(dir) + Vec3A::ZERO;
-        Ray::new(
-            Vec3A::from(origin) * self.scale,
-            dir,
-            0.0,
-            tmax * self.scale + self.slack,
-        )
-    }
-
     /// Closest hit along `origin + t·dir`, t in (0, tmax).
     ///
     /// Ties: a hit on the back of a single-sided triangle counts [`BACK_FACE_TIE`] times
@@ -208,126 +168,81 @@ impl Tracer {
     /// own lightmap) the front face is the hit, not whichever the BVH visits first. A
     /// back face nearer by more than that still wins: it is a real occluder.
     pub fn trace(&self, scene: &Scene, origin: Vec3, dir: Vec3, tmax: f32) -> Option<Hit> {
-        if self.wide.nodes.is_empty() {
+        if self.wide.is_empty() {
             return None;
         }
-        let (s, slack) = (self.scale, self.slack);
-        // The test runs in the scene's coordinates against the best value so far (`local`'s
-        // tmax: a distance, or a back face's distance times the tie factor); the traversal
-        // sees each value scaled and moved out by the slack, so that it culls boxes
-        // against the best value plus the slack, and compares two values as the test does.
-        let mut local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        let ray = self.wide_ray(origin, dir, tmax);
-        let mut hit = RayHit::none();
-        let found = self.closest(ray, &mut hit, |r, id| {
-            let index = self.wide.primitive_indices[id];
-            let tri = &scene.triangles[index as usize];
-            let Some((t, b)) = intersect(tri, &local) else {
-                return f32::INFINITY;
-            };
-            let m = scene.material(tri);
-            let value = if m.alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
-                return f32::INFINITY;
-            } else if !m.double_sided && dir.dot(tri.cross()) > 0.0 {
+        let r = RayData::new(origin, dir);
+        let mut found: Option<Hit> = None;
+        // Each candidate is tested against the best value so far (a distance, or a back
+        // face's distance times the tie factor) and kept when its own value is below it.
+        self.closest(&r, tmax, |k, best| {
+            let rec = self.wide.record(k);
+            let (t, b) = intersect_edges(rec.p0.into(), rec.e1.into(), rec.e2.into(), r.origin, r.dir, 0.0, best)?;
+            if rec.flags & bvh8::ALPHA != 0 && !scene.stops_ray(rec.index, b, origin, dir) {
+                return None;
+            }
+            let value = if rec.flags & bvh8::ONE_SIDED != 0 && dir.dot(rec.e1.cross(rec.e2)) > 0.0 {
                 t * BACK_FACE_TIE
             } else {
                 t
             };
-            let seen = value * s + slack;
-            // obvhs keeps the candidate exactly when this holds (`t < tmax` in its
-            // traversal); mirror it so `local` holds the value it keeps.
-            if seen < r.tmax {
-                local.tmax = value;
-            }
-            seen
+            (value < best).then(|| {
+                // The caller reads this triangle and its normal next; the traversal usually
+                // goes on for a while, long enough to fetch them (module doc, "Speed").
+                prefetch(&scene.triangles[rec.index as usize]);
+                prefetch(&self.normals[rec.index as usize]);
+                found = Some(Hit {
+                    triangle: rec.index,
+                    t,
+                    bary: b,
+                });
+                value
+            })
         });
-        if !found {
-            return None;
-        }
-        let triangle = self.wide.primitive_indices[hit.primitive_id as usize];
-        let tri = &scene.triangles[triangle as usize];
-        let (t, bary) = intersect(tri, &Ray::new(origin.into(), dir.into(), 0.0, f32::INFINITY))?;
-        Some(Hit { triangle, t, bary })
+        found
     }
 
     /// True when nothing lies between `origin` and `origin + tmax·dir`.
     pub fn unoccluded(&self, scene: &Scene, origin: Vec3, dir: Vec3, tmax: f32) -> bool {
-        if self.wide.nodes.is_empty() {
+        if self.wide.is_empty() {
             return true;
         }
-        let s = self.scale;
-        // Any hit the exact test finds before `tmax` is below the traversal's tmax, which
-        // the slack moves out (module doc, "Near the farthest distance").
-        let local = Ray::new(origin.into(), dir.into(), 0.0, tmax);
-        let ray = self.wide_ray(origin, dir, tmax);
-        self.missed(ray, |_, id| {
-            let index = self.wide.primitive_indices[id];
-            let tri = &scene.triangles[index as usize];
-            intersect(tri, &local).map_or(f32::INFINITY, |(t, b)| {
-                if scene.material(tri).alpha_mode != AlphaMode::Opaque && !scene.stops_ray(index, b, origin, dir) {
-                    f32::INFINITY
-                } else {
-                    s * t
-                }
-            })
+        let r = RayData::new(origin, dir);
+        self.missed(&r, tmax, |k| {
+            let rec = self.wide.record(k);
+            intersect_edges(rec.p0.into(), rec.e1.into(), rec.e2.into(), r.origin, r.dir, 0.0, tmax)
+                .is_some_and(|(_, b)| rec.flags & bvh8::ALPHA == 0 || scene.stops_ray(rec.index, b, origin, dir))
         })
     }
 }
 
-/// The traversal loops, written once ([`obvhs::traverse!`], obvhs's own loop, with the
-/// node test as a parameter) and built twice: for the baseline x86-64 the binary targets
-/// with obvhs's node test, and with AVX2, FMA, BMI and LZCNT and an eight-wide node test
-/// for the CPUs that have them, chosen at run time (`Tracer::v3`; module doc, "Speed").
-mod traversal {
-    // `traverse!` names glam's `UVec2` unqualified.
-    use glam::{UVec2, Vec3A};
-    use obvhs::cwbvh::CwBvh;
-    use obvhs::cwbvh::node::{CwBvhNode, extract_byte64};
-    use obvhs::ray::{Ray, RayHit};
-
-    /// Closest hit: obvhs's `CwBvh::ray_traverse`, as its source writes it, with the node
-    /// test `hits` (which children the ray enters, as obvhs's `CwBvhNode::intersect_ray`).
-    #[inline(always)]
-    pub fn closest<N, F>(wide: &CwBvh, ray: Ray, hit: &mut RayHit, hits: N, mut test: F) -> bool
-    where
-        N: Fn(&CwBvhNode, &Ray, u32) -> u32,
-        F: FnMut(&Ray, usize) -> f32,
+/// Asks the CPU to bring `value`'s cache lines in (a hint: no effect on any result).
+#[inline(always)]
+fn prefetch<T>(value: &T) {
+    #[cfg(target_arch = "x86_64")]
     {
-        let mut traverse_ray = ray;
-        let mut state = wide.new_traversal(ray.direction);
-        let mut node;
-        obvhs::traverse!(wide, node, state, hits(node, &traverse_ray, state.oct_inv4), {
-            let t = test(&traverse_ray, state.primitive_id as usize);
-            if t < traverse_ray.tmax {
-                hit.primitive_id = state.primitive_id;
-                hit.t = t;
-                traverse_ray.tmax = t;
+        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+        let start = (value as *const T).cast::<i8>();
+        // Every line the value touches: its first byte, each 64 bytes on, its last byte.
+        // SAFETY: SSE is part of every x86-64 target, and a prefetch of any address is
+        // only a hint (it never faults).
+        unsafe {
+            let mut offset = 0;
+            while offset < size_of::<T>() {
+                _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(offset));
+                offset += 64;
             }
-        });
-        hit.t < ray.tmax
-    }
-
-    /// True when no primitive's test comes out below the ray's tmax: obvhs's
-    /// `CwBvh::ray_traverse_miss`.
-    #[inline(always)]
-    pub fn missed<N, F>(wide: &CwBvh, ray: Ray, hits: N, mut test: F) -> bool
-    where
-        N: Fn(&CwBvhNode, &Ray, u32) -> u32,
-        F: FnMut(&Ray, usize) -> f32,
-    {
-        let mut state = wide.new_traversal(ray.direction);
-        let mut node;
-        let mut miss = true;
-        'outer: {
-            obvhs::traverse!(wide, node, state, hits(node, &ray, state.oct_inv4), {
-                if test(&ray, state.primitive_id as usize) < ray.tmax {
-                    miss = false;
-                    break 'outer;
-                }
-            });
+            _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(size_of::<T>().saturating_sub(1)));
         }
-        miss
     }
+}
+
+/// The traversal loops ([`bvh8::closest`], [`bvh8::missed`]) built twice: for the
+/// baseline x86-64 the binary targets with the scalar node test, and with AVX2, FMA, BMI
+/// and LZCNT and the eight-lane AVX2 node test for the CPUs that have them, chosen at run
+/// time (`Tracer::v3`; module doc, "Speed").
+mod traversal {
+    use super::bvh8::{self, Bvh8, RayData, Stack};
 
     /// Whether the CPU has the features of the second build (x86-64-v3's that it
     /// enables).
@@ -342,163 +257,129 @@ mod traversal {
     }
 
     /// The baseline build, a function of its own as the AVX2 one is (so the caller stays
-    /// small either way), with obvhs's node test (SSE, four children at a time).
+    /// small either way).
     #[inline(never)]
-    pub fn closest_base<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, hit: &mut RayHit, test: F) -> bool {
-        closest(wide, ray, hit, |n, r, o| n.intersect_ray(r, o), test)
+    pub fn closest_base<F: FnMut(usize, f32) -> Option<f32>>(
+        bvh: &Bvh8,
+        r: &RayData,
+        tmax: f32,
+        stack: &mut Stack<'_>,
+        test: F,
+    ) -> f32 {
+        bvh8::closest(bvh, r, tmax, stack, bvh8::node_test_scalar, test)
     }
 
     #[inline(never)]
-    pub fn missed_base<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, test: F) -> bool {
-        missed(wide, ray, |n, r, o| n.intersect_ray(r, o), test)
+    pub fn missed_base<F: FnMut(usize) -> bool>(
+        bvh: &Bvh8,
+        r: &RayData,
+        tmax: f32,
+        stack: &mut Stack<'_>,
+        test: F,
+    ) -> bool {
+        bvh8::missed(bvh, r, tmax, stack, bvh8::node_test_scalar, test)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    pub fn closest_v3<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, hit: &mut RayHit, test: F) -> bool {
-        closest(wide, ray, hit, |n, r, o| node_hits_avx2(n, r, o), test)
+    pub fn closest_v3<F: FnMut(usize, f32) -> Option<f32>>(
+        bvh: &Bvh8,
+        r: &RayData,
+        tmax: f32,
+        stack: &mut Stack<'_>,
+        test: F,
+    ) -> f32 {
+        // SAFETY (inside the closure): this function runs only where AVX2 is present.
+        bvh8::closest(bvh, r, tmax, stack, |n, r, t| bvh8::node_test_avx2(n, r, t), test)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    pub fn missed_v3<F: FnMut(&Ray, usize) -> f32>(wide: &CwBvh, ray: Ray, test: F) -> bool {
-        missed(wide, ray, |n, r, o| node_hits_avx2(n, r, o), test)
-    }
-
-    /// obvhs's `EPSILON`, the nearest entry distance its node test accepts (module doc,
-    /// "Near the origin"); crate-private there, so repeated here to give the same answers.
-    #[cfg(target_arch = "x86_64")]
-    const NODE_EPSILON: f32 = 0.0001;
-
-    /// obvhs's `CwBvhNode::intersect_ray_simd` with all eight children in one AVX2 lane
-    /// set instead of two SSE passes: the quantised bounds widened from bytes by
-    /// `vpmovzxbd` and converted exactly, then the same products, sums, min/max operand
-    /// order (so NaNs, from 0 × inf on an axis-parallel ray, fall as obvhs's do), ordered
-    /// comparison and hit-mask assembly. No FMA: a fused product would round differently
-    /// from obvhs's, and the two builds answer alike.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    #[inline]
-    fn node_hits_avx2(node: &CwBvhNode, ray: &Ray, oct_inv4: u32) -> u32 {
-        use std::arch::x86_64::*;
-        let adj_inv = node.compute_extent() * ray.inv_direction;
-        let adj_orig = (Vec3A::from(node.p) - ray.origin) * ray.inv_direction;
-        // SAFETY: each array is 8 bytes, the width `_mm_loadl_epi64` reads (unaligned).
-        let widen =
-            |b: &[u8; 8]| _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(unsafe { _mm_loadl_epi64(b.as_ptr().cast()) }));
-        let slab = |lo: &[u8; 8], hi: &[u8; 8], negative: bool, inv: f32, orig: f32| {
-            let (near, far) = if negative {
-                (widen(hi), widen(lo))
-            } else {
-                (widen(lo), widen(hi))
-            };
-            let (inv, orig) = (_mm256_set1_ps(inv), _mm256_set1_ps(orig));
-            (
-                _mm256_add_ps(_mm256_mul_ps(near, inv), orig),
-                _mm256_add_ps(_mm256_mul_ps(far, inv), orig),
-            )
-        };
-        let d = ray.direction;
-        let (tmin_x, tmax_x) = slab(&node.child_min_x, &node.child_max_x, d.x < 0.0, adj_inv.x, adj_orig.x);
-        let (tmin_y, tmax_y) = slab(&node.child_min_y, &node.child_max_y, d.y < 0.0, adj_inv.y, adj_orig.y);
-        let (tmin_z, tmax_z) = slab(&node.child_min_z, &node.child_max_z, d.z < 0.0, adj_inv.z, adj_orig.z);
-        let tmin = _mm256_max_ps(tmin_x, _mm256_max_ps(tmin_y, tmin_z));
-        let tmax = _mm256_min_ps(tmax_x, _mm256_min_ps(tmax_y, tmax_z));
-        let tmin = _mm256_max_ps(tmin, _mm256_set1_ps(NODE_EPSILON));
-        let tmax = _mm256_min_ps(tmax, _mm256_set1_ps(ray.tmax));
-        let mut entered = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OS>(tmin, tmax)) as u32;
-        let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
-        let mut hit_mask = 0u32;
-        while entered != 0 {
-            let j = entered.trailing_zeros() as usize;
-            entered &= entered - 1;
-            hit_mask |= extract_byte64(child_bits8, j) << extract_byte64(bit_index8, j);
-        }
-        hit_mask
+    pub fn missed_v3<F: FnMut(usize) -> bool>(
+        bvh: &Bvh8,
+        r: &RayData,
+        tmax: f32,
+        stack: &mut Stack<'_>,
+        test: F,
+    ) -> bool {
+        bvh8::missed(bvh, r, tmax, stack, |n, r, t| bvh8::node_test_avx2(n, r, t), test)
     }
 }
 
 impl Tracer {
-    /// The wide traversal's closest hit, in the build the CPU runs best.
+    /// The closest-hit traversal, in the build the CPU runs best.
     #[inline(always)]
-    fn closest<F: FnMut(&Ray, usize) -> f32>(&self, ray: Ray, hit: &mut RayHit, test: F) -> bool {
-        #[cfg(target_arch = "x86_64")]
-        if self.v3 {
-            // SAFETY: `v3` is true only where the CPU has every feature the build enables.
-            return unsafe { traversal::closest_v3(&self.wide, ray, hit, test) };
-        }
-        traversal::closest_base(&self.wide, ray, hit, test)
+    fn closest<F: FnMut(usize, f32) -> Option<f32>>(&self, r: &RayData, tmax: f32, test: F) -> f32 {
+        self.wide.with_stack(|stack| {
+            #[cfg(target_arch = "x86_64")]
+            if self.v3 {
+                // SAFETY: `v3` is true only where the CPU has every feature the build enables.
+                return unsafe { traversal::closest_v3(&self.wide, r, tmax, stack, test) };
+            }
+            traversal::closest_base(&self.wide, r, tmax, stack, test)
+        })
     }
 
-    /// The wide traversal's occlusion test, in the build the CPU runs best.
+    /// The occlusion traversal, in the build the CPU runs best.
     #[inline(always)]
-    fn missed<F: FnMut(&Ray, usize) -> f32>(&self, ray: Ray, test: F) -> bool {
-        #[cfg(target_arch = "x86_64")]
-        if self.v3 {
-            // SAFETY: as in `closest`.
-            return unsafe { traversal::missed_v3(&self.wide, ray, test) };
-        }
-        traversal::missed_base(&self.wide, ray, test)
+    fn missed<F: FnMut(usize) -> bool>(&self, r: &RayData, tmax: f32, test: F) -> bool {
+        self.wide.with_stack(|stack| {
+            #[cfg(target_arch = "x86_64")]
+            if self.v3 {
+                // SAFETY: as in `closest`.
+                return unsafe { traversal::missed_v3(&self.wide, r, tmax, stack, test) };
+            }
+            traversal::missed_base(&self.wide, r, tmax, stack, test)
+        })
     }
-}
-
-/// [`Tracer::slack`] as a share of the scene's extent: 2^-20, about 1e-6.
-const SLACK: f32 = 1.0 / (1 << 20) as f32;
-
-/// `wide` scaled by a power of two that puts the scene's extent near 2^20 (module doc,
-/// "Near the origin"), and that factor.
-fn scaled_wide(mut wide: CwBvh) -> (CwBvh, f32) {
-    if wide.nodes.is_empty() {
-        return (wide, 1.0);
-    }
-    let extent = (wide.total_aabb.max - wide.total_aabb.min)
-        .max_element()
-        .max(f32::MIN_POSITIVE);
-    // A node's exponent byte is a biased f32 exponent (obvhs: the scale of its child
-    // grid); adding k to it multiplies that grid by 2^k, as `p * 2^k` moves its corner.
-    let lowest = wide.nodes.iter().flat_map(|n| n.e).min().unwrap_or(127) as i32;
-    let highest = wide.nodes.iter().flat_map(|n| n.e).max().unwrap_or(127) as i32;
-    // Within the exponent byte's range, then within f32's (2^k finite), never a panic.
-    let k = (20 - extent.log2().round() as i32)
-        .max(1 - lowest)
-        .min(254 - highest)
-        .clamp(-100, 100);
-    let scale = 2f32.powi(k);
-    for node in &mut wide.nodes {
-        node.p *= scale;
-        for e in &mut node.e {
-            *e = (*e as i32 + k) as u8;
-        }
-    }
-    wide.total_aabb.min *= scale;
-    wide.total_aabb.max *= scale;
-    (wide, scale)
 }
 
 /// Möller–Trumbore, both faces; returns t in (tmin, tmax) and barycentrics.
 #[inline]
 pub fn intersect(tri: &Triangle, ray: &Ray) -> Option<(f32, Vec3)> {
     let p0 = Vec3A::from(tri.p[0]);
-    let e1 = Vec3A::from(tri.p[1]) - p0;
-    let e2 = Vec3A::from(tri.p[2]) - p0;
-    let pv = ray.direction.cross(e2);
+    intersect_edges(
+        p0,
+        Vec3A::from(tri.p[1]) - p0,
+        Vec3A::from(tri.p[2]) - p0,
+        ray.origin,
+        ray.direction,
+        ray.tmin,
+        ray.tmax,
+    )
+}
+
+/// [`intersect`] from the first corner and the two edges from it (the queries keep them:
+/// [`bvh8::Record`]).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn intersect_edges(
+    p0: Vec3A,
+    e1: Vec3A,
+    e2: Vec3A,
+    origin: Vec3A,
+    direction: Vec3A,
+    tmin: f32,
+    tmax: f32,
+) -> Option<(f32, Vec3)> {
+    let pv = direction.cross(e2);
     let det = e1.dot(pv);
     if det == 0.0 || !det.is_finite() {
         return None;
     }
     let inv = 1.0 / det;
-    let tv = ray.origin - p0;
+    let tv = origin - p0;
     let u = tv.dot(pv) * inv;
     if !(0.0..=1.0).contains(&u) {
         return None;
     }
     let qv = tv.cross(e1);
-    let v = ray.direction.dot(qv) * inv;
+    let v = direction.dot(qv) * inv;
     if v < 0.0 || u + v > 1.0 {
         return None;
     }
     let t = e2.dot(qv) * inv;
-    (t > ray.tmin && t < ray.tmax).then_some((t, Vec3::new(1.0 - u - v, u, v)))
+    (t > tmin && t < tmax).then_some((t, Vec3::new(1.0 - u - v, u, v)))
 }
 
 /// An orthonormal basis with `n` as its third axis (Duff et al. 2017).
@@ -765,6 +646,92 @@ mod tests {
         assert!(
             hits > 500 && hits < 2900 && occluded > 100,
             "{hits} hits, {occluded} finite"
+        );
+    }
+
+    /// On the 25,000-triangle blocks scene (its wide tree has spatial-split leaves and
+    /// several levels), in both builds and with the stack on the thread's stack and on the
+    /// heap: rays from just off the surfaces in cosine directions (a path's bounces), and
+    /// axis-parallel rays in the planes of the blocks' tops, where a node's box face holds
+    /// the origin and the slab test meets 0 × ∞ (`bvh8`, "The slab test and its rounding"),
+    /// give the closest hit and the occlusion every triangle tested in turn gives.
+    #[test]
+    fn the_tree_answers_as_brute_force_on_a_level() {
+        use crate::engine::scene::import_slice;
+        use crate::engine::scene::library::procedural_blocks;
+        let (scene, _) = import_slice(&procedural_blocks().to_glb(), None).unwrap();
+        let mut tracer = Tracer::new(&scene);
+        let mut rng = Rng::new(17, 0, 0, 0);
+        let tops: Vec<f32> = scene
+            .triangles
+            .iter()
+            .filter(|t| t.geometric_normal().y > 0.99 && t.p[0].y > 0.1)
+            .map(|t| t.p[0].y)
+            .collect();
+        let mut rays = Vec::new();
+        for i in 0..600 {
+            let k = (rng.next_f32() * scene.triangles.len() as f32) as usize % scene.triangles.len();
+            let tri = &scene.triangles[k];
+            let (origin, dir) = if i % 3 == 0 {
+                let y = tops[(rng.next_f32() * tops.len() as f32) as usize % tops.len()];
+                let origin = Vec3::new(rng.next_f32() * 20.0 - 10.0, y, rng.next_f32() * 20.0 - 10.0);
+                let axis = [Vec3::X, Vec3::NEG_X, Vec3::Z, Vec3::NEG_Z][i % 4];
+                (origin, axis)
+            } else {
+                let (a, b) = (rng.next_f32() * 0.5, rng.next_f32() * 0.5);
+                let n = tri.geometric_normal();
+                let origin = tri.point(Vec3::new(1.0 - a - b, a, b)) + n * 1e-4;
+                (origin, cosine_sample(n, rng.next_f32(), rng.next_f32()))
+            };
+            let tmax = if i % 4 == 1 {
+                rng.next_f32() * 5.0
+            } else {
+                f32::INFINITY
+            };
+            rays.push((origin, dir, tmax));
+        }
+        let mut hits = [0; 2];
+        let own = tracer.wide.stack_len;
+        for (heap, v3) in [false, true]
+            .into_iter()
+            .flat_map(|h| builds().into_iter().map(move |b| (h, b)))
+        {
+            tracer.v3 = v3;
+            // Past the inline stack's size, `with_stack` takes a heap stack of that size.
+            tracer.wide.stack_len = if heap { own.max(bvh8::INLINE_STACK + 1) } else { own };
+            hits = [0; 2];
+            for (i, &(o, d, tmax)) in rays.iter().enumerate() {
+                let ray = Ray::new(o.into(), d.into(), 0.0, tmax);
+                let mut best: Option<(f32, u32, f32)> = None;
+                for (k, tri) in scene.triangles.iter().enumerate() {
+                    if let Some((t, _)) = intersect(tri, &ray) {
+                        let back = !scene.material(tri).double_sided && d.dot(tri.cross()) > 0.0;
+                        let value = if back { t * BACK_FACE_TIE } else { t };
+                        if best.is_none_or(|(v, _, _)| value < v) {
+                            best = Some((value, k as u32, t));
+                        }
+                    }
+                }
+                let hit = tracer.trace(&scene, o, d, tmax);
+                // The distance exactly; the triangle too, except where two are at the same
+                // distance (a shared edge), where the tree may name the other one.
+                assert_eq!(
+                    hit.as_ref().map(|h| h.t.to_bits()),
+                    best.map(|(_, _, t)| t.to_bits()),
+                    "ray {i} ({o}, {d}, {tmax}), AVX2 build {v3}, heap stack {heap}"
+                );
+                assert_eq!(
+                    tracer.unoccluded(&scene, o, d, tmax),
+                    best.is_none(),
+                    "ray {i}, AVX2 build {v3}, heap stack {heap}"
+                );
+                hits[usize::from(i % 3 == 0)] += usize::from(best.is_some());
+            }
+        }
+        // Both answers were asked for, many times, of both kinds of ray.
+        assert!(
+            hits[0] > 100 && hits[0] < 390 && hits[1] > 20 && hits[1] < 190,
+            "{hits:?} of 400 bounce rays and 200 axis-parallel rays hit"
         );
     }
 
