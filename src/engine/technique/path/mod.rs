@@ -40,8 +40,9 @@
 //! opaque: it blocks light and reflects none, as back-face-culled geometry in a
 //! renderer would show it. Double-sided surfaces reflect and emit on both sides.
 //!
-//! Rays are cast with `engine::raytrace` (obvhs's compressed wide BVH, eight children a
-//! node, with an AVX2 node test picked at run time where the CPU has it).
+//! Rays are cast with `engine::raytrace` (obvhs's wide BVH, eight children a node,
+//! decoded into `f32` boxes, with an AVX2 node test picked at run time where the CPU has
+//! it).
 //!
 //! Device (`params.device`): `cpu` traces here on all cores; `gpu` runs the same estimator
 //! as a compute megakernel (`technique::path::gpu`, same tables, other random streams);
