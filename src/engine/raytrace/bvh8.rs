@@ -363,6 +363,23 @@ pub fn node_test_avx2(node: &Node, r: &RayData, tmax: f32) -> (u32, [f32; 8]) {
     (mask, tnear)
 }
 
+/// The records of `node`'s leaf children that `mask` says the ray enters, child by child.
+#[inline(always)]
+fn leaf_records(node: &Node, mask: u32) -> impl Iterator<Item = usize> + '_ {
+    let mut leaves = mask & u32::from(node.leaves);
+    std::iter::from_fn(move || {
+        (leaves != 0).then(|| {
+            let j = leaves.trailing_zeros() as usize;
+            leaves &= leaves - 1;
+            j
+        })
+    })
+    .flat_map(|j| {
+        let first = node.child[j] as usize;
+        first..first + usize::from(node.count[j])
+    })
+}
+
 /// The closest-hit loop: `test(record, best)` tests one record against the best value so
 /// far and returns its value when nearer (a distance, or a back face's distance times
 /// the tie factor). Returns the best value, or `tmax` when nothing was nearer.
@@ -377,15 +394,9 @@ where
     loop {
         let node = &bvh.nodes[cur];
         let (mask, tnear) = node_test(node, r, best);
-        let mut leaves = mask & u32::from(node.leaves);
-        while leaves != 0 {
-            let j = leaves.trailing_zeros() as usize;
-            leaves &= leaves - 1;
-            let first = node.child[j] as usize;
-            for k in first..first + node.count[j] as usize {
-                if let Some(v) = test(k, best) {
-                    best = v;
-                }
+        for k in leaf_records(node, mask) {
+            if let Some(v) = test(k, best) {
+                best = v;
             }
         }
         let cull = best * ROBUST;
@@ -436,16 +447,8 @@ where
     loop {
         let node = &bvh.nodes[cur];
         let (mask, _) = node_test(node, r, tmax);
-        let mut leaves = mask & u32::from(node.leaves);
-        while leaves != 0 {
-            let j = leaves.trailing_zeros() as usize;
-            leaves &= leaves - 1;
-            let first = node.child[j] as usize;
-            for k in first..first + node.count[j] as usize {
-                if test(k) {
-                    return false;
-                }
-            }
+        if leaf_records(node, mask).any(&mut test) {
+            return false;
         }
         let mut inner = mask & !u32::from(node.leaves);
         if inner != 0 {

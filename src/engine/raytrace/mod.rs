@@ -583,6 +583,24 @@ mod tests {
         vec![false]
     }
 
+    /// Every triangle tested in turn: the nearest front-or-back hit before `tmax`, with the
+    /// closest-hit query's tie rule for single-sided back faces, as (value, triangle,
+    /// distance).
+    fn brute_force(scene: &Scene, o: Vec3, d: Vec3, tmax: f32) -> Option<(f32, u32, f32)> {
+        let ray = Ray::new(o.into(), d.into(), 0.0, tmax);
+        let mut best: Option<(f32, u32, f32)> = None;
+        for (k, tri) in scene.triangles.iter().enumerate() {
+            if let Some((t, _)) = intersect(tri, &ray) {
+                let back = !scene.material(tri).double_sided && d.dot(tri.cross()) > 0.0;
+                let value = if back { t * BACK_FACE_TIE } else { t };
+                if best.is_none_or(|(v, _, _)| value < v) {
+                    best = Some((value, k as u32, t));
+                }
+            }
+        }
+        best
+    }
+
     /// The traversal's two builds (baseline and AVX2, `traversal`) answer every query as
     /// testing every triangle in turn does, and as each other do, bit for bit: the same
     /// triangle, the same distance, the same occlusion. Rays from anywhere in the sphere
@@ -612,19 +630,7 @@ mod tests {
             } else {
                 f32::INFINITY
             };
-            let ray = Ray::new(o.into(), d.into(), 0.0, tmax);
-            // Brute force: the nearest front-or-back hit, with the closest-hit query's tie
-            // rule for single-sided back faces.
-            let mut best: Option<(f32, u32, f32)> = None;
-            for (k, tri) in scene.triangles.iter().enumerate() {
-                if let Some((t, _)) = intersect(tri, &ray) {
-                    let back = !scene.material(tri).double_sided && d.dot(tri.cross()) > 0.0;
-                    let value = if back { t * BACK_FACE_TIE } else { t };
-                    if best.is_none_or(|(v, _, _)| value < v) {
-                        best = Some((value, k as u32, t));
-                    }
-                }
-            }
+            let best = brute_force(&scene, o, d, tmax);
             for &v3 in &builds {
                 tracer.v3 = v3;
                 let hit = tracer.trace(&scene, o, d, tmax);
@@ -701,17 +707,7 @@ mod tests {
             tracer.wide.stack_len = if heap { own.max(bvh8::INLINE_STACK + 1) } else { own };
             hits = [0; 2];
             for (i, &(o, d, tmax)) in rays.iter().enumerate() {
-                let ray = Ray::new(o.into(), d.into(), 0.0, tmax);
-                let mut best: Option<(f32, u32, f32)> = None;
-                for (k, tri) in scene.triangles.iter().enumerate() {
-                    if let Some((t, _)) = intersect(tri, &ray) {
-                        let back = !scene.material(tri).double_sided && d.dot(tri.cross()) > 0.0;
-                        let value = if back { t * BACK_FACE_TIE } else { t };
-                        if best.is_none_or(|(v, _, _)| value < v) {
-                            best = Some((value, k as u32, t));
-                        }
-                    }
-                }
+                let best = brute_force(&scene, o, d, tmax);
                 let hit = tracer.trace(&scene, o, d, tmax);
                 // The distance exactly; the triangle too, except where two are at the same
                 // distance (a shared edge), where the tree may name the other one.
