@@ -118,7 +118,6 @@ pub struct RayData {
     pub origin: Vec3A,
     pub dir: Vec3A,
     inv: [f32; 3],
-    o: [f32; 3],
     /// Row of each axis's near plane (0 or 1 above the axis's first row).
     near: [usize; 3],
 }
@@ -132,7 +131,6 @@ impl RayData {
             origin: origin.into(),
             dir: dir.into(),
             inv,
-            o: origin.to_array(),
             near: inv.map(|i| usize::from(i < 0.0)),
         }
     }
@@ -324,8 +322,8 @@ pub fn node_test_scalar(node: &Node, r: &RayData, tmax: f32) -> (u32, [f32; 8]) 
         let mut far = tmax;
         for axis in (0..3).rev() {
             let n = r.near[axis];
-            let tn = (node.b[2 * axis + n][j] - r.o[axis]) * r.inv[axis];
-            let tf = (node.b[2 * axis + 1 - n][j] - r.o[axis]) * r.inv[axis];
+            let tn = (node.b[2 * axis + n][j] - r.origin[axis]) * r.inv[axis];
+            let tf = (node.b[2 * axis + 1 - n][j] - r.origin[axis]) * r.inv[axis];
             near = max(tn, near);
             far = min(tf, far);
         }
@@ -349,7 +347,7 @@ pub fn node_test_avx2(node: &Node, r: &RayData, tmax: f32) -> (u32, [f32; 8]) {
     let mut far = _mm256_set1_ps(tmax);
     for axis in (0..3).rev() {
         let n = r.near[axis];
-        let (o, inv) = (_mm256_set1_ps(r.o[axis]), _mm256_set1_ps(r.inv[axis]));
+        let (o, inv) = (_mm256_set1_ps(r.origin[axis]), _mm256_set1_ps(r.inv[axis]));
         let tn = _mm256_mul_ps(_mm256_sub_ps(row(2 * axis + n), o), inv);
         let tf = _mm256_mul_ps(_mm256_sub_ps(row(2 * axis + 1 - n), o), inv);
         near = _mm256_max_ps(tn, near);
